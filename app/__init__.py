@@ -1,0 +1,1 @@
+"""VLP service: indoor multi-target visible-light positioning."""

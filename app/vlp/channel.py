@@ -1,0 +1,136 @@
+"""The line-of-sight Lambertian channel (paper eqs. 1-3; ``shared/API.md``).
+
+For an LED pointing down and a detector pointing up, ``cos(alpha) = cos(phi) = dz / d``, so
+
+.. math::
+
+    h = \\frac{(m+1) A\\, G_f\\, G_c}{2 \\pi}\\, \\frac{dz^{m+1}}{d^{m+3}}, \\quad \\phi \\le FOV,
+
+and 0 outside the field of view. Its gradient with respect to the receiver's horizontal
+position ``p`` is ``-(m+3) h (p - s) / d^2`` (``s`` the LED's horizontal position), the
+expression behind both the Cramér-Rao bound and the continuous solvers.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ._typing import FloatArray
+from .errors import GeometryError
+from .layout import Layout
+
+__all__ = [
+    "channel_gain_gradients",
+    "channel_gains",
+    "concentrator_gain",
+    "lambertian_order",
+    "led_constants",
+]
+
+
+def lambertian_order(half_power_angle_deg: float | FloatArray) -> FloatArray:
+    """Lambertian order ``m = -ln 2 / ln cos(half_power_angle)``.
+
+    Parameters
+    ----------
+    half_power_angle_deg : float or ndarray of shape (M,)
+        Half-power semi-angle, degrees, in (0, 90).
+
+    Returns
+    -------
+    m : ndarray of shape () or (M,)
+
+    Examples
+    --------
+    >>> round(float(lambertian_order(60.0)), 6)
+    1.0
+    """
+    angle = np.asarray(half_power_angle_deg, dtype=np.float64)
+    if np.any(~np.isfinite(angle)) or np.any(angle <= 0) or np.any(angle >= 90):
+        raise GeometryError(f"half-power angle must be in (0, 90) degrees, got {angle!r}")
+    return np.asarray(-math.log(2.0) / np.log(np.cos(np.deg2rad(angle))), dtype=np.float64)
+
+
+def concentrator_gain(refractive_index: float, fov_deg: float) -> float:
+    """Gain of an ideal non-imaging concentrator, ``n^2 / sin^2(FOV)`` (paper eq. 3).
+
+    Examples
+    --------
+    >>> round(concentrator_gain(1.5, 60.0), 6)
+    3.0
+    """
+    if not (0 < fov_deg <= 90):
+        raise GeometryError(f"fov_deg must be in (0, 90], got {fov_deg!r}", field="fov_deg")
+    return float(refractive_index**2 / math.sin(math.radians(fov_deg)) ** 2)
+
+
+def led_constants(layout: Layout) -> tuple[FloatArray, FloatArray]:
+    """Per-LED Lambertian order ``m`` and prefactor ``(m+1) A G_f G_c / (2 pi)``.
+
+    Returns
+    -------
+    orders : ndarray of shape (M,)
+    prefactors : ndarray of shape (M,), m^2 (the detector area's unit)
+    """
+    rx = layout.receiver
+    orders = np.atleast_1d(lambertian_order(layout.half_power_angles_deg))
+    gain = rx.area * rx.filter_gain * concentrator_gain(rx.refractive_index, rx.fov_deg)
+    return orders, (orders + 1.0) * gain / (2.0 * math.pi)
+
+
+def channel_gains(layout: Layout, points: FloatArray) -> FloatArray:
+    """DC gains ``h_ij`` of every LED at receiver points on the receivers' plane.
+
+    Parameters
+    ----------
+    layout : Layout
+    points : ndarray of shape (P, 2)
+        Receiver positions ``(x, y)``, metres, at ``z = grid.receiver_height``.
+
+    Returns
+    -------
+    gains : ndarray of shape (M, P)
+        Dimensionless DC gains; exactly 0 outside the receiver's field of view.
+
+    Examples
+    --------
+    >>> from app.vlp.layout import Grid, Layout, Led, Receiver, Room
+    >>> lay = Layout(Room(4, 4, 3), Grid(1.0, 0.85), (Led(2, 2, 3, 70.0),),
+    ...              Receiver(1e-4, 60.0, 1.0, 1.5))
+    >>> float(channel_gains(lay, np.array([[2.0, 2.0]]))[0, 0])  # doctest: +ELLIPSIS
+    1.70023...e-05
+    """
+    gains, _ = _gains_and_offsets(layout, points)
+    return gains
+
+
+def channel_gain_gradients(layout: Layout, points: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Gains and their gradients with respect to the receiver's ``(x, y)``.
+
+    Returns
+    -------
+    gains : ndarray of shape (M, P)
+    gradients : ndarray of shape (M, P, 2), per metre
+        ``d h_ij / d p_j = -(m_i + 3) h_ij (p_j - s_i) / d_ij^2``; 0 outside the FOV.
+    """
+    gains, (offsets, dist_sq, orders) = _gains_and_offsets(layout, points)
+    scale = -(orders[:, None] + 3.0) * gains / dist_sq
+    return gains, scale[:, :, None] * offsets
+
+
+def _gains_and_offsets(
+    layout: Layout, points: FloatArray
+) -> tuple[FloatArray, tuple[FloatArray, FloatArray, FloatArray]]:
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+    leds = layout.led_positions
+    orders, prefactors = led_constants(layout)
+    offsets = pts[None, :, :] - leds[:, None, :2]  # (M, P, 2): receiver minus LED
+    dz = leds[:, 2] - layout.grid.receiver_height  # (M,)
+    dist_sq = np.einsum("mpk,mpk->mp", offsets, offsets) + dz[:, None] ** 2
+    cos_incidence = dz[:, None] / np.sqrt(dist_sq)
+    in_view = cos_incidence >= math.cos(math.radians(layout.receiver.fov_deg)) - 1e-15
+    gains = prefactors[:, None] * cos_incidence ** (orders[:, None] + 1.0) / dist_sq
+    gains = np.where(in_view, gains, 0.0)
+    return gains, (offsets, dist_sq, orders)

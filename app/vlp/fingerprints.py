@@ -1,0 +1,206 @@
+"""Fingerprints: the channel matrix H and the dictionaries J and Psi built from it.
+
+``H[i, j] = h_ij`` (M x N), ``J[i, j] = (h_ij x_i)^2`` (paper eq. 13) and Psi's row
+``(i, l)``, ``i <= l`` in ``numpy.triu_indices(M)`` order, is ``(h_ij x_i)(h_lj x_l)``
+(paper eq. 17, rows reordered). ``H`` is kept sparse: an LED outside a point's field of view
+contributes exactly zero, which in a large hall is most pairs. Psi is only materialised
+below :data:`PSI_DENSE_LIMIT` entries; above it solvers use :class:`CorrelationOperator`.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+
+from ._typing import FloatArray
+from .channel import channel_gains
+from .errors import ProblemSizeError
+from .layout import Layout
+from .operators import CorrelationOperator
+
+__all__ = [
+    "DENSE_GAINS_LIMIT",
+    "PSI_DENSE_LIMIT",
+    "Fingerprint",
+    "ProgressCallback",
+    "build_fingerprint",
+]
+
+# Entries (M * N) up to which H, J and G are also kept dense for fast small solves.
+DENSE_GAINS_LIMIT = 4_000_000
+# Entries (M(M+1)/2 * N) up to which Psi may be materialised (1.6e8 bytes of float64).
+PSI_DENSE_LIMIT = 20_000_000
+
+ProgressCallback = Callable[[float], None]
+
+
+@dataclass(eq=False)
+class Fingerprint:
+    """The channel matrix of a layout and the dictionaries derived from it.
+
+    Parameters
+    ----------
+    layout : Layout
+    gains : scipy.sparse.csr_array of shape (M, N)
+        ``H``, dimensionless DC gains.
+
+    Notes
+    -----
+    ``scaled_gains`` is ``G = diag(x) H``: its column ``g_j`` is what one terminal at grid
+    point ``j`` receives, so ``J = G ∘ G`` and ``Psi[:, j] = vech(g_j g_j^T)``.
+    """
+
+    layout: Layout
+    gains: sp.csr_array
+    _cache: dict[str, object] = field(default_factory=dict, repr=False)
+
+    @property
+    def n_leds(self) -> int:
+        """M."""
+        return int(self.gains.shape[0])
+
+    @property
+    def n_cells(self) -> int:
+        """N."""
+        return int(self.gains.shape[1])
+
+    @property
+    def is_dense(self) -> bool:
+        """True when the problem is small enough to keep dense copies of H, G and J."""
+        return self.n_leds * self.n_cells <= DENSE_GAINS_LIMIT
+
+    @property
+    def pilot_amplitudes(self) -> FloatArray:
+        """x, ndarray of shape (M,)."""
+        return self.layout.pilot_amplitudes
+
+    def scaled_gains(self) -> sp.csr_array:
+        """``G = diag(x) H``, sparse of shape (M, N)."""
+        return self._cached("G_sparse", lambda: sp.csr_array(
+            sp.diags_array(self.pilot_amplitudes) @ self.gains))
+
+    def dense_scaled_gains(self) -> FloatArray:
+        """``G`` as a dense ndarray of shape (M, N); refused above :data:`DENSE_GAINS_LIMIT`."""
+        self._require_dense("G")
+        return self._cached("G_dense", lambda: np.asarray(self.scaled_gains().toarray()))
+
+    def dense_gains(self) -> FloatArray:
+        """``H`` as a dense ndarray of shape (M, N); refused above :data:`DENSE_GAINS_LIMIT`."""
+        self._require_dense("H")
+        return self._cached("H_dense", lambda: np.asarray(self.gains.toarray()))
+
+    def power_matrix(self) -> FloatArray | sp.csr_array:
+        """``J`` of shape (M, N): dense when small, else sparse (same sparsity as H)."""
+        if self.is_dense:
+            return self._cached("J_dense", lambda: self.dense_scaled_gains() ** 2)
+        return self._cached("J_sparse", lambda: sp.csr_array(self.scaled_gains().power(2)))
+
+    def correlation_operator(self) -> CorrelationOperator:
+        """Psi as a matrix-free operator of shape (M(M+1)/2, N)."""
+        return self._cached("psi_op", lambda: CorrelationOperator(self.scaled_gains()))
+
+    def correlation_matrix(self) -> FloatArray:
+        """Psi materialised, ndarray of shape (M(M+1)/2, N).
+
+        Raises
+        ------
+        ProblemSizeError
+            When it has more than :data:`PSI_DENSE_LIMIT` entries.
+        """
+        rows = self.n_leds * (self.n_leds + 1) // 2
+        if rows * self.n_cells > PSI_DENSE_LIMIT:
+            raise ProblemSizeError(
+                f"psi would have {rows} x {self.n_cells} = {rows * self.n_cells} entries, more "
+                f"than the limit {PSI_DENSE_LIMIT}; use H and the pilot amplitudes instead",
+                field="psi",
+            )
+
+        def build() -> FloatArray:
+            g = self.dense_scaled_gains() if self.is_dense else self.scaled_gains().toarray()
+            upper, lower = np.triu_indices(self.n_leds)
+            return np.asarray(g[upper] * g[lower])
+
+        return self._cached("psi_dense", build)
+
+    def _require_dense(self, name: str) -> None:
+        if not self.is_dense:
+            raise ProblemSizeError(
+                f"{name} is {self.n_leds} x {self.n_cells}, above the dense limit "
+                f"{DENSE_GAINS_LIMIT} entries; use the sparse form",
+                field=name,
+            )
+
+    def _cached(self, key: str, make: Callable[[], object]) -> object:  # type: ignore[misc]
+        if key not in self._cache:
+            self._cache[key] = make()
+        return self._cache[key]  # type: ignore[return-value]
+
+
+def build_fingerprint(
+    layout: Layout,
+    *,
+    progress: ProgressCallback | None = None,
+    max_cells: int | None = None,
+) -> Fingerprint:
+    """Compute H for every LED and grid point, one LED (a chunk of rows) at a time.
+
+    Only the grid points inside an LED's field-of-view disc are evaluated, so the cost and
+    memory are proportional to the number of nonzero gains, not to M * N.
+
+    Parameters
+    ----------
+    layout : Layout
+    progress : callable, default=None
+        Called with the fraction done (0..1) after each LED.
+    max_cells : int, default=None
+        Refuse layouts with more grid points than this.
+
+    Returns
+    -------
+    Fingerprint
+
+    Raises
+    ------
+    ProblemSizeError
+        When ``layout.n_cells > max_cells``.
+    """
+    if max_cells is not None and layout.n_cells > max_cells:
+        raise ProblemSizeError(
+            f"layout has {layout.n_cells} grid points, more than the limit {max_cells}",
+            field="grid.step",
+        )
+    step, n_x, n_y = layout.grid.step, layout.n_x, layout.n_y
+    tan_fov = math.tan(math.radians(layout.receiver.fov_deg)) if layout.receiver.fov_deg < 90 \
+        else math.inf
+    rows: list[FloatArray] = []
+    cols: list[FloatArray] = []
+    vals: list[FloatArray] = []
+    for i, led in enumerate(layout.leds):
+        radius = (led.z - layout.grid.receiver_height) * tan_fov + step
+        ix = _cell_range(led.x, radius, step, n_x)
+        iy = _cell_range(led.y, radius, step, n_y)
+        cells = (ix[:, None] * n_y + iy[None, :]).ravel()
+        single = Layout(room=layout.room, grid=layout.grid, leds=(led,), receiver=layout.receiver)
+        gains = channel_gains(single, layout.cell_centres(cells))[0]
+        keep = gains > 0
+        cols.append(cells[keep])
+        vals.append(gains[keep])
+        rows.append(np.full(int(keep.sum()), i, dtype=np.int64))
+        if progress is not None:
+            progress((i + 1) / layout.n_leds)
+    matrix = sp.csr_array(
+        (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+        shape=(layout.n_leds, layout.n_cells),
+    )
+    matrix.sort_indices()
+    return Fingerprint(layout=layout, gains=matrix)
+
+
+def _cell_range(centre: float, radius: float, step: float, count: int) -> FloatArray:
+    low = max(0, math.floor((centre - radius) / step))
+    high = min(count, math.ceil((centre + radius) / step) + 1)
+    return np.arange(low, high, dtype=np.int64)

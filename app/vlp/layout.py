@@ -1,0 +1,308 @@
+"""Room layouts: the room box, the candidate grid, the receiver and the ceiling LEDs.
+
+Conventions (``shared/API.md``): ``x`` in [0, length], ``y`` in [0, width], ``z`` up from the
+floor, metres. The grid has ``n_x = length / step`` by ``n_y = width / step`` cells; the
+centre of cell ``(ix, iy)`` is ``((ix + 1/2) step, (iy + 1/2) step)`` and its column index is
+``j = ix * n_y + iy``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from ._typing import FloatArray, IntArray
+from .errors import GeometryError
+
+__all__ = [
+    "DEFAULT_FILTER_GAIN",
+    "DEFAULT_FOV_DEG",
+    "DEFAULT_HALF_POWER_ANGLE_DEG",
+    "DEFAULT_PILOT_AMPLITUDE",
+    "DEFAULT_RECEIVER_AREA_M2",
+    "DEFAULT_REFRACTIVE_INDEX",
+    "GRID_RELATIVE_TOLERANCE",
+    "Grid",
+    "Layout",
+    "Led",
+    "Receiver",
+    "Room",
+    "layout_from_mapping",
+]
+
+# Defaults of the public contract (API.md, "RoomLayout").
+DEFAULT_RECEIVER_AREA_M2 = 1e-4
+DEFAULT_FOV_DEG = 70.0
+DEFAULT_FILTER_GAIN = 1.0
+DEFAULT_REFRACTIVE_INDEX = 1.5
+DEFAULT_HALF_POWER_ANGLE_DEG = 60.0
+DEFAULT_PILOT_AMPLITUDE = 1.0
+# length / step must be a whole number within this relative tolerance.
+GRID_RELATIVE_TOLERANCE = 1e-9
+
+
+def _check_positive(value: float, name: str) -> None:
+    if not math.isfinite(value) or value <= 0:
+        raise GeometryError(f"{name} must be a positive finite number, got {value!r}", field=name)
+
+
+def _whole_cells(extent_m: float, step_m: float, name: str) -> int:
+    ratio = extent_m / step_m
+    cells = round(ratio)
+    if cells < 1 or abs(ratio - cells) > GRID_RELATIVE_TOLERANCE * max(ratio, 1.0):
+        raise GeometryError(
+            f"grid.step {step_m!r} m must divide room.{name} {extent_m!r} m into a whole number "
+            f"of cells, got {ratio!r}",
+            field="grid.step",
+        )
+    return cells
+
+
+@dataclass(frozen=True)
+class Room:
+    """The room box in metres."""
+
+    length: float
+    width: float
+    height: float
+
+    def __post_init__(self) -> None:
+        for name in ("length", "width", "height"):
+            _check_positive(getattr(self, name), f"room.{name}")
+
+
+@dataclass(frozen=True)
+class Grid:
+    """The candidate grid: cell size and the height of the receivers' plane, metres."""
+
+    step: float
+    receiver_height: float
+
+    def __post_init__(self) -> None:
+        _check_positive(self.step, "grid.step")
+        if not math.isfinite(self.receiver_height) or self.receiver_height < 0:
+            raise GeometryError(
+                f"grid.receiver_height must be a finite number >= 0, got {self.receiver_height!r}",
+                field="grid.receiver_height",
+            )
+
+
+@dataclass(frozen=True)
+class Receiver:
+    """The photodetector: area (m^2), field of view (degrees), filter gain, lens index."""
+
+    area: float = DEFAULT_RECEIVER_AREA_M2
+    fov_deg: float = DEFAULT_FOV_DEG
+    filter_gain: float = DEFAULT_FILTER_GAIN
+    refractive_index: float = DEFAULT_REFRACTIVE_INDEX
+
+    def __post_init__(self) -> None:
+        _check_positive(self.area, "receiver.area")
+        _check_positive(self.filter_gain, "receiver.filter_gain")
+        if not (math.isfinite(self.fov_deg) and 0 < self.fov_deg <= 90):
+            raise GeometryError(
+                f"receiver.fov_deg must be in (0, 90], got {self.fov_deg!r}",
+                field="receiver.fov_deg",
+            )
+        if not (math.isfinite(self.refractive_index) and self.refractive_index >= 1):
+            raise GeometryError(
+                f"receiver.refractive_index must be >= 1, got {self.refractive_index!r}",
+                field="receiver.refractive_index",
+            )
+
+
+@dataclass(frozen=True)
+class Led:
+    """A ceiling LED pointing straight down: position (m), half-power angle, pilot amplitude."""
+
+    x: float
+    y: float
+    z: float
+    half_power_angle_deg: float = DEFAULT_HALF_POWER_ANGLE_DEG
+    pilot_amplitude: float = DEFAULT_PILOT_AMPLITUDE
+
+
+@dataclass(frozen=True)
+class Layout:
+    """A whole room layout, validated on construction.
+
+    Raises
+    ------
+    GeometryError
+        When a size is not positive, the step does not divide the room, an LED lies outside
+        the room or not above the receivers' plane, or an angle is out of range. The error's
+        ``field`` names the offending input (e.g. ``"leds[2].z"``).
+    """
+
+    room: Room
+    grid: Grid
+    leds: tuple[Led, ...]
+    receiver: Receiver = field(default_factory=Receiver)
+    name: str = ""
+
+    def __post_init__(self) -> None:
+        room, grid = self.room, self.grid
+        _whole_cells(room.length, grid.step, "length")
+        _whole_cells(room.width, grid.step, "width")
+        if grid.receiver_height >= room.height:
+            raise GeometryError(
+                f"grid.receiver_height {grid.receiver_height!r} m must be below the ceiling "
+                f"(room.height {room.height!r} m)",
+                field="grid.receiver_height",
+            )
+        if not self.leds:
+            raise GeometryError("a layout needs at least one LED", field="leds")
+        for index, led in enumerate(self.leds):
+            self._check_led(index, led)
+
+    def _check_led(self, index: int, led: Led) -> None:
+        where = f"leds[{index}]"
+        room = self.room
+        for name, value, upper in (("x", led.x, room.length), ("y", led.y, room.width)):
+            if not (math.isfinite(value) and 0 <= value <= upper):
+                raise GeometryError(
+                    f"{where}.{name} = {value!r} m lies outside the room [0, {upper!r}]",
+                    field=f"{where}.{name}",
+                )
+        if not (math.isfinite(led.z) and self.grid.receiver_height < led.z <= room.height):
+            raise GeometryError(
+                f"{where}.z = {led.z!r} m must be above the receivers "
+                f"({self.grid.receiver_height!r} m) and at most room.height ({room.height!r} m)",
+                field=f"{where}.z",
+            )
+        if not (math.isfinite(led.half_power_angle_deg) and 0 < led.half_power_angle_deg < 90):
+            raise GeometryError(
+                f"{where}.half_power_angle_deg must be in (0, 90), "
+                f"got {led.half_power_angle_deg!r}",
+                field=f"{where}.half_power_angle_deg",
+            )
+        if not (math.isfinite(led.pilot_amplitude) and led.pilot_amplitude > 0):
+            raise GeometryError(
+                f"{where}.pilot_amplitude must be positive, got {led.pilot_amplitude!r}",
+                field=f"{where}.pilot_amplitude",
+            )
+
+    # -- grid -----------------------------------------------------------------------------
+    @property
+    def n_x(self) -> int:
+        """Number of grid cells along x."""
+        return round(self.room.length / self.grid.step)
+
+    @property
+    def n_y(self) -> int:
+        """Number of grid cells along y."""
+        return round(self.room.width / self.grid.step)
+
+    @property
+    def n_cells(self) -> int:
+        """Number of grid points N."""
+        return self.n_x * self.n_y
+
+    @property
+    def n_leds(self) -> int:
+        """Number of LEDs M."""
+        return len(self.leds)
+
+    def cell_centres(self, indices: IntArray | None = None) -> FloatArray:
+        """Centres of grid cells.
+
+        Parameters
+        ----------
+        indices : ndarray of shape (n,), default=None
+            Column indices ``j``; all N cells in column order when None.
+
+        Returns
+        -------
+        centres : ndarray of shape (n, 2)
+            ``(x, y)`` in metres.
+        """
+        if indices is None:
+            indices = np.arange(self.n_cells, dtype=np.intp)
+        ix, iy = np.divmod(np.asarray(indices, dtype=np.intp), self.n_y)
+        step = self.grid.step
+        return np.column_stack(((ix + 0.5) * step, (iy + 0.5) * step)).astype(np.float64)
+
+    def nearest_cell(self, points: FloatArray) -> IntArray:
+        """Column index of the grid cell containing each point (clipped to the room).
+
+        Parameters
+        ----------
+        points : ndarray of shape (n, 2)
+            ``(x, y)`` in metres.
+
+        Returns
+        -------
+        indices : ndarray of shape (n,)
+        """
+        pts = np.atleast_2d(np.asarray(points, dtype=np.float64))
+        step = self.grid.step
+        ix = np.clip(np.floor(pts[:, 0] / step), 0, self.n_x - 1).astype(np.intp)
+        iy = np.clip(np.floor(pts[:, 1] / step), 0, self.n_y - 1).astype(np.intp)
+        return np.asarray(ix * self.n_y + iy, dtype=np.intp)
+
+    # -- LED arrays -----------------------------------------------------------------------
+    @property
+    def led_positions(self) -> FloatArray:
+        """LED positions, ndarray of shape (M, 3), metres."""
+        return np.array([[led.x, led.y, led.z] for led in self.leds], dtype=np.float64)
+
+    @property
+    def half_power_angles_deg(self) -> FloatArray:
+        """Half-power angles, ndarray of shape (M,), degrees."""
+        return np.array([led.half_power_angle_deg for led in self.leds], dtype=np.float64)
+
+    @property
+    def pilot_amplitudes(self) -> FloatArray:
+        """Pilot amplitudes x_i, ndarray of shape (M,)."""
+        return np.array([led.pilot_amplitude for led in self.leds], dtype=np.float64)
+
+    def to_mapping(self) -> dict[str, Any]:
+        """The layout as the JSON-like mapping of the public ``RoomLayout`` body."""
+        return {
+            "name": self.name,
+            "room": {"length": self.room.length, "width": self.room.width,
+                     "height": self.room.height},
+            "grid": {"step": self.grid.step, "receiver_height": self.grid.receiver_height},
+            "receiver": {"area": self.receiver.area, "fov_deg": self.receiver.fov_deg,
+                         "filter_gain": self.receiver.filter_gain,
+                         "refractive_index": self.receiver.refractive_index},
+            "leds": [{"x": led.x, "y": led.y, "z": led.z,
+                      "half_power_angle_deg": led.half_power_angle_deg,
+                      "pilot_amplitude": led.pilot_amplitude} for led in self.leds],
+        }
+
+
+def layout_from_mapping(data: Mapping[str, Any]) -> Layout:
+    """Build a :class:`Layout` from the public ``RoomLayout`` mapping (defaults applied).
+
+    Raises
+    ------
+    GeometryError
+        On a missing or invalid field; ``field`` names it.
+    """
+    try:
+        room = Room(**{k: float(data["room"][k]) for k in ("length", "width", "height")})
+        grid = Grid(step=float(data["grid"]["step"]),
+                    receiver_height=float(data["grid"]["receiver_height"]))
+        receiver = Receiver(**{k: float(v) for k, v in dict(data.get("receiver") or {}).items()})
+        leds_in: Sequence[Mapping[str, Any]] = data["leds"]
+        leds = tuple(
+            Led(
+                x=float(led["x"]),
+                y=float(led["y"]),
+                z=float(led.get("z") if led.get("z") is not None else room.height),
+                half_power_angle_deg=float(
+                    led.get("half_power_angle_deg", DEFAULT_HALF_POWER_ANGLE_DEG)
+                ),
+                pilot_amplitude=float(led.get("pilot_amplitude", DEFAULT_PILOT_AMPLITUDE)),
+            )
+            for led in leds_in
+        )
+    except (KeyError, TypeError) as exc:
+        raise GeometryError(f"incomplete layout: missing or invalid {exc}", field=None) from exc
+    return Layout(room=room, grid=grid, leds=leds, receiver=receiver,
+                  name=str(data.get("name", "")))

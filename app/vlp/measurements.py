@@ -1,0 +1,168 @@
+"""Aggregated measurements: the power vector (CSM-VLP) and the correlation matrix (CoCSM-VLP).
+
+Terminal ``k`` estimates per LED ``i`` the pilot amplitude ``a_ik = h_ik x_i + noise``.
+Cooperating terminals aggregate ``p_i = sum_k a_ik^2`` (model ``power``) or
+``R_il = sum_k a_ik a_lk`` (model ``correlation``), sent whole or as ``vech(R)``: the
+entries ``i <= l`` in ``numpy.triu_indices(M)`` order. The constant noise term is an extra
+atom: all ones for power (``sigma^2 1_M``), the diagonal indicator ``vech(I)`` for
+correlation.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal, get_args
+
+import numpy as np
+
+from ._typing import FloatArray
+from .errors import MeasurementError
+
+__all__ = [
+    "MODELS",
+    "Measurement",
+    "Model",
+    "correlation_from_amplitudes",
+    "measurement_from_amplitudes",
+    "measurement_from_correlation",
+    "measurement_from_power",
+    "noise_atom",
+    "power_from_amplitudes",
+    "unvech",
+    "vech",
+    "vech_length",
+]
+
+Model = Literal["power", "correlation"]
+MODELS: tuple[Model, ...] = get_args(Model)
+# Relative asymmetry tolerated in a full correlation matrix before it is refused.
+_SYMMETRY_RTOL = 1e-6
+
+
+@dataclass(frozen=True)
+class Measurement:
+    """One aggregated measurement, ready for a solver.
+
+    Attributes
+    ----------
+    model : {"power", "correlation"}
+    values : ndarray of shape (M,) for power, (M(M+1)/2,) for correlation
+        ``p`` or ``vech(R)``, in squared amplitude units.
+    n_leds : int
+        M.
+    """
+
+    model: Model
+    values: FloatArray
+    n_leds: int
+
+    def correlation(self) -> FloatArray:
+        """The full symmetric M x M matrix (correlation model only)."""
+        if self.model != "correlation":
+            raise MeasurementError("a power measurement has no correlation matrix", field="model")
+        return unvech(self.values, self.n_leds)
+
+
+def vech_length(n_leds: int) -> int:
+    """M(M+1)/2."""
+    return n_leds * (n_leds + 1) // 2
+
+
+def vech(matrix: FloatArray) -> FloatArray:
+    """Upper triangle (with diagonal) of a square matrix in ``numpy.triu_indices`` order."""
+    matrix = np.asarray(matrix, dtype=np.float64)
+    return np.asarray(matrix[np.triu_indices(matrix.shape[0])])
+
+
+def unvech(values: FloatArray, n_leds: int) -> FloatArray:
+    """The symmetric M x M matrix whose :func:`vech` is ``values``."""
+    values = np.asarray(values, dtype=np.float64)
+    if values.shape != (vech_length(n_leds),):
+        raise MeasurementError(
+            f"expected {vech_length(n_leds)} upper-triangle entries for {n_leds} LEDs, "
+            f"got shape {values.shape}", field="correlation")
+    upper = np.zeros((n_leds, n_leds))
+    upper[np.triu_indices(n_leds)] = values
+    return np.asarray(upper + np.triu(upper, 1).T)
+
+
+def noise_atom(model: Model, n_leds: int) -> FloatArray:
+    """The noise-power atom: ones(M) for power, vech(I_M) for correlation."""
+    if model == "power":
+        return np.ones(n_leds)
+    return vech(np.eye(n_leds))
+
+
+def _as_finite(values: object, field: str) -> FloatArray:
+    try:
+        array = np.asarray(values, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise MeasurementError(f"{field} must contain only numbers", field=field) from exc
+    if not np.all(np.isfinite(array)):
+        raise MeasurementError(f"{field} contains NaN or infinite values", field=field)
+    return array
+
+
+def power_from_amplitudes(amplitudes: FloatArray) -> FloatArray:
+    """``p_i = sum_k a_ik^2`` from amplitudes of shape (K, M); returns shape (M,)."""
+    amps = np.atleast_2d(_as_finite(amplitudes, "amplitudes"))
+    return np.asarray(np.einsum("km,km->m", amps, amps))
+
+
+def correlation_from_amplitudes(amplitudes: FloatArray) -> FloatArray:
+    """``R = sum_k a_k a_k^T`` from amplitudes of shape (K, M); returns shape (M, M)."""
+    amps = np.atleast_2d(_as_finite(amplitudes, "amplitudes"))
+    return np.asarray(amps.T @ amps)
+
+
+def measurement_from_power(power: object, n_leds: int) -> Measurement:
+    """Validate a power vector of M nonnegative numbers, not all zero."""
+    values = _as_finite(power, "power")
+    if values.shape != (n_leds,):
+        raise MeasurementError(
+            f"power must have {n_leds} entries (one per LED), got shape {values.shape}",
+            field="power")
+    if np.any(values < 0):
+        raise MeasurementError("power entries must be >= 0 (they are sums of squares)",
+                               field="power")
+    if not np.any(values > 0):
+        raise MeasurementError("power is all zero: no pilot was received", field="power")
+    return Measurement(model="power", values=values, n_leds=n_leds)
+
+
+def measurement_from_correlation(correlation: object, n_leds: int) -> Measurement:
+    """Validate a correlation matrix (M x M, symmetric) or its upper triangle (M(M+1)/2)."""
+    values = _as_finite(correlation, "correlation")
+    if values.shape == (n_leds, n_leds):
+        scale = float(np.max(np.abs(values)))
+        if np.max(np.abs(values - values.T)) > _SYMMETRY_RTOL * max(scale, 1e-300):
+            raise MeasurementError("correlation matrix must be symmetric", field="correlation")
+        values = vech(0.5 * (values + values.T))
+    elif values.shape != (vech_length(n_leds),):
+        raise MeasurementError(
+            f"correlation must be a {n_leds} x {n_leds} matrix or its {vech_length(n_leds)} "
+            f"upper-triangle entries, got shape {values.shape}", field="correlation")
+    diagonal = values[_diagonal_positions(n_leds)]
+    if np.any(diagonal < 0):
+        raise MeasurementError("correlation diagonal entries must be >= 0", field="correlation")
+    if not np.any(diagonal > 0):
+        raise MeasurementError("correlation is all zero on its diagonal: no pilot was received",
+                               field="correlation")
+    return Measurement(model="correlation", values=values, n_leds=n_leds)
+
+
+def measurement_from_amplitudes(amplitudes: object, model: Model, n_leds: int) -> Measurement:
+    """Aggregate per-terminal amplitudes of shape (K, M) into a measurement of ``model``."""
+    amps = np.atleast_2d(_as_finite(amplitudes, "amplitudes"))
+    if amps.ndim != 2 or amps.shape[1] != n_leds:
+        raise MeasurementError(
+            f"amplitudes must have {n_leds} entries per terminal, got shape {amps.shape}",
+            field="terminals")
+    if model == "power":
+        return measurement_from_power(power_from_amplitudes(amps), n_leds)
+    return measurement_from_correlation(vech(correlation_from_amplitudes(amps)), n_leds)
+
+
+def _diagonal_positions(n_leds: int) -> FloatArray:
+    upper, lower = np.triu_indices(n_leds)
+    return np.asarray(np.flatnonzero(upper == lower))

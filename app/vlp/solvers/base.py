@@ -1,0 +1,154 @@
+"""The one interface every localization solver shares.
+
+A solver is built once per (fingerprint, model) -- that is where it may precompute
+(normalised dictionaries, compiled convex programs) -- and then solves many measurements::
+
+    solver = make_solver("gridless", fingerprint, "correlation")
+    solution = solver.solve(measurement, n_targets=8)
+
+The web layer caches solver objects per (room, fingerprint version, model, solver name).
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+from typing import ClassVar
+
+from .._typing import FloatArray, IntArray
+from ..errors import MeasurementError, SolverError, UnknownSolverError
+from ..fingerprints import Fingerprint
+from ..measurements import Measurement, Model
+
+__all__ = [
+    "MAX_TARGETS",
+    "SOLVERS",
+    "Solution",
+    "Solver",
+    "make_solver",
+    "register_solver",
+    "solver_names",
+]
+
+# Upper bound on K accepted by any solver (and on the estimated count when K is unknown).
+MAX_TARGETS = 64
+
+
+@dataclass(frozen=True)
+class Solution:
+    """What a solver found.
+
+    Attributes
+    ----------
+    positions : ndarray of shape (K, 2)
+        Estimated ``(x, y)``, metres: grid centres for grid solvers, refined for gridless.
+    grid_indices : ndarray of shape (K,)
+        Nearest grid column of each estimate.
+    weights : ndarray of shape (K,)
+        Fitted occupancy of each estimate (about 1 for one terminal).
+    noise_power : float
+        Fitted coefficient of the noise atom (sigma^2), squared amplitude units.
+    residual_norm : float
+        Euclidean norm of the measurement minus the model's prediction.
+    n_iter : int
+        Iterations the solver used.
+    converged : bool
+        False when the solver stopped on an iteration limit.
+    """
+
+    positions: FloatArray
+    grid_indices: IntArray
+    weights: FloatArray
+    noise_power: float
+    residual_norm: float
+    n_iter: int
+    converged: bool
+
+    @property
+    def n_targets(self) -> int:
+        """K, the number of estimates."""
+        return int(self.positions.shape[0])
+
+
+class Solver(ABC):
+    """Base class: subclasses set ``name`` and implement :meth:`_solve`.
+
+    Parameters
+    ----------
+    fingerprint : Fingerprint
+    model : {"power", "correlation"}
+    """
+
+    name: ClassVar[str]
+    description: ClassVar[str] = ""
+
+    def __init__(self, fingerprint: Fingerprint, model: Model) -> None:
+        self.fingerprint = fingerprint
+        self.model = model
+
+    def solve(self, measurement: Measurement, n_targets: int | None = None) -> Solution:
+        """Locate the targets behind one measurement.
+
+        Parameters
+        ----------
+        measurement : Measurement
+            Of this solver's model and the fingerprint's M.
+        n_targets : int, default=None
+            K; estimated from the measurement when None.
+
+        Raises
+        ------
+        MeasurementError
+            When the measurement's model or size does not match.
+        SolverError
+            When ``n_targets`` is out of range.
+        """
+        if measurement.model != self.model:
+            raise MeasurementError(
+                f"solver prepared for model {self.model!r} got a {measurement.model!r} "
+                "measurement", field="model")
+        if measurement.n_leds != self.fingerprint.n_leds:
+            raise MeasurementError(
+                f"measurement is for {measurement.n_leds} LEDs, the room has "
+                f"{self.fingerprint.n_leds}", field=measurement.model)
+        if n_targets is not None:
+            limit = min(MAX_TARGETS, self.fingerprint.n_cells)
+            if not 1 <= n_targets <= limit:
+                raise SolverError(f"targets must be between 1 and {limit}, got {n_targets}",
+                                  field="targets")
+        return self._solve(measurement, n_targets)
+
+    @abstractmethod
+    def _solve(self, measurement: Measurement, n_targets: int | None) -> Solution:
+        """Solve a validated measurement."""
+
+
+SOLVERS: dict[str, type[Solver]] = {}
+
+
+def register_solver(cls: type[Solver]) -> type[Solver]:
+    """Class decorator adding a solver to :data:`SOLVERS` under ``cls.name``."""
+    SOLVERS[cls.name] = cls
+    return cls
+
+
+def solver_names() -> list[str]:
+    """Registered solver names, the default first."""
+    return sorted(SOLVERS, key=lambda name: (name != "gridless", name))
+
+
+def make_solver(name: str, fingerprint: Fingerprint, model: Model) -> Solver:
+    """Build the solver registered as ``name`` for a fingerprint and model.
+
+    Raises
+    ------
+    UnknownSolverError
+        When no solver has that name.
+    """
+    try:
+        cls = SOLVERS[name]
+    except KeyError:
+        raise UnknownSolverError(
+            f"unknown solver {name!r}; choose one of {solver_names()}", field="solver"
+        ) from None
+    return cls(fingerprint, model)
