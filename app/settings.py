@@ -1,0 +1,65 @@
+"""Service settings: one pydantic-settings class, read from ``VLP_*`` environment variables.
+
+Tests override :func:`get_settings` (or pass a ``Settings`` to ``create_app``).
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+from pathlib import Path
+
+from pydantic import Field
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+__all__ = ["Settings", "get_settings"]
+
+
+class Settings(BaseSettings):
+    """Everything the service can be configured with (env prefix ``VLP_``)."""
+
+    model_config = SettingsConfigDict(env_prefix="VLP_", extra="ignore")
+
+    data_dir: Path = Field(default=Path("./var"), description="SQLite file and matrix store")
+    database_url: str | None = Field(
+        default=None, description="SQLAlchemy URL; postgresql+psycopg://... for scale-out"
+    )
+    admin_keys: str = Field(default="", description="comma-separated admin API keys")
+    terminal_keys: str = Field(default="", description="comma-separated terminal API keys")
+    embedded_workers: int = Field(default=1, ge=0, le=16)
+    demo: bool = Field(default=True, description="seed the paper's room into an empty registry")
+
+    # Limits (security by default; the defaults admit a 10^6-point, 1024-LED hall).
+    max_body_bytes: int = Field(default=16 * 1024 * 1024, ge=1024)
+    max_leds: int = Field(default=4096, ge=1)
+    max_grid_points: int = Field(default=1_000_000, ge=1)
+    max_concurrent_builds_per_room: int = Field(default=1, ge=1)
+
+    # Jobs.
+    job_lease_seconds: float = Field(default=30.0, gt=0)
+    job_heartbeat_seconds: float = Field(default=5.0, gt=0)
+    job_poll_seconds: float = Field(default=0.5, gt=0)
+    max_build_attempts: int = Field(default=3, ge=1)
+
+    # Localization cache: how often an API process re-reads a room's current version.
+    version_check_seconds: float = Field(default=1.0, ge=0)
+    fingerprint_cache_size: int = Field(default=16, ge=1)
+
+    def resolved_database_url(self) -> str:
+        """The registry URL: ``database_url`` or a SQLite file in ``data_dir``."""
+        if self.database_url:
+            return self.database_url
+        return f"sqlite:///{(self.data_dir / 'registry.sqlite3').resolve()}"
+
+    def admin_key_list(self) -> list[str]:
+        """Configured admin keys (empty strings dropped)."""
+        return [key.strip() for key in self.admin_keys.split(",") if key.strip()]
+
+    def terminal_key_list(self) -> list[str]:
+        """Configured terminal keys (empty strings dropped)."""
+        return [key.strip() for key in self.terminal_keys.split(",") if key.strip()]
+
+
+@lru_cache
+def get_settings() -> Settings:
+    """The process-wide settings, read once from the environment."""
+    return Settings()
