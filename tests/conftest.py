@@ -1,0 +1,28 @@
+"""Fixtures shared by the whole suite."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from app.vlp.fingerprints import Fingerprint, build_fingerprint
+from app.vlp.layout import Layout
+from app.vlp.presets import paper_layout
+
+
+@pytest.fixture
+def rng() -> np.random.Generator:
+    """A fresh, seeded generator per test."""
+    return np.random.default_rng(20261122)
+
+
+@pytest.fixture(scope="session")
+def paper_room() -> Layout:
+    """The paper's 4 x 4 x 3 m room (16 LEDs, 0.2 m grid)."""
+    return paper_layout()
+
+
+@pytest.fixture(scope="session")
+def paper_fingerprint(paper_room: Layout) -> Fingerprint:
+    """Fingerprint of the paper's room (built once per session; treat as read-only)."""
+    return build_fingerprint(paper_room)
