@@ -1,0 +1,112 @@
+"""Measurements (body of localize) and localizations (its answer)."""
+
+from __future__ import annotations
+
+from typing import Any, Literal
+
+import numpy as np
+from pydantic import ConfigDict, Field
+
+from app.vlp.presets import paper_layout
+from app.vlp.simulation import true_amplitudes
+from app.vlp.solvers.base import MAX_TARGETS
+
+from ._common import FiniteFloat, RequestModel, ResponseModel
+
+__all__ = [
+    "SOLVER_NAMES",
+    "Estimate",
+    "Localization",
+    "Measurement",
+    "ModelName",
+    "SolverName",
+    "TerminalAmplitudes",
+    "localize_example",
+]
+
+ModelName = Literal["power", "correlation"]
+# The contract's solver names (API.md); the server checks at request time which are installed.
+SolverName = Literal["gridless", "nnls", "omp", "l1"]
+SOLVER_NAMES: tuple[str, ...] = ("gridless", "nnls", "omp", "l1")
+_TERMINAL_ID_PATTERN = r"^[A-Za-z0-9._:-]{1,64}$"
+
+
+def localize_example() -> dict[str, Any]:
+    """Two terminals in the paper room sending their own amplitudes (the service aggregates).
+
+    The amplitudes are the noiseless ``h_ik x_i`` at (1.0, 1.2) m and (2.9, 3.1) m.
+    """
+    layout = paper_layout()
+    amplitudes = true_amplitudes(layout, np.array([[1.0, 1.2], [2.9, 3.1]]))
+    return {
+        "model": "correlation",
+        "terminals": [
+            {"id": f"t{k + 1}", "amplitudes": [float(f"{a:.4g}") for a in row]}
+            for k, row in enumerate(amplitudes)
+        ],
+        "targets": 2,
+        "solver": "gridless",
+    }
+
+
+class TerminalAmplitudes(RequestModel):
+    """One terminal's pilot amplitude estimates, one per LED (in the layout's LED order)."""
+
+    id: str = Field(pattern=_TERMINAL_ID_PATTERN, description="the terminal's own id",
+                    examples=["t1"])
+    amplitudes: list[FiniteFloat] = Field(min_length=1, description="a_ik for each LED i")
+
+
+class Measurement(RequestModel):
+    """An aggregated measurement: exactly one of `power`, `correlation`, `terminals`.
+
+    - `power` (model `power`, CSM-VLP): `p_i = sum_k a_ik^2`, M numbers.
+    - `correlation` (model `correlation`, CoCSM-VLP): `R_il = sum_k a_ik a_lk` as the full
+      M x M matrix or its M(M+1)/2 entries with `i <= l` in `numpy.triu_indices(M)` order.
+    - `terminals`: each terminal's own amplitudes; the service aggregates them under `model`
+      and labels each estimate with the terminal it belongs to.
+
+    `model` defaults to `correlation`, or to `power` when `power` is sent.
+    """
+
+    model_config = ConfigDict(json_schema_extra={"examples": [localize_example()]})
+
+    model: ModelName = Field(default="correlation", description="measurement model")
+    power: list[FiniteFloat] | None = Field(default=None, min_length=1,
+                                            description="M received powers")
+    correlation: list[list[FiniteFloat]] | list[FiniteFloat] | None = Field(
+        default=None, min_length=1, description="M x M matrix or its M(M+1)/2 upper triangle")
+    terminals: list[TerminalAmplitudes] | None = Field(default=None, min_length=1,
+                                                       max_length=4096)
+    targets: int | None = Field(default=None, ge=1, le=MAX_TARGETS,
+                                description="K; estimated by the service when left out")
+    solver: SolverName = Field(
+        default="gridless",
+        description="`gridless` (default: best accuracy, off-grid positions), `nnls`, "
+                    "`omp`, `l1` (the seed paper's algorithms)")
+    fingerprint_version: int | None = Field(default=None, ge=1,
+                                            description="default: the current version")
+
+
+class Estimate(ResponseModel):
+    """One located target."""
+
+    x: float = Field(description="m")
+    y: float = Field(description="m")
+    grid_index: int = Field(description="the nearest grid point j = ix * ny + iy")
+    weight: float = Field(description="fitted occupancy (about 1 per terminal)")
+    terminal_id: str | None = Field(description="whose estimate it is, when terminals were sent")
+
+
+class Localization(ResponseModel):
+    """Where the targets are."""
+
+    room_id: str
+    fingerprint_version: int
+    model: ModelName
+    solver: str
+    targets: int = Field(description="K, the number of estimates")
+    estimates: list[Estimate]
+    residual_norm: float = Field(description="norm of measurement minus model prediction")
+    noise_power: float = Field(description="fitted noise power sigma^2 (squared amplitudes)")
+    elapsed_ms: float = Field(description="solver time, milliseconds")

@@ -1,0 +1,133 @@
+"""Room layouts (request bodies) and rooms (answers)."""
+
+from __future__ import annotations
+
+from datetime import datetime
+from typing import Any, Literal
+
+from pydantic import ConfigDict, Field
+
+from app.vlp.layout import (
+    DEFAULT_FILTER_GAIN,
+    DEFAULT_FOV_DEG,
+    DEFAULT_HALF_POWER_ANGLE_DEG,
+    DEFAULT_PILOT_AMPLITUDE,
+    DEFAULT_RECEIVER_AREA_M2,
+    DEFAULT_REFRACTIVE_INDEX,
+)
+
+from ._common import FiniteFloat, RequestModel, ResponseModel
+
+__all__ = [
+    "FingerprintState",
+    "GridSpec",
+    "LedSpec",
+    "ReceiverSpec",
+    "Room",
+    "RoomBox",
+    "RoomLayout",
+    "RoomsPage",
+    "paper_room_example",
+]
+
+# Sizes above this (metres) are certainly typos; the grid-point limit applies anyway.
+_MAX_EXTENT_M = 10_000.0
+
+
+def paper_room_example() -> dict[str, Any]:
+    """The paper's 4 x 4 x 3 m room with its 16 LEDs, as a RoomLayout body."""
+    return {
+        "name": "Paper room",
+        "room": {"length": 4.0, "width": 4.0, "height": 3.0},
+        "grid": {"step": 0.2, "receiver_height": 0.85},
+        "receiver": {"area": 1e-4, "fov_deg": 70.0, "filter_gain": 1.0,
+                     "refractive_index": 1.5},
+        "leds": [{"x": 0.5 + ix, "y": 0.5 + iy, "z": 3.0, "half_power_angle_deg": 60.0,
+                  "pilot_amplitude": 1.0} for ix in range(4) for iy in range(4)],
+    }
+
+
+class RoomBox(RequestModel):
+    """The room box: `x` in [0, length], `y` in [0, width], `z` in [0, height], metres."""
+
+    length: FiniteFloat = Field(gt=0, le=_MAX_EXTENT_M, description="extent along x, m")
+    width: FiniteFloat = Field(gt=0, le=_MAX_EXTENT_M, description="extent along y, m")
+    height: FiniteFloat = Field(gt=0, le=_MAX_EXTENT_M, description="ceiling height, m")
+
+
+class GridSpec(RequestModel):
+    """The candidate grid: square cells of `step` metres on the plane `z = receiver_height`.
+
+    `length / step` and `width / step` must be whole numbers (within 1e-9 relative).
+    """
+
+    step: FiniteFloat = Field(gt=0, le=_MAX_EXTENT_M, description="cell size, m")
+    receiver_height: FiniteFloat = Field(ge=0, le=_MAX_EXTENT_M,
+                                         description="height of the photodetectors, m")
+
+
+class ReceiverSpec(RequestModel):
+    """The upward-facing photodetector of every terminal."""
+
+    area: FiniteFloat = Field(default=DEFAULT_RECEIVER_AREA_M2, gt=0, le=1.0,
+                              description="detector area, m^2")
+    fov_deg: FiniteFloat = Field(default=DEFAULT_FOV_DEG, gt=0, le=90,
+                                 description="field of view (half angle), degrees")
+    filter_gain: FiniteFloat = Field(default=DEFAULT_FILTER_GAIN, gt=0,
+                                     description="optical filter gain")
+    refractive_index: FiniteFloat = Field(default=DEFAULT_REFRACTIVE_INDEX, ge=1, le=10,
+                                          description="concentrator refractive index n")
+
+
+class LedSpec(RequestModel):
+    """A ceiling LED pointing straight down."""
+
+    x: FiniteFloat = Field(ge=0, le=_MAX_EXTENT_M, description="m, in [0, room.length]")
+    y: FiniteFloat = Field(ge=0, le=_MAX_EXTENT_M, description="m, in [0, room.width]")
+    z: FiniteFloat | None = Field(default=None, gt=0, le=_MAX_EXTENT_M,
+                                  description="m, above the receivers; default room.height")
+    half_power_angle_deg: FiniteFloat = Field(default=DEFAULT_HALF_POWER_ANGLE_DEG, gt=0, lt=90,
+                                              description="semi-angle at half power, degrees")
+    pilot_amplitude: FiniteFloat = Field(default=DEFAULT_PILOT_AMPLITUDE, gt=0,
+                                         description="pilot amplitude x_i")
+
+
+class RoomLayout(RequestModel):
+    """A room: its box, candidate grid, receiver and ceiling LEDs (body of POST/PUT rooms)."""
+
+    model_config = ConfigDict(json_schema_extra={"examples": [paper_room_example()]})
+
+    name: str = Field(min_length=1, max_length=200, description="a human name")
+    room: RoomBox
+    grid: GridSpec
+    receiver: ReceiverSpec = Field(default_factory=ReceiverSpec)
+    leds: list[LedSpec] = Field(min_length=1, description="at least one LED")
+
+
+class FingerprintState(ResponseModel):
+    """Where the room's fingerprint stands."""
+
+    status: Literal["pending", "building", "ready", "failed"] = Field(
+        description="state of the latest build")
+    version: int | None = Field(description="the version localization uses now")
+    job_id: str | None = Field(description="the latest build job")
+
+
+class Room(ResponseModel):
+    """A room as stored."""
+
+    id: str
+    name: str
+    layout: dict[str, Any] = Field(description="the full RoomLayout, defaults applied")
+    layout_version: int = Field(ge=1, description="1 on create, +1 on each replace")
+    created_at: datetime
+    updated_at: datetime
+    fingerprint: FingerprintState
+
+
+class RoomsPage(ResponseModel):
+    """One page of rooms, oldest first."""
+
+    items: list[Room]
+    next_cursor: str | None = Field(description="pass as `cursor` for the next page; null at "
+                                                "the end")
