@@ -1,0 +1,232 @@
+"""Continuous model and whitened Levenberg-Marquardt fit behind the ``gridless`` solver.
+
+Everything here works in *normalised* units: gains are divided by ``scale``, the root of
+the mean of ``(h_ij x_i)^2`` over LEDs and grid points (the SNR convention's signal
+power), so a measurement ``y`` is divided by ``scale^2`` and a noise variance in these units
+is ``10^(-SNR/10)``. The model of one measurement with targets at ``p_k`` is
+
+.. math::
+
+    \\mu(\\theta) = \\sum_k w_k \\phi(g(p_k)) + s\\, a, \\qquad
+    \\phi(g) = \\mathrm{vech}(g g^T) \\text{ (correlation) or } g \\circ g \\text{ (power)},
+
+with ``a`` the noise atom (``vech(I)`` or ones). Private: callers validate.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from .._typing import FloatArray
+from ..channel import led_constants
+from ..layout import Layout
+from ..measurements import Model
+
+# Relative floor on whitening eigenvalues (guards a noiseless fit against infinite weights).
+_EIG_FLOOR = 1e-9
+# Smallest noise variance (normalised units) assumed when whitening.
+_SIGMA2_FLOOR = 1e-12
+
+
+class ChannelKernel:
+    """Normalised scaled gains ``g(p) = x * h(p) / scale`` and their position gradients.
+
+    Parameters
+    ----------
+    layout : Layout
+    scale : float
+        Divisor of the gains (see the module docstring).
+    """
+
+    def __init__(self, layout: Layout, scale: float) -> None:
+        orders, prefactors = led_constants(layout)
+        leds = layout.led_positions
+        self.n_leds = layout.n_leds
+        self.led_xy = np.ascontiguousarray(leds[:, :2])
+        self.dz2 = (leds[:, 2] - layout.grid.receiver_height) ** 2
+        self.orders = orders
+        # h = pref * dz^(m+1) / d^(m+3); fold dz^(m+1), the pilot and 1/scale into one factor.
+        dz = np.sqrt(self.dz2)
+        self.factor = prefactors * dz ** (orders + 1.0) * layout.pilot_amplitudes / scale
+        self.half_exponent = 0.5 * (orders + 3.0)
+        # In view when dz / d >= cos(FOV), i.e. d^2 <= dz^2 / cos^2(FOV).
+        cos_fov = math.cos(math.radians(layout.receiver.fov_deg))
+        self.max_d2 = self.dz2 / max(cos_fov, 1e-300) ** 2 * (1.0 + 1e-12)
+        self.bounds = np.array([layout.room.length, layout.room.width])
+
+    def gains(self, points: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Gains of shape (M, P) and gradients of shape (M, P, 2) at points (P, 2)."""
+        offsets = points[None, :, :] - self.led_xy[:, None, :]
+        d2 = offsets[..., 0] ** 2 + offsets[..., 1] ** 2 + self.dz2[:, None]
+        gains = self.factor[:, None] * d2 ** -self.half_exponent[:, None]
+        gains = np.where(d2 <= self.max_d2[:, None], gains, 0.0)
+        slope = -2.0 * self.half_exponent[:, None] * gains / d2
+        return gains, slope[:, :, None] * offsets
+
+
+@dataclass
+class FitState:
+    """Current estimate: positions (K, 2) m, weights (K,), noise coefficient s (normalised)."""
+
+    positions: FloatArray
+    weights: FloatArray
+    noise: float
+
+
+class Whitening:
+    """Fixed linear whitening ``r -> c * vech(U^T E U)`` (correlation) or ``c * e`` (power).
+
+    The aggregated noise of ``R = sum_k (g_k + n_k)(g_k + n_k)^T`` with i.i.d.
+    ``n ~ N(0, sigma^2 I)`` has, for any symmetric test matrix ``A``,
+    ``Var <A, R> = 4 sigma^2 tr(A M0 A)`` with ``M0 = S + K sigma^2 / 2 I`` and
+    ``S = sum_k g_k g_k^T``. In the eigenbasis ``M0 = U diag(lam) U^T`` the entries of
+    ``U^T E U`` are uncorrelated with variance ``2 sigma^2 (lam_a + lam_b)``
+    (``4 sigma^2 lam_a`` on the diagonal), which gives the weights ``c``. For power the
+    entries are independent with variance ``4 sigma^2 (S_ii + K sigma^2 / 2)``.
+    """
+
+    def __init__(self, model: Model, n_leds: int, rotation: FloatArray | None,
+                 weights: FloatArray) -> None:
+        self.model = model
+        self.rotation = rotation
+        self.weights = weights
+        self.upper, self.lower = np.triu_indices(n_leds) if model == "correlation" else (
+            np.arange(n_leds), np.arange(n_leds))
+        self.is_diag = (self.upper == self.lower).astype(np.float64)
+
+    @classmethod
+    def identity(cls, model: Model, n_leds: int) -> Whitening:
+        """Plain least squares."""
+        length = n_leds * (n_leds + 1) // 2 if model == "correlation" else n_leds
+        return cls(model, n_leds, None, np.ones(length))
+
+    @classmethod
+    def from_state(cls, model: Model, kernel: ChannelKernel, state: FitState,
+                   n_terminals: float) -> Whitening:
+        """Plug-in whitening from the current fit (sigma^2 = s / K)."""
+        gains, _ = kernel.gains(state.positions)
+        sigma2 = max(state.noise / max(n_terminals, 1.0), _SIGMA2_FLOOR)
+        half_noise = 0.5 * max(n_terminals, 1.0) * sigma2
+        if model == "power":
+            var = 4.0 * sigma2 * ((gains**2) @ state.weights + half_noise)
+            return cls(model, kernel.n_leds, None, 1.0 / np.sqrt(var))
+        signal = (gains * state.weights) @ gains.T
+        lam, rot = np.linalg.eigh(signal + half_noise * np.eye(kernel.n_leds))
+        lam = np.maximum(lam, _EIG_FLOOR * max(float(lam[-1]), _SIGMA2_FLOOR))
+        upper, lower = np.triu_indices(kernel.n_leds)
+        var = 2.0 * sigma2 * (lam[upper] + lam[lower])
+        var[upper == lower] *= 2.0
+        weights = np.sqrt(np.where(upper == lower, 1.0, 2.0) / var)
+        return cls(model, kernel.n_leds, rot, weights)
+
+    def data(self, values: FloatArray, n_leds: int) -> FloatArray:
+        """Whitened measurement."""
+        if self.model == "power" or self.rotation is None:
+            return np.asarray(self.weights * values)
+        full = np.zeros((n_leds, n_leds))
+        full[self.upper, self.lower] = values
+        full = full + np.triu(full, 1).T
+        rotated = self.rotation.T @ full @ self.rotation
+        return np.asarray(self.weights * rotated[self.upper, self.lower])
+
+    def rotate(self, vectors: FloatArray) -> FloatArray:
+        """``U^T v`` along the LED axis (axis 0)."""
+        if self.rotation is None:
+            return vectors
+        return np.asarray(np.tensordot(self.rotation.T, vectors, axes=1))
+
+
+def residual_and_jacobian(
+    kernel: ChannelKernel, white: Whitening, data: FloatArray, state: FitState,
+    free_weights: bool, want_jacobian: bool = True,
+) -> tuple[FloatArray, FloatArray | None]:
+    """Whitened residual ``c * (y - mu)`` and its Jacobian wrt (positions, [weights], s).
+
+    Returns
+    -------
+    residual : ndarray of shape (L,)
+    jacobian : ndarray of shape (L, 2K + [K] + 1) or None
+        Derivative of the *model* term ``c * mu`` (so a Gauss-Newton step solves
+        ``J delta = residual``).
+    """
+    gains, grads = kernel.gains(state.positions)
+    gains = white.rotate(gains)
+    w = state.weights
+    left = gains[white.upper]
+    right = gains[white.lower]
+    atoms = left * right  # (L, K)
+    c = white.weights
+    residual = data - c * (atoms @ w + state.noise * white.is_diag)
+    if not want_jacobian:
+        return residual, None
+    grads = white.rotate(grads)
+    d_left = grads[white.upper]
+    d_right = grads[white.lower]
+    d_pos = w[None, :, None] * (left[:, :, None] * d_right + d_left * right[:, :, None])
+    blocks = [d_pos.reshape(len(c), -1)]
+    if free_weights:
+        blocks.append(atoms)
+    blocks.append(white.is_diag[:, None])
+    jac = np.concatenate(blocks, axis=1) * c[:, None]
+    return residual, jac
+
+
+def _pack(state: FitState, free_weights: bool) -> FloatArray:
+    parts = [state.positions.ravel()]
+    if free_weights:
+        parts.append(state.weights)
+    parts.append(np.array([state.noise]))
+    return np.concatenate(parts)
+
+
+def _unpack(theta: FloatArray, state: FitState, free_weights: bool,
+            bounds: FloatArray) -> FitState:
+    k = state.positions.shape[0]
+    positions = np.clip(theta[:2 * k].reshape(k, 2), 0.0, bounds)
+    weights = np.maximum(theta[2 * k:3 * k], 0.0) if free_weights else state.weights
+    return FitState(positions, weights, max(float(theta[-1]), 0.0))
+
+
+def levenberg_marquardt(
+    kernel: ChannelKernel, white: Whitening, data: FloatArray, state: FitState, *,
+    free_weights: bool, max_iter: int, tol: float = 1e-10,
+) -> tuple[FitState, float, int]:
+    """Projected LM on ``||data - c * mu(theta)||^2`` (positions kept inside the room).
+
+    Returns the refined state, its cost and the number of iterations used.
+    """
+    residual, jac = residual_and_jacobian(kernel, white, data, state, free_weights)
+    cost = float(residual @ residual)
+    damping = 1e-3
+    iteration = 0
+    for iteration in range(1, max_iter + 1):
+        assert jac is not None
+        normal = jac.T @ jac
+        gradient = jac.T @ residual
+        diag = np.maximum(np.diag(normal), 1e-30)
+        improved = False
+        while damping < 1e12:
+            try:
+                step = np.linalg.solve(normal + damping * np.diag(diag), gradient)
+            except np.linalg.LinAlgError:
+                damping *= 10.0
+                continue
+            trial = _unpack(_pack(state, free_weights) + step, state, free_weights,
+                            kernel.bounds)
+            trial_res, _ = residual_and_jacobian(kernel, white, data, trial, free_weights,
+                                                 want_jacobian=False)
+            trial_cost = float(trial_res @ trial_res)
+            if trial_cost < cost:
+                improved = True
+                relative = (cost - trial_cost) / max(cost, 1e-300)
+                state, cost = trial, trial_cost
+                damping = max(damping / 5.0, 1e-9)
+                break
+            damping *= 4.0
+        if not improved or relative < tol:
+            break
+        residual, jac = residual_and_jacobian(kernel, white, data, state, free_weights)
+    return state, cost, iteration
