@@ -1,0 +1,128 @@
+"""The registry's tables (SQLAlchemy Core). Schema changes go only through Alembic."""
+
+from __future__ import annotations
+
+from datetime import UTC, datetime
+
+from sqlalchemy import (
+    JSON,
+    BigInteger,
+    Column,
+    DateTime,
+    Dialect,
+    Float,
+    ForeignKey,
+    ForeignKeyConstraint,
+    Index,
+    Integer,
+    MetaData,
+    String,
+    Table,
+    Text,
+)
+from sqlalchemy.types import TypeDecorator
+
+__all__ = ["UTCDateTime", "api_keys", "fingerprints", "jobs", "matrices", "metadata", "rooms"]
+
+metadata = MetaData()
+
+
+class UTCDateTime(TypeDecorator[datetime]):
+    """A timezone-aware UTC datetime on every backend (SQLite stores it naive)."""
+
+    impl = DateTime(timezone=True)
+    cache_ok = True
+
+    def process_bind_param(self, value: datetime | None, dialect: Dialect) -> datetime | None:
+        if value is None:
+            return None
+        if value.tzinfo is None:
+            raise ValueError("naive datetimes are not stored; use datetime.now(UTC)")
+        value = value.astimezone(UTC)
+        return value.replace(tzinfo=None) if dialect.name == "sqlite" else value
+
+    def process_result_value(self, value: datetime | None, dialect: Dialect) -> datetime | None:
+        del dialect
+        if value is None:
+            return None
+        return value.replace(tzinfo=UTC) if value.tzinfo is None else value.astimezone(UTC)
+
+
+ID = String(32)
+
+api_keys = Table(
+    "api_keys",
+    metadata,
+    Column("key_hash", String(64), primary_key=True),
+    Column("role", String(16), nullable=False),
+    Column("label", String(200), nullable=False),
+    Column("created_at", UTCDateTime(), nullable=False),
+)
+
+rooms = Table(
+    "rooms",
+    metadata,
+    Column("id", ID, primary_key=True),
+    Column("name", String(200), nullable=False),
+    Column("layout", JSON, nullable=False),
+    Column("layout_version", Integer, nullable=False),
+    Column("created_at", UTCDateTime(), nullable=False),
+    Column("updated_at", UTCDateTime(), nullable=False),
+    Column("current_version", Integer, nullable=True),
+    Column("latest_job_id", ID, nullable=True),
+    Index("ix_rooms_created_at_id", "created_at", "id"),
+)
+
+jobs = Table(
+    "jobs",
+    metadata,
+    Column("id", ID, primary_key=True),
+    Column("kind", String(32), nullable=False),
+    Column("room_id", ID, ForeignKey("rooms.id", ondelete="CASCADE"), nullable=True),
+    Column("status", String(16), nullable=False),
+    Column("progress", Float, nullable=False),
+    Column("error", Text, nullable=True),
+    Column("attempts", Integer, nullable=False),
+    Column("layout_version", Integer, nullable=False),
+    Column("created_at", UTCDateTime(), nullable=False),
+    Column("started_at", UTCDateTime(), nullable=True),
+    Column("finished_at", UTCDateTime(), nullable=True),
+    Column("fingerprint_version", Integer, nullable=True),
+    Column("lease_owner", String(64), nullable=True),
+    Column("lease_expires_at", UTCDateTime(), nullable=True),
+    Column("heartbeat_at", UTCDateTime(), nullable=True),
+    Index("ix_jobs_status_created_at", "status", "created_at"),
+    Index("ix_jobs_room_id", "room_id"),
+)
+
+fingerprints = Table(
+    "fingerprints",
+    metadata,
+    Column("room_id", ID, ForeignKey("rooms.id", ondelete="CASCADE"), primary_key=True),
+    Column("version", Integer, primary_key=True),
+    Column("layout_version", Integer, nullable=False),
+    Column("layout", JSON, nullable=False),
+    Column("leds", Integer, nullable=False),
+    Column("grid_points", Integer, nullable=False),
+    Column("built_at", UTCDateTime(), nullable=False),
+    Column("build_seconds", Float, nullable=False),
+    Column("job_id", ID, nullable=True),
+)
+
+matrices = Table(
+    "matrices",
+    metadata,
+    Column("room_id", ID, primary_key=True),
+    Column("version", Integer, primary_key=True),
+    Column("name", String(16), primary_key=True),
+    Column("sha256", String(64), nullable=False),
+    Column("format", String(8), nullable=False),
+    Column("shape", JSON, nullable=False),
+    Column("size_bytes", BigInteger, nullable=False),
+    ForeignKeyConstraint(
+        ["room_id", "version"],
+        ["fingerprints.room_id", "fingerprints.version"],
+        ondelete="CASCADE",
+    ),
+    Index("ix_matrices_sha256", "sha256"),
+)

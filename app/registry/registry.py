@@ -1,0 +1,349 @@
+"""The registry: rooms, API keys, fingerprint metadata and the matrix store.
+
+Rows never leave this module: every method returns frozen records from
+:mod:`app.registry.records`. All methods are keyword-only. The job queue itself
+(claim, heartbeat, finish) lives in :mod:`app.registry.queue` and is reached through
+:attr:`Registry.engine` by :mod:`app.jobs`.
+"""
+
+from __future__ import annotations
+
+import uuid
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import scipy.sparse as sp
+from sqlalchemy import Engine, delete, func, insert, select, text, update
+
+from app.vlp.fingerprints import Fingerprint
+from app.vlp.layout import layout_from_mapping
+
+from ._db import (
+    create_registry_engine,
+    migrate,
+    migrations_current,
+    translate_errors,
+    write_transaction,
+)
+from ._rows import (
+    decode_cursor,
+    encode_cursor,
+    fingerprint_record,
+    job_record,
+    matrix_infos,
+    normalised_layout,
+    room_record,
+    room_select,
+)
+from ._schema import api_keys, fingerprints, jobs, matrices, rooms
+from .errors import (
+    CorruptMatrix,
+    FingerprintNotFound,
+    FingerprintNotReady,
+    JobNotFound,
+    MatrixNotFound,
+    PreconditionFailed,
+    RoomNotFound,
+)
+from .queue import enqueue_build, utcnow
+from .records import FingerprintRecord, JobRecord, RoomRecord
+from .store import MatrixStore
+
+__all__ = ["Registry"]
+
+
+class Registry:
+    """Rooms, API keys, fingerprints and build jobs, in SQLite or PostgreSQL.
+
+    Parameters
+    ----------
+    database_url : str
+        SQLAlchemy URL (``sqlite:///...`` or ``postgresql+psycopg://...``).
+    data_dir : Path
+        The matrix store lives in ``data_dir / "matrices"``.
+    max_build_attempts : int, default=3
+    job_lease_seconds : float, default=30.0
+    """
+
+    def __init__(
+        self,
+        *,
+        database_url: str,
+        data_dir: Path,
+        max_build_attempts: int = 3,
+        job_lease_seconds: float = 30.0,
+    ) -> None:
+        self.database_url = database_url
+        self.data_dir = data_dir
+        self.max_build_attempts = max_build_attempts
+        self.job_lease_seconds = job_lease_seconds
+        self.engine: Engine = create_registry_engine(database_url)
+        self.store = MatrixStore(data_dir / "matrices")
+
+    # -- lifecycle ------------------------------------------------------------------------
+    def migrate(self) -> None:
+        """Apply the Alembic migrations up to head (idempotent, safe concurrently)."""
+        migrate(self.engine)
+
+    def ping(self) -> None:
+        """Raise :class:`RegistryUnavailable` when the database does not answer."""
+        with translate_errors(), self.engine.connect() as conn:
+            conn.execute(text("SELECT 1"))
+
+    def migrations_current(self) -> bool:
+        """True when the schema is at the newest migration."""
+        return migrations_current(self.engine)
+
+    def dispose(self) -> None:
+        """Close every pooled connection."""
+        self.engine.dispose()
+
+    # -- API keys -------------------------------------------------------------------------
+    def count_api_keys(self) -> int:
+        """How many API keys are registered."""
+        with translate_errors(), self.engine.connect() as conn:
+            return int(conn.execute(select(func.count()).select_from(api_keys)).scalar_one())
+
+    def add_api_key(self, *, key_hash: str, role: str, label: str) -> None:
+        """Register a key by its sha256 hex hash (a known hash is left as it is)."""
+        with write_transaction(self.engine) as conn:
+            known = conn.execute(
+                select(api_keys.c.key_hash).where(api_keys.c.key_hash == key_hash)
+            ).one_or_none()
+            if known is None:
+                conn.execute(
+                    insert(api_keys).values(
+                        key_hash=key_hash, role=role, label=label, created_at=utcnow()
+                    )
+                )
+
+    def role_for_key_hash(self, *, key_hash: str) -> str | None:
+        """The role of a key hash, or None for an unknown one."""
+        with translate_errors(), self.engine.connect() as conn:
+            role = conn.execute(
+                select(api_keys.c.role).where(api_keys.c.key_hash == key_hash)
+            ).scalar_one_or_none()
+        return None if role is None else str(role)
+
+    # -- rooms ----------------------------------------------------------------------------
+    def create_room(self, *, name: str, layout: dict[str, Any]) -> RoomRecord:
+        """Store a room (layout validated and defaults applied) and queue its first build.
+
+        Raises
+        ------
+        app.vlp.errors.GeometryError
+            When the layout is not valid.
+        """
+        mapping = normalised_layout(name, layout)
+        room_id = uuid.uuid4().hex
+        now = utcnow()
+        with write_transaction(self.engine) as conn:
+            conn.execute(
+                insert(rooms).values(
+                    id=room_id,
+                    name=name,
+                    layout=mapping,
+                    layout_version=1,
+                    created_at=now,
+                    updated_at=now,
+                )
+            )
+            enqueue_build(conn, room_id=room_id, layout_version=1)
+        return self.get_room(room_id=room_id)
+
+    def list_rooms(self, *, limit: int, cursor: str | None) -> tuple[list[RoomRecord], str | None]:
+        """Rooms in creation order (ties by id), ``limit`` at a time, and the next cursor."""
+        query = room_select().order_by(rooms.c.created_at, rooms.c.id).limit(limit + 1)
+        if cursor is not None:
+            created_at, room_id = decode_cursor(cursor)
+            query = query.where(
+                (rooms.c.created_at > created_at)
+                | ((rooms.c.created_at == created_at) & (rooms.c.id > room_id))
+            )
+        with translate_errors(), self.engine.connect() as conn:
+            rows = conn.execute(query).all()
+        records = [room_record(row) for row in rows[:limit]]
+        if len(rows) <= limit or not records:
+            return records, None
+        last = records[-1]
+        return records, encode_cursor(last.created_at, last.id)
+
+    def get_room(self, *, room_id: str) -> RoomRecord:
+        """One room; :class:`RoomNotFound` when unknown."""
+        with translate_errors(), self.engine.connect() as conn:
+            row = conn.execute(room_select().where(rooms.c.id == room_id)).one_or_none()
+        if row is None:
+            raise RoomNotFound(f"no room with id {room_id!r}", field="room_id")
+        return room_record(row)
+
+    def replace_room(
+        self, *, room_id: str, name: str, layout: dict[str, Any], expected_layout_version: int
+    ) -> RoomRecord:
+        """Replace name and layout in one transaction if ``expected_layout_version`` is current.
+
+        Raises
+        ------
+        RoomNotFound, PreconditionFailed, app.vlp.errors.GeometryError
+        """
+        mapping = normalised_layout(name, layout)
+        with write_transaction(self.engine) as conn:
+            current = conn.execute(
+                select(rooms.c.layout_version).where(rooms.c.id == room_id).with_for_update()
+            ).scalar_one_or_none()
+            if current is None:
+                raise RoomNotFound(f"no room with id {room_id!r}", field="room_id")
+            if current != expected_layout_version:
+                raise PreconditionFailed(
+                    f"room {room_id} is at layout_version {current}, "
+                    f"the request expected {expected_layout_version}",
+                    field="If-Match",
+                )
+            conn.execute(
+                update(rooms)
+                .where(rooms.c.id == room_id)
+                .values(name=name, layout=mapping, layout_version=current + 1, updated_at=utcnow())
+            )
+            enqueue_build(conn, room_id=room_id, layout_version=current + 1)
+        return self.get_room(room_id=room_id)
+
+    def delete_room(self, *, room_id: str) -> None:
+        """Delete the room, its jobs and fingerprints, and matrix files nobody else uses."""
+        with write_transaction(self.engine) as conn:
+            files = conn.execute(
+                select(matrices.c.sha256, matrices.c.format)
+                .where(matrices.c.room_id == room_id)
+                .distinct()
+            ).all()
+            conn.execute(delete(matrices).where(matrices.c.room_id == room_id))
+            conn.execute(delete(fingerprints).where(fingerprints.c.room_id == room_id))
+            conn.execute(delete(jobs).where(jobs.c.room_id == room_id))
+            deleted = conn.execute(delete(rooms).where(rooms.c.id == room_id)).rowcount
+        if not deleted:
+            raise RoomNotFound(f"no room with id {room_id!r}", field="room_id")
+        self._drop_unreferenced(files)
+
+    def _drop_unreferenced(self, files: Any) -> None:
+        with translate_errors(), self.engine.connect() as conn:
+            for sha256, fmt in files:
+                users = conn.execute(
+                    select(func.count()).select_from(matrices).where(matrices.c.sha256 == sha256)
+                ).scalar_one()
+                if not users:
+                    self.store.delete(sha256, fmt)
+
+    def count_rooms(self) -> int:
+        """How many rooms exist."""
+        with translate_errors(), self.engine.connect() as conn:
+            return int(conn.execute(select(func.count()).select_from(rooms)).scalar_one())
+
+    # -- builds ---------------------------------------------------------------------------
+    def request_build(self, *, room_id: str) -> JobRecord:
+        """Queue a build of the room's layout, or return the queued/running one for it."""
+        with write_transaction(self.engine) as conn:
+            version = conn.execute(
+                select(rooms.c.layout_version).where(rooms.c.id == room_id).with_for_update()
+            ).scalar_one_or_none()
+            if version is None:
+                raise RoomNotFound(f"no room with id {room_id!r}", field="room_id")
+            job_id = enqueue_build(conn, room_id=room_id, layout_version=version)
+        return self.get_job(job_id=job_id)
+
+    def get_job(self, *, job_id: str) -> JobRecord:
+        """One job; :class:`JobNotFound` when unknown (jobs go with their room)."""
+        with translate_errors(), self.engine.connect() as conn:
+            row = conn.execute(select(jobs).where(jobs.c.id == job_id)).one_or_none()
+        if row is None:
+            raise JobNotFound(f"no job with id {job_id!r}", field="job_id")
+        return job_record(row)
+
+    # -- fingerprints ---------------------------------------------------------------------
+    def list_fingerprints(self, *, room_id: str) -> list[FingerprintRecord]:
+        """The room's fingerprint versions, newest first."""
+        self.get_room(room_id=room_id)
+        with translate_errors(), self.engine.connect() as conn:
+            rows = conn.execute(
+                select(fingerprints)
+                .where(fingerprints.c.room_id == room_id)
+                .order_by(fingerprints.c.version.desc())
+            ).all()
+            infos = matrix_infos(conn, room_id=room_id, version=None)
+        return [fingerprint_record(row, infos.get(row.version, {})) for row in rows]
+
+    def get_fingerprint(self, *, room_id: str, version: int | None) -> FingerprintRecord:
+        """One version's metadata; ``version=None`` means the current one.
+
+        Raises
+        ------
+        RoomNotFound, FingerprintNotReady (no current version), FingerprintNotFound
+        """
+        if version is None:
+            version = self.current_version(room_id=room_id)
+            if version is None:
+                raise FingerprintNotReady(
+                    f"room {room_id} has no ready fingerprint yet", field="fingerprint_version"
+                )
+        with translate_errors(), self.engine.connect() as conn:
+            row = conn.execute(
+                select(fingerprints).where(
+                    fingerprints.c.room_id == room_id, fingerprints.c.version == version
+                )
+            ).one_or_none()
+            infos = matrix_infos(conn, room_id=room_id, version=version)
+        if row is None:
+            self.get_room(room_id=room_id)
+            raise FingerprintNotFound(
+                f"room {room_id} has no fingerprint version {version}", field="version"
+            )
+        return fingerprint_record(row, infos.get(version, {}))
+
+    def current_version(self, *, room_id: str) -> int | None:
+        """The version localization uses now (one indexed read); RoomNotFound when unknown."""
+        with translate_errors(), self.engine.connect() as conn:
+            row = conn.execute(
+                select(rooms.c.current_version).where(rooms.c.id == room_id)
+            ).one_or_none()
+        if row is None:
+            raise RoomNotFound(f"no room with id {room_id!r}", field="room_id")
+        return None if row.current_version is None else int(row.current_version)
+
+    def matrix_path(self, *, room_id: str, version: int, name: str) -> Path:
+        """The verified file of one stored matrix.
+
+        Raises
+        ------
+        FingerprintNotFound, MatrixNotFound
+            Unknown version, or a matrix that was not stored (e.g. psi above the limit).
+        CorruptMatrix
+            The file is missing or its sha256 does not match; a rebuild has been queued.
+        """
+        info = self.get_fingerprint(room_id=room_id, version=version).matrices.get(name)
+        if info is None:
+            raise MatrixNotFound(
+                f"fingerprint {version} of room {room_id} has no stored matrix {name!r}",
+                field="matrix",
+            )
+        path = self.store.path_for(info.sha256, info.format)
+        if not self.store.verify(path, info.sha256):
+            self.request_build(room_id=room_id)
+            raise CorruptMatrix(
+                f"matrix {name} of fingerprint {version} of room {room_id} failed its sha256 "
+                "check; a rebuild has been queued"
+            )
+        return path
+
+    def load_fingerprint(self, *, room_id: str, version: int) -> Fingerprint:
+        """The fingerprint of that version: its layout snapshot and the verified H."""
+        path = self.matrix_path(room_id=room_id, version=version, name="H")
+        with translate_errors(), self.engine.connect() as conn:
+            snapshot = conn.execute(
+                select(fingerprints.c.layout).where(
+                    fingerprints.c.room_id == room_id, fingerprints.c.version == version
+                )
+            ).scalar_one()
+        if path.suffix == ".npz":
+            gains = sp.csr_array(sp.load_npz(path))
+        else:
+            gains = sp.csr_array(np.load(path, allow_pickle=False))
+        gains.sort_indices()
+        return Fingerprint(layout=layout_from_mapping(snapshot), gains=gains)

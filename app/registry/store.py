@@ -1,0 +1,156 @@
+"""A content-addressed store of immutable matrix files.
+
+A matrix is saved as ``.npy`` (a dense float64 array) or ``.npz`` (a sparse CSR array in the
+layout of ``scipy.sparse.save_npz``) and named after the sha256 of its bytes:
+``<root>/<sha[:2]>/<sha>.<format>``. Files are written to a temporary file in the same
+directory, fsynced and renamed over the final name, so a reader sees either nothing or the
+whole file, and a rewrite repairs a corrupt file in place. The same array always gives the
+same bytes (the zip entries of an ``.npz`` carry a fixed timestamp), hence the same name.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import os
+import tempfile
+import threading
+import zipfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import scipy.sparse as sp
+from numpy.typing import NDArray
+
+from ._typing import StoredMatrix
+from .records import MatrixInfo
+
+__all__ = ["FORMATS", "MatrixStore", "matrix_bytes"]
+
+FORMATS = ("npy", "npz")
+_ZIP_EPOCH = (1980, 1, 1, 0, 0, 0)
+_CHUNK = 1 << 20
+
+
+def _npy_bytes(array: NDArray[Any]) -> bytes:
+    buffer = io.BytesIO()
+    np.lib.format.write_array(buffer, np.ascontiguousarray(array), allow_pickle=False)
+    return buffer.getvalue()
+
+
+def _npz_bytes(matrix: sp.csr_array) -> bytes:
+    entries: dict[str, NDArray[Any]] = {
+        "indices": matrix.indices,
+        "indptr": matrix.indptr,
+        "format": np.array(b"csr"),
+        "shape": np.array(matrix.shape),
+        "data": matrix.data,
+        "_is_array": np.array(True),
+    }
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w") as archive:
+        for key, value in entries.items():
+            info = zipfile.ZipInfo(f"{key}.npy", date_time=_ZIP_EPOCH)
+            info.compress_type = zipfile.ZIP_DEFLATED
+            archive.writestr(info, _npy_bytes(value))
+    return buffer.getvalue()
+
+
+def matrix_bytes(matrix: StoredMatrix) -> tuple[bytes, str]:
+    """The deterministic file bytes of ``matrix`` and their format (``"npy"`` or ``"npz"``)."""
+    if sp.issparse(matrix):
+        csr = sp.csr_array(matrix)
+        csr.sort_indices()
+        return _npz_bytes(csr), "npz"
+    return _npy_bytes(np.asarray(matrix, dtype=np.float64)), "npy"
+
+
+def _sha256_of_file(path: Path) -> str:
+    digest = hashlib.sha256()
+    with path.open("rb") as handle:
+        while chunk := handle.read(_CHUNK):
+            digest.update(chunk)
+    return digest.hexdigest()
+
+
+class MatrixStore:
+    """Immutable matrix files under ``root``, named by the sha256 of their content.
+
+    Parameters
+    ----------
+    root : Path
+        Directory of the store (created on first write).
+    """
+
+    def __init__(self, root: Path) -> None:
+        self.root = root
+        self._verified: dict[Path, tuple[int, int, str]] = {}
+        self._lock = threading.Lock()
+
+    def path_for(self, sha256: str, fmt: str) -> Path:
+        """Where the file with this hash and format lives."""
+        if fmt not in FORMATS or len(sha256) != 64:
+            raise ValueError(f"expected a sha256 hex digest and one of {FORMATS}, got {fmt!r}")
+        return self.root / sha256[:2] / f"{sha256}.{fmt}"
+
+    def put(self, matrix: StoredMatrix) -> tuple[MatrixInfo, int]:
+        """Store ``matrix`` (idempotent) and return its metadata and its size in bytes.
+
+        An existing file of that name is kept when its bytes verify and replaced otherwise.
+        """
+        payload, fmt = matrix_bytes(matrix)
+        sha256 = hashlib.sha256(payload).hexdigest()
+        path = self.path_for(sha256, fmt)
+        if not self.verify(path, sha256):
+            self._write_atomic(path, payload)
+        info = MatrixInfo(shape=tuple(int(n) for n in matrix.shape), sha256=sha256, format=fmt)
+        return info, len(payload)
+
+    def verify(self, path: Path, sha256: str) -> bool:
+        """True when ``path`` exists and hashes to ``sha256``.
+
+        A success is remembered per (path, mtime, size), so a file is hashed again only after
+        it changed on disk.
+        """
+        try:
+            stat = path.stat()
+        except FileNotFoundError:
+            return False
+        key = (stat.st_mtime_ns, stat.st_size, sha256)
+        with self._lock:
+            if self._verified.get(path) == key:
+                return True
+        if _sha256_of_file(path) != sha256:
+            with self._lock:
+                self._verified.pop(path, None)
+            return False
+        with self._lock:
+            self._verified[path] = key
+        return True
+
+    def delete(self, sha256: str, fmt: str) -> None:
+        """Remove a file (missing files are fine)."""
+        path = self.path_for(sha256, fmt)
+        with self._lock:
+            self._verified.pop(path, None)
+        path.unlink(missing_ok=True)
+
+    def _write_atomic(self, path: Path, payload: bytes) -> None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        handle, tmp_name = tempfile.mkstemp(dir=path.parent, prefix=".tmp-", suffix=path.suffix)
+        try:
+            with os.fdopen(handle, "wb") as tmp:
+                tmp.write(payload)
+                tmp.flush()
+                os.fsync(tmp.fileno())
+            os.chmod(tmp_name, 0o444)
+            os.replace(tmp_name, path)
+        except BaseException:
+            Path(tmp_name).unlink(missing_ok=True)
+            raise
+        directory = os.open(path.parent, os.O_RDONLY)
+        try:
+            os.fsync(directory)
+        finally:
+            os.close(directory)
