@@ -1,0 +1,15 @@
+"""The HTTP layer: routers (one per resource), dependencies, errors, security, metrics, docs."""
+
+from fastapi import APIRouter
+
+from . import fingerprints, health, localize, rooms, simulate
+
+__all__ = ["api_router"]
+
+api_router = APIRouter()
+api_router.include_router(health.router)
+api_router.include_router(rooms.router)
+api_router.include_router(fingerprints.router)
+api_router.include_router(fingerprints.jobs_router)
+api_router.include_router(localize.router)
+api_router.include_router(simulate.router)

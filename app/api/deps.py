@@ -1,0 +1,93 @@
+"""Dependencies: the resources built in the lifespan, and the caller's role.
+
+Handlers take them through the ``Annotated`` aliases below.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import Depends, Request, Security
+from fastapi.security import APIKeyHeader
+
+from app.registry import Registry
+from app.settings import Settings
+
+from .errors import ApiProblem
+from .localizer import FingerprintCache
+from .metrics import Metrics
+from .security import KeyRing, Role
+
+__all__ = [
+    "AdminRole",
+    "AnyRole",
+    "CacheDep",
+    "MetricsDep",
+    "RegistryDep",
+    "SettingsDep",
+    "api_key_header",
+    "current_role",
+    "require_admin",
+]
+
+api_key_header = APIKeyHeader(
+    name="X-API-Key", auto_error=False, scheme_name="ApiKey",
+    description="an admin or terminal key (see the server's `credentials` file at first start)")
+
+
+def get_registry(request: Request) -> Registry:
+    """The registry built in the lifespan."""
+    registry: Registry = request.app.state.registry
+    return registry
+
+
+def get_settings(request: Request) -> Settings:
+    """The settings the app was created with."""
+    settings: Settings = request.app.state.settings
+    return settings
+
+
+def get_cache(request: Request) -> FingerprintCache:
+    """The per-process fingerprint and solver cache."""
+    cache: FingerprintCache = request.app.state.cache
+    return cache
+
+
+def get_metrics(request: Request) -> Metrics:
+    """The app's Prometheus metrics."""
+    metrics: Metrics = request.app.state.metrics
+    return metrics
+
+
+RegistryDep = Annotated[Registry, Depends(get_registry)]
+SettingsDep = Annotated[Settings, Depends(get_settings)]
+CacheDep = Annotated[FingerprintCache, Depends(get_cache)]
+MetricsDep = Annotated[Metrics, Depends(get_metrics)]
+
+
+def current_role(request: Request, registry: RegistryDep,
+                 key: Annotated[str | None, Security(api_key_header)] = None) -> Role:
+    """The caller's role from ``X-API-Key``; 401 when it is missing or unknown."""
+    if not key:
+        raise ApiProblem(401, "this endpoint needs an API key in the X-API-Key header",
+                         kind="unauthorized", headers={"WWW-Authenticate": "X-API-Key"})
+    keys: KeyRing = request.app.state.keys
+    role = keys.role_for(key, registry)
+    if role is None:
+        raise ApiProblem(401, "unknown API key", kind="unauthorized",
+                         headers={"WWW-Authenticate": "X-API-Key"})
+    return role
+
+
+AnyRole = Annotated[Role, Depends(current_role)]
+
+
+def require_admin(role: AnyRole) -> Role:
+    """403 unless the caller is an admin."""
+    if role != "admin":
+        raise ApiProblem(403, f"the {role} role may not do this; it needs an admin key",
+                         kind="forbidden")
+    return role
+
+
+AdminRole = Annotated[Role, Depends(require_admin)]

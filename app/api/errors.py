@@ -1,0 +1,187 @@
+"""Every error becomes an RFC 9457 problem (``application/problem+json``).
+
+One place maps the error families (``app.errors``) and the framework's own errors (404, 405,
+request validation) to problem answers; handlers raise, they never build error bodies.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Iterable, Mapping, Sequence
+from http import HTTPStatus
+from typing import Any
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+from starlette.exceptions import HTTPException as StarletteHTTPException
+
+from app.errors import (
+    CorruptMatrix,
+    FingerprintNotReady,
+    InvalidCursor,
+    NotFound,
+    PreconditionFailed,
+    RegistryError,
+    RegistryUnavailable,
+    VLPError,
+)
+from app.schemas import Problem
+
+__all__ = [
+    "PROBLEM_MEDIA_TYPE",
+    "ApiProblem",
+    "InvalidInput",
+    "field_location",
+    "install_error_handlers",
+    "problem_response",
+    "problem_responses",
+]
+
+PROBLEM_MEDIA_TYPE = "application/problem+json"
+_TYPE_PREFIX = "urn:vlp:problem:"
+_INDEX = re.compile(r"\[(\d+)\]")
+
+
+class ApiProblem(Exception):
+    """An HTTP problem raised by a handler or dependency."""
+
+    def __init__(self, status: int, detail: str, *, kind: str | None = None,
+                 title: str | None = None, errors: Sequence[tuple[str, str]] = (),
+                 headers: Mapping[str, str] | None = None) -> None:
+        super().__init__(detail)
+        self.status = status
+        self.detail = detail
+        self.kind = kind
+        self.title = title
+        self.errors = list(errors)
+        self.headers = dict(headers or {})
+
+
+class InvalidInput(ApiProblem):
+    """A 422 naming the invalid fields: ``errors`` holds ``(field, message)`` pairs."""
+
+    def __init__(self, errors: Sequence[tuple[str, str]]) -> None:
+        detail = "; ".join(f"{field}: {message}" for field, message in errors)
+        super().__init__(422, detail, kind="validation", title="Validation failed",
+                         errors=errors)
+
+
+def field_location(field: str | None, prefix: str = "body") -> str:
+    """A science-core field (``"leds[3].z"``) as a request location (``"body.leds.3.z"``)."""
+    if not field:
+        return prefix
+    dotted = _INDEX.sub(r".\1", field)
+    return f"{prefix}.{dotted}"
+
+
+def problem_response(request: Request, status: int, detail: str, *, kind: str | None = None,
+                     title: str | None = None, errors: Iterable[tuple[str, str]] = (),
+                     headers: Mapping[str, str] | None = None) -> JSONResponse:
+    """The problem answer for one error."""
+    phrase = HTTPStatus(status).phrase if status in HTTPStatus._value2member_map_ else "Error"
+    body: dict[str, Any] = {
+        "type": f"{_TYPE_PREFIX}{kind}" if kind else "about:blank",
+        "title": title or phrase,
+        "status": status,
+        "detail": detail,
+        "instance": request.url.path,
+    }
+    error_list = [{"field": field, "message": message} for field, message in errors]
+    if error_list:
+        body["errors"] = error_list
+    request_id = getattr(request.state, "request_id", None)
+    if request_id:
+        body["request_id"] = request_id
+    return JSONResponse(body, status_code=status, headers=dict(headers or {}),
+                        media_type=PROBLEM_MEDIA_TYPE)
+
+
+def _validation_errors(exc: RequestValidationError) -> list[tuple[str, str]]:
+    errors = []
+    for error in exc.errors():
+        loc = [str(part) for part in error.get("loc", ())]
+        message = str(error.get("msg", "invalid"))
+        if error.get("type") == "json_invalid":
+            message = f"the body is not valid JSON: {error.get('ctx', {}).get('error', '')}"
+        errors.append((".".join(loc) or "body", message))
+    return errors
+
+
+def _registry_status(exc: RegistryError) -> tuple[int, str]:
+    table: tuple[tuple[type[RegistryError], int, str], ...] = (
+        (NotFound, 404, "not-found"),
+        (PreconditionFailed, 412, "precondition-failed"),
+        (FingerprintNotReady, 409, "fingerprint-not-ready"),
+        (InvalidCursor, 422, "validation"),
+        (CorruptMatrix, 503, "corrupt-matrix"),
+        (RegistryUnavailable, 503, "registry-unavailable"),
+    )
+    for cls, status, kind in table:
+        if isinstance(exc, cls):
+            return status, kind
+    return 500, "registry-error"
+
+
+def install_error_handlers(app: FastAPI) -> None:
+    """Register the problem handlers on ``app``."""
+
+    async def on_api_problem(request: Request, exc: Exception) -> JSONResponse:
+        assert isinstance(exc, ApiProblem)
+        return problem_response(request, exc.status, exc.detail, kind=exc.kind, title=exc.title,
+                                errors=exc.errors, headers=exc.headers)
+
+    async def on_http(request: Request, exc: Exception) -> JSONResponse:
+        assert isinstance(exc, StarletteHTTPException)
+        return problem_response(request, exc.status_code, str(exc.detail),
+                                headers=exc.headers)
+
+    async def on_validation(request: Request, exc: Exception) -> JSONResponse:
+        assert isinstance(exc, RequestValidationError)
+        errors = _validation_errors(exc)
+        return problem_response(request, 422, f"{len(errors)} invalid input(s): "
+                                + "; ".join(f"{f}: {m}" for f, m in errors),
+                                kind="validation", title="Validation failed", errors=errors)
+
+    async def on_vlp(request: Request, exc: Exception) -> JSONResponse:
+        assert isinstance(exc, VLPError)
+        errors = [(field_location(exc.field), exc.message)]
+        return problem_response(request, 422, exc.message, kind="validation",
+                                title="Validation failed", errors=errors)
+
+    async def on_registry(request: Request, exc: Exception) -> JSONResponse:
+        assert isinstance(exc, RegistryError)
+        status, kind = _registry_status(exc)
+        errors = [(field_location(exc.field, "query"), exc.message)] if status == 422 else []
+        headers = {"Retry-After": "5"} if status == 503 else None
+        return problem_response(request, status, exc.message, kind=kind, errors=errors,
+                                headers=headers)
+
+    app.add_exception_handler(ApiProblem, on_api_problem)
+    app.add_exception_handler(StarletteHTTPException, on_http)
+    app.add_exception_handler(RequestValidationError, on_validation)
+    app.add_exception_handler(VLPError, on_vlp)
+    app.add_exception_handler(RegistryError, on_registry)
+
+
+def _problem_doc(description: str) -> dict[str, Any]:
+    return {"description": description, "model": Problem,
+            "content": {PROBLEM_MEDIA_TYPE: {"schema": {"$ref": "#/components/schemas/Problem"}}}}
+
+
+_DESCRIPTIONS = {
+    401: "no or unknown `X-API-Key`",
+    403: "the key's role may not do this",
+    404: "unknown room, job or fingerprint version",
+    409: "conflict with the resource's state (e.g. no fingerprint ready yet)",
+    412: "`If-Match` does not match the room's current `ETag`",
+    413: "request body larger than the configured limit",
+    422: "invalid input; `errors` names each field",
+    428: "`If-Match` header missing",
+    503: "the registry is unavailable (or a stored matrix failed its integrity check)",
+}
+
+
+def problem_responses(*statuses: int) -> dict[int | str, dict[str, Any]]:
+    """OpenAPI ``responses`` entries documenting problem answers of these statuses."""
+    return {status: _problem_doc(_DESCRIPTIONS[status]) for status in statuses}

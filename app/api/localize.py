@@ -1,0 +1,125 @@
+"""Localization: a measurement in, the targets' positions out."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+from fastapi import APIRouter
+from starlette.concurrency import run_in_threadpool
+
+from app.schemas import Estimate, Localization, Measurement
+from app.vlp import measurements as vlp_measurements
+from app.vlp.assignment import assign_terminals
+from app.vlp.measurements import Model
+from app.vlp.solvers import solver_names
+
+from .deps import AnyRole, CacheDep, MetricsDep
+from .errors import InvalidInput, problem_responses
+from .localizer import FingerprintCache
+from .metrics import Metrics
+
+__all__ = ["input_form", "router"]
+
+router = APIRouter(prefix="/v1/rooms", tags=["localization"])
+_FORMS = ("power", "correlation", "terminals")
+
+
+@dataclass(frozen=True)
+class _Request:
+    room_id: str
+    body: Measurement
+    form: str
+    model: Model
+
+
+def input_form(body: Measurement) -> tuple[str, Model]:
+    """Which of ``power``/``correlation``/``terminals`` was sent, and the model it implies.
+
+    Raises
+    ------
+    InvalidInput
+        Unless exactly one was sent, or when ``model`` contradicts it.
+    """
+    sent = [form for form in _FORMS if getattr(body, form) is not None]
+    if len(sent) != 1:
+        names = sent or list(_FORMS)
+        what = "none of them was" if not sent else f"{len(sent)} were"
+        raise InvalidInput([(f"body.{form}", f"send exactly one of power, correlation, "
+                                             f"terminals; {what} sent") for form in names])
+    form = sent[0]
+    explicit = "model" in body.model_fields_set
+    if form == "terminals":
+        return form, body.model
+    implied: Model = "power" if form == "power" else "correlation"
+    if explicit and body.model != implied:
+        raise InvalidInput([("body.model", f"model {body.model!r} does not fit `{form}`; "
+                                           f"use model {implied!r} or leave it out")])
+    return form, implied
+
+
+def _measurement(request: _Request, n_leds: int) -> vlp_measurements.Measurement:
+    body = request.body
+    if request.form == "power":
+        return vlp_measurements.measurement_from_power(body.power, n_leds)
+    if request.form == "correlation":
+        return vlp_measurements.measurement_from_correlation(body.correlation, n_leds)
+    terminals = body.terminals or []
+    errors = [(f"body.terminals.{index}.amplitudes",
+               f"expected {n_leds} amplitudes (one per LED), got {len(terminal.amplitudes)}")
+              for index, terminal in enumerate(terminals) if len(terminal.amplitudes) != n_leds]
+    ids = [terminal.id for terminal in terminals]
+    errors += [(f"body.terminals.{index}.id", f"terminal id {tid!r} appears more than once")
+               for index, tid in enumerate(ids) if ids.index(tid) != index]
+    if errors:
+        raise InvalidInput(errors)
+    amplitudes = np.array([terminal.amplitudes for terminal in terminals], dtype=np.float64)
+    return vlp_measurements.measurement_from_amplitudes(amplitudes, request.model, n_leds)
+
+
+def _localize(request: _Request, cache: FingerprintCache, metrics: Metrics) -> Localization:
+    body = request.body
+    version = body.fingerprint_version or cache.current_version(request.room_id)
+    fingerprint = cache.fingerprint(request.room_id, version)
+    measurement = _measurement(request, fingerprint.n_leds)
+    prepared = cache.solver(request.room_id, version, request.model, body.solver)
+    with prepared.lock:
+        started = time.perf_counter()
+        solution = prepared.solver.solve(measurement, body.targets)
+        elapsed = time.perf_counter() - started
+    metrics.localize_latency.labels(solver=body.solver, model=request.model).observe(elapsed)
+    owners: list[str | None] = [None] * solution.n_targets
+    if body.terminals:
+        amplitudes = np.array([terminal.amplitudes for terminal in body.terminals])
+        assigned = assign_terminals(fingerprint.layout, solution.positions, amplitudes)
+        owners = [body.terminals[int(index)].id if index >= 0 else None for index in assigned]
+    estimates = [
+        Estimate(x=float(position[0]), y=float(position[1]), grid_index=int(grid_index),
+                 weight=float(weight), terminal_id=owner)
+        for position, grid_index, weight, owner in zip(
+            solution.positions, solution.grid_indices, solution.weights, owners, strict=True)
+    ]
+    return Localization(room_id=request.room_id, fingerprint_version=version,
+                        model=request.model, solver=body.solver, targets=solution.n_targets,
+                        estimates=estimates, residual_norm=float(solution.residual_norm),
+                        noise_power=float(solution.noise_power),
+                        elapsed_ms=round(elapsed * 1e3, 3))
+
+
+@router.post("/{room_id}/localize", summary="Locate the targets behind a measurement",
+             responses=problem_responses(401, 404, 409, 413, 422, 503))
+async def localize(room_id: str, body: Measurement, cache: CacheDep, metrics: MetricsDep,
+                   _role: AnyRole) -> Localization:
+    """Send exactly one of `power`, `correlation` (M x M or its upper triangle) or
+    `terminals` (each terminal's amplitudes); get the targets' positions.
+
+    Tip: `POST /v1/rooms/{room_id}/simulate` makes a ready-to-send body. 409 while the room
+    has no ready fingerprint.
+    """
+    form, model = input_form(body)
+    if body.solver not in solver_names():
+        raise InvalidInput([("body.solver", f"solver {body.solver!r} is not installed on this "
+                                            f"server; choose one of {solver_names()}")])
+    request = _Request(room_id=room_id, body=body, form=form, model=model)
+    return await run_in_threadpool(_localize, request, cache, metrics)

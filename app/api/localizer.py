@@ -1,0 +1,131 @@
+"""Per-process cache of loaded fingerprints and prepared solvers.
+
+Fingerprints are cached per (room, version) in an LRU of ``fingerprint_cache_size``; the
+solvers built from one are kept with it, per (model, solver name). A room's current version
+is re-read from the registry at most every ``version_check_seconds``, so every API process
+switches to a newly built version within that time (a room with no ready version is re-read
+on every request).
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections import OrderedDict
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+from app.registry import Registry
+from app.registry.errors import FingerprintNotReady
+from app.vlp.fingerprints import Fingerprint
+from app.vlp.measurements import Model
+from app.vlp.solvers import Solver, make_solver
+
+from .metrics import Metrics
+
+__all__ = ["FingerprintCache", "PreparedSolver"]
+
+
+@dataclass(frozen=True)
+class PreparedSolver:
+    """A solver ready for one (room, version, model); ``lock`` serialises its solves."""
+
+    solver: Solver
+    lock: threading.Lock = field(default_factory=threading.Lock, compare=False)
+
+
+@dataclass
+class _Entry:
+    fingerprint: Fingerprint
+    solvers: dict[tuple[Model, str], PreparedSolver] = field(default_factory=dict)
+
+
+class FingerprintCache:
+    """Loaded fingerprints and solvers of one process (thread-safe)."""
+
+    def __init__(self, *, registry: Registry, size: int, version_check_seconds: float,
+                 metrics: Metrics, clock: Callable[[], float] = time.monotonic) -> None:
+        self._registry = registry
+        self._size = size
+        self._interval = version_check_seconds
+        self._metrics = metrics
+        self._clock = clock
+        self._lock = threading.Lock()
+        self._versions: dict[str, tuple[int, float]] = {}
+        self._entries: OrderedDict[tuple[str, int], _Entry] = OrderedDict()
+        self._key_locks: dict[tuple[object, ...], threading.Lock] = {}
+
+    def current_version(self, room_id: str) -> int:
+        """The room's current fingerprint version (re-read at most every interval).
+
+        Raises
+        ------
+        RoomNotFound, FingerprintNotReady
+        """
+        now = self._clock()
+        with self._lock:
+            cached = self._versions.get(room_id)
+        if cached is not None and now - cached[1] < self._interval:
+            return cached[0]
+        version = self._registry.current_version(room_id=room_id)
+        if version is None:
+            raise FingerprintNotReady(f"room {room_id} has no ready fingerprint yet; "
+                                      "poll the room or its build job")
+        with self._lock:
+            self._versions[room_id] = (version, now)
+        return version
+
+    def fingerprint(self, room_id: str, version: int) -> Fingerprint:
+        """The fingerprint of (room, version), loaded once and verified by the registry."""
+        return self._entry(room_id, version).fingerprint
+
+    def solver(self, room_id: str, version: int, model: Model, name: str) -> PreparedSolver:
+        """The solver ``name`` for (room, version, model), built once."""
+        entry = self._entry(room_id, version)
+        key = (model, name)
+        with self._lock:
+            prepared = entry.solvers.get(key)
+        if prepared is not None:
+            return prepared
+        with self._key_lock(("solver", room_id, version, model, name)):
+            with self._lock:
+                prepared = entry.solvers.get(key)
+            if prepared is None:
+                prepared = PreparedSolver(make_solver(name, entry.fingerprint, model))
+                with self._lock:
+                    entry.solvers[key] = prepared
+        return prepared
+
+    def forget(self, room_id: str) -> None:
+        """Drop everything cached about a room (after it was replaced or deleted)."""
+        with self._lock:
+            self._versions.pop(room_id, None)
+            for key in [key for key in self._entries if key[0] == room_id]:
+                del self._entries[key]
+
+    def _entry(self, room_id: str, version: int) -> _Entry:
+        key = (room_id, version)
+        with self._lock:
+            entry = self._entries.get(key)
+            if entry is not None:
+                self._entries.move_to_end(key)
+        if entry is not None:
+            self._metrics.cache.labels(result="hit").inc()
+            return entry
+        with self._key_lock(("fingerprint", room_id, version)):
+            with self._lock:
+                entry = self._entries.get(key)
+            if entry is None:
+                self._metrics.cache.labels(result="miss").inc()
+                entry = _Entry(self._registry.load_fingerprint(room_id=room_id, version=version))
+                with self._lock:
+                    self._entries[key] = entry
+                    while len(self._entries) > self._size:
+                        self._entries.popitem(last=False)
+            else:
+                self._metrics.cache.labels(result="hit").inc()
+        return entry
+
+    def _key_lock(self, key: tuple[object, ...]) -> threading.Lock:
+        with self._lock:
+            return self._key_locks.setdefault(key, threading.Lock())

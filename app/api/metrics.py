@@ -1,0 +1,52 @@
+"""Prometheus metrics of one app (its own ``CollectorRegistry``, nothing global)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator, Mapping
+
+from prometheus_client import CollectorRegistry, Counter, Histogram
+from prometheus_client.core import GaugeMetricFamily
+from prometheus_client.registry import Collector
+
+__all__ = ["JOB_STATUSES", "JobsCollector", "Metrics"]
+
+JOB_STATUSES = ("queued", "running", "succeeded", "failed")
+_LATENCY_BUCKETS = (0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0)
+
+
+class JobsCollector(Collector):
+    """Reads the jobs-by-status counts from the registry at scrape time."""
+
+    def __init__(self, count_jobs: Callable[[], Mapping[str, int]]) -> None:
+        self._count_jobs = count_jobs
+
+    def collect(self) -> Iterator[GaugeMetricFamily]:
+        """One gauge sample per job status."""
+        gauge = GaugeMetricFamily("vlp_jobs", "Fingerprint build jobs by status",
+                                  labels=["status"])
+        counts = self._count_jobs()
+        for status in JOB_STATUSES:
+            gauge.add_metric([status], float(counts.get(status, 0)))
+        yield gauge
+
+
+class Metrics:
+    """Request, localization and cache metrics of one app."""
+
+    def __init__(self) -> None:
+        self.registry = CollectorRegistry(auto_describe=True)
+        self.requests = Counter("vlp_http_requests", "HTTP requests by route template",
+                                ["method", "route", "status"], registry=self.registry)
+        self.latency = Histogram("vlp_http_request_duration_seconds",
+                                 "HTTP request latency by route template", ["method", "route"],
+                                 buckets=_LATENCY_BUCKETS, registry=self.registry)
+        self.localize_latency = Histogram("vlp_localize_duration_seconds",
+                                          "Solver time of localize requests",
+                                          ["solver", "model"], buckets=_LATENCY_BUCKETS,
+                                          registry=self.registry)
+        self.cache = Counter("vlp_fingerprint_cache", "Fingerprint/solver cache lookups",
+                             ["result"], registry=self.registry)
+
+    def watch_jobs(self, count_jobs: Callable[[], Mapping[str, int]]) -> None:
+        """Expose jobs by status, read through ``count_jobs`` at each scrape."""
+        self.registry.register(JobsCollector(count_jobs))

@@ -1,0 +1,116 @@
+"""The FastAPI application factory.
+
+Everything stateful (registry, workers, caches, metrics, keys) is built in the lifespan of
+the app that :func:`create_app` returns; nothing at import time.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+
+from fastapi import FastAPI
+from fastapi.routing import APIRoute
+from starlette.concurrency import run_in_threadpool
+from threadpoolctl import threadpool_limits
+
+from app.api import api_router
+from app.api.docs import install_docs
+from app.api.errors import install_error_handlers
+from app.api.localizer import FingerprintCache
+from app.api.metrics import Metrics
+from app.api.middleware import BodySizeLimitMiddleware, RequestContextMiddleware
+from app.api.security import provision_keys
+from app.jobs import EmbeddedWorkers
+from app.registry import Registry
+from app.registry.seed import seed_demo_room
+from app.settings import Settings, get_settings
+
+__all__ = ["create_app"]
+
+_log = logging.getLogger("app")
+
+_DESCRIPTION = """\
+Indoor multi-target **visible-light positioning** as a service: terminals measure the pilot
+amplitudes of the ceiling LEDs, the service finds where they are (compressed sensing over a
+fingerprint grid, after the CoCSM-VLP paper).
+
+**Try it here:** click *Authorize* and paste a key (`X-API-Key`; the server prints its first
+keys once and writes them to `VLP_DATA_DIR/credentials`). Then `GET /v1/rooms` lists the demo
+room, `POST /v1/rooms/{room_id}/simulate` makes a measurement with its ground truth, and
+`POST /v1/rooms/{room_id}/localize` with that `measurement` finds the targets.
+
+Units are SI (metres; `_deg` names are degrees). Every error is `application/problem+json`.
+"""
+
+_TAGS = [
+    {"name": "rooms", "description": "Room layouts: box, grid, receiver and LEDs (admin writes)"},
+    {"name": "fingerprints", "description": "Channel matrices built from a layout"},
+    {"name": "jobs", "description": "Background fingerprint builds"},
+    {"name": "localization", "description": "Locate targets; simulate measurements"},
+    {"name": "operations", "description": "Health, readiness, metrics (no key)"},
+]
+
+
+def _operation_id(route: APIRoute) -> str:
+    return route.name
+
+
+def _count_jobs(registry: Registry) -> dict[str, int]:
+    counter = getattr(registry, "count_jobs_by_status", None)
+    return dict(counter()) if callable(counter) else {}
+
+
+@asynccontextmanager
+async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
+    settings: Settings = app.state.settings
+    with threadpool_limits(limits=1):
+        settings.data_dir.mkdir(parents=True, exist_ok=True)
+        registry = Registry(database_url=settings.resolved_database_url(),
+                            data_dir=settings.data_dir,
+                            max_build_attempts=settings.max_build_attempts,
+                            job_lease_seconds=settings.job_lease_seconds)
+        await run_in_threadpool(registry.migrate)
+        app.state.registry = registry
+        app.state.keys = await run_in_threadpool(
+            lambda: provision_keys(registry=registry, settings=settings))
+        if settings.demo:
+            await run_in_threadpool(seed_demo_room, registry)
+        metrics: Metrics = app.state.metrics
+        metrics.watch_jobs(lambda: _count_jobs(registry))
+        app.state.cache = FingerprintCache(registry=registry,
+                                           size=settings.fingerprint_cache_size,
+                                           version_check_seconds=settings.version_check_seconds,
+                                           metrics=metrics)
+        workers = EmbeddedWorkers(registry=registry, settings=settings)
+        if settings.embedded_workers > 0:
+            workers.start()
+        _log.info("service started", extra={"data_dir": str(settings.data_dir),
+                                            "embedded_workers": settings.embedded_workers})
+        try:
+            yield
+        finally:
+            if settings.embedded_workers > 0:
+                await run_in_threadpool(workers.stop)
+            registry.dispose()
+
+
+def create_app(settings: Settings | None = None) -> FastAPI:
+    """Build the service app (the registry and workers start in its lifespan)."""
+    settings = settings or get_settings()
+    app = FastAPI(
+        title="VLP service", version="1.0.0", description=_DESCRIPTION, openapi_tags=_TAGS,
+        docs_url=None, redoc_url=None, lifespan=_lifespan,
+        generate_unique_id_function=_operation_id,
+        swagger_ui_parameters={"persistAuthorization": True},
+    )
+    metrics = Metrics()
+    app.state.settings = settings
+    app.state.metrics = metrics
+    install_error_handlers(app)
+    install_docs(app)
+    app.include_router(api_router)
+    app.add_middleware(BodySizeLimitMiddleware, max_body_bytes=settings.max_body_bytes)
+    app.add_middleware(RequestContextMiddleware, metrics=metrics)
+    return app
