@@ -31,6 +31,7 @@ __all__ = [
     "enqueue_build",
     "fail_job",
     "heartbeat_job",
+    "release_job",
     "report_progress",
 ]
 
@@ -325,3 +326,23 @@ def fail_job(engine: Engine, *, claimed: ClaimedJob, error: str, max_attempts: i
             update(jobs).where(_owned(claimed.job_id, claimed.worker_id)).values(**values)
         )
     return str(values["status"]) if result.rowcount else None
+
+
+def release_job(engine: Engine, *, claimed: ClaimedJob) -> bool:
+    """Hand a claimed job back to the queue unfinished (worker shutting down).
+
+    The attempt is not counted. Returns False when the worker no longer owns the job.
+    """
+    with write_transaction(engine) as conn:
+        result = conn.execute(
+            update(jobs)
+            .where(_owned(claimed.job_id, claimed.worker_id))
+            .values(
+                status="queued",
+                attempts=max(claimed.attempts - 1, 0),
+                progress=0.0,
+                lease_owner=None,
+                lease_expires_at=None,
+            )
+        )
+    return bool(result.rowcount)

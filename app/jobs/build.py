@@ -1,0 +1,126 @@
+"""The build itself, run in a worker's child process.
+
+The child builds the fingerprint with :func:`app.vlp.fingerprints.build_fingerprint`, writes
+the matrix files into the content-addressed store itself and returns only their metadata, so
+no large array crosses the process boundary. It reports progress straight into the job's row
+(at most every ``progress_interval_s`` seconds, and only while the parent still holds the
+lease). BLAS is limited to one thread per child: the pool already runs builds in parallel.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from sqlalchemy import Engine
+from threadpoolctl import threadpool_limits
+
+from app.registry._db import create_registry_engine
+from app.registry.errors import RegistryError
+from app.registry.queue import StoredBuild, report_progress
+from app.registry.records import MatrixInfo
+from app.registry.store import MatrixStore
+from app.vlp.fingerprints import PSI_DENSE_LIMIT, Fingerprint, build_fingerprint
+from app.vlp.layout import layout_from_mapping
+
+__all__ = ["BuildTask", "build_and_store", "init_build_process", "store_fingerprint"]
+
+_BLAS_ENV = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+@dataclass(frozen=True)
+class BuildTask:
+    """Everything a child needs to build one claimed job (picklable)."""
+
+    database_url: str
+    data_dir: str
+    job_id: str
+    worker_id: str
+    layout: dict[str, Any]
+    max_cells: int | None = None
+    progress_interval_s: float = 0.5
+
+
+def init_build_process() -> None:
+    """Pool initializer: one BLAS/OpenMP thread per build process."""
+    for name in _BLAS_ENV:
+        os.environ[name] = "1"
+    threadpool_limits(limits=1)
+
+
+class _ProgressReporter:
+    """Writes the fraction done into the job row, throttled; never fails the build."""
+
+    def __init__(self, task: BuildTask) -> None:
+        self._task = task
+        self._engine: Engine | None = None
+        self._last = time.monotonic()
+
+    def __call__(self, fraction: float) -> None:
+        now = time.monotonic()
+        if now - self._last < self._task.progress_interval_s or fraction >= 1.0:
+            return
+        self._last = now
+        if self._engine is None:
+            self._engine = create_registry_engine(self._task.database_url)
+        try:
+            report_progress(
+                self._engine,
+                job_id=self._task.job_id,
+                worker_id=self._task.worker_id,
+                progress=fraction,
+            )
+        except RegistryError:
+            return
+
+    def close(self) -> None:
+        if self._engine is not None:
+            self._engine.dispose()
+
+
+def store_fingerprint(
+    fingerprint: Fingerprint, store: MatrixStore
+) -> dict[str, tuple[MatrixInfo, int]]:
+    """Write H (always), J (when dense) and psi (when within the limit) into ``store``.
+
+    Returns
+    -------
+    dict
+        ``name -> (MatrixInfo, size_bytes)`` for every stored matrix.
+    """
+    stored = {
+        "H": store.put(fingerprint.dense_gains() if fingerprint.is_dense else fingerprint.gains)
+    }
+    if fingerprint.is_dense:
+        stored["J"] = store.put(fingerprint.power_matrix())
+    n_rows = fingerprint.n_leds * (fingerprint.n_leds + 1) // 2
+    if n_rows * fingerprint.n_cells <= PSI_DENSE_LIMIT:
+        stored["psi"] = store.put(fingerprint.correlation_matrix())
+    return stored
+
+
+def build_and_store(task: BuildTask) -> StoredBuild:
+    """Build the fingerprint of ``task.layout`` and store its matrices (runs in the child).
+
+    Raises
+    ------
+    app.vlp.errors.VLPError
+        When the layout is invalid or larger than ``task.max_cells``.
+    """
+    started = time.perf_counter()
+    layout = layout_from_mapping(task.layout)
+    reporter = _ProgressReporter(task)
+    try:
+        fingerprint = build_fingerprint(layout, progress=reporter, max_cells=task.max_cells)
+        stored = store_fingerprint(fingerprint, MatrixStore(Path(task.data_dir) / "matrices"))
+    finally:
+        reporter.close()
+    return StoredBuild(
+        leds=fingerprint.n_leds,
+        grid_points=fingerprint.n_cells,
+        build_seconds=time.perf_counter() - started,
+        matrices=stored,
+    )

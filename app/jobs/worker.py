@@ -1,0 +1,248 @@
+"""Workers: threads that claim build jobs and run them in a process pool.
+
+Each worker thread loops: claim the oldest claimable job (atomic, leased), submit the build
+to a ``spawn`` process pool, renew the lease every ``job_heartbeat_seconds`` while the child
+works, then record the result (or the error, retried up to ``max_build_attempts``) in one
+transaction. The API process runs :class:`EmbeddedWorkers` from its lifespan; ``vlp worker``
+runs :func:`run_worker`. Any number of both can share one PostgreSQL registry.
+"""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing
+import os
+import signal
+import socket
+import threading
+import uuid
+from collections.abc import Callable
+from concurrent.futures import Future, ProcessPoolExecutor
+from concurrent.futures import TimeoutError as FutureTimeout
+from concurrent.futures.process import BrokenProcessPool
+
+from app.registry import Registry
+from app.registry.errors import RegistryError
+from app.registry.queue import (
+    ClaimedJob,
+    StoredBuild,
+    claim_job,
+    complete_job,
+    fail_job,
+    heartbeat_job,
+    release_job,
+)
+from app.settings import Settings
+
+from .build import BuildTask, build_and_store, init_build_process
+
+__all__ = ["BuildFunction", "EmbeddedWorkers", "run_worker"]
+
+_log = logging.getLogger(__name__)
+
+BuildFunction = Callable[[BuildTask], StoredBuild]
+
+
+class _Pool:
+    """A process pool that is replaced when a child dies (``BrokenProcessPool``)."""
+
+    def __init__(self, size: int) -> None:
+        self._size = size
+        self._lock = threading.Lock()
+        self._executor: ProcessPoolExecutor | None = None
+
+    def submit(self, build: BuildFunction, task: BuildTask) -> Future[StoredBuild]:
+        with self._lock:
+            if self._executor is None:
+                self._executor = ProcessPoolExecutor(
+                    max_workers=self._size,
+                    mp_context=multiprocessing.get_context("spawn"),
+                    initializer=init_build_process,
+                )
+            return self._executor.submit(build, task)
+
+    def discard_broken(self) -> None:
+        with self._lock:
+            if self._executor is not None:
+                self._executor.shutdown(wait=False, cancel_futures=True)
+            self._executor = None
+
+    def shutdown(self) -> None:
+        with self._lock:
+            if self._executor is not None:
+                self._executor.shutdown(wait=True, cancel_futures=True)
+            self._executor = None
+
+
+class _WorkerLoop:
+    """One claiming thread."""
+
+    def __init__(
+        self,
+        *,
+        registry: Registry,
+        settings: Settings,
+        pool: _Pool,
+        stop: threading.Event,
+        build: BuildFunction,
+    ) -> None:
+        self.registry = registry
+        self.settings = settings
+        self.pool = pool
+        self.stop = stop
+        self.build = build
+        self.worker_id = f"{socket.gethostname()}:{os.getpid()}:{uuid.uuid4().hex[:12]}"
+
+    def run(self) -> None:
+        while not self.stop.is_set():
+            try:
+                claimed = claim_job(
+                    self.registry.engine,
+                    worker_id=self.worker_id,
+                    lease_seconds=self.settings.job_lease_seconds,
+                    max_attempts=self.settings.max_build_attempts,
+                    max_per_room=self.settings.max_concurrent_builds_per_room,
+                )
+                if claimed is None:
+                    self.stop.wait(self.settings.job_poll_seconds)
+                    continue
+                self.run_one(claimed)
+            except RegistryError:
+                _log.warning("registry unavailable; worker %s retries", self.worker_id)
+                self.stop.wait(self.settings.job_poll_seconds)
+
+    def run_one(self, claimed: ClaimedJob) -> None:
+        """Run one claimed build to its end (or hand it back when stopping)."""
+        task = BuildTask(
+            database_url=self.registry.database_url,
+            data_dir=str(self.registry.data_dir),
+            job_id=claimed.job_id,
+            worker_id=claimed.worker_id,
+            layout=claimed.layout,
+            max_cells=self.settings.max_grid_points,
+        )
+        _log.info("job %s: building room %s", claimed.job_id, claimed.room_id)
+        try:
+            future = self.pool.submit(self.build, task)
+        except BrokenProcessPool:
+            self.pool.discard_broken()
+            future = self.pool.submit(self.build, task)
+        owned = True
+        while True:
+            try:
+                result = future.result(timeout=self.settings.job_heartbeat_seconds)
+                break
+            except FutureTimeout:
+                if self.stop.is_set():
+                    future.cancel()
+                    release_job(self.registry.engine, claimed=claimed)
+                    return
+                if owned:
+                    owned = heartbeat_job(
+                        self.registry.engine,
+                        job_id=claimed.job_id,
+                        worker_id=claimed.worker_id,
+                        lease_seconds=self.settings.job_lease_seconds,
+                    )
+            except BrokenProcessPool:
+                self.pool.discard_broken()
+                self._fail(claimed, "the build process died unexpectedly")
+                return
+            except Exception as exc:
+                self._fail(claimed, f"{type(exc).__name__}: {exc}")
+                return
+        version = complete_job(self.registry.engine, claimed=claimed, build=result)
+        _log.info("job %s: done, fingerprint version %s", claimed.job_id, version)
+
+    def _fail(self, claimed: ClaimedJob, error: str) -> None:
+        status = fail_job(
+            self.registry.engine,
+            claimed=claimed,
+            error=error,
+            max_attempts=self.settings.max_build_attempts,
+        )
+        _log.warning(
+            "job %s: attempt %d failed (%s): %s", claimed.job_id, claimed.attempts, status, error
+        )
+
+
+class EmbeddedWorkers:
+    """``settings.embedded_workers`` claiming threads sharing one process pool.
+
+    Parameters
+    ----------
+    registry : Registry
+    settings : Settings
+    build : callable, default=build_and_store
+        The function run in the child (a module-level function; tests swap it).
+    """
+
+    def __init__(
+        self, *, registry: Registry, settings: Settings, build: BuildFunction = build_and_store
+    ) -> None:
+        self.registry = registry
+        self.settings = settings
+        self.build = build
+        self._stop = threading.Event()
+        self._threads: list[threading.Thread] = []
+        self._pool: _Pool | None = None
+
+    def start(self, count: int | None = None) -> None:
+        """Start the threads (none when ``embedded_workers`` is 0)."""
+        count = self.settings.embedded_workers if count is None else count
+        if count <= 0 or self._threads:
+            return
+        self._stop.clear()
+        self._pool = _Pool(count)
+        for index in range(count):
+            loop = _WorkerLoop(
+                registry=self.registry,
+                settings=self.settings,
+                pool=self._pool,
+                stop=self._stop,
+                build=self.build,
+            )
+            thread = threading.Thread(target=loop.run, name=f"vlp-worker-{index}", daemon=True)
+            thread.start()
+            self._threads.append(thread)
+
+    def stop(self, timeout: float = 10.0) -> None:
+        """Stop claiming, hand running jobs back to the queue and shut the pool down."""
+        self._stop.set()
+        for thread in self._threads:
+            thread.join(timeout)
+        self._threads.clear()
+        if self._pool is not None:
+            self._pool.shutdown()
+            self._pool = None
+
+    @property
+    def running(self) -> bool:
+        """True while worker threads are alive."""
+        return any(thread.is_alive() for thread in self._threads)
+
+
+def run_worker(*, settings: Settings, stop: threading.Event | None = None) -> None:
+    """``vlp worker``: migrate, then run ``max(1, embedded_workers)`` workers until stopped.
+
+    Without ``stop``, SIGINT and SIGTERM stop it (when called from the main thread).
+    """
+    if stop is None:
+        stop = threading.Event()
+        if threading.current_thread() is threading.main_thread():
+            for signum in (signal.SIGINT, signal.SIGTERM):
+                signal.signal(signum, lambda *_: stop.set())
+    registry = Registry(
+        database_url=settings.resolved_database_url(),
+        data_dir=settings.data_dir,
+        max_build_attempts=settings.max_build_attempts,
+        job_lease_seconds=settings.job_lease_seconds,
+    )
+    workers = EmbeddedWorkers(registry=registry, settings=settings)
+    try:
+        registry.migrate()
+        workers.start(max(1, settings.embedded_workers))
+        stop.wait()
+    finally:
+        workers.stop()
+        registry.dispose()
