@@ -114,22 +114,27 @@ def claim_job(
     lease_seconds: float,
     max_attempts: int,
     max_per_room: int = 1,
+    room_id: str | None = None,
 ) -> ClaimedJob | None:
     """Atomically take the oldest claimable job, or None when there is none.
 
     Claimable: ``queued``, or ``running`` with an expired lease. An expired job that already
     used ``max_attempts`` attempts, or whose layout is no longer the room's, is marked
-    ``failed`` instead. A room with ``max_per_room`` live builds is skipped.
+    ``failed`` instead. A room with ``max_per_room`` live builds is skipped. ``room_id``
+    restricts the claim to one room's jobs.
     """
     with write_transaction(engine) as conn:
         now = utcnow()
+        query = select(
+            jobs.c.id, jobs.c.room_id, jobs.c.status, jobs.c.attempts, jobs.c.layout_version
+        ).where(
+            (jobs.c.status == "queued")
+            | ((jobs.c.status == "running") & (jobs.c.lease_expires_at < now))
+        )
+        if room_id is not None:
+            query = query.where(jobs.c.room_id == room_id)
         candidates = conn.execute(
-            select(jobs.c.id, jobs.c.room_id, jobs.c.status, jobs.c.attempts, jobs.c.layout_version)
-            .where(
-                (jobs.c.status == "queued")
-                | ((jobs.c.status == "running") & (jobs.c.lease_expires_at < now))
-            )
-            .order_by(jobs.c.created_at, jobs.c.id)
+            query.order_by(jobs.c.created_at, jobs.c.id)
             .limit(_CANDIDATES)
             .with_for_update(skip_locked=True)
         ).all()

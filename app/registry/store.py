@@ -31,6 +31,7 @@ __all__ = ["FORMATS", "MatrixStore", "matrix_bytes"]
 FORMATS = ("npy", "npz")
 _ZIP_EPOCH = (1980, 1, 1, 0, 0, 0)
 _CHUNK = 1 << 20
+_HEX = frozenset("0123456789abcdef")
 
 
 def _npy_bytes(array: NDArray[Any]) -> bytes:
@@ -90,7 +91,7 @@ class MatrixStore:
 
     def path_for(self, sha256: str, fmt: str) -> Path:
         """Where the file with this hash and format lives."""
-        if fmt not in FORMATS or len(sha256) != 64:
+        if fmt not in FORMATS or len(sha256) != 64 or not set(sha256) <= _HEX:
             raise ValueError(f"expected a sha256 hex digest and one of {FORMATS}, got {fmt!r}")
         return self.root / sha256[:2] / f"{sha256}.{fmt}"
 

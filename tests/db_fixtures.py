@@ -1,0 +1,129 @@
+"""Database fixtures shared by the registry, jobs and API tests (a pytest plugin).
+
+``database_url`` is parametrized over a fresh SQLite file and a fresh schema on the real
+PostgreSQL (``VLP_TEST_POSTGRES_URL``, default ``postgresql+psycopg://postgres@127.0.0.1:5432/test``).
+PostgreSQL is required: when it does not answer the test fails with a clear message (the
+CI entry point starts it), it is never skipped.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+import uuid
+from collections.abc import Iterator
+from pathlib import Path
+
+import psycopg
+import pytest
+from sqlalchemy import make_url
+
+from app.jobs.build import store_fingerprint
+from app.registry import Registry
+from app.registry.queue import StoredBuild, claim_job, complete_job
+from app.vlp.fingerprints import build_fingerprint
+from app.vlp.layout import layout_from_mapping
+
+__all__ = ["build_now", "database_url", "postgres_url", "registry", "sqlite_url"]
+
+POSTGRES_URL = os.environ.get(
+    "VLP_TEST_POSTGRES_URL", "postgresql+psycopg://postgres@127.0.0.1:5432/test"
+)
+BACKENDS = [
+    pytest.param("sqlite", id="sqlite"),
+    pytest.param("postgresql", id="postgresql", marks=pytest.mark.postgres),
+]
+
+
+def _admin_connect() -> psycopg.Connection[tuple[object, ...]]:
+    url = make_url(POSTGRES_URL)
+    try:
+        return psycopg.connect(
+            host=url.host or "127.0.0.1",
+            port=url.port or 5432,
+            dbname=url.database or "test",
+            user=url.username or "postgres",
+            password=url.password,
+            autocommit=True,
+            connect_timeout=5,
+        )
+    except psycopg.OperationalError as exc:
+        pytest.fail(
+            f"PostgreSQL at {url.render_as_string(hide_password=True)} does not answer ({exc}); "
+            "start it (scripts/ensure-postgres.sh) or set VLP_TEST_POSTGRES_URL",
+            pytrace=False,
+        )
+
+
+def _fresh_schema_url() -> Iterator[str]:
+    schema = f"t_{uuid.uuid4().hex[:20]}"
+    with _admin_connect() as admin:
+        admin.execute(f'CREATE SCHEMA "{schema}"')
+    url = make_url(POSTGRES_URL).update_query_dict({"options": f"-csearch_path={schema}"})
+    try:
+        yield url.render_as_string(hide_password=False)
+    finally:
+        with _admin_connect() as admin:
+            admin.execute(f'DROP SCHEMA IF EXISTS "{schema}" CASCADE')
+
+
+@pytest.fixture
+def sqlite_url(tmp_path: Path) -> str:
+    """A fresh SQLite registry file."""
+    return f"sqlite:///{tmp_path / 'registry.sqlite3'}"
+
+
+@pytest.fixture
+def postgres_url() -> Iterator[str]:
+    """A URL whose connections live in a fresh, private schema of the test PostgreSQL."""
+    yield from _fresh_schema_url()
+
+
+@pytest.fixture(params=BACKENDS)
+def database_url(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[str]:
+    """A fresh registry database, once on SQLite and once on PostgreSQL."""
+    if request.param == "sqlite":
+        yield f"sqlite:///{tmp_path / 'registry.sqlite3'}"
+    else:
+        yield from _fresh_schema_url()
+
+
+@pytest.fixture
+def registry(database_url: str, tmp_path: Path) -> Iterator[Registry]:
+    """A migrated registry on ``database_url`` with its matrix store in ``tmp_path``."""
+    reg = Registry(database_url=database_url, data_dir=tmp_path / "data", max_build_attempts=3)
+    reg.migrate()
+    try:
+        yield reg
+    finally:
+        reg.dispose()
+
+
+def build_now(registry: Registry, *, room_id: str, worker_id: str = "test-builder") -> int:
+    """Run the room's queued build in this process (no worker) and return the new version.
+
+    For tests that need a ready fingerprint quickly: claims the room's job, builds with
+    :func:`app.jobs.build.store_fingerprint` and records it exactly as a worker would.
+    """
+    claimed = claim_job(
+        registry.engine,
+        worker_id=worker_id,
+        lease_seconds=60.0,
+        max_attempts=registry.max_build_attempts,
+        room_id=room_id,
+    )
+    if claimed is None:
+        raise AssertionError(f"room {room_id} has no claimable build job")
+    started = time.perf_counter()
+    fingerprint = build_fingerprint(layout_from_mapping(claimed.layout))
+    stored = store_fingerprint(fingerprint, registry.store)
+    build = StoredBuild(
+        leds=fingerprint.n_leds,
+        grid_points=fingerprint.n_cells,
+        build_seconds=time.perf_counter() - started,
+        matrices=stored,
+    )
+    version = complete_job(registry.engine, claimed=claimed, build=build)
+    if version is None:
+        raise AssertionError(f"job {claimed.job_id} was lost while building")
+    return version
