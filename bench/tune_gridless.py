@@ -30,14 +30,24 @@ def other_rooms() -> dict[str, Layout]:
     """Rooms that are not the paper room (irregular LEDs, mixed angles, other sizes)."""
     gen = np.random.default_rng(7)
     rx = Receiver(area=1e-4, fov_deg=70.0, filter_gain=1.0, refractive_index=1.5)
-    leds = tuple(Led(float(x), float(y), 3.2, float(a), 1.0) for x, y, a in zip(
-        gen.uniform(0.3, 5.7, 12), gen.uniform(0.3, 4.7, 12), gen.choice([45, 60, 70], 12),
-        strict=True))
+    leds = tuple(
+        Led(float(x), float(y), 3.2, float(a), 1.0)
+        for x, y, a in zip(
+            gen.uniform(0.3, 5.7, 12),
+            gen.uniform(0.3, 4.7, 12),
+            gen.choice([45, 60, 70], 12),
+            strict=True,
+        )
+    )
     irregular = Layout(Room(6.0, 5.0, 3.2), Grid(0.25, 0.8), leds, rx, "irregular")
-    leds2 = tuple(Led(1.0 + 2.0 * i, 1.0 + 2.0 * j, 4.0, 50.0, 1.0 + 0.5 * ((i + j) % 2))
-                  for i in range(4) for j in range(3))
-    hall = Layout(Room(8.0, 6.0, 4.0), Grid(0.2, 1.0), leds2,
-                  Receiver(1e-4, 60.0, 1.0, 1.5), "hall")
+    leds2 = tuple(
+        Led(1.0 + 2.0 * i, 1.0 + 2.0 * j, 4.0, 50.0, 1.0 + 0.5 * ((i + j) % 2))
+        for i in range(4)
+        for j in range(3)
+    )
+    hall = Layout(
+        Room(8.0, 6.0, 4.0), Grid(0.2, 1.0), leds2, Receiver(1e-4, 60.0, 1.0, 1.5), "hall"
+    )
     return {"paper": paper_layout(), "irregular": irregular, "hall": hall}
 
 
@@ -48,18 +58,21 @@ def main() -> None:
     parser.add_argument("--trials", type=int, default=50)
     parser.add_argument("--model", default="correlation")
     parser.add_argument("--room", default="paper")
-    parser.add_argument("--fixed", action="store_true", help="weights fixed at 1")
+    parser.add_argument("--free", action="store_true", help="free weights")
     parser.add_argument("--plain", action="store_true", help="no whitening")
+    parser.add_argument("--inner", type=int, default=0)
+    parser.add_argument("--rounds", type=int, default=3)
     parser.add_argument("--unknown", action="store_true", help="estimate K")
     args = parser.parse_args()
     layout = other_rooms()[args.room]
     fp = build_fingerprint(layout)
-    opts = GridlessOptions(free_weights=not args.fixed, whiten=not args.plain)
+    opts = GridlessOptions(free_weights=args.free, whiten=not args.plain, inner_iter=args.inner,
+                           whiten_rounds=args.rounds)
     solver = GridlessSolver(fp, args.model, opts)
     for snr in args.snr:
         sigma = noise_std_for_snr(fp, snr)
         for k in args.k:
-            errs, times, counts = [], [], []
+            errs, times, counts, iters = [], [], [], []
             for trial in range(args.trials):
                 gen = np.random.default_rng(1000 * k + trial)
                 truth = random_positions(layout, k, rng=gen)
@@ -69,13 +82,17 @@ def main() -> None:
                 sol = solver.solve(meas, None if args.unknown else k)
                 times.append(time.perf_counter() - start)
                 counts.append(sol.n_targets == k)
+                iters.append(sol.n_iter)
                 if sol.n_targets == k:
                     errs.append(matched_error(truth, sol.positions))
             e = np.array(errs) * 100
-            print(f"{args.room} {args.model} snr={snr:g} K={k}: mean {e.mean():.2f} cm "
-                  f"median {np.median(e):.2f} p90 {np.percentile(e, 90):.2f} "
-                  f"count-ok {np.mean(counts):.2f} "
-                  f"time median {1000 * np.median(times):.2f} ms", flush=True)
+            print(
+                f"{args.room} {args.model} snr={snr:g} K={k}: mean {e.mean():.2f} cm "
+                f"median {np.median(e):.2f} p90 {np.percentile(e, 90):.2f} "
+                f"count-ok {np.mean(counts):.2f} "
+                f"time median {1000 * np.median(times):.2f} ms iters {np.median(iters):.0f}",
+                flush=True,
+            )
 
 
 if __name__ == "__main__":

@@ -133,10 +133,10 @@ class Whitening:
         return np.asarray(self.weights * rotated[self.upper, self.lower])
 
     def rotate(self, vectors: FloatArray) -> FloatArray:
-        """``U^T v`` along the LED axis (axis 0)."""
+        """``U^T V`` for V of shape (M, n)."""
         if self.rotation is None:
             return vectors
-        return np.asarray(np.tensordot(self.rotation.T, vectors, axes=1))
+        return np.asarray(self.rotation.T @ vectors)
 
 
 def residual_and_jacobian(
@@ -153,24 +153,29 @@ def residual_and_jacobian(
         ``J delta = residual``).
     """
     gains, grads = kernel.gains(state.positions)
-    gains = white.rotate(gains)
+    k = gains.shape[1]
     w = state.weights
-    left = gains[white.upper]
-    right = gains[white.lower]
-    atoms = left * right  # (L, K)
     c = white.weights
+    if want_jacobian:
+        # One rotation for gains and both gradient components: columns [g | dg/dx | dg/dy].
+        stacked = white.rotate(np.concatenate([gains, grads[:, :, 0], grads[:, :, 1]], axis=1))
+    else:
+        stacked = white.rotate(gains)
+    left = stacked[white.upper]
+    right = stacked[white.lower]
+    atoms = left[:, :k] * right[:, :k]  # (L, K)
     residual = data - c * (atoms @ w + state.noise * white.is_diag)
     if not want_jacobian:
         return residual, None
-    grads = white.rotate(grads)
-    d_left = grads[white.upper]
-    d_right = grads[white.lower]
-    d_pos = w[None, :, None] * (left[:, :, None] * d_right + d_left * right[:, :, None])
-    blocks = [d_pos.reshape(len(c), -1)]
+    n_rows = len(c)
+    jac = np.empty((n_rows, 2 * k + (k if free_weights else 0) + 1))
+    for axis in range(2):
+        cols = slice((axis + 1) * k, (axis + 2) * k)
+        jac[:, axis:2 * k:2] = w * (left[:, :k] * right[:, cols] + left[:, cols] * right[:, :k])
     if free_weights:
-        blocks.append(atoms)
-    blocks.append(white.is_diag[:, None])
-    jac = np.concatenate(blocks, axis=1) * c[:, None]
+        jac[:, 2 * k:3 * k] = atoms
+    jac[:, -1] = white.is_diag
+    jac *= c[:, None]
     return residual, jac
 
 
@@ -192,7 +197,7 @@ def _unpack(theta: FloatArray, state: FitState, free_weights: bool,
 
 def levenberg_marquardt(
     kernel: ChannelKernel, white: Whitening, data: FloatArray, state: FitState, *,
-    free_weights: bool, max_iter: int, tol: float = 1e-10,
+    free_weights: bool, max_iter: int, tol: float = 1e-7, step_tol_m: float = 1e-5,
 ) -> tuple[FitState, float, int]:
     """Projected LM on ``||data - c * mu(theta)||^2`` (positions kept inside the room).
 
@@ -202,31 +207,33 @@ def levenberg_marquardt(
     cost = float(residual @ residual)
     damping = 1e-3
     iteration = 0
+    theta = _pack(state, free_weights)
     for iteration in range(1, max_iter + 1):
         assert jac is not None
         normal = jac.T @ jac
         gradient = jac.T @ residual
-        diag = np.maximum(np.diag(normal), 1e-30)
+        scaling = np.diag(np.maximum(np.diag(normal), 1e-30))
         improved = False
         while damping < 1e12:
             try:
-                step = np.linalg.solve(normal + damping * np.diag(diag), gradient)
+                step = np.linalg.solve(normal + damping * scaling, gradient)
             except np.linalg.LinAlgError:
                 damping *= 10.0
                 continue
-            trial = _unpack(_pack(state, free_weights) + step, state, free_weights,
-                            kernel.bounds)
-            trial_res, _ = residual_and_jacobian(kernel, white, data, trial, free_weights,
-                                                 want_jacobian=False)
+            trial = _unpack(theta + step, state, free_weights, kernel.bounds)
+            # Evaluate the Jacobian with the trial: most trials are accepted.
+            trial_res, trial_jac = residual_and_jacobian(kernel, white, data, trial,
+                                                         free_weights)
             trial_cost = float(trial_res @ trial_res)
             if trial_cost < cost:
                 improved = True
                 relative = (cost - trial_cost) / max(cost, 1e-300)
-                state, cost = trial, trial_cost
+                moved = float(np.max(np.abs(trial.positions - state.positions), initial=0.0))
+                state, cost, residual, jac = trial, trial_cost, trial_res, trial_jac
+                theta = _pack(state, free_weights)
                 damping = max(damping / 5.0, 1e-9)
                 break
             damping *= 4.0
-        if not improved or relative < tol:
+        if not improved or relative < tol or moved < step_tol_m:
             break
-        residual, jac = residual_and_jacobian(kernel, white, data, state, free_weights)
     return state, cost, iteration
