@@ -20,11 +20,18 @@ from sqlalchemy import make_url
 
 from app.jobs.build import store_fingerprint
 from app.registry import Registry
-from app.registry.queue import StoredBuild, claim_job, complete_job
+from app.registry.queue import ClaimedJob, StoredBuild, claim_job, complete_job
 from app.vlp.fingerprints import build_fingerprint
 from app.vlp.layout import layout_from_mapping
 
-__all__ = ["build_now", "database_url", "postgres_url", "registry", "sqlite_url"]
+__all__ = [
+    "build_now",
+    "database_url",
+    "postgres_url",
+    "registry",
+    "sqlite_url",
+    "stored_build",
+]
 
 POSTGRES_URL = os.environ.get(
     "VLP_TEST_POSTGRES_URL", "postgresql+psycopg://postgres@127.0.0.1:5432/test"
@@ -114,16 +121,21 @@ def build_now(registry: Registry, *, room_id: str, worker_id: str = "test-builde
     )
     if claimed is None:
         raise AssertionError(f"room {room_id} has no claimable build job")
+    build = stored_build(registry, claimed)
+    version = complete_job(registry.engine, claimed=claimed, build=build)
+    if version is None:
+        raise AssertionError(f"job {claimed.job_id} was lost while building")
+    return version
+
+
+def stored_build(registry: Registry, claimed: ClaimedJob) -> StoredBuild:
+    """Build a claimed job's layout in this process and put its matrices into the store."""
     started = time.perf_counter()
     fingerprint = build_fingerprint(layout_from_mapping(claimed.layout))
     stored = store_fingerprint(fingerprint, registry.store)
-    build = StoredBuild(
+    return StoredBuild(
         leds=fingerprint.n_leds,
         grid_points=fingerprint.n_cells,
         build_seconds=time.perf_counter() - started,
         matrices=stored,
     )
-    version = complete_job(registry.engine, claimed=claimed, build=build)
-    if version is None:
-        raise AssertionError(f"job {claimed.job_id} was lost while building")
-    return version
