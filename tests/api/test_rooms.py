@@ -1,0 +1,210 @@
+"""Rooms: CRUD, ETag/If-Match, pagination and validation problems naming fields."""
+
+from __future__ import annotations
+
+import copy
+import time
+from typing import Any
+
+import pytest
+
+from app.schemas.rooms import paper_room_example
+from app.vlp.layout import layout_from_mapping
+
+from .conftest import ADMIN, TERMINAL, TestClient, make_settings
+
+
+def small_room(name: str = "Small room", **changes: Any) -> dict[str, Any]:
+    """A 2 x 1 m room with two LEDs (defaults left out on purpose)."""
+    body: dict[str, Any] = {
+        "name": name,
+        "room": {"length": 2.0, "width": 1.0, "height": 2.5},
+        "grid": {"step": 0.25, "receiver_height": 0.8},
+        "leds": [{"x": 0.5, "y": 0.5}, {"x": 1.5, "y": 0.5, "pilot_amplitude": 2.0}],
+    }
+    body.update(changes)
+    return body
+
+
+def assert_problem(response: Any, status: int, fields: list[str] | None = None) -> dict[str, Any]:
+    """The response is a problem of ``status`` naming exactly ``fields`` (when given)."""
+    assert response.status_code == status, response.text
+    assert response.headers["content-type"] == "application/problem+json"
+    problem: dict[str, Any] = response.json()
+    assert {"type", "title", "status", "detail", "instance"} <= problem.keys()
+    assert problem["status"] == status
+    if fields is not None:
+        assert sorted(error["field"] for error in problem["errors"]) == sorted(fields)
+    return problem
+
+
+def test_create_applies_defaults_and_answers_location_and_etag(client: TestClient) -> None:
+    response = client.post("/v1/rooms", json=small_room(), headers=ADMIN)
+    assert response.status_code == 201, response.text
+    room = response.json()
+    assert response.headers["location"] == f"/v1/rooms/{room['id']}"
+    assert response.headers["etag"] == f'"{room["id"]}-1"'
+    assert room["layout_version"] == 1
+    assert room["fingerprint"]["status"] == "pending"
+    assert room["fingerprint"]["version"] is None
+    assert room["fingerprint"]["job_id"]
+    # Defaults of the contract: receiver as documented, LED z = room height.
+    assert room["layout"]["receiver"] == {"area": 1e-4, "fov_deg": 70.0, "filter_gain": 1.0,
+                                          "refractive_index": 1.5}
+    assert room["layout"]["leds"][0] == {"x": 0.5, "y": 0.5, "z": 2.5,
+                                         "half_power_angle_deg": 60.0, "pilot_amplitude": 1.0}
+    assert room["layout"] == layout_from_mapping(small_room()).to_mapping()
+    got = client.get(f"/v1/rooms/{room['id']}", headers=TERMINAL)
+    assert got.status_code == 200
+    assert got.json() == room
+    assert got.headers["etag"] == response.headers["etag"]
+    job = client.get(f"/v1/jobs/{room['fingerprint']['job_id']}", headers=TERMINAL).json()
+    assert job["room_id"] == room["id"] and job["status"] == "queued" and job["result"] is None
+
+
+def test_paper_room_example_is_accepted(client: TestClient) -> None:
+    response = client.post("/v1/rooms", json=paper_room_example(), headers=ADMIN)
+    assert response.status_code == 201, response.text
+    assert len(response.json()["layout"]["leds"]) == 16
+
+
+def test_replace_needs_current_etag(client: TestClient) -> None:
+    created = client.post("/v1/rooms", json=small_room(), headers=ADMIN)
+    room_id, etag = created.json()["id"], created.headers["etag"]
+    changed = small_room("Renamed", leds=[{"x": 1.0, "y": 0.5, "z": 2.0}])
+
+    assert_problem(client.put(f"/v1/rooms/{room_id}", json=changed, headers=ADMIN), 428)
+    stale = {**ADMIN, "If-Match": f'"{room_id}-7"'}
+    assert_problem(client.put(f"/v1/rooms/{room_id}", json=changed, headers=stale), 412)
+
+    replaced = client.put(f"/v1/rooms/{room_id}", json=changed, headers={**ADMIN, "If-Match": etag})
+    assert replaced.status_code == 200, replaced.text
+    body = replaced.json()
+    assert body["layout_version"] == 2 and body["name"] == "Renamed"
+    assert body["layout"]["leds"] == [{"x": 1.0, "y": 0.5, "z": 2.0, "half_power_angle_deg": 60.0,
+                                       "pilot_amplitude": 1.0}]
+    assert replaced.headers["etag"] == f'"{room_id}-2"' != etag
+    # The old ETag is now stale.
+    again = client.put(f"/v1/rooms/{room_id}", json=changed, headers={**ADMIN, "If-Match": etag})
+    assert_problem(again, 412)
+
+
+def test_replace_and_delete_unknown_room_are_404(client: TestClient) -> None:
+    headers = {**ADMIN, "If-Match": '"x-1"'}
+    assert_problem(client.put("/v1/rooms/nope", json=small_room(), headers=headers), 404)
+    assert_problem(client.delete("/v1/rooms/nope", headers=ADMIN), 404)
+    assert_problem(client.get("/v1/rooms/nope", headers=ADMIN), 404)
+
+
+def test_delete_removes_room_and_its_jobs(client: TestClient) -> None:
+    room = client.post("/v1/rooms", json=small_room(), headers=ADMIN).json()
+    response = client.delete(f"/v1/rooms/{room['id']}", headers=ADMIN)
+    assert response.status_code == 204 and response.content == b""
+    assert_problem(client.get(f"/v1/rooms/{room['id']}", headers=ADMIN), 404)
+    assert_problem(client.get(f"/v1/jobs/{room['fingerprint']['job_id']}", headers=ADMIN), 404)
+    assert client.get("/v1/rooms", headers=ADMIN).json()["items"] == []
+
+
+def test_pagination_walks_every_room_once_in_creation_order(client: TestClient) -> None:
+    ids = [client.post("/v1/rooms", json=small_room(f"room {index}"), headers=ADMIN).json()["id"]
+           for index in range(5)]
+    seen: list[str] = []
+    cursor = None
+    pages = 0
+    while True:
+        params: dict[str, Any] = {"limit": 2} | ({"cursor": cursor} if cursor else {})
+        page = client.get("/v1/rooms", params=params, headers=TERMINAL).json()
+        assert len(page["items"]) <= 2
+        seen += [room["id"] for room in page["items"]]
+        pages += 1
+        cursor = page["next_cursor"]
+        if cursor is None:
+            break
+    assert seen == ids
+    assert pages == 3
+    default = client.get("/v1/rooms", headers=TERMINAL).json()
+    assert [room["id"] for room in default["items"]] == ids and default["next_cursor"] is None
+
+
+@pytest.mark.parametrize("params, field", [
+    ({"limit": 0}, "query.limit"),
+    ({"limit": 101}, "query.limit"),
+    ({"limit": "many"}, "query.limit"),
+    ({"cursor": "not-a-cursor"}, "query.cursor"),
+], ids=["zero", "above-100", "not-int", "bad-cursor"])
+def test_bad_page_parameters_are_422(client: TestClient, params: dict[str, Any],
+                                     field: str) -> None:
+    client.post("/v1/rooms", json=small_room(), headers=ADMIN)
+    problem = assert_problem(client.get("/v1/rooms", params=params, headers=ADMIN), 422)
+    assert [error["field"] for error in problem["errors"]] == [field]
+
+
+def _with(path: str, value: Any) -> dict[str, Any]:
+    body = copy.deepcopy(small_room())
+    target: Any = body
+    keys = path.split(".")
+    for key in keys[:-1]:
+        target = target[int(key)] if key.isdigit() else target[key]
+    last = keys[-1]
+    if value is _DELETE:
+        del target[last]
+    elif last.isdigit():
+        target[int(last)] = value
+    else:
+        target[last] = value
+    return body
+
+
+_DELETE = object()
+
+
+@pytest.mark.parametrize("path, value, field", [
+    ("room.length", -1.0, "body.room.length"),
+    ("room.height", 0, "body.room.height"),
+    ("grid.step", "wide", "body.grid.step"),
+    ("grid.step", 0.3, "body.grid.step"),
+    ("grid.receiver_height", 2.5, "body.grid.receiver_height"),
+    ("receiver", {"fov_deg": 120}, "body.receiver.fov_deg"),
+    ("receiver", {"refractive_index": 0.5}, "body.receiver.refractive_index"),
+    ("leds.1.z", 3.0, "body.leds.1.z"),
+    ("leds.1.z", 0.5, "body.leds.1.z"),
+    ("leds.0.x", 2.5, "body.leds.0.x"),
+    ("leds.0.half_power_angle_deg", 90, "body.leds.0.half_power_angle_deg"),
+    ("leds.0.pilot_amplitude", 0, "body.leds.0.pilot_amplitude"),
+    ("leds", [], "body.leds"),
+    ("name", _DELETE, "body.name"),
+    ("colour", "red", "body.colour"),
+], ids=lambda value: str(value) if isinstance(value, str) else None)
+def test_invalid_layout_names_the_field(client: TestClient, path: str, value: Any,
+                                        field: str) -> None:
+    response = client.post("/v1/rooms", json=_with(path, value), headers=ADMIN)
+    problem = assert_problem(response, 422)
+    assert field in [error["field"] for error in problem["errors"]], problem
+    assert client.get("/v1/rooms", headers=ADMIN).json()["items"] == []
+
+
+def test_tiny_grid_step_is_refused_before_any_allocation(client: TestClient) -> None:
+    # 1e-5 m over 4 x 4 m would be 1.6e11 grid points.
+    body = small_room(room={"length": 4.0, "width": 4.0, "height": 3.0},
+                      grid={"step": 1e-5, "receiver_height": 0.8})
+    started = time.perf_counter()
+    response = client.post("/v1/rooms", json=body, headers=ADMIN)
+    assert time.perf_counter() - started < 2.0
+    problem = assert_problem(response, 422, ["body.grid.step"])
+    assert "1.6e+11" in problem["detail"]
+
+
+def test_led_and_grid_limits_come_from_settings(tmp_path: Any) -> None:
+    settings = make_settings(tmp_path, max_leds=1, max_grid_points=16)
+    from app.main import create_app
+
+    with TestClient(create_app(settings)) as limited:
+        assert_problem(limited.post("/v1/rooms", json=small_room(), headers=ADMIN), 422,
+                       ["body.leds"])
+        one_led = small_room(leds=[{"x": 1.0, "y": 0.5}])
+        # 2 x 1 m at 0.25 m is 32 points > 16.
+        assert_problem(limited.post("/v1/rooms", json=one_led, headers=ADMIN), 422,
+                       ["body.grid.step"])
+        coarse = small_room(leds=[{"x": 1.0, "y": 0.5}], grid={"step": 0.5,
+                                                               "receiver_height": 0.8})
+        assert limited.post("/v1/rooms", json=coarse, headers=ADMIN).status_code == 201
