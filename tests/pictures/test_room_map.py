@@ -1,0 +1,104 @@
+"""Tests of app/pictures/room_map.py: valid, deterministic PNGs that show what they should."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+
+from app.pictures import room_map_png
+from app.pictures.heatmaps import noise_std_on_samples, sample_grid
+from app.vlp._typing import FloatArray
+from app.vlp.errors import GeometryError
+from app.vlp.layout import Grid, Layout, Led, Receiver, Room
+
+from .conftest import decode, png_size
+
+
+def _hall() -> Layout:
+    leds = tuple(Led(x, y, 3.0, 45.0 if (x + y) % 2 else 60.0)
+                 for x in (1.5, 5.0, 8.5) for y in (1.5, 4.5))
+    return Layout(Room(10.0, 6.0, 3.0), Grid(0.1, 0.85), leds, Receiver(fov_deg=50.0),
+                  name="Hall")
+
+
+@pytest.mark.parametrize("heatmap", ["coverage", "crlb", "none"])
+@pytest.mark.parametrize("width_px", [400, 800])
+def test_png_is_valid_and_as_wide_as_asked(
+    paper_room: Layout, heatmap: str, width_px: int
+) -> None:
+    png = room_map_png(paper_room, heatmap=heatmap, width_px=width_px)  # type: ignore[arg-type]
+    width, height = png_size(png)
+    assert width == width_px
+    assert 0.45 * width_px <= height <= 1.6 * width_px
+    assert decode(png).shape[:2] == (height, width)
+
+
+def test_output_is_deterministic(paper_room: Layout) -> None:
+    first = room_map_png(paper_room, heatmap="crlb")
+    assert room_map_png(paper_room, heatmap="crlb") == first
+    assert b"Software" not in first and b"matplotlib" not in first
+
+
+def test_heat_maps_give_different_pictures(paper_room: Layout) -> None:
+    pictures = {kind: decode(room_map_png(paper_room, heatmap=kind))
+                for kind in ("coverage", "crlb", "none")}
+    for a, b in (("coverage", "crlb"), ("coverage", "none"), ("crlb", "none")):
+        assert pictures[a].shape == pictures[b].shape
+        assert np.abs(pictures[a] - pictures[b]).mean() > 0.01
+
+
+def _grey_fraction(pixels: FloatArray, level: float) -> float:
+    rgb = pixels[:, :, :3]
+    return float(np.mean(np.all(np.abs(rgb - level) < 0.01, axis=2)))
+
+
+def test_crlb_map_shows_no_fix_regions_in_grey() -> None:
+    """Where fewer than two LEDs are in view the bound is infinite and drawn light grey."""
+    hall = _hall()
+    assert _grey_fraction(decode(room_map_png(hall, heatmap="crlb")), 0.8) > 0.05
+    assert _grey_fraction(decode(room_map_png(hall, heatmap="coverage")), 0.8) < 0.01
+
+
+def test_injected_crlb_map_receives_samples_and_noise(paper_room: Layout) -> None:
+    calls: list[tuple[int, float]] = []
+
+    def constant(layout: Layout, points: FloatArray, noise_std: float) -> FloatArray:
+        assert layout is paper_room
+        calls.append((points.shape[0], noise_std))
+        return np.full(points.shape[0], 0.05) + 0.01 * points[:, 0]
+
+    png = room_map_png(paper_room, heatmap="crlb", snr_db=20.0, crlb_map=constant)
+    samples = sample_grid(paper_room)
+    assert len(calls) == 1 and calls[0][0] == paper_room.n_cells
+    assert calls[0][1] == pytest.approx(noise_std_on_samples(paper_room, samples.points, 20.0))
+    assert png != room_map_png(paper_room, heatmap="crlb", snr_db=20.0)
+    room_map_png(paper_room, heatmap="crlb", noise_std=3e-7, crlb_map=constant)
+    assert calls[-1] == (paper_room.n_cells, 3e-7)
+
+
+def test_million_point_room_renders_quickly() -> None:
+    leds = tuple(Led(x, y, 4.0) for x in (20.0, 50.0, 80.0) for y in (25.0, 75.0))
+    big = Layout(Room(100.0, 100.0, 4.0), Grid(0.1, 0.85), leds, name="Big")
+    assert big.n_cells == 1_000_000
+    for heatmap in ("coverage", "crlb"):
+        start = time.perf_counter()
+        png = room_map_png(big, heatmap=heatmap, width_px=600)
+        assert time.perf_counter() - start < 10.0
+        assert png_size(png)[0] == 600
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "field"),
+    [({"heatmap": "power"}, "heatmap"), ({"width_px": 50}, "width_px"),
+     ({"width_px": 10_000}, "width_px"), ({"snr_db": float("nan")}, "snr_db"),
+     ({"noise_std": -1.0}, "noise_std"), ({"noise_std": 0.0}, "noise_std")],
+    ids=["heatmap", "narrow", "wide", "snr-nan", "noise-negative", "noise-zero"],
+)
+def test_bad_options_raise_with_field(
+    paper_room: Layout, kwargs: dict[str, object], field: str
+) -> None:
+    with pytest.raises(GeometryError) as info:
+        room_map_png(paper_room, **kwargs)  # type: ignore[arg-type]
+    assert info.value.field == field
