@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -151,6 +152,28 @@ class CalibrationResult:
     dimmed_leds: tuple[int, ...]
     unsurveyed_leds: tuple[int, ...]
     converged: bool
+
+    def to_mapping(self) -> dict[str, Any]:
+        """The result as JSON-ready plain values (NaN residuals become None)."""
+
+        def floats(values: FloatArray) -> list[float | None]:
+            return [float(v) if math.isfinite(v) else None for v in values]
+
+        return {
+            "pilot_amplitudes": floats(self.pilot_amplitudes),
+            "lambertian_orders": floats(self.lambertian_orders),
+            "half_power_angles_deg": floats(self.half_power_angles_deg),
+            "receiver_gain": self.receiver_gain,
+            "relative_amplitudes": floats(self.relative_amplitudes),
+            "residual_rms_before": floats(self.residual_rms_before),
+            "residual_rms_after": floats(self.residual_rms_after),
+            "points_per_led": [int(v) for v in self.points_per_led],
+            "points_in_view": [int(v) for v in self.points_in_view],
+            "dead_leds": list(self.dead_leds),
+            "dimmed_leds": list(self.dimmed_leds),
+            "unsurveyed_leds": list(self.unsurveyed_leds),
+            "converged": self.converged,
+        }
 
 
 def half_power_angle_deg(order: float | FloatArray) -> FloatArray:

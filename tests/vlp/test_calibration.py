@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from dataclasses import replace
 
 import numpy as np
@@ -248,3 +249,16 @@ def test_layout_helpers_reject_bad_input(
     with pytest.raises(MeasurementError) as info:
         survey_from_rows(np.zeros((3, 3)))
     assert info.value.field == "rows"
+
+
+def test_result_mapping_is_json_ready(paper_room: Layout) -> None:
+    layout = replace(paper_room, leds=paper_room.leds[:2])
+    points = np.array([[0.4, 0.4], [0.6, 0.7], [1.0, 0.2], [0.2, 1.1]])
+    survey = simulate_survey(layout, points)
+    only_first = Survey(survey.points[::2], survey.led_indices[::2], survey.amplitudes[::2])
+    mapping = calibrate(layout, only_first).to_mapping()
+    assert json.loads(json.dumps(mapping, allow_nan=False)) == mapping
+    assert mapping["points_per_led"] == [4, 0]
+    assert mapping["residual_rms_after"][1] is None
+    assert mapping["unsurveyed_leds"] == [1]
+    assert mapping["pilot_amplitudes"][0] == pytest.approx(1.0)
