@@ -15,6 +15,7 @@ import os
 import signal
 import socket
 import threading
+import time
 import uuid
 from collections.abc import Callable
 from concurrent.futures import Future, ProcessPoolExecutor
@@ -67,11 +68,25 @@ class _Pool:
                 self._executor.shutdown(wait=False, cancel_futures=True)
             self._executor = None
 
-    def shutdown(self) -> None:
+    def shutdown(self, timeout: float) -> None:
+        """Stop the pool; children still building after ``timeout`` s are terminated.
+
+        Their jobs were handed back to the queue (or will be reclaimed when the lease ends).
+        ``ProcessPoolExecutor`` has no public way to end busy children before Python 3.14,
+        hence the look at its process table.
+        """
         with self._lock:
-            if self._executor is not None:
-                self._executor.shutdown(wait=True, cancel_futures=True)
-            self._executor = None
+            executor, self._executor = self._executor, None
+        if executor is None:
+            return
+        executor.shutdown(wait=False, cancel_futures=True)
+        children = list((getattr(executor, "_processes", None) or {}).values())
+        deadline = time.monotonic() + timeout
+        for child in children:
+            child.join(max(deadline - time.monotonic(), 0.0))
+            if child.is_alive():
+                child.terminate()
+                child.join(5.0)
 
 
 class _WorkerLoop:
@@ -213,7 +228,7 @@ class EmbeddedWorkers:
             thread.join(timeout)
         self._threads.clear()
         if self._pool is not None:
-            self._pool.shutdown()
+            self._pool.shutdown(min(timeout, 2.0))
             self._pool = None
 
     @property

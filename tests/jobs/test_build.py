@@ -1,0 +1,86 @@
+"""The child-side build: matrices written to the store, progress reported, limits."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+
+from app.jobs.build import BuildTask, build_and_store, store_fingerprint
+from app.registry import Registry
+from app.registry.queue import claim_job
+from app.registry.store import MatrixStore
+from app.vlp.errors import ProblemSizeError
+from app.vlp.fingerprints import Fingerprint, build_fingerprint
+from app.vlp.layout import Grid, Layout, Led, Room
+from app.vlp.presets import paper_layout
+
+
+def _hall() -> Layout:
+    """A 40 x 100 m hall, 0.5 m grid (N = 16000) and 256 LEDs: M * N above the dense limit."""
+    leds = tuple(Led(x=2.5 + 2.5 * (i % 16), y=3.0 + 6.0 * (i // 16), z=3.0) for i in range(256))
+    return Layout(
+        room=Room(length=40.0, width=100.0, height=3.0),
+        grid=Grid(step=0.5, receiver_height=0.85),
+        leds=leds,
+    )
+
+
+def test_store_fingerprint_dense_room(tmp_path: Path, paper_fingerprint: Fingerprint) -> None:
+    stored = store_fingerprint(paper_fingerprint, MatrixStore(tmp_path))
+    assert sorted(stored) == ["H", "J", "psi"]
+    assert {info.format for info, _ in stored.values()} == {"npy"}
+    again = store_fingerprint(build_fingerprint(paper_layout()), MatrixStore(tmp_path / "b"))
+    assert {k: v[0].sha256 for k, v in stored.items()} == {k: v[0].sha256 for k, v in again.items()}
+
+
+def test_store_fingerprint_large_hall_keeps_h_sparse_only(tmp_path: Path) -> None:
+    fingerprint = build_fingerprint(_hall())
+    assert not fingerprint.is_dense
+    store = MatrixStore(tmp_path)
+    stored = store_fingerprint(fingerprint, store)
+    assert sorted(stored) == ["H"]
+    info, _ = stored["H"]
+    assert (info.format, info.shape) == ("npz", (256, 16000))
+    loaded = sp.load_npz(store.path_for(info.sha256, info.format))
+    assert (loaded != fingerprint.gains).nnz == 0
+
+
+def test_build_and_store_reports_progress_and_matches(
+    registry: Registry, paper_fingerprint: Fingerprint
+) -> None:
+    room = registry.create_room(name="Paper room", layout=paper_layout().to_mapping())
+    claimed = claim_job(registry.engine, worker_id="w", lease_seconds=60, max_attempts=3)
+    assert claimed is not None
+    task = BuildTask(
+        database_url=registry.database_url,
+        data_dir=str(registry.data_dir),
+        job_id=claimed.job_id,
+        worker_id="w",
+        layout=claimed.layout,
+        progress_interval_s=0.0,
+    )
+    result = build_and_store(task)
+    assert (result.leds, result.grid_points) == (16, 400)
+    assert result.build_seconds > 0
+    progress = registry.get_job(job_id=room.job_id or "").progress
+    assert 0.5 < progress < 1.0  # the last LED's update before completion
+    info, _ = result.matrices["H"]
+    h = np.load(registry.store.path_for(info.sha256, info.format))
+    np.testing.assert_array_equal(h, paper_fingerprint.dense_gains())
+
+
+def test_build_refuses_too_many_cells(tmp_path: Path) -> None:
+    task = BuildTask(
+        database_url=f"sqlite:///{tmp_path / 'unused.sqlite3'}",
+        data_dir=str(tmp_path),
+        job_id="0" * 32,
+        worker_id="w",
+        layout=paper_layout().to_mapping(),
+        max_cells=100,
+    )
+    with pytest.raises(ProblemSizeError, match="400 grid points"):
+        build_and_store(task)
+    assert not (tmp_path / "matrices").exists()
