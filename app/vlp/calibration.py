@@ -28,7 +28,7 @@ relative amplitude ``x_i / x_i^nominal`` is below ``dead_below`` are reported de
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields, replace
 from typing import Any
 
 import numpy as np
@@ -156,24 +156,7 @@ class CalibrationResult:
     def to_mapping(self) -> dict[str, Any]:
         """The result as JSON-ready plain values (NaN residuals become None)."""
 
-        def floats(values: FloatArray) -> list[float | None]:
-            return [float(v) if math.isfinite(v) else None for v in values]
-
-        return {
-            "pilot_amplitudes": floats(self.pilot_amplitudes),
-            "lambertian_orders": floats(self.lambertian_orders),
-            "half_power_angles_deg": floats(self.half_power_angles_deg),
-            "receiver_gain": self.receiver_gain,
-            "relative_amplitudes": floats(self.relative_amplitudes),
-            "residual_rms_before": floats(self.residual_rms_before),
-            "residual_rms_after": floats(self.residual_rms_after),
-            "points_per_led": [int(v) for v in self.points_per_led],
-            "points_in_view": [int(v) for v in self.points_in_view],
-            "dead_leds": list(self.dead_leds),
-            "dimmed_leds": list(self.dimmed_leds),
-            "unsurveyed_leds": list(self.unsurveyed_leds),
-            "converged": self.converged,
-        }
+        return {item.name: _plain(getattr(self, item.name)) for item in fields(self)}
 
 
 def half_power_angle_deg(order: float | FloatArray) -> FloatArray:
@@ -262,19 +245,20 @@ def calibrate(
     _check_against_layout(layout, survey)
     n_leds = layout.n_leds
     orders_nominal, _ = led_constants(layout)
-    unit_gains = _unit_gains(layout, survey)  # h at the nominal order, per row
     nominal = layout.pilot_amplitudes
-    before = _rms_per_led(survey, survey.amplitudes - nominal[survey.led_indices] * unit_gains,
-                          n_leds)
-    ratios = np.ones(n_leds)
-    orders = orders_nominal.copy()
+    ones = np.ones(n_leds)
+    before = _rms_per_led(
+        survey, survey.amplitudes - _model_amplitudes(layout, survey, ones, orders_nominal),
+        n_leds)
+    ratios, orders = ones.copy(), orders_nominal.copy()
     in_view = np.zeros(n_leds, dtype=np.intp)
     converged = True
     for i in range(n_leds):
-        rows = survey.led_indices == i
-        fit = _fit_led(layout, i, survey.points[rows], survey.amplitudes[rows])
-        if fit is not None:
-            ratios[i], orders[i], ok, in_view[i] = fit
+        mine = survey.led_indices == i
+        rows, _ = _led_rows(layout, i, survey.points[mine], survey.amplitudes[mine])
+        in_view[i] = rows.amplitudes.size
+        if in_view[i]:
+            ratios[i], orders[i], ok = _fit_led(rows, float(orders_nominal[i]))
             converged = converged and ok
     surveyed = in_view > 0
     gain = _common_gain(ratios[surveyed], dimmed_below)
@@ -283,7 +267,7 @@ def calibrate(
     dimmed = surveyed & ~dead & (relative < dimmed_below)
     orders = np.where(dead, orders_nominal, orders)
     pilots = np.where(dead, nominal, relative * nominal)
-    modelled = _model_amplitudes(layout, survey, ratios * nominal, orders)
+    modelled = _model_amplitudes(layout, survey, ratios, orders)
     after = _rms_per_led(survey, survey.amplitudes - modelled, n_leds)
     return CalibrationResult(
         pilot_amplitudes=pilots, lambertian_orders=orders,
@@ -374,95 +358,81 @@ def _check_against_layout(layout: Layout, survey: Survey) -> None:
             f"[0, {layout.room.length!r}] x [0, {layout.room.width!r}]", field="points")
 
 
-def _geometry(layout: Layout, index: int, points: FloatArray) -> tuple[FloatArray, FloatArray]:
-    """``cos`` of the incidence angle (dz / d) and ``d^2`` of each point from LED ``index``."""
+@dataclass(frozen=True)
+class _LedRows:
+    """One LED's survey rows inside its field of view, and its model ``r x0 h(p; m)``."""
+
+    log_cos: FloatArray  # ln(dz / d), the cosine of the incidence (= irradiance) angle
+    dist_sq: FloatArray  # d^2, m^2
+    amplitudes: FloatArray
+    base: float  # x_i^nominal A G_f G_c / (2 pi)
+
+    def model(self, ratio: float, order: float) -> FloatArray:
+        return np.asarray(ratio * self.base * (order + 1.0)
+                          * np.exp((order + 1.0) * self.log_cos) / self.dist_sq)
+
+
+def _led_rows(
+    layout: Layout, index: int, points: FloatArray, amplitudes: FloatArray
+) -> tuple[_LedRows, BoolArray]:
     led = layout.leds[index]
     dz = led.z - layout.grid.receiver_height
     dist_sq = (points[:, 0] - led.x) ** 2 + (points[:, 1] - led.y) ** 2 + dz**2
-    return dz / np.sqrt(dist_sq), dist_sq
-
-
-def _unit_gains(layout: Layout, survey: Survey) -> FloatArray:
-    gains = np.empty(survey.n_rows)
-    for i in range(layout.n_leds):
-        rows = survey.led_indices == i
-        single = replace(layout, leds=(layout.leds[i],))
-        gains[rows] = channel_gains(single, survey.points[rows])[0]
-    return gains
+    cos_inc = dz / np.sqrt(dist_sq)
+    view = cos_inc >= math.cos(math.radians(layout.receiver.fov_deg)) - 1e-15
+    orders, prefactors = led_constants(layout)
+    base = float(layout.pilot_amplitudes[index] * prefactors[index] / (orders[index] + 1.0))
+    return _LedRows(np.log(cos_inc[view]), dist_sq[view], amplitudes[view], base), view
 
 
 def _model_amplitudes(
-    layout: Layout, survey: Survey, products: FloatArray, orders: FloatArray
+    layout: Layout, survey: Survey, ratios: FloatArray, orders: FloatArray
 ) -> FloatArray:
-    """``s_i h(p_k; m_i)`` per row for products ``s`` (M,) and orders ``m`` (M,)."""
-    _, prefactors = led_constants(layout)
-    base = prefactors / (lambertian_order(layout.half_power_angles_deg) + 1.0)  # A G_f G_c/2pi
+    """``r_i x_i^nominal h(p_k; m_i)`` per survey row; 0 outside the field of view."""
     out = np.zeros(survey.n_rows)
-    cos_fov = math.cos(math.radians(layout.receiver.fov_deg)) - 1e-15
     for i in range(layout.n_leds):
         rows = np.flatnonzero(survey.led_indices == i)
-        cos_inc, dist_sq = _geometry(layout, i, survey.points[rows])
-        shape = (orders[i] + 1.0) * cos_inc ** (orders[i] + 1.0) / dist_sq
-        out[rows] = np.where(cos_inc >= cos_fov, products[i] * base[i] * shape, 0.0)
+        led_rows, view = _led_rows(layout, i, survey.points[rows], survey.amplitudes[rows])
+        out[rows[view]] = led_rows.model(float(ratios[i]), float(orders[i]))
     return out
 
 
-def _fit_led(
-    layout: Layout, index: int, points: FloatArray, amplitudes: FloatArray
-) -> tuple[float, float, bool, int] | None:
-    """Fit ``(s_i / x_i^nominal, m_i)`` of one LED; None when no row is in view."""
-    cos_inc, dist_sq = _geometry(layout, index, points)
-    view = cos_inc >= math.cos(math.radians(layout.receiver.fov_deg)) - 1e-15
-    n_view = int(view.sum())
-    if n_view == 0:
-        return None
-    cos_inc, dist_sq, meas = cos_inc[view], dist_sq[view], amplitudes[view]
-    orders, prefactors = led_constants(layout)
-    nominal_x = layout.pilot_amplitudes[index]
-    base = nominal_x * prefactors[index] / (orders[index] + 1.0)
-    log_cos = np.log(cos_inc)
+def _fit_led(rows: _LedRows, nominal_order: float) -> tuple[float, float, bool]:
+    """Least-squares ``(r_i, m_i)`` of one LED (``m_i`` nominal when too few rows)."""
+    scale = max(float(np.max(np.abs(rows.amplitudes))),
+                float(np.max(rows.model(1.0, nominal_order))))
+    fit_order = rows.amplitudes.size >= _MIN_ROWS_FOR_ORDER
 
-    def shape(m: float) -> FloatArray:
-        return np.asarray(base * (m + 1.0) * np.exp((m + 1.0) * log_cos) / dist_sq)
-
-    scale = max(float(np.max(np.abs(meas))), float(np.max(shape(orders[index]))))
-    fit_order = n_view >= _MIN_ROWS_FOR_ORDER
+    def unpack(params: FloatArray) -> tuple[float, float]:
+        return float(params[0]), float(params[1]) if fit_order else nominal_order
 
     def residuals(params: FloatArray) -> FloatArray:
-        m = params[1] if fit_order else orders[index]
-        return np.asarray((params[0] * shape(float(m)) - meas) / scale)
+        return np.asarray((rows.model(*unpack(params)) - rows.amplitudes) / scale)
 
     def jacobian(params: FloatArray) -> FloatArray:
-        m = float(params[1]) if fit_order else float(orders[index])
-        model = shape(m)
-        columns = [model / scale]
-        if fit_order:
-            columns.append(params[0] * model * (1.0 / (m + 1.0) + log_cos) / scale)
-        return np.column_stack(columns)
+        ratio, order = unpack(params)
+        model = rows.model(1.0, order) / scale
+        d_order = ratio * model * (1.0 / (order + 1.0) + rows.log_cos)
+        return np.column_stack((model, d_order) if fit_order else (model,))
 
-    starts = [np.array([1.0, orders[index]])]
-    log_start = _log_linear_start(log_cos, dist_sq, meas, base)
-    if log_start is not None:
-        starts.append(log_start)
+    lower = np.array([0.0, _MIN_ORDER])[: 2 if fit_order else 1]
+    upper = np.array([np.inf, _MAX_ORDER])[: lower.size]
+    starts = [np.array([1.0, nominal_order]), _log_linear_start(rows)]
     best = None
-    for start in starts:
-        x0 = start if fit_order else start[:1]
-        lower = [0.0, _MIN_ORDER] if fit_order else [0.0]
-        upper = [np.inf, _MAX_ORDER] if fit_order else [np.inf]
-        x0 = np.clip(x0, np.array(lower) + 1e-12, np.array(upper) - 1e-12)
+    for start in (s for s in starts if s is not None):
+        x0 = np.clip(start[: lower.size], lower + 1e-12, upper - 1e-12)
         sol = least_squares(residuals, x0, jac=jacobian, bounds=(lower, upper), method="trf",
                             x_scale="jac", xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=500)
         if best is None or sol.cost < best.cost:
             best = sol
     assert best is not None
-    order = float(best.x[1]) if fit_order else float(orders[index])
-    return float(best.x[0]), order, bool(best.status > 0), n_view
+    ratio, order = unpack(best.x)
+    return ratio, order, bool(best.status > 0)
 
 
-def _log_linear_start(
-    log_cos: FloatArray, dist_sq: FloatArray, meas: FloatArray, base: float
-) -> FloatArray | None:
+def _log_linear_start(rows: _LedRows) -> FloatArray | None:
     """Start ``(ratio, m)`` from ``ln a = ln(r base (m+1)) + (m+1) ln cos - ln d^2``."""
+    log_cos, dist_sq, meas, base = rows.log_cos, rows.dist_sq, rows.amplitudes, rows.base
     positive = meas > 0.05 * float(np.max(meas)) if np.max(meas) > 0 else meas > 0
     if positive.sum() < 2 or np.ptp(log_cos[positive]) <= 1e-9:
         return None
@@ -487,6 +457,17 @@ def _rms_per_led(survey: Survey, residuals: FloatArray, n_leds: int) -> FloatArr
     sums = np.bincount(survey.led_indices, weights=residuals**2, minlength=n_leds)
     with np.errstate(invalid="ignore", divide="ignore"):
         return np.asarray(np.where(counts > 0, np.sqrt(sums / np.maximum(counts, 1)), np.nan))
+
+
+def _plain(value: object) -> object:
+    """Arrays and tuples as lists, non-finite floats as None."""
+    if isinstance(value, np.ndarray | tuple):
+        return [_plain(v) for v in value]
+    if isinstance(value, np.integer):
+        return int(value)
+    if isinstance(value, float | np.floating):
+        return float(value) if math.isfinite(value) else None
+    return value
 
 
 def _indices(mask: BoolArray) -> tuple[int, ...]:
