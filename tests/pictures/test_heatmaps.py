@@ -16,6 +16,7 @@ from app.pictures.heatmaps import (
 )
 from app.vlp._typing import FloatArray
 from app.vlp.channel import channel_gains
+from app.vlp.crlb import single_target_crlb
 from app.vlp.fingerprints import Fingerprint
 from app.vlp.layout import Grid, Layout, Led, Receiver, Room
 from app.vlp.simulation import noise_std_for_snr
@@ -90,6 +91,18 @@ def test_crlb_matches_a_numeric_fisher_matrix() -> None:
     np.testing.assert_allclose(got, want, rtol=1e-5)
     # Linear in the noise std.
     np.testing.assert_allclose(amplitude_crlb_m(layout, points, 4e-7), 2 * got, rtol=1e-12)
+
+
+@pytest.mark.parametrize("room", ["paper", "hall"])
+def test_crlb_agrees_with_the_science_core_bound(paper_room: Layout, room: str) -> None:
+    layout = paper_room if room == "paper" else _hall()
+    points = sample_grid(layout).points
+    got = amplitude_crlb_m(layout, points, 3e-7)
+    want = np.array([single_target_crlb(layout, p, 3e-7) for p in points])
+    np.testing.assert_array_equal(np.isfinite(got), np.isfinite(want))
+    finite = np.isfinite(want)
+    assert finite.sum() > 0.5 * finite.size if room == "paper" else finite.sum() > 10
+    np.testing.assert_allclose(got[finite], want[finite], rtol=1e-10)
 
 
 def test_crlb_is_infinite_without_two_leds_in_view() -> None:
