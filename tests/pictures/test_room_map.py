@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 import time
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import pytest
 
-from app.pictures import room_map_png
+from app.pictures import HeatmapKind, room_map_png
 from app.pictures.heatmaps import noise_std_on_samples, sample_grid
 from app.vlp._typing import FloatArray
 from app.vlp.errors import GeometryError
@@ -102,3 +103,13 @@ def test_bad_options_raise_with_field(
     with pytest.raises(GeometryError) as info:
         room_map_png(paper_room, **kwargs)  # type: ignore[arg-type]
     assert info.value.field == field
+
+
+def test_concurrent_rendering_matches_serial(paper_room: Layout) -> None:
+    """No pyplot state: pictures rendered in threads are byte-identical to serial ones."""
+    kinds: list[HeatmapKind] = ["coverage", "crlb", "none", "coverage"]
+    serial = [room_map_png(paper_room, heatmap=kind, width_px=400) for kind in kinds]
+    with ThreadPoolExecutor(max_workers=4) as pool:
+        threaded = list(pool.map(lambda k: room_map_png(paper_room, heatmap=k, width_px=400),
+                                 kinds))
+    assert threaded == serial
