@@ -19,12 +19,14 @@ import scipy.sparse as sp
 
 from .._typing import FloatArray, IntArray
 from ..fingerprints import PSI_DENSE_LIMIT, Fingerprint
-from ..measurements import Model, noise_atom, vech_length
+from ..measurements import Model, noise_atom, unvech, vech, vech_length
 from .base import Solution
 
 __all__ = [
     "CANDIDATE_CELLS",
     "FULL_FIT_CELLS",
+    "SCREENING_CELLS",
+    "SCREENING_ROUNDS",
     "GridDictionary",
     "NonnegativeFit",
     "fit_least_squares",
@@ -36,8 +38,15 @@ __all__ = [
 
 # Fit the whole dictionary when it is dense and has at most this many columns ...
 FULL_FIT_CELLS = 5_000
-# ... else restrict to this many columns best correlated with the measurement.
-CANDIDATE_CELLS = 300
+# ... else start from this many columns best correlated with the measurement ...
+CANDIDATE_CELLS = 200
+# ... and add this many best correlated with the residual, for up to this many rounds.
+SCREENING_CELLS = 100
+SCREENING_ROUNDS = 3
+# Eigenvalues this close (relative) to the median are dropped by the large-room adjoint ...
+_EIGEN_RTOL = 1e-13
+# ... which projects the gains on this many eigenvectors at a time.
+_EIGEN_BATCH = 8
 
 
 class GridDictionary:
@@ -78,9 +87,8 @@ class GridDictionary:
             self._inverse_norms = _safe_inverse(self.column_norms)
             self.normalised = raw * self._inverse_norms
         else:
-            gains = fingerprint.scaled_gains()
-            square_sums = np.asarray(gains.power(2).sum(axis=0)).ravel()
-            fourth_sums = np.asarray(gains.power(4).sum(axis=0)).ravel()
+            square_sums, fourth_sums = _column_power_sums(fingerprint.scaled_gains())
+            self._square_sums = square_sums
             if model == "power":
                 self.column_norms = np.sqrt(fourth_sums)
             else:  # ||vech(g g^T)||^2 = sum_{i<=l} g_i^2 g_l^2 = ((sum g^2)^2 + sum g^4) / 2
@@ -96,9 +104,8 @@ class GridDictionary:
         """``u^T a_j`` for the raw columns a_j and the unit noise atom u; shape (N,)."""
         if self.normalised is not None:
             return np.asarray(self.noise_unit @ self.normalised) * self.column_norms
-        gains = self.fingerprint.scaled_gains()
         # power: sum_i g_ij^2 / sqrt(M); correlation: the diagonal rows give the same sum.
-        return np.asarray(gains.power(2).sum(axis=0)).ravel() / self.noise_norm
+        return self._square_sums / self.noise_norm
 
     @property
     def is_materialised(self) -> bool:
@@ -110,10 +117,35 @@ class GridDictionary:
         if self.normalised is not None:
             return np.asarray(self.normalised.T @ residual)
         if self.model == "power":
-            raw = self.fingerprint.power_matrix().T @ residual
+            raw = np.asarray(self.fingerprint.power_matrix().T @ residual)
         else:
-            raw = self.fingerprint.correlation_operator().rmatvec(residual)
-        return np.asarray(raw) * self._inverse_norms
+            raw = self._correlation_adjoint(residual)
+        return raw * self._inverse_norms
+
+    def _correlation_adjoint(self, residual: FloatArray) -> FloatArray:
+        """``Psi^T r`` through an eigendecomposition of the symmetric matrix behind ``r``.
+
+        ``(Psi^T r)_j = g_j^T S g_j`` with ``S`` as in
+        :class:`~app.vlp.operators.CorrelationOperator`. Writing
+        ``S = c I + sum_e (lambda_e - c) u_e u_e^T`` with ``c`` the median eigenvalue gives
+        ``c ||g_j||^2 + sum_e (lambda_e - c) (u_e^T g_j)^2``, where only eigenvalues away
+        from ``c`` count. Aggregated correlations are sums of a few outer products plus a
+        multiple of I (few terminals, fitted noise), so few terms remain and the adjoint
+        costs a few sparse products instead of one dense M x M product per grid point.
+        """
+        half = unvech(residual, self.fingerprint.n_leds)
+        symmetric = 0.5 * (half + np.diag(np.diag(half)))
+        eigenvalues, eigenvectors = np.linalg.eigh(symmetric)
+        shift = float(np.median(eigenvalues))
+        spread = eigenvalues - shift
+        keep = np.abs(spread) > _EIGEN_RTOL * max(float(np.max(np.abs(eigenvalues))), 1e-300)
+        spread, eigenvectors = spread[keep], eigenvectors[:, keep]
+        gains_t = self.fingerprint.scaled_gains().T  # (N, M), no copy
+        out = shift * self._square_sums
+        for start in range(0, spread.size, _EIGEN_BATCH):
+            projected = np.asarray(gains_t @ eigenvectors[:, start:start + _EIGEN_BATCH])
+            out = out + (projected**2) @ spread[start:start + _EIGEN_BATCH]
+        return np.asarray(out)
 
     def restrict(self, cells: IntArray, target: FloatArray) -> tuple[FloatArray, FloatArray, float]:
         """The sub-problem on some columns plus the noise atom.
@@ -138,7 +170,7 @@ class GridDictionary:
         if self.normalised is not None:
             block = np.column_stack((self.normalised[:, cells], self.noise_unit))
             return block, target, 0.0
-        gains = np.asarray(sp.csc_array(self.fingerprint.scaled_gains()[:, cells]).toarray())
+        gains = self._gain_columns(cells)
         if self.model == "power":
             block = np.column_stack((gains**2 * self._inverse_norms[cells], self.noise_unit))
             return block, target, 0.0
@@ -162,9 +194,37 @@ class GridDictionary:
         diagonal = diagonal * n_leds - diagonal * (diagonal - 1) // 2
         return np.asarray(np.union1d(pairs, diagonal), dtype=np.intp)
 
+    def predict(self, cells: IntArray, coefficients: FloatArray) -> FloatArray:
+        """``D[:, cells] c + c_noise u`` on every row; ``coefficients`` has the noise last."""
+        cells = np.asarray(cells, dtype=np.intp)
+        prediction = coefficients[-1] * self.noise_unit
+        if cells.size == 0:
+            return np.asarray(prediction)
+        if self.normalised is not None:
+            return np.asarray(prediction + self.normalised[:, cells] @ coefficients[:-1])
+        theta = self.weights(cells, coefficients[:-1], 1.0)
+        gains = self._gain_columns(cells)
+        if self.model == "power":
+            return np.asarray(prediction + gains**2 @ theta)
+        return np.asarray(prediction + vech((gains * theta) @ gains.T))
+
+    def _gain_columns(self, cells: IntArray) -> FloatArray:
+        """Columns of ``G`` as a dense (M, k) array."""
+        return np.asarray(sp.csc_array(self.fingerprint.scaled_gains()[:, cells]).toarray())
+
     def weights(self, cells: IntArray, coefficients: FloatArray, scale: float) -> FloatArray:
         """Coefficients of normalised columns -> occupancies in the raw dictionary's units."""
         return np.asarray(coefficients * scale * self._inverse_norms[cells])
+
+
+def _column_power_sums(gains: sp.csr_array) -> tuple[FloatArray, FloatArray]:
+    """``sum_i g_ij^2`` and ``sum_i g_ij^4`` per column, without copying the matrix."""
+    n_cells = int(gains.shape[1])
+    powers = gains.data**2
+    square_sums = np.bincount(gains.indices, weights=powers, minlength=n_cells)
+    powers **= 2
+    fourth_sums = np.bincount(gains.indices, weights=powers, minlength=n_cells)
+    return np.asarray(square_sums, dtype=np.float64), np.asarray(fourth_sums, dtype=np.float64)
 
 
 def _safe_inverse(norms: FloatArray) -> FloatArray:
@@ -232,15 +292,30 @@ def nonnegative_fit(dictionary: GridDictionary, target: FloatArray) -> Nonnegati
     """NNLS of the scaled measurement on the dictionary plus the noise atom.
 
     Uses every usable column when the dictionary is dense with at most
-    :data:`FULL_FIT_CELLS` columns, else the :data:`CANDIDATE_CELLS` columns best correlated
-    with the measurement.
+    :data:`FULL_FIT_CELLS` columns. Otherwise the fit is screened: start from the
+    :data:`CANDIDATE_CELLS` columns best correlated with the measurement, then, for up to
+    :data:`SCREENING_ROUNDS` rounds, add the columns best correlated with the current
+    residual (so targets far apart each get candidates) and refit.
     """
     if dictionary.is_materialised and dictionary.n_cells <= FULL_FIT_CELLS:
         cells = dictionary.usable
-    else:
-        cells = top_cells(dictionary, target, CANDIDATE_CELLS)
-    block, target_rows, rest_sq = dictionary.restrict(cells, target)
-    coefficients, residual = fit_nonnegative(block, target_rows)
+        block, target_rows, rest_sq = dictionary.restrict(cells, target)
+        coefficients, residual = fit_nonnegative(block, target_rows)
+        return NonnegativeFit(cells, coefficients[:-1], float(coefficients[-1]),
+                              float(np.hypot(residual, np.sqrt(rest_sq))))
+    cells = top_cells(dictionary, target, CANDIDATE_CELLS)
+    for round_ in range(SCREENING_ROUNDS + 1):
+        block, target_rows, rest_sq = dictionary.restrict(cells, target)
+        coefficients, residual = fit_nonnegative(block, target_rows)
+        if round_ == SCREENING_ROUNDS:
+            break
+        keep = cells[coefficients[:-1] > 0]
+        mismatch = target - dictionary.predict(keep, np.append(
+            coefficients[:-1][coefficients[:-1] > 0], coefficients[-1]))
+        new = np.setdiff1d(top_cells(dictionary, mismatch, SCREENING_CELLS), cells)
+        if new.size == 0:
+            break
+        cells = np.union1d(cells, new)
     return NonnegativeFit(cells, coefficients[:-1], float(coefficients[-1]),
                           float(np.hypot(residual, np.sqrt(rest_sq))))
 

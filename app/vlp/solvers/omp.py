@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from .._typing import FloatArray
 from ..fingerprints import Fingerprint
 from ..measurements import Measurement, Model
 from ._counting import estimate_target_count
@@ -77,7 +76,7 @@ class OmpSolver(Solver):
         support: list[int] = []
         block, target_rows, rest_sq = dictionary.restrict(np.array([], dtype=np.intp), target)
         coefficients, residual_norm = fit_least_squares(block, target_rows)
-        residual = _full_residual(dictionary, support, coefficients, target)
+        residual = target - dictionary.predict(np.asarray(support, dtype=np.intp), coefficients)
         for _ in range(n_targets):
             correlation = np.abs(dictionary.correlate(residual))
             np.divide(correlation, dictionary.noise_free_norms, out=correlation,
@@ -90,27 +89,7 @@ class OmpSolver(Solver):
             coefficients, residual_norm = fit_least_squares(block, target_rows)
             residual_norm = float(np.hypot(residual_norm, np.sqrt(rest_sq)))
             if len(support) < n_targets:
-                residual = _full_residual(dictionary, support, coefficients, target)
+                residual = target - dictionary.predict(cells, coefficients)
         return grid_solution(
             dictionary, np.asarray(support, dtype=np.intp), coefficients, scale=scale,
             residual_norm=residual_norm, n_iter=len(support), converged=True)
-
-
-def _full_residual(dictionary: GridDictionary, support: list[int], coefficients: FloatArray,
-                   target: FloatArray) -> FloatArray:
-    """``target - D[:, support] c - c_noise u`` on every row."""
-    prediction = coefficients[-1] * dictionary.noise_unit
-    if support:
-        cells = np.asarray(support, dtype=np.intp)
-        if dictionary.normalised is not None:
-            prediction = prediction + dictionary.normalised[:, cells] @ coefficients[:-1]
-        else:
-            raw = dictionary.weights(cells, coefficients[:-1], 1.0)
-            theta = np.zeros(dictionary.n_cells)
-            theta[cells] = raw
-            if dictionary.model == "power":
-                prediction = prediction + dictionary.fingerprint.power_matrix() @ theta
-            else:
-                prediction = prediction + dictionary.fingerprint.correlation_operator().matvec(
-                    theta)
-    return np.asarray(target - prediction)
