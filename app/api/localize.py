@@ -11,6 +11,7 @@ from starlette.concurrency import run_in_threadpool
 
 from app.schemas import Estimate, Localization, Measurement
 from app.vlp import measurements as vlp_measurements
+from app.vlp.assignment import assign_terminals
 from app.vlp.measurements import Model
 from app.vlp.solvers import solver_names
 
@@ -90,8 +91,6 @@ def _localize(request: _Request, cache: FingerprintCache, metrics: Metrics) -> L
     metrics.localize_latency.labels(solver=body.solver, model=request.model).observe(elapsed)
     owners: list[str | None] = [None] * solution.n_targets
     if body.terminals:
-        from app.vlp.assignment import assign_terminals
-
         amplitudes = np.array([terminal.amplitudes for terminal in body.terminals])
         assigned = assign_terminals(fingerprint.layout, solution.positions, amplitudes)
         owners = [body.terminals[int(index)].id if index >= 0 else None for index in assigned]

@@ -1,0 +1,105 @@
+"""Fingerprints: versions, metadata, downloads checked against a direct build; jobs."""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import time
+from typing import Any
+
+import numpy as np
+import pytest
+from numpy.testing import assert_allclose
+
+from app.vlp.fingerprints import Fingerprint
+
+from .conftest import ADMIN, TERMINAL, TestClient
+from .test_rooms import assert_problem, small_room
+
+
+def test_metadata_of_current_and_numbered_version_agree(ready_app: tuple[TestClient, str]) -> None:
+    client, room_id = ready_app
+    current = client.get(f"/v1/rooms/{room_id}/fingerprints/current", headers=TERMINAL)
+    assert current.status_code == 200, current.text
+    meta = current.json()
+    assert meta["room_id"] == room_id and meta["leds"] == 16 and meta["grid_points"] == 400
+    assert meta["matrices"]["H"]["shape"] == [16, 400]
+    assert meta["matrices"]["psi"]["shape"] == [136, 400]
+    numbered = client.get(f"/v1/rooms/{room_id}/fingerprints/{meta['version']}", headers=ADMIN)
+    assert numbered.json() == meta
+    listing = client.get(f"/v1/rooms/{room_id}/fingerprints", headers=TERMINAL).json()
+    assert listing["items"][0] == meta
+
+
+@pytest.mark.parametrize("name", ["H", "J", "psi"])
+def test_downloads_equal_a_direct_build(ready_app: tuple[TestClient, str],
+                                        paper_fingerprint: Fingerprint, name: str) -> None:
+    client, room_id = ready_app
+    meta = client.get(f"/v1/rooms/{room_id}/fingerprints/current", headers=TERMINAL).json()
+    response = client.get(f"/v1/rooms/{room_id}/fingerprints/current/{name}.npy",
+                          headers=TERMINAL)
+    assert response.status_code == 200, response.text
+    assert response.headers["content-type"] == "application/octet-stream"
+    assert hashlib.sha256(response.content).hexdigest() == meta["matrices"][name]["sha256"]
+    assert response.headers["etag"] == f'"{meta["matrices"][name]["sha256"]}"'
+    matrix = np.load(io.BytesIO(response.content), allow_pickle=False)
+    assert matrix.dtype == np.float64
+    expected = {"H": lambda fp: fp.gains.toarray(),
+                "J": lambda fp: np.asarray(fp.gains.toarray() * fp.pilot_amplitudes[:, None]) ** 2,
+                "psi": lambda fp: fp.correlation_matrix()}[name](paper_fingerprint)
+    assert_allclose(matrix, expected, rtol=1e-12, atol=0)
+
+
+def test_download_errors(ready_app: tuple[TestClient, str]) -> None:
+    client, room_id = ready_app
+    base = f"/v1/rooms/{room_id}/fingerprints"
+    assert_problem(client.get(f"{base}/99/H.npy", headers=TERMINAL), 404)
+    assert_problem(client.get(f"{base}/99", headers=TERMINAL), 404)
+    assert_problem(client.get("/v1/rooms/nope/fingerprints/current/H.npy", headers=TERMINAL), 404)
+    # Only H, J, psi exist: anything else (incl. path tricks) is a validation error or 404.
+    assert_problem(client.get(f"{base}/current/G.npy", headers=TERMINAL), 422, ["path.matrix"])
+    assert client.get(f"{base}/current/..%2F..%2Fregistry.sqlite3.npy",
+                      headers=TERMINAL).status_code in (404, 422)
+    assert_problem(client.get(f"{base}/latest", headers=TERMINAL), 422, ["path.version"])
+    # H is dense for this room: the sparse download is refused and points at H.npy.
+    problem = assert_problem(client.get(f"{base}/current/H.npz", headers=TERMINAL), 409)
+    assert "H.npy" in problem["detail"]
+
+
+def test_fingerprint_not_ready_is_409(client: TestClient) -> None:
+    room = client.post("/v1/rooms", json=small_room(), headers=ADMIN).json()
+    base = f"/v1/rooms/{room['id']}/fingerprints"
+    assert client.get(base, headers=TERMINAL).json() == {"items": []}
+    assert_problem(client.get(f"{base}/current", headers=TERMINAL), 409)
+    assert_problem(client.get(f"{base}/current/H.npy", headers=TERMINAL), 409)
+    assert_problem(client.get(f"{base}/1", headers=TERMINAL), 404)
+    assert_problem(client.get("/v1/rooms/nope/fingerprints", headers=TERMINAL), 404)
+
+
+def test_rebuild_answers_202_with_job_location(client: TestClient) -> None:
+    room = client.post("/v1/rooms", json=small_room(), headers=ADMIN).json()
+    response = client.post(f"/v1/rooms/{room['id']}/fingerprints", headers=ADMIN)
+    assert response.status_code == 202, response.text
+    job = response.json()
+    assert response.headers["location"] == f"/v1/jobs/{job['id']}"
+    # Coalesced with the queued build of the same layout.
+    assert job["id"] == room["fingerprint"]["job_id"]
+    assert job["status"] == "queued" and job["kind"] == "build_fingerprint"
+    assert client.get(response.headers["location"], headers=TERMINAL).json() == job
+    assert_problem(client.get("/v1/jobs/nope", headers=TERMINAL), 404)
+    assert_problem(client.post("/v1/rooms/nope/fingerprints", headers=ADMIN), 404)
+
+
+def test_rebuild_job_runs_to_success(ready_app: tuple[TestClient, str]) -> None:
+    client, room_id = ready_app
+    job: dict[str, Any] = client.post(f"/v1/rooms/{room_id}/fingerprints", headers=ADMIN).json()
+    deadline = time.monotonic() + 60
+    while job["status"] not in ("succeeded", "failed") and time.monotonic() < deadline:
+        time.sleep(0.1)
+        job = client.get(f"/v1/jobs/{job['id']}", headers=TERMINAL).json()
+    assert job["status"] == "succeeded", job
+    assert job["progress"] == 1.0 and job["error"] is None
+    version = job["result"]["fingerprint_version"]
+    assert version >= 1
+    assert client.get(f"/v1/rooms/{room_id}", headers=TERMINAL).json()["fingerprint"][
+        "version"] == version
