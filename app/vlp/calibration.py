@@ -57,6 +57,9 @@ _MIN_ORDER = float(lambertian_order(89.5))
 _MAX_ORDER = float(lambertian_order(0.5))
 # In-view survey rows needed to fit the order as well as the amplitude.
 _MIN_ROWS_FOR_ORDER = 3
+# An LED is detected when its fitted signal energy over its rows exceeds this many noise
+# variances (a fit of two parameters to pure noise gives about chi-squared with 2 d.o.f.).
+_DETECTION_SNR = 25.0
 
 
 @dataclass(frozen=True)
@@ -129,12 +132,15 @@ class CalibrationResult:
     residual_rms_before, residual_rms_after : ndarray of shape (M,)
         RMS of measured minus modelled amplitude over each LED's rows, with the nominal and
         the calibrated model; NaN for an LED without rows.
+    noise_std : float
+        Estimated standard deviation of the amplitude noise (pooled residuals).
     points_per_led : ndarray of shape (M,)
         Survey rows per LED.
     points_in_view : ndarray of shape (M,)
         Of those, rows inside the LED's field of view (the only informative ones).
     dead_leds, dimmed_leds, unsurveyed_leds : tuple of int
-        LEDs with (almost) no signal, with a weak one, and without any row in view.
+        LEDs with no signal (not detected above the noise, or relative amplitude below
+        ``dead_below``), with a weak one, and without any row in view.
     converged : bool
         Every per-LED least-squares fit ended on a convergence criterion.
     """
@@ -146,6 +152,7 @@ class CalibrationResult:
     relative_amplitudes: FloatArray
     residual_rms_before: FloatArray
     residual_rms_after: FloatArray
+    noise_std: float
     points_per_led: IntArray
     points_in_view: IntArray
     dead_leds: tuple[int, ...]
@@ -260,22 +267,24 @@ def calibrate(
         if in_view[i]:
             ratios[i], orders[i], ok = _fit_led(rows, float(orders_nominal[i]))
             converged = converged and ok
-    surveyed = in_view > 0
-    gain = _common_gain(ratios[surveyed], dimmed_below)
-    relative = np.where(surveyed, ratios / gain, 1.0)
-    dead = surveyed & (relative < dead_below)
-    dimmed = surveyed & ~dead & (relative < dimmed_below)
-    orders = np.where(dead, orders_nominal, orders)
-    pilots = np.where(dead, nominal, relative * nominal)
     modelled = _model_amplitudes(layout, survey, ratios, orders)
-    after = _rms_per_led(survey, survey.amplitudes - modelled, n_leds)
+    residuals = survey.amplitudes - modelled
+    dof = max(survey.n_rows - 2 * int(np.count_nonzero(in_view)), 1)
+    noise_var = float(residuals @ residuals) / dof
+    energy = np.bincount(survey.led_indices, weights=modelled**2, minlength=n_leds)
+    detected = (energy > 0) & (energy > _DETECTION_SNR * noise_var)
+    gain, relative, dead, dimmed = _classify(ratios, in_view > 0, detected, dimmed_below,
+                                             dead_below)
+    orders = np.where(dead, orders_nominal, orders)
     return CalibrationResult(
-        pilot_amplitudes=pilots, lambertian_orders=orders,
+        pilot_amplitudes=np.where(dead, nominal, relative * nominal), lambertian_orders=orders,
         half_power_angles_deg=half_power_angle_deg(orders), receiver_gain=gain,
-        relative_amplitudes=relative, residual_rms_before=before, residual_rms_after=after,
+        relative_amplitudes=relative, residual_rms_before=before,
+        residual_rms_after=_rms_per_led(survey, residuals, n_leds),
+        noise_std=math.sqrt(noise_var),
         points_per_led=np.bincount(survey.led_indices, minlength=n_leds).astype(np.intp),
         points_in_view=in_view, dead_leds=_indices(dead), dimmed_leds=_indices(dimmed),
-        unsurveyed_leds=_indices(~surveyed), converged=converged,
+        unsurveyed_leds=_indices(in_view == 0), converged=converged,
     )
 
 
@@ -444,11 +453,23 @@ def _log_linear_start(rows: _LedRows) -> FloatArray | None:
     return np.array([math.exp(float(coef[0])) / (base * (order + 1.0)), order])
 
 
+def _classify(
+    ratios: FloatArray, surveyed: BoolArray, detected: BoolArray, dimmed_below: float,
+    dead_below: float,
+) -> tuple[float, FloatArray, BoolArray, BoolArray]:
+    """Common gain, relative amplitudes and the dead and dimmed masks."""
+    gain = _common_gain(ratios[surveyed & detected], dimmed_below)
+    relative = np.where(surveyed, ratios / gain, 1.0)
+    dead = surveyed & (~detected | (relative < dead_below))
+    dimmed = surveyed & ~dead & (relative < dimmed_below)
+    return gain, relative, dead, dimmed
+
+
 def _common_gain(ratios: FloatArray, dimmed_below: float) -> float:
     """Geometric mean of the per-LED ratios that are not far below their median."""
     if ratios.size == 0 or np.median(ratios) <= 0:
         return 1.0
-    healthy = ratios[ratios >= dimmed_below * float(np.median(ratios))]
+    healthy = ratios[(ratios > 0) & (ratios >= dimmed_below * float(np.median(ratios)))]
     return float(np.exp(np.mean(np.log(healthy))))
 
 

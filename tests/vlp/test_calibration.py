@@ -98,6 +98,7 @@ def test_residuals_drop_to_the_noise_level(
     assert np.all(result.residual_rms_after < result.residual_rms_before)
     # Each LED's residual is then pure noise (independent check: the simulated noise std).
     np.testing.assert_allclose(result.residual_rms_after, NOISE_STD, rtol=0.15)
+    assert result.noise_std == pytest.approx(NOISE_STD, rel=0.05)
     np.testing.assert_array_equal(result.points_per_led, np.full(16, 256))
     assert np.all(result.points_in_view > 100)
 
@@ -262,3 +263,14 @@ def test_result_mapping_is_json_ready(paper_room: Layout) -> None:
     assert mapping["residual_rms_after"][1] is None
     assert mapping["unsurveyed_leds"] == [1]
     assert mapping["pilot_amplitudes"][0] == pytest.approx(1.0)
+
+
+def test_survey_of_a_dark_room_flags_every_led_dead(paper_room: Layout) -> None:
+    survey = simulate_survey(paper_room, _survey_points(paper_room, 6))
+    noise = np.random.default_rng(2).normal(0.0, 1e-7, survey.n_rows)
+    dark = Survey(survey.points, survey.led_indices, noise)
+    result = calibrate(paper_room, dark, dimmed_below=0.0)
+    assert result.dead_leds == tuple(range(16))
+    assert result.receiver_gain == 1.0
+    np.testing.assert_allclose(result.pilot_amplitudes, paper_room.pilot_amplitudes)
+    np.testing.assert_allclose(result.residual_rms_after, 1e-7, rtol=0.3)
