@@ -136,7 +136,10 @@ class GridlessSolver(Solver):
         return state, cost, total
 
     def _insert(self, values: FloatArray, state: FitState) -> FitState:
-        white = self._whitening(state)
+        # Large rooms score with the plain residual: whitened atom norms would need the
+        # rotated gains of every grid point.
+        white = self._whitening(state) if self._dense else Whitening.identity(
+            self.model, self.fingerprint.n_leds)
         data = white.data(values, self.fingerprint.n_leds)
         residual, _ = residual_and_jacobian(self._kernel, white, data, state,
                                             self.options.free_weights, want_jacobian=False)
