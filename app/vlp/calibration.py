@@ -241,14 +241,34 @@ def calibrate(
     Raises
     ------
     MeasurementError
-        When an LED index is out of range (``field="led_indices"``) or a point lies outside
-        the room (``field="points"``).
+        When an LED index is out of range (``field="led_indices"``), a point lies outside
+        the room (``field="points"``) or the thresholds are not
+        ``0 <= dead_below <= dimmed_below <= 1``.
 
     Notes
     -----
     See the module docstring for the model and how the degenerate common scale is fixed.
     The fit is deterministic: no random restarts are needed with the log-linear start.
+
+    Examples
+    --------
+    >>> from dataclasses import replace
+    >>> from app.vlp.presets import paper_layout
+    >>> room = paper_layout()
+    >>> true = replace(room, leds=tuple(replace(led, half_power_angle_deg=55.0)
+    ...                                 for led in room.leds))
+    >>> ticks = np.arange(0.25, 4.0, 0.5)
+    >>> points = np.array([(x, y) for x in ticks for y in ticks])
+    >>> result = calibrate(room, simulate_survey(true, points, 1e-8, rng=0))
+    >>> np.round(result.half_power_angles_deg[:3], 1)
+    array([55., 55., 55.])
+    >>> result.dead_leds, result.dimmed_leds
+    ((), ())
     """
+    if not 0.0 <= dead_below <= dimmed_below <= 1.0:
+        raise MeasurementError(
+            f"need 0 <= dead_below <= dimmed_below <= 1, got {dead_below!r} and "
+            f"{dimmed_below!r}", field="dimmed_below")
     _check_against_layout(layout, survey)
     n_leds = layout.n_leds
     orders_nominal, _ = led_constants(layout)

@@ -269,8 +269,17 @@ def test_survey_of_a_dark_room_flags_every_led_dead(paper_room: Layout) -> None:
     survey = simulate_survey(paper_room, _survey_points(paper_room, 6))
     noise = np.random.default_rng(2).normal(0.0, 1e-7, survey.n_rows)
     dark = Survey(survey.points, survey.led_indices, noise)
-    result = calibrate(paper_room, dark, dimmed_below=0.0)
+    result = calibrate(paper_room, dark)
     assert result.dead_leds == tuple(range(16))
     assert result.receiver_gain == 1.0
     np.testing.assert_allclose(result.pilot_amplitudes, paper_room.pilot_amplitudes)
     np.testing.assert_allclose(result.residual_rms_after, 1e-7, rtol=0.3)
+
+
+@pytest.mark.parametrize(("dimmed", "dead"), [(0.5, 0.6), (1.5, 0.1), (0.5, -0.1)],
+                         ids=["dead-above-dimmed", "dimmed-above-one", "dead-negative"])
+def test_calibrate_rejects_bad_thresholds(paper_room: Layout, dimmed: float, dead: float) -> None:
+    survey = simulate_survey(paper_room, np.array([[1.0, 1.0]]))
+    with pytest.raises(MeasurementError) as info:
+        calibrate(paper_room, survey, dimmed_below=dimmed, dead_below=dead)
+    assert info.value.field == "dimmed_below"
