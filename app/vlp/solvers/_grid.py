@@ -43,8 +43,9 @@ CANDIDATE_CELLS = 200
 # ... and add this many best correlated with the residual, for up to this many rounds.
 SCREENING_CELLS = 100
 SCREENING_ROUNDS = 3
-# Eigenvalues this close (relative) to the median are dropped by the large-room adjoint ...
-_EIGEN_RTOL = 1e-13
+# Eigenvalues this close to the median (relative to the largest; the adjoint then errs by at
+# most this fraction of max|lambda| ||g_j||^2) are dropped by the large-room adjoint ...
+_EIGEN_RTOL = 1e-11
 # ... which projects the gains on this many eigenvectors at a time.
 _EIGEN_BATCH = 8
 
