@@ -68,6 +68,14 @@ def localization_png(
     MeasurementError
         On a wrong shape or a non-finite value (``field`` is ``"estimates"``, ``"truth"`` or
         ``"labels"``).
+
+    Examples
+    --------
+    >>> from app.vlp.presets import paper_layout
+    >>> png = localization_png(paper_layout(), np.array([[1.0, 1.1]]), np.array([[1.0, 1.0]]),
+    ...                        labels=["t1"], width_px=300)
+    >>> png.startswith(b"\\x89PNG")
+    True
     """
     est = _positions(estimates, "estimates")
     true = None if truth is None else _positions(truth, "truth")

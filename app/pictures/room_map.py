@@ -74,6 +74,13 @@ def room_map_png(
     GeometryError
         On an unknown ``heatmap`` (``field="heatmap"``), a non-finite ``snr_db``, a bad
         ``noise_std`` or ``width_px``.
+
+    Examples
+    --------
+    >>> from app.vlp.presets import paper_layout
+    >>> png = room_map_png(paper_layout(), heatmap="crlb", width_px=300)
+    >>> png[:8], int.from_bytes(png[16:20], "big")
+    (b'\\x89PNG\\r\\n\\x1a\\n', 300)
     """
     if heatmap not in _KINDS:
         raise GeometryError(f"heatmap must be one of {_KINDS}, got {heatmap!r}", field="heatmap")
