@@ -9,6 +9,7 @@ from __future__ import annotations
 import logging
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
+from typing import Any
 
 from fastapi import FastAPI
 from fastapi.routing import APIRoute
@@ -17,7 +18,7 @@ from threadpoolctl import threadpool_limits
 
 from app.api import api_router
 from app.api.docs import install_docs
-from app.api.errors import install_error_handlers
+from app.api.errors import PROBLEM_MEDIA_TYPE, install_error_handlers
 from app.api.localizer import FingerprintCache
 from app.api.metrics import Metrics
 from app.api.middleware import BodySizeLimitMiddleware, RequestContextMiddleware
@@ -55,6 +56,33 @@ _TAGS = [
 
 def _operation_id(route: APIRoute) -> str:
     return route.name
+
+
+def _problem_validation_responses(app: FastAPI) -> None:
+    """Document 422 answers as problems, not FastAPI's default ``HTTPValidationError``."""
+    original = app.openapi
+
+    def openapi() -> dict[str, Any]:
+        if app.openapi_schema is not None:
+            return app.openapi_schema
+        schema = original()
+        for operations in schema.get("paths", {}).values():
+            for operation in operations.values():
+                for status, answer in operation.get("responses", {}).items():
+                    content = answer.get("content", {})
+                    if status == "422" and PROBLEM_MEDIA_TYPE not in content:
+                        answer["description"] = "invalid input; `errors` names each field"
+                        content[PROBLEM_MEDIA_TYPE] = {
+                            "schema": {"$ref": "#/components/schemas/Problem"}}
+                    if status >= "400" and PROBLEM_MEDIA_TYPE in content:
+                        content.pop("application/json", None)
+        components = schema.get("components", {}).get("schemas", {})
+        for name in ("HTTPValidationError", "ValidationError"):
+            components.pop(name, None)
+        app.openapi_schema = schema
+        return schema
+
+    app.openapi = openapi  # type: ignore[method-assign]
 
 
 def _count_jobs(registry: Registry) -> dict[str, int]:
@@ -110,6 +138,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.metrics = metrics
     install_error_handlers(app)
     install_docs(app)
+    _problem_validation_responses(app)
     app.include_router(api_router)
     app.add_middleware(BodySizeLimitMiddleware, max_body_bytes=settings.max_body_bytes)
     app.add_middleware(RequestContextMiddleware, metrics=metrics)
