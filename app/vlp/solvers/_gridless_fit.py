@@ -27,8 +27,10 @@ from ..measurements import Model
 
 # Relative floor on whitening eigenvalues (guards a noiseless fit against infinite weights).
 _EIG_FLOOR = 1e-9
-# Smallest noise variance (normalised units) assumed when whitening.
+# Smallest noise variance (normalised units) assumed when whitening, absolute and relative
+# to the mean received power (1e-4: an SNR of 40 dB).
 _SIGMA2_FLOOR = 1e-12
+_SIGMA2_REL_FLOOR = 1e-4
 
 
 class ChannelKernel:
@@ -108,7 +110,11 @@ class Whitening:
                    n_terminals: float) -> Whitening:
         """Plug-in whitening from the current fit (sigma^2 = s / K)."""
         gains, _ = kernel.gains(state.positions)
-        sigma2 = max(state.noise / max(n_terminals, 1.0), _SIGMA2_FLOOR)
+        # Floor sigma^2 at a fraction of the mean received power per LED and terminal: a
+        # near-zero noise estimate would make the metric singular off the fitted signal.
+        power = float(np.sum(gains**2 * state.weights)) / (kernel.n_leds * max(n_terminals, 1.0))
+        sigma2 = max(state.noise / max(n_terminals, 1.0), _SIGMA2_REL_FLOOR * power,
+                     _SIGMA2_FLOOR)
         half_noise = 0.5 * max(n_terminals, 1.0) * sigma2
         if model == "power":
             var = 4.0 * sigma2 * ((gains**2) @ state.weights + half_noise)
@@ -206,9 +212,10 @@ def levenberg_marquardt(
     residual, jac = residual_and_jacobian(kernel, white, data, state, free_weights)
     cost = float(residual @ residual)
     damping = 1e-3
-    iteration = 0
+    used = 0
     theta = _pack(state, free_weights)
-    for iteration in range(1, max_iter + 1):
+    while used < max_iter:
+        used += 1
         assert jac is not None
         normal = jac.T @ jac
         gradient = jac.T @ residual
@@ -236,4 +243,4 @@ def levenberg_marquardt(
             damping *= 4.0
         if not improved or relative < tol or moved < step_tol_m:
             break
-    return state, cost, iteration
+    return state, cost, used

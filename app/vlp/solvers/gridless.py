@@ -14,7 +14,13 @@ from .._typing import FloatArray
 from ..fingerprints import Fingerprint
 from ..measurements import Measurement, Model
 from ..simulation import mean_signal_power
-from ._gridless_fit import ChannelKernel, FitState, Whitening, levenberg_marquardt, residual_and_jacobian
+from ._gridless_fit import (
+    ChannelKernel,
+    FitState,
+    Whitening,
+    levenberg_marquardt,
+    residual_and_jacobian,
+)
 from .base import MAX_TARGETS, Solution, Solver, register_solver
 
 __all__ = ["GridlessSolver"]
@@ -31,6 +37,7 @@ class GridlessOptions:
     whiten_rounds: int = 3
     count_threshold: float = 0.2
     count_lookahead: int = 2
+    relocate: bool = True
 
 
 @register_solver
@@ -193,6 +200,34 @@ class GridlessSolver(Solver):
             best = self._insert(values, best)
         return best
 
+    def _relocate(self, values: FloatArray, state: FitState) -> tuple[FitState, bool]:
+        """ADCG's non-convex escape: move one target at a time to the best grid point of the
+        residual left by the others, keep the move when the refined cost is lower."""
+        moved = False
+        step = self.fingerprint.layout.grid.step
+        for k in range(state.positions.shape[0]):
+            keep = np.arange(state.positions.shape[0]) != k
+            others = FitState(state.positions[keep], state.weights[keep], state.noise)
+            candidate = self._insert(values, others)
+            if np.linalg.norm(candidate.positions[-1] - state.positions[k]) <= 1.5 * step:
+                continue
+            white = self._whitening(state)
+            data = white.data(values, self.fingerprint.n_leds)
+            current, _ = residual_and_jacobian(self._kernel, white, data, state, False,
+                                               want_jacobian=False)
+            candidate, cost, used = levenberg_marquardt(
+                self._kernel, white, data, candidate,
+                free_weights=self.options.free_weights, max_iter=self.options.final_iter)
+            self._iterations += used
+            if cost < float(current @ current):
+                # Keep the original order: the moved target takes slot k.
+                order = np.insert(np.arange(state.positions.shape[0] - 1), k,
+                                  state.positions.shape[0] - 1)
+                state = FitState(candidate.positions[order], candidate.weights[order],
+                                 candidate.noise)
+                moved = True
+        return state, moved
+
     def _solve(self, measurement: Measurement, n_targets: int | None) -> Solution:
         values = measurement.values / self._scale**2
         opts = self.options
@@ -204,7 +239,13 @@ class GridlessSolver(Solver):
             while state.positions.shape[0] < n_targets:
                 state = self._grow(values, state, opts.inner_iter)
         state, _, used = self._refine(values, state, opts.final_iter, opts.whiten_rounds)
-        n_iter = self._iterations + used
+        self._iterations += used
+        if opts.relocate:
+            state, moved = self._relocate(values, state)
+            if moved:
+                state, _, used = self._refine(values, state, opts.final_iter, 1)
+                self._iterations += used
+        n_iter = self._iterations
         positions = state.positions
         plain = Whitening.identity(self.model, self.fingerprint.n_leds)
         residual, _ = residual_and_jacobian(self._kernel, plain, values, state, False,

@@ -1,0 +1,123 @@
+"""The default gridless solver: exact noiseless recovery off the grid, accuracy, counting."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.optimize import linear_sum_assignment
+
+from app.vlp import fingerprints
+from app.vlp.fingerprints import Fingerprint, build_fingerprint
+from app.vlp.layout import Layout
+from app.vlp.measurements import Measurement, Model, measurement_from_amplitudes
+from app.vlp.simulation import noise_std_for_snr, noisy_amplitudes, random_positions
+from app.vlp.solvers import make_solver, solver_names
+from app.vlp.solvers.gridless import GridlessSolver
+
+GRID_FLOOR_M = 0.0765  # mean quantisation error of the 0.2 m grid
+
+
+def matched_error(truth: np.ndarray, estimate: np.ndarray) -> float:
+    """Mean distance after the best one-to-one matching."""
+    cost = np.linalg.norm(truth[:, None, :] - estimate[None, :, :], axis=2)
+    rows, cols = linear_sum_assignment(cost)
+    return float(cost[rows, cols].mean())
+
+
+def simulate(layout: Layout, fp: Fingerprint, truth: np.ndarray, snr_db: float | None,
+             model: Model, rng: np.random.Generator) -> Measurement:
+    sigma = 0.0 if snr_db is None else noise_std_for_snr(fp, snr_db)
+    amps = noisy_amplitudes(layout, truth, sigma, rng=rng)
+    return measurement_from_amplitudes(amps, model, layout.n_leds)
+
+
+@pytest.fixture(scope="module")
+def paper_solver(paper_fingerprint: Fingerprint) -> GridlessSolver:
+    return GridlessSolver(paper_fingerprint, "correlation")
+
+
+def test_registered_as_the_default(paper_fingerprint: Fingerprint) -> None:
+    assert solver_names()[0] == "gridless"
+    assert isinstance(make_solver("gridless", paper_fingerprint, "power"), GridlessSolver)
+
+
+@pytest.mark.parametrize("n_targets", [1, 2, 3])
+def test_noiseless_off_grid_positions_are_recovered_exactly(
+        paper_room: Layout, paper_fingerprint: Fingerprint, paper_solver: GridlessSolver,
+        n_targets: int) -> None:
+    truth = random_positions(paper_room, n_targets, rng=100 + n_targets)
+    meas = simulate(paper_room, paper_fingerprint, truth, None, "correlation",
+                    np.random.default_rng(0))
+    sol = paper_solver.solve(meas, n_targets)
+    assert matched_error(truth, sol.positions) < 1e-3
+    np.testing.assert_allclose(sol.weights, 1.0)
+    assert sol.noise_power == pytest.approx(0.0, abs=1e-6 * float(meas.values.max()))
+
+
+def test_beats_the_grid_floor_between_grid_points(
+        paper_room: Layout, paper_fingerprint: Fingerprint, paper_solver: GridlessSolver,
+        rng: np.random.Generator) -> None:
+    truth = random_positions(paper_room, 2, rng=rng)
+    meas = simulate(paper_room, paper_fingerprint, truth, 30.0, "correlation", rng)
+    sol = paper_solver.solve(meas, 2)
+    assert matched_error(truth, sol.positions) < GRID_FLOOR_M
+    # Refined positions are not snapped to grid centres; grid_indices are their cells.
+    centres = paper_room.cell_centres(sol.grid_indices)
+    assert np.all(np.linalg.norm(sol.positions - centres, axis=1) > 1e-6)
+    np.testing.assert_array_equal(sol.grid_indices, paper_room.nearest_cell(sol.positions))
+    assert sol.n_targets == 2 and sol.converged
+
+
+def test_mean_error_over_seeds_stays_below_the_grid_floor(
+        paper_room: Layout, paper_fingerprint: Fingerprint,
+        paper_solver: GridlessSolver) -> None:
+    errors = []
+    for seed in range(10):
+        gen = np.random.default_rng(seed)
+        truth = random_positions(paper_room, 4, rng=gen)
+        meas = simulate(paper_room, paper_fingerprint, truth, 30.0, "correlation", gen)
+        errors.append(matched_error(truth, paper_solver.solve(meas, 4).positions))
+    assert float(np.mean(errors)) < GRID_FLOOR_M
+
+
+@pytest.mark.parametrize("n_targets", [1, 2])
+def test_power_model(paper_room: Layout, paper_fingerprint: Fingerprint,
+                     n_targets: int) -> None:
+    solver = GridlessSolver(paper_fingerprint, "power")
+    truth = random_positions(paper_room, n_targets, rng=7 + n_targets)
+    exact = solver.solve(simulate(paper_room, paper_fingerprint, truth, None, "power",
+                                  np.random.default_rng(1)), n_targets)
+    assert matched_error(truth, exact.positions) < 1e-3
+    gen = np.random.default_rng(11)
+    noisy = solver.solve(simulate(paper_room, paper_fingerprint, truth, 40.0, "power", gen),
+                         n_targets)
+    assert matched_error(truth, noisy.positions) < GRID_FLOOR_M
+
+
+def test_counts_well_separated_targets(paper_room: Layout, paper_fingerprint: Fingerprint,
+                                       paper_solver: GridlessSolver,
+                                       rng: np.random.Generator) -> None:
+    truth = np.array([[0.7, 0.9], [3.1, 1.2], [2.2, 3.3]])
+    meas = simulate(paper_room, paper_fingerprint, truth, 30.0, "correlation", rng)
+    sol = paper_solver.solve(meas)
+    assert sol.n_targets == 3
+    assert matched_error(truth, sol.positions) < GRID_FLOOR_M
+    noiseless = simulate(paper_room, paper_fingerprint, truth[:1], None, "correlation", rng)
+    assert paper_solver.solve(noiseless).n_targets == 1
+
+
+@pytest.mark.parametrize("dense", [True, False], ids=["dense", "sparse"])
+def test_other_room_both_code_paths(mixed_room: Layout, dense: bool,
+                                    monkeypatch: pytest.MonkeyPatch) -> None:
+    if not dense:
+        monkeypatch.setattr(fingerprints, "DENSE_GAINS_LIMIT", 0)
+    fp = build_fingerprint(mixed_room)
+    assert fp.is_dense is dense
+    solver = GridlessSolver(fp, "correlation")
+    # Each seen by 3 LEDs, at least 2 deg inside the 40 deg FOV of each (at the FOV edge
+    # the gain jumps, and a target sitting on it is not well posed).
+    truth = np.array([[1.0, 1.4], [2.2, 1.5]])
+    meas = simulate(mixed_room, fp, truth, None, "correlation", np.random.default_rng(3))
+    sol = solver.solve(meas, 2)
+    assert matched_error(truth, sol.positions) < 1e-3
+    assert np.all((sol.positions >= 0) & (sol.positions <= [3.0, 2.0]))
