@@ -42,8 +42,14 @@ def _serve(args: argparse.Namespace) -> int:
     from app.main import create_app
 
     configure_logging(args.log_level)
-    uvicorn.run(create_app(), host=args.host, port=args.port, log_config=None,
-                access_log=False, proxy_headers=False)
+    uvicorn.run(
+        create_app(),
+        host=args.host,
+        port=args.port,
+        log_config=None,
+        access_log=False,
+        proxy_headers=False,
+    )
     return 0
 
 
@@ -96,8 +102,13 @@ def _rooms(args: argparse.Namespace) -> int:
 
 
 def _simulate(args: argparse.Namespace) -> int:
-    body: dict[str, Any] = {"targets": args.targets, "snr_db": args.snr_db,
-                            "model": args.model, "form": args.form, "solver": args.solver}
+    body: dict[str, Any] = {
+        "targets": args.targets,
+        "snr_db": args.snr_db,
+        "model": args.model,
+        "form": args.form,
+        "solver": args.solver,
+    }
     if args.seed is not None:
         body["seed"] = args.seed
     with _client(args) as client:
@@ -133,8 +144,11 @@ def _parser() -> argparse.ArgumentParser:
 
     openapi = commands.add_parser("openapi", help="write the OpenAPI document")
     openapi.add_argument("--output", type=Path, default=DEFAULT_OPENAPI_PATH)
-    openapi.add_argument("--check", action="store_true",
-                         help="only check that the file is up to date (exit 1 if not)")
+    openapi.add_argument(
+        "--check",
+        action="store_true",
+        help="only check that the file is up to date (exit 1 if not)",
+    )
     openapi.set_defaults(handler=_openapi)
 
     rooms = commands.add_parser("rooms", help="list the rooms of a running service, or show one")
@@ -142,8 +156,9 @@ def _parser() -> argparse.ArgumentParser:
     _add_client_options(rooms)
     rooms.set_defaults(handler=_rooms)
 
-    simulate = commands.add_parser("simulate", help="simulate a measurement on a running "
-                                                    "service (and localize it)")
+    simulate = commands.add_parser(
+        "simulate", help="simulate a measurement on a running service (and localize it)"
+    )
     simulate.add_argument("room_id")
     simulate.add_argument("--targets", type=int, default=2)
     simulate.add_argument("--snr-db", type=float, default=30.0)

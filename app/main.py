@@ -73,7 +73,8 @@ def _problem_validation_responses(app: FastAPI) -> None:
                     if status == "422" and PROBLEM_MEDIA_TYPE not in content:
                         answer["description"] = "invalid input; `errors` names each field"
                         content[PROBLEM_MEDIA_TYPE] = {
-                            "schema": {"$ref": "#/components/schemas/Problem"}}
+                            "schema": {"$ref": "#/components/schemas/Problem"}
+                        }
                     if status >= "400" and PROBLEM_MEDIA_TYPE in content:
                         content.pop("application/json", None)
         components = schema.get("components", {}).get("schemas", {})
@@ -95,27 +96,37 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
     settings: Settings = app.state.settings
     with threadpool_limits(limits=1):
         settings.data_dir.mkdir(parents=True, exist_ok=True)
-        registry = Registry(database_url=settings.resolved_database_url(),
-                            data_dir=settings.data_dir,
-                            max_build_attempts=settings.max_build_attempts,
-                            job_lease_seconds=settings.job_lease_seconds)
+        registry = Registry(
+            database_url=settings.resolved_database_url(),
+            data_dir=settings.data_dir,
+            max_build_attempts=settings.max_build_attempts,
+            job_lease_seconds=settings.job_lease_seconds,
+        )
         await run_in_threadpool(registry.migrate)
         app.state.registry = registry
         app.state.keys = await run_in_threadpool(
-            lambda: provision_keys(registry=registry, settings=settings))
+            lambda: provision_keys(registry=registry, settings=settings)
+        )
         if settings.demo:
             await run_in_threadpool(seed_demo_room, registry)
         metrics: Metrics = app.state.metrics
         metrics.watch_jobs(lambda: _count_jobs(registry))
-        app.state.cache = FingerprintCache(registry=registry,
-                                           size=settings.fingerprint_cache_size,
-                                           version_check_seconds=settings.version_check_seconds,
-                                           metrics=metrics)
+        app.state.cache = FingerprintCache(
+            registry=registry,
+            size=settings.fingerprint_cache_size,
+            version_check_seconds=settings.version_check_seconds,
+            metrics=metrics,
+        )
         workers = EmbeddedWorkers(registry=registry, settings=settings)
         if settings.embedded_workers > 0:
             workers.start()
-        _log.info("service started", extra={"data_dir": str(settings.data_dir),
-                                            "embedded_workers": settings.embedded_workers})
+        _log.info(
+            "service started",
+            extra={
+                "data_dir": str(settings.data_dir),
+                "embedded_workers": settings.embedded_workers,
+            },
+        )
         try:
             yield
         finally:
@@ -128,8 +139,13 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     """Build the service app (the registry and workers start in its lifespan)."""
     settings = settings or get_settings()
     app = FastAPI(
-        title="VLP service", version="1.0.0", description=_DESCRIPTION, openapi_tags=_TAGS,
-        docs_url=None, redoc_url=None, lifespan=_lifespan,
+        title="VLP service",
+        version="1.0.0",
+        description=_DESCRIPTION,
+        openapi_tags=_TAGS,
+        docs_url=None,
+        redoc_url=None,
+        lifespan=_lifespan,
         generate_unique_id_function=_operation_id,
         swagger_ui_parameters={"persistAuthorization": True},
     )

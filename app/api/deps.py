@@ -31,8 +31,11 @@ __all__ = [
 ]
 
 api_key_header = APIKeyHeader(
-    name="X-API-Key", auto_error=False, scheme_name="ApiKey",
-    description="an admin or terminal key (see the server's `credentials` file at first start)")
+    name="X-API-Key",
+    auto_error=False,
+    scheme_name="ApiKey",
+    description="an admin or terminal key (see the server's `credentials` file at first start)",
+)
 
 
 def get_registry(request: Request) -> Registry:
@@ -65,17 +68,25 @@ CacheDep = Annotated[FingerprintCache, Depends(get_cache)]
 MetricsDep = Annotated[Metrics, Depends(get_metrics)]
 
 
-def current_role(request: Request, registry: RegistryDep,
-                 key: Annotated[str | None, Security(api_key_header)] = None) -> Role:
+def current_role(
+    request: Request,
+    registry: RegistryDep,
+    key: Annotated[str | None, Security(api_key_header)] = None,
+) -> Role:
     """The caller's role from ``X-API-Key``; 401 when it is missing or unknown."""
     if not key:
-        raise ApiProblem(401, "this endpoint needs an API key in the X-API-Key header",
-                         kind="unauthorized", headers={"WWW-Authenticate": "X-API-Key"})
+        raise ApiProblem(
+            401,
+            "this endpoint needs an API key in the X-API-Key header",
+            kind="unauthorized",
+            headers={"WWW-Authenticate": "X-API-Key"},
+        )
     keys: KeyRing = request.app.state.keys
     role = keys.role_for(key, registry)
     if role is None:
-        raise ApiProblem(401, "unknown API key", kind="unauthorized",
-                         headers={"WWW-Authenticate": "X-API-Key"})
+        raise ApiProblem(
+            401, "unknown API key", kind="unauthorized", headers={"WWW-Authenticate": "X-API-Key"}
+        )
     return role
 
 
@@ -85,8 +96,9 @@ AnyRole = Annotated[Role, Depends(current_role)]
 def require_admin(role: AnyRole) -> Role:
     """403 unless the caller is an admin."""
     if role != "admin":
-        raise ApiProblem(403, f"the {role} role may not do this; it needs an admin key",
-                         kind="forbidden")
+        raise ApiProblem(
+            403, f"the {role} role may not do this; it needs an admin key", kind="forbidden"
+        )
     return role
 
 

@@ -28,12 +28,14 @@ def install_docs(app: FastAPI, *, openapi_url: str = "/openapi.json") -> None:
     @app.get("/docs", include_in_schema=False)
     def swagger_ui() -> HTMLResponse:
         return get_swagger_ui_html(
-            openapi_url=openapi_url, title=f"{app.title} - Swagger UI",
+            openapi_url=openapi_url,
+            title=f"{app.title} - Swagger UI",
             oauth2_redirect_url=redirect_url,
             swagger_js_url=f"{STATIC_DOCS_URL}/swagger-ui-bundle.js",
             swagger_css_url=f"{STATIC_DOCS_URL}/swagger-ui.css",
             swagger_favicon_url=f"{STATIC_DOCS_URL}/favicon.png",
-            swagger_ui_parameters={"persistAuthorization": True, "tryItOutEnabled": True})
+            swagger_ui_parameters={"persistAuthorization": True, "tryItOutEnabled": True},
+        )
 
     @app.get(redirect_url, include_in_schema=False)
     def swagger_ui_redirect() -> HTMLResponse:
@@ -41,7 +43,10 @@ def install_docs(app: FastAPI, *, openapi_url: str = "/openapi.json") -> None:
 
     @app.get("/redoc", include_in_schema=False)
     def redoc() -> HTMLResponse:
-        return get_redoc_html(openapi_url=openapi_url, title=f"{app.title} - ReDoc",
-                              redoc_js_url=f"{STATIC_DOCS_URL}/redoc.standalone.js",
-                              redoc_favicon_url=f"{STATIC_DOCS_URL}/favicon.png",
-                              with_google_fonts=False)
+        return get_redoc_html(
+            openapi_url=openapi_url,
+            title=f"{app.title} - ReDoc",
+            redoc_js_url=f"{STATIC_DOCS_URL}/redoc.standalone.js",
+            redoc_favicon_url=f"{STATIC_DOCS_URL}/favicon.png",
+            with_google_fonts=False,
+        )

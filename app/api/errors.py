@@ -46,9 +46,16 @@ _INDEX = re.compile(r"\[(\d+)\]")
 class ApiProblem(Exception):
     """An HTTP problem raised by a handler or dependency."""
 
-    def __init__(self, status: int, detail: str, *, kind: str | None = None,
-                 title: str | None = None, errors: Sequence[tuple[str, str]] = (),
-                 headers: Mapping[str, str] | None = None) -> None:
+    def __init__(
+        self,
+        status: int,
+        detail: str,
+        *,
+        kind: str | None = None,
+        title: str | None = None,
+        errors: Sequence[tuple[str, str]] = (),
+        headers: Mapping[str, str] | None = None,
+    ) -> None:
         super().__init__(detail)
         self.status = status
         self.detail = detail
@@ -63,8 +70,7 @@ class InvalidInput(ApiProblem):
 
     def __init__(self, errors: Sequence[tuple[str, str]]) -> None:
         detail = "; ".join(f"{field}: {message}" for field, message in errors)
-        super().__init__(422, detail, kind="validation", title="Validation failed",
-                         errors=errors)
+        super().__init__(422, detail, kind="validation", title="Validation failed", errors=errors)
 
 
 def field_location(field: str | None, prefix: str = "body") -> str:
@@ -75,9 +81,16 @@ def field_location(field: str | None, prefix: str = "body") -> str:
     return f"{prefix}.{dotted}"
 
 
-def problem_response(request: Request, status: int, detail: str, *, kind: str | None = None,
-                     title: str | None = None, errors: Iterable[tuple[str, str]] = (),
-                     headers: Mapping[str, str] | None = None) -> JSONResponse:
+def problem_response(
+    request: Request,
+    status: int,
+    detail: str,
+    *,
+    kind: str | None = None,
+    title: str | None = None,
+    errors: Iterable[tuple[str, str]] = (),
+    headers: Mapping[str, str] | None = None,
+) -> JSONResponse:
     """The problem answer for one error."""
     phrase = HTTPStatus(status).phrase if status in HTTPStatus._value2member_map_ else "Error"
     body: dict[str, Any] = {
@@ -93,8 +106,9 @@ def problem_response(request: Request, status: int, detail: str, *, kind: str | 
     request_id = getattr(request.state, "request_id", None)
     if request_id:
         body["request_id"] = request_id
-    return JSONResponse(body, status_code=status, headers=dict(headers or {}),
-                        media_type=PROBLEM_MEDIA_TYPE)
+    return JSONResponse(
+        body, status_code=status, headers=dict(headers or {}), media_type=PROBLEM_MEDIA_TYPE
+    )
 
 
 def _validation_errors(exc: RequestValidationError) -> list[tuple[str, str]]:
@@ -137,8 +151,15 @@ def install_error_handlers(app: FastAPI) -> None:
 
     async def on_api_problem(request: Request, exc: Exception) -> JSONResponse:
         assert isinstance(exc, ApiProblem)
-        return problem_response(request, exc.status, exc.detail, kind=exc.kind, title=exc.title,
-                                errors=exc.errors, headers=exc.headers)
+        return problem_response(
+            request,
+            exc.status,
+            exc.detail,
+            kind=exc.kind,
+            title=exc.title,
+            errors=exc.errors,
+            headers=exc.headers,
+        )
 
     async def on_http(request: Request, exc: Exception) -> JSONResponse:
         assert isinstance(exc, StarletteHTTPException)
@@ -150,23 +171,30 @@ def install_error_handlers(app: FastAPI) -> None:
     async def on_validation(request: Request, exc: Exception) -> JSONResponse:
         assert isinstance(exc, RequestValidationError)
         errors = _validation_errors(exc)
-        return problem_response(request, 422, f"{len(errors)} invalid input(s): "
-                                + "; ".join(f"{f}: {m}" for f, m in errors),
-                                kind="validation", title="Validation failed", errors=errors)
+        return problem_response(
+            request,
+            422,
+            f"{len(errors)} invalid input(s): " + "; ".join(f"{f}: {m}" for f, m in errors),
+            kind="validation",
+            title="Validation failed",
+            errors=errors,
+        )
 
     async def on_vlp(request: Request, exc: Exception) -> JSONResponse:
         assert isinstance(exc, VLPError)
         errors = [(field_location(exc.field), exc.message)]
-        return problem_response(request, 422, exc.message, kind="validation",
-                                title="Validation failed", errors=errors)
+        return problem_response(
+            request, 422, exc.message, kind="validation", title="Validation failed", errors=errors
+        )
 
     async def on_registry(request: Request, exc: Exception) -> JSONResponse:
         assert isinstance(exc, RegistryError)
         status, kind = _registry_status(exc)
         errors = [(field_location(exc.field, "query"), exc.message)] if status == 422 else []
         headers = {"Retry-After": "5"} if status == 503 else None
-        return problem_response(request, status, exc.message, kind=kind, errors=errors,
-                                headers=headers)
+        return problem_response(
+            request, status, exc.message, kind=kind, errors=errors, headers=headers
+        )
 
     app.add_exception_handler(ApiProblem, on_api_problem)
     app.add_exception_handler(StarletteHTTPException, on_http)
@@ -176,8 +204,11 @@ def install_error_handlers(app: FastAPI) -> None:
 
 
 def _problem_doc(description: str) -> dict[str, Any]:
-    return {"description": description, "model": Problem,
-            "content": {PROBLEM_MEDIA_TYPE: {"schema": {"$ref": "#/components/schemas/Problem"}}}}
+    return {
+        "description": description,
+        "model": Problem,
+        "content": {PROBLEM_MEDIA_TYPE: {"schema": {"$ref": "#/components/schemas/Problem"}}},
+    }
 
 
 _DESCRIPTIONS = {

@@ -19,37 +19,62 @@ __all__ = ["fingerprint_public", "job_public", "jobs_router", "router"]
 router = APIRouter(prefix="/v1/rooms/{room_id}/fingerprints", tags=["fingerprints"])
 jobs_router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
 
-VersionParam = Annotated[str, Path(
-    pattern=r"^(current|[1-9][0-9]{0,17})$",
-    description="a version number, or `current` for the one localization uses now",
-    examples=["current", "1"])]
-_BINARY: dict[int | str, dict[str, Any]] = {200: {
-    "description": "the matrix as a NumPy file of float64",
-    "content": {"application/octet-stream": {"schema": {"type": "string", "format": "binary"}}},
-    "headers": {"ETag": {"schema": {"type": "string"}, "description": "the file's sha256"}},
-}}
+VersionParam = Annotated[
+    str,
+    Path(
+        pattern=r"^(current|[1-9][0-9]{0,17})$",
+        description="a version number, or `current` for the one localization uses now",
+        examples=["current", "1"],
+    ),
+]
+_BINARY: dict[int | str, dict[str, Any]] = {
+    200: {
+        "description": "the matrix as a NumPy file of float64",
+        "content": {"application/octet-stream": {"schema": {"type": "string", "format": "binary"}}},
+        "headers": {"ETag": {"schema": {"type": "string"}, "description": "the file's sha256"}},
+    }
+}
 
 
 def fingerprint_public(record: FingerprintRecord) -> Fingerprint:
     """The public form of a fingerprint record."""
     return Fingerprint(
-        version=record.version, room_id=record.room_id, layout_version=record.layout_version,
-        leds=record.leds, grid_points=record.grid_points, built_at=record.built_at,
-        build_seconds=record.build_seconds, job_id=record.job_id,
-        matrices={name: MatrixMeta(shape=list(info.shape), sha256=info.sha256,
-                                   format=info.format)
-                  for name, info in record.matrices.items()})
+        version=record.version,
+        room_id=record.room_id,
+        layout_version=record.layout_version,
+        leds=record.leds,
+        grid_points=record.grid_points,
+        built_at=record.built_at,
+        build_seconds=record.build_seconds,
+        job_id=record.job_id,
+        matrices={
+            name: MatrixMeta(shape=list(info.shape), sha256=info.sha256, format=info.format)
+            for name, info in record.matrices.items()
+        },
+    )
 
 
 def job_public(record: JobRecord) -> Job:
     """The public form of a job record."""
-    result = (JobResult(fingerprint_version=record.fingerprint_version)
-              if record.fingerprint_version is not None else None)
-    return Job(id=record.id, kind=record.kind, room_id=record.room_id,
-               status=record.status, progress=record.progress,
-               error=record.error, created_at=record.created_at, started_at=record.started_at,
-               finished_at=record.finished_at, result=result, attempts=record.attempts,
-               layout_version=record.layout_version)
+    result = (
+        JobResult(fingerprint_version=record.fingerprint_version)
+        if record.fingerprint_version is not None
+        else None
+    )
+    return Job(
+        id=record.id,
+        kind=record.kind,
+        room_id=record.room_id,
+        status=record.status,
+        progress=record.progress,
+        error=record.error,
+        created_at=record.created_at,
+        started_at=record.started_at,
+        finished_at=record.finished_at,
+        result=result,
+        attempts=record.attempts,
+        layout_version=record.layout_version,
+    )
 
 
 def _version(value: str) -> int | None:
@@ -64,11 +89,18 @@ def list_fingerprints(room_id: str, registry: RegistryDep, _role: AnyRole) -> Fi
     return FingerprintsList(items=[fingerprint_public(record) for record in records])
 
 
-@router.post("", status_code=status.HTTP_202_ACCEPTED, summary="Rebuild the fingerprint",
-             responses={202: {"headers": {"Location": {"schema": {"type": "string"}}}},
-                        **problem_responses(401, 403, 404)})
-def rebuild_fingerprint(room_id: str, response: Response, registry: RegistryDep,
-                        _role: AdminRole) -> Job:
+@router.post(
+    "",
+    status_code=status.HTTP_202_ACCEPTED,
+    summary="Rebuild the fingerprint",
+    responses={
+        202: {"headers": {"Location": {"schema": {"type": "string"}}}},
+        **problem_responses(401, 403, 404),
+    },
+)
+def rebuild_fingerprint(
+    room_id: str, response: Response, registry: RegistryDep, _role: AdminRole
+) -> Job:
     """Queue a build of the room's current layout (joins a build already queued or running).
 
     Poll `Location` (the job) until it `succeeded`.
@@ -78,10 +110,14 @@ def rebuild_fingerprint(room_id: str, response: Response, registry: RegistryDep,
     return job_public(job)
 
 
-@router.get("/{version}", summary="Read fingerprint metadata",
-            responses=problem_responses(401, 404, 409, 422))
-def get_fingerprint(room_id: str, version: VersionParam, registry: RegistryDep,
-                    _role: AnyRole) -> Fingerprint:
+@router.get(
+    "/{version}",
+    summary="Read fingerprint metadata",
+    responses=problem_responses(401, 404, 409, 422),
+)
+def get_fingerprint(
+    room_id: str, version: VersionParam, registry: RegistryDep, _role: AnyRole
+) -> Fingerprint:
     """Metadata of one version: sizes, build time, and each stored matrix's shape and sha256.
 
     `current` answers 409 while no version is ready.
@@ -89,31 +125,47 @@ def get_fingerprint(room_id: str, version: VersionParam, registry: RegistryDep,
     return fingerprint_public(registry.get_fingerprint(room_id=room_id, version=_version(version)))
 
 
-def _matrix_file(registry: RegistryDep, room_id: str, version: str, name: str,
-                 file_format: str) -> FileResponse:
+def _matrix_file(
+    registry: RegistryDep, room_id: str, version: str, name: str, file_format: str
+) -> FileResponse:
     record = registry.get_fingerprint(room_id=room_id, version=_version(version))
     info = record.matrices.get(name)
     if info is None:
-        raise ApiProblem(409, f"{name} of version {record.version} is not materialised (too "
-                              "large); H and the LEDs' pilot amplitudes define it exactly",
-                         kind="matrix-not-materialised")
+        raise ApiProblem(
+            409,
+            f"{name} of version {record.version} is not materialised (too "
+            "large); H and the LEDs' pilot amplitudes define it exactly",
+            kind="matrix-not-materialised",
+        )
     if info.format != file_format:
-        raise ApiProblem(409, f"{name} of version {record.version} is stored as .{info.format}; "
-                              f"download {name}.{info.format}", kind="matrix-format")
+        raise ApiProblem(
+            409,
+            f"{name} of version {record.version} is stored as .{info.format}; "
+            f"download {name}.{info.format}",
+            kind="matrix-format",
+        )
     try:
         path = registry.matrix_path(room_id=room_id, version=record.version, name=name)
     except MatrixNotFound as exc:
         raise ApiProblem(409, str(exc), kind="matrix-not-materialised") from exc
-    headers = {"ETag": f'"{info.sha256}"', "Cache-Control": "private, max-age=31536000, "
-                                                            "immutable"}
-    return FileResponse(path, media_type="application/octet-stream", headers=headers,
-                        filename=f"{room_id}-v{record.version}-{name}.{file_format}")
+    headers = {"ETag": f'"{info.sha256}"', "Cache-Control": "private, max-age=31536000, immutable"}
+    return FileResponse(
+        path,
+        media_type="application/octet-stream",
+        headers=headers,
+        filename=f"{room_id}-v{record.version}-{name}.{file_format}",
+    )
 
 
-@router.get("/{version}/{matrix}.npy", summary="Download a matrix (.npy)", response_model=None,
-            responses={**_BINARY, **problem_responses(401, 404, 409, 422, 503)})
-def download_matrix(room_id: str, version: VersionParam, matrix: MatrixName,
-                    registry: RegistryDep, _role: AnyRole) -> FileResponse:
+@router.get(
+    "/{version}/{matrix}.npy",
+    summary="Download a matrix (.npy)",
+    response_model=None,
+    responses={**_BINARY, **problem_responses(401, 404, 409, 422, 503)},
+)
+def download_matrix(
+    room_id: str, version: VersionParam, matrix: MatrixName, registry: RegistryDep, _role: AnyRole
+) -> FileResponse:
     """`H` (M x N), `J` (M x N) or `psi` (M(M+1)/2 x N) as a NumPy `.npy` file of float64.
 
     409 when the matrix is not materialised (psi of a large room) or H is stored sparse
@@ -122,10 +174,15 @@ def download_matrix(room_id: str, version: VersionParam, matrix: MatrixName,
     return _matrix_file(registry, room_id, version, matrix.value, "npy")
 
 
-@router.get("/{version}/H.npz", summary="Download a sparse H (.npz)", response_model=None,
-            responses={**_BINARY, **problem_responses(401, 404, 409, 422, 503)})
-def download_sparse_gains(room_id: str, version: VersionParam, registry: RegistryDep,
-                          _role: AnyRole) -> FileResponse:
+@router.get(
+    "/{version}/H.npz",
+    summary="Download a sparse H (.npz)",
+    response_model=None,
+    responses={**_BINARY, **problem_responses(401, 404, 409, 422, 503)},
+)
+def download_sparse_gains(
+    room_id: str, version: VersionParam, registry: RegistryDep, _role: AnyRole
+) -> FileResponse:
     """H of a large room, stored sparse (`scipy.sparse.load_npz` reads it)."""
     return _matrix_file(registry, room_id, version, "H", "npz")
 

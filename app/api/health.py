@@ -39,8 +39,12 @@ def healthz() -> Health:
 def _check_ready(registry: RegistryDep) -> None:
     registry.ping()
     if not registry.migrations_current():
-        raise ApiProblem(503, "the registry schema is not at the current migration",
-                         kind="not-ready", headers={"Retry-After": "5"})
+        raise ApiProblem(
+            503,
+            "the registry schema is not at the current migration",
+            kind="not-ready",
+            headers={"Retry-After": "5"},
+        )
 
 
 @router.get("/readyz", summary="Readiness", responses=problem_responses(503))
@@ -50,9 +54,17 @@ async def readyz(registry: RegistryDep) -> Readiness:
     return Readiness()
 
 
-@router.get("/metrics", summary="Prometheus metrics", response_class=Response, responses={
-    200: {"description": "Prometheus text format",
-          "content": {"text/plain": {"schema": {"type": "string"}}}}})
+@router.get(
+    "/metrics",
+    summary="Prometheus metrics",
+    response_class=Response,
+    responses={
+        200: {
+            "description": "Prometheus text format",
+            "content": {"text/plain": {"schema": {"type": "string"}}},
+        }
+    },
+)
 def metrics(metrics: MetricsDep) -> Response:
     """Requests and latency by route, localize latency by solver, jobs by status, cache hits."""
     return Response(generate_latest(metrics.registry), media_type=CONTENT_TYPE_LATEST)

@@ -46,16 +46,27 @@ def input_form(body: Measurement) -> tuple[str, Model]:
     if len(sent) != 1:
         names = sent or list(_FORMS)
         what = "none of them was" if not sent else f"{len(sent)} were"
-        raise InvalidInput([(f"body.{form}", f"send exactly one of power, correlation, "
-                                             f"terminals; {what} sent") for form in names])
+        raise InvalidInput(
+            [
+                (f"body.{form}", f"send exactly one of power, correlation, terminals; {what} sent")
+                for form in names
+            ]
+        )
     form = sent[0]
     explicit = "model" in body.model_fields_set
     if form == "terminals":
         return form, body.model
     implied: Model = "power" if form == "power" else "correlation"
     if explicit and body.model != implied:
-        raise InvalidInput([("body.model", f"model {body.model!r} does not fit `{form}`; "
-                                           f"use model {implied!r} or leave it out")])
+        raise InvalidInput(
+            [
+                (
+                    "body.model",
+                    f"model {body.model!r} does not fit `{form}`; "
+                    f"use model {implied!r} or leave it out",
+                )
+            ]
+        )
     return form, implied
 
 
@@ -66,12 +77,20 @@ def _measurement(request: _Request, n_leds: int) -> vlp_measurements.Measurement
     if request.form == "correlation":
         return vlp_measurements.measurement_from_correlation(body.correlation, n_leds)
     terminals = body.terminals or []
-    errors = [(f"body.terminals.{index}.amplitudes",
-               f"expected {n_leds} amplitudes (one per LED), got {len(terminal.amplitudes)}")
-              for index, terminal in enumerate(terminals) if len(terminal.amplitudes) != n_leds]
+    errors = [
+        (
+            f"body.terminals.{index}.amplitudes",
+            f"expected {n_leds} amplitudes (one per LED), got {len(terminal.amplitudes)}",
+        )
+        for index, terminal in enumerate(terminals)
+        if len(terminal.amplitudes) != n_leds
+    ]
     ids = [terminal.id for terminal in terminals]
-    errors += [(f"body.terminals.{index}.id", f"terminal id {tid!r} appears more than once")
-               for index, tid in enumerate(ids) if ids.index(tid) != index]
+    errors += [
+        (f"body.terminals.{index}.id", f"terminal id {tid!r} appears more than once")
+        for index, tid in enumerate(ids)
+        if ids.index(tid) != index
+    ]
     if errors:
         raise InvalidInput(errors)
     amplitudes = np.array([terminal.amplitudes for terminal in terminals], dtype=np.float64)
@@ -95,22 +114,38 @@ def _localize(request: _Request, cache: FingerprintCache, metrics: Metrics) -> L
         assigned = assign_terminals(fingerprint.layout, solution.positions, amplitudes)
         owners = [body.terminals[int(index)].id if index >= 0 else None for index in assigned]
     estimates = [
-        Estimate(x=float(position[0]), y=float(position[1]), grid_index=int(grid_index),
-                 weight=float(weight), terminal_id=owner)
+        Estimate(
+            x=float(position[0]),
+            y=float(position[1]),
+            grid_index=int(grid_index),
+            weight=float(weight),
+            terminal_id=owner,
+        )
         for position, grid_index, weight, owner in zip(
-            solution.positions, solution.grid_indices, solution.weights, owners, strict=True)
+            solution.positions, solution.grid_indices, solution.weights, owners, strict=True
+        )
     ]
-    return Localization(room_id=request.room_id, fingerprint_version=version,
-                        model=request.model, solver=body.solver, targets=solution.n_targets,
-                        estimates=estimates, residual_norm=float(solution.residual_norm),
-                        noise_power=float(solution.noise_power),
-                        elapsed_ms=round(elapsed * 1e3, 3))
+    return Localization(
+        room_id=request.room_id,
+        fingerprint_version=version,
+        model=request.model,
+        solver=body.solver,
+        targets=solution.n_targets,
+        estimates=estimates,
+        residual_norm=float(solution.residual_norm),
+        noise_power=float(solution.noise_power),
+        elapsed_ms=round(elapsed * 1e3, 3),
+    )
 
 
-@router.post("/{room_id}/localize", summary="Locate the targets behind a measurement",
-             responses=problem_responses(401, 404, 409, 413, 422, 503))
-async def localize(room_id: str, body: Measurement, cache: CacheDep, metrics: MetricsDep,
-                   _role: AnyRole) -> Localization:
+@router.post(
+    "/{room_id}/localize",
+    summary="Locate the targets behind a measurement",
+    responses=problem_responses(401, 404, 409, 413, 422, 503),
+)
+async def localize(
+    room_id: str, body: Measurement, cache: CacheDep, metrics: MetricsDep, _role: AnyRole
+) -> Localization:
     """Send exactly one of `power`, `correlation` (M x M or its upper triangle) or
     `terminals` (each terminal's amplitudes); get the targets' positions.
 
@@ -119,7 +154,14 @@ async def localize(room_id: str, body: Measurement, cache: CacheDep, metrics: Me
     """
     form, model = input_form(body)
     if body.solver not in solver_names():
-        raise InvalidInput([("body.solver", f"solver {body.solver!r} is not installed on this "
-                                            f"server; choose one of {solver_names()}")])
+        raise InvalidInput(
+            [
+                (
+                    "body.solver",
+                    f"solver {body.solver!r} is not installed on this "
+                    f"server; choose one of {solver_names()}",
+                )
+            ]
+        )
     request = _Request(room_id=room_id, body=body, form=form, model=model)
     return await run_in_threadpool(_localize, request, cache, metrics)

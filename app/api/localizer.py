@@ -43,8 +43,15 @@ class _Entry:
 class FingerprintCache:
     """Loaded fingerprints and solvers of one process (thread-safe)."""
 
-    def __init__(self, *, registry: Registry, size: int, version_check_seconds: float,
-                 metrics: Metrics, clock: Callable[[], float] = time.monotonic) -> None:
+    def __init__(
+        self,
+        *,
+        registry: Registry,
+        size: int,
+        version_check_seconds: float,
+        metrics: Metrics,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
         self._registry = registry
         self._size = size
         self._interval = version_check_seconds
@@ -69,8 +76,9 @@ class FingerprintCache:
             return cached[0]
         version = self._registry.current_version(room_id=room_id)
         if version is None:
-            raise FingerprintNotReady(f"room {room_id} has no ready fingerprint yet; "
-                                      "poll the room or its build job")
+            raise FingerprintNotReady(
+                f"room {room_id} has no ready fingerprint yet; poll the room or its build job"
+            )
         with self._lock:
             self._versions[room_id] = (version, now)
         return version

@@ -22,8 +22,7 @@ class JobsCollector(Collector):
 
     def collect(self) -> Iterator[GaugeMetricFamily]:
         """One gauge sample per job status."""
-        gauge = GaugeMetricFamily("vlp_jobs", "Fingerprint build jobs by status",
-                                  labels=["status"])
+        gauge = GaugeMetricFamily("vlp_jobs", "Fingerprint build jobs by status", labels=["status"])
         counts = self._count_jobs()
         for status in JOB_STATUSES:
             gauge.add_metric([status], float(counts.get(status, 0)))
@@ -35,17 +34,32 @@ class Metrics:
 
     def __init__(self) -> None:
         self.registry = CollectorRegistry(auto_describe=True)
-        self.requests = Counter("vlp_http_requests", "HTTP requests by route template",
-                                ["method", "route", "status"], registry=self.registry)
-        self.latency = Histogram("vlp_http_request_duration_seconds",
-                                 "HTTP request latency by route template", ["method", "route"],
-                                 buckets=_LATENCY_BUCKETS, registry=self.registry)
-        self.localize_latency = Histogram("vlp_localize_duration_seconds",
-                                          "Solver time of localize requests",
-                                          ["solver", "model"], buckets=_LATENCY_BUCKETS,
-                                          registry=self.registry)
-        self.cache = Counter("vlp_fingerprint_cache", "Fingerprint/solver cache lookups",
-                             ["result"], registry=self.registry)
+        self.requests = Counter(
+            "vlp_http_requests",
+            "HTTP requests by route template",
+            ["method", "route", "status"],
+            registry=self.registry,
+        )
+        self.latency = Histogram(
+            "vlp_http_request_duration_seconds",
+            "HTTP request latency by route template",
+            ["method", "route"],
+            buckets=_LATENCY_BUCKETS,
+            registry=self.registry,
+        )
+        self.localize_latency = Histogram(
+            "vlp_localize_duration_seconds",
+            "Solver time of localize requests",
+            ["solver", "model"],
+            buckets=_LATENCY_BUCKETS,
+            registry=self.registry,
+        )
+        self.cache = Counter(
+            "vlp_fingerprint_cache",
+            "Fingerprint/solver cache lookups",
+            ["result"],
+            registry=self.registry,
+        )
 
     def watch_jobs(self, count_jobs: Callable[[], Mapping[str, int]]) -> None:
         """Expose jobs by status, read through ``count_jobs`` at each scrape."""

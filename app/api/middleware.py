@@ -18,22 +18,31 @@ from .metrics import Metrics
 
 __all__ = ["BodySizeLimitMiddleware", "RequestContextMiddleware", "request_id_var"]
 
-request_id_var: contextvars.ContextVar[str | None] = contextvars.ContextVar("request_id",
-                                                                            default=None)
+request_id_var: contextvars.ContextVar[str | None] = contextvars.ContextVar(
+    "request_id", default=None
+)
 _REQUEST_ID = re.compile(r"^[A-Za-z0-9._:-]{1,128}$")
 _access_log = logging.getLogger("app.access")
 _error_log = logging.getLogger("app.errors")
 
 
-async def _send_problem(send: Send, scope: Scope, status: int, detail: str, kind: str,
-                        request_id: str | None) -> None:
-    body: dict[str, Any] = {"type": f"urn:vlp:problem:{kind}", "title": HTTPStatus(status).phrase,
-                            "status": status, "detail": detail, "instance": scope.get("path", "")}
+async def _send_problem(
+    send: Send, scope: Scope, status: int, detail: str, kind: str, request_id: str | None
+) -> None:
+    body: dict[str, Any] = {
+        "type": f"urn:vlp:problem:{kind}",
+        "title": HTTPStatus(status).phrase,
+        "status": status,
+        "detail": detail,
+        "instance": scope.get("path", ""),
+    }
     if request_id:
         body["request_id"] = request_id
     payload = json.dumps(body).encode()
-    headers = [(b"content-type", PROBLEM_MEDIA_TYPE.encode()),
-               (b"content-length", str(len(payload)).encode())]
+    headers = [
+        (b"content-type", PROBLEM_MEDIA_TYPE.encode()),
+        (b"content-length", str(len(payload)).encode()),
+    ]
     await send({"type": "http.response.start", "status": status, "headers": headers})
     await send({"type": "http.response.body", "body": payload})
 
@@ -81,9 +90,14 @@ class RequestContextMiddleware:
             _error_log.exception("unhandled error", extra={"request_id": request_id})
             status = 500
             if not response_started:
-                await _send_problem(send_wrapper, scope, 500,
-                                    "internal error; quote the request id when reporting it",
-                                    "internal", request_id)
+                await _send_problem(
+                    send_wrapper,
+                    scope,
+                    500,
+                    "internal error; quote the request id when reporting it",
+                    "internal",
+                    request_id,
+                )
         finally:
             elapsed = time.perf_counter() - started
             route = scope.get("route")
@@ -91,9 +105,17 @@ class RequestContextMiddleware:
             method = str(scope.get("method", ""))
             self.metrics.requests.labels(method=method, route=template, status=str(status)).inc()
             self.metrics.latency.labels(method=method, route=template).observe(elapsed)
-            _access_log.info("request", extra={
-                "request_id": request_id, "method": method, "path": scope.get("path", ""),
-                "route": template, "status": status, "duration_ms": round(elapsed * 1e3, 3)})
+            _access_log.info(
+                "request",
+                extra={
+                    "request_id": request_id,
+                    "method": method,
+                    "path": scope.get("path", ""),
+                    "route": template,
+                    "status": status,
+                    "duration_ms": round(elapsed * 1e3, 3),
+                },
+            )
             request_id_var.reset(token)
 
 
@@ -139,8 +161,7 @@ class BodySizeLimitMiddleware:
             if too_large:
                 if message["type"] == "http.response.start" and not started:
                     started = True
-                    await _send_problem(send, scope, 413, detail, "payload-too-large",
-                                        request_id)
+                    await _send_problem(send, scope, 413, detail, "payload-too-large", request_id)
                 return
             if message["type"] == "http.response.start":
                 started = True

@@ -65,8 +65,10 @@ def _write_credentials(path: Path, admin_key: str, terminal_key: str) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
     with os.fdopen(fd, "w", encoding="utf-8") as handle:
-        handle.write("# VLP API keys generated at first start; only their hashes are stored.\n"
-                     f"VLP_ADMIN_KEYS={admin_key}\nVLP_TERMINAL_KEYS={terminal_key}\n")
+        handle.write(
+            "# VLP API keys generated at first start; only their hashes are stored.\n"
+            f"VLP_ADMIN_KEYS={admin_key}\nVLP_TERMINAL_KEYS={terminal_key}\n"
+        )
     os.chmod(path, 0o600)
 
 
@@ -76,13 +78,16 @@ def provision_keys(*, registry: Registry, settings: Settings) -> KeyRing:
     configured: list[tuple[str, Role]] = [(key, "admin") for key in settings.admin_key_list()]
     configured += [(key, "terminal") for key in settings.terminal_key_list()]
     if not configured and registry.count_api_keys() == 0:
-        configured = [(secrets.token_urlsafe(32), "admin"),
-                      (secrets.token_urlsafe(32), "terminal")]
+        configured = [(secrets.token_urlsafe(32), "admin"), (secrets.token_urlsafe(32), "terminal")]
         path = settings.data_dir / CREDENTIALS_FILE
         _write_credentials(path, configured[0][0], configured[1][0])
-        _log.warning("no API keys configured: generated an admin key %s and a terminal key %s "
-                     "(printed once; also written to %s, mode 0600)",
-                     configured[0][0], configured[1][0], path)
+        _log.warning(
+            "no API keys configured: generated an admin key %s and a terminal key %s "
+            "(printed once; also written to %s, mode 0600)",
+            configured[0][0],
+            configured[1][0],
+            path,
+        )
     for key, role in configured:
         registry.add_api_key(key_hash=hash_key(key), role=role, label=f"{role} key")
         ring.add(key, role)

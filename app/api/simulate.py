@@ -27,22 +27,30 @@ DEFAULT_SNR_DB = 30.0
 def _check(body: SimulationRequest) -> None:
     errors = []
     if (body.targets is None) == (body.positions is None):
-        errors += [(f"body.{name}", "send exactly one of targets (random terminals) or "
-                                    "positions") for name in ("targets", "positions")]
+        errors += [
+            (f"body.{name}", "send exactly one of targets (random terminals) or positions")
+            for name in ("targets", "positions")
+        ]
     if body.snr_db is not None and body.noise_std is not None:
-        errors += [(f"body.{name}", "send snr_db or noise_std, not both")
-                   for name in ("snr_db", "noise_std")]
+        errors += [
+            (f"body.{name}", "send snr_db or noise_std, not both")
+            for name in ("snr_db", "noise_std")
+        ]
     if errors:
         raise InvalidInput(errors)
 
 
 def _given_positions(body: SimulationRequest, layout: Layout) -> np.ndarray[Any, Any]:
     positions = np.array(body.positions, dtype=np.float64).reshape(-1, 2)
-    errors = [(f"body.positions.{index}",
-               f"({x!r}, {y!r}) lies outside the room [0, {layout.room.length}] x "
-               f"[0, {layout.room.width}] m")
-              for index, (x, y) in enumerate(positions.tolist())
-              if not (0 <= x <= layout.room.length and 0 <= y <= layout.room.width)]
+    errors = [
+        (
+            f"body.positions.{index}",
+            f"({x!r}, {y!r}) lies outside the room [0, {layout.room.length}] x "
+            f"[0, {layout.room.width}] m",
+        )
+        for index, (x, y) in enumerate(positions.tolist())
+        if not (0 <= x <= layout.room.length and 0 <= y <= layout.room.width)
+    ]
     if errors:
         raise InvalidInput(errors)
     return positions
@@ -57,35 +65,62 @@ def _simulate(room_id: str, body: SimulationRequest, cache: FingerprintCache) ->
         positions = _given_positions(body, layout)
     else:
         positions = random_positions(layout, int(body.targets or 1), rng=rng)
-    noise_std = (body.noise_std if body.noise_std is not None else
-                 noise_std_for_snr(fingerprint, body.snr_db if body.snr_db is not None
-                                   else DEFAULT_SNR_DB))
+    noise_std = (
+        body.noise_std
+        if body.noise_std is not None
+        else noise_std_for_snr(
+            fingerprint, body.snr_db if body.snr_db is not None else DEFAULT_SNR_DB
+        )
+    )
     amplitudes = noisy_amplitudes(layout, positions, noise_std, rng=rng)
     n_targets = int(positions.shape[0])
-    measurement: dict[str, Any] = {"model": body.model, "targets": n_targets,
-                                   "solver": body.solver, "fingerprint_version": version}
+    measurement: dict[str, Any] = {
+        "model": body.model,
+        "targets": n_targets,
+        "solver": body.solver,
+        "fingerprint_version": version,
+    }
     ids = [f"t{index + 1}" for index in range(n_targets)]
     if body.form == "terminals":
-        measurement["terminals"] = [{"id": tid, "amplitudes": row.tolist()}
-                                    for tid, row in zip(ids, amplitudes, strict=True)]
+        measurement["terminals"] = [
+            {"id": tid, "amplitudes": row.tolist()}
+            for tid, row in zip(ids, amplitudes, strict=True)
+        ]
     elif body.model == "power":
         measurement["power"] = vlp_measurements.power_from_amplitudes(amplitudes).tolist()
     else:
         correlation = vlp_measurements.correlation_from_amplitudes(amplitudes)
-        measurement["correlation"] = (correlation.tolist() if body.form == "matrix"
-                                      else vlp_measurements.vech(correlation).tolist())
+        measurement["correlation"] = (
+            correlation.tolist()
+            if body.form == "matrix"
+            else vlp_measurements.vech(correlation).tolist()
+        )
     cells = layout.nearest_cell(positions)
-    truth = [TruthTarget(x=float(x), y=float(y), grid_index=int(cell),
-                         terminal_id=tid if body.form == "terminals" else None)
-             for (x, y), cell, tid in zip(positions.tolist(), cells, ids, strict=True)]
-    return Simulation(measurement=measurement, truth=truth, noise_std=float(noise_std),
-                      fingerprint_version=version)
+    truth = [
+        TruthTarget(
+            x=float(x),
+            y=float(y),
+            grid_index=int(cell),
+            terminal_id=tid if body.form == "terminals" else None,
+        )
+        for (x, y), cell, tid in zip(positions.tolist(), cells, ids, strict=True)
+    ]
+    return Simulation(
+        measurement=measurement,
+        truth=truth,
+        noise_std=float(noise_std),
+        fingerprint_version=version,
+    )
 
 
-@router.post("/{room_id}/simulate", summary="Simulate a measurement with its ground truth",
-             responses=problem_responses(401, 404, 409, 413, 422, 503))
-async def simulate(room_id: str, body: SimulationRequest, cache: CacheDep,
-                   _role: AnyRole) -> Simulation:
+@router.post(
+    "/{room_id}/simulate",
+    summary="Simulate a measurement with its ground truth",
+    responses=problem_responses(401, 404, 409, 413, 422, 503),
+)
+async def simulate(
+    room_id: str, body: SimulationRequest, cache: CacheDep, _role: AnyRole
+) -> Simulation:
     """Place `targets` random terminals (or the given `positions`), add Gaussian noise at
     `snr_db` (default 30 dB; or an explicit `noise_std`) and answer with a `measurement`
     you can send unchanged to `POST /v1/rooms/{room_id}/localize`, plus the truth.

@@ -52,8 +52,9 @@ def localize_example() -> dict[str, Any]:
 class TerminalAmplitudes(RequestModel):
     """One terminal's pilot amplitude estimates, one per LED (in the layout's LED order)."""
 
-    id: str = Field(pattern=_TERMINAL_ID_PATTERN, description="the terminal's own id",
-                    examples=["t1"])
+    id: str = Field(
+        pattern=_TERMINAL_ID_PATTERN, description="the terminal's own id", examples=["t1"]
+    )
     amplitudes: list[FiniteFloat] = Field(min_length=1, description="a_ik for each LED i")
 
 
@@ -72,20 +73,24 @@ class Measurement(RequestModel):
     model_config = ConfigDict(json_schema_extra={"examples": [localize_example()]})
 
     model: ModelName = Field(default="correlation", description="measurement model")
-    power: list[FiniteFloat] | None = Field(default=None, min_length=1,
-                                            description="M received powers")
+    power: list[FiniteFloat] | None = Field(
+        default=None, min_length=1, description="M received powers"
+    )
     correlation: list[list[FiniteFloat]] | list[FiniteFloat] | None = Field(
-        default=None, min_length=1, description="M x M matrix or its M(M+1)/2 upper triangle")
-    terminals: list[TerminalAmplitudes] | None = Field(default=None, min_length=1,
-                                                       max_length=4096)
-    targets: int | None = Field(default=None, ge=1, le=MAX_TARGETS,
-                                description="K; estimated by the service when left out")
+        default=None, min_length=1, description="M x M matrix or its M(M+1)/2 upper triangle"
+    )
+    terminals: list[TerminalAmplitudes] | None = Field(default=None, min_length=1, max_length=4096)
+    targets: int | None = Field(
+        default=None, ge=1, le=MAX_TARGETS, description="K; estimated by the service when left out"
+    )
     solver: SolverName = Field(
         default="gridless",
         description="`gridless` (default: best accuracy, off-grid positions), `nnls`, "
-                    "`omp`, `l1` (the seed paper's algorithms)")
-    fingerprint_version: int | None = Field(default=None, ge=1,
-                                            description="default: the current version")
+        "`omp`, `l1` (the seed paper's algorithms)",
+    )
+    fingerprint_version: int | None = Field(
+        default=None, ge=1, description="default: the current version"
+    )
 
 
 class Estimate(ResponseModel):

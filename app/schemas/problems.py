@@ -10,8 +10,10 @@ __all__ = ["FieldError", "Problem"]
 class FieldError(BaseModel):
     """One invalid input."""
 
-    field: str = Field(description="dotted location, e.g. `body.leds.3.z` or `query.limit`",
-                       examples=["body.leds.0.z"])
+    field: str = Field(
+        description="dotted location, e.g. `body.leds.3.z` or `query.limit`",
+        examples=["body.leds.0.z"],
+    )
     message: str = Field(examples=["leds[0].z = 5.0 m must be at most room.height (3.0 m)"])
 
 
@@ -20,13 +22,18 @@ class Problem(BaseModel):
 
     model_config = ConfigDict(extra="allow")
 
-    type: str = Field(default="about:blank", description="a URI naming the kind of problem",
-                      examples=["https://vlp.example/problems/validation"])
-    title: str = Field(description="short summary of the kind of problem",
-                       examples=["Validation failed"])
+    type: str = Field(
+        default="about:blank",
+        description="a URI naming the kind of problem",
+        examples=["https://vlp.example/problems/validation"],
+    )
+    title: str = Field(
+        description="short summary of the kind of problem", examples=["Validation failed"]
+    )
     status: int = Field(ge=400, le=599, examples=[422])
     detail: str = Field(description="what happened in this case", examples=["1 invalid field"])
     instance: str = Field(description="the request path", examples=["/v1/rooms"])
     errors: list[FieldError] | None = Field(
-        default=None, description="for validation problems: each invalid field")
+        default=None, description="for validation problems: each invalid field"
+    )
     request_id: str | None = Field(default=None, description="quote it when reporting a bug")

@@ -40,10 +40,18 @@ def paper_room_example() -> dict[str, Any]:
         "name": "Paper room",
         "room": {"length": 4.0, "width": 4.0, "height": 3.0},
         "grid": {"step": 0.2, "receiver_height": 0.85},
-        "receiver": {"area": 1e-4, "fov_deg": 70.0, "filter_gain": 1.0,
-                     "refractive_index": 1.5},
-        "leds": [{"x": 0.5 + ix, "y": 0.5 + iy, "z": 3.0, "half_power_angle_deg": 60.0,
-                  "pilot_amplitude": 1.0} for ix in range(4) for iy in range(4)],
+        "receiver": {"area": 1e-4, "fov_deg": 70.0, "filter_gain": 1.0, "refractive_index": 1.5},
+        "leds": [
+            {
+                "x": 0.5 + ix,
+                "y": 0.5 + iy,
+                "z": 3.0,
+                "half_power_angle_deg": 60.0,
+                "pilot_amplitude": 1.0,
+            }
+            for ix in range(4)
+            for iy in range(4)
+        ],
     }
 
 
@@ -62,21 +70,26 @@ class GridSpec(RequestModel):
     """
 
     step: FiniteFloat = Field(gt=0, le=_MAX_EXTENT_M, description="cell size, m")
-    receiver_height: FiniteFloat = Field(ge=0, le=_MAX_EXTENT_M,
-                                         description="height of the photodetectors, m")
+    receiver_height: FiniteFloat = Field(
+        ge=0, le=_MAX_EXTENT_M, description="height of the photodetectors, m"
+    )
 
 
 class ReceiverSpec(RequestModel):
     """The upward-facing photodetector of every terminal."""
 
-    area: FiniteFloat = Field(default=DEFAULT_RECEIVER_AREA_M2, gt=0, le=1.0,
-                              description="detector area, m^2")
-    fov_deg: FiniteFloat = Field(default=DEFAULT_FOV_DEG, gt=0, le=90,
-                                 description="field of view (half angle), degrees")
-    filter_gain: FiniteFloat = Field(default=DEFAULT_FILTER_GAIN, gt=0,
-                                     description="optical filter gain")
-    refractive_index: FiniteFloat = Field(default=DEFAULT_REFRACTIVE_INDEX, ge=1, le=10,
-                                          description="concentrator refractive index n")
+    area: FiniteFloat = Field(
+        default=DEFAULT_RECEIVER_AREA_M2, gt=0, le=1.0, description="detector area, m^2"
+    )
+    fov_deg: FiniteFloat = Field(
+        default=DEFAULT_FOV_DEG, gt=0, le=90, description="field of view (half angle), degrees"
+    )
+    filter_gain: FiniteFloat = Field(
+        default=DEFAULT_FILTER_GAIN, gt=0, description="optical filter gain"
+    )
+    refractive_index: FiniteFloat = Field(
+        default=DEFAULT_REFRACTIVE_INDEX, ge=1, le=10, description="concentrator refractive index n"
+    )
 
 
 class LedSpec(RequestModel):
@@ -84,12 +97,21 @@ class LedSpec(RequestModel):
 
     x: FiniteFloat = Field(ge=0, le=_MAX_EXTENT_M, description="m, in [0, room.length]")
     y: FiniteFloat = Field(ge=0, le=_MAX_EXTENT_M, description="m, in [0, room.width]")
-    z: FiniteFloat | None = Field(default=None, gt=0, le=_MAX_EXTENT_M,
-                                  description="m, above the receivers; default room.height")
-    half_power_angle_deg: FiniteFloat = Field(default=DEFAULT_HALF_POWER_ANGLE_DEG, gt=0, lt=90,
-                                              description="semi-angle at half power, degrees")
-    pilot_amplitude: FiniteFloat = Field(default=DEFAULT_PILOT_AMPLITUDE, gt=0,
-                                         description="pilot amplitude x_i")
+    z: FiniteFloat | None = Field(
+        default=None,
+        gt=0,
+        le=_MAX_EXTENT_M,
+        description="m, above the receivers; default room.height",
+    )
+    half_power_angle_deg: FiniteFloat = Field(
+        default=DEFAULT_HALF_POWER_ANGLE_DEG,
+        gt=0,
+        lt=90,
+        description="semi-angle at half power, degrees",
+    )
+    pilot_amplitude: FiniteFloat = Field(
+        default=DEFAULT_PILOT_AMPLITUDE, gt=0, description="pilot amplitude x_i"
+    )
 
 
 class RoomLayout(RequestModel):
@@ -108,7 +130,8 @@ class FingerprintState(ResponseModel):
     """Where the room's fingerprint stands."""
 
     status: Literal["pending", "building", "ready", "failed"] = Field(
-        description="state of the latest build")
+        description="state of the latest build"
+    )
     version: int | None = Field(description="the version localization uses now")
     job_id: str | None = Field(description="the latest build job")
 
@@ -129,5 +152,6 @@ class RoomsPage(ResponseModel):
     """One page of rooms, oldest first."""
 
     items: list[Room]
-    next_cursor: str | None = Field(description="pass as `cursor` for the next page; null at "
-                                                "the end")
+    next_cursor: str | None = Field(
+        description="pass as `cursor` for the next page; null at the end"
+    )

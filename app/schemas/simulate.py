@@ -22,26 +22,45 @@ class SimulationRequest(RequestModel):
     The answer's `measurement` can be sent unchanged to `POST /v1/rooms/{room_id}/localize`.
     """
 
-    model_config = ConfigDict(json_schema_extra={"examples": [
-        {"targets": 2, "snr_db": 30, "model": "correlation", "form": "terminals", "seed": 7},
-        {"positions": [[1.0, 1.2], [2.9, 3.1]], "noise_std": 0.0, "form": "upper"},
-    ]})
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [
+                {
+                    "targets": 2,
+                    "snr_db": 30,
+                    "model": "correlation",
+                    "form": "terminals",
+                    "seed": 7,
+                },
+                {"positions": [[1.0, 1.2], [2.9, 3.1]], "noise_std": 0.0, "form": "upper"},
+            ]
+        }
+    )
 
-    targets: int | None = Field(default=None, ge=1, le=MAX_TARGETS,
-                                description="K random terminals (one per grid cell)")
-    positions: list[Point] | None = Field(default=None, min_length=1, max_length=MAX_TARGETS,
-                                          description="given terminal positions [[x, y], ...], m")
+    targets: int | None = Field(
+        default=None, ge=1, le=MAX_TARGETS, description="K random terminals (one per grid cell)"
+    )
+    positions: list[Point] | None = Field(
+        default=None,
+        min_length=1,
+        max_length=MAX_TARGETS,
+        description="given terminal positions [[x, y], ...], m",
+    )
     snr_db: FiniteFloat | None = Field(
-        default=None, ge=-50, le=200,
-        description="mean(J) / noise variance of one amplitude, dB; default 30")
-    noise_std: FiniteFloat | None = Field(default=None, ge=0,
-                                          description="noise std of one amplitude (instead of "
-                                                      "snr_db)")
+        default=None,
+        ge=-50,
+        le=200,
+        description="mean(J) / noise variance of one amplitude, dB; default 30",
+    )
+    noise_std: FiniteFloat | None = Field(
+        default=None, ge=0, description="noise std of one amplitude (instead of snr_db)"
+    )
     model: ModelName = Field(default="correlation")
     form: Literal["matrix", "upper", "terminals"] = Field(
         default="matrix",
         description="correlation as a full `matrix` or its `upper` triangle, or per-terminal "
-                    "amplitudes (`terminals`); the power model sends `power` unless `terminals`")
+        "amplitudes (`terminals`); the power model sends `power` unless `terminals`",
+    )
     solver: SolverName = Field(default="gridless", description="copied into the measurement")
     seed: int | None = Field(default=None, ge=0, description="for a reproducible simulation")
 

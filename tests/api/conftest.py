@@ -18,8 +18,15 @@ with warnings.catch_warnings():
     warnings.filterwarnings("ignore", message=r"Using `httpx` with `starlette.testclient`")
     from fastapi.testclient import TestClient
 
-__all__ = ["ADMIN", "ADMIN_KEY", "TERMINAL", "TERMINAL_KEY", "TestClient", "make_settings",
-           "wait_for_room"]
+__all__ = [
+    "ADMIN",
+    "ADMIN_KEY",
+    "TERMINAL",
+    "TERMINAL_KEY",
+    "TestClient",
+    "make_settings",
+    "wait_for_room",
+]
 
 ADMIN_KEY = "admin-test-key"
 TERMINAL_KEY = "term-key"
@@ -30,15 +37,22 @@ BUILD_TIMEOUT_S = 90.0
 
 def make_settings(data_dir: Path, **overrides: Any) -> Settings:
     """Settings for one test app: known keys, no demo room, no workers unless asked."""
-    values: dict[str, Any] = {"data_dir": data_dir, "database_url": None,
-                              "admin_keys": ADMIN_KEY, "terminal_keys": TERMINAL_KEY,
-                              "embedded_workers": 0, "demo": False, "version_check_seconds": 0}
+    values: dict[str, Any] = {
+        "data_dir": data_dir,
+        "database_url": None,
+        "admin_keys": ADMIN_KEY,
+        "terminal_keys": TERMINAL_KEY,
+        "embedded_workers": 0,
+        "demo": False,
+        "version_check_seconds": 0,
+    }
     values.update(overrides)
     return Settings(**values)
 
 
-def wait_for_room(client: TestClient, room_id: str, timeout_s: float = BUILD_TIMEOUT_S) -> dict[
-        str, Any]:
+def wait_for_room(
+    client: TestClient, room_id: str, timeout_s: float = BUILD_TIMEOUT_S
+) -> dict[str, Any]:
     """Poll the room until its fingerprint is ready (fail on `failed` or timeout)."""
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:

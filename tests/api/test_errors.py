@@ -27,7 +27,8 @@ def test_wrong_method_is_problem_405(client: TestClient) -> None:
 
 
 def test_unhandled_exception_is_problem_500_without_trace(
-        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
     app = create_app(make_settings(tmp_path))
 
     @app.get("/boom")
@@ -62,8 +63,9 @@ def small_limit_client(tmp_path: Path) -> Iterator[TestClient]:
 
 def test_body_over_limit_by_content_length_is_413(small_limit_client: TestClient) -> None:
     body = json.dumps(small_room(name="x" * 3000)).encode()
-    response = small_limit_client.post("/v1/rooms", content=body, headers={
-        **ADMIN, "Content-Type": "application/json"})
+    response = small_limit_client.post(
+        "/v1/rooms", content=body, headers={**ADMIN, "Content-Type": "application/json"}
+    )
     problem = assert_problem(response, 413)
     assert "2048" in problem["detail"]
 
@@ -74,8 +76,9 @@ def test_streamed_body_over_limit_is_413(small_limit_client: TestClient) -> None
             yield b" " * 500
 
     # A generator body is sent chunked, with no Content-Length.
-    response = small_limit_client.post("/v1/rooms", content=chunks(), headers={
-        **ADMIN, "Content-Type": "application/json"})
+    response = small_limit_client.post(
+        "/v1/rooms", content=chunks(), headers={**ADMIN, "Content-Type": "application/json"}
+    )
     assert "content-length" not in response.request.headers
     assert_problem(response, 413)
     assert small_limit_client.get("/v1/rooms", headers=ADMIN).json()["items"] == []
@@ -86,15 +89,21 @@ def test_body_under_limit_passes(small_limit_client: TestClient) -> None:
     assert response.status_code == 201
 
 
-@pytest.mark.parametrize("content, content_type", [
-    (b"{not json", "application/json"),
-    (b"name=room", "application/x-www-form-urlencoded"),
-    (b"", "application/json"),
-    (b"[1, 2]", "application/json"),
-], ids=["broken-json", "form", "empty", "array"])
-def test_non_json_body_is_problem_422(client: TestClient, content: bytes,
-                                      content_type: str) -> None:
-    response = client.post("/v1/rooms", content=content,
-                           headers={**ADMIN, "Content-Type": content_type})
+@pytest.mark.parametrize(
+    "content, content_type",
+    [
+        (b"{not json", "application/json"),
+        (b"name=room", "application/x-www-form-urlencoded"),
+        (b"", "application/json"),
+        (b"[1, 2]", "application/json"),
+    ],
+    ids=["broken-json", "form", "empty", "array"],
+)
+def test_non_json_body_is_problem_422(
+    client: TestClient, content: bytes, content_type: str
+) -> None:
+    response = client.post(
+        "/v1/rooms", content=content, headers={**ADMIN, "Content-Type": content_type}
+    )
     problem = assert_problem(response, 422)
     assert problem["errors"] and all(e["field"].startswith("body") for e in problem["errors"])

@@ -32,12 +32,12 @@ def test_metadata_of_current_and_numbered_version_agree(ready_app: tuple[TestCli
 
 
 @pytest.mark.parametrize("name", ["H", "J", "psi"])
-def test_downloads_equal_a_direct_build(ready_app: tuple[TestClient, str],
-                                        paper_fingerprint: Fingerprint, name: str) -> None:
+def test_downloads_equal_a_direct_build(
+    ready_app: tuple[TestClient, str], paper_fingerprint: Fingerprint, name: str
+) -> None:
     client, room_id = ready_app
     meta = client.get(f"/v1/rooms/{room_id}/fingerprints/current", headers=TERMINAL).json()
-    response = client.get(f"/v1/rooms/{room_id}/fingerprints/current/{name}.npy",
-                          headers=TERMINAL)
+    response = client.get(f"/v1/rooms/{room_id}/fingerprints/current/{name}.npy", headers=TERMINAL)
     assert response.status_code == 200, response.text
     assert response.headers["content-type"] == "application/octet-stream"
     assert hashlib.sha256(response.content).hexdigest() == meta["matrices"][name]["sha256"]
@@ -59,8 +59,9 @@ def test_download_errors(ready_app: tuple[TestClient, str]) -> None:
     assert_problem(client.get("/v1/rooms/nope/fingerprints/current/H.npy", headers=TERMINAL), 404)
     # Only H, J, psi exist: anything else (incl. path tricks) is a validation error or 404.
     assert_problem(client.get(f"{base}/current/G.npy", headers=TERMINAL), 422, ["path.matrix"])
-    assert client.get(f"{base}/current/..%2F..%2Fregistry.sqlite3.npy",
-                      headers=TERMINAL).status_code in (404, 422)
+    assert client.get(
+        f"{base}/current/..%2F..%2Fregistry.sqlite3.npy", headers=TERMINAL
+    ).status_code in (404, 422)
     assert_problem(client.get(f"{base}/latest", headers=TERMINAL), 422, ["path.version"])
     # H is dense for this room: the sparse download is refused and points at H.npy.
     problem = assert_problem(client.get(f"{base}/current/H.npz", headers=TERMINAL), 409)
@@ -102,5 +103,7 @@ def test_rebuild_job_runs_to_success(ready_app: tuple[TestClient, str]) -> None:
     assert job["progress"] == 1.0 and job["error"] is None
     version = job["result"]["fingerprint_version"]
     assert version >= 1
-    assert client.get(f"/v1/rooms/{room_id}", headers=TERMINAL).json()["fingerprint"][
-        "version"] == version
+    assert (
+        client.get(f"/v1/rooms/{room_id}", headers=TERMINAL).json()["fingerprint"]["version"]
+        == version
+    )

@@ -28,8 +28,7 @@ def matched_error(estimates: list[dict[str, Any]], truth: list[dict[str, Any]]) 
     """Largest distance under the best one-to-one matching (brute force; K is small)."""
     assert len(estimates) == len(truth)
     return min(
-        max(math.hypot(e["x"] - t["x"], e["y"] - t["y"]) for e, t in zip(order, truth,
-                                                                       strict=True))
+        max(math.hypot(e["x"] - t["x"], e["y"] - t["y"]) for e, t in zip(order, truth, strict=True))
         for order in itertools.permutations(estimates)
     )
 
@@ -48,20 +47,23 @@ def localize(client: TestClient, room_id: str, body: dict[str, Any]) -> dict[str
 
 
 @pytest.mark.parametrize("solver", ["gridless", "nnls", "omp", "l1"])
-def test_answer_equals_the_solver_called_directly(ready_app: tuple[TestClient, str],
-                                                  paper_fingerprint: Fingerprint,
-                                                  solver: str) -> None:
+def test_answer_equals_the_solver_called_directly(
+    ready_app: tuple[TestClient, str], paper_fingerprint: Fingerprint, solver: str
+) -> None:
     client, room_id = ready_app
     amplitudes = on_grid_amplitudes(paper_fingerprint)
     correlation = amplitudes.T @ amplitudes
-    result = localize(client, room_id, {"correlation": correlation.tolist(), "targets": 2,
-                                        "solver": solver})
+    result = localize(
+        client, room_id, {"correlation": correlation.tolist(), "targets": 2, "solver": solver}
+    )
     assert result["solver"] == solver and result["model"] == "correlation"
     assert result["targets"] == 2 and result["fingerprint_version"] >= 1
     direct = make_solver(solver, paper_fingerprint, "correlation").solve(
-        measurement_from_correlation(correlation, 16), 2)
-    assert_allclose([[e["x"], e["y"]] for e in result["estimates"]], direct.positions,
-                    rtol=0, atol=1e-9)
+        measurement_from_correlation(correlation, 16), 2
+    )
+    assert_allclose(
+        [[e["x"], e["y"]] for e in result["estimates"]], direct.positions, rtol=0, atol=1e-9
+    )
     assert [e["grid_index"] for e in result["estimates"]] == direct.grid_indices.tolist()
     assert_allclose([e["weight"] for e in result["estimates"]], direct.weights, rtol=1e-9)
     assert all(e["terminal_id"] is None for e in result["estimates"])
@@ -70,37 +72,47 @@ def test_answer_equals_the_solver_called_directly(ready_app: tuple[TestClient, s
 
 
 @pytest.mark.parametrize("solver", ["gridless", "nnls", "l1"])
-def test_noiseless_on_grid_targets_are_found_exactly(ready_app: tuple[TestClient, str],
-                                                     paper_fingerprint: Fingerprint,
-                                                     solver: str) -> None:
+def test_noiseless_on_grid_targets_are_found_exactly(
+    ready_app: tuple[TestClient, str], paper_fingerprint: Fingerprint, solver: str
+) -> None:
     client, room_id = ready_app
     amplitudes = on_grid_amplitudes(paper_fingerprint)
     correlation = amplitudes.T @ amplitudes
-    result = localize(client, room_id, {"correlation": correlation.tolist(), "targets": 2,
-                                        "solver": solver})
+    result = localize(
+        client, room_id, {"correlation": correlation.tolist(), "targets": 2, "solver": solver}
+    )
     assert sorted(e["grid_index"] for e in result["estimates"]) == sorted(CELLS)
-    truth = [{"x": x, "y": y} for x, y in paper_fingerprint.layout.cell_centres(
-        np.array(CELLS)).tolist()]
+    truth = [
+        {"x": x, "y": y} for x, y in paper_fingerprint.layout.cell_centres(np.array(CELLS)).tolist()
+    ]
     assert matched_error(result["estimates"], truth) < 0.02
 
 
-@pytest.mark.parametrize("model, form", [
-    ("power", "matrix"),
-    ("correlation", "matrix"),
-    ("correlation", "upper"),
-    ("correlation", "terminals"),
-    ("power", "terminals"),
-])
-def test_simulate_then_localize_every_form(ready_app: tuple[TestClient, str], model: str,
-                                           form: str) -> None:
+@pytest.mark.parametrize(
+    "model, form",
+    [
+        ("power", "matrix"),
+        ("correlation", "matrix"),
+        ("correlation", "upper"),
+        ("correlation", "terminals"),
+        ("power", "terminals"),
+    ],
+)
+def test_simulate_then_localize_every_form(
+    ready_app: tuple[TestClient, str], model: str, form: str
+) -> None:
     client, room_id = ready_app
-    simulation = client.post(f"/v1/rooms/{room_id}/simulate", headers=TERMINAL, json={
-        "targets": 2, "snr_db": 30, "model": model, "form": form, "seed": 11})
+    simulation = client.post(
+        f"/v1/rooms/{room_id}/simulate",
+        headers=TERMINAL,
+        json={"targets": 2, "snr_db": 30, "model": model, "form": form, "seed": 11},
+    )
     assert simulation.status_code == 200, simulation.text
     sim = simulation.json()
     body = sim["measurement"]
-    expected_key = "terminals" if form == "terminals" else ("power" if model == "power"
-                                                          else "correlation")
+    expected_key = (
+        "terminals" if form == "terminals" else ("power" if model == "power" else "correlation")
+    )
     assert expected_key in body and body["model"] == model and body["targets"] == 2
     result = localize(client, room_id, body)
     assert result["model"] == model
@@ -108,33 +120,45 @@ def test_simulate_then_localize_every_form(ready_app: tuple[TestClient, str], mo
     if form == "terminals":
         # Every estimate is labelled with the terminal whose truth it is closest to.
         for estimate in result["estimates"]:
-            nearest = min(sim["truth"], key=lambda t: math.hypot(t["x"] - estimate["x"],
-                                                                 t["y"] - estimate["y"]))
+            nearest = min(
+                sim["truth"],
+                key=lambda t: math.hypot(t["x"] - estimate["x"], t["y"] - estimate["y"]),
+            )
             assert estimate["terminal_id"] == nearest["terminal_id"]
 
 
-def test_correlation_matrix_and_upper_triangle_agree(ready_app: tuple[TestClient, str],
-                                                     paper_fingerprint: Fingerprint) -> None:
+def test_correlation_matrix_and_upper_triangle_agree(
+    ready_app: tuple[TestClient, str], paper_fingerprint: Fingerprint
+) -> None:
     client, room_id = ready_app
     amplitudes = on_grid_amplitudes(paper_fingerprint)
     correlation = amplitudes.T @ amplitudes
     full = localize(client, room_id, {"correlation": correlation.tolist(), "solver": "nnls"})
-    upper = localize(client, room_id, {"correlation": vech(correlation).tolist(),
-                                       "solver": "nnls"})
-    terminals = localize(client, room_id, {"solver": "nnls", "terminals": [
-        {"id": "a", "amplitudes": amplitudes[0].tolist()},
-        {"id": "b", "amplitudes": amplitudes[1].tolist()}]})
+    upper = localize(client, room_id, {"correlation": vech(correlation).tolist(), "solver": "nnls"})
+    terminals = localize(
+        client,
+        room_id,
+        {
+            "solver": "nnls",
+            "terminals": [
+                {"id": "a", "amplitudes": amplitudes[0].tolist()},
+                {"id": "b", "amplitudes": amplitudes[1].tolist()},
+            ],
+        },
+    )
     assert full["estimates"] == upper["estimates"]
     assert [e["grid_index"] for e in terminals["estimates"]] == [
-        e["grid_index"] for e in full["estimates"]]
+        e["grid_index"] for e in full["estimates"]
+    ]
     owner = {e["grid_index"]: e["terminal_id"] for e in terminals["estimates"]}
     assert owner == {CELLS[0]: "a", CELLS[1]: "b"}
     # Without `targets` the service estimates the count.
     assert full["targets"] == 2
 
 
-def test_power_with_default_model(ready_app: tuple[TestClient, str],
-                                  paper_fingerprint: Fingerprint) -> None:
+def test_power_with_default_model(
+    ready_app: tuple[TestClient, str], paper_fingerprint: Fingerprint
+) -> None:
     client, room_id = ready_app
     amplitudes = on_grid_amplitudes(paper_fingerprint)
     power = (amplitudes**2).sum(axis=0)
@@ -152,8 +176,7 @@ def test_invalid_measurements_name_the_field(ready_app: tuple[TestClient, str]) 
     client, room_id = ready_app
     ones = [1e-10] * 16
     _bad(client, room_id, {}, ["body.power", "body.correlation", "body.terminals"])
-    _bad(client, room_id, {"power": ones, "correlation": ones}, ["body.power",
-                                                                 "body.correlation"])
+    _bad(client, room_id, {"power": ones, "correlation": ones}, ["body.power", "body.correlation"])
     _bad(client, room_id, {"power": ones, "model": "correlation"}, ["body.model"])
     _bad(client, room_id, {"correlation": ones, "model": "power"}, ["body.model"])
     _bad(client, room_id, {"power": [1e-10] * 15}, ["body.power"])
@@ -162,19 +185,27 @@ def test_invalid_measurements_name_the_field(ready_app: tuple[TestClient, str]) 
     asymmetric[0, 1] = 1.0
     _bad(client, room_id, {"correlation": asymmetric.tolist()}, ["body.correlation"])
     _bad(client, room_id, {"correlation": [1.0] * 17}, ["body.correlation"])
-    _bad(client, room_id, {"terminals": [{"id": "a", "amplitudes": ones},
-                                         {"id": "b", "amplitudes": [1.0]}]},
-         ["body.terminals.1.amplitudes"])
-    _bad(client, room_id, {"terminals": [{"id": "a", "amplitudes": ones},
-                                         {"id": "a", "amplitudes": ones}]},
-         ["body.terminals.1.id"])
+    _bad(
+        client,
+        room_id,
+        {"terminals": [{"id": "a", "amplitudes": ones}, {"id": "b", "amplitudes": [1.0]}]},
+        ["body.terminals.1.amplitudes"],
+    )
+    _bad(
+        client,
+        room_id,
+        {"terminals": [{"id": "a", "amplitudes": ones}, {"id": "a", "amplitudes": ones}]},
+        ["body.terminals.1.id"],
+    )
     _bad(client, room_id, {"power": ones, "targets": 0}, ["body.targets"])
     _bad(client, room_id, {"power": ones, "targets": 65}, ["body.targets"])
     _bad(client, room_id, {"power": ones, "solver": "magic"}, ["body.solver"])
-    _bad(client, room_id, {"power": ones, "fingerprint_version": 0},
-         ["body.fingerprint_version"])
-    response = client.post(f"/v1/rooms/{room_id}/localize", headers=TERMINAL,
-                           content=b'{"power": [NaN' + b", 1.0" * 15 + b"]}")
+    _bad(client, room_id, {"power": ones, "fingerprint_version": 0}, ["body.fingerprint_version"])
+    response = client.post(
+        f"/v1/rooms/{room_id}/localize",
+        headers=TERMINAL,
+        content=b'{"power": [NaN' + b", 1.0" * 15 + b"]}",
+    )
     assert_problem(response, 422)
 
 
@@ -182,14 +213,24 @@ def test_unknown_room_or_version_is_404(ready_app: tuple[TestClient, str]) -> No
     client, room_id = ready_app
     body = {"power": [1e-10] * 16}
     assert_problem(client.post("/v1/rooms/nope/localize", json=body, headers=TERMINAL), 404)
-    assert_problem(client.post(f"/v1/rooms/{room_id}/localize", headers=TERMINAL,
-                               json={**body, "fingerprint_version": 99}), 404)
+    assert_problem(
+        client.post(
+            f"/v1/rooms/{room_id}/localize",
+            headers=TERMINAL,
+            json={**body, "fingerprint_version": 99},
+        ),
+        404,
+    )
 
 
 def test_localize_before_ready_is_409(client: TestClient) -> None:
     room = client.post("/v1/rooms", json=small_room(), headers=ADMIN).json()
-    problem = assert_problem(client.post(f"/v1/rooms/{room['id']}/localize", headers=TERMINAL,
-                                         json={"power": [1.0, 1.0]}), 409)
+    problem = assert_problem(
+        client.post(
+            f"/v1/rooms/{room['id']}/localize", headers=TERMINAL, json={"power": [1.0, 1.0]}
+        ),
+        409,
+    )
     assert "fingerprint" in problem["detail"]
 
 
@@ -200,18 +241,25 @@ def test_other_process_notices_a_new_version_within_2s(tmp_path: Path) -> None:
     with builder, reader:
         room = builder.get("/v1/rooms", headers=ADMIN).json()["items"][0]
         room = wait_for_room(builder, room["id"])
-        body = {"terminals": [{"id": "t", "amplitudes": [1e-6] * 16}], "solver": "nnls",
-                "targets": 1}
+        body = {
+            "terminals": [{"id": "t", "amplitudes": [1e-6] * 16}],
+            "solver": "nnls",
+            "targets": 1,
+        }
         first = localize(reader, room["id"], body)["fingerprint_version"]
-        layout = room["layout"] | {"leds": [dict(led, pilot_amplitude=2.0)
-                                           for led in room["layout"]["leds"]]}
+        layout = room["layout"] | {
+            "leds": [dict(led, pilot_amplitude=2.0) for led in room["layout"]["leds"]]
+        }
         etag = f'"{room["id"]}-{room["layout_version"]}"'
-        put = builder.put(f"/v1/rooms/{room['id']}", json=layout, headers={**ADMIN,
-                                                                          "If-Match": etag})
+        put = builder.put(
+            f"/v1/rooms/{room['id']}", json=layout, headers={**ADMIN, "If-Match": etag}
+        )
         assert put.status_code == 200, put.text
         wait_for_room(builder, room["id"])
-        while builder.get(f"/v1/rooms/{room['id']}", headers=ADMIN).json()["fingerprint"][
-                "version"] == first:
+        while (
+            builder.get(f"/v1/rooms/{room['id']}", headers=ADMIN).json()["fingerprint"]["version"]
+            == first
+        ):
             time.sleep(0.05)
         switched = time.monotonic()
         while localize(reader, room["id"], body)["fingerprint_version"] == first:

@@ -32,7 +32,8 @@ def test_healthz_and_readyz(client: TestClient) -> None:
 
 
 def test_readyz_is_503_when_registry_is_down_or_not_migrated(
-        client: TestClient, monkeypatch: pytest.MonkeyPatch) -> None:
+    client: TestClient, monkeypatch: pytest.MonkeyPatch
+) -> None:
     registry: Any = client.app.state.registry  # type: ignore[attr-defined]
     monkeypatch.setattr(registry, "migrations_current", lambda: False)
     assert_problem(client.get("/readyz"), 503)
@@ -67,14 +68,28 @@ def test_metrics_by_route_template_solver_and_cache(ready_app: tuple[TestClient,
     response = client.get("/metrics")
     assert response.headers["content-type"].startswith("text/plain")
     text = response.text
-    assert _sample(text, "vlp_http_requests_total", {
-        "method": "GET", "route": "/v1/rooms/{room_id}", "status": "200"}) >= 3
+    assert (
+        _sample(
+            text,
+            "vlp_http_requests_total",
+            {"method": "GET", "route": "/v1/rooms/{room_id}", "status": "200"},
+        )
+        >= 3
+    )
     assert _sample(text, "vlp_http_requests_total", {"route": "unmatched", "status": "404"}) >= 1
     assert room_id not in text
-    assert _sample(text, "vlp_http_request_duration_seconds_count", {
-        "route": "/v1/rooms/{room_id}/localize"}) >= 2
-    assert _sample(text, "vlp_localize_duration_seconds_count", {
-        "solver": "nnls", "model": "power"}) >= 2
+    assert (
+        _sample(
+            text,
+            "vlp_http_request_duration_seconds_count",
+            {"route": "/v1/rooms/{room_id}/localize"},
+        )
+        >= 2
+    )
+    assert (
+        _sample(text, "vlp_localize_duration_seconds_count", {"solver": "nnls", "model": "power"})
+        >= 2
+    )
     assert _sample(text, "vlp_fingerprint_cache_total", {"result": "hit"}) >= 1
     assert _sample(text, "vlp_fingerprint_cache_total", {"result": "miss"}) >= 1
     assert "vlp_jobs{" in text
@@ -99,8 +114,11 @@ def test_vlp_openapi_writes_and_checks(tmp_path: Path) -> None:
 def test_openapi_teaches_the_api() -> None:
     spec = json.loads(openapi_document())
     assert spec["components"]["securitySchemes"]["ApiKey"] == {
-        "type": "apiKey", "in": "header", "name": "X-API-Key",
-        "description": spec["components"]["securitySchemes"]["ApiKey"]["description"]}
+        "type": "apiKey",
+        "in": "header",
+        "name": "X-API-Key",
+        "description": spec["components"]["securitySchemes"]["ApiKey"]["description"],
+    }
     operation_ids = []
     for path, operations in spec["paths"].items():
         for method, operation in operations.items():
@@ -118,8 +136,12 @@ def test_openapi_teaches_the_api() -> None:
     schemas = spec["components"]["schemas"]
     for name in ("RoomLayout", "Measurement", "SimulationRequest"):
         assert schemas[name]["examples"], name
-    assert schemas["Measurement"]["properties"]["solver"]["enum"] == ["gridless", "nnls", "omp",
-                                                                      "l1"]
+    assert schemas["Measurement"]["properties"]["solver"]["enum"] == [
+        "gridless",
+        "nnls",
+        "omp",
+        "l1",
+    ]
     assert "HTTPValidationError" not in schemas
 
 
@@ -145,33 +167,46 @@ def test_vlp_serve_logs_json_and_vlp_rooms_lists(tmp_path: Path) -> None:
     with socket.socket() as sock:
         sock.bind(("127.0.0.1", 0))
         port = sock.getsockname()[1]
-    env = {**os.environ, "VLP_DATA_DIR": str(tmp_path), "VLP_ADMIN_KEYS": ADMIN["X-API-Key"],
-           "VLP_TERMINAL_KEYS": TERMINAL["X-API-Key"], "VLP_EMBEDDED_WORKERS": "0",
-           "VLP_DEMO": "1"}
+    env = {
+        **os.environ,
+        "VLP_DATA_DIR": str(tmp_path),
+        "VLP_ADMIN_KEYS": ADMIN["X-API-Key"],
+        "VLP_TERMINAL_KEYS": TERMINAL["X-API-Key"],
+        "VLP_EMBEDDED_WORKERS": "0",
+        "VLP_DEMO": "1",
+    }
     log_path = tmp_path / "server.log"
     with log_path.open("wb") as log:
-        server = subprocess.Popen([str(vlp), "serve", "--port", str(port)], env=env,
-                                  stdout=log, stderr=log)
+        server = subprocess.Popen(
+            [str(vlp), "serve", "--port", str(port)], env=env, stdout=log, stderr=log
+        )
         try:
             url = f"http://127.0.0.1:{port}"
             deadline = time.monotonic() + 30
             while True:
-                assert server.poll() is None and time.monotonic() < deadline, \
-                    log_path.read_text()
+                assert server.poll() is None and time.monotonic() < deadline, log_path.read_text()
                 try:
                     if httpx.get(f"{url}/readyz", timeout=1).status_code == 200:
                         break
                 except httpx.HTTPError:
                     time.sleep(0.1)
-            listed = subprocess.run([str(vlp), "rooms", "--url", url, "--key",
-                                     TERMINAL["X-API-Key"]], capture_output=True, text=True,
-                                    timeout=30, check=False)
+            listed = subprocess.run(
+                [str(vlp), "rooms", "--url", url, "--key", TERMINAL["X-API-Key"]],
+                capture_output=True,
+                text=True,
+                timeout=30,
+                check=False,
+            )
             assert listed.returncode == 0, listed.stderr
             assert json.loads(listed.stdout)["items"][0]["name"] == "Paper room"
-            denied = subprocess.run([str(vlp), "rooms", "--url", url], capture_output=True,
-                                    text=True, timeout=30, check=False, env={
-                                        k: v for k, v in os.environ.items()
-                                        if k != "VLP_API_KEY"})
+            denied = subprocess.run(
+                [str(vlp), "rooms", "--url", url],
+                capture_output=True,
+                text=True,
+                timeout=30,
+                check=False,
+                env={k: v for k, v in os.environ.items() if k != "VLP_API_KEY"},
+            )
             assert denied.returncode == 1 and json.loads(denied.stdout)["status"] == 401
         finally:
             server.terminate()

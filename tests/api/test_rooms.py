@@ -49,10 +49,19 @@ def test_create_applies_defaults_and_answers_location_and_etag(client: TestClien
     assert room["fingerprint"]["version"] is None
     assert room["fingerprint"]["job_id"]
     # Defaults of the contract: receiver as documented, LED z = room height.
-    assert room["layout"]["receiver"] == {"area": 1e-4, "fov_deg": 70.0, "filter_gain": 1.0,
-                                          "refractive_index": 1.5}
-    assert room["layout"]["leds"][0] == {"x": 0.5, "y": 0.5, "z": 2.5,
-                                         "half_power_angle_deg": 60.0, "pilot_amplitude": 1.0}
+    assert room["layout"]["receiver"] == {
+        "area": 1e-4,
+        "fov_deg": 70.0,
+        "filter_gain": 1.0,
+        "refractive_index": 1.5,
+    }
+    assert room["layout"]["leds"][0] == {
+        "x": 0.5,
+        "y": 0.5,
+        "z": 2.5,
+        "half_power_angle_deg": 60.0,
+        "pilot_amplitude": 1.0,
+    }
     assert room["layout"] == layout_from_mapping(small_room()).to_mapping()
     got = client.get(f"/v1/rooms/{room['id']}", headers=TERMINAL)
     assert got.status_code == 200
@@ -81,8 +90,9 @@ def test_replace_needs_current_etag(client: TestClient) -> None:
     assert replaced.status_code == 200, replaced.text
     body = replaced.json()
     assert body["layout_version"] == 2 and body["name"] == "Renamed"
-    assert body["layout"]["leds"] == [{"x": 1.0, "y": 0.5, "z": 2.0, "half_power_angle_deg": 60.0,
-                                       "pilot_amplitude": 1.0}]
+    assert body["layout"]["leds"] == [
+        {"x": 1.0, "y": 0.5, "z": 2.0, "half_power_angle_deg": 60.0, "pilot_amplitude": 1.0}
+    ]
     assert replaced.headers["etag"] == f'"{room_id}-2"' != etag
     # The old ETag is now stale.
     again = client.put(f"/v1/rooms/{room_id}", json=changed, headers={**ADMIN, "If-Match": etag})
@@ -106,8 +116,10 @@ def test_delete_removes_room_and_its_jobs(client: TestClient) -> None:
 
 
 def test_pagination_walks_every_room_once_in_creation_order(client: TestClient) -> None:
-    ids = [client.post("/v1/rooms", json=small_room(f"room {index}"), headers=ADMIN).json()["id"]
-           for index in range(5)]
+    ids = [
+        client.post("/v1/rooms", json=small_room(f"room {index}"), headers=ADMIN).json()["id"]
+        for index in range(5)
+    ]
     seen: list[str] = []
     cursor = None
     pages = 0
@@ -126,14 +138,19 @@ def test_pagination_walks_every_room_once_in_creation_order(client: TestClient) 
     assert [room["id"] for room in default["items"]] == ids and default["next_cursor"] is None
 
 
-@pytest.mark.parametrize("params, field", [
-    ({"limit": 0}, "query.limit"),
-    ({"limit": 101}, "query.limit"),
-    ({"limit": "many"}, "query.limit"),
-    ({"cursor": "not-a-cursor"}, "query.cursor"),
-], ids=["zero", "above-100", "not-int", "bad-cursor"])
-def test_bad_page_parameters_are_422(client: TestClient, params: dict[str, Any],
-                                     field: str) -> None:
+@pytest.mark.parametrize(
+    "params, field",
+    [
+        ({"limit": 0}, "query.limit"),
+        ({"limit": 101}, "query.limit"),
+        ({"limit": "many"}, "query.limit"),
+        ({"cursor": "not-a-cursor"}, "query.cursor"),
+    ],
+    ids=["zero", "above-100", "not-int", "bad-cursor"],
+)
+def test_bad_page_parameters_are_422(
+    client: TestClient, params: dict[str, Any], field: str
+) -> None:
     client.post("/v1/rooms", json=small_room(), headers=ADMIN)
     problem = assert_problem(client.get("/v1/rooms", params=params, headers=ADMIN), 422)
     assert [error["field"] for error in problem["errors"]] == [field]
@@ -158,25 +175,30 @@ def _with(path: str, value: Any) -> dict[str, Any]:
 _DELETE = object()
 
 
-@pytest.mark.parametrize("path, value, field", [
-    ("room.length", -1.0, "body.room.length"),
-    ("room.height", 0, "body.room.height"),
-    ("grid.step", "wide", "body.grid.step"),
-    ("grid.step", 0.3, "body.grid.step"),
-    ("grid.receiver_height", 2.5, "body.grid.receiver_height"),
-    ("receiver", {"fov_deg": 120}, "body.receiver.fov_deg"),
-    ("receiver", {"refractive_index": 0.5}, "body.receiver.refractive_index"),
-    ("leds.1.z", 3.0, "body.leds.1.z"),
-    ("leds.1.z", 0.5, "body.leds.1.z"),
-    ("leds.0.x", 2.5, "body.leds.0.x"),
-    ("leds.0.half_power_angle_deg", 90, "body.leds.0.half_power_angle_deg"),
-    ("leds.0.pilot_amplitude", 0, "body.leds.0.pilot_amplitude"),
-    ("leds", [], "body.leds"),
-    ("name", _DELETE, "body.name"),
-    ("colour", "red", "body.colour"),
-], ids=lambda value: str(value) if isinstance(value, str) else None)
-def test_invalid_layout_names_the_field(client: TestClient, path: str, value: Any,
-                                        field: str) -> None:
+@pytest.mark.parametrize(
+    "path, value, field",
+    [
+        ("room.length", -1.0, "body.room.length"),
+        ("room.height", 0, "body.room.height"),
+        ("grid.step", "wide", "body.grid.step"),
+        ("grid.step", 0.3, "body.grid.step"),
+        ("grid.receiver_height", 2.5, "body.grid.receiver_height"),
+        ("receiver", {"fov_deg": 120}, "body.receiver.fov_deg"),
+        ("receiver", {"refractive_index": 0.5}, "body.receiver.refractive_index"),
+        ("leds.1.z", 3.0, "body.leds.1.z"),
+        ("leds.1.z", 0.5, "body.leds.1.z"),
+        ("leds.0.x", 2.5, "body.leds.0.x"),
+        ("leds.0.half_power_angle_deg", 90, "body.leds.0.half_power_angle_deg"),
+        ("leds.0.pilot_amplitude", 0, "body.leds.0.pilot_amplitude"),
+        ("leds", [], "body.leds"),
+        ("name", _DELETE, "body.name"),
+        ("colour", "red", "body.colour"),
+    ],
+    ids=lambda value: str(value) if isinstance(value, str) else None,
+)
+def test_invalid_layout_names_the_field(
+    client: TestClient, path: str, value: Any, field: str
+) -> None:
     response = client.post("/v1/rooms", json=_with(path, value), headers=ADMIN)
     problem = assert_problem(response, 422)
     assert field in [error["field"] for error in problem["errors"]], problem
@@ -185,8 +207,10 @@ def test_invalid_layout_names_the_field(client: TestClient, path: str, value: An
 
 def test_tiny_grid_step_is_refused_before_any_allocation(client: TestClient) -> None:
     # 1e-5 m over 4 x 4 m would be 1.6e11 grid points.
-    body = small_room(room={"length": 4.0, "width": 4.0, "height": 3.0},
-                      grid={"step": 1e-5, "receiver_height": 0.8})
+    body = small_room(
+        room={"length": 4.0, "width": 4.0, "height": 3.0},
+        grid={"step": 1e-5, "receiver_height": 0.8},
+    )
     started = time.perf_counter()
     response = client.post("/v1/rooms", json=body, headers=ADMIN)
     assert time.perf_counter() - started < 2.0
@@ -199,12 +223,13 @@ def test_led_and_grid_limits_come_from_settings(tmp_path: Any) -> None:
     from app.main import create_app
 
     with TestClient(create_app(settings)) as limited:
-        assert_problem(limited.post("/v1/rooms", json=small_room(), headers=ADMIN), 422,
-                       ["body.leds"])
+        assert_problem(
+            limited.post("/v1/rooms", json=small_room(), headers=ADMIN), 422, ["body.leds"]
+        )
         one_led = small_room(leds=[{"x": 1.0, "y": 0.5}])
         # 2 x 1 m at 0.25 m is 32 points > 16.
-        assert_problem(limited.post("/v1/rooms", json=one_led, headers=ADMIN), 422,
-                       ["body.grid.step"])
-        coarse = small_room(leds=[{"x": 1.0, "y": 0.5}], grid={"step": 0.5,
-                                                               "receiver_height": 0.8})
+        assert_problem(
+            limited.post("/v1/rooms", json=one_led, headers=ADMIN), 422, ["body.grid.step"]
+        )
+        coarse = small_room(leds=[{"x": 1.0, "y": 0.5}], grid={"step": 0.5, "receiver_height": 0.8})
         assert limited.post("/v1/rooms", json=coarse, headers=ADMIN).status_code == 201

@@ -24,17 +24,34 @@ def simulate(client: TestClient, room_id: str, body: dict[str, Any]) -> dict[str
     return result
 
 
-@pytest.mark.parametrize("model, form", [("correlation", "matrix"), ("correlation", "upper"),
-                                         ("power", "matrix"), ("correlation", "terminals")])
-def test_noiseless_measurement_matches_H(ready_app: tuple[TestClient, str],
-                                         paper_fingerprint: Fingerprint, model: str,
-                                         form: str) -> None:
+@pytest.mark.parametrize(
+    "model, form",
+    [
+        ("correlation", "matrix"),
+        ("correlation", "upper"),
+        ("power", "matrix"),
+        ("correlation", "terminals"),
+    ],
+)
+def test_noiseless_measurement_matches_H(
+    ready_app: tuple[TestClient, str], paper_fingerprint: Fingerprint, model: str, form: str
+) -> None:
     client, room_id = ready_app
     centres = paper_fingerprint.layout.cell_centres(np.array(CELLS))
-    sim = simulate(client, room_id, {"positions": centres.tolist(), "noise_std": 0.0,
-                                     "model": model, "form": form, "solver": "nnls"})
-    amplitudes = (paper_fingerprint.gains.toarray()[:, CELLS]
-                  * paper_fingerprint.pilot_amplitudes[:, None]).T
+    sim = simulate(
+        client,
+        room_id,
+        {
+            "positions": centres.tolist(),
+            "noise_std": 0.0,
+            "model": model,
+            "form": form,
+            "solver": "nnls",
+        },
+    )
+    amplitudes = (
+        paper_fingerprint.gains.toarray()[:, CELLS] * paper_fingerprint.pilot_amplitudes[:, None]
+    ).T
     body = sim["measurement"]
     assert body["model"] == model and body["solver"] == "nnls" and body["targets"] == 2
     assert body["fingerprint_version"] == sim["fingerprint_version"]
@@ -54,8 +71,9 @@ def test_noiseless_measurement_matches_H(ready_app: tuple[TestClient, str],
     assert ids == (["t1", "t2"] if form == "terminals" else [None, None])
 
 
-def test_noise_follows_snr_and_seed(ready_app: tuple[TestClient, str],
-                                    paper_fingerprint: Fingerprint) -> None:
+def test_noise_follows_snr_and_seed(
+    ready_app: tuple[TestClient, str], paper_fingerprint: Fingerprint
+) -> None:
     client, room_id = ready_app
     body = {"targets": 3, "snr_db": 20, "seed": 5, "form": "terminals"}
     first, second = simulate(client, room_id, body), simulate(client, room_id, body)
@@ -91,7 +109,9 @@ def test_invalid_simulations_name_the_field(ready_app: tuple[TestClient, str]) -
 
 def test_simulate_before_ready_is_409_and_unknown_room_404(client: TestClient) -> None:
     room = client.post("/v1/rooms", json=small_room(), headers=ADMIN).json()
-    assert_problem(client.post(f"/v1/rooms/{room['id']}/simulate", json={"targets": 1},
-                               headers=TERMINAL), 409)
-    assert_problem(client.post("/v1/rooms/nope/simulate", json={"targets": 1},
-                               headers=TERMINAL), 404)
+    assert_problem(
+        client.post(f"/v1/rooms/{room['id']}/simulate", json={"targets": 1}, headers=TERMINAL), 409
+    )
+    assert_problem(
+        client.post("/v1/rooms/nope/simulate", json={"targets": 1}, headers=TERMINAL), 404
+    )
