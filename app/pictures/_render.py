@@ -15,14 +15,16 @@ from matplotlib.patches import Circle, Rectangle
 from app.vlp.errors import GeometryError
 from app.vlp.layout import Layout
 
-__all__ = ["DPI", "GRID_DRAW_LIMIT", "LABEL_LIMIT", "draw_grid", "draw_leds", "draw_room",
-           "new_figure", "png_bytes"]
+__all__ = ["DPI", "FOOTPRINT_LIMIT", "GRID_DRAW_LIMIT", "LABEL_LIMIT", "draw_grid",
+           "draw_leds", "draw_room", "new_figure", "png_bytes"]
 
 DPI = 100
 # Grids with more cells than this are not drawn cell by cell.
 GRID_DRAW_LIMIT = 10_000
-# Rooms with more LEDs than this get no index labels (they would overlap).
+# Rooms with more LEDs than this get no index labels (they would overlap) ...
 LABEL_LIMIT = 64
+# ... and no footprints (hundreds of overlapping circles hide the heat map).
+FOOTPRINT_LIMIT = 36
 _MIN_WIDTH_PX, _MAX_WIDTH_PX = 200, 4000
 
 
@@ -40,7 +42,7 @@ def new_figure(layout: Layout, width_px: int, *, extra_height: float = 0.0) -> F
             field="width_px")
     aspect = layout.room.width / layout.room.length
     width_in = width_px / DPI
-    height_in = min(max(width_in * 0.8 * aspect + 0.9 + extra_height, 0.45 * width_in),
+    height_in = min(max(width_in * 0.8 * aspect + 1.1 + extra_height, 0.3 * width_in),
                     1.6 * width_in)
     # Whole pixels, so the PNG is exactly width_px wide.
     height_in = math.ceil(height_in * DPI) / DPI
@@ -80,14 +82,18 @@ def draw_grid(axes: Axes, layout: Layout, *, color: str = "0.55") -> bool:
     return True
 
 
-def draw_leds(axes: Axes, layout: Layout, *, footprints: bool, labels: bool) -> None:
+def draw_leds(axes: Axes, layout: Layout, *, footprints: bool, labels: bool) -> bool:
     """LED markers with their indices; optionally the FOV and half-power footprints.
+
+    Labels are left out above :data:`LABEL_LIMIT` LEDs, footprints above
+    :data:`FOOTPRINT_LIMIT`; returns whether footprints were drawn.
 
     On the receivers' plane an LED at height ``dz`` above it is seen within the receiver's
     field of view inside a circle of radius ``dz tan(FOV)``; its half-power footprint (where
     the irradiance angle equals the half-power angle) has radius ``dz tan(half-power)``.
     """
     positions = layout.led_positions
+    footprints = footprints and layout.n_leds <= FOOTPRINT_LIMIT
     if footprints:
         heights = positions[:, 2] - layout.grid.receiver_height
         fov = math.radians(min(layout.receiver.fov_deg, 89.9))
@@ -108,7 +114,8 @@ def draw_leds(axes: Axes, layout: Layout, *, footprints: bool, labels: bool) -> 
                   label=f"FOV footprint ({layout.receiver.fov_deg:g}°)")
         axes.plot([], [], color="tab:orange", linewidth=0.7,
                   label=f"half-power footprint ({_angles_text(layout)})")
-    axes.scatter(positions[:, 0], positions[:, 1], s=60, marker="o", c="gold",
+    size = 60.0 if layout.n_leds <= LABEL_LIMIT else 20.0
+    axes.scatter(positions[:, 0], positions[:, 1], s=size, marker="o", c="gold",
                  edgecolors="black", linewidths=0.8, zorder=5, label="LED")
     if labels and layout.n_leds <= LABEL_LIMIT:
         offset = 0.012 * max(layout.room.length, layout.room.width)
@@ -117,6 +124,7 @@ def draw_leds(axes: Axes, layout: Layout, *, footprints: bool, labels: bool) -> 
                           color="black",
                           bbox={"boxstyle": "round,pad=0.1", "fc": "white", "ec": "none",
                                 "alpha": 0.7})
+    return footprints
 
 
 def _angles_text(layout: Layout) -> str:

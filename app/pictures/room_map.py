@@ -5,11 +5,14 @@ from __future__ import annotations
 import numpy as np
 from matplotlib import colormaps
 from matplotlib.axes import Axes
-from matplotlib.colors import BoundaryNorm, LogNorm
+from matplotlib.collections import QuadMesh
+from matplotlib.colorbar import Colorbar
+from matplotlib.colors import BoundaryNorm, LogNorm, Normalize
 from matplotlib.figure import Figure
 from matplotlib.patches import Patch
 from matplotlib.ticker import FormatStrFormatter, MaxNLocator
 
+from app.vlp._typing import FloatArray
 from app.vlp.errors import GeometryError
 from app.vlp.layout import Layout
 
@@ -28,6 +31,8 @@ from .heatmaps import (
 __all__ = ["room_map_png"]
 
 _KINDS = ("coverage", "crlb", "none")
+# Coverage maps with at most this many LEDs in view get one discrete colour per count.
+_DISCRETE_COVERAGE_LIMIT = 20
 
 
 def room_map_png(
@@ -88,25 +93,30 @@ def room_map_png(
         raise GeometryError(f"snr_db must be finite, got {snr_db!r}", field="snr_db")
     if noise_std is not None and not (np.isfinite(noise_std) and noise_std > 0):
         raise GeometryError(f"noise_std must be positive, got {noise_std!r}", field="noise_std")
-    figure = new_figure(layout, width_px)
+    # A colour bar beside a long, narrow room would dwarf it: put it below instead.
+    below = heatmap != "none" and layout.room.width < 0.6 * layout.room.length
+    figure = new_figure(layout, width_px, extra_height=1.2 if below else 0.0)
     axes = figure.add_subplot()
     samples = sample_grid(layout, max_samples)
     if heatmap == "coverage":
-        _draw_coverage(figure, axes, layout, samples)
+        _draw_coverage(axes, layout, samples, below=below)
     elif heatmap == "crlb":
         sigma = noise_std if noise_std is not None else noise_std_on_samples(
             layout, samples.points, snr_db)
         bound_m = (crlb_map or amplitude_crlb_m)(layout, samples.points, sigma)
         label = f"{snr_db:g} dB SNR" if noise_std is None else f"σ = {noise_std:.3g}"
-        _draw_crlb(figure, axes, samples, 100.0 * np.asarray(bound_m), label)
+        _draw_crlb(axes, samples, 100.0 * np.asarray(bound_m), label, below=below)
     has_grid = draw_grid(axes, layout, color="0.55" if heatmap == "none" else "white")
-    draw_room(axes, layout, title or _default_title(layout, heatmap, samples, has_grid))
-    draw_leds(axes, layout, footprints=True, labels=True)
+    has_footprints = draw_leds(axes, layout, footprints=True, labels=True)
+    draw_room(axes, layout,
+              title or _default_title(layout, heatmap, samples, has_grid, has_footprints))
     figure.legend(loc="outside lower center", ncols=4, fontsize="small", frameon=False)
     return png_bytes(figure)
 
 
-def _default_title(layout: Layout, heatmap: str, samples: SampleGrid, has_grid: bool) -> str:
+def _default_title(
+    layout: Layout, heatmap: str, samples: SampleGrid, has_grid: bool, has_footprints: bool
+) -> str:
     room = layout.room
     name = layout.name or "Room"
     text = (f"{name}: {room.length:g} × {room.width:g} × {room.height:g} m, "
@@ -114,43 +124,61 @@ def _default_title(layout: Layout, heatmap: str, samples: SampleGrid, has_grid: 
     notes = []
     if not has_grid:
         notes.append("grid not drawn")
+    if not has_footprints:
+        notes.append("footprints not drawn")
     if heatmap != "none" and samples.points.shape[0] < layout.n_cells:
         n_y, n_x = samples.shape
         notes.append(f"map on {n_x} × {n_y} blocks")
     return text + (f"\n({'; '.join(notes)})" if notes else "")
 
 
-def _draw_coverage(figure: Figure, axes: Axes, layout: Layout, samples: SampleGrid) -> None:
+def _colorbar(axes: Axes, mesh: QuadMesh, label: str, *, below: bool, extend: str) -> Colorbar:
+    figure = axes.get_figure()
+    assert isinstance(figure, Figure)
+    bar = figure.colorbar(mesh, ax=axes, location="bottom" if below else "right", shrink=0.9,
+                          aspect=40 if below else 20, extend=extend)
+    bar.set_label(label)
+    return bar
+
+
+def _draw_coverage(axes: Axes, layout: Layout, samples: SampleGrid, *, below: bool) -> None:
     counts = coverage_counts(layout, samples.points).reshape(samples.shape)
     top = max(int(counts.max()), 1)
-    cmap = colormaps["viridis"].resampled(top + 1)
-    norm = BoundaryNorm(np.arange(-0.5, top + 1.5), cmap.N)
+    if top <= _DISCRETE_COVERAGE_LIMIT:  # one colour per count
+        cmap = colormaps["viridis"].resampled(top + 1)
+        norm: Normalize = BoundaryNorm(np.arange(-0.5, top + 1.5), cmap.N)
+    else:
+        cmap, norm = colormaps["viridis"], Normalize(vmin=0.0, vmax=float(top))
     mesh = axes.pcolormesh(samples.x_edges, samples.y_edges, counts, cmap=cmap, norm=norm,
                            shading="flat", zorder=1, rasterized=True)
-    bar = figure.colorbar(mesh, ax=axes, shrink=0.9)
-    bar.set_label("LEDs in the receiver's field of view")
+    bar = _colorbar(axes, mesh, "LEDs in the receiver's field of view", below=below,
+                    extend="neither")
     bar.locator = MaxNLocator(integer=True, nbins=min(top + 1, 10))
     bar.update_ticks()
 
 
 def _draw_crlb(
-    figure: Figure, axes: Axes, samples: SampleGrid, bound_cm: np.ndarray, label: str
+    axes: Axes, samples: SampleGrid, bound_cm: FloatArray, label: str, *, below: bool
 ) -> None:
     values = np.ma.masked_invalid(bound_cm.reshape(samples.shape))
     cmap = colormaps["plasma_r"].with_extremes(bad="0.8")
     finite = bound_cm[np.isfinite(bound_cm)]
-    norm = None
-    if finite.size:
+    if finite.size == 0:
+        axes.pcolormesh(samples.x_edges, samples.y_edges, values, cmap=cmap, shading="flat",
+                        zorder=1, rasterized=True)
+    else:
         low = float(finite.min())
         high = max(float(np.percentile(finite, 98)), low * 1.01)
-        norm = LogNorm(vmin=low, vmax=high)
-    mesh = axes.pcolormesh(samples.x_edges, samples.y_edges, values, cmap=cmap, norm=norm,
-                           shading="flat", zorder=1, rasterized=True)
-    if finite.size:
-        bar = figure.colorbar(mesh, ax=axes, shrink=0.9, extend="max")
-        bar.set_label(f"single-target CRLB (cm) at {label}")
-        bar.ax.yaxis.set_major_formatter(FormatStrFormatter("%g"))
-        bar.ax.yaxis.set_minor_formatter(FormatStrFormatter("%g"))
+        mesh = axes.pcolormesh(samples.x_edges, samples.y_edges, values, cmap=cmap,
+                               norm=LogNorm(vmin=low, vmax=high), shading="flat", zorder=1,
+                               rasterized=True)
+        bar = _colorbar(axes, mesh, f"single-target CRLB (cm) at {label}", below=below,
+                        extend="max")
+        axis = bar.ax.xaxis if below else bar.ax.yaxis
+        axis.set_major_formatter(FormatStrFormatter("%g"))
+        # Label the minor ticks too when the range is under a decade (else no major tick).
+        if high < 10.0 * low:
+            axis.set_minor_formatter(FormatStrFormatter("%g"))
     if finite.size < bound_cm.size:
         axes.legend(handles=[Patch(facecolor="0.8", label="no fix (< 2 LEDs in view)")],
                     loc="upper right", fontsize="x-small", framealpha=0.8)

@@ -7,8 +7,10 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import pytest
+from matplotlib.figure import Figure
 
 from app.pictures import HeatmapKind, room_map_png
+from app.pictures._render import draw_leds
 from app.pictures.heatmaps import noise_std_on_samples, sample_grid
 from app.vlp._typing import FloatArray
 from app.vlp.errors import GeometryError
@@ -32,7 +34,7 @@ def test_png_is_valid_and_as_wide_as_asked(
     png = room_map_png(paper_room, heatmap=heatmap, width_px=width_px)  # type: ignore[arg-type]
     width, height = png_size(png)
     assert width == width_px
-    assert 0.45 * width_px <= height <= 1.6 * width_px
+    assert 0.3 * width_px <= height <= 1.6 * width_px
     assert decode(png).shape[:2] == (height, width)
 
 
@@ -113,3 +115,26 @@ def test_concurrent_rendering_matches_serial(paper_room: Layout) -> None:
         threaded = list(pool.map(lambda k: room_map_png(paper_room, heatmap=k, width_px=400),
                                  kinds))
     assert threaded == serial
+
+
+@pytest.mark.parametrize("heatmap", ["coverage", "crlb"])
+def test_long_narrow_room_puts_the_colour_bar_below(heatmap: HeatmapKind) -> None:
+    """The picture of a 40 x 3 m corridor is wide and flat, not mostly empty."""
+    leds = tuple(Led(x, 1.5, 3.0) for x in np.arange(2.0, 40.0, 4.0))
+    corridor = Layout(Room(40.0, 3.0, 3.0), Grid(0.25, 0.85), leds, name="Corridor")
+    width, height = png_size(room_map_png(corridor, heatmap=heatmap, width_px=800))
+    assert width == 800 and height < 0.45 * width
+
+
+@pytest.mark.parametrize(("n_side", "footprints", "labels"), [(6, True, True), (7, False, True),
+                                                              (9, False, False)])
+def test_dense_ceilings_skip_footprints_then_labels(
+    n_side: int, footprints: bool, labels: bool
+) -> None:
+    ticks = np.arange(n_side) + 0.5
+    leds = tuple(Led(float(x), float(y), 4.0) for x in ticks for y in ticks)
+    room = Layout(Room(float(n_side), float(n_side), 4.0), Grid(0.5, 0.85), leds)
+    axes = Figure().add_subplot()
+    assert draw_leds(axes, room, footprints=True, labels=True) is footprints
+    assert len(axes.collections) == (3 if footprints else 1)  # FOV, half-power, markers
+    assert len(axes.texts) == (room.n_leds if labels else 0)
