@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .._typing import FloatArray, IntArray
 from ..fingerprints import Fingerprint
 from ..measurements import Measurement, Model
 from ._counting import estimate_target_count
@@ -62,6 +63,14 @@ class OmpSolver(Solver):
     def __init__(self, fingerprint: Fingerprint, model: Model) -> None:
         super().__init__(fingerprint, model)
         self.dictionary = GridDictionary(fingerprint, model)
+        norms = self.dictionary.noise_free_norms
+        # |correlation| is divided by the noise-free norm; unusable columns score 0
+        self._score_scale = np.zeros_like(norms)
+        np.divide(1.0, norms, out=self._score_scale, where=norms > _TINY)
+        self._scored_transpose: FloatArray | None = None
+        if self.dictionary.normalised is not None:
+            self._scored_transpose = np.ascontiguousarray(
+                (self.dictionary.normalised * self._score_scale).T)
 
     def _solve(self, measurement: Measurement, n_targets: int | None) -> Solution:
         values = measurement.values
@@ -73,23 +82,63 @@ class OmpSolver(Solver):
             n_targets = estimate_target_count(
                 dictionary.weights(fit.cells, fit.coefficients, scale),
                 max_targets=min(dictionary.usable.size, MAX_TARGETS))
-        support: list[int] = []
-        block, target_rows, rest_sq = dictionary.restrict(np.array([], dtype=np.intp), target)
+        if self._scored_transpose is not None:
+            cells = self._select_dense(self._scored_transpose, target, n_targets)
+        else:
+            cells = self._select_large(target, n_targets)
+        block, target_rows, rest_sq = dictionary.restrict(cells, target)
         coefficients, residual_norm = fit_least_squares(block, target_rows)
-        residual = target - dictionary.predict(np.asarray(support, dtype=np.intp), coefficients)
-        for _ in range(n_targets):
-            correlation = np.abs(dictionary.correlate(residual))
-            np.divide(correlation, dictionary.noise_free_norms, out=correlation,
-                      where=dictionary.noise_free_norms > _TINY)
-            correlation[dictionary.noise_free_norms <= _TINY] = -1.0
-            correlation[support] = -1.0
-            support.append(int(np.argmax(correlation)))
-            cells = np.asarray(support, dtype=np.intp)
-            block, target_rows, rest_sq = dictionary.restrict(cells, target)
-            coefficients, residual_norm = fit_least_squares(block, target_rows)
-            residual_norm = float(np.hypot(residual_norm, np.sqrt(rest_sq)))
-            if len(support) < n_targets:
-                residual = target - dictionary.predict(cells, coefficients)
         return grid_solution(
-            dictionary, np.asarray(support, dtype=np.intp), coefficients, scale=scale,
-            residual_norm=residual_norm, n_iter=len(support), converged=True)
+            dictionary, cells, coefficients, scale=scale,
+            residual_norm=float(np.hypot(residual_norm, np.sqrt(rest_sq))),
+            n_iter=cells.size, converged=True)
+
+    def _pick(self, scores: FloatArray, support: list[int]) -> int:
+        scores[support] = -1.0
+        return int(np.argmax(scores))
+
+    def _select_dense(self, scored_transpose: FloatArray, target: FloatArray,
+                      n_targets: int) -> IntArray:
+        """Greedy selection with an orthonormal basis of the chosen atoms, updated per step.
+
+        The residual is ``target`` minus its projection on the noise atom and the chosen
+        columns (Gram-Schmidt, applied twice for stability).
+        """
+        normalised = self.dictionary.normalised
+        assert normalised is not None
+        unit = self.dictionary.noise_unit
+        basis = np.empty((target.size, n_targets + 1))
+        basis[:, 0] = unit
+        size = 1
+        residual = target - (unit @ target) * unit
+        support: list[int] = []
+        for _ in range(n_targets):
+            cell = self._pick(np.abs(scored_transpose @ residual), support)
+            support.append(cell)
+            atom = normalised[:, cell].copy()
+            for _ in range(2):
+                atom -= basis[:, :size] @ (basis[:, :size].T @ atom)
+            length = float(np.linalg.norm(atom))
+            if length > _TINY:
+                atom /= length
+                basis[:, size] = atom
+                size += 1
+                residual = residual - (atom @ residual) * atom
+        return np.asarray(support, dtype=np.intp)
+
+    def _select_large(self, target: FloatArray, n_targets: int) -> IntArray:
+        """The same selection for dictionaries that are never materialised."""
+        dictionary = self.dictionary
+        unit = dictionary.noise_unit
+        residual = target - (unit @ target) * unit
+        support: list[int] = []
+        for step in range(n_targets):
+            scores = np.abs(dictionary.correlate(residual)) * self._score_scale
+            support.append(self._pick(scores, support))
+            if step + 1 < n_targets:
+                cells = np.asarray(support, dtype=np.intp)
+                block, target_rows, _ = dictionary.restrict(cells, target)
+                coefficients = np.asarray(
+                    np.linalg.lstsq(block, target_rows, rcond=None)[0], dtype=np.float64)
+                residual = target - dictionary.predict(cells, coefficients)
+        return np.asarray(support, dtype=np.intp)
