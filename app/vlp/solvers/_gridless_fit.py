@@ -31,6 +31,8 @@ _EIG_FLOOR = 1e-9
 # to the mean received power (1e-4: an SNR of 40 dB).
 _SIGMA2_FLOOR = 1e-12
 _SIGMA2_REL_FLOOR = 1e-4
+# Damping increases tried per LM iteration before the point is taken as a local minimum.
+_MAX_REJECTIONS = 12
 
 
 class ChannelKernel:
@@ -214,33 +216,39 @@ def levenberg_marquardt(
     damping = 1e-3
     used = 0
     theta = _pack(state, free_weights)
-    while used < max_iter:
+    n_pos = state.positions.size
+    converged = False
+    while used < max_iter and not converged:
         used += 1
         assert jac is not None
         normal = jac.T @ jac
         gradient = jac.T @ residual
         scaling = np.diag(np.maximum(np.diag(normal), 1e-30))
-        improved = False
-        while damping < 1e12:
+        for _ in range(_MAX_REJECTIONS):
             try:
                 step = np.linalg.solve(normal + damping * scaling, gradient)
             except np.linalg.LinAlgError:
                 damping *= 10.0
                 continue
+            # Converged when the step no longer moves any target or the linearised model
+            # promises (almost) no decrease; the step is still tried.
+            predicted = float(step @ (2.0 * gradient - normal @ step))
+            converged = float(np.max(np.abs(step[:n_pos]), initial=0.0)) < step_tol_m \
+                or predicted < tol * cost
             trial = _unpack(theta + step, state, free_weights, kernel.bounds)
             # Evaluate the Jacobian with the trial: most trials are accepted.
             trial_res, trial_jac = residual_and_jacobian(kernel, white, data, trial,
                                                          free_weights)
             trial_cost = float(trial_res @ trial_res)
             if trial_cost < cost:
-                improved = True
-                relative = (cost - trial_cost) / max(cost, 1e-300)
-                moved = float(np.max(np.abs(trial.positions - state.positions), initial=0.0))
+                converged = converged or (cost - trial_cost) < tol * cost
                 state, cost, residual, jac = trial, trial_cost, trial_res, trial_jac
                 theta = _pack(state, free_weights)
                 damping = max(damping / 5.0, 1e-9)
                 break
+            if converged:
+                break
             damping *= 4.0
-        if not improved or relative < tol or moved < step_tol_m:
-            break
+        else:
+            converged = True  # no decrease found along any damping: a local minimum
     return state, cost, used

@@ -40,6 +40,15 @@ class GridlessOptions:
     relocate: bool = True
 
 
+@dataclass
+class _Run:
+    """Per-call state (solver objects are shared between threads, so nothing lives on self)."""
+
+    values: FloatArray
+    iterations: int = 0
+    converged: bool = True
+
+
 @register_solver
 class GridlessSolver(Solver):
     """ADCG: insert at the best-correlated grid point, refine everything by LM, repeat.
@@ -129,25 +138,29 @@ class GridlessSolver(Solver):
         return Whitening.from_state(self.model, self._kernel, state,
                                     float(state.positions.shape[0]))
 
-    def _refine(self, values: FloatArray, state: FitState, max_iter: int,
-                rounds: int) -> tuple[FitState, float, int]:
-        total = 0
-        cost = 0.0
-        for _ in range(max(rounds, 1)):
-            white = self._whitening(state)
-            data = white.data(values, self.fingerprint.n_leds)
-            state, cost, used = levenberg_marquardt(
-                self._kernel, white, data, state, free_weights=self.options.free_weights,
-                max_iter=max_iter)
-            total += used
-        return state, cost, total
+    def _fit(self, run: _Run, white: Whitening, state: FitState, max_iter: int
+             ) -> tuple[FitState, float]:
+        data = white.data(run.values, self.fingerprint.n_leds)
+        state, cost, used = levenberg_marquardt(
+            self._kernel, white, data, state, free_weights=self.options.free_weights,
+            max_iter=max_iter)
+        run.iterations += used
+        run.converged = used < max_iter
+        return state, cost
 
-    def _insert(self, values: FloatArray, state: FitState) -> FitState:
-        # Large rooms score with the plain residual: whitened atom norms would need the
-        # rotated gains of every grid point.
-        white = self._whitening(state) if self._dense else Whitening.identity(
-            self.model, self.fingerprint.n_leds)
-        data = white.data(values, self.fingerprint.n_leds)
+    def _refine(self, run: _Run, state: FitState, max_iter: int, rounds: int) -> FitState:
+        """LM rounds, each whitened by the covariance plugged in from the previous one."""
+        for _ in range(max(rounds, 1)):
+            state, _ = self._fit(run, self._whitening(state), state, max_iter)
+        return state
+
+    def _insert(self, run: _Run, state: FitState, white: Whitening) -> FitState:
+        """Add a unit-weight target at the grid point that most lowers the cost."""
+        if not self._dense:
+            # Large rooms score with the plain residual: whitened atom norms would need the
+            # rotated gains of every grid point.
+            white = Whitening.identity(self.model, self.fingerprint.n_leds)
+        data = white.data(run.values, self.fingerprint.n_leds)
         residual, _ = residual_and_jacobian(self._kernel, white, data, state,
                                             self.options.free_weights, want_jacobian=False)
         best = int(np.argmax(self._scores(white, residual)))
@@ -167,15 +180,16 @@ class GridlessSolver(Solver):
             return float(g2 @ g2)
         return float(0.5 * (g2.sum() ** 2 + g2 @ g2))
 
-    def _grow(self, values: FloatArray, state: FitState, max_iter: int) -> FitState:
-        """One ADCG step: insert at the best grid point, then refine everything."""
-        grown = self._insert(values, state)
-        if max_iter > 0:
-            grown, _, used = self._refine(values, grown, max_iter, 1)
-            self._iterations += used
+    def _grow(self, run: _Run, state: FitState) -> FitState:
+        """One ADCG step: insert at the best grid point, then refine everything (briefly,
+        in the metric of the state before the insertion)."""
+        white = self._whitening(state)
+        grown = self._insert(run, state, white)
+        if self.options.inner_iter > 0:
+            grown, _ = self._fit(run, white, grown, self.options.inner_iter)
         return grown
 
-    def _count_and_fit(self, values: FloatArray) -> FitState:
+    def _count_and_fit(self, run: _Run) -> FitState:
         """Grow one target at a time while each brings its own energy (unknown K).
 
         A real target removes about its own atom energy ``||phi(p)||^2`` from the plain
@@ -186,66 +200,62 @@ class GridlessSolver(Solver):
         """
         opts = self.options
         state = FitState(np.zeros((0, 2)), np.zeros(0), 0.0)
-        best, best_cost = state, self._plain_cost(values, state)
+        best, best_cost = state, self._plain_cost(run.values, state)
         while state.positions.shape[0] < self._max_count:
-            state = self._grow(values, state, opts.inner_iter)
-            state_cost = self._plain_cost(values, state)
+            state = self._grow(run, state)
+            state_cost = self._plain_cost(run.values, state)
             extra = state.positions.shape[0] - best.positions.shape[0]
             energy = sum(self._atom_energy(p) for p in state.positions[-extra:])
             if best_cost - state_cost >= opts.count_threshold * energy:
                 best, best_cost = state, state_cost
             elif extra > opts.count_lookahead:
                 break
-        if best.positions.shape[0] == 0:
-            best = self._insert(values, best)
         return best
 
-    def _relocate(self, values: FloatArray, state: FitState) -> tuple[FitState, bool]:
+    def _relocate(self, run: _Run, state: FitState) -> tuple[FitState, bool]:
         """ADCG's non-convex escape: move one target at a time to the best grid point of the
         residual left by the others, keep the move when the refined cost is lower."""
         moved = False
         step = self.fingerprint.layout.grid.step
-        for k in range(state.positions.shape[0]):
-            keep = np.arange(state.positions.shape[0]) != k
+        n_targets = state.positions.shape[0]
+        white = self._whitening(state)
+        data = white.data(run.values, self.fingerprint.n_leds)
+        current, _ = residual_and_jacobian(self._kernel, white, data, state, False,
+                                           want_jacobian=False)
+        cost = float(current @ current)
+        for k in range(n_targets):
+            keep = np.arange(n_targets) != k
             others = FitState(state.positions[keep], state.weights[keep], state.noise)
-            candidate = self._insert(values, others)
+            candidate = self._insert(run, others, white)
             if np.linalg.norm(candidate.positions[-1] - state.positions[k]) <= 1.5 * step:
                 continue
-            white = self._whitening(state)
-            data = white.data(values, self.fingerprint.n_leds)
-            current, _ = residual_and_jacobian(self._kernel, white, data, state, False,
-                                               want_jacobian=False)
-            candidate, cost, used = levenberg_marquardt(
-                self._kernel, white, data, candidate,
-                free_weights=self.options.free_weights, max_iter=self.options.final_iter)
-            self._iterations += used
-            if cost < float(current @ current):
+            candidate, candidate_cost = self._fit(run, white, candidate,
+                                                  self.options.final_iter)
+            if candidate_cost < cost:
                 # Keep the original order: the moved target takes slot k.
-                order = np.insert(np.arange(state.positions.shape[0] - 1), k,
-                                  state.positions.shape[0] - 1)
+                order = np.insert(np.arange(n_targets - 1), k, n_targets - 1)
                 state = FitState(candidate.positions[order], candidate.weights[order],
                                  candidate.noise)
-                moved = True
+                cost, moved = candidate_cost, True
         return state, moved
 
     def _solve(self, measurement: Measurement, n_targets: int | None) -> Solution:
-        values = measurement.values / self._scale**2
         opts = self.options
-        self._iterations = 0
+        run = _Run(values=measurement.values / self._scale**2)
         if n_targets is None:
-            state = self._count_and_fit(values)
+            state = self._count_and_fit(run)
         else:
             state = FitState(np.zeros((0, 2)), np.zeros(0), 0.0)
             while state.positions.shape[0] < n_targets:
-                state = self._grow(values, state, opts.inner_iter)
-        state, _, used = self._refine(values, state, opts.final_iter, opts.whiten_rounds)
-        self._iterations += used
+                state = self._grow(run, state)
+        if state.positions.shape[0] == 0:
+            state = self._insert(run, state, self._whitening(state))
+        state = self._refine(run, state, opts.final_iter, opts.whiten_rounds)
         if opts.relocate:
-            state, moved = self._relocate(values, state)
+            state, moved = self._relocate(run, state)
             if moved:
-                state, _, used = self._refine(values, state, opts.final_iter, 1)
-                self._iterations += used
-        n_iter = self._iterations
+                state = self._refine(run, state, opts.final_iter, 1)
+        values = run.values
         positions = state.positions
         plain = Whitening.identity(self.model, self.fingerprint.n_leds)
         residual, _ = residual_and_jacobian(self._kernel, plain, values, state, False,
@@ -256,6 +266,6 @@ class GridlessSolver(Solver):
             weights=state.weights.copy(),
             noise_power=state.noise * self._scale**2,
             residual_norm=float(np.linalg.norm(residual)) * self._scale**2,
-            n_iter=n_iter,
-            converged=True,
+            n_iter=run.iterations,
+            converged=run.converged,
         )
