@@ -47,6 +47,7 @@ def test_grid_order_and_nearest_cell() -> None:
         (lambda m: m["grid"].update(step=0.7), "grid.step"),
         (lambda m: m["room"].update(length=-1.0), "room.length"),
         (lambda m: m["grid"].update(receiver_height=3.5), "grid.receiver_height"),
+        (lambda m: m["grid"].update(receiver_height=-0.1), "grid.receiver_height"),
         (lambda m: m["leds"][1].update(x=3.5), "leds[1].x"),
         (lambda m: m["leds"][0].update(y=-0.1), "leds[0].y"),
         (lambda m: m["leds"][1].update(z=0.5), "leds[1].z"),
@@ -58,8 +59,8 @@ def test_grid_order_and_nearest_cell() -> None:
         (lambda m: m.update(receiver={"refractive_index": 0.5}), "receiver.refractive_index"),
         (lambda m: m.update(leds=[]), "leds"),
     ],
-    ids=["step", "length", "rx-height", "led-x", "led-y", "led-z", "half-power", "pilot",
-         "fov", "area", "index", "no-leds"],
+    ids=["step", "length", "rx-height", "rx-height-negative", "led-x", "led-y", "led-z",
+         "half-power", "pilot", "fov", "area", "index", "no-leds"],
 )
 def test_validation_names_the_field(change: Any, field: str) -> None:
     mapping = _mapping()

@@ -223,6 +223,18 @@ def test_l1_compiled_equals_fresh(solvers: dict[tuple[str, str], Solver],
     assert np.linalg.norm(residual - target) <= 1e-3 * (1 + 1e-6)
 
 
+def test_l1_reports_infeasible_problems(solvers: dict[tuple[str, str], Solver]) -> None:
+    solver = solvers["l1", "power"]
+    assert isinstance(solver, L1Solver)
+    dictionary = solver.dictionary
+    assert dictionary.normalised is not None
+    # nonnegative occupancies and noise can never produce a negative measurement
+    with pytest.raises(SolverError, match="did not converge") as info:
+        solve_l1_fresh(dictionary.normalised, dictionary.noise_unit, -dictionary.noise_unit,
+                       0.0)
+    assert info.value.field == "solver"
+
+
 def _as_large(fingerprint: Fingerprint, monkeypatch: pytest.MonkeyPatch) -> Fingerprint:
     """A copy of a fingerprint that takes the large-room (non-dense) code paths."""
     monkeypatch.setattr(fingerprints, "DENSE_GAINS_LIMIT", 0)
@@ -252,6 +264,8 @@ def test_large_room_dictionary_matches_dense(paper_fingerprint: Fingerprint, mod
     coefficients = rng.random(4)
     assert_allclose(large.predict(cells, coefficients), dense.predict(cells, coefficients),
                     atol=1e-14)
+    empty = np.array([], dtype=np.intp)
+    assert_allclose(large.predict(empty, np.array([2.0])), 2.0 * large.noise_unit)
     block, rows, rest = large.restrict(cells, residual)
     dense_block, _, _ = dense.restrict(cells, residual)
     # the same least-squares problem: equal normal equations and right-hand sides
