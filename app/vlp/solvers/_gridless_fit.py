@@ -33,6 +33,10 @@ _SIGMA2_FLOOR = 1e-12
 _SIGMA2_REL_FLOOR = 1e-4
 # Damping increases tried per LM iteration before the point is taken as a local minimum.
 _MAX_REJECTIONS = 12
+# Marquardt damping: start, and the factors applied after a rejected / accepted step.
+_INITIAL_DAMPING = 1e-3
+_DAMPING_UP = 4.0
+_DAMPING_DOWN = 5.0
 
 
 class ChannelKernel:
@@ -213,7 +217,7 @@ def levenberg_marquardt(
     """
     residual, jac = residual_and_jacobian(kernel, white, data, state, free_weights)
     cost = float(residual @ residual)
-    damping = 1e-3
+    damping = _INITIAL_DAMPING
     used = 0
     theta = _pack(state, free_weights)
     n_pos = state.positions.size
@@ -236,19 +240,21 @@ def levenberg_marquardt(
             converged = float(np.max(np.abs(step[:n_pos]), initial=0.0)) < step_tol_m \
                 or predicted < tol * cost
             trial = _unpack(theta + step, state, free_weights, kernel.bounds)
-            # Evaluate the Jacobian with the trial: most trials are accepted.
-            trial_res, trial_jac = residual_and_jacobian(kernel, white, data, trial,
-                                                         free_weights)
+            trial_res, _ = residual_and_jacobian(kernel, white, data, trial, free_weights,
+                                                 want_jacobian=False)
             trial_cost = float(trial_res @ trial_res)
             if trial_cost < cost:
                 converged = converged or (cost - trial_cost) < tol * cost
-                state, cost, residual, jac = trial, trial_cost, trial_res, trial_jac
+                state, cost = trial, trial_cost
+                if not converged:
+                    residual, jac = residual_and_jacobian(kernel, white, data, state,
+                                                          free_weights)
                 theta = _pack(state, free_weights)
-                damping = max(damping / 5.0, 1e-9)
+                damping = max(damping / _DAMPING_DOWN, 1e-9)
                 break
             if converged:
                 break
-            damping *= 4.0
+            damping *= _DAMPING_UP
         else:
             converged = True  # no decrease found along any damping: a local minimum
     return state, cost, used
