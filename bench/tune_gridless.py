@@ -11,6 +11,7 @@ import time
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
+from app.vlp.crlb import aggregated_crlb
 from app.vlp.fingerprints import build_fingerprint
 from app.vlp.layout import Grid, Layout, Led, Receiver, Room
 from app.vlp.measurements import measurement_from_amplitudes
@@ -62,6 +63,7 @@ def main() -> None:
     parser.add_argument("--plain", action="store_true", help="no whitening")
     parser.add_argument("--inner", type=int, default=GridlessOptions.inner_iter)
     parser.add_argument("--rounds", type=int, default=GridlessOptions.whiten_rounds)
+    parser.add_argument("--crb", action="store_true", help="also the aggregated CRB")
     parser.add_argument("--unknown", action="store_true", help="estimate K")
     args = parser.parse_args()
     layout = other_rooms()[args.room]
@@ -72,7 +74,7 @@ def main() -> None:
     for snr in args.snr:
         sigma = noise_std_for_snr(fp, snr)
         for k in args.k:
-            errs, times, counts, iters, cpu = [], [], [], [], []
+            errs, times, counts, iters, cpu, bounds = [], [], [], [], [], []
             for trial in range(args.trials):
                 gen = np.random.default_rng(1000 * k + trial)
                 truth = random_positions(layout, k, rng=gen)
@@ -84,6 +86,8 @@ def main() -> None:
                 cpu.append(time.process_time() - start_cpu)
                 counts.append(sol.n_targets == k)
                 iters.append(sol.n_iter)
+                if args.crb:
+                    bounds.append(aggregated_crlb(layout, truth, sigma, args.model).mean)
                 if sol.n_targets == k:
                     errs.append(matched_error(truth, sol.positions))
             e = np.array(errs) * 100
@@ -91,7 +95,10 @@ def main() -> None:
                 f"{args.room} {args.model} snr={snr:g} K={k}: mean {e.mean():.2f} cm "
                 f"median {np.median(e):.2f} p90 {np.percentile(e, 90):.2f} "
                 f"count-ok {np.mean(counts):.2f} "
-                f"time median {1000 * np.median(times):.2f} ms (cpu {1000 * np.median(cpu):.2f}) iters {np.median(iters):.0f}",
+                + (f"crb mean {100 * np.mean(bounds):.2f} median {100 * np.median(bounds):.2f} "
+                     if bounds else "")
+                + f"time median {1000 * np.median(times):.2f} ms "
+                + f"(cpu {1000 * np.median(cpu):.2f}) iters {np.median(iters):.0f}",
                 flush=True,
             )
 
