@@ -65,6 +65,10 @@ class L1Problem:
         residual = dictionary @ self.coefficients + self.noise * noise_unit - self.target
         self.problem = cp.Problem(cp.Minimize(cvx_sum(self.coefficients)),
                                   [cvx_norm(residual, 2) <= self.eps])
+        # compile now (cvxpy caches the parametrised reduction): solves only substitute
+        self.target.value = np.zeros(n_rows)
+        self.eps.value = 1.0
+        self.problem.get_problem_data(cp.CLARABEL)
 
     def solve(self, target: FloatArray, eps: float) -> tuple[FloatArray, float]:
         """Solve for one scaled measurement; returns ``(c, s)``.
