@@ -7,6 +7,7 @@ import subprocess
 import sys
 import textwrap
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -341,3 +342,14 @@ def test_large_hall_in_a_subprocess() -> None:
     for key in ("power-nnls", "power-omp", "correlation-omp"):
         assert report[key] < 0.3, report
     assert elapsed < 300, report
+
+
+def test_l1_is_safe_to_share_between_threads(solvers: dict[tuple[str, str], Solver],
+                                             paper_room: Layout) -> None:
+    supports = [[45, 310], [21, 378], [0, 399], [42, 357]]
+    measurements = [_measure(paper_room, cells, "power") for cells in supports]
+    solver = solvers["l1", "power"]
+    with ThreadPoolExecutor(max_workers=4) as pool:
+        found = list(pool.map(lambda m: solver.solve(m, 2), measurements))
+    for cells, solution in zip(supports, found, strict=True):
+        assert sorted(solution.grid_indices.tolist()) == sorted(cells)

@@ -13,6 +13,7 @@ problem from scratch on every call, for benchmarks that measure what compiling o
 
 from __future__ import annotations
 
+import threading
 import warnings
 
 import cvxpy as cp
@@ -47,6 +48,8 @@ _SOLVER_OPTIONS: dict[str, object] = {"solver": cp.CLARABEL, "direct_solve_metho
 class L1Problem:
     """A compiled l1 problem: ``problem.solve()`` after setting ``target`` and ``eps``.
 
+    :meth:`solve` holds a lock, so one object may serve several threads (one at a time).
+
     Attributes
     ----------
     problem : cvxpy.Problem
@@ -58,6 +61,7 @@ class L1Problem:
 
     def __init__(self, dictionary: FloatArray, noise_unit: FloatArray) -> None:
         n_rows, n_cells = dictionary.shape
+        self._lock = threading.Lock()
         self.coefficients = cp.Variable(n_cells, nonneg=True)
         self.noise = cp.Variable(nonneg=True)
         self.target = cp.Parameter(n_rows)
@@ -78,9 +82,10 @@ class L1Problem:
         SolverError
             When Clarabel does not reach an optimal solution.
         """
-        self.target.value = target
-        self.eps.value = eps
-        return _run(self.problem, self.coefficients, self.noise)
+        with self._lock:  # the Parameters are shared state; solver objects are cached
+            self.target.value = target
+            self.eps.value = eps
+            return _run(self.problem, self.coefficients, self.noise)
 
 
 def build_l1_problem(dictionary: FloatArray, noise_unit: FloatArray) -> L1Problem:
