@@ -86,7 +86,8 @@ def _problem_validation_responses(app: FastAPI) -> None:
     app.openapi = openapi  # type: ignore[method-assign]
 
 
-def _count_jobs(registry: Registry) -> dict[str, int]:
+def _count_jobs(app: FastAPI) -> dict[str, int]:
+    registry = getattr(app.state, "registry", None)
     counter = getattr(registry, "count_jobs_by_status", None)
     return dict(counter()) if callable(counter) else {}
 
@@ -110,7 +111,6 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
         if settings.demo:
             await run_in_threadpool(seed_demo_room, registry)
         metrics: Metrics = app.state.metrics
-        metrics.watch_jobs(lambda: _count_jobs(registry))
         app.state.cache = FingerprintCache(
             registry=registry,
             size=settings.fingerprint_cache_size,
@@ -152,6 +152,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     metrics = Metrics()
     app.state.settings = settings
     app.state.metrics = metrics
+    metrics.watch_jobs(lambda: _count_jobs(app))
     install_error_handlers(app)
     install_docs(app)
     _problem_validation_responses(app)
