@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from fastapi import Depends, Request, Security
+from fastapi import Depends, Path, Request, Security
 from fastapi.security import APIKeyHeader
 
 from app.registry import Registry
@@ -22,8 +22,10 @@ __all__ = [
     "AdminRole",
     "AnyRole",
     "CacheDep",
+    "JobId",
     "MetricsDep",
     "RegistryDep",
+    "RoomId",
     "SettingsDep",
     "api_key_header",
     "current_role",
@@ -62,6 +64,17 @@ def get_metrics(request: Request) -> Metrics:
     return metrics
 
 
+RoomId = Annotated[
+    str,
+    Path(
+        max_length=64,
+        description="the room's id (from `POST /v1/rooms` or `GET /v1/rooms`)",
+        examples=["3f2c9d1e6b0a4c8e9f7d5b3a1c2e4f60"],
+    ),
+]
+JobId = Annotated[
+    str, Path(max_length=64, description="the job's id (a room's `fingerprint.job_id`)")
+]
 RegistryDep = Annotated[Registry, Depends(get_registry)]
 SettingsDep = Annotated[Settings, Depends(get_settings)]
 CacheDep = Annotated[FingerprintCache, Depends(get_cache)]

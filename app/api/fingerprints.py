@@ -11,7 +11,7 @@ from app.registry import FingerprintRecord, JobRecord
 from app.registry.errors import MatrixNotFound
 from app.schemas import Fingerprint, FingerprintsList, Job, JobResult, MatrixMeta, MatrixName
 
-from .deps import AdminRole, AnyRole, RegistryDep
+from .deps import AdminRole, AnyRole, JobId, RegistryDep, RoomId
 from .errors import ApiProblem, problem_responses
 
 __all__ = ["fingerprint_public", "job_public", "jobs_router", "router"]
@@ -82,7 +82,7 @@ def _version(value: str) -> int | None:
 
 
 @router.get("", summary="List fingerprint versions", responses=problem_responses(401, 404))
-def list_fingerprints(room_id: str, registry: RegistryDep, _role: AnyRole) -> FingerprintsList:
+def list_fingerprints(room_id: RoomId, registry: RegistryDep, _role: AnyRole) -> FingerprintsList:
     """The room's fingerprint versions, newest first."""
     registry.get_room(room_id=room_id)
     records = registry.list_fingerprints(room_id=room_id)
@@ -99,7 +99,7 @@ def list_fingerprints(room_id: str, registry: RegistryDep, _role: AnyRole) -> Fi
     },
 )
 def rebuild_fingerprint(
-    room_id: str, response: Response, registry: RegistryDep, _role: AdminRole
+    room_id: RoomId, response: Response, registry: RegistryDep, _role: AdminRole
 ) -> Job:
     """Queue a build of the room's current layout (joins a build already queued or running).
 
@@ -116,7 +116,7 @@ def rebuild_fingerprint(
     responses=problem_responses(401, 404, 409, 422),
 )
 def get_fingerprint(
-    room_id: str, version: VersionParam, registry: RegistryDep, _role: AnyRole
+    room_id: RoomId, version: VersionParam, registry: RegistryDep, _role: AnyRole
 ) -> Fingerprint:
     """Metadata of one version: sizes, build time, and each stored matrix's shape and sha256.
 
@@ -164,7 +164,11 @@ def _matrix_file(
     responses={**_BINARY, **problem_responses(401, 404, 409, 422, 503)},
 )
 def download_matrix(
-    room_id: str, version: VersionParam, matrix: MatrixName, registry: RegistryDep, _role: AnyRole
+    room_id: RoomId,
+    version: VersionParam,
+    matrix: MatrixName,
+    registry: RegistryDep,
+    _role: AnyRole,
 ) -> FileResponse:
     """`H` (M x N), `J` (M x N) or `psi` (M(M+1)/2 x N) as a NumPy `.npy` file of float64.
 
@@ -181,13 +185,13 @@ def download_matrix(
     responses={**_BINARY, **problem_responses(401, 404, 409, 422, 503)},
 )
 def download_sparse_gains(
-    room_id: str, version: VersionParam, registry: RegistryDep, _role: AnyRole
+    room_id: RoomId, version: VersionParam, registry: RegistryDep, _role: AnyRole
 ) -> FileResponse:
     """H of a large room, stored sparse (`scipy.sparse.load_npz` reads it)."""
     return _matrix_file(registry, room_id, version, "H", "npz")
 
 
 @jobs_router.get("/{job_id}", summary="Read a job", responses=problem_responses(401, 404))
-def get_job(job_id: str, registry: RegistryDep, _role: AnyRole) -> Job:
+def get_job(job_id: JobId, registry: RegistryDep, _role: AnyRole) -> Job:
     """A build job: its status, progress and, once succeeded, the fingerprint version."""
     return job_public(registry.get_job(job_id=job_id))

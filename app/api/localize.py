@@ -15,7 +15,7 @@ from app.vlp.assignment import assign_terminals
 from app.vlp.measurements import Model
 from app.vlp.solvers import solver_names
 
-from .deps import AnyRole, CacheDep, MetricsDep
+from .deps import AnyRole, CacheDep, MetricsDep, RoomId
 from .errors import InvalidInput, problem_responses
 from .localizer import FingerprintCache
 from .metrics import Metrics
@@ -144,7 +144,7 @@ def _localize(request: _Request, cache: FingerprintCache, metrics: Metrics) -> L
     responses=problem_responses(401, 404, 409, 413, 422, 503),
 )
 async def localize(
-    room_id: str, body: Measurement, cache: CacheDep, metrics: MetricsDep, _role: AnyRole
+    room_id: RoomId, body: Measurement, cache: CacheDep, metrics: MetricsDep, _role: AnyRole
 ) -> Localization:
     """Send exactly one of `power`, `correlation` (M x M or its upper triangle) or
     `terminals` (each terminal's amplitudes); get the targets' positions.

@@ -12,7 +12,7 @@ from app.schemas import FingerprintState, Room, RoomLayout, RoomsPage
 from app.settings import Settings
 from app.vlp.layout import layout_from_mapping
 
-from .deps import AdminRole, AnyRole, CacheDep, RegistryDep, SettingsDep
+from .deps import AdminRole, AnyRole, CacheDep, RegistryDep, RoomId, SettingsDep
 from .errors import ApiProblem, InvalidInput, problem_responses
 
 __all__ = ["room_public", "router", "validated_layout"]
@@ -120,7 +120,7 @@ def list_rooms(
         **problem_responses(401, 404),
     },
 )
-def get_room(room_id: str, response: Response, registry: RegistryDep, _role: AnyRole) -> Room:
+def get_room(room_id: RoomId, response: Response, registry: RegistryDep, _role: AnyRole) -> Room:
     """The room, with its `ETag` (send it back in `If-Match` to replace the room)."""
     record = registry.get_room(room_id=room_id)
     response.headers["ETag"] = record.etag
@@ -141,7 +141,7 @@ def _matches(if_match: str, etag: str) -> bool:
     },
 )
 def replace_room(
-    room_id: str,
+    room_id: RoomId,
     body: RoomLayout,
     response: Response,
     registry: RegistryDep,
@@ -186,7 +186,9 @@ def replace_room(
     summary="Delete a room",
     responses=problem_responses(401, 403, 404),
 )
-def delete_room(room_id: str, registry: RegistryDep, cache: CacheDep, _role: AdminRole) -> Response:
+def delete_room(
+    room_id: RoomId, registry: RegistryDep, cache: CacheDep, _role: AdminRole
+) -> Response:
     """Delete the room with its fingerprints and jobs."""
     registry.delete_room(room_id=room_id)
     cache.forget(room_id)

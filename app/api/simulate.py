@@ -14,7 +14,7 @@ from app.vlp._random import as_generator
 from app.vlp.layout import Layout
 from app.vlp.simulation import noise_std_for_snr, noisy_amplitudes, random_positions
 
-from .deps import AnyRole, CacheDep
+from .deps import AnyRole, CacheDep, RoomId
 from .errors import InvalidInput, problem_responses
 from .localizer import FingerprintCache
 
@@ -119,7 +119,7 @@ def _simulate(room_id: str, body: SimulationRequest, cache: FingerprintCache) ->
     responses=problem_responses(401, 404, 409, 413, 422, 503),
 )
 async def simulate(
-    room_id: str, body: SimulationRequest, cache: CacheDep, _role: AnyRole
+    room_id: RoomId, body: SimulationRequest, cache: CacheDep, _role: AnyRole
 ) -> Simulation:
     """Place `targets` random terminals (or the given `positions`), add Gaussian noise at
     `snr_db` (default 30 dB; or an explicit `noise_std`) and answer with a `measurement`
