@@ -109,7 +109,7 @@ class FingerprintCache:
         with self._lock:
             self._versions.pop(room_id, None)
             for key in [key for key in self._entries if key[0] == room_id]:
-                del self._entries[key]
+                self._drop(key)
 
     def _entry(self, room_id: str, version: int) -> _Entry:
         key = (room_id, version)
@@ -129,10 +129,16 @@ class FingerprintCache:
                 with self._lock:
                     self._entries[key] = entry
                     while len(self._entries) > self._size:
-                        self._entries.popitem(last=False)
+                        self._drop(next(iter(self._entries)))
             else:
                 self._metrics.cache.labels(result="hit").inc()
         return entry
+
+    def _drop(self, key: tuple[str, int]) -> None:
+        # Caller holds self._lock: forget the entry and the load locks of its (room, version).
+        del self._entries[key]
+        for lock_key in [k for k in self._key_locks if k[1:3] == key]:
+            del self._key_locks[lock_key]
 
     def _key_lock(self, key: tuple[object, ...]) -> threading.Lock:
         with self._lock:

@@ -5,15 +5,19 @@ from __future__ import annotations
 import hashlib
 import io
 import time
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
+import scipy.sparse as sp
 from numpy.testing import assert_allclose
 
-from app.vlp.fingerprints import Fingerprint
+from app.main import create_app
+from app.vlp.fingerprints import Fingerprint, build_fingerprint
+from app.vlp.layout import layout_from_mapping
 
-from .conftest import ADMIN, TERMINAL, TestClient
+from .conftest import ADMIN, TERMINAL, TestClient, make_settings, wait_for_room
 from .test_rooms import assert_problem, small_room
 
 
@@ -107,3 +111,36 @@ def test_rebuild_job_runs_to_success(ready_app: tuple[TestClient, str]) -> None:
         client.get(f"/v1/rooms/{room_id}", headers=TERMINAL).json()["fingerprint"]["version"]
         == version
     )
+
+
+def hall_body() -> dict[str, Any]:
+    """A 40 x 100 m hall (N = 16000, 256 LEDs): H is stored sparse, J and psi are not stored."""
+    leds = [{"x": 2.5 + 2.5 * (i % 16), "y": 3.0 + 6.0 * (i // 16)} for i in range(256)]
+    return {
+        "name": "Hall",
+        "room": {"length": 40.0, "width": 100.0, "height": 3.0},
+        "grid": {"step": 0.5, "receiver_height": 0.85},
+        "leds": leds,
+    }
+
+
+def test_sparse_room_serves_H_npz_only(tmp_path: Path) -> None:
+    with TestClient(create_app(make_settings(tmp_path, embedded_workers=1))) as client:
+        room = client.post("/v1/rooms", json=hall_body(), headers=ADMIN).json()
+        wait_for_room(client, room["id"])
+        base = f"/v1/rooms/{room['id']}/fingerprints/current"
+        meta = client.get(base, headers=TERMINAL).json()
+        assert meta["matrices"]["H"]["format"] == "npz"
+        assert meta["matrices"]["H"]["shape"] == [256, 16000]
+        response = client.get(f"{base}/H.npz", headers=TERMINAL)
+        assert response.status_code == 200, response.text
+        assert hashlib.sha256(response.content).hexdigest() == meta["matrices"]["H"]["sha256"]
+        gains = sp.load_npz(io.BytesIO(response.content))
+        expected = build_fingerprint(layout_from_mapping(room["layout"])).gains
+        assert gains.shape == (256, 16000)
+        assert abs(gains - expected).max() <= 1e-12 * abs(expected).max()
+        problem = assert_problem(client.get(f"{base}/H.npy", headers=TERMINAL), 409)
+        assert "H.npz" in problem["detail"]
+        for name in ("J", "psi"):
+            problem = assert_problem(client.get(f"{base}/{name}.npy", headers=TERMINAL), 409)
+            assert "not materialised" in problem["detail"]
