@@ -22,11 +22,12 @@ from app.jobs.build import store_fingerprint
 from app.registry import Registry
 from app.registry.queue import ClaimedJob, StoredBuild, claim_job, complete_job
 from app.vlp.fingerprints import build_fingerprint
-from app.vlp.layout import layout_from_mapping
+from app.vlp.layout import Grid, Layout, Led, Room, layout_from_mapping
 
 __all__ = [
     "build_now",
     "database_url",
+    "hall_layout",
     "postgres_url",
     "registry",
     "sqlite_url",
@@ -138,4 +139,16 @@ def stored_build(registry: Registry, claimed: ClaimedJob) -> StoredBuild:
         grid_points=fingerprint.n_cells,
         build_seconds=time.perf_counter() - started,
         matrices=stored,
+    )
+
+
+def hall_layout() -> Layout:
+    """A 40 x 100 m hall, 0.5 m grid (N = 16000), 256 LEDs: ``M * N`` above the dense limit,
+    so H is stored sparse (``.npz``) and neither J nor psi is stored. Builds in ~0.1 s."""
+    leds = tuple(Led(x=2.5 + 2.5 * (i % 16), y=3.0 + 6.0 * (i // 16), z=3.0) for i in range(256))
+    return Layout(
+        room=Room(length=40.0, width=100.0, height=3.0),
+        grid=Grid(step=0.5, receiver_height=0.85),
+        leds=leds,
+        name="Hall",
     )

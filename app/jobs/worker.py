@@ -109,6 +109,7 @@ class _WorkerLoop:
         self.worker_id = f"{socket.gethostname()}:{os.getpid()}:{uuid.uuid4().hex[:12]}"
 
     def run(self) -> None:
+        """Claim and run jobs until ``stop`` is set; never dies on one job's trouble."""
         while not self.stop.is_set():
             try:
                 claimed = claim_job(
@@ -118,13 +119,26 @@ class _WorkerLoop:
                     max_attempts=self.settings.max_build_attempts,
                     max_per_room=self.settings.max_concurrent_builds_per_room,
                 )
-                if claimed is None:
-                    self.stop.wait(self.settings.job_poll_seconds)
-                    continue
-                self.run_one(claimed)
             except RegistryError:
                 _log.warning("registry unavailable; worker %s retries", self.worker_id)
                 self.stop.wait(self.settings.job_poll_seconds)
+                continue
+            if claimed is None:
+                self.stop.wait(self.settings.job_poll_seconds)
+                continue
+            try:
+                self.run_one(claimed)
+            except Exception:
+                # The lease runs out and another worker (or this one) takes the job again.
+                _log.exception("job %s: worker error", claimed.job_id)
+                self.stop.wait(self.settings.job_poll_seconds)
+
+    def _submit(self, task: BuildTask) -> Future[StoredBuild]:
+        try:
+            return self.pool.submit(self.build, task)
+        except BrokenProcessPool:
+            self.pool.discard_broken()
+            return self.pool.submit(self.build, task)
 
     def run_one(self, claimed: ClaimedJob) -> None:
         """Run one claimed build to its end (or hand it back when stopping)."""
@@ -138,10 +152,10 @@ class _WorkerLoop:
         )
         _log.info("job %s: building room %s", claimed.job_id, claimed.room_id)
         try:
-            future = self.pool.submit(self.build, task)
-        except BrokenProcessPool:
-            self.pool.discard_broken()
-            future = self.pool.submit(self.build, task)
+            future = self._submit(task)
+        except (BrokenProcessPool, RuntimeError) as exc:
+            self._fail(claimed, f"could not start the build process: {exc}")
+            return
         owned = True
         while True:
             try:
@@ -167,6 +181,10 @@ class _WorkerLoop:
                 self._fail(claimed, f"{type(exc).__name__}: {exc}")
                 return
         version = complete_job(self.registry.engine, claimed=claimed, build=result)
+        if version is None:  # lease lost or room deleted: nothing refers to the files
+            self.registry.drop_unreferenced_files(
+                (info.sha256, info.format) for info, _ in result.matrices.values()
+            )
         _log.info("job %s: done, fingerprint version %s", claimed.job_id, version)
 
     def _fail(self, claimed: ClaimedJob, error: str) -> None:

@@ -55,7 +55,7 @@ api_keys = Table(
     metadata,
     Column("key_hash", String(64), primary_key=True),
     Column("role", String(16), nullable=False),
-    Column("label", String(200), nullable=False),
+    Column("label", Text, nullable=False),
     Column("created_at", UTCDateTime(), nullable=False),
 )
 
@@ -63,7 +63,7 @@ rooms = Table(
     "rooms",
     metadata,
     Column("id", ID, primary_key=True),
-    Column("name", String(200), nullable=False),
+    Column("name", Text, nullable=False),
     Column("layout", JSON, nullable=False),
     Column("layout_version", Integer, nullable=False),
     Column("created_at", UTCDateTime(), nullable=False),

@@ -9,6 +9,7 @@ Rows never leave this module: every method returns frozen records from
 from __future__ import annotations
 
 import uuid
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
@@ -221,9 +222,10 @@ class Registry:
             deleted = conn.execute(delete(rooms).where(rooms.c.id == room_id)).rowcount
         if not deleted:
             raise RoomNotFound(f"no room with id {room_id!r}", field="room_id")
-        self._drop_unreferenced(files)
+        self.drop_unreferenced_files((sha256, fmt) for sha256, fmt in files)
 
-    def _drop_unreferenced(self, files: Any) -> None:
+    def drop_unreferenced_files(self, files: Iterable[tuple[str, str]]) -> None:
+        """Delete those ``(sha256, format)`` files that no stored matrix refers to."""
         with translate_errors(), self.engine.connect() as conn:
             for sha256, fmt in files:
                 users = conn.execute(

@@ -14,18 +14,8 @@ from app.registry.queue import claim_job
 from app.registry.store import MatrixStore
 from app.vlp.errors import ProblemSizeError
 from app.vlp.fingerprints import Fingerprint, build_fingerprint
-from app.vlp.layout import Grid, Layout, Led, Room
 from app.vlp.presets import paper_layout
-
-
-def _hall() -> Layout:
-    """A 40 x 100 m hall, 0.5 m grid (N = 16000) and 256 LEDs: M * N above the dense limit."""
-    leds = tuple(Led(x=2.5 + 2.5 * (i % 16), y=3.0 + 6.0 * (i // 16), z=3.0) for i in range(256))
-    return Layout(
-        room=Room(length=40.0, width=100.0, height=3.0),
-        grid=Grid(step=0.5, receiver_height=0.85),
-        leds=leds,
-    )
+from tests.db_fixtures import hall_layout
 
 
 def test_store_fingerprint_dense_room(tmp_path: Path, paper_fingerprint: Fingerprint) -> None:
@@ -37,7 +27,7 @@ def test_store_fingerprint_dense_room(tmp_path: Path, paper_fingerprint: Fingerp
 
 
 def test_store_fingerprint_large_hall_keeps_h_sparse_only(tmp_path: Path) -> None:
-    fingerprint = build_fingerprint(_hall())
+    fingerprint = build_fingerprint(hall_layout())
     assert not fingerprint.is_dense
     store = MatrixStore(tmp_path)
     stored = store_fingerprint(fingerprint, store)

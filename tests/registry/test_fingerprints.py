@@ -20,7 +20,7 @@ from app.registry.queue import claim_job, complete_job
 from app.vlp.fingerprints import Fingerprint, build_fingerprint
 from app.vlp.layout import layout_from_mapping
 from app.vlp.presets import paper_layout
-from tests.db_fixtures import build_now, stored_build
+from tests.db_fixtures import build_now, hall_layout, stored_build
 from tests.registry.test_rooms import small_layout
 
 
@@ -177,3 +177,31 @@ def test_layout_snapshot_is_kept_per_version(registry: Registry) -> None:
     assert (first.n_leds, second.n_leds) == (2, 3)
     direct = build_fingerprint(layout_from_mapping(small_layout(2)))
     np.testing.assert_array_equal(first.gains.toarray(), direct.gains.toarray())
+
+
+def test_large_hall_stores_sparse_h_and_no_psi(registry: Registry) -> None:
+    hall = hall_layout()
+    room = registry.create_room(name="Hall", layout=hall.to_mapping())
+    build_now(registry, room_id=room.id)
+    record = registry.get_fingerprint(room_id=room.id, version=None)
+    assert sorted(record.matrices) == ["H"]
+    assert record.matrices["H"].format == "npz"
+    with pytest.raises(MatrixNotFound, match="psi"):
+        registry.matrix_path(room_id=room.id, version=1, name="psi")
+    loaded = registry.load_fingerprint(room_id=room.id, version=1)
+    direct = build_fingerprint(hall)
+    assert not loaded.is_dense
+    assert (loaded.gains != direct.gains).nnz == 0
+
+
+def test_files_of_a_lost_build_can_be_dropped(registry: Registry) -> None:
+    room = registry.create_room(name="a", layout=small_layout())
+    claimed = claim_job(registry.engine, worker_id="w", lease_seconds=30, max_attempts=3)
+    assert claimed is not None
+    build = stored_build(registry, claimed)
+    files = [(info.sha256, info.format) for info, _ in build.matrices.values()]
+    paths = [registry.store.path_for(sha, fmt) for sha, fmt in files]
+    registry.delete_room(room_id=room.id)
+    assert all(path.exists() for path in paths)  # written, but not yet recorded
+    registry.drop_unreferenced_files(files)
+    assert not any(path.exists() for path in paths)

@@ -37,7 +37,7 @@ def test_concurrent_migrations_are_safe(database_url: str, tmp_path: Path) -> No
     for thread in threads:
         thread.join(60)
     try:
-        assert errors == []
+        assert errors == [], [repr(e.__cause__) for e in errors]
         assert all(reg.migrations_current() for reg in registries)
         assert registries[0].count_rooms() == 0
     finally:

@@ -23,13 +23,13 @@ def upgrade() -> None:
         "api_keys",
         sa.Column("key_hash", sa.String(64), primary_key=True),
         sa.Column("role", sa.String(16), nullable=False),
-        sa.Column("label", sa.String(200), nullable=False),
+        sa.Column("label", sa.Text, nullable=False),
         sa.Column("created_at", UTCDateTime(), nullable=False),
     )
     op.create_table(
         "rooms",
         sa.Column("id", sa.String(32), primary_key=True),
-        sa.Column("name", sa.String(200), nullable=False),
+        sa.Column("name", sa.Text, nullable=False),
         sa.Column("layout", sa.JSON, nullable=False),
         sa.Column("layout_version", sa.Integer, nullable=False),
         sa.Column("created_at", UTCDateTime(), nullable=False),
