@@ -107,3 +107,41 @@ def test_non_json_body_is_problem_422(
     )
     problem = assert_problem(response, 422)
     assert problem["errors"] and all(e["field"].startswith("body") for e in problem["errors"])
+
+
+def test_every_error_family_is_exported_and_mapped() -> None:
+    import app.errors
+    import app.registry.errors
+    import app.vlp.errors
+    from app.api.errors import _registry_status
+
+    for module in (app.registry.errors, app.vlp.errors):
+        for name in module.__all__:
+            assert getattr(app.errors, name) is getattr(module, name), name
+    expected = {
+        "RoomNotFound": 404,
+        "JobNotFound": 404,
+        "FingerprintNotFound": 404,
+        "MatrixNotFound": 404,
+        "NotFound": 404,
+        "PreconditionFailed": 412,
+        "FingerprintNotReady": 409,
+        "InvalidCursor": 422,
+        "CorruptMatrix": 503,
+        "RegistryUnavailable": 503,
+        "RegistryError": 500,
+    }
+    assert set(expected) == set(app.registry.errors.__all__)
+    for name, status in expected.items():
+        error = getattr(app.registry.errors, name)("message")
+        assert _registry_status(error)[0] == status, name
+
+
+@pytest.mark.parametrize(
+    "field, location",
+    [("leds[3].z", "body.leds.3.z"), ("correlation", "body.correlation"), (None, "body")],
+)
+def test_science_fields_become_request_locations(field: str | None, location: str) -> None:
+    from app.api.errors import field_location
+
+    assert field_location(field) == location
