@@ -144,3 +144,23 @@ def test_sparse_room_serves_H_npz_only(tmp_path: Path) -> None:
         for name in ("J", "psi"):
             problem = assert_problem(client.get(f"{base}/{name}.npy", headers=TERMINAL), 409)
             assert "not materialised" in problem["detail"]
+
+
+def test_corrupt_matrix_is_never_served_and_gets_rebuilt(tmp_path: Path) -> None:
+    settings = make_settings(tmp_path, demo=True, embedded_workers=1)
+    with TestClient(create_app(settings)) as client:
+        room_id = client.get("/v1/rooms", headers=ADMIN).json()["items"][0]["id"]
+        wait_for_room(client, room_id)
+        meta = client.get(f"/v1/rooms/{room_id}/fingerprints/current", headers=ADMIN).json()
+        sha = meta["matrices"]["J"]["sha256"]
+        (path,) = [p for p in tmp_path.rglob(f"*{sha}*") if p.is_file()]
+        path.chmod(0o644)
+        path.write_bytes(b"not the matrix")
+        url = f"/v1/rooms/{room_id}/fingerprints/{meta['version']}/J.npy"
+        problem = assert_problem(client.get(url, headers=TERMINAL), 503)
+        assert "not the matrix" not in problem["detail"]
+        deadline = time.monotonic() + 60
+        while (response := client.get(url, headers=TERMINAL)).status_code != 200:
+            assert time.monotonic() < deadline, response.text
+            time.sleep(0.1)
+        assert hashlib.sha256(response.content).hexdigest() == sha
