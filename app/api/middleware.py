@@ -139,7 +139,12 @@ class BodySizeLimitMiddleware:
         limit = self.max_body_bytes
         detail = f"request body larger than {limit} bytes"
         declared = _header(scope, b"content-length")
-        if declared is not None and (not declared.isdigit() or int(declared) > limit):
+        if declared is not None and not declared.strip().isdigit():
+            await _send_problem(
+                send, scope, 400, "Content-Length is not a number", "bad-request", request_id
+            )
+            return
+        if declared is not None and int(declared) > limit:
             await _send_problem(send, scope, 413, detail, "payload-too-large", request_id)
             return
         received = 0
