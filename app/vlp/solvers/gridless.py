@@ -51,13 +51,71 @@ class _Run:
 
 @register_solver
 class GridlessSolver(Solver):
-    """ADCG: insert at the best-correlated grid point, refine everything by LM, repeat.
+    """Off-grid localization: insert a target at the best grid point, refine all, repeat.
 
     Parameters
     ----------
     fingerprint : Fingerprint
     model : {"power", "correlation"}
     options : GridlessOptions, default=None
+        Tuning knobs; the defaults are the measured best.
+
+    Notes
+    -----
+    Model (normalised units, see :mod:`._gridless_fit`): ``y = sum_k w_k phi(g(p_k)) + s a``
+    with ``phi(g) = vech(g g^T)`` (correlation) or ``g o g`` (power) and ``a`` the noise
+    atom, since ``E[R] = sum_k g_k g_k^T + K sigma^2 I``. The loop (ADCG, Boyd, Schiebinger
+    and Recht, SIAM J. Optim. 27(2), 2017):
+
+    1. *Insert* a unit-weight target at the grid point that most lowers the (whitened)
+       cost, ``argmax_j 2 <c psi_j, r> - ||c psi_j||^2`` (dense dictionary for small rooms,
+       the matrix-free ``Psi^T`` and plain residual for large ones).
+    2. *Refine* all positions and ``s`` jointly with projected Levenberg-Marquardt on the
+       continuous channel model (analytic gradients; positions clipped to the room).
+    3. After K insertions: LM rounds whitened by the plug-in covariance of the aggregated
+       noise (``Cov <A, R> = 4 sigma^2 tr(A M0 A)``, ``M0 = S + K sigma^2 / 2 I``,
+       ``sigma^2 = s / K``; exact and O(M^3) in the eigenbasis of ``M0``), then one pass of
+       *relocation* moves (take a target out, re-insert it where the others' residual says,
+       keep it if the cost drops).
+
+    Weights are fixed at one pilot unit per target (``w_k = 1``): each terminal brings
+    exactly ``g g^T``. Measured (paper room, 30 dB, correlation, 50 placements, mean
+    matched error): fixed 2.36 / 2.98 / 5.17 cm at K = 1 / 4 / 8, free weights
+    2.64 / 6.01 / 23.9 cm (a close pair merges into one target of weight 2 while the
+    spare one fits noise). Without whitening (plain least squares, fixed weights):
+    2.38 / 6.03 / 15.5 cm: the whitened fit is what brings K = 8 near the bound.
+
+    Unknown K: targets are added one at a time; a state with more targets is kept when its
+    plain cost is below the best so far by ``count_threshold`` (0.2) times the energy
+    ``||phi(p)||^2`` of the targets it adds (a real target removes about its own energy, a
+    spurious unit-weight one adds about as much), trying up to ``count_lookahead`` (2)
+    more before stopping. Fraction of correct counts (paper room, correlation, 50
+    placements per cell)::
+
+        SNR    K=1   2     3     4     5     6     7     8
+        20 dB  1.00  0.98  0.98  1.00  0.96  0.94  0.90  0.78
+        30 dB  1.00  1.00  1.00  1.00  1.00  0.98  0.98  0.96
+        40 dB  1.00  1.00  1.00  0.98  1.00  0.98  0.92  0.94
+
+    Accuracy (same setting, K known; ``bench/tune_gridless.py``): mean error 2.36, 2.55,
+    3.09, 2.98, 3.95, 4.82, 4.85, 5.17 cm for K = 1..8 and 13.0 cm at K = 16 (30 dB);
+    7.5 / 9.2 / 15.9 cm at 20 dB and 0.75 / 0.96 / 1.77 cm at 40 dB for K = 1 / 4 / 8.
+    The grid's own quantisation floor is 7.65 cm; the median aggregated CRB
+    (:func:`app.vlp.crlb.aggregated_crlb`) is 2.5 / 3.6 / 6.1 cm at K = 1 / 4 / 8.
+
+    Examples
+    --------
+    >>> from app.vlp.fingerprints import build_fingerprint
+    >>> from app.vlp.measurements import measurement_from_amplitudes
+    >>> from app.vlp.presets import paper_layout
+    >>> from app.vlp.simulation import true_amplitudes
+    >>> layout = paper_layout()
+    >>> solver = GridlessSolver(build_fingerprint(layout), "correlation")
+    >>> truth = np.array([[0.93, 1.41], [2.72, 3.05]])
+    >>> amps = true_amplitudes(layout, truth)
+    >>> solution = solver.solve(measurement_from_amplitudes(amps, "correlation", 16), 2)
+    >>> np.round(solution.positions[np.argsort(solution.positions[:, 0])], 3).tolist()
+    [[0.93, 1.41], [2.72, 3.05]]
     """
 
     name = "gridless"
