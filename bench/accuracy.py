@@ -29,11 +29,11 @@ from pathlib import Path
 import numpy as np
 from threadpoolctl import threadpool_limits
 
+from app.vlp._typing import FloatArray
 from app.vlp.baseline import rss_localize
 from app.vlp.crlb import aggregated_crlb, single_target_crlb
 from app.vlp.fingerprints import Fingerprint, build_fingerprint
 from app.vlp.layout import Layout
-from app.vlp._typing import FloatArray
 from app.vlp.measurements import MODELS, Model, measurement_from_amplitudes
 from app.vlp.metrics import mean_position_error
 from app.vlp.simulation import noise_std_for_snr, noisy_amplitudes, random_positions
@@ -164,7 +164,7 @@ def _run_trial(case: Case, trial: int, ctx: _Context) -> Iterator[Row]:
     single = np.mean([single_target_crlb(layout, point, std) for point in truth])
     yield Row(*base, CRLB_SINGLE, NO_MODEL, float(single), 0.0)
     for model in MODELS:
-        yield Row(*base, CRLB, model, float(aggregated_crlb(layout, truth, std, model=model)), 0.0)
+        yield Row(*base, CRLB, model, aggregated_crlb(layout, truth, std, model=model).mean, 0.0)
     yield _attempt(base, RSS, NO_MODEL, truth, lambda: rss_localize(layout, amps))
     for (name, model), solver in ctx.solvers.items():
         if name in SLOW_SOLVERS and trial >= case.slow_trials:
