@@ -251,6 +251,16 @@ class Registry:
             job_id = enqueue_build(conn, room_id=room_id, layout_version=version)
         return self.get_job(job_id=job_id)
 
+    def count_jobs_by_status(self) -> dict[str, int]:
+        """How many jobs are in each status (all four keys, zeros included), for metrics."""
+        counts = dict.fromkeys(("queued", "running", "succeeded", "failed"), 0)
+        with translate_errors(), self.engine.connect() as conn:
+            for status, count in conn.execute(
+                select(jobs.c.status, func.count()).group_by(jobs.c.status)
+            ):
+                counts[str(status)] = int(count)
+        return counts
+
     def get_job(self, *, job_id: str) -> JobRecord:
         """One job; :class:`JobNotFound` when unknown (jobs go with their room)."""
         with translate_errors(), self.engine.connect() as conn:

@@ -190,3 +190,24 @@ def test_claim_for_one_room(registry: Registry) -> None:
     claimed = _claim(registry, "w", room_id=second.id)
     assert claimed is not None
     assert claimed.room_id == second.id
+
+
+def test_count_jobs_by_status(registry: Registry) -> None:
+    assert registry.count_jobs_by_status() == {
+        "queued": 0,
+        "running": 0,
+        "succeeded": 0,
+        "failed": 0,
+    }
+    for name in "abc":
+        registry.create_room(name=name, layout=small_layout())
+    claimed = _claim(registry, "w")
+    assert claimed is not None
+    fail_job(registry.engine, claimed=claimed, error="x", max_attempts=1)
+    assert _claim(registry, "w") is not None
+    assert registry.count_jobs_by_status() == {
+        "queued": 1,
+        "running": 1,
+        "succeeded": 0,
+        "failed": 1,
+    }
