@@ -15,12 +15,13 @@ with ``a`` the noise atom (``vech(I)`` or ones). Private: callers validate.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
 import numpy as np
 
-from .._typing import FloatArray
+from .._typing import FloatArray, IntArray
 from ..channel import led_constants
 from ..layout import Layout
 from ..measurements import Model
@@ -84,6 +85,19 @@ class FitState:
     noise: float
 
 
+@functools.lru_cache(maxsize=64)
+def _vech_indices(model: Model, n_leds: int) -> tuple[IntArray, IntArray, FloatArray]:
+    """Row and column of each measurement entry and its diagonal indicator (read-only)."""
+    if model == "correlation":
+        upper, lower = np.triu_indices(n_leds)
+    else:
+        upper = lower = np.arange(n_leds)
+    is_diag = (upper == lower).astype(np.float64)
+    for array in (upper, lower, is_diag):
+        array.setflags(write=False)
+    return upper, lower, is_diag
+
+
 class Whitening:
     """Fixed linear whitening ``r -> c * vech(U^T E U)`` (correlation) or ``c * e`` (power).
 
@@ -101,9 +115,7 @@ class Whitening:
         self.model = model
         self.rotation = rotation
         self.weights = weights
-        self.upper, self.lower = np.triu_indices(n_leds) if model == "correlation" else (
-            np.arange(n_leds), np.arange(n_leds))
-        self.is_diag = (self.upper == self.lower).astype(np.float64)
+        self.upper, self.lower, self.is_diag = _vech_indices(model, n_leds)
 
     @classmethod
     def identity(cls, model: Model, n_leds: int) -> Whitening:
@@ -128,10 +140,11 @@ class Whitening:
         signal = (gains * state.weights) @ gains.T
         lam, rot = np.linalg.eigh(signal + half_noise * np.eye(kernel.n_leds))
         lam = np.maximum(lam, _EIG_FLOOR * max(float(lam[-1]), _SIGMA2_FLOOR))
-        upper, lower = np.triu_indices(kernel.n_leds)
-        var = 2.0 * sigma2 * (lam[upper] + lam[lower])
-        var[upper == lower] *= 2.0
-        weights = np.sqrt(np.where(upper == lower, 1.0, 2.0) / var)
+        upper, lower, is_diag = _vech_indices(model, kernel.n_leds)
+        # Variance 2 sigma^2 (lam_a + lam_b), doubled on the diagonal; off-diagonal entries
+        # count twice in the Frobenius norm, hence the factor 2 - is_diag.
+        var = 2.0 * sigma2 * (lam[upper] + lam[lower]) * (1.0 + is_diag)
+        weights = np.sqrt((2.0 - is_diag) / var)
         return cls(model, kernel.n_leds, rot, weights)
 
     def data(self, values: FloatArray, n_leds: int) -> FloatArray:
