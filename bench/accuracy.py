@@ -104,10 +104,10 @@ class Row:
 
 def default_cases() -> list[Case]:
     """The full run: Fig. 4 at 30 dB (K = 1..16), 20 and 40 dB, and the hall at 30 dB."""
-    cases = [Case("paper", 30.0, k, 100, 20) for k in (1, 2, 3, 4, 6, 8, 10, 12, 14, 16)]
+    cases = [Case("paper", 30.0, k, 150, 30) for k in range(1, 17)]
     for snr in (20.0, 40.0):
-        cases += [Case("paper", snr, k, 40, 10) for k in (1, 2, 4, 8, 12, 16)]
-    cases += [Case("hall", 30.0, k, 40, 10) for k in (1, 4, 8)]
+        cases += [Case("paper", snr, k, 60, 15) for k in (1, 2, 4, 8, 12, 16)]
+    cases += [Case("hall", 30.0, k, 60, 15) for k in (1, 4, 8)]
     return cases
 
 

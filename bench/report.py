@@ -27,7 +27,9 @@ the discussion around it is written by hand from those numbers.
 
 
 def _cm(value: float) -> str:
-    return "–" if not math.isfinite(value) else f"{100 * value:.2f}"
+    if math.isinf(value):
+        return "∞"
+    return "–" if math.isnan(value) else f"{100 * value:.2f}"
 
 
 def issue_target_rows(
