@@ -86,10 +86,11 @@ def _problem_validation_responses(app: FastAPI) -> None:
     app.openapi = openapi  # type: ignore[method-assign]
 
 
-def _count_jobs(app: FastAPI) -> dict[str, int]:
+def _count_jobs(app: FastAPI) -> dict[str, int] | None:
+    """Jobs by status, when the registry offers ``count_jobs_by_status`` (else None)."""
     registry = getattr(app.state, "registry", None)
     counter = getattr(registry, "count_jobs_by_status", None)
-    return dict(counter()) if callable(counter) else {}
+    return dict(counter()) if callable(counter) else None
 
 
 @asynccontextmanager

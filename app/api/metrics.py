@@ -17,13 +17,15 @@ _LATENCY_BUCKETS = (0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.
 class JobsCollector(Collector):
     """Reads the jobs-by-status counts from the registry at scrape time."""
 
-    def __init__(self, count_jobs: Callable[[], Mapping[str, int]]) -> None:
+    def __init__(self, count_jobs: Callable[[], Mapping[str, int] | None]) -> None:
         self._count_jobs = count_jobs
 
     def collect(self) -> Iterator[GaugeMetricFamily]:
-        """One gauge sample per job status."""
-        gauge = GaugeMetricFamily("vlp_jobs", "Fingerprint build jobs by status", labels=["status"])
+        """One gauge sample per job status (nothing while the counts are unavailable)."""
         counts = self._count_jobs()
+        if counts is None:
+            return
+        gauge = GaugeMetricFamily("vlp_jobs", "Fingerprint build jobs by status", labels=["status"])
         for status in JOB_STATUSES:
             gauge.add_metric([status], float(counts.get(status, 0)))
         yield gauge
@@ -61,6 +63,6 @@ class Metrics:
             registry=self.registry,
         )
 
-    def watch_jobs(self, count_jobs: Callable[[], Mapping[str, int]]) -> None:
+    def watch_jobs(self, count_jobs: Callable[[], Mapping[str, int] | None]) -> None:
         """Expose jobs by status, read through ``count_jobs`` at each scrape."""
         self.registry.register(JobsCollector(count_jobs))
