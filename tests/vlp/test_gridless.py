@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 import pytest
 from scipy.optimize import linear_sum_assignment
@@ -121,3 +123,19 @@ def test_other_room_both_code_paths(mixed_room: Layout, dense: bool,
     sol = solver.solve(meas, 2)
     assert matched_error(truth, sol.positions) < 1e-3
     assert np.all((sol.positions >= 0) & (sol.positions <= [3.0, 2.0]))
+
+
+def test_one_solver_object_serves_threads(paper_room: Layout, paper_fingerprint: Fingerprint,
+                                          paper_solver: GridlessSolver) -> None:
+    # Solver objects are cached and shared by the web layer: no per-call state on self.
+    measurements = [
+        simulate(paper_room, paper_fingerprint, random_positions(paper_room, 3, rng=seed), 30.0,
+                 "correlation", np.random.default_rng(seed))
+        for seed in range(4)
+    ]
+    sequential = [paper_solver.solve(m, 3) for m in measurements]
+    with ThreadPoolExecutor(max_workers=4) as pool:
+        parallel = list(pool.map(lambda m: paper_solver.solve(m, 3), measurements))
+    for one, other in zip(sequential, parallel, strict=True):
+        np.testing.assert_array_equal(one.positions, other.positions)
+        assert one.n_iter == other.n_iter

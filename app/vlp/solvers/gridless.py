@@ -136,8 +136,10 @@ class GridlessSolver(Solver):
         self._max_count = max(1, min(MAX_TARGETS, fingerprint.n_cells, (n_obs - 1) // 2))
         if self._dense:
             self._gains = fingerprint.dense_scaled_gains() / self._scale
+            self._gains_sq = self._gains**2
         else:
             self._gains_sparse = fingerprint.scaled_gains() / self._scale
+            self._gains_sq_sparse = self._gains_sparse.power(2)
             self._operator = fingerprint.correlation_operator()
             total = np.asarray(self._gains_sparse.power(2).sum(axis=0)).ravel()
             fourth = np.asarray(self._gains_sparse.power(4).sum(axis=0)).ravel()
@@ -154,11 +156,10 @@ class GridlessSolver(Solver):
         weighted = white.weights * residual
         if self.model == "power":
             if self._dense:
-                g2 = self._gains**2
-                num = weighted @ g2
-                norms = (white.weights**2) @ g2**2
+                num = weighted @ self._gains_sq
+                norms = (white.weights**2) @ self._gains_sq**2
             else:
-                g2 = self._gains_sparse.power(2)
+                g2 = self._gains_sq_sparse
                 num = g2.T @ weighted
                 norms = g2.power(2).T @ white.weights**2
             return self._combine(num, norms)
