@@ -13,6 +13,7 @@ import time
 import uuid
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import psycopg
 import pytest
@@ -30,6 +31,7 @@ __all__ = [
     "hall_layout",
     "postgres_url",
     "registry",
+    "small_layout",
     "sqlite_url",
     "stored_build",
 ]
@@ -152,3 +154,12 @@ def hall_layout() -> Layout:
         leds=leds,
         name="Hall",
     )
+
+
+def small_layout(n_leds: int = 2) -> dict[str, Any]:
+    """A 2 x 2 m room with a 0.5 m grid and ``n_leds`` LEDs (sparse input, defaults omitted)."""
+    return {
+        "room": {"length": 2.0, "width": 2.0, "height": 3.0},
+        "grid": {"step": 0.5, "receiver_height": 0.85},
+        "leds": [{"x": 0.5 + 0.5 * i, "y": 1.0} for i in range(n_leds)],
+    }

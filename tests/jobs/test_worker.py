@@ -12,13 +12,13 @@ import numpy as np
 import pytest
 
 from app.jobs import EmbeddedWorkers, run_worker
-from app.jobs.build import BuildTask
+from app.jobs.build import BuildTask, build_and_store
 from app.registry import Registry
 from app.registry.queue import StoredBuild
 from app.settings import Settings
 from app.vlp.fingerprints import Fingerprint
 from app.vlp.presets import paper_layout
-from tests.registry.test_rooms import small_layout
+from tests.db_fixtures import small_layout
 
 WAIT_S = 60.0
 
@@ -78,6 +78,26 @@ def slow_build(task: BuildTask) -> StoredBuild:
     del task
     time.sleep(60)
     raise AssertionError("unreachable")
+
+
+def patient_build(task: BuildTask) -> StoredBuild:
+    """A real build that takes longer than the test's job lease."""
+    time.sleep(1.5)
+    return build_and_store(task)
+
+
+def test_heartbeats_keep_a_long_build_from_being_stolen(
+    registry: Registry, workers: Callable[..., EmbeddedWorkers]
+) -> None:
+    room = registry.create_room(name="a", layout=small_layout())
+    lease = {"job_lease_seconds": 0.5, "job_heartbeat_seconds": 0.1}
+    workers(build=patient_build, **lease)
+    _wait_for(lambda: registry.get_job(job_id=room.job_id or "").status == "running", "running")
+    workers(build=patient_build, **lease)  # a second worker, eager to reclaim
+    _wait_for(lambda: registry.get_room(room_id=room.id).fingerprint_status == "ready", "ready")
+    job = registry.get_job(job_id=room.job_id or "")
+    assert (job.attempts, job.fingerprint_version) == (1, 1)
+    assert [fp.version for fp in registry.list_fingerprints(room_id=room.id)] == [1]
 
 
 def test_embedded_worker_builds_the_paper_room(

@@ -20,8 +20,7 @@ from app.registry.queue import claim_job, complete_job
 from app.vlp.fingerprints import Fingerprint, build_fingerprint
 from app.vlp.layout import layout_from_mapping
 from app.vlp.presets import paper_layout
-from tests.db_fixtures import build_now, hall_layout, stored_build
-from tests.registry.test_rooms import small_layout
+from tests.db_fixtures import build_now, hall_layout, small_layout, stored_build
 
 
 def test_not_ready_before_the_first_build(registry: Registry) -> None:

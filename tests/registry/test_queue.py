@@ -17,7 +17,7 @@ from app.registry.queue import (
     release_job,
     report_progress,
 )
-from tests.registry.test_rooms import small_layout
+from tests.db_fixtures import small_layout
 
 
 def _claim(

@@ -12,16 +12,7 @@ from app.registry import Registry
 from app.registry.errors import InvalidCursor, JobNotFound, PreconditionFailed, RoomNotFound
 from app.vlp.errors import GeometryError
 from app.vlp.presets import paper_layout
-from tests.db_fixtures import build_now
-
-
-def small_layout(n_leds: int = 2) -> dict[str, Any]:
-    """A 2 x 2 m room with a 0.5 m grid and ``n_leds`` LEDs (sparse input, defaults omitted)."""
-    return {
-        "room": {"length": 2.0, "width": 2.0, "height": 3.0},
-        "grid": {"step": 0.5, "receiver_height": 0.85},
-        "leds": [{"x": 0.5 + 0.5 * i, "y": 1.0} for i in range(n_leds)],
-    }
+from tests.db_fixtures import build_now, small_layout
 
 
 def test_migrate_is_idempotent_and_current(registry: Registry) -> None:
