@@ -64,12 +64,18 @@ def main() -> None:
     parser.add_argument("--inner", type=int, default=GridlessOptions.inner_iter)
     parser.add_argument("--rounds", type=int, default=GridlessOptions.whiten_rounds)
     parser.add_argument("--crb", action="store_true", help="also the aggregated CRB")
+    parser.add_argument("--passes", type=int, default=GridlessOptions.relocate_passes)
     parser.add_argument("--unknown", action="store_true", help="estimate K")
     args = parser.parse_args()
     layout = other_rooms()[args.room]
     fp = build_fingerprint(layout)
-    opts = GridlessOptions(free_weights=args.free, whiten=not args.plain, inner_iter=args.inner,
-                           whiten_rounds=args.rounds)
+    opts = GridlessOptions(
+        free_weights=args.free,
+        whiten=not args.plain,
+        inner_iter=args.inner,
+        whiten_rounds=args.rounds,
+        relocate_passes=args.passes,
+    )
     solver = GridlessSolver(fp, args.model, opts)
     for snr in args.snr:
         sigma = noise_std_for_snr(fp, snr)
@@ -95,8 +101,11 @@ def main() -> None:
                 f"{args.room} {args.model} snr={snr:g} K={k}: mean {e.mean():.2f} cm "
                 f"median {np.median(e):.2f} p90 {np.percentile(e, 90):.2f} "
                 f"count-ok {np.mean(counts):.2f} "
-                + (f"crb mean {100 * np.mean(bounds):.2f} median {100 * np.median(bounds):.2f} "
-                     if bounds else "")
+                + (
+                    f"crb mean {100 * np.mean(bounds):.2f} median {100 * np.median(bounds):.2f} "
+                    if bounds
+                    else ""
+                )
                 + f"time median {1000 * np.median(times):.2f} ms "
                 + f"(cpu {1000 * np.median(cpu):.2f}) iters {np.median(iters):.0f}",
                 flush=True,

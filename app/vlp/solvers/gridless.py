@@ -37,7 +37,7 @@ class GridlessOptions:
     whiten_rounds: int = 3
     count_threshold: float = 0.2
     count_lookahead: int = 2
-    relocate: bool = True
+    relocate_passes: int = 1
 
 
 @dataclass
@@ -310,10 +310,11 @@ class GridlessSolver(Solver):
         if state.positions.shape[0] == 0:
             state = self._insert(run, state, self._whitening(state))
         state = self._refine(run, state, opts.final_iter, opts.whiten_rounds)
-        if opts.relocate:
+        for _ in range(opts.relocate_passes):
             state, moved = self._relocate(run, state)
-            if moved:
-                state = self._refine(run, state, opts.final_iter, 1)
+            if not moved:
+                break
+            state = self._refine(run, state, opts.final_iter, 1)
         values = run.values
         positions = state.positions
         plain = Whitening.identity(self.model, self.fingerprint.n_leds)
