@@ -4,6 +4,10 @@
 PostgreSQL (``VLP_TEST_POSTGRES_URL``, default ``postgresql+psycopg://postgres@127.0.0.1:5432/test``).
 PostgreSQL is required: when it does not answer the test fails with a clear message (the
 CI entry point starts it), it is never skipped.
+
+Register it once for the whole suite with ``pytest_plugins = ["tests.db_fixtures"]`` in
+``tests/conftest.py``; until then ``tests/registry`` and ``tests/jobs`` import it in their
+``conftest.py``.
 """
 
 from __future__ import annotations

@@ -57,6 +57,13 @@ __all__ = ["Registry"]
 class Registry:
     """Rooms, API keys, fingerprints and build jobs, in SQLite or PostgreSQL.
 
+    A room's ``fingerprint_status`` is that of its latest build job (``queued`` ->
+    ``pending``, ``running`` -> ``building``, ``succeeded`` -> ``ready``, ``failed`` ->
+    ``failed``); ``fingerprint_version`` is the last version that became current and is what
+    localization uses, so a failed rebuild keeps serving the previous version. A version
+    becomes current only when its build finished, in the transaction that records it, and only
+    if it was built from the room's current layout.
+
     Parameters
     ----------
     database_url : str
