@@ -65,6 +65,7 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=GridlessOptions.whiten_rounds)
     parser.add_argument("--crb", action="store_true", help="also the aggregated CRB")
     parser.add_argument("--passes", type=int, default=GridlessOptions.relocate_passes)
+    parser.add_argument("--restarts", type=int, default=GridlessOptions.restarts)
     parser.add_argument("--unknown", action="store_true", help="estimate K")
     args = parser.parse_args()
     layout = other_rooms()[args.room]
@@ -75,6 +76,7 @@ def main() -> None:
         inner_iter=args.inner,
         whiten_rounds=args.rounds,
         relocate_passes=args.passes,
+        restarts=args.restarts,
     )
     solver = GridlessSolver(fp, args.model, opts)
     for snr in args.snr:

@@ -38,6 +38,7 @@ class GridlessOptions:
     count_threshold: float = 0.2
     count_lookahead: int = 2
     relocate_passes: int = 1
+    restarts: int = 1
 
 
 @dataclass
@@ -77,6 +78,11 @@ class GridlessSolver(Solver):
        ``sigma^2 = s / K``; exact and O(M^3) in the eigenbasis of ``M0``), then one pass of
        *relocation* moves (take a target out, re-insert it where the others' residual says,
        keep it if the cost drops).
+    4. With K known and K > 1, ``restarts`` (1) more runs whose first insertion avoids the
+       earlier ones' (by half the mean LED height); the lowest plain cost wins. It doubles
+       the time; measured (30 trials, irregular 12-LED room): K=4 at 40 dB 3.83 -> 1.52 cm,
+       K=8 at 30 dB 13.2 -> 10.8 cm; hall K=8 at 30 dB 10.2 -> 10.0 cm; no change in the
+       paper room.
 
     Weights are fixed at one pilot unit per target (``w_k = 1``): each terminal brings
     exactly ``g g^T``. Measured (paper room, 30 dB, correlation, 50 placements, mean
@@ -130,6 +136,10 @@ class GridlessSolver(Solver):
         self._kernel = ChannelKernel(layout, self._scale)
         self._centres = layout.cell_centres()
         self._dense = fingerprint.is_dense
+        # Restarts begin away from earlier first insertions, by half the mean LED height
+        # above the receivers (about the size of one LED's bright spot).
+        heights = layout.led_positions[:, 2] - layout.grid.receiver_height
+        self._avoid_radius = 0.5 * float(np.mean(heights))
         n_obs = fingerprint.n_leds if model == "power" else \
             fingerprint.n_leds * (fingerprint.n_leds + 1) // 2
         # Each target costs 2 coordinates and the noise power one more unknown.
@@ -213,8 +223,10 @@ class GridlessSolver(Solver):
             state, _ = self._fit(run, self._whitening(state), state, max_iter)
         return state
 
-    def _insert(self, run: _Run, state: FitState, white: Whitening) -> FitState:
-        """Add a unit-weight target at the grid point that most lowers the cost."""
+    def _insert(self, run: _Run, state: FitState, white: Whitening,
+                avoid: FloatArray | None = None) -> FitState:
+        """Add a unit-weight target at the grid point that most lowers the cost (not within
+        ``_avoid_radius`` of the points ``avoid``, shape (n, 2), when given)."""
         if not self._dense:
             # Large rooms score with the plain residual: whitened atom norms would need the
             # rotated gains of every grid point.
@@ -222,7 +234,14 @@ class GridlessSolver(Solver):
         data = white.data(run.values, self.fingerprint.n_leds)
         residual, _ = residual_and_jacobian(self._kernel, white, data, state,
                                             self.options.free_weights, want_jacobian=False)
-        best = int(np.argmax(self._scores(white, residual)))
+        scores = self._scores(white, residual)
+        if avoid is not None and avoid.shape[0] > 0:
+            for point in avoid:
+                near = np.sum((self._centres - point) ** 2, axis=1) < self._avoid_radius**2
+                scores = np.where(near, -np.inf, scores)
+            if not np.isfinite(scores).any():
+                scores = self._scores(white, residual)
+        best = int(np.argmax(scores))
         return FitState(np.vstack([state.positions, self._centres[best]]),
                         np.append(state.weights, 1.0), state.noise)
 
@@ -239,11 +258,11 @@ class GridlessSolver(Solver):
             return float(g2 @ g2)
         return float(0.5 * (g2.sum() ** 2 + g2 @ g2))
 
-    def _grow(self, run: _Run, state: FitState) -> FitState:
+    def _grow(self, run: _Run, state: FitState, avoid: FloatArray | None = None) -> FitState:
         """One ADCG step: insert at the best grid point, then refine everything (briefly,
         in the metric of the state before the insertion)."""
         white = self._whitening(state)
-        grown = self._insert(run, state, white)
+        grown = self._insert(run, state, white, avoid)
         if self.options.inner_iter > 0:
             grown, _ = self._fit(run, white, grown, self.options.inner_iter)
         return grown
@@ -298,23 +317,38 @@ class GridlessSolver(Solver):
                 cost, moved = candidate_cost, True
         return state, moved
 
-    def _solve(self, measurement: Measurement, n_targets: int | None) -> Solution:
+    def _polish(self, run: _Run, state: FitState) -> FitState:
+        """Whitened refinement rounds, then relocation passes."""
         opts = self.options
-        run = _Run(values=measurement.values / self._scale**2)
-        if n_targets is None:
-            state = self._count_and_fit(run)
-        else:
-            state = FitState(np.zeros((0, 2)), np.zeros(0), 0.0)
-            while state.positions.shape[0] < n_targets:
-                state = self._grow(run, state)
-        if state.positions.shape[0] == 0:
-            state = self._insert(run, state, self._whitening(state))
         state = self._refine(run, state, opts.final_iter, opts.whiten_rounds)
         for _ in range(opts.relocate_passes):
             state, moved = self._relocate(run, state)
             if not moved:
                 break
             state = self._refine(run, state, opts.final_iter, 1)
+        return state
+
+    def _fit_known(self, run: _Run, n_targets: int, avoid: FloatArray) -> FitState:
+        """Greedy growth to ``n_targets`` (first insertion away from ``avoid``), polished."""
+        state = FitState(np.zeros((0, 2)), np.zeros(0), 0.0)
+        while state.positions.shape[0] < n_targets:
+            state = self._grow(run, state, avoid if state.positions.shape[0] == 0 else None)
+        return self._polish(run, state)
+
+    def _solve(self, measurement: Measurement, n_targets: int | None) -> Solution:
+        run = _Run(values=measurement.values / self._scale**2)
+        if n_targets is None:
+            state = self._polish(run, self._count_and_fit(run))
+        else:
+            state = self._fit_known(run, n_targets, np.zeros((0, 2)))
+            cost = self._plain_cost(run.values, state)
+            firsts = [state.positions[0]]
+            for _ in range(self.options.restarts if n_targets > 1 else 0):
+                other = self._fit_known(run, n_targets, np.array(firsts))
+                firsts.append(other.positions[0])
+                other_cost = self._plain_cost(run.values, other)
+                if other_cost < cost:
+                    state, cost = other, other_cost
         values = run.values
         positions = state.positions
         plain = Whitening.identity(self.model, self.fingerprint.n_leds)
