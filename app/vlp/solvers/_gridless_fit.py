@@ -34,10 +34,8 @@ _SIGMA2_FLOOR = 1e-12
 _SIGMA2_REL_FLOOR = 1e-4
 # Damping increases tried per LM iteration before the point is taken as a local minimum.
 _MAX_REJECTIONS = 12
-# Marquardt damping: start, and the factors applied after a rejected / accepted step.
+# Initial Marquardt damping (updated by Nielsen's rule).
 _INITIAL_DAMPING = 1e-3
-_DAMPING_UP = 4.0
-_DAMPING_DOWN = 5.0
 
 
 class ChannelKernel:
@@ -231,6 +229,7 @@ def levenberg_marquardt(
     residual, jac = residual_and_jacobian(kernel, white, data, state, free_weights)
     cost = float(residual @ residual)
     damping = _INITIAL_DAMPING
+    growth = 2.0
     used = 0
     theta = _pack(state, free_weights)
     n_pos = state.positions.size
@@ -258,16 +257,21 @@ def levenberg_marquardt(
             trial_cost = float(trial_res @ trial_res)
             if trial_cost < cost:
                 converged = converged or (cost - trial_cost) < tol * cost
+                cost_before = cost
                 state, cost = trial, trial_cost
                 if not converged:
                     residual, jac = residual_and_jacobian(kernel, white, data, state,
                                                           free_weights)
                 theta = _pack(state, free_weights)
-                damping = max(damping / _DAMPING_DOWN, 1e-9)
+                # Nielsen's update: shrink the damping by how well the model predicted.
+                ratio = (cost_before - trial_cost) / max(predicted, 1e-300)
+                damping = max(damping * max(1.0 / 3.0, 1.0 - (2.0 * ratio - 1.0) ** 3), 1e-9)
+                growth = 2.0
                 break
             if converged:
                 break
-            damping *= _DAMPING_UP
+            damping *= growth
+            growth *= 2.0
         else:
             converged = True  # no decrease found along any damping: a local minimum
     return state, cost, used
