@@ -9,11 +9,13 @@ import pytest
 from scipy.optimize import linear_sum_assignment
 
 from app.vlp import fingerprints
+from app.vlp.channel import channel_gain_gradients
 from app.vlp.fingerprints import Fingerprint, build_fingerprint
 from app.vlp.layout import Layout
 from app.vlp.measurements import Measurement, Model, measurement_from_amplitudes
 from app.vlp.simulation import noise_std_for_snr, noisy_amplitudes, random_positions
 from app.vlp.solvers import make_solver, solver_names
+from app.vlp.solvers._gridless_fit import ChannelKernel
 from app.vlp.solvers.gridless import GridlessSolver
 
 GRID_FLOOR_M = 0.0765  # mean quantisation error of the 0.2 m grid
@@ -139,3 +141,18 @@ def test_one_solver_object_serves_threads(paper_room: Layout, paper_fingerprint:
     for one, other in zip(sequential, parallel, strict=True):
         np.testing.assert_array_equal(one.positions, other.positions)
         assert one.n_iter == other.n_iter
+
+
+@pytest.mark.parametrize("room", ["paper", "mixed"])
+def test_fast_kernel_matches_the_channel_model(paper_room: Layout, mixed_room: Layout,
+                                               room: str) -> None:
+    layout = paper_room if room == "paper" else mixed_room
+    kernel = ChannelKernel(layout, scale=2e-5)
+    points = random_positions(layout, 6, rng=5)
+    gains, grads = channel_gain_gradients(layout, points)
+    pilots = layout.pilot_amplitudes[:, None]
+    expected = np.concatenate([gains, grads[:, :, 0], grads[:, :, 1]], axis=1) * pilots / 2e-5
+    np.testing.assert_allclose(kernel.stacked(points, with_gradients=True), expected,
+                               rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(kernel.stacked(points, with_gradients=False),
+                               expected[:, :6], rtol=1e-10, atol=1e-12)

@@ -63,15 +63,26 @@ class ChannelKernel:
         cos_fov = math.cos(math.radians(layout.receiver.fov_deg))
         self.max_d2 = self.dz2 / max(cos_fov, 1e-300) ** 2 * (1.0 + 1e-12)
         self.bounds = np.array([layout.room.length, layout.room.width])
+        # Column vectors (M, 1) for broadcasting against (M, P) in the hot path.
+        self._led_x = self.led_xy[:, :1]
+        self._led_y = self.led_xy[:, 1:]
+        self._dz2 = self.dz2[:, None]
+        self._factor = self.factor[:, None]
+        self._minus_half_exponent = -self.half_exponent[:, None]
+        self._minus_twice_half_exponent = -2.0 * self.half_exponent[:, None]
+        self._max_d2 = self.max_d2[:, None]
 
-    def gains(self, points: FloatArray) -> tuple[FloatArray, FloatArray]:
-        """Gains of shape (M, P) and gradients of shape (M, P, 2) at points (P, 2)."""
-        offsets = points[None, :, :] - self.led_xy[:, None, :]
-        d2 = offsets[..., 0] ** 2 + offsets[..., 1] ** 2 + self.dz2[:, None]
-        gains = self.factor[:, None] * d2 ** -self.half_exponent[:, None]
-        gains = np.where(d2 <= self.max_d2[:, None], gains, 0.0)
-        slope = -2.0 * self.half_exponent[:, None] * gains / d2
-        return gains, slope[:, :, None] * offsets
+    def stacked(self, points: FloatArray, with_gradients: bool) -> FloatArray:
+        """Columns ``[g | dg/dx | dg/dy]`` of shape (M, 3P), or ``g`` alone (M, P)."""
+        dx = points[:, 0] - self._led_x
+        dy = points[:, 1] - self._led_y
+        d2 = dx * dx + dy * dy + self._dz2
+        gains = self._factor * d2 ** self._minus_half_exponent
+        gains *= d2 <= self._max_d2
+        if not with_gradients:
+            return np.asarray(gains)
+        slope = self._minus_twice_half_exponent * gains / d2
+        return np.concatenate([gains, slope * dx, slope * dy], axis=1)
 
 
 @dataclass
@@ -125,7 +136,7 @@ class Whitening:
     def from_state(cls, model: Model, kernel: ChannelKernel, state: FitState,
                    n_terminals: float) -> Whitening:
         """Plug-in whitening from the current fit (sigma^2 = s / K)."""
-        gains, _ = kernel.gains(state.positions)
+        gains = kernel.stacked(state.positions, with_gradients=False)
         # Floor sigma^2 at a fraction of the mean received power per LED and terminal: a
         # near-zero noise estimate would make the metric singular off the fitted signal.
         power = float(np.sum(gains**2 * state.weights)) / (kernel.n_leds * max(n_terminals, 1.0))
@@ -175,15 +186,11 @@ def residual_and_jacobian(
         Derivative of the *model* term ``c * mu`` (so a Gauss-Newton step solves
         ``J delta = residual``).
     """
-    gains, grads = kernel.gains(state.positions)
-    k = gains.shape[1]
+    k = state.positions.shape[0]
     w = state.weights
     c = white.weights
-    if want_jacobian:
-        # One rotation for gains and both gradient components: columns [g | dg/dx | dg/dy].
-        stacked = white.rotate(np.concatenate([gains, grads[:, :, 0], grads[:, :, 1]], axis=1))
-    else:
-        stacked = white.rotate(gains)
+    # One rotation for gains and both gradient components: columns [g | dg/dx | dg/dy].
+    stacked = white.rotate(kernel.stacked(state.positions, want_jacobian))
     left = stacked[white.upper]
     right = stacked[white.lower]
     atoms = left[:, :k] * right[:, :k]  # (L, K)

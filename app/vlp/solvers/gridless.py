@@ -252,8 +252,7 @@ class GridlessSolver(Solver):
         return float(residual @ residual)
 
     def _atom_energy(self, position: FloatArray) -> float:
-        gains, _ = self._kernel.gains(position[None, :])
-        g2 = gains[:, 0] ** 2
+        g2 = self._kernel.stacked(position[None, :], with_gradients=False)[:, 0] ** 2
         if self.model == "power":
             return float(g2 @ g2)
         return float(0.5 * (g2.sum() ** 2 + g2 @ g2))
