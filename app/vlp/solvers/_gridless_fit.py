@@ -34,8 +34,12 @@ _SIGMA2_FLOOR = 1e-12
 _SIGMA2_REL_FLOOR = 1e-4
 # Damping increases tried per LM iteration before the point is taken as a local minimum.
 _MAX_REJECTIONS = 12
-# Initial Marquardt damping (updated by Nielsen's rule).
+# Marquardt damping: start, and the factors after a rejected / accepted step. Nielsen's
+# adaptive update needs a third fewer evaluations but lands in worse local minima on
+# irregular rooms (measured: 12-LED irregular room, 40 dB, K=4 1.52 -> 3.79 cm).
 _INITIAL_DAMPING = 1e-3
+_DAMPING_UP = 4.0
+_DAMPING_DOWN = 5.0
 
 
 class ChannelKernel:
@@ -236,7 +240,6 @@ def levenberg_marquardt(
     residual, jac = residual_and_jacobian(kernel, white, data, state, free_weights)
     cost = float(residual @ residual)
     damping = _INITIAL_DAMPING
-    growth = 2.0
     used = 0
     theta = _pack(state, free_weights)
     n_pos = state.positions.size
@@ -264,21 +267,16 @@ def levenberg_marquardt(
             trial_cost = float(trial_res @ trial_res)
             if trial_cost < cost:
                 converged = converged or (cost - trial_cost) < tol * cost
-                cost_before = cost
                 state, cost = trial, trial_cost
                 if not converged:
                     residual, jac = residual_and_jacobian(kernel, white, data, state,
                                                           free_weights)
                 theta = _pack(state, free_weights)
-                # Nielsen's update: shrink the damping by how well the model predicted.
-                ratio = (cost_before - trial_cost) / max(predicted, 1e-300)
-                damping = max(damping * max(1.0 / 3.0, 1.0 - (2.0 * ratio - 1.0) ** 3), 1e-9)
-                growth = 2.0
+                damping = max(damping / _DAMPING_DOWN, 1e-9)
                 break
             if converged:
                 break
-            damping *= growth
-            growth *= 2.0
+            damping *= _DAMPING_UP
         else:
             converged = True  # no decrease found along any damping: a local minimum
     return state, cost, used
