@@ -203,9 +203,12 @@ def residual_and_jacobian(
         return residual, None
     n_rows = len(c)
     jac = np.empty((n_rows, 2 * k + (k if free_weights else 0) + 1))
-    for axis in range(2):
-        cols = slice((axis + 1) * k, (axis + 2) * k)
-        jac[:, axis:2 * k:2] = w * (left[:, :k] * right[:, cols] + left[:, cols] * right[:, :k])
+    # d(g_a g_b)/dp = g_a dg_b + dg_a g_b for both axes at once, as (L, axis, K); the
+    # columns are ordered (x_1, y_1, x_2, y_2, ...).
+    d_left = left[:, k:].reshape(n_rows, 2, k)
+    d_right = right[:, k:].reshape(n_rows, 2, k)
+    both = w * (left[:, None, :k] * d_right + d_left * right[:, None, :k])
+    jac[:, :2 * k] = both.transpose(0, 2, 1).reshape(n_rows, 2 * k)
     if free_weights:
         jac[:, 2 * k:3 * k] = atoms
     jac[:, -1] = white.is_diag

@@ -225,8 +225,11 @@ class GridlessSolver(Solver):
 
     def _refine(self, run: _Run, state: FitState, max_iter: int, rounds: int) -> FitState:
         """LM rounds, each whitened by the covariance plugged in from the previous one."""
-        for _ in range(max(rounds, 1)):
+        for round_index in range(max(rounds, 1)):
+            before = run.iterations
             state, _ = self._fit(run, self._whitening(state), state, max_iter)
+            if round_index > 0 and run.iterations - before <= 2:
+                break  # the re-whitened metric no longer moves the fit
         return state
 
     def _insert(self, run: _Run, state: FitState, white: Whitening,
