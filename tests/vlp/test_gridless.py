@@ -11,7 +11,7 @@ from scipy.optimize import linear_sum_assignment
 from app.vlp import fingerprints
 from app.vlp.channel import channel_gain_gradients
 from app.vlp.fingerprints import Fingerprint, build_fingerprint
-from app.vlp.layout import Layout
+from app.vlp.layout import Grid, Layout, Led, Receiver, Room
 from app.vlp.measurements import Measurement, Model, measurement_from_amplitudes
 from app.vlp.simulation import noise_std_for_snr, noisy_amplitudes, random_positions
 from app.vlp.solvers import make_solver, solver_names
@@ -156,3 +156,22 @@ def test_fast_kernel_matches_the_channel_model(paper_room: Layout, mixed_room: L
                                rtol=1e-10, atol=1e-12)
     np.testing.assert_allclose(kernel.stacked(points, with_gradients=False),
                                expected[:, :6], rtol=1e-10, atol=1e-12)
+
+
+@pytest.mark.slow
+def test_large_sparse_hall(rng: np.random.Generator) -> None:
+    # 30 m x 30 m, 0.1 m grid (90 000 points), 64 LEDs: above the dense limit, so only the
+    # sparse H and the matrix-free Psi adjoint are used.
+    spacing = 30.0 / 8
+    leds = tuple(Led(spacing * (i + 0.5), spacing * (j + 0.5), 3.0)
+                 for i in range(8) for j in range(8))
+    hall = Layout(Room(30.0, 30.0, 3.0), Grid(0.1, 0.85), leds, Receiver(1e-4, 70.0, 1.0, 1.5))
+    fp = build_fingerprint(hall)
+    assert not fp.is_dense
+    solver = GridlessSolver(fp, "correlation")
+    truth = np.array([[4.03, 5.51], [20.77, 11.32], [12.18, 26.64]])
+    meas = simulate(hall, fp, truth, 30.0, "correlation", rng)
+    assert matched_error(truth, solver.solve(meas, 3).positions) < 0.05
+    counted = solver.solve(meas)
+    assert counted.n_targets == 3
+    assert matched_error(truth, counted.positions) < 0.05
