@@ -21,7 +21,7 @@ import sys
 import time
 import zlib
 from collections.abc import Callable, Iterator, Sequence
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, replace
 from functools import cache
 from pathlib import Path
@@ -209,16 +209,31 @@ def _chunks(cases: Sequence[Case], size: int) -> list[tuple[Case, range]]:
     return sorted(work, key=lambda item: -item[0].n_targets)
 
 
+def _progress(done: int, total: int, started: float) -> None:
+    if done == total or done % max(1, total // 10) == 0:
+        print(
+            f"  {done}/{total} chunks, {time.perf_counter() - started:.0f} s",
+            file=sys.stderr,
+            flush=True,
+        )
+
+
 def run_cases(cases: Sequence[Case], solver_names: Sequence[str], *, jobs: int = 1) -> list[Row]:
     """Run every trial of every case; rows sorted by (room, SNR, K, trial, method, model)."""
     names = tuple(solver_names)
     work = _chunks(cases, 10)
+    rows: list[Row] = []
+    started = time.perf_counter()
     if jobs <= 1:
-        rows = [row for case, trials in work for row in _run_chunk(case, trials, names)]
+        for done, (case, trials) in enumerate(work, 1):
+            rows += _run_chunk(case, trials, names)
+            _progress(done, len(work), started)
     else:
         with ProcessPoolExecutor(max_workers=jobs) as pool:
             futures = [pool.submit(_run_chunk, case, trials, names) for case, trials in work]
-            rows = [row for future in futures for row in future.result()]
+            for done, future in enumerate(as_completed(futures), 1):
+                rows += future.result()
+                _progress(done, len(work), started)
     return sorted(rows, key=lambda r: (r.room, r.snr_db, r.n_targets, r.trial, r.method, r.model))
 
 
