@@ -175,3 +175,13 @@ def test_large_sparse_hall(rng: np.random.Generator) -> None:
     counted = solver.solve(meas)
     assert counted.n_targets == 3
     assert matched_error(truth, counted.positions) < 0.05
+
+
+def test_noise_only_still_answers_one_estimate(paper_fingerprint: Fingerprint,
+                                               paper_solver: GridlessSolver,
+                                               rng: np.random.Generator) -> None:
+    sigma = noise_std_for_snr(paper_fingerprint, 30.0)
+    meas = measurement_from_amplitudes(sigma * rng.standard_normal((3, 16)), "correlation", 16)
+    sol = paper_solver.solve(meas)
+    assert sol.n_targets == 1
+    assert np.all(np.isfinite(sol.positions))

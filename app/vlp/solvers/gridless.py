@@ -296,6 +296,9 @@ class GridlessSolver(Solver):
                 best, best_cost = state, state_cost
             elif extra > opts.count_lookahead:
                 break
+        if best.positions.shape[0] == 0:
+            # Nothing brings its own energy (noise only): still answer one best guess.
+            best = self._grow(run, best)
         return best
 
     def _relocate(self, run: _Run, state: FitState) -> tuple[FitState, bool]:
