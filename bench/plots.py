@@ -18,6 +18,8 @@ from scipy.optimize import linear_sum_assignment
 from app.vlp._typing import FloatArray
 from app.vlp.layout import Layout
 
+from .rooms import make_room
+
 if TYPE_CHECKING:
     from .accuracy import Summary
 
@@ -110,6 +112,9 @@ def fig4(summary: Sequence[Summary], room: str, path: Path) -> Path:
     methods = sorted({(s.method, s.model) for s in rows}, key=lambda m: (m[0] == "rss", m[0], m[1]))
     solvers = sorted({m for m, _ in methods if m != "rss"})
     colours = {name: plt.get_cmap("tab10")(i) for i, name in enumerate(solvers)}
+    n_leds = make_room(room).n_leds
+    # Measured values per model; the CRLB is drawn only where 2K + 1 unknowns fit in them.
+    n_values = {"power": n_leds, "correlation": n_leds * (n_leds + 1) // 2}
     fig, axes = plt.subplots(1, len(snrs), figsize=(5.6 * len(snrs), 4.6), squeeze=False)
     for ax, snr in zip(axes[0], snrs, strict=True):
         cell = sorted((s for s in rows if s.snr_db == snr), key=lambda s: s.n_targets)
@@ -129,7 +134,8 @@ def fig4(summary: Sequence[Summary], room: str, path: Path) -> Path:
             line = [s for s in cell if s.method == "rss" or s.model == model]
 
             def crlb_of(s: Summary, model: str = model) -> float:
-                return s.crlb_m if s.model == model else float("nan")
+                identifiable = 2 * s.n_targets + 1 <= n_values[model]
+                return s.crlb_m if s.model == model and identifiable else float("nan")
 
             bound = _per_k(line, crlb_of)
             if bound:

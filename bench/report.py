@@ -9,6 +9,7 @@ from typing import TYPE_CHECKING
 
 from ._common import machine_markdown, replace_section
 from .plots import method_label
+from .rooms import make_room
 
 if TYPE_CHECKING:
     from .accuracy import Case, Summary
@@ -30,6 +31,13 @@ def _cm(value: float) -> str:
     if math.isinf(value):
         return "∞"
     return "–" if math.isnan(value) else f"{100 * value:.2f}"
+
+
+def _bound(value: float, n_values: int, n_targets: int) -> str:
+    """A CRLB cell: "∞" when 2K positions + the noise power outnumber the measured values."""
+    if 2 * n_targets + 1 > n_values:
+        return "∞ (2K+1 > values)"
+    return _cm(value)
 
 
 def issue_target_rows(
@@ -85,10 +93,11 @@ def _table(summary: Sequence[Summary], room: str, snr: float) -> str:
             cols.append(f"{_cm(s.mean_error_m)} ({_cm(s.median_error_m)}){fail}")
         any_row = next(iter(by.values()))
         bound = {s.model: s.crlb_m for s in by.values()}
+        n_leds = make_room(room).n_leds
         cols += [
             _cm(any_row.grid_floor_m),
-            _cm(bound.get("power", math.nan)),
-            _cm(bound.get("correlation", math.nan)),
+            _bound(bound.get("power", math.nan), n_leds, k),
+            _bound(bound.get("correlation", math.nan), n_leds * (n_leds + 1) // 2, k),
             _cm(any_row.crlb_single_m),
         ]
         lines.append("| " + " | ".join(cols) + " |")
@@ -114,7 +123,7 @@ def write_accuracy_md(
     parts = [
         "## Results (generated)",
         "",
-        f"Command (repository root): `python -m bench.accuracy {' '.join(argv)}`".rstrip() + "",
+        f"Command (repository root): `{' '.join(['python -m bench.accuracy', *argv])}`",
         f"Wall time {elapsed_s:.0f} s. Solvers: {', '.join(solvers)} (default `{default}`).",
         "",
         machine_markdown(machine),
@@ -124,6 +133,9 @@ def write_accuracy_md(
         "their nearest grid centre. CRLB CSM / CoCSM: median over trials of the aggregated",
         "bound (RMS per target) of that measurement model; CRLB 1 target: median of the",
         "single-target bound averaged over the targets (RSS-like, one terminal alone).",
+        "The bounds are on the RMS error of an unbiased estimator, so a biased estimator's",
+        "MEAN error can sit slightly below them. CSM has M values for 2K + 1 unknowns",
+        "(positions and noise power): from K = M/2 on its bound is infinite.",
         "",
         f"### Issue targets (paper room, 30 dB, CoCSM-VLP, `{default}`)",
         "",
