@@ -145,6 +145,14 @@ def fig4(summary: Sequence[Summary], room: str, path: Path) -> Path:
                     color=shade,
                     label=f"CRLB, {MODEL_LABELS[model]} (median)",
                 )
+        single = _per_k(cell, lambda s: s.crlb_single_m)
+        ax.plot(
+            *zip(*single, strict=True),
+            (0, (1, 3)),
+            color="k",
+            lw=1.2,
+            label="CRLB, one terminal alone (median)",
+        )
         floor = _per_k(cell, lambda s: s.grid_floor_m)
         ax.plot(
             *zip(*floor, strict=True), ":", color="tab:gray", lw=2, label="grid quantisation floor"
