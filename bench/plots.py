@@ -148,7 +148,7 @@ def fig4(summary: Sequence[Summary], room: str, path: Path) -> Path:
         single = _per_k(cell, lambda s: s.crlb_single_m)
         ax.plot(
             *zip(*single, strict=True),
-            (0, (1, 3)),
+            linestyle=(0, (1, 3)),
             color="k",
             lw=1.2,
             label="CRLB, one terminal alone (median)",
