@@ -21,7 +21,7 @@ from app.vlp.layout import Layout
 from .rooms import make_room
 
 if TYPE_CHECKING:
-    from .accuracy import Summary
+    from .results import Summary
 
 __all__ = ["MODEL_LABELS", "fig3", "fig4", "fig4_all", "method_label"]
 

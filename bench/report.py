@@ -12,7 +12,8 @@ from .plots import method_label
 from .rooms import make_room
 
 if TYPE_CHECKING:
-    from .accuracy import Case, Summary
+    from .accuracy import Case
+    from .results import Summary
 
 __all__ = ["GRID_FLOOR_FACTOR", "ISSUE_TARGETS_CM", "issue_target_rows", "write_accuracy_md"]
 
