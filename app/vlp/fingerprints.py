@@ -12,11 +12,12 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import TypeVar, cast
 
 import numpy as np
 import scipy.sparse as sp
 
-from ._typing import FloatArray
+from ._typing import FloatArray, IntArray
 from .channel import channel_gains
 from .errors import ProblemSizeError
 from .layout import Layout
@@ -36,6 +37,7 @@ DENSE_GAINS_LIMIT = 4_000_000
 PSI_DENSE_LIMIT = 20_000_000
 
 ProgressCallback = Callable[[float], None]
+_T = TypeVar("_T")
 
 
 @dataclass(eq=False)
@@ -134,10 +136,10 @@ class Fingerprint:
                 field=name,
             )
 
-    def _cached(self, key: str, make: Callable[[], object]) -> object:  # type: ignore[misc]
+    def _cached(self, key: str, make: Callable[[], _T]) -> _T:
         if key not in self._cache:
             self._cache[key] = make()
-        return self._cache[key]  # type: ignore[return-value]
+        return cast(_T, self._cache[key])
 
 
 def build_fingerprint(
@@ -200,7 +202,7 @@ def build_fingerprint(
     return Fingerprint(layout=layout, gains=matrix)
 
 
-def _cell_range(centre: float, radius: float, step: float, count: int) -> FloatArray:
+def _cell_range(centre: float, radius: float, step: float, count: int) -> IntArray:
     low = max(0, math.floor((centre - radius) / step))
     high = min(count, math.ceil((centre + radius) / step) + 1)
     return np.arange(low, high, dtype=np.int64)

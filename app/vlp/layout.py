@@ -294,7 +294,7 @@ def layout_from_mapping(data: Mapping[str, Any]) -> Layout:
             Led(
                 x=float(led["x"]),
                 y=float(led["y"]),
-                z=float(led.get("z") if led.get("z") is not None else room.height),
+                z=float(room.height if led.get("z") is None else led["z"]),
                 half_power_angle_deg=float(
                     led.get("half_power_angle_deg", DEFAULT_HALF_POWER_ANGLE_DEG)
                 ),

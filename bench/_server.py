@@ -1,0 +1,87 @@
+"""Run a real ``vlp serve`` process on a free loopback port (benchmarks and end-to-end tests)."""
+
+from __future__ import annotations
+
+import os
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+
+import httpx
+
+ADMIN_KEY = "e2e-admin-key-0123456789"
+TERMINAL_KEY = "e2e-terminal-key-0123456789"
+
+
+@dataclass(frozen=True)
+class LiveServer:
+    """A running server: its base URL, data directory and process."""
+
+    url: str
+    data_dir: Path
+    process: subprocess.Popen[bytes]
+
+
+def free_port() -> int:
+    """A TCP port on 127.0.0.1 that is free right now."""
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])
+
+
+def server_env(data_dir: Path, **extra: str) -> dict[str, str]:
+    """Environment for a server process with known keys and one-thread BLAS."""
+    env = dict(os.environ)
+    env.update(
+        VLP_DATA_DIR=str(data_dir),
+        VLP_ADMIN_KEYS=ADMIN_KEY,
+        VLP_TERMINAL_KEYS=TERMINAL_KEY,
+        OPENBLAS_NUM_THREADS="1",
+        OMP_NUM_THREADS="1",
+    )
+    env.update(extra)
+    return env
+
+
+def wait_until_healthy(url: str, process: subprocess.Popen[bytes], timeout_s: float) -> None:
+    """Poll ``/readyz`` until it answers 200; fail if the process exits first."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if process.poll() is not None:
+            raise RuntimeError(f"server exited early with code {process.returncode}")
+        try:
+            if httpx.get(f"{url}/readyz", timeout=1.0).status_code == 200:
+                return
+        except httpx.HTTPError:
+            pass
+        time.sleep(0.1)
+    raise TimeoutError(f"server at {url} not ready after {timeout_s} s")
+
+
+@contextmanager
+def live_server(data_dir: Path, *, timeout_s: float = 60.0, **env: str) -> Iterator[LiveServer]:
+    """Start ``vlp serve`` on a free port; stop it (SIGTERM, then SIGKILL) on exit."""
+    port = free_port()
+    url = f"http://127.0.0.1:{port}"
+    vlp = Path(sys.executable).with_name("vlp")
+    process = subprocess.Popen(
+        [str(vlp), "serve", "--host", "127.0.0.1", "--port", str(port)],
+        env=server_env(data_dir, **env),
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    try:
+        wait_until_healthy(url, process, timeout_s)
+        yield LiveServer(url=url, data_dir=data_dir, process=process)
+    finally:
+        process.terminate()
+        try:
+            process.wait(timeout=15)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            process.wait()
