@@ -82,7 +82,8 @@ def localization_png(
     if labels is not None and len(labels) != est.shape[0]:
         raise MeasurementError(
             f"labels must have one entry per estimate ({est.shape[0]}), got {len(labels)}",
-            field="labels")
+            field="labels",
+        )
     figure = new_figure(layout, width_px)
     axes = figure.add_subplot()
     draw_grid(axes, layout, color="0.8")
@@ -91,20 +92,39 @@ def localization_png(
     if true is not None and est.size and true.size:
         rows, cols = match_estimates(est, true)
         for r, c in zip(rows, cols, strict=True):
-            axes.plot([est[r, 0], true[c, 0]], [est[r, 1], true[c, 1]], color="0.3",
-                      linewidth=0.9, zorder=6)
+            axes.plot(
+                [est[r, 0], true[c, 0]],
+                [est[r, 1], true[c, 1]],
+                color="0.3",
+                linewidth=0.9,
+                zorder=6,
+            )
         axes.plot([], [], color="0.3", linewidth=0.9, label="matched pair")
         errors_m = np.linalg.norm(est[rows] - true[cols], axis=1)
     if true is not None:
         axes.scatter(true[:, 0], true[:, 1], s=30, c="red", zorder=7, label="true position")
-    axes.scatter(est[:, 0], est[:, 1], s=70, marker="x", c="tab:blue", linewidths=1.8,
-                 zorder=8, label="estimate")
+    axes.scatter(
+        est[:, 0],
+        est[:, 1],
+        s=70,
+        marker="x",
+        c="tab:blue",
+        linewidths=1.8,
+        zorder=8,
+        label="estimate",
+    )
     if labels is not None:
         offset = 0.015 * max(layout.room.length, layout.room.width)
         for (x, y), label in zip(est, labels, strict=True):
             if label:
-                axes.annotate(str(label), (x + offset, y - offset), fontsize="x-small",
-                              color="tab:blue", zorder=9, va="top")
+                axes.annotate(
+                    str(label),
+                    (x + offset, y - offset),
+                    fontsize="x-small",
+                    color="tab:blue",
+                    zorder=9,
+                    va="top",
+                )
     draw_room(axes, layout, title or _default_title(layout, est, true, errors_m))
     figure.legend(loc="outside lower center", ncols=4, fontsize="small", frameon=False)
     return png_bytes(figure)

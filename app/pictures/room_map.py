@@ -101,15 +101,19 @@ def room_map_png(
     if heatmap == "coverage":
         _draw_coverage(axes, layout, samples, below=below)
     elif heatmap == "crlb":
-        sigma = noise_std if noise_std is not None else noise_std_on_samples(
-            layout, samples.points, snr_db)
+        sigma = (
+            noise_std
+            if noise_std is not None
+            else noise_std_on_samples(layout, samples.points, snr_db)
+        )
         bound_m = (crlb_map or amplitude_crlb_m)(layout, samples.points, sigma)
         label = f"{snr_db:g} dB SNR" if noise_std is None else f"σ = {noise_std:.3g}"
         _draw_crlb(axes, samples, 100.0 * np.asarray(bound_m), label, below=below)
     has_grid = draw_grid(axes, layout, color="0.55" if heatmap == "none" else "white")
     has_footprints = draw_leds(axes, layout, footprints=True, labels=True)
-    draw_room(axes, layout,
-              title or _default_title(layout, heatmap, samples, has_grid, has_footprints))
+    draw_room(
+        axes, layout, title or _default_title(layout, heatmap, samples, has_grid, has_footprints)
+    )
     figure.legend(loc="outside lower center", ncols=4, fontsize="small", frameon=False)
     return png_bytes(figure)
 
@@ -119,8 +123,10 @@ def _default_title(
 ) -> str:
     room = layout.room
     name = layout.name or "Room"
-    text = (f"{name}: {room.length:g} × {room.width:g} × {room.height:g} m, "
-            f"{layout.n_leds} LEDs, {layout.n_cells:,} grid points ({layout.grid.step:g} m)")
+    text = (
+        f"{name}: {room.length:g} × {room.width:g} × {room.height:g} m, "
+        f"{layout.n_leds} LEDs, {layout.n_cells:,} grid points ({layout.grid.step:g} m)"
+    )
     notes = []
     if not has_grid:
         notes.append("grid not drawn")
@@ -135,8 +141,14 @@ def _default_title(
 def _colorbar(axes: Axes, mesh: QuadMesh, label: str, *, below: bool, extend: str) -> Colorbar:
     figure = axes.get_figure()
     assert isinstance(figure, Figure)
-    bar = figure.colorbar(mesh, ax=axes, location="bottom" if below else "right", shrink=0.9,
-                          aspect=40 if below else 20, extend=extend)
+    bar = figure.colorbar(
+        mesh,
+        ax=axes,
+        location="bottom" if below else "right",
+        shrink=0.9,
+        aspect=40 if below else 20,
+        extend=extend,
+    )
     bar.set_label(label)
     return bar
 
@@ -149,10 +161,19 @@ def _draw_coverage(axes: Axes, layout: Layout, samples: SampleGrid, *, below: bo
         norm: Normalize = BoundaryNorm(np.arange(-0.5, top + 1.5), cmap.N)
     else:
         cmap, norm = colormaps["viridis"], Normalize(vmin=0.0, vmax=float(top))
-    mesh = axes.pcolormesh(samples.x_edges, samples.y_edges, counts, cmap=cmap, norm=norm,
-                           shading="flat", zorder=1, rasterized=True)
-    bar = _colorbar(axes, mesh, "LEDs in the receiver's field of view", below=below,
-                    extend="neither")
+    mesh = axes.pcolormesh(
+        samples.x_edges,
+        samples.y_edges,
+        counts,
+        cmap=cmap,
+        norm=norm,
+        shading="flat",
+        zorder=1,
+        rasterized=True,
+    )
+    bar = _colorbar(
+        axes, mesh, "LEDs in the receiver's field of view", below=below, extend="neither"
+    )
     bar.locator = MaxNLocator(integer=True, nbins=min(top + 1, 10))
     bar.update_ticks()
 
@@ -164,21 +185,40 @@ def _draw_crlb(
     cmap = colormaps["plasma_r"].with_extremes(bad="0.8")
     finite = bound_cm[np.isfinite(bound_cm)]
     if finite.size == 0:
-        axes.pcolormesh(samples.x_edges, samples.y_edges, values, cmap=cmap, shading="flat",
-                        zorder=1, rasterized=True)
+        axes.pcolormesh(
+            samples.x_edges,
+            samples.y_edges,
+            values,
+            cmap=cmap,
+            shading="flat",
+            zorder=1,
+            rasterized=True,
+        )
     else:
         low = float(finite.min())
         high = max(float(np.percentile(finite, 98)), low * 1.01)
-        mesh = axes.pcolormesh(samples.x_edges, samples.y_edges, values, cmap=cmap,
-                               norm=LogNorm(vmin=low, vmax=high), shading="flat", zorder=1,
-                               rasterized=True)
-        bar = _colorbar(axes, mesh, f"single-target CRLB (cm) at {label}", below=below,
-                        extend="max")
+        mesh = axes.pcolormesh(
+            samples.x_edges,
+            samples.y_edges,
+            values,
+            cmap=cmap,
+            norm=LogNorm(vmin=low, vmax=high),
+            shading="flat",
+            zorder=1,
+            rasterized=True,
+        )
+        bar = _colorbar(
+            axes, mesh, f"single-target CRLB (cm) at {label}", below=below, extend="max"
+        )
         axis = bar.ax.xaxis if below else bar.ax.yaxis
         axis.set_major_formatter(FormatStrFormatter("%g"))
         # Label the minor ticks too when the range is under a decade (else no major tick).
         if high < 10.0 * low:
             axis.set_minor_formatter(FormatStrFormatter("%g"))
     if finite.size < bound_cm.size:
-        axes.legend(handles=[Patch(facecolor="0.8", label="no fix (< 2 LEDs in view)")],
-                    loc="upper right", fontsize="x-small", framealpha=0.8)
+        axes.legend(
+            handles=[Patch(facecolor="0.8", label="no fix (< 2 LEDs in view)")],
+            loc="upper right",
+            fontsize="x-small",
+            framealpha=0.8,
+        )

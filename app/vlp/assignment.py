@@ -42,12 +42,14 @@ def assignment_costs(layout: Layout, positions: FloatArray, amplitudes: FloatArr
     points = np.asarray(positions, dtype=np.float64)
     amps = np.asarray(amplitudes, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] != 2:
-        raise MeasurementError(f"positions must have shape (K, 2), got {points.shape}",
-                               field="positions")
+        raise MeasurementError(
+            f"positions must have shape (K, 2), got {points.shape}", field="positions"
+        )
     if amps.ndim != 2 or amps.shape[1] != layout.n_leds:
         raise MeasurementError(
             f"amplitudes must have shape (K_t, {layout.n_leds}), got {amps.shape}",
-            field="terminals")
+            field="terminals",
+        )
     if not (np.all(np.isfinite(points)) and np.all(np.isfinite(amps))):
         raise MeasurementError("positions and amplitudes must be finite", field="terminals")
     predicted = (channel_gains(layout, points) * layout.pilot_amplitudes[:, None]).T  # (K, M)

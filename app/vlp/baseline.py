@@ -64,12 +64,13 @@ def rss_localize(layout: Layout, amplitudes: FloatArray) -> FloatArray:
         amps = amps[None, :]
     if amps.ndim != 2 or amps.shape[1] != layout.n_leds:
         raise MeasurementError(
-            f"amplitudes must have shape (K, {layout.n_leds}), got {amps.shape}",
-            field="amplitudes")
+            f"amplitudes must have shape (K, {layout.n_leds}), got {amps.shape}", field="amplitudes"
+        )
     if not np.all(np.isfinite(amps)):
         raise MeasurementError("amplitudes contain NaN or infinite values", field="amplitudes")
-    return np.array([_refine(layout, row, _trilaterate(layout, row)) for row in amps],
-                    dtype=np.float64).reshape(-1, 2)
+    return np.array(
+        [_refine(layout, row, _trilaterate(layout, row)) for row in amps], dtype=np.float64
+    ).reshape(-1, 2)
 
 
 def _trilaterate(layout: Layout, amplitudes: FloatArray) -> FloatArray:
@@ -107,9 +108,18 @@ def _refine(layout: Layout, amplitudes: FloatArray, start: FloatArray) -> FloatA
         return np.asarray(grads[:, 0, :] * pilots[:, None] / scale)
 
     upper = np.array([layout.room.length, layout.room.width])
-    fit = least_squares(residual, _interior(layout, start), jac=jacobian,
-                        bounds=(np.zeros(2), upper), method="trf", x_scale=layout.grid.step,
-                        xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=100)
+    fit = least_squares(
+        residual,
+        _interior(layout, start),
+        jac=jacobian,
+        bounds=(np.zeros(2), upper),
+        method="trf",
+        x_scale=layout.grid.step,
+        xtol=1e-12,
+        ftol=1e-12,
+        gtol=1e-12,
+        max_nfev=100,
+    )
     return _clip(layout, np.asarray(fit.x, dtype=np.float64))
 
 

@@ -91,15 +91,16 @@ class Survey:
         points = np.asarray(self.points, dtype=np.float64)
         if points.ndim != 2 or points.shape[1] != 2 or points.shape[0] < 1:
             raise MeasurementError(
-                f"points must have shape (S, 2) with S >= 1, got {points.shape}", field="points")
+                f"points must have shape (S, 2) with S >= 1, got {points.shape}", field="points"
+            )
         n_rows = points.shape[0]
         raw_indices = np.asarray(self.led_indices)
         amplitudes = np.asarray(self.amplitudes, dtype=np.float64)
         for name, array in (("led_indices", raw_indices), ("amplitudes", amplitudes)):
             if array.shape != (n_rows,):
                 raise MeasurementError(
-                    f"{name} must have shape ({n_rows},) like points, got {array.shape}",
-                    field=name)
+                    f"{name} must have shape ({n_rows},) like points, got {array.shape}", field=name
+                )
         _require_finite(points, "points")
         _require_finite(amplitudes, "amplitudes")
         object.__setattr__(self, "points", points)
@@ -184,9 +185,9 @@ def survey_from_rows(rows: FloatArray) -> Survey:
     if table.ndim != 2 or table.shape[1] != 4:
         raise MeasurementError(
             f"survey rows must have shape (S, 4): x, y, led index, amplitude; got {table.shape}",
-            field="rows")
-    return Survey(points=table[:, :2], led_indices=_as_indices(table[:, 2]),
-                  amplitudes=table[:, 3])
+            field="rows",
+        )
+    return Survey(points=table[:, :2], led_indices=_as_indices(table[:, 2]), amplitudes=table[:, 3])
 
 
 def simulate_survey(
@@ -213,9 +214,11 @@ def simulate_survey(
     clean = channel_gains(layout, pts) * layout.pilot_amplitudes[:, None]  # (M, P)
     noisy = clean + noise_std * as_generator(rng).standard_normal(clean.shape)
     n_leds = layout.n_leds
-    return Survey(points=np.repeat(pts, n_leds, axis=0),
-                  led_indices=np.tile(np.arange(n_leds, dtype=np.intp), pts.shape[0]),
-                  amplitudes=noisy.T.ravel())
+    return Survey(
+        points=np.repeat(pts, n_leds, axis=0),
+        led_indices=np.tile(np.arange(n_leds, dtype=np.intp), pts.shape[0]),
+        amplitudes=noisy.T.ravel(),
+    )
 
 
 def calibrate(
@@ -267,16 +270,17 @@ def calibrate(
     """
     if not 0.0 <= dead_below <= dimmed_below <= 1.0:
         raise MeasurementError(
-            f"need 0 <= dead_below <= dimmed_below <= 1, got {dead_below!r} and "
-            f"{dimmed_below!r}", field="dimmed_below")
+            f"need 0 <= dead_below <= dimmed_below <= 1, got {dead_below!r} and {dimmed_below!r}",
+            field="dimmed_below",
+        )
     _check_against_layout(layout, survey)
     n_leds = layout.n_leds
     orders_nominal, _ = led_constants(layout)
     nominal = layout.pilot_amplitudes
     ones = np.ones(n_leds)
     before = _rms_per_led(
-        survey, survey.amplitudes - _model_amplitudes(layout, survey, ones, orders_nominal),
-        n_leds)
+        survey, survey.amplitudes - _model_amplitudes(layout, survey, ones, orders_nominal), n_leds
+    )
     ratios, orders = ones.copy(), orders_nominal.copy()
     in_view = np.zeros(n_leds, dtype=np.intp)
     converged = True
@@ -293,18 +297,25 @@ def calibrate(
     noise_var = float(residuals @ residuals) / dof
     energy = np.bincount(survey.led_indices, weights=modelled**2, minlength=n_leds)
     detected = (energy > 0) & (energy > _DETECTION_SNR * noise_var)
-    gain, relative, dead, dimmed = _classify(ratios, in_view > 0, detected, dimmed_below,
-                                             dead_below)
+    gain, relative, dead, dimmed = _classify(
+        ratios, in_view > 0, detected, dimmed_below, dead_below
+    )
     orders = np.where(dead, orders_nominal, orders)
     return CalibrationResult(
-        pilot_amplitudes=np.where(dead, nominal, relative * nominal), lambertian_orders=orders,
-        half_power_angles_deg=half_power_angle_deg(orders), receiver_gain=gain,
-        relative_amplitudes=relative, residual_rms_before=before,
+        pilot_amplitudes=np.where(dead, nominal, relative * nominal),
+        lambertian_orders=orders,
+        half_power_angles_deg=half_power_angle_deg(orders),
+        receiver_gain=gain,
+        relative_amplitudes=relative,
+        residual_rms_before=before,
         residual_rms_after=_rms_per_led(survey, residuals, n_leds),
         noise_std=math.sqrt(noise_var),
         points_per_led=np.bincount(survey.led_indices, minlength=n_leds).astype(np.intp),
-        points_in_view=in_view, dead_leds=_indices(dead), dimmed_leds=_indices(dimmed),
-        unsurveyed_leds=_indices(in_view == 0), converged=converged,
+        points_in_view=in_view,
+        dead_leds=_indices(dead),
+        dimmed_leds=_indices(dimmed),
+        unsurveyed_leds=_indices(in_view == 0),
+        converged=converged,
     )
 
 
@@ -324,14 +335,20 @@ def calibrated_layout(layout: Layout, result: CalibrationResult) -> Layout:
     if result.pilot_amplitudes.shape != (layout.n_leds,):
         raise MeasurementError(
             f"calibration result has {result.pilot_amplitudes.shape[0]} LEDs, the layout "
-            f"{layout.n_leds}", field="result")
+            f"{layout.n_leds}",
+            field="result",
+        )
     leds = tuple(
-        replace(led, pilot_amplitude=float(result.pilot_amplitudes[i]),
-                half_power_angle_deg=float(result.half_power_angles_deg[i]))
+        replace(
+            led,
+            pilot_amplitude=float(result.pilot_amplitudes[i]),
+            half_power_angle_deg=float(result.half_power_angles_deg[i]),
+        )
         for i, led in enumerate(layout.leds)
     )
-    receiver = replace(layout.receiver,
-                       filter_gain=layout.receiver.filter_gain * result.receiver_gain)
+    receiver = replace(
+        layout.receiver, filter_gain=layout.receiver.filter_gain * result.receiver_gain
+    )
     return replace(layout, leds=leds, receiver=receiver)
 
 
@@ -348,7 +365,8 @@ def masked_layout(layout: Layout, dead_led_indices: tuple[int, ...] | list[int])
     for index in dead_led_indices:
         if not 0 <= int(index) < layout.n_leds:
             raise MeasurementError(
-                f"LED index {index} out of range [0, {layout.n_leds})", field="dead_leds")
+                f"LED index {index} out of range [0, {layout.n_leds})", field="dead_leds"
+            )
         drop.add(int(index))
     kept: tuple[Led, ...] = tuple(led for i, led in enumerate(layout.leds) if i not in drop)
     if not kept:
@@ -376,15 +394,18 @@ def _check_against_layout(layout: Layout, survey: Survey) -> None:
     if bad.size:
         raise MeasurementError(
             f"led_indices[{int(bad[0])}] = {int(survey.led_indices[bad[0]])} is not an LED "
-            f"index in [0, {layout.n_leds})", field="led_indices")
+            f"index in [0, {layout.n_leds})",
+            field="led_indices",
+        )
     x, y = survey.points[:, 0], survey.points[:, 1]
-    outside = np.flatnonzero((x < 0) | (x > layout.room.length) | (y < 0)
-                             | (y > layout.room.width))
+    outside = np.flatnonzero((x < 0) | (x > layout.room.length) | (y < 0) | (y > layout.room.width))
     if outside.size:
         k = int(outside[0])
         raise MeasurementError(
             f"points[{k}] = ({x[k]!r}, {y[k]!r}) m lies outside the room "
-            f"[0, {layout.room.length!r}] x [0, {layout.room.width!r}]", field="points")
+            f"[0, {layout.room.length!r}] x [0, {layout.room.width!r}]",
+            field="points",
+        )
 
 
 @dataclass(frozen=True)
@@ -397,8 +418,9 @@ class _LedRows:
     base: float  # x_i^nominal A G_f G_c / (2 pi)
 
     def model(self, ratio: float, order: float) -> FloatArray:
-        return np.asarray(ratio * self.base * (order + 1.0)
-                          * np.exp((order + 1.0) * self.log_cos) / self.dist_sq)
+        return np.asarray(
+            ratio * self.base * (order + 1.0) * np.exp((order + 1.0) * self.log_cos) / self.dist_sq
+        )
 
 
 def _led_rows(
@@ -428,8 +450,9 @@ def _model_amplitudes(
 
 def _fit_led(rows: _LedRows, nominal_order: float) -> tuple[float, float, bool]:
     """Least-squares ``(r_i, m_i)`` of one LED (``m_i`` nominal when too few rows)."""
-    scale = max(float(np.max(np.abs(rows.amplitudes))),
-                float(np.max(rows.model(1.0, nominal_order))))
+    scale = max(
+        float(np.max(np.abs(rows.amplitudes))), float(np.max(rows.model(1.0, nominal_order)))
+    )
     fit_order = rows.amplitudes.size >= _MIN_ROWS_FOR_ORDER
 
     def unpack(params: FloatArray) -> tuple[float, float]:
@@ -450,8 +473,18 @@ def _fit_led(rows: _LedRows, nominal_order: float) -> tuple[float, float, bool]:
     best = None
     for start in (s for s in starts if s is not None):
         x0 = np.clip(start[: lower.size], lower + 1e-12, upper - 1e-12)
-        sol = least_squares(residuals, x0, jac=jacobian, bounds=(lower, upper), method="trf",
-                            x_scale="jac", xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=500)
+        sol = least_squares(
+            residuals,
+            x0,
+            jac=jacobian,
+            bounds=(lower, upper),
+            method="trf",
+            x_scale="jac",
+            xtol=1e-12,
+            ftol=1e-12,
+            gtol=1e-12,
+            max_nfev=500,
+        )
         if best is None or sol.cost < best.cost:
             best = sol
     assert best is not None
@@ -474,7 +507,10 @@ def _log_linear_start(rows: _LedRows) -> FloatArray | None:
 
 
 def _classify(
-    ratios: FloatArray, surveyed: BoolArray, detected: BoolArray, dimmed_below: float,
+    ratios: FloatArray,
+    surveyed: BoolArray,
+    detected: BoolArray,
+    dimmed_below: float,
     dead_below: float,
 ) -> tuple[float, FloatArray, BoolArray, BoolArray]:
     """Common gain, relative amplitudes and the dead and dimmed masks."""

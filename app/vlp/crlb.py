@@ -21,23 +21,32 @@ from .errors import GeometryError, MeasurementError
 from .layout import Layout
 from .measurements import Model
 
-__all__ = ["AggregatedBound", "aggregated_correlation_covariance", "aggregated_crlb",
-           "single_target_crlb"]
+__all__ = [
+    "AggregatedBound",
+    "aggregated_correlation_covariance",
+    "aggregated_crlb",
+    "single_target_crlb",
+]
 
 
 def _check_noise(noise_std: float) -> None:
     if not (np.isfinite(noise_std) and noise_std > 0):
-        raise MeasurementError(f"noise_std must be positive and finite, got {noise_std!r}",
-                               field="noise_std")
+        raise MeasurementError(
+            f"noise_std must be positive and finite, got {noise_std!r}", field="noise_std"
+        )
 
 
 def _check_positions(layout: Layout, positions: FloatArray) -> FloatArray:
     pts = np.asarray(positions, dtype=np.float64)
     if pts.ndim != 2 or pts.shape[1] != 2 or pts.shape[0] < 1:
-        raise GeometryError(f"positions must have shape (K, 2) with K >= 1, got {pts.shape}",
-                            field="positions")
-    inside = (pts >= 0).all() and (pts[:, 0] <= layout.room.length).all() and \
-        (pts[:, 1] <= layout.room.width).all()
+        raise GeometryError(
+            f"positions must have shape (K, 2) with K >= 1, got {pts.shape}", field="positions"
+        )
+    inside = (
+        (pts >= 0).all()
+        and (pts[:, 0] <= layout.room.length).all()
+        and (pts[:, 1] <= layout.room.width).all()
+    )
     if not (np.isfinite(pts).all() and inside):
         raise GeometryError("positions must be finite and inside the room", field="positions")
     return pts
@@ -126,8 +135,9 @@ class AggregatedBound:
     covariance: FloatArray
 
 
-def aggregated_correlation_covariance(signal: FloatArray, noise_var: float,
-                                      n_targets: int) -> FloatArray:
+def aggregated_correlation_covariance(
+    signal: FloatArray, noise_var: float, n_targets: int
+) -> FloatArray:
     """Covariance of ``vech(R)`` for ``R = sum_k (g_k + n_k)(g_k + n_k)^T``.
 
     Parameters
@@ -155,16 +165,22 @@ def aggregated_correlation_covariance(signal: FloatArray, noise_var: float,
     m0 = signal + 0.5 * n_targets * noise_var * np.eye(n_leds)
     row, col = np.triu_indices(n_leds)  # entry (i, l) of R
     eye = np.eye(n_leds)
-    cov = (m0[row[:, None], row[None, :]] * eye[col[:, None], col[None, :]]
-           + m0[col[:, None], col[None, :]] * eye[row[:, None], row[None, :]]
-           + m0[row[:, None], col[None, :]] * eye[col[:, None], row[None, :]]
-           + m0[col[:, None], row[None, :]] * eye[row[:, None], col[None, :]])
+    cov = (
+        m0[row[:, None], row[None, :]] * eye[col[:, None], col[None, :]]
+        + m0[col[:, None], col[None, :]] * eye[row[:, None], row[None, :]]
+        + m0[row[:, None], col[None, :]] * eye[col[:, None], row[None, :]]
+        + m0[col[:, None], row[None, :]] * eye[row[:, None], col[None, :]]
+    )
     return np.asarray(noise_var * cov)
 
 
 def aggregated_crlb(
-    layout: Layout, positions: FloatArray, noise_std: float, model: Model = "correlation",
-    *, noise_power_known: bool = False,
+    layout: Layout,
+    positions: FloatArray,
+    noise_std: float,
+    model: Model = "correlation",
+    *,
+    noise_power_known: bool = False,
 ) -> AggregatedBound:
     """Bound of all 2K coordinates jointly from one aggregated measurement.
 
@@ -203,8 +219,9 @@ def aggregated_crlb(
     _check_noise(noise_std)
     pts = _check_positions(layout, positions)
     if model not in ("power", "correlation"):
-        raise MeasurementError(f"model must be 'power' or 'correlation', got {model!r}",
-                               field="model")
+        raise MeasurementError(
+            f"model must be 'power' or 'correlation', got {model!r}", field="model"
+        )
     n_targets = pts.shape[0]
     gains, grads = channel_gain_gradients(layout, pts)
     pilots = layout.pilot_amplitudes[:, None]
@@ -237,8 +254,7 @@ def aggregated_crlb(
         inverse = np.linalg.inv(fisher)
     except np.linalg.LinAlgError:
         inverse = np.full_like(fisher, np.inf)
-    coords = inverse[:2 * n_targets, :2 * n_targets]
+    coords = inverse[: 2 * n_targets, : 2 * n_targets]
     blocks = np.diag(coords).reshape(n_targets, 2).sum(axis=1)
     per_target = np.sqrt(np.where(blocks > 0, blocks, np.inf))
-    return AggregatedBound(per_target=per_target, mean=float(per_target.mean()),
-                           covariance=coords)
+    return AggregatedBound(per_target=per_target, mean=float(per_target.mean()), covariance=coords)

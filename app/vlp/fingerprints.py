@@ -82,8 +82,9 @@ class Fingerprint:
 
     def scaled_gains(self) -> sp.csr_array:
         """``G = diag(x) H``, sparse of shape (M, N)."""
-        return self._cached("G_sparse", lambda: sp.csr_array(
-            sp.diags_array(self.pilot_amplitudes) @ self.gains))
+        return self._cached(
+            "G_sparse", lambda: sp.csr_array(sp.diags_array(self.pilot_amplitudes) @ self.gains)
+        )
 
     def dense_scaled_gains(self) -> FloatArray:
         """``G`` as a dense ndarray of shape (M, N); refused above :data:`DENSE_GAINS_LIMIT`."""
@@ -176,8 +177,11 @@ def build_fingerprint(
             field="grid.step",
         )
     step, n_x, n_y = layout.grid.step, layout.n_x, layout.n_y
-    tan_fov = math.tan(math.radians(layout.receiver.fov_deg)) if layout.receiver.fov_deg < 90 \
+    tan_fov = (
+        math.tan(math.radians(layout.receiver.fov_deg))
+        if layout.receiver.fov_deg < 90
         else math.inf
+    )
     rows: list[FloatArray] = []
     cols: list[FloatArray] = []
     vals: list[FloatArray] = []

@@ -264,15 +264,28 @@ class Layout:
         """The layout as the JSON-like mapping of the public ``RoomLayout`` body."""
         return {
             "name": self.name,
-            "room": {"length": self.room.length, "width": self.room.width,
-                     "height": self.room.height},
+            "room": {
+                "length": self.room.length,
+                "width": self.room.width,
+                "height": self.room.height,
+            },
             "grid": {"step": self.grid.step, "receiver_height": self.grid.receiver_height},
-            "receiver": {"area": self.receiver.area, "fov_deg": self.receiver.fov_deg,
-                         "filter_gain": self.receiver.filter_gain,
-                         "refractive_index": self.receiver.refractive_index},
-            "leds": [{"x": led.x, "y": led.y, "z": led.z,
-                      "half_power_angle_deg": led.half_power_angle_deg,
-                      "pilot_amplitude": led.pilot_amplitude} for led in self.leds],
+            "receiver": {
+                "area": self.receiver.area,
+                "fov_deg": self.receiver.fov_deg,
+                "filter_gain": self.receiver.filter_gain,
+                "refractive_index": self.receiver.refractive_index,
+            },
+            "leds": [
+                {
+                    "x": led.x,
+                    "y": led.y,
+                    "z": led.z,
+                    "half_power_angle_deg": led.half_power_angle_deg,
+                    "pilot_amplitude": led.pilot_amplitude,
+                }
+                for led in self.leds
+            ],
         }
 
 
@@ -286,8 +299,9 @@ def layout_from_mapping(data: Mapping[str, Any]) -> Layout:
     """
     try:
         room = Room(**{k: float(data["room"][k]) for k in ("length", "width", "height")})
-        grid = Grid(step=float(data["grid"]["step"]),
-                    receiver_height=float(data["grid"]["receiver_height"]))
+        grid = Grid(
+            step=float(data["grid"]["step"]), receiver_height=float(data["grid"]["receiver_height"])
+        )
         receiver = Receiver(**{k: float(v) for k, v in dict(data.get("receiver") or {}).items()})
         leds_in: Sequence[Mapping[str, Any]] = data["leds"]
         leds = tuple(
@@ -304,5 +318,6 @@ def layout_from_mapping(data: Mapping[str, Any]) -> Layout:
         )
     except (KeyError, TypeError) as exc:
         raise GeometryError(f"incomplete layout: missing or invalid {exc}", field=None) from exc
-    return Layout(room=room, grid=grid, leds=leds, receiver=receiver,
-                  name=str(data.get("name", "")))
+    return Layout(
+        room=room, grid=grid, leds=leds, receiver=receiver, name=str(data.get("name", ""))
+    )

@@ -80,7 +80,9 @@ def unvech(values: FloatArray, n_leds: int) -> FloatArray:
     if values.shape != (vech_length(n_leds),):
         raise MeasurementError(
             f"expected {vech_length(n_leds)} upper-triangle entries for {n_leds} LEDs, "
-            f"got shape {values.shape}", field="correlation")
+            f"got shape {values.shape}",
+            field="correlation",
+        )
     upper = np.zeros((n_leds, n_leds))
     upper[np.triu_indices(n_leds)] = values
     return np.asarray(upper + np.triu(upper, 1).T)
@@ -121,10 +123,12 @@ def measurement_from_power(power: object, n_leds: int) -> Measurement:
     if values.shape != (n_leds,):
         raise MeasurementError(
             f"power must have {n_leds} entries (one per LED), got shape {values.shape}",
-            field="power")
+            field="power",
+        )
     if np.any(values < 0):
-        raise MeasurementError("power entries must be >= 0 (they are sums of squares)",
-                               field="power")
+        raise MeasurementError(
+            "power entries must be >= 0 (they are sums of squares)", field="power"
+        )
     if not np.any(values > 0):
         raise MeasurementError("power is all zero: no pilot was received", field="power")
     return Measurement(model="power", values=values, n_leds=n_leds)
@@ -141,13 +145,16 @@ def measurement_from_correlation(correlation: object, n_leds: int) -> Measuremen
     elif values.shape != (vech_length(n_leds),):
         raise MeasurementError(
             f"correlation must be a {n_leds} x {n_leds} matrix or its {vech_length(n_leds)} "
-            f"upper-triangle entries, got shape {values.shape}", field="correlation")
+            f"upper-triangle entries, got shape {values.shape}",
+            field="correlation",
+        )
     diagonal = values[_diagonal_positions(n_leds)]
     if np.any(diagonal < 0):
         raise MeasurementError("correlation diagonal entries must be >= 0", field="correlation")
     if not np.any(diagonal > 0):
-        raise MeasurementError("correlation is all zero on its diagonal: no pilot was received",
-                               field="correlation")
+        raise MeasurementError(
+            "correlation is all zero on its diagonal: no pilot was received", field="correlation"
+        )
     return Measurement(model="correlation", values=values, n_leds=n_leds)
 
 
@@ -157,7 +164,8 @@ def measurement_from_amplitudes(amplitudes: object, model: Model, n_leds: int) -
     if amps.ndim != 2 or amps.shape[1] != n_leds:
         raise MeasurementError(
             f"amplitudes must have {n_leds} entries per terminal, got shape {amps.shape}",
-            field="terminals")
+            field="terminals",
+        )
     if model == "power":
         return measurement_from_power(power_from_amplitudes(amps), n_leds)
     return measurement_from_correlation(vech(correlation_from_amplitudes(amps)), n_leds)

@@ -60,8 +60,7 @@ def match_positions(estimates: FloatArray, truth: FloatArray) -> tuple[IntArray,
     true = _as_points(truth, "truth")
     distances = np.linalg.norm(true[:, None, :] - est[None, :, :], axis=2)  # (K_true, K_est)
     truth_indices, estimate_indices = linear_sum_assignment(distances)
-    return (np.asarray(estimate_indices, dtype=np.intp),
-            np.asarray(truth_indices, dtype=np.intp))
+    return (np.asarray(estimate_indices, dtype=np.intp), np.asarray(truth_indices, dtype=np.intp))
 
 
 def matched_errors(estimates: FloatArray, truth: FloatArray) -> FloatArray:
@@ -121,8 +120,9 @@ def mean_position_error(estimates: FloatArray, truth: FloatArray) -> float:
     """
     errors = matched_errors(estimates, truth)
     if errors.size == 0:
-        raise MeasurementError("need at least one estimate and one true position",
-                               field="estimates")
+        raise MeasurementError(
+            "need at least one estimate and one true position", field="estimates"
+        )
     return float(np.mean(errors))
 
 

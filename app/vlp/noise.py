@@ -95,26 +95,35 @@ def receiver_noise_variance(
     """
     _positive(received_power_w, "received_power_w", allow_zero=True)
     _positive(background_current_a, "background_current_a", allow_zero=True)
-    for name, value in (("area_m2", area_m2), ("responsivity_a_per_w", responsivity_a_per_w),
-                        ("bandwidth_hz", bandwidth_hz), ("temperature_k", temperature_k),
-                        ("open_loop_gain", open_loop_gain), ("i2", i2), ("i3", i3),
-                        ("capacitance_pf_per_cm2", capacitance_pf_per_cm2),
-                        ("noise_factor", noise_factor),
-                        ("transconductance_s", transconductance_s)):
+    for name, value in (
+        ("area_m2", area_m2),
+        ("responsivity_a_per_w", responsivity_a_per_w),
+        ("bandwidth_hz", bandwidth_hz),
+        ("temperature_k", temperature_k),
+        ("open_loop_gain", open_loop_gain),
+        ("i2", i2),
+        ("i3", i3),
+        ("capacitance_pf_per_cm2", capacitance_pf_per_cm2),
+        ("noise_factor", noise_factor),
+        ("transconductance_s", transconductance_s),
+    ):
         _positive(value, name)
     q, b = ELEMENTARY_CHARGE, bandwidth_hz
-    shot = 2.0 * q * responsivity_a_per_w * received_power_w * b \
+    shot = (
+        2.0 * q * responsivity_a_per_w * received_power_w * b
         + 2.0 * q * background_current_a * i2 * b
+    )
     # eta * A in farads: pF/cm^2 times cm^2.
     eta_area_f = capacitance_pf_per_cm2 * 1e-12 * area_m2 * _CM2_PER_M2
     kt = BOLTZMANN * temperature_k
-    thermal = 8.0 * math.pi * kt / open_loop_gain * eta_area_f * i2 * b**2 \
+    thermal = (
+        8.0 * math.pi * kt / open_loop_gain * eta_area_f * i2 * b**2
         + 16.0 * math.pi**2 * kt * noise_factor / transconductance_s * eta_area_f**2 * i3 * b**3
+    )
     return float(shot + thermal)
 
 
-def received_power_w(layout: Layout, position: FloatArray, transmit_power_w: float = 1.0
-                     ) -> float:
+def received_power_w(layout: Layout, position: FloatArray, transmit_power_w: float = 1.0) -> float:
     """Optical pilot power reaching a receiver at ``position`` from all LEDs, W.
 
     ``transmit_power_w * sum_i h_i(p) x_i`` (see the module docstring for the units).
@@ -133,8 +142,12 @@ def received_power_w(layout: Layout, position: FloatArray, transmit_power_w: flo
 
 
 def amplitude_noise_std(
-    received_power: float, area_m2: float, *, transmit_power_w: float = 1.0,
-    responsivity_a_per_w: float = 0.53, **receiver: float,
+    received_power: float,
+    area_m2: float,
+    *,
+    transmit_power_w: float = 1.0,
+    responsivity_a_per_w: float = 0.53,
+    **receiver: float,
 ) -> float:
     """Standard deviation of one pilot amplitude's noise, amplitude units.
 
@@ -160,6 +173,7 @@ def amplitude_noise_std(
     '6.889e-07'
     """
     _positive(transmit_power_w, "transmit_power_w")
-    variance = receiver_noise_variance(received_power, area_m2,
-                                       responsivity_a_per_w=responsivity_a_per_w, **receiver)
+    variance = receiver_noise_variance(
+        received_power, area_m2, responsivity_a_per_w=responsivity_a_per_w, **receiver
+    )
     return float(math.sqrt(variance) / (responsivity_a_per_w * transmit_power_w))

@@ -51,21 +51,25 @@ class CorrelationOperator:
         residual = np.asarray(residual, dtype=np.float64)
         if residual.shape != (self.shape[0],):
             raise MeasurementError(
-                f"expected a vech of shape ({self.shape[0]},), got {residual.shape}")
+                f"expected a vech of shape ({self.shape[0]},), got {residual.shape}"
+            )
         half = np.zeros((self.n_leds, self.n_leds))
         half[self._upper] = residual
         symmetric = 0.5 * (half + half.T)  # diagonal kept whole, off-diagonals halved
         out = np.empty(self.n_cells)
         for start in range(0, self.n_cells, _ADJOINT_BLOCK_CELLS):
-            block = self._gains_t[start:start + _ADJOINT_BLOCK_CELLS]  # (b, M) sparse
+            block = self._gains_t[start : start + _ADJOINT_BLOCK_CELLS]  # (b, M) sparse
             projected = block @ symmetric  # (b, M) dense
-            out[start:start + block.shape[0]] = np.asarray(
-                block.multiply(projected).sum(axis=1)).ravel()
+            out[start : start + block.shape[0]] = np.asarray(
+                block.multiply(projected).sum(axis=1)
+            ).ravel()
         return out
 
 
 def dottest(
-    operator: CorrelationOperator, *, rng: np.random.Generator | int | None = None,
+    operator: CorrelationOperator,
+    *,
+    rng: np.random.Generator | int | None = None,
     rtol: float = 1e-10,
 ) -> bool:
     """Check ``<A u, v> == <u, A^T v>`` for random ``u``, ``v`` (PyLops' dot test)."""

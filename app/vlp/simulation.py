@@ -38,7 +38,11 @@ def noise_std_for_snr(fingerprint: Fingerprint, snr_db: float) -> float:
 
 
 def random_positions(
-    layout: Layout, n_targets: int, *, on_grid: bool = False, distinct_cells: bool = True,
+    layout: Layout,
+    n_targets: int,
+    *,
+    on_grid: bool = False,
+    distinct_cells: bool = True,
     rng: RandomState = None,
 ) -> FloatArray:
     """K target positions, uniformly random in the room (or at random distinct grid centres).
@@ -60,8 +64,9 @@ def random_positions(
     """
     gen = as_generator(rng)
     if n_targets < 1 or ((on_grid or distinct_cells) and n_targets > layout.n_cells):
-        raise SolverError(f"cannot place {n_targets} targets on {layout.n_cells} grid points",
-                          field="targets")
+        raise SolverError(
+            f"cannot place {n_targets} targets on {layout.n_cells} grid points", field="targets"
+        )
     if on_grid or distinct_cells:
         cells = gen.choice(layout.n_cells, size=n_targets, replace=False)
         centres = layout.cell_centres(cells)

@@ -55,8 +55,9 @@ def test_coverage_counts_match_the_fov_discs() -> None:
     heights = layout.led_positions[:, 2] - layout.grid.receiver_height
     radius = heights * math.tan(math.radians(layout.receiver.fov_deg))
     distance = np.linalg.norm(points[None, :, :] - layout.led_positions[:, None, :2], axis=2)
-    np.testing.assert_array_equal(coverage_counts(layout, points),
-                                  (distance <= radius[:, None]).sum(axis=0))
+    np.testing.assert_array_equal(
+        coverage_counts(layout, points), (distance <= radius[:, None]).sum(axis=0)
+    )
 
 
 def test_noise_on_the_full_grid_matches_the_service_convention(
@@ -65,7 +66,8 @@ def test_noise_on_the_full_grid_matches_the_service_convention(
     samples = sample_grid(paper_room)
     for snr_db in (20.0, 30.0):
         assert noise_std_on_samples(paper_room, samples.points, snr_db) == pytest.approx(
-            noise_std_for_snr(paper_fingerprint, snr_db), rel=1e-12)
+            noise_std_for_snr(paper_fingerprint, snr_db), rel=1e-12
+        )
 
 
 def _numeric_crlb(layout: Layout, point: FloatArray, noise_std: float) -> float:

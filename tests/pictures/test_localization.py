@@ -26,8 +26,11 @@ def _brute_force_cost(estimates: FloatArray, truth: FloatArray) -> float:
     return best
 
 
-@pytest.mark.parametrize(("n_est", "n_true"), [(5, 5), (3, 5), (5, 3)],
-                         ids=["square", "fewer-estimates", "more-estimates"])
+@pytest.mark.parametrize(
+    ("n_est", "n_true"),
+    [(5, 5), (3, 5), (5, 3)],
+    ids=["square", "fewer-estimates", "more-estimates"],
+)
 def test_matching_is_the_minimum_total_distance(n_est: int, n_true: int) -> None:
     rng = np.random.default_rng(n_est * 10 + n_true)
     estimates, truth = rng.uniform(0, 4, (n_est, 2)), rng.uniform(0, 4, (n_true, 2))
@@ -63,15 +66,20 @@ def test_empty_estimates_render(paper_room: Layout) -> None:
 
 @pytest.mark.parametrize(
     ("estimates", "truth", "labels", "field"),
-    [(np.zeros((3, 3)), None, None, "estimates"),
-     (np.array([[1.0, np.nan]]), None, None, "estimates"),
-     (np.zeros((2, 2)), np.zeros(2), None, "truth"),
-     (np.zeros((2, 2)), None, ["a"], "labels")],
+    [
+        (np.zeros((3, 3)), None, None, "estimates"),
+        (np.array([[1.0, np.nan]]), None, None, "estimates"),
+        (np.zeros((2, 2)), np.zeros(2), None, "truth"),
+        (np.zeros((2, 2)), None, ["a"], "labels"),
+    ],
     ids=["est-shape", "est-nan", "truth-shape", "labels-length"],
 )
 def test_bad_input_raises_with_field(
-    paper_room: Layout, estimates: FloatArray, truth: FloatArray | None,
-    labels: list[str] | None, field: str,
+    paper_room: Layout,
+    estimates: FloatArray,
+    truth: FloatArray | None,
+    labels: list[str] | None,
+    field: str,
 ) -> None:
     with pytest.raises(MeasurementError) as info:
         localization_png(paper_room, estimates, truth, labels=labels)

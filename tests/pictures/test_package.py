@@ -10,8 +10,13 @@ import app.pictures
 
 def test_public_names_are_pinned() -> None:
     assert sorted(app.pictures.__all__) == [
-        "CrlbMap", "HeatmapKind", "SampleGrid", "amplitude_crlb_m", "coverage_counts",
-        "localization_png", "room_map_png",
+        "CrlbMap",
+        "HeatmapKind",
+        "SampleGrid",
+        "amplitude_crlb_m",
+        "coverage_counts",
+        "localization_png",
+        "room_map_png",
     ]
 
 
@@ -25,6 +30,7 @@ def test_rendering_never_imports_pyplot() -> None:
         "localization_png(room, np.array([[1.0, 1.0]]), np.array([[1.1, 0.9]]), width_px=300)\n"
         "print('matplotlib.pyplot' in sys.modules)\n"
     )
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                         check=True, timeout=60)
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=60
+    )
     assert out.stdout.strip() == "False"

@@ -20,17 +20,15 @@ from .conftest import decode, png_size
 
 
 def _hall() -> Layout:
-    leds = tuple(Led(x, y, 3.0, 45.0 if (x + y) % 2 else 60.0)
-                 for x in (1.5, 5.0, 8.5) for y in (1.5, 4.5))
-    return Layout(Room(10.0, 6.0, 3.0), Grid(0.1, 0.85), leds, Receiver(fov_deg=50.0),
-                  name="Hall")
+    leds = tuple(
+        Led(x, y, 3.0, 45.0 if (x + y) % 2 else 60.0) for x in (1.5, 5.0, 8.5) for y in (1.5, 4.5)
+    )
+    return Layout(Room(10.0, 6.0, 3.0), Grid(0.1, 0.85), leds, Receiver(fov_deg=50.0), name="Hall")
 
 
 @pytest.mark.parametrize("heatmap", ["coverage", "crlb", "none"])
 @pytest.mark.parametrize("width_px", [400, 800])
-def test_png_is_valid_and_as_wide_as_asked(
-    paper_room: Layout, heatmap: str, width_px: int
-) -> None:
+def test_png_is_valid_and_as_wide_as_asked(paper_room: Layout, heatmap: str, width_px: int) -> None:
     png = room_map_png(paper_room, heatmap=heatmap, width_px=width_px)  # type: ignore[arg-type]
     width, height = png_size(png)
     assert width == width_px
@@ -45,8 +43,10 @@ def test_output_is_deterministic(paper_room: Layout) -> None:
 
 
 def test_heat_maps_give_different_pictures(paper_room: Layout) -> None:
-    pictures = {kind: decode(room_map_png(paper_room, heatmap=kind))
-                for kind in ("coverage", "crlb", "none")}
+    pictures = {
+        kind: decode(room_map_png(paper_room, heatmap=kind))
+        for kind in ("coverage", "crlb", "none")
+    }
     for a, b in (("coverage", "crlb"), ("coverage", "none"), ("crlb", "none")):
         assert pictures[a].shape == pictures[b].shape
         assert np.abs(pictures[a] - pictures[b]).mean() > 0.01
@@ -94,9 +94,14 @@ def test_million_point_room_renders_quickly() -> None:
 
 @pytest.mark.parametrize(
     ("kwargs", "field"),
-    [({"heatmap": "power"}, "heatmap"), ({"width_px": 50}, "width_px"),
-     ({"width_px": 10_000}, "width_px"), ({"snr_db": float("nan")}, "snr_db"),
-     ({"noise_std": -1.0}, "noise_std"), ({"noise_std": 0.0}, "noise_std")],
+    [
+        ({"heatmap": "power"}, "heatmap"),
+        ({"width_px": 50}, "width_px"),
+        ({"width_px": 10_000}, "width_px"),
+        ({"snr_db": float("nan")}, "snr_db"),
+        ({"noise_std": -1.0}, "noise_std"),
+        ({"noise_std": 0.0}, "noise_std"),
+    ],
     ids=["heatmap", "narrow", "wide", "snr-nan", "noise-negative", "noise-zero"],
 )
 def test_bad_options_raise_with_field(
@@ -112,8 +117,9 @@ def test_concurrent_rendering_matches_serial(paper_room: Layout) -> None:
     kinds: list[HeatmapKind] = ["coverage", "crlb", "none", "coverage"]
     serial = [room_map_png(paper_room, heatmap=kind, width_px=400) for kind in kinds]
     with ThreadPoolExecutor(max_workers=4) as pool:
-        threaded = list(pool.map(lambda k: room_map_png(paper_room, heatmap=k, width_px=400),
-                                 kinds))
+        threaded = list(
+            pool.map(lambda k: room_map_png(paper_room, heatmap=k, width_px=400), kinds)
+        )
     assert threaded == serial
 
 
@@ -126,8 +132,9 @@ def test_long_narrow_room_puts_the_colour_bar_below(heatmap: HeatmapKind) -> Non
     assert width == 800 and height < 0.45 * width
 
 
-@pytest.mark.parametrize(("n_side", "footprints", "labels"), [(6, True, True), (7, False, True),
-                                                              (9, False, False)])
+@pytest.mark.parametrize(
+    ("n_side", "footprints", "labels"), [(6, True, True), (7, False, True), (9, False, False)]
+)
 def test_dense_ceilings_skip_footprints_then_labels(
     n_side: int, footprints: bool, labels: bool
 ) -> None:

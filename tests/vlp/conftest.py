@@ -66,5 +66,12 @@ def direct_gain(layout: Layout, led_index: int, point: tuple[float, float]) -> f
         return 0.0
     m = -np.log(2.0) / np.log(np.cos(np.radians(led.half_power_angle_deg)))
     g_conc = rx.refractive_index**2 / np.sin(np.radians(rx.fov_deg)) ** 2
-    return float((m + 1) / (2 * np.pi * d * d) * np.cos(irradiance) ** m * rx.area
-                 * rx.filter_gain * g_conc * np.cos(incidence))
+    return float(
+        (m + 1)
+        / (2 * np.pi * d * d)
+        * np.cos(irradiance) ** m
+        * rx.area
+        * rx.filter_gain
+        * g_conc
+        * np.cos(incidence)
+    )

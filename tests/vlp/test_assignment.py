@@ -12,14 +12,12 @@ from app.vlp.layout import Layout
 from app.vlp.simulation import noisy_amplitudes, random_positions, true_amplitudes
 
 
-def test_costs_are_squared_amplitude_errors(paper_room: Layout,
-                                            rng: np.random.Generator) -> None:
+def test_costs_are_squared_amplitude_errors(paper_room: Layout, rng: np.random.Generator) -> None:
     positions = rng.uniform(0, 4, size=(3, 2))
     amps = rng.uniform(0, 1e-5, size=(2, 16))
     costs = assignment_costs(paper_room, positions, amps)
     predicted = true_amplitudes(paper_room, positions)
-    expected = [[float(np.sum((predicted[k] - amps[t]) ** 2)) for t in range(2)]
-                for k in range(3)]
+    expected = [[float(np.sum((predicted[k] - amps[t]) ** 2)) for t in range(2)] for k in range(3)]
     assert_allclose(costs, expected, rtol=1e-12)
 
 
@@ -49,12 +47,16 @@ def test_counts_differ(paper_room: Layout) -> None:
 
 @pytest.mark.parametrize(
     ("positions", "amplitudes", "field"),
-    [(np.zeros((2, 3)), np.zeros((1, 16)), "positions"),
-     (np.zeros((2, 2)), np.zeros((1, 15)), "terminals"),
-     (np.zeros((2, 2)), np.full((1, 16), np.nan), "terminals")],
-    ids=["positions-shape", "amplitudes-shape", "nan"])
-def test_bad_inputs(paper_room: Layout, positions: np.ndarray, amplitudes: np.ndarray,
-                    field: str) -> None:
+    [
+        (np.zeros((2, 3)), np.zeros((1, 16)), "positions"),
+        (np.zeros((2, 2)), np.zeros((1, 15)), "terminals"),
+        (np.zeros((2, 2)), np.full((1, 16), np.nan), "terminals"),
+    ],
+    ids=["positions-shape", "amplitudes-shape", "nan"],
+)
+def test_bad_inputs(
+    paper_room: Layout, positions: np.ndarray, amplitudes: np.ndarray, field: str
+) -> None:
     with pytest.raises(MeasurementError) as info:
         assign_terminals(paper_room, positions, amplitudes)
     assert info.value.field == field

@@ -36,8 +36,9 @@ def test_corners_and_walls(paper_room: Layout) -> None:
     assert_allclose(estimates, truth, atol=1e-6)
 
 
-def test_noise_gives_small_errors_inside_the_room(paper_room: Layout,
-                                                  rng: np.random.Generator) -> None:
+def test_noise_gives_small_errors_inside_the_room(
+    paper_room: Layout, rng: np.random.Generator
+) -> None:
     truth = random_positions(paper_room, 100, distinct_cells=False, rng=rng)
     clean = true_amplitudes(paper_room, truth)
     amps = noisy_amplitudes(paper_room, truth, 0.01 * float(np.mean(clean)), rng=rng)
@@ -58,8 +59,7 @@ def test_weak_signal_falls_back_to_strongest_led(paper_room: Layout) -> None:
     assert_allclose(single, [[1.0, 2.0]], atol=1e-8)  # a 1-D row is one terminal
 
 
-@pytest.mark.parametrize("bad", [np.zeros((2, 15)), np.full((1, 16), np.inf)],
-                         ids=["shape", "inf"])
+@pytest.mark.parametrize("bad", [np.zeros((2, 15)), np.full((1, 16), np.inf)], ids=["shape", "inf"])
 def test_bad_inputs(paper_room: Layout, bad: np.ndarray) -> None:
     with pytest.raises(MeasurementError) as info:
         rss_localize(paper_room, bad)

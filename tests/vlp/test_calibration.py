@@ -35,8 +35,10 @@ def _perturbed(layout: Layout, rng: np.random.Generator) -> tuple[Layout, FloatA
     angles = layout.half_power_angles_deg + rng.uniform(-5.0, 5.0, layout.n_leds)
     amplitudes[DIMMED] = 0.3 * layout.leds[DIMMED].pilot_amplitude
     amplitudes[DEAD] = 1e-9  # a Layout needs a positive amplitude; this is no signal
-    leds = tuple(replace(led, pilot_amplitude=float(a), half_power_angle_deg=float(h))
-                 for led, a, h in zip(layout.leds, amplitudes, angles, strict=True))
+    leds = tuple(
+        replace(led, pilot_amplitude=float(a), half_power_angle_deg=float(h))
+        for led, a, h in zip(layout.leds, amplitudes, angles, strict=True)
+    )
     return replace(layout, leds=leds), amplitudes, angles
 
 
@@ -49,8 +51,9 @@ def _survey_points(layout: Layout, per_side: int = 16) -> FloatArray:
 @pytest.fixture(scope="module")
 def recovered(paper_room: Layout) -> tuple[Layout, FloatArray, FloatArray, CalibrationResult]:
     true, amplitudes, angles = _perturbed(paper_room, np.random.default_rng(7))
-    survey = simulate_survey(true, _survey_points(paper_room), NOISE_STD,
-                             rng=np.random.default_rng(8))
+    survey = simulate_survey(
+        true, _survey_points(paper_room), NOISE_STD, rng=np.random.default_rng(8)
+    )
     return true, amplitudes, angles, calibrate(paper_room, survey)
 
 
@@ -65,8 +68,9 @@ def test_recovers_true_parameters(
     healthy = live[live != DIMMED]
     np.testing.assert_allclose(result.half_power_angles_deg[healthy], angles[healthy], atol=1.0)
     assert abs(result.half_power_angles_deg[DIMMED] - angles[DIMMED]) < 3.0
-    np.testing.assert_allclose(result.lambertian_orders[healthy],
-                               lambertian_order(angles[healthy]), rtol=0.1)
+    np.testing.assert_allclose(
+        result.lambertian_orders[healthy], lambertian_order(angles[healthy]), rtol=0.1
+    )
     assert result.converged
 
 
@@ -87,8 +91,7 @@ def test_flags_dead_and_dimmed_leds(
     assert result.dead_leds == (DEAD,)
     assert result.dimmed_leds == (DIMMED,)
     assert result.unsurveyed_leds == ()
-    assert result.relative_amplitudes[DIMMED] == pytest.approx(0.3 / result.receiver_gain,
-                                                               rel=0.05)
+    assert result.relative_amplitudes[DIMMED] == pytest.approx(0.3 / result.receiver_gain, rel=0.05)
 
 
 def test_residuals_drop_to_the_noise_level(
@@ -104,7 +107,8 @@ def test_residuals_drop_to_the_noise_level(
 
 
 def test_calibrated_layout_reproduces_the_true_amplitudes(
-    paper_room: Layout, recovered: tuple[Layout, FloatArray, FloatArray, CalibrationResult],
+    paper_room: Layout,
+    recovered: tuple[Layout, FloatArray, FloatArray, CalibrationResult],
 ) -> None:
     true, _, _, result = recovered
     model = masked_layout(calibrated_layout(paper_room, result), result.dead_leds)
@@ -119,24 +123,32 @@ def test_calibrated_layout_reproduces_the_true_amplitudes(
 def test_fit_matches_an_independent_joint_least_squares(paper_room: Layout) -> None:
     """Two LEDs fitted jointly by a plain 4-parameter solver agree with the per-LED fit."""
     true, _, _ = _perturbed(paper_room, np.random.default_rng(11))
-    survey = simulate_survey(true, _survey_points(paper_room, 10), 2e-7,
-                             rng=np.random.default_rng(12))
+    survey = simulate_survey(
+        true, _survey_points(paper_room, 10), 2e-7, rng=np.random.default_rng(12)
+    )
     keep = survey.led_indices < 2
     sub = replace(paper_room, leds=paper_room.leds[:2])
     small = Survey(survey.points[keep], survey.led_indices[keep], survey.amplitudes[keep])
     result = calibrate(sub, small, dimmed_below=0.0, dead_below=0.0)
 
     def residuals(params: FloatArray) -> FloatArray:
-        leds = tuple(replace(led, pilot_amplitude=float(params[k]),
-                             half_power_angle_deg=float(half_power_angle_deg(params[2 + k])))
-                     for k, led in enumerate(sub.leds))
+        leds = tuple(
+            replace(
+                led,
+                pilot_amplitude=float(params[k]),
+                half_power_angle_deg=float(half_power_angle_deg(params[2 + k])),
+            )
+            for k, led in enumerate(sub.leds)
+        )
         trial = replace(sub, leds=leds)
         gains = channel_gains(trial, small.points) * trial.pilot_amplitudes[:, None]
         return np.asarray(
-            (gains[small.led_indices, np.arange(small.n_rows)] - small.amplitudes) * 1e5)
+            (gains[small.led_indices, np.arange(small.n_rows)] - small.amplitudes) * 1e5
+        )
 
-    joint = least_squares(residuals, np.array([1.0, 1.0, 1.0, 1.0]),
-                          bounds=([1e-6, 1e-6, 0.2, 0.2], [10, 10, 50, 50]))
+    joint = least_squares(
+        residuals, np.array([1.0, 1.0, 1.0, 1.0]), bounds=([1e-6, 1e-6, 0.2, 0.2], [10, 10, 50, 50])
+    )
     products = result.pilot_amplitudes * result.receiver_gain
     np.testing.assert_allclose(products, joint.x[:2], rtol=1e-4)
     np.testing.assert_allclose(result.lambertian_orders, joint.x[2:], rtol=1e-3)
@@ -154,9 +166,12 @@ def test_uniformly_weaker_receiver_is_not_mistaken_for_dimmed_leds(paper_room: L
 
 
 def test_led_without_points_in_view_keeps_nominal_values() -> None:
-    layout = Layout(Room(12.0, 4.0, 3.0), Grid(0.5, 0.85),
-                    (Led(1.0, 2.0, 3.0, 55.0), Led(11.0, 2.0, 3.0, 65.0)),
-                    Receiver(fov_deg=40.0))
+    layout = Layout(
+        Room(12.0, 4.0, 3.0),
+        Grid(0.5, 0.85),
+        (Led(1.0, 2.0, 3.0, 55.0), Led(11.0, 2.0, 3.0, 65.0)),
+        Receiver(fov_deg=40.0),
+    )
     points = np.array([(x, y) for x in (0.5, 1.0, 1.5, 2.0) for y in (1.0, 2.0, 3.0)])
     result = calibrate(layout, simulate_survey(layout, points))
     assert result.unsurveyed_leds == (1,)
@@ -209,8 +224,15 @@ def test_survey_from_rows_and_simulated_layout_order(paper_room: Layout) -> None
         (np.zeros((3, 2)), np.array([0.0, 0.5, 1.0]), np.zeros(3), "led_indices"),
         (np.zeros((0, 2)), np.zeros(0), np.zeros(0), "points"),
     ],
-    ids=["points-shape", "index-shape", "amp-shape", "points-nan", "amp-inf", "index-frac",
-         "empty"],
+    ids=[
+        "points-shape",
+        "index-shape",
+        "amp-shape",
+        "points-nan",
+        "amp-inf",
+        "index-frac",
+        "empty",
+    ],
 )
 def test_survey_rejects_bad_input(
     points: FloatArray, indices: FloatArray, amplitudes: FloatArray, field: str
@@ -222,8 +244,12 @@ def test_survey_rejects_bad_input(
 
 @pytest.mark.parametrize(
     ("point", "index", "field"),
-    [((1.0, 1.0), 16, "led_indices"), ((1.0, 1.0), -1, "led_indices"),
-     ((4.5, 1.0), 0, "points"), ((1.0, -0.1), 0, "points")],
+    [
+        ((1.0, 1.0), 16, "led_indices"),
+        ((1.0, 1.0), -1, "led_indices"),
+        ((4.5, 1.0), 0, "points"),
+        ((1.0, -0.1), 0, "points"),
+    ],
     ids=["index-high", "index-negative", "x-outside", "y-outside"],
 )
 def test_calibrate_rejects_rows_that_do_not_fit_the_room(
@@ -236,7 +262,8 @@ def test_calibrate_rejects_rows_that_do_not_fit_the_room(
 
 
 def test_layout_helpers_reject_bad_input(
-    paper_room: Layout, recovered: tuple[Layout, FloatArray, FloatArray, CalibrationResult],
+    paper_room: Layout,
+    recovered: tuple[Layout, FloatArray, FloatArray, CalibrationResult],
 ) -> None:
     with pytest.raises(MeasurementError) as info:
         masked_layout(paper_room, [16])
@@ -276,8 +303,11 @@ def test_survey_of_a_dark_room_flags_every_led_dead(paper_room: Layout) -> None:
     np.testing.assert_allclose(result.residual_rms_after, 1e-7, rtol=0.3)
 
 
-@pytest.mark.parametrize(("dimmed", "dead"), [(0.5, 0.6), (1.5, 0.1), (0.5, -0.1)],
-                         ids=["dead-above-dimmed", "dimmed-above-one", "dead-negative"])
+@pytest.mark.parametrize(
+    ("dimmed", "dead"),
+    [(0.5, 0.6), (1.5, 0.1), (0.5, -0.1)],
+    ids=["dead-above-dimmed", "dimmed-above-one", "dead-negative"],
+)
 def test_calibrate_rejects_bad_thresholds(paper_room: Layout, dimmed: float, dead: float) -> None:
     survey = simulate_survey(paper_room, np.array([[1.0, 1.0]]))
     with pytest.raises(MeasurementError) as info:

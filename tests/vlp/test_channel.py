@@ -51,12 +51,14 @@ def test_concentrator_gain() -> None:
 
 @pytest.mark.parametrize(
     ("offset", "expected", "incidence_deg"),
-    [((0.0, 0.0), 1.700238e-5, 0.0), ((1.25, 1.25), 6.631813e-6, 39.43),
-     ((3.75, 1.25), 0.0, 61.46)],
+    [
+        ((0.0, 0.0), 1.700238e-5, 0.0),
+        ((1.25, 1.25), 6.631813e-6, 39.43),
+        ((3.75, 1.25), 0.0, 61.46),
+    ],
     ids=["below", "offset-in-fov", "outside-fov"],
 )
-def test_gain_anchors(offset: tuple[float, float], expected: float,
-                      incidence_deg: float) -> None:
+def test_gain_anchors(offset: tuple[float, float], expected: float, incidence_deg: float) -> None:
     layout = anchor_layout()
     point = np.array([[0.5 + offset[0], 0.5 + offset[1]]])
     gain = channel_gains(layout, point)
@@ -69,8 +71,12 @@ def test_gain_anchors(offset: tuple[float, float], expected: float,
 def test_gains_match_api_formula(mixed_room: Layout, rng: np.random.Generator) -> None:
     points = rng.uniform(0, 1, size=(40, 2)) * [mixed_room.room.length, mixed_room.room.width]
     gains = channel_gains(mixed_room, points)
-    expected = np.array([[direct_gain(mixed_room, i, (p[0], p[1])) for p in points]
-                         for i in range(mixed_room.n_leds)])
+    expected = np.array(
+        [
+            [direct_gain(mixed_room, i, (p[0], p[1])) for p in points]
+            for i in range(mixed_room.n_leds)
+        ]
+    )
     assert gains.shape == (mixed_room.n_leds, 40)
     assert np.any(expected == 0) and np.any(expected > 0)
     assert_allclose(gains, expected, rtol=1e-12, atol=0)
@@ -80,14 +86,18 @@ def test_led_constants(mixed_room: Layout) -> None:
     orders, prefactors = led_constants(mixed_room)
     rx = mixed_room.receiver
     assert_allclose(orders, lambertian_order(mixed_room.half_power_angles_deg))
-    assert_allclose(prefactors, (orders + 1) * rx.area * rx.filter_gain
-                    * concentrator_gain(rx.refractive_index, rx.fov_deg) / (2 * np.pi))
+    assert_allclose(
+        prefactors,
+        (orders + 1)
+        * rx.area
+        * rx.filter_gain
+        * concentrator_gain(rx.refractive_index, rx.fov_deg)
+        / (2 * np.pi),
+    )
 
 
-def test_gradient_matches_finite_differences(mixed_room: Layout,
-                                             rng: np.random.Generator) -> None:
-    points = rng.uniform(0.2, 0.8, size=(25, 2)) * [mixed_room.room.length,
-                                                    mixed_room.room.width]
+def test_gradient_matches_finite_differences(mixed_room: Layout, rng: np.random.Generator) -> None:
+    points = rng.uniform(0.2, 0.8, size=(25, 2)) * [mixed_room.room.length, mixed_room.room.width]
     gains, grads = channel_gain_gradients(mixed_room, points)
     assert grads.shape == (mixed_room.n_leds, 25, 2)
     assert_allclose(gains, channel_gains(mixed_room, points))
@@ -95,11 +105,17 @@ def test_gradient_matches_finite_differences(mixed_room: Layout,
     for axis in range(2):
         shift = np.zeros(2)
         shift[axis] = step
-        numeric = (channel_gains(mixed_room, points + shift)
-                   - channel_gains(mixed_room, points - shift)) / (2 * step)
+        numeric = (
+            channel_gains(mixed_room, points + shift) - channel_gains(mixed_room, points - shift)
+        ) / (2 * step)
         # skip pairs straddling the FOV edge (the gain jumps there)
         smooth = (channel_gains(mixed_room, points + shift) > 0) == (
-            channel_gains(mixed_room, points - shift) > 0)
+            channel_gains(mixed_room, points - shift) > 0
+        )
         assert smooth.mean() > 0.9
-        assert_allclose(grads[:, :, axis][smooth], numeric[smooth], rtol=1e-5,
-                        atol=1e-9 * float(np.max(np.abs(numeric))))
+        assert_allclose(
+            grads[:, :, axis][smooth],
+            numeric[smooth],
+            rtol=1e-5,
+            atol=1e-9 * float(np.max(np.abs(numeric))),
+        )

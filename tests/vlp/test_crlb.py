@@ -29,13 +29,16 @@ def _issue_formula(layout: Layout, point: np.ndarray, sigma: float) -> float:
     return float(np.sqrt(np.trace(np.linalg.inv(fisher))))
 
 
-@pytest.mark.parametrize("point", [(2.0, 2.0), (0.3, 3.1), (1.7, 0.9)],
-                         ids=["centre", "corner", "off-centre"])
-def test_single_target_matches_issue_formula(paper_room: Layout, point: tuple[float, float]
-                                             ) -> None:
+@pytest.mark.parametrize(
+    "point", [(2.0, 2.0), (0.3, 3.1), (1.7, 0.9)], ids=["centre", "corner", "off-centre"]
+)
+def test_single_target_matches_issue_formula(
+    paper_room: Layout, point: tuple[float, float]
+) -> None:
     p = np.array(point)
     assert single_target_crlb(paper_room, p, 1e-7) == pytest.approx(
-        _issue_formula(paper_room, p, 1e-7), rel=1e-10)
+        _issue_formula(paper_room, p, 1e-7), rel=1e-10
+    )
 
 
 def test_single_target_mixed_room_and_scaling(mixed_room: Layout) -> None:
@@ -47,7 +50,8 @@ def test_single_target_mixed_room_and_scaling(mixed_room: Layout) -> None:
 
 
 def test_single_target_bound_is_reached_by_maximum_likelihood(
-        paper_room: Layout, paper_fingerprint: Fingerprint, rng: np.random.Generator) -> None:
+    paper_room: Layout, paper_fingerprint: Fingerprint, rng: np.random.Generator
+) -> None:
     sigma = noise_std_for_snr(paper_fingerprint, 40.0)
     truth = np.array([1.37, 2.61])
     clean = channel_gains(paper_room, truth[None, :])[:, 0] * paper_room.pilot_amplitudes
@@ -68,7 +72,8 @@ def test_single_target_bound_is_reached_by_maximum_likelihood(
 
 
 def test_aggregated_single_target_equals_single_target_bound(
-        paper_room: Layout, paper_fingerprint: Fingerprint) -> None:
+    paper_room: Layout, paper_fingerprint: Fingerprint
+) -> None:
     # R = a a^T determines a up to its sign: at 30 dB the information is the same.
     sigma = noise_std_for_snr(paper_fingerprint, 30.0)
     p = np.array([[2.3, 0.7]])
@@ -78,8 +83,9 @@ def test_aggregated_single_target_equals_single_target_bound(
     assert aggregated_crlb(paper_room, p, sigma).mean >= agg.mean * (1 - 1e-12)
 
 
-def test_covariance_formula_matches_monte_carlo(mixed_room: Layout,
-                                                rng: np.random.Generator) -> None:
+def test_covariance_formula_matches_monte_carlo(
+    mixed_room: Layout, rng: np.random.Generator
+) -> None:
     points = np.array([[0.9, 0.6], [2.2, 1.5]])
     gains = (channel_gains(mixed_room, points) * mixed_room.pilot_amplitudes[:, None]).T
     sigma = 0.5 * float(np.mean(np.abs(gains)))  # low SNR: the n n^T term matters
@@ -91,13 +97,15 @@ def test_covariance_formula_matches_monte_carlo(mixed_room: Layout,
     empirical = np.cov(samples, rowvar=False)
     formula = aggregated_correlation_covariance(gains.T @ gains, sigma**2, 2)
     np.testing.assert_allclose(formula, empirical, rtol=0, atol=0.03 * np.max(formula))
-    np.testing.assert_allclose(samples.mean(axis=0),
-                               vech(gains.T @ gains + 2 * sigma**2 * np.eye(5)),
-                               rtol=0, atol=0.02 * np.max(formula) ** 0.5)
+    np.testing.assert_allclose(
+        samples.mean(axis=0),
+        vech(gains.T @ gains + 2 * sigma**2 * np.eye(5)),
+        rtol=0,
+        atol=0.02 * np.max(formula) ** 0.5,
+    )
 
 
-def _numeric_bound(layout: Layout, points: np.ndarray, sigma: float, model: str
-                   ) -> np.ndarray:
+def _numeric_bound(layout: Layout, points: np.ndarray, sigma: float, model: str) -> np.ndarray:
     """Inverse Fisher from a central-difference Jacobian and an explicit covariance."""
     pilots = layout.pilot_amplitudes[:, None]
 
@@ -107,8 +115,9 @@ def _numeric_bound(layout: Layout, points: np.ndarray, sigma: float, model: str
 
     flat = points.ravel()
     step = 1e-6
-    jac = np.column_stack([(mean(flat + step * e) - mean(flat - step * e)) / (2 * step)
-                           for e in np.eye(flat.size)])
+    jac = np.column_stack(
+        [(mean(flat + step * e) - mean(flat - step * e)) / (2 * step) for e in np.eye(flat.size)]
+    )
     g = channel_gains(layout, points) * pilots
     k = points.shape[0]
     if model == "correlation":
@@ -119,7 +128,7 @@ def _numeric_bound(layout: Layout, points: np.ndarray, sigma: float, model: str
         atom = np.ones(layout.n_leds)
     jac = np.column_stack([jac, atom])
     fisher = jac.T @ np.linalg.solve(cov, jac)
-    return np.asarray(np.linalg.inv(fisher)[:2 * k, :2 * k])
+    return np.asarray(np.linalg.inv(fisher)[: 2 * k, : 2 * k])
 
 
 @pytest.mark.parametrize("model", ["correlation", "power"])
@@ -134,11 +143,12 @@ def test_aggregated_bound_matches_numeric_jacobian(paper_room: Layout, model: st
     assert bound.mean == pytest.approx(float(per_target.mean()), rel=1e-5)
 
 
-@pytest.mark.parametrize("other", [(2.05, 2.02), (2.3, 2.2), (3.5, 0.5)],
-                         ids=["very-close", "close", "far"])
-def test_a_second_target_never_helps_the_first(paper_room: Layout,
-                                               paper_fingerprint: Fingerprint,
-                                               other: tuple[float, float]) -> None:
+@pytest.mark.parametrize(
+    "other", [(2.05, 2.02), (2.3, 2.2), (3.5, 0.5)], ids=["very-close", "close", "far"]
+)
+def test_a_second_target_never_helps_the_first(
+    paper_room: Layout, paper_fingerprint: Fingerprint, other: tuple[float, float]
+) -> None:
     # Its signal only adds noise (M0 grows) and its coordinates are extra unknowns.
     sigma = noise_std_for_snr(paper_fingerprint, 30.0)
     alone = aggregated_crlb(paper_room, np.array([[2.0, 2.0]]), sigma).per_target[0]

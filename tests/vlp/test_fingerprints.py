@@ -27,13 +27,15 @@ def _slow_matrices(layout: Layout) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
             for i in range(n_leds):
                 h[i, j] = direct_gain(layout, i, ((ix + 0.5) * step, (iy + 0.5) * step))
     pilots = [led.pilot_amplitude for led in layout.leds]
-    j_matrix = np.array([[(h[i, j] * pilots[i]) ** 2 for j in range(layout.n_cells)]
-                         for i in range(n_leds)])
+    j_matrix = np.array(
+        [[(h[i, j] * pilots[i]) ** 2 for j in range(layout.n_cells)] for i in range(n_leds)]
+    )
     psi_rows = []
     for i in range(n_leds):
         for l_ in range(i, n_leds):
-            psi_rows.append([(h[i, j] * pilots[i]) * (h[l_, j] * pilots[l_])
-                             for j in range(layout.n_cells)])
+            psi_rows.append(
+                [(h[i, j] * pilots[i]) * (h[l_, j] * pilots[l_]) for j in range(layout.n_cells)]
+            )
     return h, j_matrix, np.array(psi_rows)
 
 
@@ -50,8 +52,9 @@ def test_matrices_match_slow_loop(mixed_room: Layout, mixed_fingerprint: Fingerp
     assert_allclose(mixed_fingerprint.dense_scaled_gains(), pilots[:, None] * h, rtol=1e-12)
 
 
-def test_sparse_build_equals_dense_computation(paper_room: Layout,
-                                               paper_fingerprint: Fingerprint) -> None:
+def test_sparse_build_equals_dense_computation(
+    paper_room: Layout, paper_fingerprint: Fingerprint
+) -> None:
     dense = channel_gains(paper_room, paper_room.cell_centres())
     assert_allclose(paper_fingerprint.gains.toarray(), dense, rtol=1e-12, atol=0)
 
@@ -74,8 +77,9 @@ def test_dense_limits(mixed_fingerprint: Fingerprint, monkeypatch: pytest.Monkey
     dense_power = np.asarray(mixed_fingerprint.power_matrix())
     monkeypatch.setattr(fingerprints, "PSI_DENSE_LIMIT", 100)
     with pytest.raises(ProblemSizeError) as info:
-        Fingerprint(layout=mixed_fingerprint.layout,
-                    gains=mixed_fingerprint.gains).correlation_matrix()
+        Fingerprint(
+            layout=mixed_fingerprint.layout, gains=mixed_fingerprint.gains
+        ).correlation_matrix()
     assert info.value.field == "psi"
     monkeypatch.setattr(fingerprints, "DENSE_GAINS_LIMIT", 10)
     fresh = Fingerprint(layout=mixed_fingerprint.layout, gains=mixed_fingerprint.gains)

@@ -28,8 +28,14 @@ def matched_error(truth: np.ndarray, estimate: np.ndarray) -> float:
     return float(cost[rows, cols].mean())
 
 
-def simulate(layout: Layout, fp: Fingerprint, truth: np.ndarray, snr_db: float | None,
-             model: Model, rng: np.random.Generator) -> Measurement:
+def simulate(
+    layout: Layout,
+    fp: Fingerprint,
+    truth: np.ndarray,
+    snr_db: float | None,
+    model: Model,
+    rng: np.random.Generator,
+) -> Measurement:
     sigma = 0.0 if snr_db is None else noise_std_for_snr(fp, snr_db)
     amps = noisy_amplitudes(layout, truth, sigma, rng=rng)
     return measurement_from_amplitudes(amps, model, layout.n_leds)
@@ -47,11 +53,12 @@ def test_registered_as_the_default(paper_fingerprint: Fingerprint) -> None:
 
 @pytest.mark.parametrize("n_targets", [1, 2, 3])
 def test_noiseless_off_grid_positions_are_recovered_exactly(
-        paper_room: Layout, paper_fingerprint: Fingerprint, paper_solver: GridlessSolver,
-        n_targets: int) -> None:
+    paper_room: Layout, paper_fingerprint: Fingerprint, paper_solver: GridlessSolver, n_targets: int
+) -> None:
     truth = random_positions(paper_room, n_targets, rng=100 + n_targets)
-    meas = simulate(paper_room, paper_fingerprint, truth, None, "correlation",
-                    np.random.default_rng(0))
+    meas = simulate(
+        paper_room, paper_fingerprint, truth, None, "correlation", np.random.default_rng(0)
+    )
     sol = paper_solver.solve(meas, n_targets)
     assert matched_error(truth, sol.positions) < 1e-3
     np.testing.assert_allclose(sol.weights, 1.0)
@@ -59,8 +66,11 @@ def test_noiseless_off_grid_positions_are_recovered_exactly(
 
 
 def test_beats_the_grid_floor_between_grid_points(
-        paper_room: Layout, paper_fingerprint: Fingerprint, paper_solver: GridlessSolver,
-        rng: np.random.Generator) -> None:
+    paper_room: Layout,
+    paper_fingerprint: Fingerprint,
+    paper_solver: GridlessSolver,
+    rng: np.random.Generator,
+) -> None:
     truth = random_positions(paper_room, 2, rng=rng)
     meas = simulate(paper_room, paper_fingerprint, truth, 30.0, "correlation", rng)
     sol = paper_solver.solve(meas, 2)
@@ -73,8 +83,8 @@ def test_beats_the_grid_floor_between_grid_points(
 
 
 def test_mean_error_over_seeds_stays_below_the_grid_floor(
-        paper_room: Layout, paper_fingerprint: Fingerprint,
-        paper_solver: GridlessSolver) -> None:
+    paper_room: Layout, paper_fingerprint: Fingerprint, paper_solver: GridlessSolver
+) -> None:
     errors = []
     for seed in range(10):
         gen = np.random.default_rng(seed)
@@ -85,22 +95,27 @@ def test_mean_error_over_seeds_stays_below_the_grid_floor(
 
 
 @pytest.mark.parametrize("n_targets", [1, 2])
-def test_power_model(paper_room: Layout, paper_fingerprint: Fingerprint,
-                     n_targets: int) -> None:
+def test_power_model(paper_room: Layout, paper_fingerprint: Fingerprint, n_targets: int) -> None:
     solver = GridlessSolver(paper_fingerprint, "power")
     truth = random_positions(paper_room, n_targets, rng=7 + n_targets)
-    exact = solver.solve(simulate(paper_room, paper_fingerprint, truth, None, "power",
-                                  np.random.default_rng(1)), n_targets)
+    exact = solver.solve(
+        simulate(paper_room, paper_fingerprint, truth, None, "power", np.random.default_rng(1)),
+        n_targets,
+    )
     assert matched_error(truth, exact.positions) < 1e-3
     gen = np.random.default_rng(11)
-    noisy = solver.solve(simulate(paper_room, paper_fingerprint, truth, 40.0, "power", gen),
-                         n_targets)
+    noisy = solver.solve(
+        simulate(paper_room, paper_fingerprint, truth, 40.0, "power", gen), n_targets
+    )
     assert matched_error(truth, noisy.positions) < GRID_FLOOR_M
 
 
-def test_counts_well_separated_targets(paper_room: Layout, paper_fingerprint: Fingerprint,
-                                       paper_solver: GridlessSolver,
-                                       rng: np.random.Generator) -> None:
+def test_counts_well_separated_targets(
+    paper_room: Layout,
+    paper_fingerprint: Fingerprint,
+    paper_solver: GridlessSolver,
+    rng: np.random.Generator,
+) -> None:
     truth = np.array([[0.7, 0.9], [3.1, 1.2], [2.2, 3.3]])
     meas = simulate(paper_room, paper_fingerprint, truth, 30.0, "correlation", rng)
     sol = paper_solver.solve(meas)
@@ -111,8 +126,9 @@ def test_counts_well_separated_targets(paper_room: Layout, paper_fingerprint: Fi
 
 
 @pytest.mark.parametrize("dense", [True, False], ids=["dense", "sparse"])
-def test_other_room_both_code_paths(mixed_room: Layout, dense: bool,
-                                    monkeypatch: pytest.MonkeyPatch) -> None:
+def test_other_room_both_code_paths(
+    mixed_room: Layout, dense: bool, monkeypatch: pytest.MonkeyPatch
+) -> None:
     if not dense:
         monkeypatch.setattr(fingerprints, "DENSE_GAINS_LIMIT", 0)
     fp = build_fingerprint(mixed_room)
@@ -127,12 +143,19 @@ def test_other_room_both_code_paths(mixed_room: Layout, dense: bool,
     assert np.all((sol.positions >= 0) & (sol.positions <= [3.0, 2.0]))
 
 
-def test_one_solver_object_serves_threads(paper_room: Layout, paper_fingerprint: Fingerprint,
-                                          paper_solver: GridlessSolver) -> None:
+def test_one_solver_object_serves_threads(
+    paper_room: Layout, paper_fingerprint: Fingerprint, paper_solver: GridlessSolver
+) -> None:
     # Solver objects are cached and shared by the web layer: no per-call state on self.
     measurements = [
-        simulate(paper_room, paper_fingerprint, random_positions(paper_room, 3, rng=seed), 30.0,
-                 "correlation", np.random.default_rng(seed))
+        simulate(
+            paper_room,
+            paper_fingerprint,
+            random_positions(paper_room, 3, rng=seed),
+            30.0,
+            "correlation",
+            np.random.default_rng(seed),
+        )
         for seed in range(4)
     ]
     sequential = [paper_solver.solve(m, 3) for m in measurements]
@@ -144,18 +167,21 @@ def test_one_solver_object_serves_threads(paper_room: Layout, paper_fingerprint:
 
 
 @pytest.mark.parametrize("room", ["paper", "mixed"])
-def test_fast_kernel_matches_the_channel_model(paper_room: Layout, mixed_room: Layout,
-                                               room: str) -> None:
+def test_fast_kernel_matches_the_channel_model(
+    paper_room: Layout, mixed_room: Layout, room: str
+) -> None:
     layout = paper_room if room == "paper" else mixed_room
     kernel = ChannelKernel(layout, scale=2e-5)
     points = random_positions(layout, 6, rng=5)
     gains, grads = channel_gain_gradients(layout, points)
     pilots = layout.pilot_amplitudes[:, None]
     expected = np.concatenate([gains, grads[:, :, 0], grads[:, :, 1]], axis=1) * pilots / 2e-5
-    np.testing.assert_allclose(kernel.stacked(points, with_gradients=True), expected,
-                               rtol=1e-10, atol=1e-12)
-    np.testing.assert_allclose(kernel.stacked(points, with_gradients=False),
-                               expected[:, :6], rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(
+        kernel.stacked(points, with_gradients=True), expected, rtol=1e-10, atol=1e-12
+    )
+    np.testing.assert_allclose(
+        kernel.stacked(points, with_gradients=False), expected[:, :6], rtol=1e-10, atol=1e-12
+    )
 
 
 @pytest.mark.slow
@@ -163,8 +189,9 @@ def test_large_sparse_hall(rng: np.random.Generator) -> None:
     # 30 m x 30 m, 0.1 m grid (90 000 points), 64 LEDs: above the dense limit, so only the
     # sparse H and the matrix-free Psi adjoint are used.
     spacing = 30.0 / 8
-    leds = tuple(Led(spacing * (i + 0.5), spacing * (j + 0.5), 3.0)
-                 for i in range(8) for j in range(8))
+    leds = tuple(
+        Led(spacing * (i + 0.5), spacing * (j + 0.5), 3.0) for i in range(8) for j in range(8)
+    )
     hall = Layout(Room(30.0, 30.0, 3.0), Grid(0.1, 0.85), leds, Receiver(1e-4, 70.0, 1.0, 1.5))
     fp = build_fingerprint(hall)
     assert not fp.is_dense
@@ -177,9 +204,9 @@ def test_large_sparse_hall(rng: np.random.Generator) -> None:
     assert matched_error(truth, counted.positions) < 0.05
 
 
-def test_noise_only_still_answers_one_estimate(paper_fingerprint: Fingerprint,
-                                               paper_solver: GridlessSolver,
-                                               rng: np.random.Generator) -> None:
+def test_noise_only_still_answers_one_estimate(
+    paper_fingerprint: Fingerprint, paper_solver: GridlessSolver, rng: np.random.Generator
+) -> None:
     sigma = noise_std_for_snr(paper_fingerprint, 30.0)
     meas = measurement_from_amplitudes(sigma * rng.standard_normal((3, 16)), "correlation", 16)
     sol = paper_solver.solve(meas)

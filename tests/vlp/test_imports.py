@@ -39,8 +39,11 @@ def test_files_found() -> None:
 @pytest.mark.parametrize("path", FILES, ids=lambda p: str(p.relative_to(PACKAGE)))
 def test_only_allowed_imports(path: Path) -> None:
     depth = len(path.relative_to(PACKAGE).parts) - 1  # 0 for app/vlp/x.py
-    bad = [(module, level) for module, level in _imports(path)
-           if not _allowed(module, level) or level > depth + 1]
+    bad = [
+        (module, level)
+        for module, level in _imports(path)
+        if not _allowed(module, level) or level > depth + 1
+    ]
     assert not bad, f"{path}: imports outside stdlib/numpy/scipy/cvxpy/app.vlp: {bad}"
 
 

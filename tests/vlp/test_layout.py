@@ -17,9 +17,10 @@ def _mapping() -> dict[str, Any]:
         "name": "test",
         "room": {"length": 3.0, "width": 2.0, "height": 3.0},
         "grid": {"step": 0.5, "receiver_height": 0.85},
-        "leds": [{"x": 1.0, "y": 1.0}, {"x": 2.0, "y": 0.5, "z": 2.5,
-                                         "half_power_angle_deg": 45.0,
-                                         "pilot_amplitude": 2.0}],
+        "leds": [
+            {"x": 1.0, "y": 1.0},
+            {"x": 2.0, "y": 0.5, "z": 2.5, "half_power_angle_deg": 45.0, "pilot_amplitude": 2.0},
+        ],
     }
 
 
@@ -34,8 +35,9 @@ def test_mapping_defaults_and_round_trip() -> None:
 def test_grid_order_and_nearest_cell() -> None:
     layout = layout_from_mapping(_mapping())
     centres = layout.cell_centres()
-    expected = np.array([[(ix + 0.5) * 0.5, (iy + 0.5) * 0.5]
-                         for ix in range(6) for iy in range(4)])  # j = ix * n_y + iy
+    expected = np.array(
+        [[(ix + 0.5) * 0.5, (iy + 0.5) * 0.5] for ix in range(6) for iy in range(4)]
+    )  # j = ix * n_y + iy
     assert_allclose(centres, expected)
     assert_array_equal(layout.nearest_cell(centres), np.arange(24))
     assert_array_equal(layout.nearest_cell(np.array([[-1.0, 9.0]])), [3])  # clipped
@@ -51,16 +53,28 @@ def test_grid_order_and_nearest_cell() -> None:
         (lambda m: m["leds"][1].update(x=3.5), "leds[1].x"),
         (lambda m: m["leds"][0].update(y=-0.1), "leds[0].y"),
         (lambda m: m["leds"][1].update(z=0.5), "leds[1].z"),
-        (lambda m: m["leds"][0].update(half_power_angle_deg=90.0),
-         "leds[0].half_power_angle_deg"),
+        (lambda m: m["leds"][0].update(half_power_angle_deg=90.0), "leds[0].half_power_angle_deg"),
         (lambda m: m["leds"][0].update(pilot_amplitude=0.0), "leds[0].pilot_amplitude"),
         (lambda m: m.update(receiver={"fov_deg": 95.0}), "receiver.fov_deg"),
         (lambda m: m.update(receiver={"area": 0.0}), "receiver.area"),
         (lambda m: m.update(receiver={"refractive_index": 0.5}), "receiver.refractive_index"),
         (lambda m: m.update(leds=[]), "leds"),
     ],
-    ids=["step", "length", "rx-height", "rx-height-negative", "led-x", "led-y", "led-z",
-         "half-power", "pilot", "fov", "area", "index", "no-leds"],
+    ids=[
+        "step",
+        "length",
+        "rx-height",
+        "rx-height-negative",
+        "led-x",
+        "led-y",
+        "led-z",
+        "half-power",
+        "pilot",
+        "fov",
+        "area",
+        "index",
+        "no-leds",
+    ],
 )
 def test_validation_names_the_field(change: Any, field: str) -> None:
     mapping = _mapping()
@@ -79,8 +93,9 @@ def test_incomplete_mapping() -> None:
 
 
 def test_led_arrays() -> None:
-    layout = Layout(Room(2, 2, 3), Grid(1.0, 0.5),
-                    (Led(0.5, 0.5, 3.0, 30.0, 2.0), Led(1.5, 1.0, 2.0)))
+    layout = Layout(
+        Room(2, 2, 3), Grid(1.0, 0.5), (Led(0.5, 0.5, 3.0, 30.0, 2.0), Led(1.5, 1.0, 2.0))
+    )
     assert_allclose(layout.led_positions, [[0.5, 0.5, 3.0], [1.5, 1.0, 2.0]])
     assert_allclose(layout.half_power_angles_deg, [30.0, 60.0])
     assert_allclose(layout.pilot_amplitudes, [2.0, 1.0])

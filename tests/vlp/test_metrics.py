@@ -23,8 +23,9 @@ def _brute_force(estimates: np.ndarray, truth: np.ndarray) -> float:
     best = np.inf
     for est_rows in itertools.permutations(range(len(estimates)), k):
         for true_rows in itertools.combinations(range(len(truth)), k):
-            mean = np.mean(np.linalg.norm(estimates[list(est_rows)] - truth[list(true_rows)],
-                                          axis=1))
+            mean = np.mean(
+                np.linalg.norm(estimates[list(est_rows)] - truth[list(true_rows)], axis=1)
+            )
             best = min(best, float(mean))
     return best
 
@@ -63,8 +64,10 @@ def test_different_counts_match_the_best_subset() -> None:
 
 
 @pytest.mark.parametrize(
-    "bad", [np.zeros((0, 2)), np.zeros((3,)), np.zeros((2, 3)), np.array([[np.nan, 0.0]])],
-    ids=["empty", "flat", "three-columns", "nan"])
+    "bad",
+    [np.zeros((0, 2)), np.zeros((3,)), np.zeros((2, 3)), np.array([[np.nan, 0.0]])],
+    ids=["empty", "flat", "three-columns", "nan"],
+)
 def test_bad_inputs(bad: np.ndarray) -> None:
     with pytest.raises(MeasurementError):
         mean_position_error(bad, np.zeros((1, 2)))

@@ -21,8 +21,7 @@ def _by_hand(power_w: float, area_cm2: float) -> float:
     shot = 2 * q * 0.53 * power_w * bandwidth + 2 * q * 5100e-6 * 0.562 * bandwidth
     capacitance_f = 112e-12 * area_cm2
     thermal1 = 8 * math.pi * k * 295 / 10 * capacitance_f * 0.562 * bandwidth**2
-    thermal2 = (16 * math.pi**2 * k * 295 * 1.5 / 30e-3 * capacitance_f**2 * 0.0868
-                * bandwidth**3)
+    thermal2 = 16 * math.pi**2 * k * 295 * 1.5 / 30e-3 * capacitance_f**2 * 0.0868 * bandwidth**3
     return shot + thermal1 + thermal2
 
 
@@ -58,11 +57,15 @@ def test_received_power_sums_the_links(paper_room: Layout) -> None:
     assert received_power_w(paper_room, point, transmit_power_w=3.0) == pytest.approx(expected)
 
 
-@pytest.mark.parametrize(("kwargs", "field"), [
-    ({"received_power_w": -1.0, "area_m2": 1e-4}, "received_power_w"),
-    ({"received_power_w": 0.0, "area_m2": 0.0}, "area_m2"),
-    ({"received_power_w": math.nan, "area_m2": 1e-4}, "received_power_w"),
-], ids=["negative-power", "zero-area", "nan-power"])
+@pytest.mark.parametrize(
+    ("kwargs", "field"),
+    [
+        ({"received_power_w": -1.0, "area_m2": 1e-4}, "received_power_w"),
+        ({"received_power_w": 0.0, "area_m2": 0.0}, "area_m2"),
+        ({"received_power_w": math.nan, "area_m2": 1e-4}, "received_power_w"),
+    ],
+    ids=["negative-power", "zero-area", "nan-power"],
+)
 def test_bad_arguments_name_the_field(kwargs: dict[str, float], field: str) -> None:
     with pytest.raises(MeasurementError) as info:
         receiver_noise_variance(**kwargs)

@@ -12,8 +12,9 @@ from app.vlp.operators import CorrelationOperator, dottest
 
 
 @pytest.fixture(params=["paper", "mixed"])
-def fingerprint(request: pytest.FixtureRequest, paper_fingerprint: Fingerprint,
-                mixed_fingerprint: Fingerprint) -> Fingerprint:
+def fingerprint(
+    request: pytest.FixtureRequest, paper_fingerprint: Fingerprint, mixed_fingerprint: Fingerprint
+) -> Fingerprint:
     return paper_fingerprint if request.param == "paper" else mixed_fingerprint
 
 
@@ -39,8 +40,7 @@ def test_matches_explicit_matrix(fingerprint: Fingerprint, rng: np.random.Genera
     residual = rng.standard_normal(operator.shape[0])
     scale = float(np.max(np.abs(psi)))
     assert_allclose(operator.matvec(theta), psi @ theta, rtol=1e-10, atol=1e-12 * scale)
-    assert_allclose(operator.rmatvec(residual), psi.T @ residual, rtol=1e-10,
-                    atol=1e-12 * scale)
+    assert_allclose(operator.rmatvec(residual), psi.T @ residual, rtol=1e-10, atol=1e-12 * scale)
 
 
 def test_shape_errors(fingerprint: Fingerprint) -> None:

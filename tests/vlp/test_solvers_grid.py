@@ -39,8 +39,11 @@ EASY_SUPPORTS = {"K1": [45], "K2": [45, 310], "K3": [42, 357, 57], "K3b": [21, 3
 
 @pytest.fixture(scope="module")
 def solvers(paper_fingerprint: Fingerprint) -> dict[tuple[str, str], Solver]:
-    return {(name, model): make_solver(name, paper_fingerprint, model)
-            for name in GRID_SOLVERS for model in MODELS}
+    return {
+        (name, model): make_solver(name, paper_fingerprint, model)
+        for name in GRID_SOLVERS
+        for model in MODELS
+    }
 
 
 def _measure(layout: Layout, cells: list[int], model: Model) -> Measurement:
@@ -61,16 +64,19 @@ def test_unknown_solver(paper_fingerprint: Fingerprint) -> None:
 @pytest.mark.parametrize("model", MODELS)
 @pytest.mark.parametrize("name", ["nnls", "l1"])
 @pytest.mark.parametrize("case", list(EASY_SUPPORTS))
-def test_exact_recovery(solvers: dict[tuple[str, str], Solver], paper_room: Layout,
-                        name: str, model: Model, case: str) -> None:
+def test_exact_recovery(
+    solvers: dict[tuple[str, str], Solver], paper_room: Layout, name: str, model: Model, case: str
+) -> None:
     cells = EASY_SUPPORTS[case]
     measurement = _measure(paper_room, cells, model)
     for n_targets in (len(cells), None):  # given K, and K estimated
         solution = solvers[name, model].solve(measurement, n_targets)
         assert sorted(solution.grid_indices.tolist()) == sorted(cells)
         assert_allclose(solution.weights, 1.0, rtol=1e-6)
-        assert_allclose(np.sort(solution.positions, axis=0),
-                        np.sort(paper_room.cell_centres(np.array(cells)), axis=0))
+        assert_allclose(
+            np.sort(solution.positions, axis=0),
+            np.sort(paper_room.cell_centres(np.array(cells)), axis=0),
+        )
         assert solution.noise_power == pytest.approx(0.0, abs=1e-6 * np.max(measurement.values))
         assert solution.residual_norm <= 1e-6 * np.linalg.norm(measurement.values)
         assert solution.converged
@@ -78,8 +84,9 @@ def test_exact_recovery(solvers: dict[tuple[str, str], Solver], paper_room: Layo
 
 @pytest.mark.parametrize("model", MODELS)
 @pytest.mark.parametrize("seed", range(6))
-def test_nnls_random_separated_supports(solvers: dict[tuple[str, str], Solver],
-                                        paper_room: Layout, model: Model, seed: int) -> None:
+def test_nnls_random_separated_supports(
+    solvers: dict[tuple[str, str], Solver], paper_room: Layout, model: Model, seed: int
+) -> None:
     gen = np.random.default_rng(seed)
     centres = paper_room.cell_centres()
     for n_targets in (1, 2, 3):
@@ -93,8 +100,9 @@ def test_nnls_random_separated_supports(solvers: dict[tuple[str, str], Solver],
 
 
 @pytest.mark.parametrize("model", MODELS)
-def test_omp_finds_any_single_target(solvers: dict[tuple[str, str], Solver],
-                                     paper_room: Layout, model: Model) -> None:
+def test_omp_finds_any_single_target(
+    solvers: dict[tuple[str, str], Solver], paper_room: Layout, model: Model
+) -> None:
     solver = solvers["omp", model]
     for cell in range(paper_room.n_cells):
         solution = solver.solve(_measure(paper_room, [cell], model), 1)
@@ -103,8 +111,9 @@ def test_omp_finds_any_single_target(solvers: dict[tuple[str, str], Solver],
 
 
 @pytest.mark.parametrize("model", MODELS)
-def test_omp_two_far_targets(solvers: dict[tuple[str, str], Solver], paper_room: Layout,
-                             model: Model) -> None:
+def test_omp_two_far_targets(
+    solvers: dict[tuple[str, str], Solver], paper_room: Layout, model: Model
+) -> None:
     measurement = _measure(paper_room, [0, 399], model)
     for n_targets in (2, None):
         solution = solvers["omp", model].solve(measurement, n_targets)
@@ -112,8 +121,9 @@ def test_omp_two_far_targets(solvers: dict[tuple[str, str], Solver], paper_room:
         assert_allclose(solution.weights, 1.0, rtol=1e-6)
 
 
-def _reference_omp(matrix: np.ndarray, noise: np.ndarray, values: np.ndarray,
-                   n_targets: int) -> tuple[list[int], np.ndarray]:
+def _reference_omp(
+    matrix: np.ndarray, noise: np.ndarray, values: np.ndarray, n_targets: int
+) -> tuple[list[int], np.ndarray]:
     """Textbook OMP with the noise atom selected first (slow, from the definition)."""
     unit = noise / np.linalg.norm(noise)
     projector = np.eye(len(values)) - np.outer(unit, unit)
@@ -135,8 +145,13 @@ def _reference_omp(matrix: np.ndarray, noise: np.ndarray, values: np.ndarray,
 
 @pytest.mark.parametrize("model", MODELS)
 @pytest.mark.parametrize("seed", range(4))
-def test_omp_matches_reference(solvers: dict[tuple[str, str], Solver], paper_room: Layout,
-                               paper_fingerprint: Fingerprint, model: Model, seed: int) -> None:
+def test_omp_matches_reference(
+    solvers: dict[tuple[str, str], Solver],
+    paper_room: Layout,
+    paper_fingerprint: Fingerprint,
+    model: Model,
+    seed: int,
+) -> None:
     gen = np.random.default_rng(seed)
     positions = gen.uniform(0.2, 3.8, size=(4, 2))
     amps = true_amplitudes(paper_room, positions)
@@ -145,8 +160,11 @@ def test_omp_matches_reference(solvers: dict[tuple[str, str], Solver], paper_roo
     noise = noise_atom(model, paper_room.n_leds)
     floor = 0.05 * np.max(measurement.values)  # a clearly positive noise floor
     values = measurement.values + floor * noise
-    matrix = np.asarray(paper_fingerprint.power_matrix()) if model == "power" \
+    matrix = (
+        np.asarray(paper_fingerprint.power_matrix())
+        if model == "power"
         else paper_fingerprint.correlation_matrix()
+    )
     support, coef = _reference_omp(matrix, noise, values, 4)
     solution = solvers["omp", model].solve(Measurement(model, values, paper_room.n_leds), 4)
     assert coef[-1] > 0
@@ -157,14 +175,15 @@ def test_omp_matches_reference(solvers: dict[tuple[str, str], Solver], paper_roo
     assert solution.noise_power == pytest.approx(coef[-1], rel=1e-8)
     assert solution.n_iter == 4
     assert solution.residual_norm == pytest.approx(
-        np.linalg.norm(values - np.column_stack((matrix[:, support], noise)) @ coef), rel=1e-8)
+        np.linalg.norm(values - np.column_stack((matrix[:, support], noise)) @ coef), rel=1e-8
+    )
 
 
 @pytest.mark.parametrize("model", MODELS)
 @pytest.mark.parametrize("name", GRID_SOLVERS)
-def test_noise_floor_is_fitted_not_reported(solvers: dict[tuple[str, str], Solver],
-                                            paper_room: Layout, name: str,
-                                            model: Model) -> None:
+def test_noise_floor_is_fitted_not_reported(
+    solvers: dict[tuple[str, str], Solver], paper_room: Layout, name: str, model: Model
+) -> None:
     measurement = _measure(paper_room, [45, 310], model)
     if name == "omp":
         measurement = _measure(paper_room, [0, 399], model)
@@ -177,8 +196,7 @@ def test_noise_floor_is_fitted_not_reported(solvers: dict[tuple[str, str], Solve
 
 
 @pytest.mark.parametrize("name", GRID_SOLVERS)
-def test_bad_inputs(solvers: dict[tuple[str, str], Solver], paper_room: Layout,
-                    name: str) -> None:
+def test_bad_inputs(solvers: dict[tuple[str, str], Solver], paper_room: Layout, name: str) -> None:
     solver = solvers[name, "power"]
     measurement = _measure(paper_room, [45], "power")
     for bad in (0, -1, 65):
@@ -207,8 +225,9 @@ def test_estimate_target_count() -> None:
     assert estimate_target_count(np.full(10, 1.0), max_targets=4) == 4
 
 
-def test_l1_compiled_equals_fresh(solvers: dict[tuple[str, str], Solver],
-                                  paper_room: Layout) -> None:
+def test_l1_compiled_equals_fresh(
+    solvers: dict[tuple[str, str], Solver], paper_room: Layout
+) -> None:
     solver = solvers["l1", "correlation"]
     assert isinstance(solver, L1Solver)
     dictionary = solver.dictionary
@@ -216,8 +235,7 @@ def test_l1_compiled_equals_fresh(solvers: dict[tuple[str, str], Solver],
     values = _measure(paper_room, [45, 310, 122], "correlation").values
     target = values / np.linalg.norm(values)
     compiled, compiled_noise = solver.program.solve(target, 1e-3)
-    fresh, fresh_noise = solve_l1_fresh(dictionary.normalised, dictionary.noise_unit, target,
-                                        1e-3)
+    fresh, fresh_noise = solve_l1_fresh(dictionary.normalised, dictionary.noise_unit, target, 1e-3)
     assert_allclose(compiled, fresh, atol=1e-6)
     assert compiled_noise == pytest.approx(fresh_noise, abs=1e-6)
     residual = dictionary.normalised @ compiled + compiled_noise * dictionary.noise_unit
@@ -231,8 +249,7 @@ def test_l1_reports_infeasible_problems(solvers: dict[tuple[str, str], Solver]) 
     assert dictionary.normalised is not None
     # nonnegative occupancies and noise can never produce a negative measurement
     with pytest.raises(SolverError, match="did not converge") as info:
-        solve_l1_fresh(dictionary.normalised, dictionary.noise_unit, -dictionary.noise_unit,
-                       0.0)
+        solve_l1_fresh(dictionary.normalised, dictionary.noise_unit, -dictionary.noise_unit, 0.0)
     assert info.value.field == "solver"
 
 
@@ -242,29 +259,33 @@ def _as_large(fingerprint: Fingerprint, monkeypatch: pytest.MonkeyPatch) -> Fing
     return Fingerprint(layout=fingerprint.layout, gains=fingerprint.gains)
 
 
-def test_l1_refuses_large_rooms(paper_fingerprint: Fingerprint,
-                                monkeypatch: pytest.MonkeyPatch) -> None:
+def test_l1_refuses_large_rooms(
+    paper_fingerprint: Fingerprint, monkeypatch: pytest.MonkeyPatch
+) -> None:
     with pytest.raises(SolverError, match="dense") as info:
         make_solver("l1", _as_large(paper_fingerprint, monkeypatch), "power")
     assert info.value.field == "solver"
 
 
 @pytest.mark.parametrize("model", MODELS)
-def test_large_room_dictionary_matches_dense(paper_fingerprint: Fingerprint, model: Model,
-                                             monkeypatch: pytest.MonkeyPatch,
-                                             rng: np.random.Generator) -> None:
+def test_large_room_dictionary_matches_dense(
+    paper_fingerprint: Fingerprint,
+    model: Model,
+    monkeypatch: pytest.MonkeyPatch,
+    rng: np.random.Generator,
+) -> None:
     dense = GridDictionary(paper_fingerprint, model)
     large = GridDictionary(_as_large(paper_fingerprint, monkeypatch), model)
     assert dense.is_materialised and not large.is_materialised
     assert_allclose(large.column_norms, dense.column_norms, rtol=1e-12)
     assert_allclose(large.noise_free_norms, dense.noise_free_norms, rtol=1e-10)
     residual = rng.standard_normal(dense.n_rows)  # full rank: every eigenvalue counts
-    assert_allclose(large.correlate(residual), dense.correlate(residual), rtol=1e-9,
-                    atol=1e-12)
+    assert_allclose(large.correlate(residual), dense.correlate(residual), rtol=1e-9, atol=1e-12)
     cells = np.array([3, 77, 210])
     coefficients = rng.random(4)
-    assert_allclose(large.predict(cells, coefficients), dense.predict(cells, coefficients),
-                    atol=1e-14)
+    assert_allclose(
+        large.predict(cells, coefficients), dense.predict(cells, coefficients), atol=1e-14
+    )
     empty = np.array([], dtype=np.intp)
     assert_allclose(large.predict(empty, np.array([2.0])), 2.0 * large.noise_unit)
     block, rows, rest = large.restrict(cells, residual)
@@ -277,9 +298,13 @@ def test_large_room_dictionary_matches_dense(paper_fingerprint: Fingerprint, mod
 
 @pytest.mark.parametrize("model", MODELS)
 @pytest.mark.parametrize("name", ["omp", "nnls"])
-def test_large_room_paths_give_dense_answers(paper_fingerprint: Fingerprint,
-                                             paper_room: Layout, name: str, model: Model,
-                                             monkeypatch: pytest.MonkeyPatch) -> None:
+def test_large_room_paths_give_dense_answers(
+    paper_fingerprint: Fingerprint,
+    paper_room: Layout,
+    name: str,
+    model: Model,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
     dense_solver = make_solver(name, paper_fingerprint, model)
     large_solver = make_solver(name, _as_large(paper_fingerprint, monkeypatch), model)
     gen = np.random.default_rng(7)
@@ -331,8 +356,14 @@ def test_large_hall_in_a_subprocess() -> None:
     """100 m x 100 m at 0.1 m (N = 10^6), 1024 LEDs: bounded memory, targets found."""
     root = Path(__file__).resolve().parents[2]
     started = time.perf_counter()
-    result = subprocess.run([sys.executable, "-W", "error", "-c", _HALL_SCRIPT], cwd=root,
-                            capture_output=True, text=True, timeout=380, check=False)
+    result = subprocess.run(
+        [sys.executable, "-W", "error", "-c", _HALL_SCRIPT],
+        cwd=root,
+        capture_output=True,
+        text=True,
+        timeout=380,
+        check=False,
+    )
     assert result.returncode == 0, result.stderr[-3000:]
     report = json.loads(result.stdout.strip().splitlines()[-1])
     elapsed = time.perf_counter() - started
@@ -344,8 +375,9 @@ def test_large_hall_in_a_subprocess() -> None:
     assert elapsed < 300, report
 
 
-def test_l1_is_safe_to_share_between_threads(solvers: dict[tuple[str, str], Solver],
-                                             paper_room: Layout) -> None:
+def test_l1_is_safe_to_share_between_threads(
+    solvers: dict[tuple[str, str], Solver], paper_room: Layout
+) -> None:
     supports = [[45, 310], [21, 378], [0, 399], [42, 357]]
     measurements = [_measure(paper_room, cells, "power") for cells in supports]
     solver = solvers["l1", "power"]

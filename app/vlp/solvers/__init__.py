@@ -3,5 +3,12 @@
 from . import gridless, l1, nnls, omp  # noqa: F401  (imported to register the solvers)
 from .base import MAX_TARGETS, SOLVERS, Solution, Solver, make_solver, register_solver, solver_names
 
-__all__ = ["MAX_TARGETS", "SOLVERS", "Solution", "Solver", "make_solver", "register_solver",
-           "solver_names"]
+__all__ = [
+    "MAX_TARGETS",
+    "SOLVERS",
+    "Solution",
+    "Solver",
+    "make_solver",
+    "register_solver",
+    "solver_names",
+]

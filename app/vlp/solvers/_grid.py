@@ -82,8 +82,8 @@ class GridDictionary:
             model == "power" or self.n_rows * self.n_cells <= PSI_DENSE_LIMIT
         ):
             raw = np.asarray(
-                fingerprint.power_matrix() if model == "power"
-                else fingerprint.correlation_matrix())
+                fingerprint.power_matrix() if model == "power" else fingerprint.correlation_matrix()
+            )
             self.column_norms: FloatArray = np.linalg.norm(raw, axis=0)
             self._inverse_norms = _safe_inverse(self.column_norms)
             self.normalised = raw * self._inverse_norms
@@ -144,8 +144,8 @@ class GridDictionary:
         gains_t = self.fingerprint.scaled_gains().T  # (N, M), no copy
         out = shift * self._square_sums
         for start in range(0, spread.size, _EIGEN_BATCH):
-            projected = np.asarray(gains_t @ eigenvectors[:, start:start + _EIGEN_BATCH])
-            out = out + (projected**2) @ spread[start:start + _EIGEN_BATCH]
+            projected = np.asarray(gains_t @ eigenvectors[:, start : start + _EIGEN_BATCH])
+            out = out + (projected**2) @ spread[start : start + _EIGEN_BATCH]
         return np.asarray(out)
 
     def restrict(self, cells: IntArray, target: FloatArray) -> tuple[FloatArray, FloatArray, float]:
@@ -247,7 +247,8 @@ def fit_least_squares(block: FloatArray, target: FloatArray) -> tuple[FloatArray
     residual_norm : float
     """
     coefficients: FloatArray = np.asarray(
-        np.linalg.lstsq(block, target, rcond=None)[0], dtype=np.float64)
+        np.linalg.lstsq(block, target, rcond=None)[0], dtype=np.float64
+    )
     if coefficients[-1] < 0:
         coefficients = np.append(np.linalg.lstsq(block[:, :-1], target, rcond=None)[0], 0.0)
     return coefficients, float(np.linalg.norm(block @ coefficients - target))
@@ -281,8 +282,13 @@ class NonnegativeFit:
         Of the scaled measurement.
     """
 
-    def __init__(self, cells: IntArray, coefficients: FloatArray, noise_coefficient: float,
-                 residual_norm: float) -> None:
+    def __init__(
+        self,
+        cells: IntArray,
+        coefficients: FloatArray,
+        noise_coefficient: float,
+        residual_norm: float,
+    ) -> None:
         self.cells = cells
         self.coefficients = coefficients
         self.noise_coefficient = noise_coefficient
@@ -302,8 +308,12 @@ def nonnegative_fit(dictionary: GridDictionary, target: FloatArray) -> Nonnegati
         cells = dictionary.usable
         block, target_rows, rest_sq = dictionary.restrict(cells, target)
         coefficients, residual = fit_nonnegative(block, target_rows)
-        return NonnegativeFit(cells, coefficients[:-1], float(coefficients[-1]),
-                              float(np.hypot(residual, np.sqrt(rest_sq))))
+        return NonnegativeFit(
+            cells,
+            coefficients[:-1],
+            float(coefficients[-1]),
+            float(np.hypot(residual, np.sqrt(rest_sq))),
+        )
     cells = top_cells(dictionary, target, CANDIDATE_CELLS)
     for round_ in range(SCREENING_ROUNDS + 1):
         block, target_rows, rest_sq = dictionary.restrict(cells, target)
@@ -311,14 +321,19 @@ def nonnegative_fit(dictionary: GridDictionary, target: FloatArray) -> Nonnegati
         if round_ == SCREENING_ROUNDS:
             break
         keep = cells[coefficients[:-1] > 0]
-        mismatch = target - dictionary.predict(keep, np.append(
-            coefficients[:-1][coefficients[:-1] > 0], coefficients[-1]))
+        mismatch = target - dictionary.predict(
+            keep, np.append(coefficients[:-1][coefficients[:-1] > 0], coefficients[-1])
+        )
         new = np.setdiff1d(top_cells(dictionary, mismatch, SCREENING_CELLS), cells)
         if new.size == 0:
             break
         cells = np.union1d(cells, new)
-    return NonnegativeFit(cells, coefficients[:-1], float(coefficients[-1]),
-                          float(np.hypot(residual, np.sqrt(rest_sq))))
+    return NonnegativeFit(
+        cells,
+        coefficients[:-1],
+        float(coefficients[-1]),
+        float(np.hypot(residual, np.sqrt(rest_sq))),
+    )
 
 
 def grid_solution(

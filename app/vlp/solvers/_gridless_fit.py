@@ -81,7 +81,7 @@ class ChannelKernel:
         dx = points[:, 0] - self._led_x
         dy = points[:, 1] - self._led_y
         d2 = dx * dx + dy * dy + self._dz2
-        gains = self._factor * d2 ** self._minus_half_exponent
+        gains = self._factor * d2**self._minus_half_exponent
         gains *= d2 <= self._max_d2
         if not with_gradients:
             return np.asarray(gains)
@@ -123,8 +123,9 @@ class Whitening:
     entries are independent with variance ``4 sigma^2 (S_ii + K sigma^2 / 2)``.
     """
 
-    def __init__(self, model: Model, n_leds: int, rotation: FloatArray | None,
-                 weights: FloatArray) -> None:
+    def __init__(
+        self, model: Model, n_leds: int, rotation: FloatArray | None, weights: FloatArray
+    ) -> None:
         self.model = model
         self.rotation = rotation
         self.weights = weights
@@ -137,15 +138,15 @@ class Whitening:
         return cls(model, n_leds, None, np.ones(length))
 
     @classmethod
-    def from_state(cls, model: Model, kernel: ChannelKernel, state: FitState,
-                   n_terminals: float) -> Whitening:
+    def from_state(
+        cls, model: Model, kernel: ChannelKernel, state: FitState, n_terminals: float
+    ) -> Whitening:
         """Plug-in whitening from the current fit (sigma^2 = s / K)."""
         gains = kernel.stacked(state.positions, with_gradients=False)
         # Floor sigma^2 at a fraction of the mean received power per LED and terminal: a
         # near-zero noise estimate would make the metric singular off the fitted signal.
         power = float(np.sum(gains**2 * state.weights)) / (kernel.n_leds * max(n_terminals, 1.0))
-        sigma2 = max(state.noise / max(n_terminals, 1.0), _SIGMA2_REL_FLOOR * power,
-                     _SIGMA2_FLOOR)
+        sigma2 = max(state.noise / max(n_terminals, 1.0), _SIGMA2_REL_FLOOR * power, _SIGMA2_FLOOR)
         half_noise = 0.5 * max(n_terminals, 1.0) * sigma2
         if model == "power":
             var = 4.0 * sigma2 * ((gains**2) @ state.weights + half_noise)
@@ -178,8 +179,12 @@ class Whitening:
 
 
 def residual_and_jacobian(
-    kernel: ChannelKernel, white: Whitening, data: FloatArray, state: FitState,
-    free_weights: bool, want_jacobian: bool = True,
+    kernel: ChannelKernel,
+    white: Whitening,
+    data: FloatArray,
+    state: FitState,
+    free_weights: bool,
+    want_jacobian: bool = True,
 ) -> tuple[FloatArray, FloatArray | None]:
     """Whitened residual ``c * (y - mu)`` and its Jacobian wrt (positions, [weights], s).
 
@@ -208,9 +213,9 @@ def residual_and_jacobian(
     d_left = left[:, k:].reshape(n_rows, 2, k)
     d_right = right[:, k:].reshape(n_rows, 2, k)
     both = w * (left[:, None, :k] * d_right + d_left * right[:, None, :k])
-    jac[:, :2 * k] = both.transpose(0, 2, 1).reshape(n_rows, 2 * k)
+    jac[:, : 2 * k] = both.transpose(0, 2, 1).reshape(n_rows, 2 * k)
     if free_weights:
-        jac[:, 2 * k:3 * k] = atoms
+        jac[:, 2 * k : 3 * k] = atoms
     jac[:, -1] = white.is_diag
     jac *= c[:, None]
     return residual, jac
@@ -224,17 +229,23 @@ def _pack(state: FitState, free_weights: bool) -> FloatArray:
     return np.concatenate(parts)
 
 
-def _unpack(theta: FloatArray, state: FitState, free_weights: bool,
-            bounds: FloatArray) -> FitState:
+def _unpack(theta: FloatArray, state: FitState, free_weights: bool, bounds: FloatArray) -> FitState:
     k = state.positions.shape[0]
-    positions = np.clip(theta[:2 * k].reshape(k, 2), 0.0, bounds)
-    weights = np.maximum(theta[2 * k:3 * k], 0.0) if free_weights else state.weights
+    positions = np.clip(theta[: 2 * k].reshape(k, 2), 0.0, bounds)
+    weights = np.maximum(theta[2 * k : 3 * k], 0.0) if free_weights else state.weights
     return FitState(positions, weights, max(float(theta[-1]), 0.0))
 
 
 def levenberg_marquardt(
-    kernel: ChannelKernel, white: Whitening, data: FloatArray, state: FitState, *,
-    free_weights: bool, max_iter: int, tol: float = 1e-7, step_tol_m: float = 1e-5,
+    kernel: ChannelKernel,
+    white: Whitening,
+    data: FloatArray,
+    state: FitState,
+    *,
+    free_weights: bool,
+    max_iter: int,
+    tol: float = 1e-7,
+    step_tol_m: float = 1e-5,
 ) -> tuple[FitState, float, int]:
     """Projected LM on ``||data - c * mu(theta)||^2`` (positions kept inside the room).
 
@@ -262,18 +273,20 @@ def levenberg_marquardt(
             # Converged when the step no longer moves any target or the linearised model
             # promises (almost) no decrease; the step is still tried.
             predicted = float(step @ (2.0 * gradient - normal @ step))
-            converged = float(np.max(np.abs(step[:n_pos]), initial=0.0)) < step_tol_m \
+            converged = (
+                float(np.max(np.abs(step[:n_pos]), initial=0.0)) < step_tol_m
                 or predicted < tol * cost
+            )
             trial = _unpack(theta + step, state, free_weights, kernel.bounds)
-            trial_res, _ = residual_and_jacobian(kernel, white, data, trial, free_weights,
-                                                 want_jacobian=False)
+            trial_res, _ = residual_and_jacobian(
+                kernel, white, data, trial, free_weights, want_jacobian=False
+            )
             trial_cost = float(trial_res @ trial_res)
             if trial_cost < cost:
                 converged = converged or (cost - trial_cost) < tol * cost
                 state, cost = trial, trial_cost
                 if not converged:
-                    residual, jac = residual_and_jacobian(kernel, white, data, state,
-                                                          free_weights)
+                    residual, jac = residual_and_jacobian(kernel, white, data, state, free_weights)
                 theta = _pack(state, free_weights)
                 damping = max(damping / _DAMPING_DOWN, 1e-9)
                 break

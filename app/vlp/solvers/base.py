@@ -105,17 +105,21 @@ class Solver(ABC):
         """
         if measurement.model != self.model:
             raise MeasurementError(
-                f"solver prepared for model {self.model!r} got a {measurement.model!r} "
-                "measurement", field="model")
+                f"solver prepared for model {self.model!r} got a {measurement.model!r} measurement",
+                field="model",
+            )
         if measurement.n_leds != self.fingerprint.n_leds:
             raise MeasurementError(
                 f"measurement is for {measurement.n_leds} LEDs, the room has "
-                f"{self.fingerprint.n_leds}", field=measurement.model)
+                f"{self.fingerprint.n_leds}",
+                field=measurement.model,
+            )
         if n_targets is not None:
             limit = min(MAX_TARGETS, self.fingerprint.n_cells)
             if not 1 <= n_targets <= limit:
-                raise SolverError(f"targets must be between 1 and {limit}, got {n_targets}",
-                                  field="targets")
+                raise SolverError(
+                    f"targets must be between 1 and {limit}, got {n_targets}", field="targets"
+                )
         return self._solve(measurement, n_targets)
 
     @abstractmethod

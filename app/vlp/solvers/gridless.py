@@ -133,8 +133,9 @@ class GridlessSolver(Solver):
     name = "gridless"
     description = "off-grid ADCG with whitened Levenberg-Marquardt refinement (default)"
 
-    def __init__(self, fingerprint: Fingerprint, model: Model,
-                 options: GridlessOptions | None = None) -> None:
+    def __init__(
+        self, fingerprint: Fingerprint, model: Model, options: GridlessOptions | None = None
+    ) -> None:
         super().__init__(fingerprint, model)
         self.options = options or GridlessOptions()
         layout = fingerprint.layout
@@ -146,8 +147,11 @@ class GridlessSolver(Solver):
         # above the receivers (about the size of one LED's bright spot).
         heights = layout.led_positions[:, 2] - layout.grid.receiver_height
         self._avoid_radius = 0.5 * float(np.mean(heights))
-        n_obs = fingerprint.n_leds if model == "power" else \
-            fingerprint.n_leds * (fingerprint.n_leds + 1) // 2
+        n_obs = (
+            fingerprint.n_leds
+            if model == "power"
+            else fingerprint.n_leds * (fingerprint.n_leds + 1) // 2
+        )
         # Each target costs 2 coordinates and the noise power one more unknown.
         self._max_count = max(1, min(MAX_TARGETS, fingerprint.n_cells, (n_obs - 1) // 2))
         if self._dense:
@@ -210,15 +214,22 @@ class GridlessSolver(Solver):
     def _whitening(self, state: FitState) -> Whitening:
         if not self.options.whiten or state.positions.shape[0] == 0 or state.noise <= 0:
             return Whitening.identity(self.model, self.fingerprint.n_leds)
-        return Whitening.from_state(self.model, self._kernel, state,
-                                    float(state.positions.shape[0]))
+        return Whitening.from_state(
+            self.model, self._kernel, state, float(state.positions.shape[0])
+        )
 
-    def _fit(self, run: _Run, white: Whitening, state: FitState, max_iter: int
-             ) -> tuple[FitState, float]:
+    def _fit(
+        self, run: _Run, white: Whitening, state: FitState, max_iter: int
+    ) -> tuple[FitState, float]:
         data = white.data(run.values, self.fingerprint.n_leds)
         state, cost, used = levenberg_marquardt(
-            self._kernel, white, data, state, free_weights=self.options.free_weights,
-            max_iter=max_iter)
+            self._kernel,
+            white,
+            data,
+            state,
+            free_weights=self.options.free_weights,
+            max_iter=max_iter,
+        )
         run.iterations += used
         run.converged = used < max_iter
         return state, cost
@@ -232,8 +243,9 @@ class GridlessSolver(Solver):
                 break  # the re-whitened metric no longer moves the fit
         return state
 
-    def _insert(self, run: _Run, state: FitState, white: Whitening,
-                avoid: FloatArray | None = None) -> FitState:
+    def _insert(
+        self, run: _Run, state: FitState, white: Whitening, avoid: FloatArray | None = None
+    ) -> FitState:
         """Add a unit-weight target at the grid point that most lowers the cost (not within
         ``_avoid_radius`` of the points ``avoid``, shape (n, 2), when given)."""
         if not self._dense:
@@ -241,8 +253,9 @@ class GridlessSolver(Solver):
             # rotated gains of every grid point.
             white = Whitening.identity(self.model, self.fingerprint.n_leds)
         data = white.data(run.values, self.fingerprint.n_leds)
-        residual, _ = residual_and_jacobian(self._kernel, white, data, state,
-                                            self.options.free_weights, want_jacobian=False)
+        residual, _ = residual_and_jacobian(
+            self._kernel, white, data, state, self.options.free_weights, want_jacobian=False
+        )
         scores = self._scores(white, residual)
         if avoid is not None and avoid.shape[0] > 0:
             for point in avoid:
@@ -251,13 +264,17 @@ class GridlessSolver(Solver):
             if not np.isfinite(scores).any():
                 scores = self._scores(white, residual)
         best = int(np.argmax(scores))
-        return FitState(np.vstack([state.positions, self._centres[best]]),
-                        np.append(state.weights, 1.0), state.noise)
+        return FitState(
+            np.vstack([state.positions, self._centres[best]]),
+            np.append(state.weights, 1.0),
+            state.noise,
+        )
 
     def _plain_cost(self, values: FloatArray, state: FitState) -> float:
         plain = Whitening.identity(self.model, self.fingerprint.n_leds)
-        residual, _ = residual_and_jacobian(self._kernel, plain, values, state, False,
-                                            want_jacobian=False)
+        residual, _ = residual_and_jacobian(
+            self._kernel, plain, values, state, False, want_jacobian=False
+        )
         return float(residual @ residual)
 
     def _atom_energy(self, position: FloatArray) -> float:
@@ -309,8 +326,9 @@ class GridlessSolver(Solver):
         n_targets = state.positions.shape[0]
         white = self._whitening(state)
         data = white.data(run.values, self.fingerprint.n_leds)
-        current, _ = residual_and_jacobian(self._kernel, white, data, state, False,
-                                           want_jacobian=False)
+        current, _ = residual_and_jacobian(
+            self._kernel, white, data, state, False, want_jacobian=False
+        )
         cost = float(current @ current)
         for k in range(n_targets):
             keep = np.arange(n_targets) != k
@@ -318,13 +336,13 @@ class GridlessSolver(Solver):
             candidate = self._insert(run, others, white)
             if np.linalg.norm(candidate.positions[-1] - state.positions[k]) <= 1.5 * step:
                 continue
-            candidate, candidate_cost = self._fit(run, white, candidate,
-                                                  self.options.final_iter)
+            candidate, candidate_cost = self._fit(run, white, candidate, self.options.final_iter)
             if candidate_cost < cost:
                 # Keep the original order: the moved target takes slot k.
                 order = np.insert(np.arange(n_targets - 1), k, n_targets - 1)
-                state = FitState(candidate.positions[order], candidate.weights[order],
-                                 candidate.noise)
+                state = FitState(
+                    candidate.positions[order], candidate.weights[order], candidate.noise
+                )
                 cost, moved = candidate_cost, True
         return state, moved
 
@@ -363,8 +381,9 @@ class GridlessSolver(Solver):
         values = run.values
         positions = state.positions
         plain = Whitening.identity(self.model, self.fingerprint.n_leds)
-        residual, _ = residual_and_jacobian(self._kernel, plain, values, state, False,
-                                            want_jacobian=False)
+        residual, _ = residual_and_jacobian(
+            self._kernel, plain, values, state, False, want_jacobian=False
+        )
         return Solution(
             positions=positions,
             grid_indices=self.fingerprint.layout.nearest_cell(positions),

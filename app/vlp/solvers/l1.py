@@ -36,8 +36,7 @@ from ._grid import (
 from .base import MAX_TARGETS, Solution, Solver, register_solver
 from .nnls import select_support
 
-__all__ = ["DEFAULT_RESIDUAL_SLACK", "L1Problem", "L1Solver", "build_l1_problem",
-           "solve_l1_fresh"]
+__all__ = ["DEFAULT_RESIDUAL_SLACK", "L1Problem", "L1Solver", "build_l1_problem", "solve_l1_fresh"]
 
 # eps = (1 + slack) * (the smallest residual any nonnegative fit reaches) + floor * ||y||.
 DEFAULT_RESIDUAL_SLACK = 0.1
@@ -67,8 +66,9 @@ class L1Problem:
         self.target = cp.Parameter(n_rows)
         self.eps = cp.Parameter(nonneg=True)
         residual = dictionary @ self.coefficients + self.noise * noise_unit - self.target
-        self.problem = cp.Problem(cp.Minimize(cvx_sum(self.coefficients)),
-                                  [cvx_norm(residual, 2) <= self.eps])
+        self.problem = cp.Problem(
+            cp.Minimize(cvx_sum(self.coefficients)), [cvx_norm(residual, 2) <= self.eps]
+        )
         # compile now (cvxpy caches the parametrised reduction): solves only substitute
         self.target.value = np.zeros(n_rows)
         self.eps.value = 1.0
@@ -93,8 +93,9 @@ def build_l1_problem(dictionary: FloatArray, noise_unit: FloatArray) -> L1Proble
     return L1Problem(dictionary, noise_unit)
 
 
-def solve_l1_fresh(dictionary: FloatArray, noise_unit: FloatArray, target: FloatArray,
-                   eps: float) -> tuple[FloatArray, float]:
+def solve_l1_fresh(
+    dictionary: FloatArray, noise_unit: FloatArray, target: FloatArray, eps: float
+) -> tuple[FloatArray, float]:
     """The same problem with constants instead of Parameters, rebuilt on every call.
 
     Returns
@@ -109,19 +110,24 @@ def solve_l1_fresh(dictionary: FloatArray, noise_unit: FloatArray, target: Float
     return _run(problem, coefficients, noise)
 
 
-def _run(problem: cp.Problem, coefficients: cp.Variable,
-         noise: cp.Variable) -> tuple[FloatArray, float]:
+def _run(
+    problem: cp.Problem, coefficients: cp.Variable, noise: cp.Variable
+) -> tuple[FloatArray, float]:
     with warnings.catch_warnings():
         # cvxpy warns "Solution may be inaccurate" on OPTIMAL_INACCURATE; such a solution
         # still ranks the occupancies well, and the K-term NNLS refit fixes the weights.
-        warnings.filterwarnings("ignore", message="Solution may be inaccurate",
-                                category=UserWarning)
+        warnings.filterwarnings(
+            "ignore", message="Solution may be inaccurate", category=UserWarning
+        )
         problem.solve(**_SOLVER_OPTIONS)  # type: ignore[no-untyped-call]
     if problem.status not in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE) or coefficients.value is None:
-        raise SolverError(f"l1 minimisation did not converge (status {problem.status!r})",
-                          field="solver")
-    return (np.clip(np.asarray(coefficients.value, dtype=np.float64), 0.0, None),
-            max(float(np.asarray(noise.value)), 0.0))
+        raise SolverError(
+            f"l1 minimisation did not converge (status {problem.status!r})", field="solver"
+        )
+    return (
+        np.clip(np.asarray(coefficients.value, dtype=np.float64), 0.0, None),
+        max(float(np.asarray(noise.value)), 0.0),
+    )
 
 
 @register_solver
@@ -171,8 +177,9 @@ class L1Solver(Solver):
     name = "l1"
     description = "nonnegative l1-norm minimisation on the grid (the paper's convex algorithm)"
 
-    def __init__(self, fingerprint: Fingerprint, model: Model,
-                 residual_slack: float = DEFAULT_RESIDUAL_SLACK) -> None:
+    def __init__(
+        self, fingerprint: Fingerprint, model: Model, residual_slack: float = DEFAULT_RESIDUAL_SLACK
+    ) -> None:
         super().__init__(fingerprint, model)
         self.residual_slack = residual_slack
         self.dictionary = GridDictionary(fingerprint, model)
@@ -180,7 +187,8 @@ class L1Solver(Solver):
             raise SolverError(
                 f"the l1 solver needs a dense dictionary; this room has {fingerprint.n_leds} "
                 f"LEDs and {fingerprint.n_cells} grid points, too many -- use 'nnls' or 'omp'",
-                field="solver")
+                field="solver",
+            )
         self.program = build_l1_problem(self.dictionary.normalised, self.dictionary.noise_unit)
 
     def _solve(self, measurement: Measurement, n_targets: int | None) -> Solution:
@@ -192,7 +200,8 @@ class L1Solver(Solver):
         if n_targets is None:
             n_targets = estimate_target_count(
                 dictionary.weights(fit.cells, fit.coefficients, scale),
-                max_targets=min(MAX_TARGETS, dictionary.usable.size))
+                max_targets=min(MAX_TARGETS, dictionary.usable.size),
+            )
         eps = (1.0 + self.residual_slack) * fit.residual_norm + _RESIDUAL_FLOOR
         coefficients, noise = self.program.solve(target, eps)
         usable = dictionary.usable
@@ -200,6 +209,12 @@ class L1Solver(Solver):
         cells = select_support(dictionary, l1_fit, scale, n_targets)
         block, target_rows, rest_sq = dictionary.restrict(cells, target)
         refit, residual = fit_nonnegative(block, target_rows)
-        return grid_solution(dictionary, cells, refit, scale=scale,
-                             residual_norm=float(np.hypot(residual, np.sqrt(rest_sq))),
-                             n_iter=1, converged=True)
+        return grid_solution(
+            dictionary,
+            cells,
+            refit,
+            scale=scale,
+            residual_norm=float(np.hypot(residual, np.sqrt(rest_sq))),
+            n_iter=1,
+            converged=True,
+        )

@@ -69,13 +69,19 @@ class NnlsSolver(Solver):
         block, target_rows, rest_sq = self.dictionary.restrict(cells, target)
         coefficients, residual = fit_nonnegative(block, target_rows)
         return grid_solution(
-            self.dictionary, cells, coefficients, scale=scale,
-            residual_norm=float(np.hypot(residual, np.sqrt(rest_sq))), n_iter=2,
-            converged=True)
+            self.dictionary,
+            cells,
+            coefficients,
+            scale=scale,
+            residual_norm=float(np.hypot(residual, np.sqrt(rest_sq))),
+            n_iter=2,
+            converged=True,
+        )
 
 
-def select_support(dictionary: GridDictionary, fit: NonnegativeFit, scale: float,
-                   n_targets: int | None) -> IntArray:
+def select_support(
+    dictionary: GridDictionary, fit: NonnegativeFit, scale: float, n_targets: int | None
+) -> IntArray:
     """The K cells of a nonnegative fit with the largest occupancies.
 
     Parameters
@@ -96,7 +102,8 @@ def select_support(dictionary: GridDictionary, fit: NonnegativeFit, scale: float
     weights: FloatArray = dictionary.weights(fit.cells, fit.coefficients, scale)
     if n_targets is None:
         n_targets = estimate_target_count(
-            weights, max_targets=min(MAX_TARGETS, dictionary.usable.size))
+            weights, max_targets=min(MAX_TARGETS, dictionary.usable.size)
+        )
     n_targets = min(n_targets, fit.cells.size)
     order = np.lexsort((-fit.coefficients, -weights))
     return np.asarray(fit.cells[order[:n_targets]], dtype=np.intp)

@@ -70,7 +70,8 @@ class OmpSolver(Solver):
         self._scored_transpose: FloatArray | None = None
         if self.dictionary.normalised is not None:
             self._scored_transpose = np.ascontiguousarray(
-                (self.dictionary.normalised * self._score_scale).T)
+                (self.dictionary.normalised * self._score_scale).T
+            )
 
     def _solve(self, measurement: Measurement, n_targets: int | None) -> Solution:
         values = measurement.values
@@ -81,7 +82,8 @@ class OmpSolver(Solver):
             fit = nonnegative_fit(dictionary, target)
             n_targets = estimate_target_count(
                 dictionary.weights(fit.cells, fit.coefficients, scale),
-                max_targets=min(dictionary.usable.size, MAX_TARGETS))
+                max_targets=min(dictionary.usable.size, MAX_TARGETS),
+            )
         if self._scored_transpose is not None:
             cells = self._select_dense(self._scored_transpose, target, n_targets)
         else:
@@ -89,16 +91,22 @@ class OmpSolver(Solver):
         block, target_rows, rest_sq = dictionary.restrict(cells, target)
         coefficients, residual_norm = fit_least_squares(block, target_rows)
         return grid_solution(
-            dictionary, cells, coefficients, scale=scale,
+            dictionary,
+            cells,
+            coefficients,
+            scale=scale,
             residual_norm=float(np.hypot(residual_norm, np.sqrt(rest_sq))),
-            n_iter=cells.size, converged=True)
+            n_iter=cells.size,
+            converged=True,
+        )
 
     def _pick(self, scores: FloatArray, support: list[int]) -> int:
         scores[support] = -1.0
         return int(np.argmax(scores))
 
-    def _select_dense(self, scored_transpose: FloatArray, target: FloatArray,
-                      n_targets: int) -> IntArray:
+    def _select_dense(
+        self, scored_transpose: FloatArray, target: FloatArray, n_targets: int
+    ) -> IntArray:
         """Greedy selection with an orthonormal basis of the chosen atoms, updated per step.
 
         The residual is ``target`` minus its projection on the noise atom and the chosen
@@ -139,6 +147,7 @@ class OmpSolver(Solver):
                 cells = np.asarray(support, dtype=np.intp)
                 block, target_rows, _ = dictionary.restrict(cells, target)
                 coefficients = np.asarray(
-                    np.linalg.lstsq(block, target_rows, rcond=None)[0], dtype=np.float64)
+                    np.linalg.lstsq(block, target_rows, rcond=None)[0], dtype=np.float64
+                )
                 residual = target - dictionary.predict(cells, coefficients)
         return np.asarray(support, dtype=np.intp)
