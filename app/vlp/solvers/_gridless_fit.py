@@ -11,6 +11,11 @@ is ``10^(-SNR/10)``. The model of one measurement with targets at ``p_k`` is
     \\phi(g) = \\mathrm{vech}(g g^T) \\text{ (correlation) or } g \\circ g \\text{ (power)},
 
 with ``a`` the noise atom (``vech(I)`` or ones). Private: callers validate.
+
+Speed: the solver spends its time in :meth:`Objective.augmented` and the LM loop, a few
+dozen small NumPy calls each, so the code below keeps the call count low (one evaluation
+gives residual and Jacobian together, in-place kernels, LAPACK's ``posv`` for the damped
+normal equations) rather than the flop count.
 """
 
 from __future__ import annotations
@@ -20,6 +25,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.linalg import lapack
 
 from .._typing import FloatArray, IntArray
 from ..channel import led_constants
@@ -78,15 +84,51 @@ class ChannelKernel:
 
     def stacked(self, points: FloatArray, with_gradients: bool) -> FloatArray:
         """Columns ``[g | dg/dx | dg/dy]`` of shape (M, 3P), or ``g`` alone (M, P)."""
-        dx = points[:, 0] - self._led_x
-        dy = points[:, 1] - self._led_y
-        d2 = dx * dx + dy * dy + self._dz2
-        gains = self._factor * d2**self._minus_half_exponent
-        gains *= d2 <= self._max_d2
+        n_points = points.shape[0]
         if not with_gradients:
-            return np.asarray(gains)
-        slope = self._minus_twice_half_exponent * gains / d2
-        return np.concatenate([gains, slope * dx, slope * dy], axis=1)
+            return self.gains_xy(points[:, 0], points[:, 1])
+        blocks = self.gradients_xy(points[:, 0], points[:, 1])
+        return np.concatenate(
+            [blocks[:, 2 * n_points : 3 * n_points], blocks[:, : 2 * n_points]], axis=1
+        )
+
+    def gains_xy(self, xs: FloatArray, ys: FloatArray) -> FloatArray:
+        """``g`` at the points ``(xs, ys)`` (shapes (P,)), shape (M, P)."""
+        d2 = self._distances_squared(xs, ys)[2]
+        gains = np.power(d2, self._minus_half_exponent)
+        gains *= self._factor
+        gains *= d2 <= self._max_d2
+        return gains
+
+    def gradients_xy(self, xs: FloatArray, ys: FloatArray) -> FloatArray:
+        """Columns ``[dg/dx | dg/dy | g | g]`` of shape (M, 4P) at the points ``(xs, ys)``.
+
+        The order suits :meth:`Objective.augmented`: the gains twice, next to both gradient
+        blocks, make the product rule one multiply per side.
+        """
+        n_points = xs.shape[0]
+        out = np.empty((self.n_leds, 4 * n_points))
+        gains = out[:, 2 * n_points : 3 * n_points]
+        dx, dy, d2 = self._distances_squared(xs, ys)
+        np.power(d2, self._minus_half_exponent, out=gains)
+        gains *= self._factor
+        gains *= d2 <= self._max_d2
+        slope = self._minus_twice_half_exponent * gains
+        slope /= d2
+        np.multiply(slope, dx, out=out[:, :n_points])
+        np.multiply(slope, dy, out=out[:, n_points : 2 * n_points])
+        out[:, 3 * n_points :] = gains
+        return out
+
+    def _distances_squared(
+        self, xs: FloatArray, ys: FloatArray
+    ) -> tuple[FloatArray, FloatArray, FloatArray]:
+        dx = xs - self._led_x
+        dy = ys - self._led_y
+        d2 = dx * dx
+        d2 += dy * dy
+        d2 += self._dz2
+        return dx, dy, d2
 
 
 @dataclass
@@ -96,6 +138,16 @@ class FitState:
     positions: FloatArray
     weights: FloatArray
     noise: float
+
+    @classmethod
+    def empty(cls) -> FitState:
+        """No targets yet."""
+        return cls(np.zeros((0, 2)), np.zeros(0), 0.0)
+
+    @property
+    def n_targets(self) -> int:
+        """K."""
+        return int(self.positions.shape[0])
 
 
 @functools.lru_cache(maxsize=64)
@@ -120,16 +172,20 @@ class Whitening:
     ``S = sum_k g_k g_k^T``. In the eigenbasis ``M0 = U diag(lam) U^T`` the entries of
     ``U^T E U`` are uncorrelated with variance ``2 sigma^2 (lam_a + lam_b)``
     (``4 sigma^2 lam_a`` on the diagonal), which gives the weights ``c``. For power the
-    entries are independent with variance ``4 sigma^2 (S_ii + K sigma^2 / 2)``.
+    entries are independent with variance ``4 sigma^2 (S_ii + K sigma^2 / 2)``. The noise
+    atom ``vech(I)`` is unchanged by the rotation (``U^T I U = I``).
     """
 
     def __init__(
         self, model: Model, n_leds: int, rotation: FloatArray | None, weights: FloatArray
     ) -> None:
         self.model = model
+        self.n_leds = n_leds
         self.rotation = rotation
+        self.rotation_t = None if rotation is None else np.ascontiguousarray(rotation.T)
         self.weights = weights
         self.upper, self.lower, self.is_diag = _vech_indices(model, n_leds)
+        self.weighted_diag = weights * self.is_diag
 
     @classmethod
     def identity(cls, model: Model, n_leds: int) -> Whitening:
@@ -152,7 +208,8 @@ class Whitening:
             var = 4.0 * sigma2 * ((gains**2) @ state.weights + half_noise)
             return cls(model, kernel.n_leds, None, 1.0 / np.sqrt(var))
         signal = (gains * state.weights) @ gains.T
-        lam, rot = np.linalg.eigh(signal + half_noise * np.eye(kernel.n_leds))
+        signal.flat[:: kernel.n_leds + 1] += half_noise
+        lam, rot = np.linalg.eigh(signal)
         lam = np.maximum(lam, _EIG_FLOOR * max(float(lam[-1]), _SIGMA2_FLOOR))
         upper, lower, is_diag = _vech_indices(model, kernel.n_leds)
         # Variance 2 sigma^2 (lam_a + lam_b), doubled on the diagonal; off-diagonal entries
@@ -161,133 +218,184 @@ class Whitening:
         weights = np.sqrt((2.0 - is_diag) / var)
         return cls(model, kernel.n_leds, rot, weights)
 
-    def data(self, values: FloatArray, n_leds: int) -> FloatArray:
+    def data(self, values: FloatArray) -> FloatArray:
         """Whitened measurement."""
-        if self.model == "power" or self.rotation is None:
+        if self.rotation is None or self.rotation_t is None:
             return np.asarray(self.weights * values)
-        full = np.zeros((n_leds, n_leds))
+        full = np.zeros((self.n_leds, self.n_leds))
         full[self.upper, self.lower] = values
-        full = full + np.triu(full, 1).T
-        rotated = self.rotation.T @ full @ self.rotation
+        full[self.lower, self.upper] = values
+        rotated = self.rotation_t @ full @ self.rotation
         return np.asarray(self.weights * rotated[self.upper, self.lower])
 
     def rotate(self, vectors: FloatArray) -> FloatArray:
         """``U^T V`` for V of shape (M, n)."""
-        if self.rotation is None:
+        if self.rotation_t is None:
             return vectors
-        return np.asarray(self.rotation.T @ vectors)
+        return np.asarray(self.rotation_t @ vectors)
 
 
-def residual_and_jacobian(
-    kernel: ChannelKernel,
-    white: Whitening,
-    data: FloatArray,
-    state: FitState,
-    free_weights: bool,
-    want_jacobian: bool = True,
-) -> tuple[FloatArray, FloatArray | None]:
-    """Whitened residual ``c * (y - mu)`` and its Jacobian wrt (positions, [weights], s).
+class Objective:
+    """``||data - c * mu(theta)||^2`` in one whitened metric, with its Jacobian.
 
-    Returns
-    -------
-    residual : ndarray of shape (L,)
-    jacobian : ndarray of shape (L, 2K + [K] + 1) or None
-        Derivative of the *model* term ``c * mu`` (so a Gauss-Newton step solves
-        ``J delta = residual``).
+    Parameters are packed as ``theta = [x_1..x_K, y_1..y_K, (w_1..w_K), s]``.
+
+    Parameters
+    ----------
+    kernel : ChannelKernel
+    white : Whitening
+    values : ndarray of shape (L,)
+        The measurement in normalised units (not yet whitened).
+    free_weights : bool
     """
-    k = state.positions.shape[0]
-    w = state.weights
-    c = white.weights
-    # One rotation for gains and both gradient components: columns [g | dg/dx | dg/dy].
-    stacked = white.rotate(kernel.stacked(state.positions, want_jacobian))
-    left = stacked[white.upper]
-    right = stacked[white.lower]
-    atoms = left[:, :k] * right[:, :k]  # (L, K)
-    residual = data - c * (atoms @ w + state.noise * white.is_diag)
-    if not want_jacobian:
-        return residual, None
-    n_rows = len(c)
-    jac = np.empty((n_rows, 2 * k + (k if free_weights else 0) + 1))
-    # d(g_a g_b)/dp = g_a dg_b + dg_a g_b for both axes at once, as (L, axis, K); the
-    # columns are ordered (x_1, y_1, x_2, y_2, ...).
-    d_left = left[:, k:].reshape(n_rows, 2, k)
-    d_right = right[:, k:].reshape(n_rows, 2, k)
-    both = w * (left[:, None, :k] * d_right + d_left * right[:, None, :k])
-    jac[:, : 2 * k] = both.transpose(0, 2, 1).reshape(n_rows, 2 * k)
-    if free_weights:
-        jac[:, 2 * k : 3 * k] = atoms
-    jac[:, -1] = white.is_diag
-    jac *= c[:, None]
-    return residual, jac
+
+    def __init__(
+        self, kernel: ChannelKernel, white: Whitening, values: FloatArray, free_weights: bool
+    ) -> None:
+        self.kernel = kernel
+        self.white = white
+        self.data = white.data(values)
+        self.free_weights = free_weights
+
+    def pack(self, state: FitState) -> FloatArray:
+        """``theta`` of a state."""
+        parts = [state.positions[:, 0], state.positions[:, 1]]
+        if self.free_weights:
+            parts.append(state.weights)
+        parts.append(np.array([state.noise]))
+        return np.concatenate(parts)
+
+    def project(self, theta: FloatArray, upper: FloatArray) -> FloatArray:
+        """Clip positions into the room and weights and noise to be nonnegative (in place);
+        ``upper`` holds the room's length K times, then its width K times, then infinities."""
+        return np.clip(theta, 0.0, upper, out=theta)
+
+    def upper_bounds(self, n_targets: int) -> FloatArray:
+        """The ``upper`` argument of :meth:`project`."""
+        length, width = self.kernel.bounds
+        n_rest = (n_targets if self.free_weights else 0) + 1
+        return np.concatenate(
+            [np.full(n_targets, length), np.full(n_targets, width), np.full(n_rest, np.inf)]
+        )
+
+    def unpack(self, theta: FloatArray, state: FitState) -> FitState:
+        """State of ``theta`` (fixed weights taken from ``state``)."""
+        k = state.n_targets
+        positions = np.column_stack((theta[:k], theta[k : 2 * k]))
+        weights = theta[2 * k : 3 * k].copy() if self.free_weights else state.weights
+        return FitState(positions, weights, float(theta[-1]))
+
+    def residual(self, theta: FloatArray, weights: FloatArray | None) -> FloatArray:
+        """Whitened residual ``c * (y - mu(theta))``, shape (L,).
+
+        Parameters
+        ----------
+        theta : ndarray of shape (2K + [K] + 1,)
+        weights : ndarray of shape (K,) or None
+            The fixed weights (ignored with free weights); None means all ones.
+        """
+        white = self.white
+        k = self._n_targets(theta)
+        if self.free_weights:
+            weights = theta[2 * k : 3 * k]
+        gains = white.rotate(self.kernel.gains_xy(theta[:k], theta[k : 2 * k]))
+        atoms = gains[white.upper] * gains[white.lower]
+        return self._residual(atoms, weights, theta[-1])
+
+    def augmented(self, theta: FloatArray, weights: FloatArray | None) -> FloatArray:
+        """``[J | r]`` of shape (L, len(theta) + 1): the Jacobian of ``c * mu`` and the
+        residual in one array, so that one product gives ``J^T J``, ``J^T r`` and ``r^T r``.
+        """
+        white = self.white
+        k = self._n_targets(theta)
+        if self.free_weights:
+            weights = theta[2 * k : 3 * k]
+        # Columns [dg/dx | dg/dy | g | g] (rotated); rows a and b of each measurement entry.
+        blocks = white.rotate(self.kernel.gradients_xy(theta[:k], theta[k : 2 * k]))
+        left = blocks[white.upper]
+        right = blocks[white.lower]
+        atoms = left[:, 2 * k : 3 * k] * right[:, 2 * k : 3 * k]  # (L, K)
+        n_params = theta.shape[0]
+        augmented = np.empty((atoms.shape[0], n_params + 1))
+        augmented[:, n_params] = self._residual(atoms, weights, theta[-1])
+        # d(g_a g_b)/dp = dg_a g_b + g_a dg_b, both axes at once: columns x_1..x_K, y_1..y_K.
+        positions = augmented[:, : 2 * k]
+        np.multiply(left[:, : 2 * k], right[:, 2 * k :], out=positions)
+        positions += left[:, 2 * k :] * right[:, : 2 * k]
+        if weights is not None:
+            positions *= np.concatenate((weights, weights))
+        if self.free_weights:
+            augmented[:, 2 * k : 3 * k] = atoms
+        positions *= white.weights[:, None]
+        augmented[:, n_params - 1] = white.weighted_diag
+        if self.free_weights:
+            augmented[:, 2 * k : 3 * k] *= white.weights[:, None]
+        return augmented
+
+    def _n_targets(self, theta: FloatArray) -> int:
+        return int((theta.shape[0] - 1) // (3 if self.free_weights else 2))
+
+    def _residual(self, atoms: FloatArray, weights: FloatArray | None, noise: float) -> FloatArray:
+        model = atoms.sum(axis=1) if weights is None else atoms @ weights
+        model *= self.white.weights
+        residual = self.data - model
+        residual -= noise * self.white.weighted_diag
+        return residual
+
+    def cost(self, state: FitState) -> tuple[float, FloatArray]:
+        """Cost and whitened residual of a state."""
+        residual = self.residual(self.pack(state), _fixed(state))
+        return float(residual @ residual), residual
 
 
-def _pack(state: FitState, free_weights: bool) -> FloatArray:
-    parts = [state.positions.ravel()]
-    if free_weights:
-        parts.append(state.weights)
-    parts.append(np.array([state.noise]))
-    return np.concatenate(parts)
-
-
-def _unpack(theta: FloatArray, state: FitState, free_weights: bool, bounds: FloatArray) -> FitState:
-    k = state.positions.shape[0]
-    positions = np.clip(theta[: 2 * k].reshape(k, 2), 0.0, bounds)
-    weights = np.maximum(theta[2 * k : 3 * k], 0.0) if free_weights else state.weights
-    return FitState(positions, weights, max(float(theta[-1]), 0.0))
+def _fixed(state: FitState) -> FloatArray | None:
+    """The fixed weights to pass to :meth:`Objective.residual` (None when all are one)."""
+    return None if bool(np.all(state.weights == 1.0)) else state.weights
 
 
 def levenberg_marquardt(
-    kernel: ChannelKernel,
-    white: Whitening,
-    data: FloatArray,
+    objective: Objective,
     state: FitState,
     *,
-    free_weights: bool,
     max_iter: int,
-    tol: float = 1e-7,
+    tol: float = 1e-4,
     step_tol_m: float = 1e-5,
 ) -> tuple[FitState, float, int]:
-    """Projected LM on ``||data - c * mu(theta)||^2`` (positions kept inside the room).
+    """Projected LM on an :class:`Objective` (positions kept inside the room).
+
+    Every trial computes residual and Jacobian together: most steps are accepted, and a
+    second call for the Jacobian would cost more than the wasted one on a rejection.
 
     Returns the refined state, its cost and the number of iterations used.
     """
-    residual, jac = residual_and_jacobian(kernel, white, data, state, free_weights)
-    cost = float(residual @ residual)
+    n_targets = state.n_targets
+    weights = _fixed(state)
+    upper = objective.upper_bounds(n_targets)
+    theta = objective.pack(state)
+    normal, gradient, cost = _gram(objective, theta, weights)
     damping = _INITIAL_DAMPING
     used = 0
-    theta = _pack(state, free_weights)
-    n_pos = state.positions.size
+    n_pos = 2 * n_targets
     converged = False
     while used < max_iter and not converged:
         used += 1
-        assert jac is not None
-        normal = jac.T @ jac
-        gradient = jac.T @ residual
-        scaling = np.diag(np.maximum(np.diag(normal), 1e-30))
+        scaling = np.diag(np.maximum(normal.diagonal(), 1e-30))
         for _ in range(_MAX_REJECTIONS):
-            try:
-                step = np.linalg.solve(normal + damping * scaling, gradient)
-            except np.linalg.LinAlgError:
+            _, step, info = lapack.dposv(normal + damping * scaling, gradient)
+            if info != 0:
                 damping *= 10.0
                 continue
             # Converged when the step no longer moves any target or the linearised model
             # promises (almost) no decrease; the step is still tried.
             predicted = float(step @ (2.0 * gradient - normal @ step))
             converged = (
-                float(np.max(np.abs(step[:n_pos]), initial=0.0)) < step_tol_m
-                or predicted < tol * cost
-            )
-            trial = _unpack(theta + step, state, free_weights, kernel.bounds)
-            trial_res, _ = residual_and_jacobian(
-                kernel, white, data, trial, free_weights, want_jacobian=False
-            )
-            trial_cost = float(trial_res @ trial_res)
+                n_pos == 0 or float(np.abs(step[:n_pos]).max()) < step_tol_m
+            ) or predicted < tol * cost
+            trial = objective.project(theta + step, upper)
+            trial_normal, trial_gradient, trial_cost = _gram(objective, trial, weights)
             if trial_cost < cost:
                 converged = converged or (cost - trial_cost) < tol * cost
-                state, cost = trial, trial_cost
-                if not converged:
-                    residual, jac = residual_and_jacobian(kernel, white, data, state, free_weights)
-                theta = _pack(state, free_weights)
+                theta, normal, gradient, cost = trial, trial_normal, trial_gradient, trial_cost
                 damping = max(damping / _DAMPING_DOWN, 1e-9)
                 break
             if converged:
@@ -295,4 +403,14 @@ def levenberg_marquardt(
             damping *= _DAMPING_UP
         else:
             converged = True  # no decrease found along any damping: a local minimum
-    return state, cost, used
+    return objective.unpack(theta, state), cost, used
+
+
+def _gram(
+    objective: Objective, theta: FloatArray, weights: FloatArray | None
+) -> tuple[FloatArray, FloatArray, float]:
+    """``J^T J``, ``J^T r`` and ``r^T r`` at ``theta`` (one BLAS call instead of three)."""
+    augmented = objective.augmented(theta, weights)
+    gram = augmented.T @ augmented
+    n_params = theta.shape[0]
+    return gram[:n_params, :n_params], gram[:n_params, n_params], float(gram[n_params, n_params])
