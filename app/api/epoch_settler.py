@@ -17,12 +17,13 @@ from __future__ import annotations
 import logging
 import os
 import socket
+import time
 import uuid
 from datetime import timedelta
 
 import numpy as np
 
-from app.errors import RegistryError, RegistryUnavailable, VLPError
+from app.errors import NotFound, RegistryError, RegistryUnavailable, VLPError
 from app.registry import Registry
 from app.registry.epochs import (
     EPOCH_FINAL_STATUSES,
@@ -45,6 +46,8 @@ __all__ = ["EpochSettler"]
 
 _log = logging.getLogger(__name__)
 _SWEEP_BATCH = 32
+# Finished epochs are purged at most this often (a write transaction; no need every sweep).
+_PURGE_INTERVAL_S = 60.0
 
 
 class EpochSettler:
@@ -58,6 +61,7 @@ class EpochSettler:
         self._metrics = metrics
         self._settings = settings
         self.owner = f"{socket.gethostname()[:30]}:{os.getpid()}:{uuid.uuid4().hex[:8]}"
+        self._next_purge = 0.0
 
     def settle(self, *, room_id: str, epoch_id: str, force: bool) -> EpochRecord:
         """Solve or expire the epoch if it is due (or ``force``: an explicit ``solve``) and
@@ -87,15 +91,21 @@ class EpochSettler:
         return self._registry.get_epoch(room_id=room_id, epoch_id=epoch_id)
 
     def sweep(self) -> int:
-        """Settle every due epoch and purge old finished ones; how many were settled here."""
+        """Settle the due epochs (and, once a minute, purge finished ones older than
+        ``epoch_retention_seconds``); how many of the due epochs are closed afterwards."""
         settled = 0
         for room_id, epoch_id in due_epochs(
             self._registry.engine, now=utcnow(), limit=_SWEEP_BATCH
         ):
-            record = self.settle(room_id=room_id, epoch_id=epoch_id, force=False)
+            try:
+                record = self.settle(room_id=room_id, epoch_id=epoch_id, force=False)
+            except NotFound:
+                continue  # its room was deleted meanwhile
             settled += record.status != "solving"
-        retention = timedelta(seconds=self._settings.epoch_retention_seconds)
-        purge_epochs(self._registry.engine, finished_before=utcnow() - retention)
+        if time.monotonic() >= self._next_purge:
+            self._next_purge = time.monotonic() + _PURGE_INTERVAL_S
+            retention = timedelta(seconds=self._settings.epoch_retention_seconds)
+            purge_epochs(self._registry.engine, finished_before=utcnow() - retention)
         return settled
 
     def _conclude(self, claimed: ClaimedEpoch) -> None:

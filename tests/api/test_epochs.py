@@ -379,3 +379,18 @@ def test_the_sweeper_closes_passed_windows_without_any_request(
         assert_labelled_near_truth(read(swept, epoch), ["t1", "t2", "t3"])
     finally:
         swept.__exit__(None, None, None)
+
+
+def test_a_sweep_purges_epochs_past_their_retention(tmp_path: Path, database_url: str) -> None:
+    brief = start(tmp_path / "data", database_url, epoch_retention_seconds=0.001)
+    try:
+        epoch = create(brief, room_of(brief))
+        kept = create(brief, room_of(brief))
+        assert solve(brief, epoch)["status"] == "expired"
+        time.sleep(0.01)  # let its retention pass
+        service(brief).state.epoch_settler.sweep()
+        gone = brief.get(f"/v1/rooms/{epoch['room_id']}/epochs/{epoch['id']}", headers=TERMINAL)
+        assert_problem(gone, 404)
+        assert read(brief, kept)["status"] == "open"
+    finally:
+        brief.__exit__(None, None, None)
