@@ -214,26 +214,33 @@ def post_epoch_measurement(
                 f"{row.fingerprint_version}), got {len(amplitudes)}",
                 field="amplitudes",
             )
-        mine = (epoch_measurements.c.epoch_id == epoch_id) & (
-            epoch_measurements.c.terminal_id == terminal_id
-        )
-        values = {"amplitudes": [float(a) for a in amplitudes], "posted_at": now}
-        if conn.execute(update(epoch_measurements).where(mine).values(**values)).rowcount == 0:
-            count = conn.execute(
-                select(func.count())
-                .select_from(epoch_measurements)
-                .where(epoch_measurements.c.epoch_id == epoch_id)
-            ).scalar_one()
-            if count >= row.max_terminals:
-                raise EpochFull(
-                    f"epoch {epoch_id} already has its maximum of {row.max_terminals} terminals"
-                )
-            conn.execute(
-                insert(epoch_measurements).values(
-                    epoch_id=epoch_id, terminal_id=terminal_id, **values
-                )
-            )
+        _upsert(conn, row, terminal_id, [float(a) for a in amplitudes], now)
         return _read(conn, room_id=room_id, epoch_id=epoch_id)
+
+
+def _upsert(
+    conn: Connection, epoch: Any, terminal_id: str, amplitudes: list[float], now: datetime
+) -> None:
+    # Replace the terminal's row, else add one if the epoch has room. The caller holds the
+    # epoch row lock, so no other post of this epoch runs between the update and the insert.
+    mine = (epoch_measurements.c.epoch_id == epoch.id) & (
+        epoch_measurements.c.terminal_id == terminal_id
+    )
+    values = {"amplitudes": amplitudes, "posted_at": now}
+    if conn.execute(update(epoch_measurements).where(mine).values(**values)).rowcount:
+        return
+    count = conn.execute(
+        select(func.count())
+        .select_from(epoch_measurements)
+        .where(epoch_measurements.c.epoch_id == epoch.id)
+    ).scalar_one()
+    if count >= epoch.max_terminals:
+        raise EpochFull(
+            f"epoch {epoch.id} already has its maximum of {epoch.max_terminals} terminals"
+        )
+    conn.execute(
+        insert(epoch_measurements).values(epoch_id=epoch.id, terminal_id=terminal_id, **values)
+    )
 
 
 def claim_epoch(
@@ -256,6 +263,7 @@ def claim_epoch(
     lease_over = (epochs.c.status == "solving") & (epochs.c.claim_expires_at <= now)
     mine = (epochs.c.id == epoch_id) & (epochs.c.room_id == room_id)
     with write_transaction(engine) as conn:
+        # Lost too often: give up rather than crash every process that picks it up.
         conn.execute(
             update(epochs)
             .where(mine, lease_over, epochs.c.attempts >= max_attempts)
@@ -281,12 +289,15 @@ def claim_epoch(
         ).rowcount
         if claimed != 1:
             return None
-        record = _read(conn, room_id=room_id, epoch_id=epoch_id)
-        rows = conn.execute(
-            select(epoch_measurements.c.terminal_id, epoch_measurements.c.amplitudes)
-            .where(epoch_measurements.c.epoch_id == epoch_id)
-            .order_by(epoch_measurements.c.posted_at, epoch_measurements.c.terminal_id)
-        ).all()
+        return _claimed(conn, _read(conn, room_id=room_id, epoch_id=epoch_id), owner)
+
+
+def _claimed(conn: Connection, record: EpochRecord, owner: str) -> ClaimedEpoch:
+    rows = conn.execute(
+        select(epoch_measurements.c.terminal_id, epoch_measurements.c.amplitudes)
+        .where(epoch_measurements.c.epoch_id == record.id)
+        .order_by(epoch_measurements.c.posted_at, epoch_measurements.c.terminal_id)
+    ).all()
     return ClaimedEpoch(
         record=record,
         owner=owner,

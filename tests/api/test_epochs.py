@@ -18,6 +18,9 @@ from fastapi import FastAPI
 import app.api.epoch_settler
 from app.main import create_app
 from app.registry import Registry
+from app.registry.epochs import claim_epoch
+from app.registry.queue import utcnow
+from app.schemas.epochs import epoch_create_examples, epoch_measurement_examples
 from app.vlp.errors import SolverError
 from app.vlp.fingerprints import build_fingerprint
 from app.vlp.presets import paper_layout
@@ -394,3 +397,49 @@ def test_a_sweep_purges_epochs_past_their_retention(tmp_path: Path, database_url
         assert read(brief, kept)["status"] == "open"
     finally:
         brief.__exit__(None, None, None)
+
+
+def test_the_swagger_examples_solve_the_demo_room(client: TestClient) -> None:
+    room_id = room_of(client)
+    response = client.post(
+        f"/v1/rooms/{room_id}/epochs",
+        json=epoch_create_examples()["by-hand"]["value"],
+        headers=TERMINAL,
+    )
+    assert response.status_code == 201, response.text
+    epoch = response.json()
+    url = f"/v1/rooms/{room_id}/epochs/{epoch['id']}/measurements"
+    for example in epoch_measurement_examples().values():
+        assert client.post(url, json=example["value"], headers=TERMINAL).status_code == 202
+    solved = solve(client, epoch)
+    # The examples are the noiseless amplitudes at (1.0, 1.2) m (t1) and (2.9, 3.1) m (t2).
+    where = {e["terminal_id"]: (e["x"], e["y"]) for e in solved["localization"]["estimates"]}
+    assert where.keys() == {"t1", "t2"}
+    assert math.dist(where["t1"], (1.0, 1.2)) < 0.05 and math.dist(where["t2"], (2.9, 3.1)) < 0.05
+
+
+def test_an_epoch_whose_solver_died_is_taken_over_when_its_claim_runs_out(
+    client: TestClient,
+) -> None:
+    epoch = create(client, room_of(client))
+    for name, row in zip(["t1", "t2", "t3"], terminal_amplitudes(seed=11), strict=True):
+        post(client, epoch, name, row)
+    ids = {"room_id": epoch["room_id"], "epoch_id": epoch["id"]}
+    # Another process claimed it and died: its claim (a lease) runs out after 0.1 s.
+    dead = claim_epoch(
+        registry_of(client).engine,
+        **ids,
+        owner="dead-process",
+        now=utcnow(),
+        lease_s=0.1,
+        max_attempts=3,
+        force=True,
+    )
+    assert dead is not None
+    assert read(client, epoch)["status"] == "solving"
+    assert_problem(post(client, epoch, "t4", terminal_amplitudes(seed=11)[0]), 409)
+    time.sleep(0.15)  # let the dead process's lease run out
+    solved = solve(client, epoch)
+    assert solved["status"] == "solved"
+    assert_labelled_near_truth(solved, ["t1", "t2", "t3"])
+    assert registry_of(client).get_epoch(**ids).attempts == 2
