@@ -10,7 +10,9 @@ The tree::
         └── UnknownSolverError
     RegistryError                    the registry refuses or cannot do (app.registry.errors)
     ├── NotFound
-    │   ├── RoomNotFound, JobNotFound, FingerprintNotFound, MatrixNotFound
+    │   ├── RoomNotFound, JobNotFound, FingerprintNotFound, MatrixNotFound, EpochNotFound
+    ├── Conflict
+    │   ├── EpochClosed, EpochFull
     ├── PreconditionFailed, FingerprintNotReady, CorruptMatrix, InvalidCursor
     └── RegistryUnavailable
 
@@ -20,7 +22,11 @@ The tree::
 from __future__ import annotations
 
 from app.registry.errors import (
+    Conflict,
     CorruptMatrix,
+    EpochClosed,
+    EpochFull,
+    EpochNotFound,
     FingerprintNotFound,
     FingerprintNotReady,
     InvalidCursor,
@@ -42,7 +48,11 @@ from app.vlp.errors import (
 )
 
 __all__ = [
+    "Conflict",
     "CorruptMatrix",
+    "EpochClosed",
+    "EpochFull",
+    "EpochNotFound",
     "FingerprintNotFound",
     "FingerprintNotReady",
     "GeometryError",

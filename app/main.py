@@ -18,12 +18,14 @@ from threadpoolctl import threadpool_limits
 
 from app.api import api_router
 from app.api.docs import install_docs
+from app.api.epoch_settler import EpochSettler
 from app.api.errors import PROBLEM_MEDIA_TYPE, install_error_handlers
 from app.api.localizer import FingerprintCache
 from app.api.metrics import Metrics
 from app.api.middleware import BodySizeLimitMiddleware, RequestContextMiddleware
 from app.api.security import provision_keys
 from app.jobs import EmbeddedWorkers
+from app.jobs.epochs import EpochSweeper
 from app.registry import Registry
 from app.registry.seed import seed_demo_room
 from app.settings import Settings, get_settings
@@ -50,6 +52,10 @@ _TAGS = [
     {"name": "fingerprints", "description": "Channel matrices built from a layout"},
     {"name": "jobs", "description": "Background fingerprint builds"},
     {"name": "localization", "description": "Locate targets; simulate measurements"},
+    {
+        "name": "epochs",
+        "description": "Cooperation windows: terminals post their own amplitudes, solved once",
+    },
     {"name": "operations", "description": "Health, readiness, metrics (no key)"},
 ]
 
@@ -93,6 +99,15 @@ def _count_jobs(app: FastAPI) -> dict[str, int] | None:
     return dict(counter()) if callable(counter) else None
 
 
+def _epoch_sweeper(settler: EpochSettler, settings: Settings) -> EpochSweeper | None:
+    """The started sweeper that closes passed epoch windows (None when switched off)."""
+    if settings.epoch_sweep_seconds <= 0:
+        return None
+    sweeper = EpochSweeper(sweep=settler.sweep, interval_s=settings.epoch_sweep_seconds)
+    sweeper.start()
+    return sweeper
+
+
 @asynccontextmanager
 async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
     settings: Settings = app.state.settings
@@ -118,6 +133,10 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
             version_check_seconds=settings.version_check_seconds,
             metrics=metrics,
         )
+        app.state.epoch_settler = EpochSettler(
+            registry=registry, cache=app.state.cache, metrics=metrics, settings=settings
+        )
+        sweeper = _epoch_sweeper(app.state.epoch_settler, settings)
         workers = EmbeddedWorkers(registry=registry, settings=settings)
         if settings.embedded_workers > 0:
             workers.start()
@@ -131,6 +150,8 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
         try:
             yield
         finally:
+            if sweeper is not None:
+                await run_in_threadpool(sweeper.stop)
             if settings.embedded_workers > 0:
                 await run_in_threadpool(workers.stop)
             registry.dispose()

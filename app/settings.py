@@ -40,6 +40,15 @@ class Settings(BaseSettings):
     job_poll_seconds: float = Field(default=0.5, gt=0)
     max_build_attempts: int = Field(default=3, ge=1)
 
+    # Cooperation epochs: the sweeper closes windows that passed (0 s: only lazily, on reads
+    # and solve requests); a solve claim is a lease, taken over when its process is gone.
+    epoch_sweep_seconds: float = Field(default=0.5, ge=0)
+    epoch_solve_lease_seconds: float = Field(default=30.0, gt=0)
+    epoch_max_solve_attempts: int = Field(default=3, ge=1)
+    # At most the solvers' MAX_TARGETS (64): each terminal of an epoch is one target.
+    epoch_max_terminals: int = Field(default=64, ge=1, le=64)
+    epoch_retention_seconds: float = Field(default=86_400.0, gt=0)
+
     # Localization cache: how often an API process re-reads a room's current version.
     version_check_seconds: float = Field(default=1.0, ge=0)
     fingerprint_cache_size: int = Field(default=16, ge=1)

@@ -17,6 +17,7 @@ from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from app.errors import (
+    Conflict,
     CorruptMatrix,
     FingerprintNotReady,
     InvalidCursor,
@@ -127,6 +128,7 @@ def _registry_status(exc: RegistryError) -> tuple[int, str]:
         (NotFound, 404, "not-found"),
         (PreconditionFailed, 412, "precondition-failed"),
         (FingerprintNotReady, 409, "fingerprint-not-ready"),
+        (Conflict, 409, "conflict"),
         (InvalidCursor, 422, "validation"),
         (CorruptMatrix, 503, "corrupt-matrix"),
         (RegistryUnavailable, 503, "registry-unavailable"),
@@ -214,7 +216,7 @@ def _problem_doc(description: str) -> dict[str, Any]:
 _DESCRIPTIONS = {
     401: "no or unknown `X-API-Key`",
     403: "the key's role may not do this",
-    404: "unknown room, job or fingerprint version",
+    404: "unknown room, job, epoch or fingerprint version",
     409: "conflict with the resource's state (e.g. no fingerprint ready yet)",
     412: "`If-Match` does not match the room's current `ETag`",
     413: "request body larger than the configured limit",

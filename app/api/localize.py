@@ -11,6 +11,7 @@ from starlette.concurrency import run_in_threadpool
 
 from app.schemas import Estimate, Localization, Measurement
 from app.vlp import measurements as vlp_measurements
+from app.vlp._typing import FloatArray
 from app.vlp.assignment import assign_terminals
 from app.vlp.measurements import Model
 from app.vlp.solvers import solver_names
@@ -20,7 +21,7 @@ from .errors import InvalidInput, problem_responses
 from .localizer import FingerprintCache
 from .metrics import Metrics
 
-__all__ = ["input_form", "router"]
+__all__ = ["TerminalSet", "input_form", "require_installed", "router", "solve_and_label"]
 
 router = APIRouter(prefix="/v1/rooms", tags=["localization"])
 _FORMS = ("power", "correlation", "terminals")
@@ -70,6 +71,20 @@ def input_form(body: Measurement) -> tuple[str, Model]:
     return form, implied
 
 
+def require_installed(solver: str) -> None:
+    """422 naming ``body.solver`` when that solver is not installed on this server."""
+    if solver not in solver_names():
+        raise InvalidInput(
+            [
+                (
+                    "body.solver",
+                    f"solver {solver!r} is not installed on this server; "
+                    f"choose one of {solver_names()}",
+                )
+            ]
+        )
+
+
 def _measurement(request: _Request, n_leds: int) -> vlp_measurements.Measurement:
     body = request.body
     if request.form == "power":
@@ -102,17 +117,59 @@ def _localize(request: _Request, cache: FingerprintCache, metrics: Metrics) -> L
     version = body.fingerprint_version or cache.current_version(request.room_id)
     fingerprint = cache.fingerprint(request.room_id, version)
     measurement = _measurement(request, fingerprint.n_leds)
-    prepared = cache.solver(request.room_id, version, request.model, body.solver)
+    terminals = None
+    if body.terminals:
+        terminals = TerminalSet(
+            ids=tuple(terminal.id for terminal in body.terminals),
+            amplitudes=np.array([terminal.amplitudes for terminal in body.terminals]),
+        )
+    return solve_and_label(
+        cache,
+        metrics,
+        room_id=request.room_id,
+        version=version,
+        measurement=measurement,
+        solver=body.solver,
+        targets=body.targets,
+        terminals=terminals,
+    )
+
+
+@dataclass(frozen=True)
+class TerminalSet:
+    """Terminals' own amplitudes: ``amplitudes[k]`` (M numbers) were sent by ``ids[k]``."""
+
+    ids: tuple[str, ...]
+    amplitudes: FloatArray
+
+
+def solve_and_label(
+    cache: FingerprintCache,
+    metrics: Metrics,
+    *,
+    room_id: str,
+    version: int,
+    measurement: vlp_measurements.Measurement,
+    solver: str,
+    targets: int | None,
+    terminals: TerminalSet | None,
+) -> Localization:
+    """Solve an aggregated measurement on (room, version) and, when the terminals' own
+    amplitudes are known, label each estimate with its terminal (an assignment problem).
+
+    Used by localize and by epochs, so both answer the same way.
+    """
+    fingerprint = cache.fingerprint(room_id, version)
+    prepared = cache.solver(room_id, version, measurement.model, solver)
     with prepared.lock:
         started = time.perf_counter()
-        solution = prepared.solver.solve(measurement, body.targets)
+        solution = prepared.solver.solve(measurement, targets)
         elapsed = time.perf_counter() - started
-    metrics.localize_latency.labels(solver=body.solver, model=request.model).observe(elapsed)
+    metrics.localize_latency.labels(solver=solver, model=measurement.model).observe(elapsed)
     owners: list[str | None] = [None] * solution.n_targets
-    if body.terminals:
-        amplitudes = np.array([terminal.amplitudes for terminal in body.terminals])
-        assigned = assign_terminals(fingerprint.layout, solution.positions, amplitudes)
-        owners = [body.terminals[int(index)].id if index >= 0 else None for index in assigned]
+    if terminals is not None:
+        assigned = assign_terminals(fingerprint.layout, solution.positions, terminals.amplitudes)
+        owners = [terminals.ids[int(index)] if index >= 0 else None for index in assigned]
     estimates = [
         Estimate(
             x=float(position[0]),
@@ -126,10 +183,10 @@ def _localize(request: _Request, cache: FingerprintCache, metrics: Metrics) -> L
         )
     ]
     return Localization(
-        room_id=request.room_id,
+        room_id=room_id,
         fingerprint_version=version,
-        model=request.model,
-        solver=body.solver,
+        model=measurement.model,
+        solver=solver,
         targets=solution.n_targets,
         estimates=estimates,
         residual_norm=float(solution.residual_norm),
@@ -153,15 +210,6 @@ async def localize(
     has no ready fingerprint.
     """
     form, model = input_form(body)
-    if body.solver not in solver_names():
-        raise InvalidInput(
-            [
-                (
-                    "body.solver",
-                    f"solver {body.solver!r} is not installed on this "
-                    f"server; choose one of {solver_names()}",
-                )
-            ]
-        )
+    require_installed(body.solver)
     request = _Request(room_id=room_id, body=body, form=form, model=model)
     return await run_in_threadpool(_localize, request, cache, metrics)

@@ -63,6 +63,13 @@ class Metrics:
             registry=self.registry,
         )
 
+        self.epochs = Counter(
+            "vlp_epochs_settled",
+            "Epochs this process closed, by outcome (each epoch is settled by one process)",
+            ["status"],
+            registry=self.registry,
+        )
+
     def watch_jobs(self, count_jobs: Callable[[], Mapping[str, int] | None]) -> None:
         """Expose jobs by status, read through ``count_jobs`` at each scrape."""
         self.registry.register(JobsCollector(count_jobs))

@@ -22,7 +22,17 @@ from sqlalchemy import (
 )
 from sqlalchemy.types import TypeDecorator
 
-__all__ = ["UTCDateTime", "api_keys", "fingerprints", "jobs", "matrices", "metadata", "rooms"]
+__all__ = [
+    "UTCDateTime",
+    "api_keys",
+    "epoch_measurements",
+    "epochs",
+    "fingerprints",
+    "jobs",
+    "matrices",
+    "metadata",
+    "rooms",
+]
 
 metadata = MetaData()
 
@@ -125,4 +135,41 @@ matrices = Table(
         ondelete="CASCADE",
     ),
     Index("ix_matrices_sha256", "sha256"),
+)
+
+# Cooperation epochs (migration 0002): one row per window; ``status`` is open -> solving ->
+# solved | expired | failed, and the open -> solving step is a conditional update (the claim).
+epochs = Table(
+    "epochs",
+    metadata,
+    Column("id", ID, primary_key=True),
+    Column("room_id", ID, ForeignKey("rooms.id", ondelete="CASCADE"), nullable=False),
+    Column("status", String(16), nullable=False),
+    Column("model", String(16), nullable=False),
+    Column("solver", String(32), nullable=False),
+    Column("targets", Integer, nullable=True),
+    Column("min_terminals", Integer, nullable=False),
+    Column("max_terminals", Integer, nullable=False),
+    Column("window_s", Float, nullable=False),
+    Column("fingerprint_version", Integer, nullable=False),
+    Column("leds", Integer, nullable=False),
+    Column("created_at", UTCDateTime(), nullable=False),
+    Column("expires_at", UTCDateTime(), nullable=False),
+    Column("attempts", Integer, nullable=False),
+    Column("claim_owner", String(64), nullable=True),
+    Column("claim_expires_at", UTCDateTime(), nullable=True),
+    Column("finished_at", UTCDateTime(), nullable=True),
+    Column("localization", JSON, nullable=True),
+    Column("error", Text, nullable=True),
+    Index("ix_epochs_status_expires_at", "status", "expires_at"),
+    Index("ix_epochs_room_id", "room_id"),
+)
+
+epoch_measurements = Table(
+    "epoch_measurements",
+    metadata,
+    Column("epoch_id", ID, ForeignKey("epochs.id", ondelete="CASCADE"), primary_key=True),
+    Column("terminal_id", String(64), primary_key=True),
+    Column("amplitudes", JSON, nullable=False),
+    Column("posted_at", UTCDateTime(), nullable=False),
 )

@@ -7,7 +7,11 @@ The tree::
     │   ├── RoomNotFound
     │   ├── JobNotFound
     │   ├── FingerprintNotFound   an unknown fingerprint version of a known room
-    │   └── MatrixNotFound        a matrix that is not stored (e.g. psi above the dense limit)
+    │   ├── MatrixNotFound        a matrix that is not stored (e.g. psi above the dense limit)
+    │   └── EpochNotFound         an unknown epoch (or one of another room)
+    ├── Conflict                  the resource's state does not allow the request
+    │   ├── EpochClosed           a post to an epoch whose window has closed
+    │   └── EpochFull             a new terminal in an epoch that has its maximum
     ├── PreconditionFailed        a replace against a stale ``layout_version``
     ├── FingerprintNotReady       a room with no ready fingerprint yet
     ├── CorruptMatrix             a stored matrix whose bytes no longer match its sha256
@@ -21,7 +25,11 @@ translated once, at the boundary, and chained with ``from``.
 from __future__ import annotations
 
 __all__ = [
+    "Conflict",
     "CorruptMatrix",
+    "EpochClosed",
+    "EpochFull",
+    "EpochNotFound",
     "FingerprintNotFound",
     "FingerprintNotReady",
     "InvalidCursor",
@@ -62,6 +70,22 @@ class FingerprintNotFound(NotFound):
 
 class MatrixNotFound(NotFound):
     """The fingerprint exists but this matrix was not stored (too large or unknown name)."""
+
+
+class EpochNotFound(NotFound):
+    """No epoch with this id in this room."""
+
+
+class Conflict(RegistryError):
+    """The resource's current state does not allow the request (HTTP 409)."""
+
+
+class EpochClosed(Conflict):
+    """The epoch's window has closed (solved, expired, failed or being solved)."""
+
+
+class EpochFull(Conflict):
+    """The epoch already holds its maximum number of terminals."""
 
 
 class PreconditionFailed(RegistryError):

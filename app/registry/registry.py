@@ -9,7 +9,8 @@ Rows never leave this module: every method returns frozen records from
 from __future__ import annotations
 
 import uuid
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -20,6 +21,7 @@ from sqlalchemy import Engine, delete, func, insert, select, text, update
 from app.vlp.fingerprints import Fingerprint
 from app.vlp.layout import layout_from_mapping
 
+from . import epochs as _epochs
 from ._db import (
     create_registry_engine,
     migrate,
@@ -38,6 +40,7 @@ from ._rows import (
     room_select,
 )
 from ._schema import api_keys, fingerprints, jobs, matrices, rooms
+from .epochs import EpochRecord, EpochSettings
 from .errors import (
     CorruptMatrix,
     FingerprintNotFound,
@@ -55,7 +58,7 @@ __all__ = ["Registry"]
 
 
 class Registry:
-    """Rooms, API keys, fingerprints and build jobs, in SQLite or PostgreSQL.
+    """Rooms, API keys, fingerprints, build jobs and epochs, in SQLite or PostgreSQL.
 
     A room's ``fingerprint_status`` is that of its latest build job (``queued`` ->
     ``pending``, ``running`` -> ``building``, ``succeeded`` -> ``ready``, ``failed`` ->
@@ -366,3 +369,40 @@ class Registry:
             gains = sp.csr_array(np.load(path, allow_pickle=False))
         gains.sort_indices()
         return Fingerprint(layout=layout_from_mapping(snapshot), gains=gains)
+
+    # -- epochs: app.registry.epochs (claims are reached through .engine, like the queue) -----
+    def create_epoch(
+        self, *, room_id: str, settings: EpochSettings, fingerprint_version: int | None = None
+    ) -> EpochRecord:
+        """Open an epoch pinned to ``fingerprint_version`` (default: the current one), whose
+        version and LED count replace those in ``settings``.
+
+        Raises
+        ------
+        RoomNotFound, FingerprintNotReady, FingerprintNotFound
+        """
+        fingerprint = self.get_fingerprint(room_id=room_id, version=fingerprint_version)
+        pinned = replace(settings, fingerprint_version=fingerprint.version, leds=fingerprint.leds)
+        return _epochs.create_epoch(self.engine, room_id=room_id, settings=pinned, now=utcnow())
+
+    def get_epoch(self, *, room_id: str, epoch_id: str) -> EpochRecord:
+        """One epoch of a room; :class:`EpochNotFound` when unknown."""
+        return _epochs.get_epoch(self.engine, room_id=room_id, epoch_id=epoch_id)
+
+    def post_epoch_measurement(
+        self, *, room_id: str, epoch_id: str, terminal_id: str, amplitudes: Sequence[float]
+    ) -> EpochRecord:
+        """Store or replace one terminal's amplitudes while the epoch is open.
+
+        Raises
+        ------
+        EpochNotFound, EpochClosed, EpochFull, app.vlp.errors.MeasurementError
+        """
+        return _epochs.post_epoch_measurement(
+            self.engine,
+            room_id=room_id,
+            epoch_id=epoch_id,
+            terminal_id=terminal_id,
+            amplitudes=amplitudes,
+            now=utcnow(),
+        )

@@ -1,5 +1,6 @@
 """Public request and answer bodies of the HTTP API (pydantic)."""
 
+from .epochs import Epoch, EpochCreate, EpochMeasurement, EpochStatus
 from .fingerprints import Fingerprint, FingerprintsList, Job, JobResult, MatrixMeta, MatrixName
 from .localize import (
     SOLVER_NAMES,
@@ -25,6 +26,10 @@ from .simulate import Simulation, SimulationRequest, TruthTarget
 
 __all__ = [
     "SOLVER_NAMES",
+    "Epoch",
+    "EpochCreate",
+    "EpochMeasurement",
+    "EpochStatus",
     "Estimate",
     "FieldError",
     "Fingerprint",

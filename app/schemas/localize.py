@@ -15,6 +15,7 @@ from ._common import FiniteFloat, RequestModel, ResponseModel
 
 __all__ = [
     "SOLVER_NAMES",
+    "TERMINAL_ID_PATTERN",
     "Estimate",
     "Localization",
     "Measurement",
@@ -28,7 +29,7 @@ ModelName = Literal["power", "correlation"]
 # The contract's solver names (API.md); the server checks at request time which are installed.
 SolverName = Literal["gridless", "nnls", "omp", "l1"]
 SOLVER_NAMES: tuple[str, ...] = ("gridless", "nnls", "omp", "l1")
-_TERMINAL_ID_PATTERN = r"^[A-Za-z0-9._:-]{1,64}$"
+TERMINAL_ID_PATTERN = r"^[A-Za-z0-9._:-]{1,64}$"
 
 
 def localize_example() -> dict[str, Any]:
@@ -53,7 +54,7 @@ class TerminalAmplitudes(RequestModel):
     """One terminal's pilot amplitude estimates, one per LED (in the layout's LED order)."""
 
     id: str = Field(
-        pattern=_TERMINAL_ID_PATTERN, description="the terminal's own id", examples=["t1"]
+        pattern=TERMINAL_ID_PATTERN, description="the terminal's own id", examples=["t1"]
     )
     amplitudes: list[FiniteFloat] = Field(min_length=1, description="a_ik for each LED i")
 

@@ -12,6 +12,7 @@ import pytest
 
 from app.main import create_app
 from app.settings import Settings
+from tests.db_fixtures import database_url, postgres_url
 
 with warnings.catch_warnings():
     # starlette prefers httpx2 for its test client; the suite's httpx works the same.
@@ -24,7 +25,9 @@ __all__ = [
     "TERMINAL",
     "TERMINAL_KEY",
     "TestClient",
+    "database_url",
     "make_settings",
+    "postgres_url",
     "wait_for_room",
 ]
 
