@@ -48,7 +48,8 @@ def epoch_public(record: EpochRecord) -> Epoch:
     return Epoch(
         id=record.id,
         room_id=record.room_id,
-        status=record.status,
+        status="open" if record.status == "solving" else record.status,
+        closed=record.status != "open",
         terminals=record.terminals,
         created_at=record.created_at,
         expires_at=record.expires_at,

@@ -22,7 +22,10 @@ __all__ = [
     "epoch_measurement_examples",
 ]
 
-EpochStatus = Literal["open", "solving", "solved", "expired", "failed"]
+# The contract's four statuses. Internally an epoch may also be `solving` (closed, one
+# process is solving it); it is shown as `open` with `closed: true` so clients built on
+# the four-value enum keep working.
+EpochStatus = Literal["open", "solved", "expired", "failed"]
 # A cooperation window is short: terminals that moved for a minute are no longer where they
 # measured, so longer windows would only mix stale positions.
 MAX_WINDOW_S = 60.0
@@ -109,13 +112,16 @@ class EpochMeasurement(RequestModel):
 class Epoch(ResponseModel):
     """A cooperation epoch and, once solved, its localization.
 
-    `status`: `open` (taking posts), `solving` (closed, being solved: posts answer 409),
-    `solved`, `expired` (fewer than `min_terminals` took part) or `failed` (see `error`).
+    `status`: `open` (the window or its solve is still under way), `solved`, `expired`
+    (fewer than `min_terminals` took part) or `failed` (see `error`). `closed` tells whether
+    the window has closed: an `open` epoch with `closed: true` is being solved right now and
+    answers posts with 409.
     """
 
     id: str
     room_id: str
     status: EpochStatus
+    closed: bool = Field(description="the window has closed (no more posts)")
     terminals: int = Field(description="how many terminals have posted")
     created_at: datetime
     expires_at: datetime = Field(description="when the window closes")

@@ -436,7 +436,8 @@ def test_an_epoch_whose_solver_died_is_taken_over_when_its_claim_runs_out(
         force=True,
     )
     assert dead is not None
-    assert read(client, epoch)["status"] == "solving"
+    being_solved = read(client, epoch)
+    assert (being_solved["status"], being_solved["closed"]) == ("open", True)
     assert_problem(post(client, epoch, "t4", terminal_amplitudes(seed=11)[0]), 409)
     time.sleep(0.15)  # let the dead process's lease run out
     solved = solve(client, epoch)
