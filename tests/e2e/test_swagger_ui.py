@@ -137,7 +137,9 @@ def _execute(driver: WebDriver, block: WebElement, room_id: str, body: str | Non
     _click(driver, "button.execute", within=block)
     answer_css = ".live-responses-table .response-col_description .microlight"
     _wait(driver).until(lambda _d: block.find_elements(By.CSS_SELECTOR, answer_css))
-    status = block.find_element(By.CSS_SELECTOR, ".live-responses-table tr.response .response-col_status")
+    status = block.find_element(
+        By.CSS_SELECTOR, ".live-responses-table tr.response .response-col_status"
+    )
     text = block.find_element(By.CSS_SELECTOR, answer_css).get_attribute("textContent") or ""
     assert status.text.strip() == "200", text[:2000]
     return json.loads(text)
