@@ -20,11 +20,12 @@ from pathlib import Path
 from ._bench import BENCHMARKS, run_benchmark
 from ._remote import add_remote_commands
 
-__all__ = ["main", "openapi_document"]
+__all__ = ["EXIT_NO_ANSWER", "EXIT_REFUSED", "EXIT_USAGE", "main", "openapi_document"]
 
 _BLAS_THREAD_VARIABLES = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
 DEFAULT_OPENAPI_PATH = Path("openapi/openapi.json")
 EXIT_REFUSED = 1
+EXIT_USAGE = 2
 EXIT_NO_ANSWER = 3
 
 
@@ -130,7 +131,7 @@ def _run_remote(args: argparse.Namespace) -> int:
     from app.client import APIError, ClientError, JobError
 
     from ._output import Output
-    from ._remote import open_client
+    from ._remote import InputFileError, open_client
 
     out = Output(as_json=args.json)
     try:
@@ -148,6 +149,9 @@ def _run_remote(args: argparse.Namespace) -> int:
     except ClientError as exc:
         out.failure(f"no answer from {args.url}: {exc}")
         return EXIT_NO_ANSWER
+    except InputFileError as exc:
+        out.failure(str(exc))
+        return EXIT_USAGE
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -16,7 +16,7 @@ if TYPE_CHECKING:
 
     from ._output import Output
 
-__all__ = ["add_remote_commands"]
+__all__ = ["InputFileError", "add_remote_commands", "open_client"]
 
 DEFAULT_URL = "http://127.0.0.1:8000"
 
@@ -42,9 +42,16 @@ def open_client(args: argparse.Namespace) -> VLPClient:
     return VLPClient(args.url, api_key=_api_key(args), timeout_s=args.timeout)
 
 
+class InputFileError(Exception):
+    """A JSON file given on the command line cannot be read or parsed."""
+
+
 def _read_json(path: Path) -> Any:
-    text = path.read_text(encoding="utf-8") if str(path) != "-" else sys.stdin.read()
-    return json.loads(text)
+    try:
+        text = path.read_text(encoding="utf-8") if str(path) != "-" else sys.stdin.read()
+        return json.loads(text)
+    except (OSError, ValueError) as exc:
+        raise InputFileError(f"cannot read {path}: {exc}") from exc
 
 
 def _room_rows(rooms: list[Room]) -> list[list[Any]]:
