@@ -264,9 +264,13 @@ class VLPClient:
         poll_s: float = 0.2,
         on_progress: ProgressCallback | None = None,
     ) -> Room:
-        """Wait for the room's latest fingerprint build; the room once it is ready."""
+        """Wait for the room's latest fingerprint build; the room once it is ready.
+
+        ``on_progress`` sees the build job at least once, in its final state last.
+        Raises :class:`JobFailed` when the latest build failed.
+        """
         room = self.get_room(room_id)
-        if room.fingerprint.job_id is not None and room.fingerprint.status != "ready":
+        if room.fingerprint.job_id is not None:
             self.wait_for_job(
                 room.fingerprint.job_id,
                 timeout_s=timeout_s,
