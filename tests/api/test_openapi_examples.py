@@ -100,7 +100,8 @@ def _call_with_example(
     if method == "put" and path == "/v1/rooms/{room_id}":
         headers["If-Match"] = client.get(f"/v1/rooms/{room_id}", headers=ADMIN).headers["ETag"]
     url = path.replace("{room_id}", room_id)
-    return client.request(method.upper(), url, json=example, headers=headers).status_code
+    status: int = client.request(method.upper(), url, json=example, headers=headers).status_code
+    return status
 
 
 def test_the_first_example_of_each_body_is_accepted_by_the_app(
