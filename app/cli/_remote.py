@@ -220,7 +220,12 @@ def _client_options(parser: argparse.ArgumentParser) -> None:
         "else of $VLP_TERMINAL_KEYS)",
     )
     parser.add_argument("--timeout", type=float, default=30.0, help="per request, seconds")
-    parser.add_argument("--json", action="store_true", help="print JSON only (for scripts)")
+    parser.add_argument(
+        "--json",
+        action="store_true",
+        help="print one JSON document on stdout (on an error answer: its problem) and no "
+        "progress bars",
+    )
 
 
 def _remote(parent: Any, name: str, handler: Any, help_text: str) -> argparse.ArgumentParser:
