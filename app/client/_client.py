@@ -22,7 +22,7 @@ from app.schemas import (
     SimulationRequest,
 )
 
-from ._errors import JobFailed, JobTimeout, TransportError, api_error_from_answer
+from ._errors import APIError, JobFailed, JobTimeout, TransportError, api_error_from_answer
 from ._models import Epoch, Job
 
 __all__ = ["DEFAULT_TIMEOUT_S", "ProgressCallback", "VLPClient"]
@@ -139,6 +139,23 @@ class VLPClient:
     def _post(self, path: str, model: type[_Model], body: Any = None) -> _Model:
         return model.model_validate(self.request("POST", path, json=body).json())
 
+    # -- operations -------------------------------------------------------------------------
+
+    def is_ready(self) -> bool:
+        """Whether the service answers ``/readyz`` with 200 (its registry is reachable).
+
+        An error answer or no answer is ``False``; this never raises.
+        """
+        try:
+            self.request("GET", "/readyz")
+        except (APIError, TransportError):
+            return False
+        return True
+
+    def metrics_text(self) -> str:
+        """The Prometheus exposition text of ``/metrics``."""
+        return self.request("GET", "/metrics").text
+
     # -- rooms ------------------------------------------------------------------------------
 
     def list_rooms(self, *, limit: int = 20, cursor: str | None = None) -> RoomsPage:
@@ -200,6 +217,11 @@ class VLPClient:
     def download_matrix(self, room_id: str, matrix: str, version: int | str = "current") -> bytes:
         """A fingerprint matrix (``H``, ``J`` or ``psi``) as the bytes of a ``.npy`` file."""
         path = f"/v1/rooms/{room_id}/fingerprints/{version}/{matrix}.npy"
+        return self.request("GET", path).content
+
+    def download_sparse_gains(self, room_id: str, version: int | str = "current") -> bytes:
+        """A large room's sparse ``H`` as the bytes of a ``.npz`` file (``scipy.sparse``)."""
+        path = f"/v1/rooms/{room_id}/fingerprints/{version}/H.npz"
         return self.request("GET", path).content
 
     def rebuild(self, room_id: str) -> Job:

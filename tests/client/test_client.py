@@ -49,6 +49,12 @@ def test_lists_and_reads_the_demo_room(live_app: LiveApp) -> None:
     assert vlp.list_fingerprints(room.id).items[0].version == fingerprint.version
 
 
+def test_readiness_and_metrics(live_app: LiveApp) -> None:
+    vlp = live_app.client(None)  # no key needed for operations
+    assert vlp.is_ready()
+    assert "vlp_jobs{" in vlp.metrics_text()
+
+
 def test_downloads_a_matrix_as_npy_bytes(live_app: LiveApp) -> None:
     vlp = live_app.client(TERMINAL_KEY)
     gains = np.load(io.BytesIO(vlp.download_matrix(live_app.demo_room_id, "J")))

@@ -135,6 +135,15 @@ def test_room_map_is_png_bytes() -> None:
         assert vlp.room_map_png(ROOM) == png
 
 
+def test_sparse_gains_come_from_the_npz_path() -> None:
+    def handler(request: httpx.Request) -> httpx.Response:
+        assert request.url.path == f"/v1/rooms/{ROOM}/fingerprints/3/H.npz"
+        return httpx.Response(200, content=b"PK\x03\x04")
+
+    with _client(handler) as vlp:
+        assert vlp.download_sparse_gains(ROOM, 3) == b"PK\x03\x04"
+
+
 def test_a_failed_job_raises_with_its_error() -> None:
     failing = _job("failed", error="survey has no row for LED 4")
     with (
@@ -161,6 +170,8 @@ def test_no_answer_is_a_transport_error() -> None:
     def slow(request: httpx.Request) -> httpx.Response:
         raise httpx.ReadTimeout("timed out", request=request)
 
+    with _client(refuse) as vlp:
+        assert not vlp.is_ready()
     with _client(refuse) as vlp, pytest.raises(TransportError, match="refused") as refused:
         vlp.list_rooms()
     assert isinstance(refused.value.__cause__, httpx.ConnectError)
