@@ -157,8 +157,9 @@ def _run_remote(args: argparse.Namespace) -> int:
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``vlp`` console script.
 
-    Exit codes: 0 done, 1 the service refused (problem answer) or a job failed, 2 usage
-    error, 3 the service could not be reached or a request timed out.
+    Exit codes: 0 done; 1 the service refused (a problem answer), or a job failed or did
+    not finish within ``--wait-timeout``; 2 usage error or unreadable input file; 3 the
+    service could not be reached or a request timed out.
     """
     args = _parser().parse_args(argv)
     if getattr(args, "remote", None) is not None:
