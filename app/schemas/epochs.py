@@ -10,7 +10,7 @@ from pydantic import ConfigDict, Field
 from app.vlp.solvers.base import MAX_TARGETS
 
 from ._common import FiniteFloat, RequestModel, ResponseModel
-from .localize import TERMINAL_ID_PATTERN, Localization, ModelName, SolverName, localize_example
+from .localize import TERMINAL_ID_PATTERN, Localization, ModelName, SolverName, terminals_example
 
 __all__ = [
     "MAX_WINDOW_S",
@@ -50,7 +50,7 @@ def epoch_create_examples() -> dict[str, dict[str, Any]]:
 def epoch_measurement_examples() -> dict[str, dict[str, Any]]:
     """Two posts for the demo (paper) room: the noiseless amplitudes at (1.0, 1.2) m and at
     (2.9, 3.1) m, under the names the Swagger UI shows in its example list."""
-    terminals = localize_example()["terminals"]
+    terminals = terminals_example()["terminals"][:2]
     return {
         terminal["id"]: {
             "summary": f"terminal {terminal['id']} of the demo room",

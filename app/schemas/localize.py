@@ -14,6 +14,7 @@ from app.vlp.solvers.base import MAX_TARGETS
 from ._common import FiniteFloat, RequestModel, ResponseModel
 
 __all__ = [
+    "EXAMPLE_POSITIONS_M",
     "SOLVER_NAMES",
     "TERMINAL_ID_PATTERN",
     "Estimate",
@@ -23,6 +24,7 @@ __all__ = [
     "SolverName",
     "TerminalAmplitudes",
     "localize_example",
+    "terminals_example",
 ]
 
 ModelName = Literal["power", "correlation"]
@@ -32,20 +34,41 @@ SOLVER_NAMES: tuple[str, ...] = ("gridless", "nnls", "omp", "l1")
 TERMINAL_ID_PATTERN = r"^[A-Za-z0-9._:-]{1,64}$"
 
 
-def localize_example() -> dict[str, Any]:
-    """Two terminals in the paper room sending their own amplitudes (the service aggregates).
+# Where the example terminals stand in the paper (demo) room, metres.
+EXAMPLE_POSITIONS_M = ((1.0, 1.2), (2.9, 3.1), (2.1, 0.7))
 
-    The amplitudes are the noiseless ``h_ik x_i`` at (1.0, 1.2) m and (2.9, 3.1) m.
+
+def _significant(value: float) -> float:
+    """``value`` to 4 significant digits (short examples; far below the noise of real data)."""
+    return float(f"{value:.4g}")
+
+
+def localize_example() -> dict[str, Any]:
+    """Three terminals in the paper room as a 16 x 16 correlation matrix (CoCSM-VLP).
+
+    ``R = A^T A`` of the noiseless amplitudes ``a_ik = h_ik x_i`` at
+    :data:`EXAMPLE_POSITIONS_M`; it localizes to those points on the demo room.
     """
-    layout = paper_layout()
-    amplitudes = true_amplitudes(layout, np.array([[1.0, 1.2], [2.9, 3.1]]))
+    amplitudes = true_amplitudes(paper_layout(), np.array(EXAMPLE_POSITIONS_M))
+    correlation = amplitudes.T @ amplitudes
+    return {
+        "model": "correlation",
+        "correlation": [[_significant(value) for value in row] for row in correlation],
+        "targets": len(EXAMPLE_POSITIONS_M),
+        "solver": "gridless",
+    }
+
+
+def terminals_example() -> dict[str, Any]:
+    """The same three terminals, each sending its own amplitudes (the service aggregates)."""
+    amplitudes = true_amplitudes(paper_layout(), np.array(EXAMPLE_POSITIONS_M))
     return {
         "model": "correlation",
         "terminals": [
-            {"id": f"t{k + 1}", "amplitudes": [float(f"{a:.4g}") for a in row]}
+            {"id": f"t{k + 1}", "amplitudes": [_significant(a) for a in row]}
             for k, row in enumerate(amplitudes)
         ],
-        "targets": 2,
+        "targets": len(EXAMPLE_POSITIONS_M),
         "solver": "gridless",
     }
 
@@ -71,7 +94,9 @@ class Measurement(RequestModel):
     `model` defaults to `correlation`, or to `power` when `power` is sent.
     """
 
-    model_config = ConfigDict(json_schema_extra={"examples": [localize_example()]})
+    model_config = ConfigDict(
+        json_schema_extra={"examples": [localize_example(), terminals_example()]}
+    )
 
     model: ModelName = Field(default="correlation", description="measurement model")
     power: list[FiniteFloat] | None = Field(

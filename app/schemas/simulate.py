@@ -25,6 +25,7 @@ class SimulationRequest(RequestModel):
     model_config = ConfigDict(
         json_schema_extra={
             "examples": [
+                {"targets": 8, "snr_db": 30, "seed": 7},
                 {
                     "targets": 2,
                     "snr_db": 30,

@@ -24,6 +24,8 @@ from .test_rooms import assert_problem
 
 REPO = Path(__file__).resolve().parents[2]
 OPENAPI_FILE = REPO / "openapi" / "openapi.json"
+# Where `vlp` looks for a key when --key is not given.
+_KEY_VARIABLES = ("VLP_API_KEY", "VLP_ADMIN_KEYS", "VLP_TERMINAL_KEYS")
 
 
 def test_healthz_and_readyz(client: TestClient) -> None:
@@ -193,21 +195,21 @@ def test_vlp_serve_logs_json_and_vlp_rooms_lists(tmp_path: Path) -> None:
                 except httpx.HTTPError:
                     time.sleep(0.1)
             listed = subprocess.run(
-                [str(vlp), "rooms", "--url", url, "--key", TERMINAL["X-API-Key"]],
+                [str(vlp), "rooms", "list", "--json", "--url", url, "--key", TERMINAL["X-API-Key"]],
                 capture_output=True,
                 text=True,
                 timeout=30,
                 check=False,
             )
             assert listed.returncode == 0, listed.stderr
-            assert json.loads(listed.stdout)["items"][0]["name"] == "Paper room"
+            assert json.loads(listed.stdout)[0]["name"] == "Paper room"
             denied = subprocess.run(
-                [str(vlp), "rooms", "--url", url],
+                [str(vlp), "rooms", "list", "--json", "--url", url],
                 capture_output=True,
                 text=True,
                 timeout=30,
                 check=False,
-                env={k: v for k, v in os.environ.items() if k != "VLP_API_KEY"},
+                env={k: v for k, v in os.environ.items() if k not in _KEY_VARIABLES},
             )
             assert denied.returncode == 1 and json.loads(denied.stdout)["status"] == 401
         finally:

@@ -1,4 +1,8 @@
-"""The ``vlp`` console script: ``serve``, ``worker``, ``openapi``, ``rooms``, ``simulate``.
+"""The ``vlp`` console script.
+
+``serve``, ``worker``, ``openapi`` and ``bench`` run here; ``rooms``, ``simulate`` and
+``localize`` talk to a running service through :class:`app.client.VLPClient` (``--json`` for
+scripts, tables and progress bars otherwise).
 
 Heavy imports happen inside the commands, so ``vlp serve`` can pin the BLAS thread pools to
 one thread before numpy loads.
@@ -12,12 +16,17 @@ import os
 import sys
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
 
-__all__ = ["main", "openapi_document"]
+from ._bench import BENCHMARKS, run_benchmark
+from ._remote import add_remote_commands
+
+__all__ = ["EXIT_NO_ANSWER", "EXIT_REFUSED", "EXIT_USAGE", "main", "openapi_document"]
 
 _BLAS_THREAD_VARIABLES = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
 DEFAULT_OPENAPI_PATH = Path("openapi/openapi.json")
+EXIT_REFUSED = 1
+EXIT_USAGE = 2
+EXIT_NO_ANSWER = 3
 
 
 def _pin_blas() -> None:
@@ -78,56 +87,6 @@ def _openapi(args: argparse.Namespace) -> int:
     return 0
 
 
-def _client(args: argparse.Namespace) -> Any:
-    import httpx
-
-    key = args.key or os.environ.get("VLP_API_KEY")
-    headers = {"X-API-Key": key} if key else {}
-    return httpx.Client(base_url=args.url, headers=headers, timeout=60.0)
-
-
-def _show(response: Any) -> int:
-    try:
-        print(json.dumps(response.json(), indent=2))
-    except ValueError:
-        print(response.text)
-    return 0 if response.is_success else 1
-
-
-def _rooms(args: argparse.Namespace) -> int:
-    with _client(args) as client:
-        if args.room_id:
-            return _show(client.get(f"/v1/rooms/{args.room_id}"))
-        return _show(client.get("/v1/rooms", params={"limit": 100}))
-
-
-def _simulate(args: argparse.Namespace) -> int:
-    body: dict[str, Any] = {
-        "targets": args.targets,
-        "snr_db": args.snr_db,
-        "model": args.model,
-        "form": args.form,
-        "solver": args.solver,
-    }
-    if args.seed is not None:
-        body["seed"] = args.seed
-    with _client(args) as client:
-        simulation = client.post(f"/v1/rooms/{args.room_id}/simulate", json=body)
-        if not simulation.is_success or not args.localize:
-            return _show(simulation)
-        result = simulation.json()
-        located = client.post(f"/v1/rooms/{args.room_id}/localize", json=result["measurement"])
-        if not located.is_success:
-            return _show(located)
-        print(json.dumps({"truth": result["truth"], "localization": located.json()}, indent=2))
-        return 0
-
-
-def _add_client_options(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--url", default="http://127.0.0.1:8000", help="service base URL")
-    parser.add_argument("--key", default=None, help="API key (default: $VLP_API_KEY)")
-
-
 def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="vlp", description="Visible-light positioning service")
     commands = parser.add_subparsers(dest="command", required=True)
@@ -151,30 +110,60 @@ def _parser() -> argparse.ArgumentParser:
     )
     openapi.set_defaults(handler=_openapi)
 
-    rooms = commands.add_parser("rooms", help="list the rooms of a running service, or show one")
-    rooms.add_argument("room_id", nargs="?", default=None)
-    _add_client_options(rooms)
-    rooms.set_defaults(handler=_rooms)
-
-    simulate = commands.add_parser(
-        "simulate", help="simulate a measurement on a running service (and localize it)"
+    bench = commands.add_parser(
+        "bench", help="run a benchmark from bench/ (repository root); ARGS go to it"
     )
-    simulate.add_argument("room_id")
-    simulate.add_argument("--targets", type=int, default=2)
-    simulate.add_argument("--snr-db", type=float, default=30.0)
-    simulate.add_argument("--model", choices=("power", "correlation"), default="correlation")
-    simulate.add_argument("--form", choices=("matrix", "upper", "terminals"), default="matrix")
-    simulate.add_argument("--solver", default="gridless")
-    simulate.add_argument("--seed", type=int, default=None)
-    simulate.add_argument("--localize", action="store_true", help="also localize it")
-    _add_client_options(simulate)
-    simulate.set_defaults(handler=_simulate)
+    bench.add_argument("benchmark", choices=BENCHMARKS)
+    bench.add_argument("args", nargs=argparse.REMAINDER, help="passed to bench.NAME")
+    bench.set_defaults(handler=_bench)
+
+    add_remote_commands(commands)
     return parser
 
 
+def _bench(args: argparse.Namespace) -> int:
+    _pin_blas()
+    return run_benchmark(f"bench.{args.benchmark}", args.args)
+
+
+def _run_remote(args: argparse.Namespace) -> int:
+    """Run a command against the service; map client errors to messages and exit codes."""
+    from app.client import APIError, ClientError, JobError
+
+    from ._output import Output
+    from ._remote import InputFileError, open_client
+
+    out = Output(as_json=args.json)
+    try:
+        with open_client(args) as client:
+            code: int = args.remote(client, out, args)
+            return code
+    except APIError as exc:
+        out.problem(exc)
+        return EXIT_REFUSED
+    except JobError as exc:
+        out.failure(str(exc))
+        if args.json:
+            out.result(exc.job)
+        return EXIT_REFUSED
+    except ClientError as exc:
+        out.failure(f"no answer from {args.url}: {exc}")
+        return EXIT_NO_ANSWER
+    except InputFileError as exc:
+        out.failure(str(exc))
+        return EXIT_USAGE
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of the ``vlp`` console script."""
+    """Entry point of the ``vlp`` console script.
+
+    Exit codes: 0 done; 1 the service refused (a problem answer), or a job failed or did
+    not finish within ``--wait-timeout``; 2 usage error or unreadable input file; 3 the
+    service could not be reached or a request timed out.
+    """
     args = _parser().parse_args(argv)
+    if getattr(args, "remote", None) is not None:
+        return _run_remote(args)
     code: int = args.handler(args)
     return code
 
