@@ -2,7 +2,7 @@
 
 from fastapi import APIRouter
 
-from . import fingerprints, health, localize, rooms, simulate
+from . import calibrations, fingerprints, health, localize, pictures, rooms, simulate
 
 __all__ = ["api_router"]
 
@@ -13,3 +13,5 @@ api_router.include_router(fingerprints.router)
 api_router.include_router(fingerprints.jobs_router)
 api_router.include_router(localize.router)
 api_router.include_router(simulate.router)
+api_router.include_router(pictures.router)
+api_router.include_router(calibrations.router)

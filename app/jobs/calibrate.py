@@ -57,7 +57,7 @@ def apply_calibration(nominal: Layout, payload: dict[str, Any]) -> dict[str, Any
         result = calibrate(
             nominal,
             survey_from_rows(np.asarray(survey_rows, dtype=np.float64)),
-            dimmed_below=float(request.get("dimmed_below", 0.5)),
+            dimmed_below=float(request.get("dimmed_below", 0.75)),
             dead_below=float(request.get("dead_below", 0.1)),
         )
         calibrated = calibrated_layout(nominal, result)

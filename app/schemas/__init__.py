@@ -1,5 +1,12 @@
 """Public request and answer bodies of the HTTP API (pydantic)."""
 
+from .calibrations import (
+    Calibration,
+    CalibrationCreate,
+    CalibrationsList,
+    LedCalibration,
+    SurveyRow,
+)
 from .fingerprints import Fingerprint, FingerprintsList, Job, JobResult, MatrixMeta, MatrixName
 from .localize import (
     SOLVER_NAMES,
@@ -10,6 +17,7 @@ from .localize import (
     SolverName,
     TerminalAmplitudes,
 )
+from .pictures import LocalizationPlot, PlotPoint
 from .problems import FieldError, Problem
 from .rooms import (
     FingerprintState,
@@ -25,6 +33,9 @@ from .simulate import Simulation, SimulationRequest, TruthTarget
 
 __all__ = [
     "SOLVER_NAMES",
+    "Calibration",
+    "CalibrationCreate",
+    "CalibrationsList",
     "Estimate",
     "FieldError",
     "Fingerprint",
@@ -33,12 +44,15 @@ __all__ = [
     "GridSpec",
     "Job",
     "JobResult",
+    "LedCalibration",
     "LedSpec",
     "Localization",
+    "LocalizationPlot",
     "MatrixMeta",
     "MatrixName",
     "Measurement",
     "ModelName",
+    "PlotPoint",
     "Problem",
     "ReceiverSpec",
     "Room",
@@ -48,6 +62,7 @@ __all__ = [
     "Simulation",
     "SimulationRequest",
     "SolverName",
+    "SurveyRow",
     "TerminalAmplitudes",
     "TruthTarget",
 ]
