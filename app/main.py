@@ -23,6 +23,7 @@ from app.api.errors import PROBLEM_MEDIA_TYPE, install_error_handlers
 from app.api.localizer import FingerprintCache
 from app.api.metrics import Metrics
 from app.api.middleware import BodySizeLimitMiddleware, RequestContextMiddleware
+from app.api.picture_cache import PictureCache
 from app.api.security import provision_keys
 from app.jobs import EmbeddedWorkers
 from app.jobs.epochs import EpochSweeper
@@ -50,11 +51,21 @@ Units are SI (metres; `_deg` names are degrees). Every error is `application/pro
 _TAGS = [
     {"name": "rooms", "description": "Room layouts: box, grid, receiver and LEDs (admin writes)"},
     {"name": "fingerprints", "description": "Channel matrices built from a layout"},
-    {"name": "jobs", "description": "Background fingerprint builds"},
+    {"name": "jobs", "description": "Background jobs: fingerprint builds and calibrations"},
+    {
+        "name": "calibration",
+        "description": "Survey calibration: fit LED amplitudes and beams to measured "
+        "amplitudes, mask dead LEDs (admin writes)",
+    },
     {"name": "localization", "description": "Locate targets; simulate measurements"},
     {
         "name": "epochs",
         "description": "Cooperation windows: terminals post their own amplitudes, solved once",
+    },
+    {
+        "name": "pictures",
+        "description": "PNG pictures: the room plan with a coverage or CRLB heat map, and "
+        "estimates against the truth",
     },
     {"name": "operations", "description": "Health, readiness, metrics (no key)"},
 ]
@@ -174,6 +185,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     metrics = Metrics()
     app.state.settings = settings
     app.state.metrics = metrics
+    app.state.pictures = PictureCache()
     metrics.watch_jobs(lambda: _count_jobs(app))
     install_error_handlers(app)
     install_docs(app)

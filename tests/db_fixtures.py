@@ -24,6 +24,7 @@ import pytest
 from sqlalchemy import make_url
 
 from app.jobs.build import store_fingerprint
+from app.jobs.calibrate import apply_calibration
 from app.registry import Registry
 from app.registry.queue import ClaimedJob, StoredBuild, claim_job, complete_job
 from app.vlp.fingerprints import build_fingerprint
@@ -138,13 +139,19 @@ def build_now(registry: Registry, *, room_id: str, worker_id: str = "test-builde
 def stored_build(registry: Registry, claimed: ClaimedJob) -> StoredBuild:
     """Build a claimed job's layout in this process and put its matrices into the store."""
     started = time.perf_counter()
-    fingerprint = build_fingerprint(layout_from_mapping(claimed.layout))
+    layout = layout_from_mapping(claimed.layout)
+    outcome = None
+    if claimed.calibration is not None:  # a calibration job: fit first, as the child does
+        outcome = apply_calibration(layout, claimed.calibration)
+        layout = layout_from_mapping(outcome["layout"])
+    fingerprint = build_fingerprint(layout)
     stored = store_fingerprint(fingerprint, registry.store)
     return StoredBuild(
         leds=fingerprint.n_leds,
         grid_points=fingerprint.n_cells,
         build_seconds=time.perf_counter() - started,
         matrices=stored,
+        calibration=outcome,
     )
 
 

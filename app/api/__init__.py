@@ -2,7 +2,7 @@
 
 from fastapi import APIRouter
 
-from . import epochs, fingerprints, health, localize, rooms, simulate
+from . import calibrations, epochs, fingerprints, health, localize, pictures, rooms, simulate
 
 __all__ = ["api_router"]
 
@@ -14,3 +14,5 @@ api_router.include_router(fingerprints.jobs_router)
 api_router.include_router(localize.router)
 api_router.include_router(simulate.router)
 api_router.include_router(epochs.router)
+api_router.include_router(pictures.router)
+api_router.include_router(calibrations.router)

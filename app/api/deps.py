@@ -16,6 +16,7 @@ from app.settings import Settings
 from .errors import ApiProblem
 from .localizer import FingerprintCache
 from .metrics import Metrics
+from .picture_cache import PictureCache
 from .security import KeyRing, Role
 
 __all__ = [
@@ -24,6 +25,7 @@ __all__ = [
     "CacheDep",
     "JobId",
     "MetricsDep",
+    "PicturesDep",
     "RegistryDep",
     "RoomId",
     "SettingsDep",
@@ -64,6 +66,12 @@ def get_metrics(request: Request) -> Metrics:
     return metrics
 
 
+def get_pictures(request: Request) -> PictureCache:
+    """The per-process cache of rendered PNGs."""
+    pictures: PictureCache = request.app.state.pictures
+    return pictures
+
+
 RoomId = Annotated[
     str,
     Path(
@@ -79,6 +87,7 @@ RegistryDep = Annotated[Registry, Depends(get_registry)]
 SettingsDep = Annotated[Settings, Depends(get_settings)]
 CacheDep = Annotated[FingerprintCache, Depends(get_cache)]
 MetricsDep = Annotated[Metrics, Depends(get_metrics)]
+PicturesDep = Annotated[PictureCache, Depends(get_pictures)]
 
 
 def current_role(

@@ -47,6 +47,8 @@ def fingerprint_public(record: FingerprintRecord) -> Fingerprint:
         built_at=record.built_at,
         build_seconds=record.build_seconds,
         job_id=record.job_id,
+        calibration_id=record.calibration_id,
+        masked_leds=list(record.masked_leds),
         matrices={
             name: MatrixMeta(shape=list(info.shape), sha256=info.sha256, format=info.format)
             for name, info in record.matrices.items()
@@ -57,7 +59,9 @@ def fingerprint_public(record: FingerprintRecord) -> Fingerprint:
 def job_public(record: JobRecord) -> Job:
     """The public form of a job record."""
     result = (
-        JobResult(fingerprint_version=record.fingerprint_version)
+        JobResult(
+            fingerprint_version=record.fingerprint_version, calibration_id=record.calibration_id
+        )
         if record.fingerprint_version is not None
         else None
     )
@@ -193,5 +197,6 @@ def download_sparse_gains(
 
 @jobs_router.get("/{job_id}", summary="Read a job", responses=problem_responses(401, 404))
 def get_job(job_id: JobId, registry: RegistryDep, _role: AnyRole) -> Job:
-    """A build job: its status, progress and, once succeeded, the fingerprint version."""
+    """A build or calibration job: its status, progress and, once succeeded, the fingerprint
+    version (and for a calibration job the calibration id)."""
     return job_public(registry.get_job(job_id=job_id))

@@ -19,6 +19,7 @@ from app.vlp.solvers import solver_names
 from .deps import AnyRole, CacheDep, MetricsDep, RoomId
 from .errors import InvalidInput, problem_responses
 from .localizer import FingerprintCache
+from .masking import drop_masked_leds
 from .metrics import Metrics
 
 __all__ = ["TerminalSet", "input_form", "require_installed", "router", "solve_and_label"]
@@ -116,6 +117,10 @@ def _localize(request: _Request, cache: FingerprintCache, metrics: Metrics) -> L
     body = request.body
     version = body.fingerprint_version or cache.current_version(request.room_id)
     fingerprint = cache.fingerprint(request.room_id, version)
+    masked = cache.masked_leds(request.room_id, version)
+    if masked:  # sent for the room's M LEDs: drop the entries the fingerprint leaves out
+        body = drop_masked_leds(body, masked, fingerprint.n_leds)
+        request = _Request(request.room_id, body, request.form, request.model)
     measurement = _measurement(request, fingerprint.n_leds)
     terminals = None
     if body.terminals:

@@ -37,6 +37,7 @@ class PreparedSolver:
 @dataclass
 class _Entry:
     fingerprint: Fingerprint
+    masked_leds: tuple[int, ...]
     solvers: dict[tuple[Model, str], PreparedSolver] = field(default_factory=dict)
 
 
@@ -87,6 +88,10 @@ class FingerprintCache:
         """The fingerprint of (room, version), loaded once and verified by the registry."""
         return self._entry(room_id, version).fingerprint
 
+    def masked_leds(self, room_id: str, version: int) -> tuple[int, ...]:
+        """Room LED indices the fingerprint of (room, version) leaves out (a calibration's mask)."""
+        return self._entry(room_id, version).masked_leds
+
     def solver(self, room_id: str, version: int, model: Model, name: str) -> PreparedSolver:
         """The solver ``name`` for (room, version, model), built once."""
         entry = self._entry(room_id, version)
@@ -125,7 +130,11 @@ class FingerprintCache:
                 entry = self._entries.get(key)
             if entry is None:
                 self._metrics.cache.labels(result="miss").inc()
-                entry = _Entry(self._registry.load_fingerprint(room_id=room_id, version=version))
+                record = self._registry.get_fingerprint(room_id=room_id, version=version)
+                entry = _Entry(
+                    self._registry.load_fingerprint(room_id=room_id, version=version),
+                    record.masked_leds,
+                )
                 with self._lock:
                     self._entries[key] = entry
                     while len(self._entries) > self._size:

@@ -26,6 +26,8 @@ from app.registry.store import MatrixStore
 from app.vlp.fingerprints import PSI_DENSE_LIMIT, Fingerprint, build_fingerprint
 from app.vlp.layout import layout_from_mapping
 
+from .calibrate import apply_calibration
+
 __all__ = ["BuildTask", "build_and_store", "init_build_process", "store_fingerprint"]
 
 _BLAS_ENV = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
@@ -33,7 +35,11 @@ _BLAS_ENV = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 
 @dataclass(frozen=True)
 class BuildTask:
-    """Everything a child needs to build one claimed job (picklable)."""
+    """Everything a child needs to build one claimed job (picklable).
+
+    ``calibration`` is the payload of a calibration job: the child fits it first and builds
+    the calibrated, masked layout (:func:`app.jobs.calibrate.apply_calibration`).
+    """
 
     database_url: str
     data_dir: str
@@ -42,6 +48,7 @@ class BuildTask:
     layout: dict[str, Any]
     max_cells: int | None = None
     progress_interval_s: float = 0.5
+    calibration: dict[str, Any] | None = None
 
 
 def init_build_process() -> None:
@@ -108,10 +115,15 @@ def build_and_store(task: BuildTask) -> StoredBuild:
     Raises
     ------
     app.vlp.errors.VLPError
-        When the layout is invalid or larger than ``task.max_cells``.
+        When the layout is invalid or larger than ``task.max_cells``, or the calibration
+        cannot be applied.
     """
     started = time.perf_counter()
     layout = layout_from_mapping(task.layout)
+    outcome = None
+    if task.calibration is not None:
+        outcome = apply_calibration(layout, task.calibration)
+        layout = layout_from_mapping(outcome["layout"])
     reporter = _ProgressReporter(task)
     try:
         fingerprint = build_fingerprint(layout, progress=reporter, max_cells=task.max_cells)
@@ -123,4 +135,5 @@ def build_and_store(task: BuildTask) -> StoredBuild:
         grid_points=fingerprint.n_cells,
         build_seconds=time.perf_counter() - started,
         matrices=stored,
+        calibration=outcome,
     )

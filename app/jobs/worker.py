@@ -149,8 +149,9 @@ class _WorkerLoop:
             worker_id=claimed.worker_id,
             layout=claimed.layout,
             max_cells=self.settings.max_grid_points,
+            calibration=claimed.calibration,
         )
-        _log.info("job %s: building room %s", claimed.job_id, claimed.room_id)
+        _log.info("job %s: %s of room %s", claimed.job_id, claimed.kind, claimed.room_id)
         try:
             future = self._submit(task)
         except (BrokenProcessPool, RuntimeError) as exc:

@@ -6,7 +6,14 @@ schema is managed by the Alembic migrations in ``migrations/``. See :class:`Regi
 
 from __future__ import annotations
 
-from .records import FingerprintRecord, JobRecord, MatrixInfo, RoomRecord
+from .records import CalibrationRecord, FingerprintRecord, JobRecord, MatrixInfo, RoomRecord
 from .registry import Registry
 
-__all__ = ["FingerprintRecord", "JobRecord", "MatrixInfo", "Registry", "RoomRecord"]
+__all__ = [
+    "CalibrationRecord",
+    "FingerprintRecord",
+    "JobRecord",
+    "MatrixInfo",
+    "Registry",
+    "RoomRecord",
+]

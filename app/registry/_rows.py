@@ -77,6 +77,7 @@ def job_record(row: Any) -> JobRecord:
         fingerprint_version=row.fingerprint_version,
         attempts=row.attempts,
         layout_version=row.layout_version,
+        calibration_id=row._mapping.get("calibration_id"),
     )
 
 
@@ -127,4 +128,6 @@ def fingerprint_record(row: Any, infos: dict[str, MatrixInfo]) -> FingerprintRec
         build_seconds=float(row.build_seconds),
         matrices=dict(sorted(infos.items())),
         job_id=row.job_id,
+        calibration_id=row.calibration_id,
+        masked_leds=tuple(int(i) for i in row.masked_leds or ()),
     )

@@ -25,6 +25,7 @@ from sqlalchemy.types import TypeDecorator
 __all__ = [
     "UTCDateTime",
     "api_keys",
+    "calibrations",
     "epoch_measurements",
     "epochs",
     "fingerprints",
@@ -117,6 +118,9 @@ fingerprints = Table(
     Column("built_at", UTCDateTime(), nullable=False),
     Column("build_seconds", Float, nullable=False),
     Column("job_id", ID, nullable=True),
+    # Set when the version was built from a calibrated model (migration 0003).
+    Column("calibration_id", ID, nullable=True),
+    Column("masked_leds", JSON, nullable=True),
 )
 
 matrices = Table(
@@ -172,4 +176,26 @@ epoch_measurements = Table(
     Column("terminal_id", String(64), primary_key=True),
     Column("amplitudes", JSON, nullable=False),
     Column("posted_at", UTCDateTime(), nullable=False),
+)
+
+# A survey calibration (migration 0003): the request, and once its job succeeded the fit
+# report and the layouts it produced. Its status is that of its job.
+calibrations = Table(
+    "calibrations",
+    metadata,
+    Column("id", ID, primary_key=True),
+    Column("room_id", ID, ForeignKey("rooms.id", ondelete="CASCADE"), nullable=False),
+    Column("layout_version", Integer, nullable=False),
+    Column("job_id", ID, nullable=False),
+    Column("request", JSON, nullable=False),
+    Column("based_on", ID, nullable=True),
+    Column("report", JSON, nullable=True),
+    Column("calibrated_layout", JSON, nullable=True),
+    Column("layout", JSON, nullable=True),
+    Column("masked_leds", JSON, nullable=True),
+    Column("fingerprint_version", Integer, nullable=True),
+    Column("created_at", UTCDateTime(), nullable=False),
+    Column("finished_at", UTCDateTime(), nullable=True),
+    Index("ix_calibrations_room_id_created_at", "room_id", "created_at"),
+    Index("ix_calibrations_job_id", "job_id"),
 )

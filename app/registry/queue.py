@@ -12,30 +12,31 @@ owner's work. Lock order is room row, then job rows; the claim only *tries* the 
 from __future__ import annotations
 
 import uuid
-from dataclasses import dataclass
 from datetime import UTC, datetime, timedelta
 from typing import Any
 
 from sqlalchemy import Connection, Engine, func, insert, select, update
 
+from ._calibration_rows import JOB_KIND_CALIBRATION, claimed_job, record_calibration
 from ._db import translate_errors, write_transaction
 from ._schema import fingerprints, jobs, matrices, rooms
-from .records import MatrixInfo
+from .records import JOB_KIND_BUILD, ClaimedJob, StoredBuild
 
 __all__ = [
     "JOB_KIND_BUILD",
+    "JOB_KIND_CALIBRATION",
     "ClaimedJob",
     "StoredBuild",
     "claim_job",
     "complete_job",
     "enqueue_build",
+    "enqueue_job",
     "fail_job",
     "heartbeat_job",
     "release_job",
     "report_progress",
 ]
 
-JOB_KIND_BUILD = "build_fingerprint"
 _ACTIVE = ("queued", "running")
 _CANDIDATES = 16
 
@@ -45,38 +46,21 @@ def utcnow() -> datetime:
     return datetime.now(UTC)
 
 
-@dataclass(frozen=True)
-class ClaimedJob:
-    """What a worker needs to run a claimed build."""
-
-    job_id: str
-    room_id: str
-    layout_version: int
-    layout: dict[str, Any]
-    attempts: int
-    worker_id: str
-
-
-@dataclass(frozen=True)
-class StoredBuild:
-    """A finished build whose matrix files are already in the store (sizes in bytes)."""
-
-    leds: int
-    grid_points: int
-    build_seconds: float
-    matrices: dict[str, tuple[MatrixInfo, int]]
-
-
 def enqueue_build(conn: Connection, *, room_id: str, layout_version: int) -> str:
     """Queue a build of the room's ``layout_version``; returns the job id.
 
-    The caller holds the room row lock. A job already running for this layout version, or
-    any job still queued for the room (re-pointed at this layout version: it has not started,
-    so it simply builds the newest layout), is returned instead of a new one.
+    The caller holds the room row lock. A build job already running for this layout version,
+    or any build job still queued for the room (re-pointed at this layout version: it has not
+    started, so it simply builds the newest layout), is returned instead of a new one.
+    Calibration jobs are never joined: they belong to the layout version they were asked for.
     """
     found = conn.execute(
         select(jobs.c.id, jobs.c.status, jobs.c.layout_version)
-        .where(jobs.c.room_id == room_id, jobs.c.status.in_(_ACTIVE))
+        .where(
+            jobs.c.room_id == room_id,
+            jobs.c.status.in_(_ACTIVE),
+            jobs.c.kind == JOB_KIND_BUILD,
+        )
         .order_by(jobs.c.created_at.desc(), jobs.c.id.desc())
     ).all()
     for row in found:
@@ -89,11 +73,19 @@ def enqueue_build(conn: Connection, *, room_id: str, layout_version: int) -> str
             )
             conn.execute(update(rooms).where(rooms.c.id == room_id).values(latest_job_id=row.id))
             return str(row.id)
+    return enqueue_job(conn, room_id=room_id, layout_version=layout_version, kind=JOB_KIND_BUILD)
+
+
+def enqueue_job(conn: Connection, *, room_id: str, layout_version: int, kind: str) -> str:
+    """Insert a new queued job of ``kind`` and make it the room's latest; returns its id.
+
+    The caller holds the room row lock.
+    """
     job_id = uuid.uuid4().hex
     conn.execute(
         insert(jobs).values(
             id=job_id,
-            kind=JOB_KIND_BUILD,
+            kind=kind,
             room_id=room_id,
             status="queued",
             progress=0.0,
@@ -126,7 +118,12 @@ def claim_job(
     with write_transaction(engine) as conn:
         now = utcnow()
         query = select(
-            jobs.c.id, jobs.c.room_id, jobs.c.status, jobs.c.attempts, jobs.c.layout_version
+            jobs.c.id,
+            jobs.c.kind,
+            jobs.c.room_id,
+            jobs.c.status,
+            jobs.c.attempts,
+            jobs.c.layout_version,
         ).where(
             (jobs.c.status == "queued")
             | ((jobs.c.status == "running") & (jobs.c.lease_expires_at < now))
@@ -146,7 +143,11 @@ def claim_job(
             ).one_or_none()
             if room is None:
                 continue
-            if job.status == "running" and _give_up(conn, job, room.layout_version, max_attempts):
+            # A calibration was asked for one layout version: after a PUT it no longer applies.
+            stale = job.kind == JOB_KIND_CALIBRATION and job.layout_version != room.layout_version
+            if (job.status == "running" or stale) and _give_up(
+                conn, job, room.layout_version, max_attempts
+            ):
                 continue
             if _live_builds(conn, job.room_id, job.id, now) >= max_per_room:
                 continue
@@ -165,14 +166,7 @@ def claim_job(
                     layout_version=room.layout_version,
                 )
             )
-            return ClaimedJob(
-                job_id=str(job.id),
-                room_id=str(job.room_id),
-                layout_version=int(room.layout_version),
-                layout=dict(room.layout),
-                attempts=int(job.attempts) + 1,
-                worker_id=worker_id,
-            )
+            return claimed_job(conn, job=job, room=room, worker_id=worker_id)
     return None
 
 
@@ -261,6 +255,14 @@ def complete_job(engine: Engine, *, claimed: ClaimedJob, build: StoredBuild) -> 
         ).scalar_one()
         version = int(latest or 0) + 1
         _insert_fingerprint(conn, claimed=claimed, build=build, version=version, now=now)
+        if claimed.calibration_id is not None and build.calibration is not None:
+            record_calibration(
+                conn,
+                calibration_id=claimed.calibration_id,
+                outcome=build.calibration,
+                fingerprint_version=version,
+                now=now,
+            )
         conn.execute(
             update(jobs)
             .where(jobs.c.id == claimed.job_id)
@@ -285,12 +287,16 @@ def complete_job(engine: Engine, *, claimed: ClaimedJob, build: StoredBuild) -> 
 def _insert_fingerprint(
     conn: Connection, *, claimed: ClaimedJob, build: StoredBuild, version: int, now: datetime
 ) -> None:
+    # A calibration job builds the layout its fit produced; other builds the claimed layout.
+    outcome = build.calibration
     conn.execute(
         insert(fingerprints).values(
             room_id=claimed.room_id,
             version=version,
             layout_version=claimed.layout_version,
-            layout=claimed.layout,
+            layout=claimed.layout if outcome is None else outcome["layout"],
+            calibration_id=claimed.calibration_id,
+            masked_leds=list(claimed.masked_leds if outcome is None else outcome["masked_leds"]),
             leds=build.leds,
             grid_points=build.grid_points,
             built_at=now,

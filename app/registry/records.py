@@ -6,7 +6,18 @@ from dataclasses import dataclass
 from datetime import datetime
 from typing import Any
 
-__all__ = ["FingerprintRecord", "JobRecord", "MatrixInfo", "RoomRecord"]
+__all__ = [
+    "JOB_KIND_BUILD",
+    "CalibrationRecord",
+    "ClaimedJob",
+    "FingerprintRecord",
+    "JobRecord",
+    "MatrixInfo",
+    "RoomRecord",
+    "StoredBuild",
+]
+
+JOB_KIND_BUILD = "build_fingerprint"
 
 
 @dataclass(frozen=True)
@@ -34,7 +45,10 @@ class RoomRecord:
 
 @dataclass(frozen=True)
 class JobRecord:
-    """A fingerprint build job: both the public resource and the queue entry."""
+    """A background job (fingerprint build or calibration): the resource and the queue entry.
+
+    ``calibration_id`` names the calibration that a ``calibration`` job runs.
+    """
 
     id: str
     kind: str
@@ -48,6 +62,7 @@ class JobRecord:
     fingerprint_version: int | None
     attempts: int
     layout_version: int
+    calibration_id: str | None = None
 
 
 @dataclass(frozen=True)
@@ -72,3 +87,66 @@ class FingerprintRecord:
     build_seconds: float
     matrices: dict[str, MatrixInfo]
     job_id: str | None
+    calibration_id: str | None = None
+    masked_leds: tuple[int, ...] = ()
+
+
+@dataclass(frozen=True)
+class ClaimedJob:
+    """What a worker needs to run a claimed build.
+
+    ``layout`` is what a build job builds: the room's layout, or its active calibration's
+    calibrated and masked layout (then ``calibration_id`` and ``masked_leds`` say so). A
+    calibration job carries the room's nominal layout and its ``calibration`` payload (see
+    :func:`app.registry._calibration_rows.calibration_payload`).
+    """
+
+    job_id: str
+    room_id: str
+    layout_version: int
+    layout: dict[str, Any]
+    attempts: int
+    worker_id: str
+    kind: str = JOB_KIND_BUILD
+    calibration_id: str | None = None
+    masked_leds: tuple[int, ...] = ()
+    calibration: dict[str, Any] | None = None
+
+
+@dataclass(frozen=True)
+class StoredBuild:
+    """A finished build whose matrix files are already in the store (sizes in bytes).
+
+    A calibration job also returns its ``calibration`` outcome (``report``,
+    ``calibrated_layout``, ``layout`` built, ``masked_leds``).
+    """
+
+    leds: int
+    grid_points: int
+    build_seconds: float
+    matrices: dict[str, tuple[MatrixInfo, int]]
+    calibration: dict[str, Any] | None = None
+
+
+@dataclass(frozen=True)
+class CalibrationRecord:
+    """A survey calibration; its ``status`` and ``error`` are those of its job.
+
+    ``report`` (the fit, per LED), ``masked_leds`` and ``fingerprint_version`` are set once
+    the job succeeded. ``active``: builds of the room's current layout use this calibration.
+    """
+
+    id: str
+    room_id: str
+    layout_version: int
+    job_id: str
+    status: str
+    error: str | None
+    created_at: datetime
+    finished_at: datetime | None
+    request: dict[str, Any]
+    based_on: str | None
+    report: dict[str, Any] | None
+    masked_leds: tuple[int, ...] | None
+    fingerprint_version: int | None
+    active: bool

@@ -39,7 +39,8 @@ from ._rows import (
     room_record,
     room_select,
 )
-from ._schema import api_keys, fingerprints, jobs, matrices, rooms
+from ._schema import api_keys, calibrations, fingerprints, jobs, matrices, rooms
+from .calibrations import create_calibration, get_calibration, list_calibrations
 from .epochs import EpochRecord, EpochSettings
 from .errors import (
     CorruptMatrix,
@@ -51,7 +52,7 @@ from .errors import (
     RoomNotFound,
 )
 from .queue import enqueue_build, utcnow
-from .records import FingerprintRecord, JobRecord, RoomRecord
+from .records import CalibrationRecord, FingerprintRecord, JobRecord, RoomRecord
 from .store import MatrixStore
 
 __all__ = ["Registry"]
@@ -228,6 +229,7 @@ class Registry:
             ).all()
             conn.execute(delete(matrices).where(matrices.c.room_id == room_id))
             conn.execute(delete(fingerprints).where(fingerprints.c.room_id == room_id))
+            conn.execute(delete(calibrations).where(calibrations.c.room_id == room_id))
             conn.execute(delete(jobs).where(jobs.c.room_id == room_id))
             deleted = conn.execute(delete(rooms).where(rooms.c.id == room_id)).rowcount
         if not deleted:
@@ -274,10 +276,37 @@ class Registry:
     def get_job(self, *, job_id: str) -> JobRecord:
         """One job; :class:`JobNotFound` when unknown (jobs go with their room)."""
         with translate_errors(), self.engine.connect() as conn:
-            row = conn.execute(select(jobs).where(jobs.c.id == job_id)).one_or_none()
+            row = conn.execute(
+                select(jobs, calibrations.c.id.label("calibration_id"))
+                .select_from(jobs.outerjoin(calibrations, calibrations.c.job_id == jobs.c.id))
+                .where(jobs.c.id == job_id)
+            ).one_or_none()
         if row is None:
             raise JobNotFound(f"no job with id {job_id!r}", field="job_id")
         return job_record(row)
+
+    # -- calibrations ---------------------------------------------------------------------
+    def create_calibration(
+        self, *, room_id: str, layout_version: int, request: dict[str, Any]
+    ) -> CalibrationRecord:
+        """Store a calibration request checked against ``layout_version`` and queue its job.
+
+        Raises
+        ------
+        RoomNotFound, PreconditionFailed (the layout changed meanwhile)
+        """
+        calibration_id, _ = create_calibration(
+            self.engine, room_id=room_id, layout_version=layout_version, request=request
+        )
+        return self.get_calibration(room_id=room_id, calibration_id=calibration_id)
+
+    def list_calibrations(self, *, room_id: str) -> list[CalibrationRecord]:
+        """The room's calibrations, newest first."""
+        return list_calibrations(self.engine, room_id=room_id)
+
+    def get_calibration(self, *, room_id: str, calibration_id: str) -> CalibrationRecord:
+        """One calibration of the room (NotFound when unknown)."""
+        return get_calibration(self.engine, room_id=room_id, calibration_id=calibration_id)
 
     # -- fingerprints ---------------------------------------------------------------------
     def list_fingerprints(self, *, room_id: str) -> list[FingerprintRecord]:

@@ -1,5 +1,12 @@
 """Public request and answer bodies of the HTTP API (pydantic)."""
 
+from .calibrations import (
+    Calibration,
+    CalibrationCreate,
+    CalibrationsList,
+    LedCalibration,
+    SurveyRow,
+)
 from .epochs import Epoch, EpochCreate, EpochMeasurement, EpochStatus
 from .fingerprints import Fingerprint, FingerprintsList, Job, JobResult, MatrixMeta, MatrixName
 from .localize import (
@@ -11,6 +18,7 @@ from .localize import (
     SolverName,
     TerminalAmplitudes,
 )
+from .pictures import LocalizationPlot, PlotPoint
 from .problems import FieldError, Problem
 from .rooms import (
     FingerprintState,
@@ -26,6 +34,9 @@ from .simulate import Simulation, SimulationRequest, TruthTarget
 
 __all__ = [
     "SOLVER_NAMES",
+    "Calibration",
+    "CalibrationCreate",
+    "CalibrationsList",
     "Epoch",
     "EpochCreate",
     "EpochMeasurement",
@@ -38,12 +49,15 @@ __all__ = [
     "GridSpec",
     "Job",
     "JobResult",
+    "LedCalibration",
     "LedSpec",
     "Localization",
+    "LocalizationPlot",
     "MatrixMeta",
     "MatrixName",
     "Measurement",
     "ModelName",
+    "PlotPoint",
     "Problem",
     "ReceiverSpec",
     "Room",
@@ -53,6 +67,7 @@ __all__ = [
     "Simulation",
     "SimulationRequest",
     "SolverName",
+    "SurveyRow",
     "TerminalAmplitudes",
     "TruthTarget",
 ]

@@ -41,6 +41,13 @@ class Fingerprint(ResponseModel):
     build_seconds: float
     matrices: dict[str, MatrixMeta] = Field(description="keys among `H`, `J`, `psi`")
     job_id: str | None
+    calibration_id: str | None = Field(
+        default=None, description="the survey calibration whose model it was built from"
+    )
+    masked_leds: list[int] = Field(
+        default_factory=list,
+        description="room LED indices left out (H has M minus these rows, in room order)",
+    )
 
 
 class FingerprintsList(ResponseModel):
@@ -50,16 +57,19 @@ class FingerprintsList(ResponseModel):
 
 
 class JobResult(ResponseModel):
-    """What a succeeded build produced."""
+    """What a succeeded job produced."""
 
     fingerprint_version: int
+    calibration_id: str | None = Field(
+        default=None, description="for a `calibration` job: the calibration (its report)"
+    )
 
 
 class Job(ResponseModel):
-    """A background job (fingerprint build)."""
+    """A background job: a fingerprint build or a survey calibration (`kind`)."""
 
     id: str
-    kind: str = Field(examples=["build_fingerprint"])
+    kind: str = Field(examples=["build_fingerprint", "calibration"])
     room_id: str | None = Field(description="null once the room was deleted")
     status: Literal["queued", "running", "succeeded", "failed"]
     progress: float = Field(ge=0, le=1)

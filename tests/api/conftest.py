@@ -28,6 +28,7 @@ __all__ = [
     "database_url",
     "make_settings",
     "postgres_url",
+    "wait_for_job",
     "wait_for_room",
 ]
 
@@ -85,3 +86,25 @@ def ready_app(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[TestCl
         assert len(rooms) == 1
         wait_for_room(test_client, rooms[0]["id"])
         yield test_client, rooms[0]["id"]
+
+
+@pytest.fixture(scope="module")
+def worker_app(tmp_path_factory: pytest.TempPathFactory) -> Iterator[TestClient]:
+    """An app with one embedded build worker and no rooms; tests create (and change) their own."""
+    settings = make_settings(tmp_path_factory.mktemp("worker"), embedded_workers=1)
+    with TestClient(create_app(settings)) as test_client:
+        yield test_client
+
+
+def wait_for_job(
+    client: TestClient, job_id: str, timeout_s: float = BUILD_TIMEOUT_S
+) -> dict[str, Any]:
+    """Poll a job until it succeeded (fail on `failed` or timeout) and return it."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        job: dict[str, Any] = client.get(f"/v1/jobs/{job_id}", headers=TERMINAL).json()
+        assert job["status"] != "failed", job
+        if job["status"] == "succeeded":
+            return job
+        time.sleep(0.1)
+    raise AssertionError(f"job {job_id} not done after {timeout_s} s")

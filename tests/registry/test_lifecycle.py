@@ -72,6 +72,7 @@ def test_seed_demo_room_only_into_an_empty_registry(registry: Registry) -> None:
 
 def test_public_surface() -> None:
     assert sorted(app.registry.__all__) == [
+        "CalibrationRecord",
         "FingerprintRecord",
         "JobRecord",
         "MatrixInfo",

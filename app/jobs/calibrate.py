@@ -1,0 +1,150 @@
+"""The calibration step of a ``calibration`` job, run in the build child before the build.
+
+From the room's nominal layout and the job's payload (the stored request and, for a request
+without a survey, the calibration it re-uses) it produces the calibrated layout, the layout
+to build (calibrated, masked LEDs dropped), the final mask and the report. Plain JSON values
+in and out: the outcome is stored as it is.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from app.vlp.calibration import (
+    CalibrationResult,
+    calibrate,
+    calibrated_layout,
+    half_power_angle_deg,
+    masked_layout,
+)
+from app.vlp.channel import led_constants
+from app.vlp.layout import Layout, layout_from_mapping
+from app.vlp.survey import survey_from_rows
+
+__all__ = ["apply_calibration"]
+
+
+def apply_calibration(nominal: Layout, payload: dict[str, Any]) -> dict[str, Any]:
+    """Fit (or re-use a fit), mask, and describe the result.
+
+    Parameters
+    ----------
+    nominal : Layout
+        The room's layout as the admin wrote it (M LEDs).
+    payload : dict
+        ``{"request": {...}, "base": None | {"id", "calibrated_layout", "report"}}``; the
+        request has ``survey`` (rows ``[x, y, led, amplitude]``, may be empty),
+        ``masked_leds``, ``mask_dead_leds``, ``dimmed_below`` and ``dead_below``.
+
+    Returns
+    -------
+    dict
+        ``report`` (JSON), ``calibrated_layout`` and ``layout`` (layout mappings; ``layout``
+        has the masked LEDs dropped) and ``masked_leds`` (sorted room LED indices).
+
+    Raises
+    ------
+    app.vlp.errors.MeasurementError
+        When the survey does not fit the layout or every LED would be masked.
+    """
+    request = payload["request"]
+    survey_rows = request.get("survey") or []
+    base = payload.get("base")
+    if survey_rows:
+        result = calibrate(
+            nominal,
+            survey_from_rows(np.asarray(survey_rows, dtype=np.float64)),
+            dimmed_below=float(request.get("dimmed_below", 0.75)),
+            dead_below=float(request.get("dead_below", 0.1)),
+        )
+        calibrated = calibrated_layout(nominal, result)
+        report = _report(nominal, result, len(survey_rows))
+    elif base is not None:
+        calibrated = layout_from_mapping(base["calibrated_layout"])
+        report = {**base["report"], "survey_rows": 0}
+    else:
+        calibrated = nominal
+        report = _nominal_report(nominal)
+    masked = set(int(i) for i in request.get("masked_leds") or ())
+    if request.get("mask_dead_leds", True):
+        masked |= {led["index"] for led in report["leds"] if led["flag"] == "dead"}
+    order = sorted(masked)
+    for led in report["leds"]:
+        led["masked"] = led["index"] in masked
+    return {
+        "report": report,
+        "calibrated_layout": calibrated.to_mapping(),
+        "layout": masked_layout(calibrated, order).to_mapping(),
+        "masked_leds": order,
+    }
+
+
+def _number(value: float) -> float | None:
+    return float(value) if math.isfinite(value) else None
+
+
+def _report(nominal: Layout, result: CalibrationResult, n_rows: int) -> dict[str, Any]:
+    """The fit per LED, with a flag ``ok``/``dimmed``/``dead``/``unsurveyed``."""
+    flags = {i: "dimmed" for i in result.dimmed_leds}
+    flags.update({i: "unsurveyed" for i in result.unsurveyed_leds})
+    flags.update({i: "dead" for i in result.dead_leds})
+    orders_nominal, _ = led_constants(nominal)
+    leds = [
+        {
+            "index": i,
+            "flag": flags.get(i, "ok"),
+            "pilot_amplitude": float(result.pilot_amplitudes[i]),
+            "nominal_pilot_amplitude": float(nominal.leds[i].pilot_amplitude),
+            "relative_amplitude": float(result.relative_amplitudes[i]),
+            "lambertian_order": float(result.lambertian_orders[i]),
+            "nominal_lambertian_order": float(orders_nominal[i]),
+            "half_power_angle_deg": float(result.half_power_angles_deg[i]),
+            "residual_rms_before": _number(float(result.residual_rms_before[i])),
+            "residual_rms_after": _number(float(result.residual_rms_after[i])),
+            "survey_points": int(result.points_per_led[i]),
+            "points_in_view": int(result.points_in_view[i]),
+            "masked": False,
+        }
+        for i in range(nominal.n_leds)
+    ]
+    return {
+        "survey_rows": n_rows,
+        "receiver_gain": float(result.receiver_gain),
+        "noise_std": _number(float(result.noise_std)),
+        "converged": bool(result.converged),
+        "leds": leds,
+    }
+
+
+def _nominal_report(nominal: Layout) -> dict[str, Any]:
+    """The report of a room never calibrated: its nominal model, every LED unsurveyed."""
+    orders, _ = led_constants(nominal)
+    angles = half_power_angle_deg(orders)
+    leds = [
+        {
+            "index": i,
+            "flag": "unsurveyed",
+            "pilot_amplitude": float(led.pilot_amplitude),
+            "nominal_pilot_amplitude": float(led.pilot_amplitude),
+            "relative_amplitude": 1.0,
+            "lambertian_order": float(orders[i]),
+            "nominal_lambertian_order": float(orders[i]),
+            "half_power_angle_deg": float(angles[i]),
+            "residual_rms_before": None,
+            "residual_rms_after": None,
+            "survey_points": 0,
+            "points_in_view": 0,
+            "masked": False,
+        }
+        for i, led in enumerate(nominal.leds)
+    ]
+    return {
+        "survey_rows": 0,
+        "receiver_gain": 1.0,
+        "noise_std": None,
+        "converged": True,
+        "leds": leds,
+    }

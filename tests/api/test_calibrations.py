@@ -1,0 +1,243 @@
+"""Survey calibration over HTTP, end to end, with surveys simulated from a perturbed room."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from typing import Any
+
+import numpy as np
+import pytest
+
+from app.pictures.localization import match_estimates
+from app.schemas.calibrations import calibration_example
+from app.schemas.rooms import paper_room_example
+from app.vlp.calibration import simulate_survey
+from app.vlp.layout import Layout, layout_from_mapping
+from app.vlp.simulation import noisy_amplitudes, true_amplitudes
+
+from .conftest import ADMIN, TERMINAL, TestClient, wait_for_job, wait_for_room
+from .test_rooms import assert_problem
+
+DIMMED, DEAD = 5, 10
+
+
+def _paper_room(client: TestClient) -> str:
+    response = client.post("/v1/rooms", json=paper_room_example(), headers=ADMIN)
+    assert response.status_code == 201, response.text
+    room_id: str = response.json()["id"]
+    wait_for_room(client, room_id)
+    return room_id
+
+
+def _perturbed(nominal: Layout) -> Layout:
+    """The real room: LED 5 at half power, LED 10 dead, every beam off by up to 6 degrees."""
+    rng = np.random.default_rng(3)
+    angles = 60.0 + rng.uniform(-6.0, 6.0, nominal.n_leds)
+    scale = {DIMMED: 0.5, DEAD: 1e-9}
+    leds = tuple(
+        replace(led, half_power_angle_deg=float(angles[i]), pilot_amplitude=scale.get(i, 1.0))
+        for i, led in enumerate(nominal.leds)
+    )
+    return replace(nominal, leds=leds)
+
+
+def _survey_body(true: Layout, noise_std: float) -> dict[str, Any]:
+    ticks = np.arange(0.25, 4.0, 0.5)
+    points = np.array([(x, y) for x in ticks for y in ticks])
+    survey = simulate_survey(true, points, noise_std, rng=11)
+    rows = [
+        {"x": float(x), "y": float(y), "led": int(led), "amplitude": float(amp)}
+        for (x, y), led, amp in zip(
+            survey.points, survey.led_indices, survey.amplitudes, strict=True
+        )
+    ]
+    return {"survey": rows}
+
+
+def _mean_error_m(
+    client: TestClient, room_id: str, version: int, true: Layout, noise_std: float
+) -> float:
+    """Mean matched error over 8 trials of 3 terminals measured in the real room."""
+    rng = np.random.default_rng(5)
+    errors = []
+    for _ in range(8):
+        positions = rng.uniform(0.3, 3.7, (3, 2))
+        amplitudes = noisy_amplitudes(true, positions, noise_std, rng=rng)
+        body = {
+            "terminals": [
+                {"id": f"t{k}", "amplitudes": row.tolist()} for k, row in enumerate(amplitudes)
+            ],
+            "targets": 3,
+            "fingerprint_version": version,
+        }
+        response = client.post(f"/v1/rooms/{room_id}/localize", json=body, headers=TERMINAL)
+        assert response.status_code == 200, response.text
+        estimates = np.array([[e["x"], e["y"]] for e in response.json()["estimates"]])
+        rows, cols = match_estimates(estimates, positions)
+        errors.extend(np.linalg.norm(estimates[rows] - positions[cols], axis=1))
+    return float(np.mean(errors))
+
+
+def test_calibration_end_to_end(worker_app: TestClient) -> None:
+    client = worker_app
+    room_id = _paper_room(client)
+    nominal = layout_from_mapping(
+        client.get(f"/v1/rooms/{room_id}", headers=ADMIN).json()["layout"]
+    )
+    true = _perturbed(nominal)
+    typical = float(np.median(true_amplitudes(nominal, np.array([[2.0, 2.0]]))))
+    noise_std = 0.01 * typical
+
+    response = client.post(
+        f"/v1/rooms/{room_id}/calibrations", json=_survey_body(true, noise_std), headers=ADMIN
+    )
+    assert response.status_code == 202, response.text
+    job = response.json()
+    assert job["kind"] == "calibration" and response.headers["location"] == f"/v1/jobs/{job['id']}"
+    result = wait_for_job(client, job["id"])["result"]
+    calibrated_version = result["fingerprint_version"]
+    assert calibrated_version == 2
+
+    report = client.get(
+        f"/v1/rooms/{room_id}/calibrations/{result['calibration_id']}", headers=TERMINAL
+    ).json()
+    assert report["status"] == "succeeded" and report["active"] and report["survey_rows"] == 1024
+    assert report["masked_leds"] == [DEAD]
+    assert report["receiver_gain"] == pytest.approx(1.0, rel=0.03)
+    flags = {led["index"]: led["flag"] for led in report["leds"]}
+    assert flags[DIMMED] == "dimmed" and flags[DEAD] == "dead"
+    assert {flag for index, flag in flags.items() if index not in (DIMMED, DEAD)} == {"ok"}
+    for led, true_led in zip(report["leds"], true.leds, strict=True):
+        assert led["masked"] == (led["index"] == DEAD)
+        if led["index"] == DEAD:
+            continue
+        assert led["half_power_angle_deg"] == pytest.approx(true_led.half_power_angle_deg, abs=1.0)
+        assert led["relative_amplitude"] == pytest.approx(true_led.pilot_amplitude, rel=0.03)
+        # After the fit only the noise is left (before: the model error as well).
+        assert led["residual_rms_after"] <= led["residual_rms_before"]
+        assert led["residual_rms_after"] < 1.5 * noise_std
+    dimmed = report["leds"][DIMMED]
+    assert dimmed["residual_rms_after"] < 0.1 * dimmed["residual_rms_before"]
+
+    fingerprint = client.get(f"/v1/rooms/{room_id}/fingerprints/current", headers=ADMIN).json()
+    assert fingerprint["version"] == calibrated_version and fingerprint["leds"] == 15
+    assert fingerprint["masked_leds"] == [DEAD]
+    assert fingerprint["calibration_id"] == result["calibration_id"]
+
+    # Terminals measure in the real room and send all 16 amplitudes to both versions.
+    uncalibrated = _mean_error_m(client, room_id, 1, true, noise_std)
+    calibrated = _mean_error_m(client, room_id, calibrated_version, true, noise_std)
+    assert calibrated < 0.5 * uncalibrated, (calibrated, uncalibrated)
+
+    listed = client.get(f"/v1/rooms/{room_id}/calibrations", headers=TERMINAL).json()["items"]
+    assert [item["id"] for item in listed] == [result["calibration_id"]]
+
+
+def test_rebuild_keeps_and_put_drops_the_calibration(worker_app: TestClient) -> None:
+    client = worker_app
+    room_id = _paper_room(client)
+    response = client.post(
+        f"/v1/rooms/{room_id}/calibrations", json=calibration_example(), headers=ADMIN
+    )
+    calibration_id = wait_for_job(client, response.json()["id"])["result"]["calibration_id"]
+    rebuild = client.post(f"/v1/rooms/{room_id}/fingerprints", headers=ADMIN).json()
+    version = wait_for_job(client, rebuild["id"])["result"]["fingerprint_version"]
+    rebuilt = client.get(f"/v1/rooms/{room_id}/fingerprints/{version}", headers=ADMIN).json()
+    assert rebuilt["calibration_id"] == calibration_id and rebuilt["leds"] == 15
+
+    room = client.get(f"/v1/rooms/{room_id}", headers=ADMIN)
+    put = client.put(
+        f"/v1/rooms/{room_id}",
+        json=paper_room_example(),
+        headers={**ADMIN, "If-Match": room.headers["etag"]},
+    )
+    assert put.status_code == 200, put.text
+    version = wait_for_job(client, put.json()["fingerprint"]["job_id"])["result"][
+        "fingerprint_version"
+    ]
+    fresh = client.get(f"/v1/rooms/{room_id}/fingerprints/{version}", headers=ADMIN).json()
+    assert fresh["calibration_id"] is None and fresh["leds"] == 16
+    report = client.get(f"/v1/rooms/{room_id}/calibrations/{calibration_id}", headers=ADMIN)
+    assert report.json()["active"] is False
+
+
+def test_swagger_example_then_mask_only(worker_app: TestClient) -> None:
+    client = worker_app
+    room_id = _paper_room(client)
+    response = client.post(
+        f"/v1/rooms/{room_id}/calibrations", json=calibration_example(), headers=ADMIN
+    )
+    assert response.status_code == 202, response.text
+    first = wait_for_job(client, response.json()["id"])["result"]["calibration_id"]
+    report = client.get(f"/v1/rooms/{room_id}/calibrations/{first}", headers=ADMIN).json()
+    flags = {led["index"]: led["flag"] for led in report["leds"]}
+    assert flags[5] == "dimmed" and flags[10] == "dead" and report["masked_leds"] == [10]
+
+    # Mask one more LED without a survey (and without a new layout).
+    response = client.post(
+        f"/v1/rooms/{room_id}/calibrations", json={"masked_leds": [3]}, headers=ADMIN
+    )
+    assert response.status_code == 202, response.text
+    result = wait_for_job(client, response.json()["id"])["result"]
+    second = client.get(
+        f"/v1/rooms/{room_id}/calibrations/{result['calibration_id']}", headers=ADMIN
+    ).json()
+    assert second["based_on"] == first and second["survey_rows"] == 0
+    assert second["masked_leds"] == [3, 10] and second["leds"][5]["flag"] == "dimmed"
+    current = client.get(f"/v1/rooms/{room_id}/fingerprints/current", headers=ADMIN).json()
+    assert current["leds"] == 14 and current["masked_leds"] == [3, 10]
+    # A 16-amplitude measurement and a 14-amplitude one localize alike; 15 is refused.
+    amplitudes = true_amplitudes(
+        layout_from_mapping(paper_room_example()), np.array([[1.0, 1.2], [2.9, 3.1]])
+    )
+    answers = []
+    for keep in (list(range(16)), [i for i in range(16) if i not in (3, 10)]):
+        body = {"power": amplitudes[:, keep].__pow__(2).sum(axis=0).tolist(), "targets": 2}
+        answer = client.post(f"/v1/rooms/{room_id}/localize", json=body, headers=TERMINAL)
+        assert answer.status_code == 200, answer.text
+        answers.append(answer.json()["estimates"])
+    assert answers[0] == answers[1]
+    bad = client.post(f"/v1/rooms/{room_id}/localize", json={"power": [1.0] * 15}, headers=TERMINAL)
+    assert_problem(bad, 422, ["body.power"])
+    items = client.get(f"/v1/rooms/{room_id}/calibrations", headers=ADMIN).json()["items"]
+    assert [item["active"] for item in items] == [True, False]
+
+
+@pytest.mark.parametrize(
+    ("body", "fields"),
+    [
+        ({"survey": [{"x": 1.0, "y": 1.0, "led": 16, "amplitude": 1e-6}]}, ["body.survey.0.led"]),
+        ({"survey": [{"x": 4.5, "y": 1.0, "led": 0, "amplitude": 1e-6}]}, ["body.survey.0"]),
+        ({"survey": [{"x": 1.0, "y": 1.0, "led": 0, "amplitude": "loud"}]}, None),
+        ({"masked_leds": [16]}, ["body.masked_leds.0"]),
+        ({"masked_leds": list(range(16))}, ["body.masked_leds"]),
+        ({"dead_below": 0.8, "dimmed_below": 0.5}, ["body.dead_below"]),
+        ({"surveys": []}, None),
+    ],
+    ids=["led-range", "outside", "not-a-number", "mask-range", "mask-all", "thresholds", "typo"],
+)
+def test_bad_requests_name_the_field(
+    client: TestClient, body: dict[str, Any], fields: list[str] | None
+) -> None:
+    room_id = client.post("/v1/rooms", json=paper_room_example(), headers=ADMIN).json()["id"]
+    response = client.post(f"/v1/rooms/{room_id}/calibrations", json=body, headers=ADMIN)
+    problem = assert_problem(response, 422, fields)
+    assert problem["errors"]
+    assert client.get(f"/v1/rooms/{room_id}/calibrations", headers=ADMIN).json()["items"] == []
+
+
+def test_roles_and_unknown_ids(client: TestClient) -> None:
+    room_id = client.post("/v1/rooms", json=paper_room_example(), headers=ADMIN).json()["id"]
+    url = f"/v1/rooms/{room_id}/calibrations"
+    assert_problem(client.post(url, json={"masked_leds": [1]}, headers=TERMINAL), 403)
+    assert_problem(client.post(url, json={"masked_leds": [1]}), 401)
+    assert_problem(client.get(f"{url}/nope", headers=TERMINAL), 404)
+    assert_problem(client.get("/v1/rooms/nope/calibrations", headers=TERMINAL), 404)
+    assert_problem(client.post("/v1/rooms/nope/calibrations", json={}, headers=ADMIN), 404)
+    # Accepted while the room's first build is still pending: the job waits in the queue.
+    response = client.post(url, json={"masked_leds": [1]}, headers=ADMIN)
+    assert response.status_code == 202
+    job = client.get(response.headers["location"], headers=TERMINAL).json()
+    assert job["kind"] == "calibration" and job["status"] == "queued"
+    listed = client.get(url, headers=TERMINAL).json()["items"]
+    assert listed[0]["status"] == "queued" and listed[0]["leds"] is None
