@@ -7,70 +7,18 @@ from __future__ import annotations
 
 import hashlib
 from pathlib import Path
-from typing import Any
 
 import httpx
 import pytest
 
 from app.vlp.presets import paper_layout
 from tests.db_fixtures import million_point_hall
-from tests.processes import VlpProcess, pid_alive, process_fleet, wait_for
+from tests.processes import VlpProcess, process_fleet, wait_for
 
 from .checks import assert_nothing_lost, registry_of
+from .steps import HALL_TIMEOUT_S, assert_orphans_exit, create_room, kill_mid_build, wait_succeeded
 
 pytestmark = pytest.mark.slow
-
-HALL_TIMEOUT_S = 600.0
-
-
-def job(server: VlpProcess, job_id: str) -> dict[str, Any]:
-    """The job as the API shows it."""
-    with server.client() as client:
-        response = client.get(f"/v1/jobs/{job_id}")
-    response.raise_for_status()
-    body: dict[str, Any] = response.json()
-    return body
-
-
-def create_room(server: VlpProcess, layout: dict[str, Any]) -> dict[str, Any]:
-    """POST a room; returns the Room."""
-    with server.client() as client:
-        response = client.post("/v1/rooms", json=layout)
-    assert response.status_code == 201, response.text
-    body: dict[str, Any] = response.json()
-    return body
-
-
-def wait_succeeded(server: VlpProcess, job_id: str, timeout_s: float = 120.0) -> dict[str, Any]:
-    """Poll the job until it succeeded (fail at once when it failed)."""
-
-    def done() -> bool:
-        status = job(server, job_id)["status"]
-        assert status != "failed", job(server, job_id)
-        return bool(status == "succeeded")
-
-    wait_for(done, f"job {job_id} to succeed", timeout_s)
-    return job(server, job_id)
-
-
-def kill_mid_build(process: VlpProcess, server: VlpProcess, job_id: str) -> list[int]:
-    """Wait until the build is well under way, ``kill -9`` ``process``; its build children."""
-
-    def under_way() -> bool:
-        state = job(server, job_id)
-        assert state["status"] in ("queued", "running"), state
-        return state["status"] == "running" and state["progress"] >= 0.2
-
-    wait_for(under_way, "the hall build to be 20 % done", HALL_TIMEOUT_S)
-    children = process.build_children()
-    assert children, "the build runs in a child process"
-    process.kill9()
-    return children
-
-
-def assert_orphans_exit(children: list[int]) -> None:
-    """The dead parent's build children end by themselves (no second hall in memory)."""
-    wait_for(lambda: not any(pid_alive(pid) for pid in children), "orphaned builds to exit", 30)
 
 
 def corrupt_then_repaired(server: VlpProcess, room_id: str) -> None:
