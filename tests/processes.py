@@ -30,6 +30,7 @@ __all__ = [
     "ProcessFleet",
     "VlpProcess",
     "child_pids",
+    "peak_rss_bytes",
     "pid_alive",
     "process_fleet",
     "wait_for",
@@ -65,6 +66,14 @@ def child_pids(pid: int) -> list[int]:
         except OSError:
             continue
     return children
+
+
+def peak_rss_bytes(pid: int) -> int:
+    """The peak resident memory of a live process so far (``VmHWM``), in bytes."""
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmHWM:"):
+            return int(line.split()[1]) * 1024
+    raise AssertionError(f"process {pid} reports no VmHWM")
 
 
 def pid_alive(pid: int) -> bool:

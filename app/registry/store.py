@@ -30,7 +30,13 @@ from numpy.typing import NDArray
 from ._typing import StoredMatrix
 from .records import MatrixInfo
 
-__all__ = ["FORMATS", "STALE_TEMPORARY_SECONDS", "MatrixStore", "matrix_bytes"]
+__all__ = [
+    "FORMATS",
+    "REVERIFY_SECONDS",
+    "STALE_TEMPORARY_SECONDS",
+    "MatrixStore",
+    "matrix_bytes",
+]
 
 FORMATS = ("npy", "npz")
 _ZIP_EPOCH = (1980, 1, 1, 0, 0, 0)
@@ -41,6 +47,7 @@ _TEMP_PREFIX = ".tmp-"
 # for an hour belongs to a writer that died. Several hosts may share the store, so the
 # writer's liveness cannot be checked directly.
 STALE_TEMPORARY_SECONDS = 3600.0
+REVERIFY_SECONDS = 60.0
 
 
 def _npy_bytes(array: NDArray[Any]) -> bytes:
@@ -91,11 +98,16 @@ class MatrixStore:
     ----------
     root : Path
         Directory of the store (created on first write).
+    reverify_after_s : float, default=60.0
+        How long a successful hash check is trusted for an unchanged (mtime, size) file.
+        Corruption that keeps both (bit rot, a byte patched with its mtime restored) is
+        found at most this long after the last check.
     """
 
-    def __init__(self, root: Path) -> None:
+    def __init__(self, root: Path, *, reverify_after_s: float = REVERIFY_SECONDS) -> None:
         self.root = root
-        self._verified: dict[Path, tuple[int, int, str]] = {}
+        self.reverify_after_s = reverify_after_s
+        self._verified: dict[Path, tuple[int, int, str, float]] = {}
         self._lock = threading.Lock()
 
     def path_for(self, sha256: str, fmt: str) -> Path:
@@ -120,23 +132,25 @@ class MatrixStore:
     def verify(self, path: Path, sha256: str) -> bool:
         """True when ``path`` exists and hashes to ``sha256``.
 
-        A success is remembered per (path, mtime, size), so a file is hashed again only after
-        it changed on disk.
+        A success is remembered per (path, mtime, size) for ``reverify_after_s``, so a file
+        is hashed again after it changed on disk, and in any case once that time has passed.
         """
         try:
             stat = path.stat()
         except FileNotFoundError:
             return False
         key = (stat.st_mtime_ns, stat.st_size, sha256)
+        now = time.monotonic()
         with self._lock:
-            if self._verified.get(path) == key:
-                return True
+            known = self._verified.get(path)
+        if known is not None and known[:3] == key and now - known[3] < self.reverify_after_s:
+            return True
         if _sha256_of_file(path) != sha256:
             with self._lock:
                 self._verified.pop(path, None)
             return False
         with self._lock:
-            self._verified[path] = key
+            self._verified[path] = (*key, now)
         return True
 
     def delete(self, sha256: str, fmt: str) -> None:

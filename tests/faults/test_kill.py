@@ -13,7 +13,7 @@ import pytest
 
 from app.vlp.presets import paper_layout
 from tests.db_fixtures import million_point_hall
-from tests.processes import VlpProcess, process_fleet, wait_for
+from tests.processes import VlpProcess, peak_rss_bytes, process_fleet, wait_for
 
 from .checks import assert_nothing_lost, registry_of
 from .steps import HALL_TIMEOUT_S, assert_orphans_exit, create_room, kill_mid_build, wait_succeeded
@@ -66,6 +66,10 @@ def test_kill9_server_mid_hall_build_then_restart_finishes(tmp_path: Path) -> No
             finished = wait_succeeded(second, hall_job, HALL_TIMEOUT_S)
             assert finished["result"] == {"fingerprint_version": 1}
             assert registry.get_job(job_id=hall_job).attempts == 2
+            # The pool keeps its child after the build, so its peak covers the whole hall
+            # build; server and children together (an upper bound) stay below 2 GiB.
+            peaks = [peak_rss_bytes(pid) for pid in [second.pid, *second.build_children()]]
+            assert sum(peaks) < 2 * 1024**3, f"peak resident memory {peaks} bytes"
             meta = registry.get_fingerprint(room_id=hall["id"], version=None)
             assert (meta.leds, meta.grid_points, meta.matrices["H"].format) == (
                 1024,
