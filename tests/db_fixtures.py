@@ -28,6 +28,7 @@ from app.registry import Registry
 from app.registry.queue import ClaimedJob, StoredBuild, claim_job, complete_job
 from app.vlp.fingerprints import build_fingerprint
 from app.vlp.layout import Grid, Layout, Led, Room, layout_from_mapping
+from bench.hall_build import million_point_hall
 
 __all__ = [
     "build_now",
@@ -158,22 +159,6 @@ def hall_layout() -> Layout:
         grid=Grid(step=0.5, receiver_height=0.85),
         leds=leds,
         name="Hall",
-    )
-
-
-def million_point_hall() -> Layout:
-    """A 100 x 100 m hall, 0.1 m grid (N = 10^6, the default limit), 1024 LEDs on a 3.125 m
-    pitch: the largest room the service admits by default. H has ~10.7 million nonzeros and
-    is stored sparse (~78 MB ``.npz``); a build takes ~10 s plus ~25 s to compress and store
-    on an idle core, with ~0.8 GiB peak memory (docs/reliability.md)."""
-    leds = tuple(
-        Led(x=1.5625 + 3.125 * (i % 32), y=1.5625 + 3.125 * (i // 32), z=3.0) for i in range(1024)
-    )
-    return Layout(
-        room=Room(length=100.0, width=100.0, height=3.0),
-        grid=Grid(step=0.1, receiver_height=0.85),
-        leds=leds,
-        name="Million-point hall",
     )
 
 
