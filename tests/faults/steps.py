@@ -54,7 +54,7 @@ def kill_mid_build(process: VlpProcess, server: VlpProcess, job_id: str) -> list
     def under_way() -> bool:
         state = job(server, job_id)
         assert state["status"] in ("queued", "running"), state
-        return state["status"] == "running" and state["progress"] >= 0.2
+        return bool(state["status"] == "running" and state["progress"] >= 0.2)
 
     wait_for(under_way, "the hall build to be 20 % done", HALL_TIMEOUT_S)
     children = process.build_children()

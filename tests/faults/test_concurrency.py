@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import threading
 from collections import Counter
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -35,11 +36,13 @@ def mirrored_layouts() -> tuple[dict[str, Any], dict[str, Any]]:
     """
     room = {"room": {"length": 3.0, "width": 3.0, "height": 3.0}}
     grid = {"grid": {"step": 0.25, "receiver_height": 0.85}}
-    first = [(0.6, 0.6), (2.4, 0.6), (0.6, 2.4), (2.4, 2.4)]
-    second = [(1.0, 0.4), (2.6, 1.0), (2.0, 2.6), (0.4, 2.0)]
-    return tuple(  # type: ignore[return-value]
-        {"name": name, **room, **grid, "leds": [{"x": x, "y": y} for x, y in leds]}
-        for name, leds in (("first", first), ("second", second))
+
+    def layout(name: str, leds: list[tuple[float, float]]) -> dict[str, Any]:
+        return {"name": name, **room, **grid, "leds": [{"x": x, "y": y} for x, y in leds]}
+
+    return (
+        layout("first", [(0.6, 0.6), (2.4, 0.6), (0.6, 2.4), (2.4, 2.4)]),
+        layout("second", [(1.0, 0.4), (2.6, 1.0), (2.0, 2.6), (0.4, 2.0)]),
     )
 
 
@@ -70,9 +73,13 @@ def churn(server: VlpProcess, room_id: str, layouts: tuple[dict[str, Any], ...])
             else:
                 put_room(client, room_id, layouts[(change // 2 + 1) % 2])
             wait_for(
-                lambda before=before: (current_version(client, room_id) or 0) > before,  # type: ignore[misc]
-                "the new version to become current",
+                partial(newer_than, client, room_id, before), "the new version to become current"
             )
+
+
+def newer_than(client: httpx.Client, room_id: str, version: int) -> bool:
+    """True once the room's current version is above ``version``."""
+    return (current_version(client, room_id) or 0) > version
 
 
 def localize_until(
