@@ -29,11 +29,13 @@ from app.registry import Registry
 from app.registry.queue import ClaimedJob, StoredBuild, claim_job, complete_job
 from app.vlp.fingerprints import build_fingerprint
 from app.vlp.layout import Grid, Layout, Led, Room, layout_from_mapping
+from bench.hall_build import million_point_hall
 
 __all__ = [
     "build_now",
     "database_url",
     "hall_layout",
+    "million_point_hall",
     "postgres_url",
     "registry",
     "small_layout",

@@ -5,11 +5,15 @@ the matrix files into the content-addressed store itself and returns only their 
 no large array crosses the process boundary. It reports progress straight into the job's row
 (at most every ``progress_interval_s`` seconds, and only while the parent still holds the
 lease). BLAS is limited to one thread per child: the pool already runs builds in parallel.
+A child whose parent dies (``kill -9`` of ``vlp serve`` or ``vlp worker``) ends itself within
+a second instead of finishing a build nobody will record, which would hold the memory of a
+second build while the job is rebuilt elsewhere.
 """
 
 from __future__ import annotations
 
 import os
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -28,9 +32,17 @@ from app.vlp.layout import layout_from_mapping
 
 from .calibrate import apply_calibration
 
-__all__ = ["BuildTask", "build_and_store", "init_build_process", "store_fingerprint"]
+__all__ = [
+    "BuildTask",
+    "build_and_store",
+    "init_build_process",
+    "store_fingerprint",
+    "watch_parent",
+]
 
 _BLAS_ENV = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+_ORPHAN_CHECK_SECONDS = 0.5
+_ORPHAN_EXIT_CODE = 70
 
 
 @dataclass(frozen=True)
@@ -52,10 +64,29 @@ class BuildTask:
 
 
 def init_build_process() -> None:
-    """Pool initializer: one BLAS/OpenMP thread per build process."""
+    """Pool initializer: one BLAS/OpenMP thread per build process; exit when orphaned."""
     for name in _BLAS_ENV:
         os.environ[name] = "1"
     threadpool_limits(limits=1)
+    watch_parent(os.getppid())
+
+
+def watch_parent(parent_pid: int, interval_s: float = _ORPHAN_CHECK_SECONDS) -> threading.Thread:
+    """Start a daemon thread that ends this process once ``parent_pid`` is no longer its parent.
+
+    A re-parented process (the parent died, even by SIGKILL) sees another ``getppid()``.
+    Polling works for every way the parent can die, unlike ``PR_SET_PDEATHSIG``, which fires
+    when the *thread* that started the child ends.
+    """
+
+    def watch() -> None:
+        while os.getppid() == parent_pid:
+            time.sleep(interval_s)
+        os._exit(_ORPHAN_EXIT_CODE)
+
+    thread = threading.Thread(target=watch, name="vlp-orphan-watch", daemon=True)
+    thread.start()
+    return thread
 
 
 class _ProgressReporter:

@@ -151,7 +151,13 @@ class _WorkerLoop:
             max_cells=self.settings.max_grid_points,
             calibration=claimed.calibration,
         )
-        _log.info("job %s: %s of room %s", claimed.job_id, claimed.kind, claimed.room_id)
+        _log.info(
+            "job %s: %s of room %s",
+            claimed.job_id,
+            claimed.kind,
+            claimed.room_id,
+            extra=self._log_fields(claimed),
+        )
         try:
             future = self._submit(task)
         except (BrokenProcessPool, RuntimeError) as exc:
@@ -186,7 +192,22 @@ class _WorkerLoop:
             self.registry.drop_unreferenced_files(
                 (info.sha256, info.format) for info, _ in result.matrices.values()
             )
-        _log.info("job %s: done, fingerprint version %s", claimed.job_id, version)
+        _log.info(
+            "job %s: done, fingerprint version %s",
+            claimed.job_id,
+            version,
+            extra={**self._log_fields(claimed), "fingerprint_version": version},
+        )
+
+    @staticmethod
+    def _log_fields(claimed: ClaimedJob) -> dict[str, object]:
+        """Structured fields of a job's log lines (who built what, in which attempt)."""
+        return {
+            "job_id": claimed.job_id,
+            "room_id": claimed.room_id,
+            "worker_id": claimed.worker_id,
+            "attempt": claimed.attempts,
+        }
 
     def _fail(self, claimed: ClaimedJob, error: str) -> None:
         status = fail_job(
@@ -196,7 +217,12 @@ class _WorkerLoop:
             max_attempts=self.settings.max_build_attempts,
         )
         _log.warning(
-            "job %s: attempt %d failed (%s): %s", claimed.job_id, claimed.attempts, status, error
+            "job %s: attempt %d failed (%s): %s",
+            claimed.job_id,
+            claimed.attempts,
+            status,
+            error,
+            extra=self._log_fields(claimed),
         )
 
 
@@ -227,6 +253,9 @@ class EmbeddedWorkers:
         if count <= 0 or self._threads:
             return
         self._stop.clear()
+        removed = self.registry.store.remove_stale_temporaries()
+        if removed:
+            _log.info("removed %d stale temporary matrix file(s)", removed)
         self._pool = _Pool(count)
         for index in range(count):
             loop = _WorkerLoop(

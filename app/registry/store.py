@@ -6,6 +6,9 @@ layout of ``scipy.sparse.save_npz``) and named after the sha256 of its bytes:
 directory, fsynced and renamed over the final name, so a reader sees either nothing or the
 whole file, and a rewrite repairs a corrupt file in place. The same array always gives the
 same bytes (the zip entries of an ``.npz`` carry a fixed timestamp), hence the same name.
+A writer killed mid-write leaves a ``.tmp-*`` file that nothing refers to and nothing serves;
+:meth:`MatrixStore.remove_stale_temporaries` deletes such files once they are old enough
+that no live writer can still own them.
 """
 
 from __future__ import annotations
@@ -15,6 +18,7 @@ import io
 import os
 import tempfile
 import threading
+import time
 import zipfile
 from pathlib import Path
 from typing import Any
@@ -26,12 +30,24 @@ from numpy.typing import NDArray
 from ._typing import StoredMatrix
 from .records import MatrixInfo
 
-__all__ = ["FORMATS", "MatrixStore", "matrix_bytes"]
+__all__ = [
+    "FORMATS",
+    "REVERIFY_SECONDS",
+    "STALE_TEMPORARY_SECONDS",
+    "MatrixStore",
+    "matrix_bytes",
+]
 
 FORMATS = ("npy", "npz")
 _ZIP_EPOCH = (1980, 1, 1, 0, 0, 0)
 _CHUNK = 1 << 20
 _HEX = frozenset("0123456789abcdef")
+_TEMP_PREFIX = ".tmp-"
+# A temporary file lives for one write (seconds even for a 10^6-point hall); one untouched
+# for an hour belongs to a writer that died. Several hosts may share the store, so the
+# writer's liveness cannot be checked directly.
+STALE_TEMPORARY_SECONDS = 3600.0
+REVERIFY_SECONDS = 60.0
 
 
 def _npy_bytes(array: NDArray[Any]) -> bytes:
@@ -82,11 +98,16 @@ class MatrixStore:
     ----------
     root : Path
         Directory of the store (created on first write).
+    reverify_after_s : float, default=60.0
+        How long a successful hash check is trusted for an unchanged (mtime, size) file.
+        Corruption that keeps both (bit rot, a byte patched with its mtime restored) is
+        found at most this long after the last check.
     """
 
-    def __init__(self, root: Path) -> None:
+    def __init__(self, root: Path, *, reverify_after_s: float = REVERIFY_SECONDS) -> None:
         self.root = root
-        self._verified: dict[Path, tuple[int, int, str]] = {}
+        self.reverify_after_s = reverify_after_s
+        self._verified: dict[Path, tuple[int, int, str, float]] = {}
         self._lock = threading.Lock()
 
     def path_for(self, sha256: str, fmt: str) -> Path:
@@ -111,23 +132,25 @@ class MatrixStore:
     def verify(self, path: Path, sha256: str) -> bool:
         """True when ``path`` exists and hashes to ``sha256``.
 
-        A success is remembered per (path, mtime, size), so a file is hashed again only after
-        it changed on disk.
+        A success is remembered per (path, mtime, size) for ``reverify_after_s``, so a file
+        is hashed again after it changed on disk, and in any case once that time has passed.
         """
         try:
             stat = path.stat()
         except FileNotFoundError:
             return False
         key = (stat.st_mtime_ns, stat.st_size, sha256)
+        now = time.monotonic()
         with self._lock:
-            if self._verified.get(path) == key:
-                return True
+            known = self._verified.get(path)
+        if known is not None and known[:3] == key and now - known[3] < self.reverify_after_s:
+            return True
         if _sha256_of_file(path) != sha256:
             with self._lock:
                 self._verified.pop(path, None)
             return False
         with self._lock:
-            self._verified[path] = key
+            self._verified[path] = (*key, now)
         return True
 
     def delete(self, sha256: str, fmt: str) -> None:
@@ -137,9 +160,32 @@ class MatrixStore:
             self._verified.pop(path, None)
         path.unlink(missing_ok=True)
 
+    def remove_stale_temporaries(self, older_than_s: float = STALE_TEMPORARY_SECONDS) -> int:
+        """Delete temporary files of interrupted writes last modified ``older_than_s`` ago.
+
+        Returns
+        -------
+        int
+            How many files were removed.
+        """
+        if not self.root.is_dir():
+            return 0
+        cutoff = time.time() - older_than_s
+        removed = 0
+        for path in self.root.glob(f"*/{_TEMP_PREFIX}*"):
+            try:
+                if path.stat().st_mtime < cutoff:
+                    path.unlink()
+                    removed += 1
+            except FileNotFoundError:  # another process removed it first
+                continue
+        return removed
+
     def _write_atomic(self, path: Path, payload: bytes) -> None:
         path.parent.mkdir(parents=True, exist_ok=True)
-        handle, tmp_name = tempfile.mkstemp(dir=path.parent, prefix=".tmp-", suffix=path.suffix)
+        handle, tmp_name = tempfile.mkstemp(
+            dir=path.parent, prefix=_TEMP_PREFIX, suffix=path.suffix
+        )
         try:
             with os.fdopen(handle, "wb") as tmp:
                 tmp.write(payload)

@@ -15,6 +15,7 @@ from app.jobs import EmbeddedWorkers, run_worker
 from app.jobs.build import BuildTask, build_and_store
 from app.registry import Registry
 from app.registry.queue import StoredBuild
+from app.registry.store import STALE_TEMPORARY_SECONDS
 from app.settings import Settings
 from app.vlp.fingerprints import Fingerprint
 from app.vlp.presets import paper_layout
@@ -190,3 +191,17 @@ def test_run_worker_until_stopped(registry: Registry, tmp_path: Path) -> None:
         thread.join(30)
     assert not thread.is_alive()
     assert tmp_path.exists()
+
+
+def test_starting_workers_removes_stale_temporary_files(
+    registry: Registry, workers: Callable[..., EmbeddedWorkers]
+) -> None:
+    folder = registry.store.root / "ab"
+    folder.mkdir(parents=True)
+    stale, fresh = folder / ".tmp-dead.npy", folder / ".tmp-live.npy"
+    stale.write_bytes(b"cut short by kill -9")
+    fresh.write_bytes(b"still being written")
+    old = time.time() - STALE_TEMPORARY_SECONDS - 60
+    os.utime(stale, (old, old))
+    workers()
+    assert not stale.exists() and fresh.exists()

@@ -5,6 +5,7 @@ from __future__ import annotations
 import hashlib
 import io
 import os
+import time
 import zipfile
 from pathlib import Path
 
@@ -12,7 +13,7 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from app.registry.store import MatrixStore, matrix_bytes
+from app.registry.store import STALE_TEMPORARY_SECONDS, MatrixStore, matrix_bytes
 
 
 def _sparse(rng: np.random.Generator) -> sp.csr_array:
@@ -109,3 +110,45 @@ def test_path_for_rejects_bad_names(tmp_path: Path) -> None:
         store.path_for("../../etc", "npy")
     with pytest.raises(ValueError, match="sha256"):
         store.path_for("a" * 64, "pkl")
+
+
+def _rot(path: Path) -> None:
+    """Flip the last byte keeping size and mtime, as bit rot would."""
+    stat = path.stat()
+    payload = bytearray(path.read_bytes())
+    payload[-1] ^= 0xFF
+    os.chmod(path, 0o644)
+    path.write_bytes(bytes(payload))
+    os.utime(path, ns=(stat.st_atime_ns, stat.st_mtime_ns))
+
+
+def test_corruption_that_keeps_mtime_and_size_is_found_on_reverification(
+    rng: np.random.Generator, tmp_path: Path
+) -> None:
+    trusting = MatrixStore(tmp_path, reverify_after_s=3600.0)
+    checking = MatrixStore(tmp_path, reverify_after_s=0.0)
+    info, _ = trusting.put(rng.random((3, 3)))
+    path = trusting.path_for(info.sha256, info.format)
+    assert trusting.verify(path, info.sha256) and checking.verify(path, info.sha256)
+    _rot(path)
+    assert trusting.verify(path, info.sha256)  # within its trust window: not re-hashed
+    assert not checking.verify(path, info.sha256)
+    assert not MatrixStore(tmp_path).verify(path, info.sha256)  # a fresh process re-hashes
+
+
+def test_stale_temporaries_are_removed_and_fresh_ones_kept(
+    rng: np.random.Generator, tmp_path: Path
+) -> None:
+    store = MatrixStore(tmp_path)
+    assert MatrixStore(tmp_path / "absent").remove_stale_temporaries() == 0
+    info, _ = store.put(rng.random((2, 3)))
+    path = store.path_for(info.sha256, info.format)
+    stale = path.parent / ".tmp-killed-writer.npy"
+    fresh = path.parent / ".tmp-live-writer.npy"
+    stale.write_bytes(b"half a matrix")
+    fresh.write_bytes(b"being written")
+    old = time.time() - STALE_TEMPORARY_SECONDS - 60
+    os.utime(stale, (old, old))
+    assert store.remove_stale_temporaries() == 1
+    assert not stale.exists() and fresh.exists()
+    assert store.verify(path, info.sha256)

@@ -1,0 +1,69 @@
+"""Build and store the largest room the service admits by default, as a worker would.
+
+The hall: 100 x 100 m, 0.1 m grid (N = 10^6 = the default ``max_grid_points``), 1024 LEDs
+on a 3.125 m pitch. Runs :func:`app.jobs.build.build_and_store` in this process against a
+throwaway store and reports build and store time, H's size and the peak resident memory.
+
+    python -m bench.hall_build
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import resource
+import tempfile
+import time
+from pathlib import Path
+
+from app.jobs.build import store_fingerprint
+from app.registry.store import MatrixStore
+from app.vlp.fingerprints import build_fingerprint
+from app.vlp.layout import Grid, Layout, Led, Room
+from bench._common import machine_record
+
+__all__ = ["main", "million_point_hall"]
+
+
+def million_point_hall() -> Layout:
+    """A 100 x 100 m hall, 0.1 m grid (N = 10^6), 1024 LEDs on a 3.125 m pitch at 3 m."""
+    leds = tuple(
+        Led(x=1.5625 + 3.125 * (i % 32), y=1.5625 + 3.125 * (i // 32), z=3.0) for i in range(1024)
+    )
+    return Layout(
+        room=Room(length=100.0, width=100.0, height=3.0),
+        grid=Grid(step=0.1, receiver_height=0.85),
+        leds=leds,
+        name="Million-point hall",
+    )
+
+
+def main() -> int:
+    """Entry point of ``python -m bench.hall_build``."""
+    layout = million_point_hall()
+    started = time.perf_counter()
+    fingerprint = build_fingerprint(layout)
+    built = time.perf_counter()
+    with tempfile.TemporaryDirectory() as tmp:
+        stored = store_fingerprint(fingerprint, MatrixStore(Path(tmp)))
+    done = time.perf_counter()
+    peak_kib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    report = {
+        "grid_points": layout.n_cells,
+        "leds": layout.n_leds,
+        "nonzeros": int(fingerprint.gains.nnz),
+        "stored": {
+            name: {"format": info.format, "bytes": size} for name, (info, size) in stored.items()
+        },
+        "build_s": round(built - started, 1),
+        "store_s": round(done - built, 1),
+        "peak_rss_mib": round(peak_kib / 1024),
+        "load_average": [round(x, 2) for x in os.getloadavg()],
+        "machine": machine_record(),
+    }
+    print(json.dumps(report, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
