@@ -83,7 +83,7 @@ def test_create_waits_for_the_build_with_progress(live_app: LiveApp) -> None:
     assert ready.fingerprint.status == "ready" and ready.fingerprint.version == 1
     assert seen and seen[-1].status == "succeeded" and seen[-1].progress == 1.0
     job = vlp.wait_for_job(vlp.rebuild(room.id).id, timeout_s=90)
-    assert job.result == {"fingerprint_version": 2}
+    assert job.result is not None and job.result["fingerprint_version"] == 2
     vlp.delete_room(room.id)
     with pytest.raises(NotFound):
         vlp.get_room(room.id)
