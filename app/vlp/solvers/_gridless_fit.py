@@ -40,13 +40,9 @@ _SIGMA2_FLOOR = 1e-12
 _SIGMA2_REL_FLOOR = 1e-4
 # Damping increases tried per LM iteration before the point is taken as a local minimum.
 _MAX_REJECTIONS = 12
-# Marquardt damping: start, and the factors after a rejected / accepted step. Nielsen's
-# adaptive update needs a third fewer evaluations but lands in worse local minima on
-# irregular rooms (measured: 12-LED irregular room, 40 dB, K=4 1.52 -> 3.79 cm). Starting
-# at 0.1 rather than 1e-3 saves a quarter of the evaluations (fresh insertions are far
-# from the optimum, and the undamped Gauss-Newton step overshot, costing 2-6 rejections),
-# with the same accuracy on the paper, irregular and hall rooms at 20-40 dB.
-_INITIAL_DAMPING = 1e-1
+# Marquardt damping factors after a rejected / accepted step (the start is the caller's).
+# Nielsen's adaptive update needs a third fewer evaluations but lands in worse local
+# minima on irregular rooms (measured: 12-LED irregular room, 40 dB, K=4 1.52 -> 3.79 cm).
 _DAMPING_UP = 4.0
 _DAMPING_DOWN = 5.0
 
@@ -361,7 +357,8 @@ def levenberg_marquardt(
     state: FitState,
     *,
     max_iter: int,
-    tol: float = 1e-4,
+    initial_damping: float,
+    tol: float,
     step_tol_m: float = 1e-5,
 ) -> tuple[FitState, float, int]:
     """Projected LM on an :class:`Objective` (positions kept inside the room).
@@ -376,7 +373,7 @@ def levenberg_marquardt(
     upper = objective.upper_bounds(n_targets)
     theta = objective.pack(state)
     normal, gradient, cost = _gram(objective, theta, weights)
-    damping = _INITIAL_DAMPING
+    damping = initial_damping
     used = 0
     n_pos = 2 * n_targets
     converged = False
