@@ -163,6 +163,13 @@ def install_error_handlers(app: FastAPI) -> None:
 
     async def on_http(request: Request, exc: Exception) -> JSONResponse:
         assert isinstance(exc, StarletteHTTPException)
+        if exc.status_code == 400 and isinstance(exc.__cause__, UnicodeDecodeError):
+            # FastAPI answers a JSON body that is not UTF-8 text with a bare 400; broken
+            # JSON is a 422 naming the body, and so is this.
+            reason = exc.__cause__.reason
+            return await on_api_problem(
+                request, InvalidInput([("body", f"the body is not valid JSON: {reason}")])
+            )
         headers = dict(exc.headers or {})
         if exc.status_code == 405:
             headers["Allow"] = _allowed_methods(app, request.url.path)
