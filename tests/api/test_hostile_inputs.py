@@ -314,8 +314,10 @@ def test_64_mib_body_is_413(rooms: tuple[TestClient, str, str]) -> None:
         (b"", "application/json"),
         (b"[1, 2]", "application/json"),
         (b'"a string"', "application/json"),
+        (b"[" * 100_000, "application/json"),
+        (b'{"name": ' + b"9" * 5000 + b"}", "application/json"),
     ],
-    ids=["text", "broken-json", "not-utf8", "form", "empty", "array", "string"],
+    ids=["text", "broken-json", "not-utf8", "form", "empty", "array", "string", "deep", "long-int"],
 )
 @pytest.mark.parametrize("target", ["rooms", "localize"])
 def test_non_json_bodies_are_refused(
