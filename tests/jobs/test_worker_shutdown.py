@@ -6,6 +6,7 @@ import multiprocessing
 import threading
 import time
 from collections.abc import Callable
+from multiprocessing.process import BaseProcess
 
 from app.jobs import EmbeddedWorkers
 from app.jobs.build import build_and_store
@@ -25,9 +26,13 @@ def test_stop_ends_the_build_processes(
     room = registry.create_room(name="a", layout=small_layout())
     before = {child.pid for child in multiprocessing.active_children()}
     pool = workers(build=slow_build)
-    _wait_for(lambda: registry.get_job(job_id=room.job_id or "").status == "running", "running")
-    children = [c for c in multiprocessing.active_children() if c.pid not in before]
-    assert children, "the build runs in a child process"
+
+    def new_children() -> list[BaseProcess]:
+        return [c for c in multiprocessing.active_children() if c.pid not in before]
+
+    # The job is marked running when claimed, just before its build process starts.
+    _wait_for(lambda: bool(new_children()), "the build's child process")
+    children = new_children()
     pool.stop(timeout=1)
     assert not any(child.is_alive() for child in children)
     job = registry.get_job(job_id=room.job_id or "")
