@@ -25,11 +25,12 @@ from schemathesis.core.parameters import ParameterLocation
 from app.main import create_app
 
 from .conftest import ADMIN_KEY, TERMINAL_KEY, TestClient, make_settings, wait_for_room
+from .test_rooms import small_room
 
 ApiCase = schemathesis.Case[schemathesis.APIOperation[Any, Any, Any, Any]]
 SEED = 20261122
-# Examples per operation and generation mode; the budget that keeps the module near a minute.
-MAX_EXAMPLES = 25
+# Examples per operation and generation mode: about 35 s for the module on two cores.
+MAX_EXAMPLES = 100
 # Small limits so a generated room never starts a long build in the background.
 _LIMITS: dict[str, Any] = {"max_leds": 32, "max_grid_points": 2_500}
 _ROOM_PATH = "/v1/rooms/{room_id}"
@@ -83,23 +84,34 @@ admin_schema = _schema(key=ADMIN_KEY, modes=_BOTH, max_examples=MAX_EXAMPLES)
 terminal_schema = _schema(key=TERMINAL_KEY, modes=[GenerationMode.POSITIVE], max_examples=8)
 
 
-def _pin_room(case: ApiCase, room_id: str) -> None:
-    """Aim the case at the demo room, unless its path parameters were generated to be invalid.
+def _pin_room(case: ApiCase, room_id: str, scratch_id: str) -> None:
+    """Aim the case at a real room, unless its path parameters were generated to be invalid.
 
     Generated room ids (mostly unknown: 404) are kept for room deletion, for invalid path
-    data and for every third example, so unknown ids are fuzzed too.
+    data and for every third example, so unknown ids are fuzzed too. Replacements go to the
+    scratch room with `If-Match: *` (unless the headers were generated to be invalid), so
+    that they can succeed without touching the demo room's layout.
     """
     path = case.path_parameters
     if not path or "room_id" not in path:
         return
-    component = case.meta.components.get(ParameterLocation.PATH) if case.meta else None
-    if component is not None and component.mode is GenerationMode.NEGATIVE:
+    components = case.meta.components if case.meta else {}
+    if _negative(components.get(ParameterLocation.PATH)):
         return
     if case.method == "DELETE" and case.path == _ROOM_PATH:
         return
     if zlib.crc32(str(path["room_id"]).encode()) % 3 == 0:
         return
+    if case.method == "PUT":
+        path["room_id"] = scratch_id
+        if not _negative(components.get(ParameterLocation.HEADER)):
+            case.headers["If-Match"] = "*"
+        return
     path["room_id"] = room_id
+
+
+def _negative(component: Any) -> bool:
+    return component is not None and component.mode is GenerationMode.NEGATIVE
 
 
 def _send(client: TestClient, case: ApiCase) -> Any:
@@ -127,17 +139,30 @@ def _check(client: TestClient, case: ApiCase) -> None:
     case.validate_response(response)
 
 
+@pytest.fixture(scope="module")
+def scratch_room(fuzzed_app: tuple[TestClient, str]) -> str:
+    """A second room that fuzzed replacements may change (the demo room's layout stays)."""
+    client, _ = fuzzed_app
+    created = client.post("/v1/rooms", json=small_room(), headers={"X-API-Key": ADMIN_KEY})
+    room_id: str = created.json()["id"]
+    return room_id
+
+
 @admin_schema.parametrize()
-def test_admin_requests_conform(case: ApiCase, fuzzed_app: tuple[TestClient, str]) -> None:
+def test_admin_requests_conform(
+    case: ApiCase, fuzzed_app: tuple[TestClient, str], scratch_room: str
+) -> None:
     client, room_id = fuzzed_app
-    _pin_room(case, room_id)
+    _pin_room(case, room_id, scratch_room)
     _check(client, case)
 
 
 @terminal_schema.parametrize()
-def test_terminal_requests_conform(case: ApiCase, fuzzed_app: tuple[TestClient, str]) -> None:
+def test_terminal_requests_conform(
+    case: ApiCase, fuzzed_app: tuple[TestClient, str], scratch_room: str
+) -> None:
     client, room_id = fuzzed_app
-    _pin_room(case, room_id)
+    _pin_room(case, room_id, scratch_room)
     _check(client, case)
 
 
@@ -160,6 +185,28 @@ def test_every_accepted_layout_builds(fuzzed_app: tuple[TestClient, str]) -> Non
     assert len(rooms) > 1  # the fuzzing created rooms
     for room in rooms:
         wait_for_room(client, room["id"])  # fails on a `failed` build
+
+
+def test_the_fuzzing_reached_success_answers(fuzzed_app: tuple[TestClient, str]) -> None:
+    """Run after the fuzzing: it got past auth and validation, not only refusals."""
+    client, _ = fuzzed_app
+    metrics = client.app.state.metrics  # type: ignore[attr-defined]
+    answered = {
+        (sample.labels["method"], sample.labels["route"], sample.labels["status"])
+        for family in metrics.requests.collect()
+        for sample in family.samples
+        if sample.name.endswith("_total") and sample.value > 0
+    }
+    for method, route, status in [
+        ("POST", "/v1/rooms", "201"),
+        ("PUT", "/v1/rooms/{room_id}", "200"),
+        ("POST", "/v1/rooms/{room_id}/localize", "200"),
+        ("POST", "/v1/rooms/{room_id}/simulate", "200"),
+        ("GET", "/v1/rooms/{room_id}/fingerprints/{version}/{matrix}.npy", "200"),
+        ("POST", "/v1/rooms/{room_id}/localize", "422"),
+        ("POST", "/v1/rooms", "403"),
+    ]:
+        assert (method, route, status) in answered, (method, route, status)
 
 
 def test_demo_room_survives_the_fuzzing(fuzzed_app: tuple[TestClient, str]) -> None:
