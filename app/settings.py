@@ -28,11 +28,21 @@ class Settings(BaseSettings):
     embedded_workers: int = Field(default=1, ge=0, le=16)
     demo: bool = Field(default=True, description="seed the paper's room into an empty registry")
 
-    # Limits (security by default; the defaults admit a 10^6-point, 1024-LED hall).
-    max_body_bytes: int = Field(default=16 * 1024 * 1024, ge=1024)
-    max_leds: int = Field(default=4096, ge=1)
-    max_grid_points: int = Field(default=1_000_000, ge=1)
-    max_concurrent_builds_per_room: int = Field(default=1, ge=1)
+    # Limits (security by default; the defaults admit a 10^6-point, 4096-LED hall).
+    # See docs/reliability.md, "Hostile input and security".
+    max_body_bytes: int = Field(
+        default=16 * 1024 * 1024, ge=1024, description="larger request bodies answer 413"
+    )
+    max_leds: int = Field(default=4096, ge=1, description="LEDs per room layout (else 422)")
+    max_grid_points: int = Field(
+        default=1_000_000, ge=1, description="grid points per room layout (else 422)"
+    )
+    max_concurrent_builds_per_room: int = Field(
+        default=1,
+        ge=1,
+        description="fingerprint builds of one room that workers run at once; rebuild "
+        "requests beyond them coalesce into the room's one queued job",
+    )
 
     # Jobs.
     job_lease_seconds: float = Field(default=30.0, gt=0)

@@ -139,6 +139,23 @@ def _registry_status(exc: RegistryError) -> tuple[int, str]:
     return 500, "registry-error"
 
 
+def _unreadable_body(exc: StarletteHTTPException) -> str | None:
+    """Why a JSON body could not be parsed, when FastAPI's bare 400 hides it (else None).
+
+    Broken JSON is a 422 naming the body; so are JSON texts the parser gives up on.
+    """
+    cause = exc.__cause__
+    if exc.status_code != 400 or cause is None:
+        return None
+    if isinstance(cause, UnicodeDecodeError):
+        return f"the body is not valid JSON: not UTF-8 text ({cause.reason})"
+    if isinstance(cause, RecursionError):
+        return "the body is not valid JSON here: arrays or objects nested too deeply"
+    if isinstance(cause, ValueError):  # e.g. an integer of more than 4300 digits
+        return "the body is not valid JSON here: a number with too many digits"
+    return None
+
+
 def _allowed_methods(app: FastAPI, path: str) -> str:
     methods: set[str] = set()
     for template, operations in app.openapi().get("paths", {}).items():
@@ -165,6 +182,9 @@ def install_error_handlers(app: FastAPI) -> None:
 
     async def on_http(request: Request, exc: Exception) -> JSONResponse:
         assert isinstance(exc, StarletteHTTPException)
+        reason = _unreadable_body(exc)
+        if reason is not None:
+            return await on_api_problem(request, InvalidInput([("body", reason)]))
         headers = dict(exc.headers or {})
         if exc.status_code == 405:
             headers["Allow"] = _allowed_methods(app, request.url.path)

@@ -13,6 +13,7 @@ from app.schemas import Estimate, Localization, Measurement
 from app.vlp import measurements as vlp_measurements
 from app.vlp._typing import FloatArray
 from app.vlp.assignment import assign_terminals
+from app.vlp.errors import MeasurementError
 from app.vlp.measurements import Model
 from app.vlp.solvers import solver_names
 
@@ -110,7 +111,10 @@ def _measurement(request: _Request, n_leds: int) -> vlp_measurements.Measurement
     if errors:
         raise InvalidInput(errors)
     amplitudes = np.array([terminal.amplitudes for terminal in terminals], dtype=np.float64)
-    return vlp_measurements.measurement_from_amplitudes(amplitudes, request.model, n_leds)
+    try:
+        return vlp_measurements.measurement_from_amplitudes(amplitudes, request.model, n_leds)
+    except MeasurementError as exc:  # name the field the caller sent, not the aggregate
+        raise InvalidInput([("body.terminals", exc.message)]) from exc
 
 
 def _localize(request: _Request, cache: FingerprintCache, metrics: Metrics) -> Localization:

@@ -21,6 +21,7 @@ from collections.abc import Callable
 from concurrent.futures import Future, ProcessPoolExecutor
 from concurrent.futures import TimeoutError as FutureTimeout
 from concurrent.futures.process import BrokenProcessPool
+from multiprocessing.process import BaseProcess
 
 from app.registry import Registry
 from app.registry.errors import RegistryError
@@ -44,43 +45,67 @@ _log = logging.getLogger(__name__)
 BuildFunction = Callable[[BuildTask], StoredBuild]
 
 
+class _PoolClosed(RuntimeError):
+    """The pool was shut down: it starts no new build process."""
+
+
+# Serialises process start-ups across pools so each pool can tell which children are its own.
+_SPAWN_LOCK = threading.Lock()
+
+
 class _Pool:
-    """A process pool that is replaced when a child dies (``BrokenProcessPool``)."""
+    """A process pool that is replaced when a child dies (``BrokenProcessPool``).
+
+    Once shut down it refuses new builds (:class:`_PoolClosed`) instead of quietly starting
+    a new executor that nobody would ever stop.
+    """
 
     def __init__(self, size: int) -> None:
         self._size = size
         self._lock = threading.Lock()
         self._executor: ProcessPoolExecutor | None = None
+        self._closed = False
+        self._children: dict[int | None, BaseProcess] = {}
 
     def submit(self, build: BuildFunction, task: BuildTask) -> Future[StoredBuild]:
         with self._lock:
+            if self._closed:
+                raise _PoolClosed("the build pool is shut down")
             if self._executor is None:
                 self._executor = ProcessPoolExecutor(
                     max_workers=self._size,
                     mp_context=multiprocessing.get_context("spawn"),
                     initializer=init_build_process,
                 )
-            return self._executor.submit(build, task)
+            # ProcessPoolExecutor starts its children inside submit(); noting which children
+            # appeared lets shutdown() end them through public multiprocessing calls only.
+            with _SPAWN_LOCK:
+                before = {child.pid for child in multiprocessing.active_children()}
+                future = self._executor.submit(build, task)
+                for child in multiprocessing.active_children():
+                    if child.pid not in before:
+                        self._children[child.pid] = child
+            return future
 
     def discard_broken(self) -> None:
         with self._lock:
             if self._executor is not None:
                 self._executor.shutdown(wait=False, cancel_futures=True)
             self._executor = None
+            self._children.clear()  # a broken pool's children are dead or being ended
 
     def shutdown(self, timeout: float) -> None:
-        """Stop the pool; children still building after ``timeout`` s are terminated.
+        """Stop the pool for good; children still building after ``timeout`` s are terminated.
 
         Their jobs were handed back to the queue (or will be reclaimed when the lease ends).
-        ``ProcessPoolExecutor`` has no public way to end busy children before Python 3.14,
-        hence the look at its process table.
         """
         with self._lock:
+            self._closed = True
             executor, self._executor = self._executor, None
+            children, self._children = list(self._children.values()), {}
         if executor is None:
             return
         executor.shutdown(wait=False, cancel_futures=True)
-        children = list((getattr(executor, "_processes", None) or {}).values())
         deadline = time.monotonic() + timeout
         for child in children:
             child.join(max(deadline - time.monotonic(), 0.0))
@@ -126,6 +151,9 @@ class _WorkerLoop:
             if claimed is None:
                 self.stop.wait(self.settings.job_poll_seconds)
                 continue
+            if self.stop.is_set():  # stopped while claiming: not this worker's job any more
+                release_job(self.registry.engine, claimed=claimed)
+                return
             try:
                 self.run_one(claimed)
             except Exception:
@@ -160,8 +188,15 @@ class _WorkerLoop:
         )
         try:
             future = self._submit(task)
-        except (BrokenProcessPool, RuntimeError) as exc:
+        except BrokenProcessPool as exc:
             self._fail(claimed, f"could not start the build process: {exc}")
+            return
+        except RuntimeError as exc:
+            # The pool is shut down, or the interpreter is exiting ("cannot schedule new
+            # futures after shutdown"): not the job's fault, so hand it back uncounted.
+            _log.warning("job %s: handed back, no build process to run it: %s", claimed.job_id, exc)
+            release_job(self.registry.engine, claimed=claimed)
+            self.stop.wait(self.settings.job_poll_seconds)
             return
         owned = True
         while True:

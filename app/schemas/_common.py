@@ -6,9 +6,15 @@ from typing import Annotated
 
 from pydantic import BaseModel, ConfigDict, Field
 
-__all__ = ["FiniteFloat", "RequestModel", "ResponseModel"]
+__all__ = ["MAX_VERSION", "FiniteFloat", "RequestInt", "RequestModel", "ResponseModel"]
 
-FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
+# Strict: a JSON number only (an integer is fine), never `true` or `"1.5"`, which lax
+# parsing would turn into 1.0 and 1.5 behind the caller's back; NaN and Infinity refused.
+FiniteFloat = Annotated[float, Field(allow_inf_nan=False, strict=True)]
+# Strict: a JSON integer only, never `true`, `2.0` or `"2"`.
+RequestInt = Annotated[int, Field(strict=True)]
+# Versions are 64-bit integers in the registry; larger numbers cannot name one.
+MAX_VERSION = 10**18 - 1
 
 
 class RequestModel(BaseModel):

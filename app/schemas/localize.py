@@ -11,7 +11,7 @@ from app.vlp.presets import paper_layout
 from app.vlp.simulation import true_amplitudes
 from app.vlp.solvers.base import MAX_TARGETS
 
-from ._common import FiniteFloat, RequestModel, ResponseModel
+from ._common import MAX_VERSION, FiniteFloat, RequestInt, RequestModel, ResponseModel
 
 __all__ = [
     "EXAMPLE_POSITIONS_M",
@@ -106,7 +106,7 @@ class Measurement(RequestModel):
         default=None, min_length=1, description="M x M matrix or its M(M+1)/2 upper triangle"
     )
     terminals: list[TerminalAmplitudes] | None = Field(default=None, min_length=1, max_length=4096)
-    targets: int | None = Field(
+    targets: RequestInt | None = Field(
         default=None, ge=1, le=MAX_TARGETS, description="K; estimated by the service when left out"
     )
     solver: SolverName = Field(
@@ -114,8 +114,8 @@ class Measurement(RequestModel):
         description="`gridless` (default: best accuracy, off-grid positions), `nnls`, "
         "`omp`, `l1` (the seed paper's algorithms)",
     )
-    fingerprint_version: int | None = Field(
-        default=None, ge=1, description="default: the current version"
+    fingerprint_version: RequestInt | None = Field(
+        default=None, ge=1, le=MAX_VERSION, description="default: the current version"
     )
 
 

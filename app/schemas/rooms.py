@@ -32,6 +32,16 @@ __all__ = [
 
 # Sizes above this (metres) are certainly typos; the grid-point limit applies anyway.
 _MAX_EXTENT_M = 10_000.0
+# Physical ranges wide enough for any real fixture, narrow enough that the channel model
+# stays finite: below 0.1 degrees a field of view or beam has a sine or cosine that rounds
+# to 0 or 1 (infinite gains or Lambertian orders); areas, gains and amplitudes are kept
+# within 18 decades of each other so that (h x)^2 neither overflows nor underflows.
+_MIN_ANGLE_DEG = 0.1
+_MIN_AREA_M2 = 1e-12
+_MIN_FILTER_GAIN, _MAX_FILTER_GAIN = 1e-6, 100.0
+# A room (or an LED height) under a centimetre is a typo; a fine grid meets the point limit.
+_MIN_EXTENT_M = 0.01
+_MIN_AMPLITUDE, _MAX_AMPLITUDE = 1e-9, 1e9
 
 
 def paper_room_example() -> dict[str, Any]:
@@ -58,9 +68,9 @@ def paper_room_example() -> dict[str, Any]:
 class RoomBox(RequestModel):
     """The room box: `x` in [0, length], `y` in [0, width], `z` in [0, height], metres."""
 
-    length: FiniteFloat = Field(gt=0, le=_MAX_EXTENT_M, description="extent along x, m")
-    width: FiniteFloat = Field(gt=0, le=_MAX_EXTENT_M, description="extent along y, m")
-    height: FiniteFloat = Field(gt=0, le=_MAX_EXTENT_M, description="ceiling height, m")
+    length: FiniteFloat = Field(ge=_MIN_EXTENT_M, le=_MAX_EXTENT_M, description="extent along x, m")
+    width: FiniteFloat = Field(ge=_MIN_EXTENT_M, le=_MAX_EXTENT_M, description="extent along y, m")
+    height: FiniteFloat = Field(ge=_MIN_EXTENT_M, le=_MAX_EXTENT_M, description="ceiling height, m")
 
 
 class GridSpec(RequestModel):
@@ -79,13 +89,19 @@ class ReceiverSpec(RequestModel):
     """The upward-facing photodetector of every terminal."""
 
     area: FiniteFloat = Field(
-        default=DEFAULT_RECEIVER_AREA_M2, gt=0, le=1.0, description="detector area, m^2"
+        default=DEFAULT_RECEIVER_AREA_M2, ge=_MIN_AREA_M2, le=1.0, description="detector area, m^2"
     )
     fov_deg: FiniteFloat = Field(
-        default=DEFAULT_FOV_DEG, gt=0, le=90, description="field of view (half angle), degrees"
+        default=DEFAULT_FOV_DEG,
+        ge=_MIN_ANGLE_DEG,
+        le=90,
+        description="field of view (half angle), degrees",
     )
     filter_gain: FiniteFloat = Field(
-        default=DEFAULT_FILTER_GAIN, gt=0, description="optical filter gain"
+        default=DEFAULT_FILTER_GAIN,
+        ge=_MIN_FILTER_GAIN,
+        le=_MAX_FILTER_GAIN,
+        description="optical filter gain",
     )
     refractive_index: FiniteFloat = Field(
         default=DEFAULT_REFRACTIVE_INDEX, ge=1, le=10, description="concentrator refractive index n"
@@ -99,18 +115,21 @@ class LedSpec(RequestModel):
     y: FiniteFloat = Field(ge=0, le=_MAX_EXTENT_M, description="m, in [0, room.width]")
     z: FiniteFloat | None = Field(
         default=None,
-        gt=0,
+        ge=_MIN_EXTENT_M,
         le=_MAX_EXTENT_M,
         description="m, above the receivers; default room.height",
     )
     half_power_angle_deg: FiniteFloat = Field(
         default=DEFAULT_HALF_POWER_ANGLE_DEG,
-        gt=0,
+        ge=_MIN_ANGLE_DEG,
         lt=90,
         description="semi-angle at half power, degrees",
     )
     pilot_amplitude: FiniteFloat = Field(
-        default=DEFAULT_PILOT_AMPLITUDE, gt=0, description="pilot amplitude x_i"
+        default=DEFAULT_PILOT_AMPLITUDE,
+        ge=_MIN_AMPLITUDE,
+        le=_MAX_AMPLITUDE,
+        description="pilot amplitude x_i",
     )
 
 

@@ -8,7 +8,7 @@ from pydantic import ConfigDict, Field
 
 from app.vlp.solvers.base import MAX_TARGETS
 
-from ._common import FiniteFloat, RequestModel, ResponseModel
+from ._common import FiniteFloat, RequestInt, RequestModel, ResponseModel
 from .localize import ModelName, SolverName
 
 __all__ = ["Simulation", "SimulationRequest", "TruthTarget"]
@@ -38,7 +38,7 @@ class SimulationRequest(RequestModel):
         }
     )
 
-    targets: int | None = Field(
+    targets: RequestInt | None = Field(
         default=None, ge=1, le=MAX_TARGETS, description="K random terminals (one per grid cell)"
     )
     positions: list[Point] | None = Field(
@@ -63,7 +63,9 @@ class SimulationRequest(RequestModel):
         "amplitudes (`terminals`); the power model sends `power` unless `terminals`",
     )
     solver: SolverName = Field(default="gridless", description="copied into the measurement")
-    seed: int | None = Field(default=None, ge=0, description="for a reproducible simulation")
+    seed: RequestInt | None = Field(
+        default=None, ge=0, le=2**64 - 1, description="for a reproducible simulation"
+    )
 
 
 class TruthTarget(ResponseModel):

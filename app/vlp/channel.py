@@ -61,9 +61,10 @@ def concentrator_gain(refractive_index: float, fov_deg: float) -> float:
     >>> round(concentrator_gain(1.5, 60.0), 6)
     3.0
     """
-    if not (0 < fov_deg <= 90):
+    sine = math.sin(math.radians(fov_deg)) if 0 < fov_deg <= 90 else 0.0
+    if sine == 0.0:  # also a positive fov_deg so small that its sine underflows
         raise GeometryError(f"fov_deg must be in (0, 90], got {fov_deg!r}", field="fov_deg")
-    return float(refractive_index**2 / math.sin(math.radians(fov_deg)) ** 2)
+    return float(refractive_index**2 / sine**2)
 
 
 def led_constants(layout: Layout) -> tuple[FloatArray, FloatArray]:

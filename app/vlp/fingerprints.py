@@ -207,6 +207,8 @@ def build_fingerprint(
 
 
 def _cell_range(centre: float, radius: float, step: float, count: int) -> IntArray:
+    if not math.isfinite(radius):  # a 90-degree field of view sees the whole floor
+        return np.arange(count, dtype=np.int64)
     low = max(0, math.floor((centre - radius) / step))
     high = min(count, math.ceil((centre + radius) / step) + 1)
     return np.arange(low, high, dtype=np.int64)

@@ -19,6 +19,9 @@ from ._typing import FloatArray
 from .errors import MeasurementError
 
 __all__ = [
+    "MAX_AMPLITUDE",
+    "MAX_MAGNITUDE",
+    "MIN_MAGNITUDE",
     "MODELS",
     "Measurement",
     "Model",
@@ -37,6 +40,12 @@ Model = Literal["power", "correlation"]
 MODELS: tuple[Model, ...] = get_args(Model)
 # Relative asymmetry tolerated in a full correlation matrix before it is refused.
 _SYMMETRY_RTOL = 1e-6
+# Measured values (powers, correlations) are kept within 1e-100..1e100 in magnitude, so
+# that the solvers' squares and products stay finite; real pilots are many decades inside.
+MAX_MAGNITUDE = 1e100
+MIN_MAGNITUDE = 1e-100
+# Amplitudes are squared and summed over up to a few thousand terminals.
+MAX_AMPLITUDE = 1e48
 
 
 @dataclass(frozen=True)
@@ -95,25 +104,37 @@ def noise_atom(model: Model, n_leds: int) -> FloatArray:
     return vech(np.eye(n_leds))
 
 
-def _as_finite(values: object, field: str) -> FloatArray:
+def _as_finite(values: object, field: str, limit: float = MAX_MAGNITUDE) -> FloatArray:
     try:
         array = np.asarray(values, dtype=np.float64)
     except (TypeError, ValueError) as exc:
         raise MeasurementError(f"{field} must contain only numbers", field=field) from exc
     if not np.all(np.isfinite(array)):
         raise MeasurementError(f"{field} contains NaN or infinite values", field=field)
+    largest = float(np.max(np.abs(array))) if array.size else 0.0
+    if largest > limit:
+        raise MeasurementError(
+            f"{field} values must be at most {limit:.0e} in magnitude, got {largest:.3g}",
+            field=field,
+        )
+    if 0.0 < largest < MIN_MAGNITUDE:
+        raise MeasurementError(
+            f"{field} is below {MIN_MAGNITUDE:.0e} everywhere (largest {largest:.3g}): "
+            "no pilot was received",
+            field=field,
+        )
     return array
 
 
 def power_from_amplitudes(amplitudes: FloatArray) -> FloatArray:
     """``p_i = sum_k a_ik^2`` from amplitudes of shape (K, M); returns shape (M,)."""
-    amps = np.atleast_2d(_as_finite(amplitudes, "amplitudes"))
+    amps = np.atleast_2d(_as_finite(amplitudes, "amplitudes", MAX_AMPLITUDE))
     return np.asarray(np.einsum("km,km->m", amps, amps))
 
 
 def correlation_from_amplitudes(amplitudes: FloatArray) -> FloatArray:
     """``R = sum_k a_k a_k^T`` from amplitudes of shape (K, M); returns shape (M, M)."""
-    amps = np.atleast_2d(_as_finite(amplitudes, "amplitudes"))
+    amps = np.atleast_2d(_as_finite(amplitudes, "amplitudes", MAX_AMPLITUDE))
     return np.asarray(amps.T @ amps)
 
 

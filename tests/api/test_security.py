@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import stat
 from pathlib import Path
 from typing import Any
@@ -14,43 +15,71 @@ from app.main import create_app
 from .conftest import ADMIN, TERMINAL, TestClient, make_settings
 from .test_rooms import assert_problem, small_room
 
-# (method, path template, body) of every endpoint that needs a key.
-_ADMIN_ONLY = [
-    ("POST", "/v1/rooms", "layout"),
-    ("PUT", "/v1/rooms/{room_id}", "layout"),
-    ("DELETE", "/v1/rooms/{room_id}", None),
-    ("POST", "/v1/rooms/{room_id}/fingerprints", None),
-]
-_ANY_ROLE = [
-    ("GET", "/v1/rooms", None),
-    ("GET", "/v1/rooms/{room_id}", None),
-    ("GET", "/v1/rooms/{room_id}/fingerprints", None),
-    ("GET", "/v1/rooms/{room_id}/fingerprints/current", None),
-    ("GET", "/v1/rooms/{room_id}/fingerprints/current/H.npy", None),
-    ("GET", "/v1/jobs/{job_id}", None),
-    ("POST", "/v1/rooms/{room_id}/localize", "measurement"),
-    ("POST", "/v1/rooms/{room_id}/simulate", "simulation"),
-]
-_BODIES: dict[str, dict[str, Any]] = {
-    "layout": small_room(),
-    "measurement": {"power": [1.0, 2.0]},
-    "simulation": {"targets": 1},
-}
+# Operations anyone may call without a key (API.md); every other operation must need one.
+_OPEN = {("GET", "/healthz"), ("GET", "/readyz"), ("GET", "/metrics")}
+_UNKNOWN_KEY = "vlp-unknown-key-5f1c0f7a9d"
+# What may not appear in any answer: keys, stack traces, SQL, driver names.
+_LEAKS = ("Traceback", 'File "', "SELECT ", "INSERT ", "UPDATE ", "sqlalchemy", "psycopg")
 
 
-def _call(
+def _operations() -> list[tuple[str, str, dict[str, Any]]]:
+    """(method, path, operation) of every operation the app documents, found at collection."""
+    document = create_app(make_settings(Path("unused"))).openapi()
+    return [
+        (method.upper(), path, operation)
+        for path, operations in document["paths"].items()
+        for method, operation in operations.items()
+    ]
+
+
+_OPERATIONS = _operations()
+
+
+def _role_needed(method: str, path: str, operation: dict[str, Any]) -> str:
+    """`open`, `any` or `admin`, read from the document (the matrix then checks it).
+
+    An operation that declares no key must be one of the known open ones: a new route that
+    forgot its key dependency fails here. A documented 403 means admin only.
+    """
+    if not operation.get("security"):
+        assert (method, path) in _OPEN, f"{method} {path} needs no key and is not known open"
+        return "open"
+    assert (method, path) not in _OPEN, f"{method} {path} should be open"
+    return "admin" if "403" in operation["responses"] else "any"
+
+
+def _path_value(name: str, parameter: dict[str, Any], room: dict[str, Any]) -> str:
+    known = {"room_id": room["id"], "job_id": room["fingerprint"]["job_id"]}
+    if name in known:
+        return str(known[name])
+    schema = parameter.get("schema", {})
+    choices = schema.get("enum") or parameter.get("examples") or schema.get("examples")
+    if isinstance(choices, dict):  # OpenAPI `examples`: {name: {"value": ...}}
+        return str(next(iter(choices.values()))["value"])
+    return str(choices[0]) if choices else "unknown-id"
+
+
+def _request(
     client: TestClient,
     method: str,
-    template: str,
-    body: str | None,
-    headers: dict[str, str],
+    path: str,
+    operation: dict[str, Any],
     room: dict[str, Any],
+    key: str | None,
 ) -> Any:
-    path = template.format(room_id=room["id"], job_id=room["fingerprint"]["job_id"])
-    extra = {"If-Match": '"stale"'} if method == "PUT" else {}
-    return client.request(
-        method, path, json=_BODIES[body] if body else None, headers={**headers, **extra}
-    )
+    parameters = {p["name"]: p for p in operation.get("parameters", []) if p["in"] == "path"}
+    url = path.format(**{name: _path_value(name, p, room) for name, p in parameters.items()})
+    headers = {"X-API-Key": key} if key is not None else {}
+    if method == "PUT":
+        headers["If-Match"] = '"stale"'
+    body: dict[str, Any] | None = {} if "requestBody" in operation else None
+    return client.request(method, url, json=body, headers=headers)
+
+
+def _assert_no_leak(response: Any) -> None:
+    text = response.text + " ".join(f"{k}: {v}" for k, v in response.headers.items())
+    for secret in (ADMIN["X-API-Key"], TERMINAL["X-API-Key"], _UNKNOWN_KEY, *_LEAKS):
+        assert secret not in text, (secret, response.request.url, text[:500])
 
 
 @pytest.fixture
@@ -59,70 +88,81 @@ def room(client: TestClient) -> dict[str, Any]:
     return created
 
 
+def test_every_documented_operation_is_in_the_matrix() -> None:
+    pairs = {(method, path) for method, path, _ in _OPERATIONS}
+    assert pairs >= _OPEN
+    assert {("POST", "/v1/rooms"), ("POST", "/v1/rooms/{room_id}/localize")} <= pairs
+
+
+def test_a_route_that_forgot_its_key_is_not_classified() -> None:
+    app = create_app(make_settings(Path("unused")))
+
+    @app.get("/v1/forgotten")
+    def forgotten() -> dict[str, str]:
+        return {"secret": "data"}
+
+    operation = app.openapi()["paths"]["/v1/forgotten"]["get"]
+    with pytest.raises(AssertionError, match="needs no key and is not known open"):
+        _role_needed("GET", "/v1/forgotten", operation)
+
+
 @pytest.mark.parametrize(
-    "method, template, body",
-    _ADMIN_ONLY + _ANY_ROLE,
-    ids=lambda value: value if isinstance(value, str) else None,
+    "method, path, operation", _OPERATIONS, ids=[f"{m} {p}" for m, p, _ in _OPERATIONS]
 )
-@pytest.mark.parametrize(
-    "headers",
-    [{}, {"X-API-Key": "wrong"}, {"X-API-Key": ""}],
-    ids=["no-key", "unknown-key", "empty-key"],
-)
-def test_missing_or_unknown_key_is_401(
+def test_role_matrix(
     client: TestClient,
     room: dict[str, Any],
+    caplog: pytest.LogCaptureFixture,
     method: str,
-    template: str,
-    body: str | None,
-    headers: dict[str, str],
+    path: str,
+    operation: dict[str, Any],
 ) -> None:
-    assert_problem(_call(client, method, template, body, headers, room), 401)
+    """Every operation x (no key, unknown key, terminal, admin): 401, 401, 403 or through.
 
-
-@pytest.mark.parametrize(
-    "method, template, body",
-    _ADMIN_ONLY,
-    ids=lambda value: value if isinstance(value, str) else None,
-)
-def test_terminal_may_not_write(
-    client: TestClient, room: dict[str, Any], method: str, template: str, body: str | None
-) -> None:
-    assert_problem(_call(client, method, template, body, TERMINAL, room), 403)
-    assert client.get(f"/v1/rooms/{room['id']}", headers=ADMIN).json() == room
-
-
-@pytest.mark.parametrize(
-    "method, template, body", _ANY_ROLE, ids=lambda value: value if isinstance(value, str) else None
-)
-@pytest.mark.parametrize("headers", [ADMIN, TERMINAL], ids=["admin", "terminal"])
-def test_both_roles_pass_auth_on_read_and_localize(
-    client: TestClient,
-    room: dict[str, Any],
-    method: str,
-    template: str,
-    body: str | None,
-    headers: dict[str, str],
-) -> None:
-    response = _call(client, method, template, body, headers, room)
-    # Past auth: 200, or 409 because this app builds no fingerprints.
-    assert response.status_code in (200, 409), response.text
-    if response.status_code == 409:
-        assert "fingerprint" in template or method == "POST"
+    The admin goes last: its request may change the room (a DELETE really deletes).
+    """
+    needed = _role_needed(method, path, operation)
+    answers: dict[str, Any] = {}
+    with caplog.at_level(logging.DEBUG):
+        for name, key in (
+            ("no key", None),
+            ("empty key", ""),
+            ("unknown key", _UNKNOWN_KEY),
+            ("terminal", TERMINAL["X-API-Key"]),
+        ):
+            answers[name] = _request(client, method, path, operation, room, key)
+        if needed != "open":
+            after_terminal = client.get(f"/v1/rooms/{room['id']}", headers=ADMIN).json()
+        answers["admin"] = _request(client, method, path, operation, room, ADMIN["X-API-Key"])
+    for response in answers.values():
+        _assert_no_leak(response)
+        assert response.status_code < 500, response.text
+    # Keys are never logged (only the first-start key pair is, once, at creation).
+    for key in (ADMIN["X-API-Key"], TERMINAL["X-API-Key"], _UNKNOWN_KEY):
+        assert key not in caplog.text
+    if needed == "open":
+        assert all(response.status_code == 200 for response in answers.values()), answers
+        return
+    for name in ("no key", "empty key", "unknown key"):
+        problem = assert_problem(answers[name], 401)
+        assert "API key" in problem["detail"], problem
+        assert answers[name].headers["www-authenticate"] == "X-API-Key"
+    if needed == "admin":
+        assert_problem(answers["terminal"], 403)
+        assert after_terminal == room  # the refused terminal changed nothing
+    else:
+        assert answers["terminal"].status_code not in (401, 403), answers["terminal"].text
+    assert answers["admin"].status_code not in (401, 403), answers["admin"].text
 
 
 def test_admin_may_write(client: TestClient, room: dict[str, Any]) -> None:
-    assert (
-        _call(client, "POST", "/v1/rooms/{room_id}/fingerprints", None, ADMIN, room).status_code
-        == 202
-    )
+    path = f"/v1/rooms/{room['id']}"
+    assert client.post(f"{path}/fingerprints", headers=ADMIN).status_code == 202
     put = client.put(
-        f"/v1/rooms/{room['id']}",
-        json=small_room("New"),
-        headers={**ADMIN, "If-Match": f'"{room["id"]}-1"'},
+        path, json=small_room("New"), headers={**ADMIN, "If-Match": f'"{room["id"]}-1"'}
     )
     assert put.status_code == 200
-    assert client.delete(f"/v1/rooms/{room['id']}", headers=ADMIN).status_code == 204
+    assert client.delete(path, headers=ADMIN).status_code == 204
 
 
 @pytest.mark.parametrize(

@@ -11,9 +11,12 @@ The web layer caches solver objects per (room, fingerprint version, model, solve
 
 from __future__ import annotations
 
+import math
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from typing import ClassVar
+
+import numpy as np
 
 from .._typing import FloatArray, IntArray
 from ..errors import MeasurementError, SolverError, UnknownSolverError
@@ -120,7 +123,19 @@ class Solver(ABC):
                 raise SolverError(
                     f"targets must be between 1 and {limit}, got {n_targets}", field="targets"
                 )
-        return self._solve(measurement, n_targets)
+        solution = self._solve(measurement, n_targets)
+        numbers = (solution.positions, solution.weights, solution.noise_power)
+        if not all(np.all(np.isfinite(values)) for values in numbers) or not math.isfinite(
+            solution.residual_norm
+        ):
+            # An answer of NaN or infinity is no answer; the measurement's scale is far
+            # outside what this room's fingerprint can produce.
+            raise SolverError(
+                f"the measurement (largest value {np.max(np.abs(measurement.values)):.3g}) "
+                "does not fit this room's fingerprint: the fit is not finite",
+                field=measurement.model,
+            )
+        return solution
 
     @abstractmethod
     def _solve(self, measurement: Measurement, n_targets: int | None) -> Solution:
