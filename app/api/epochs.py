@@ -17,11 +17,10 @@ from app.registry.epochs import EpochRecord, EpochSettings
 from app.schemas import Epoch, EpochCreate, EpochMeasurement, Localization
 from app.schemas.epochs import epoch_create_examples, epoch_measurement_examples
 
-from .deps import AnyRole, CacheDep, RegistryDep, RoomId, SettingsDep
+from .deps import AnyRole, RegistryDep, RoomId, SettingsDep
 from .epoch_settler import EpochSettler
 from .errors import InvalidInput, problem_responses
 from .localize import require_installed
-from .masking import drop_masked_amplitudes
 
 __all__ = ["epoch_public", "router"]
 
@@ -127,24 +126,18 @@ def post_epoch_measurement(
     epoch_id: EpochId,
     body: Annotated[EpochMeasurement, Body(openapi_examples=epoch_measurement_examples())],
     registry: RegistryDep,
-    cache: CacheDep,
     _role: AnyRole,
 ) -> Epoch:
-    """Add (or replace) this terminal's amplitudes, one per LED of the epoch's fingerprint.
+    """Add (or replace) this terminal's amplitudes, one per LED of the room (the LEDs a
+    calibration masked are dropped) or of the epoch's fingerprint.
 
     409 once the window has closed or the epoch has its maximum of terminals.
     """
-    # A calibration may have masked LEDs: terminals still send one amplitude per room LED.
-    epoch = registry.get_epoch(room_id=room_id, epoch_id=epoch_id)
-    masked = cache.masked_leds(room_id, epoch.settings.fingerprint_version)
-    amplitudes = drop_masked_amplitudes(
-        body.amplitudes, masked, epoch.settings.leds, "body.amplitudes"
-    )
     record = registry.post_epoch_measurement(
         room_id=room_id,
         epoch_id=epoch_id,
         terminal_id=body.terminal_id,
-        amplitudes=amplitudes,
+        amplitudes=body.amplitudes,
     )
     return epoch_public(record)
 

@@ -14,7 +14,7 @@ from app.schemas import Measurement, TerminalAmplitudes
 
 from .errors import InvalidInput
 
-__all__ = ["drop_masked_amplitudes", "drop_masked_leds"]
+__all__ = ["drop_masked_leds"]
 
 
 def _kept(values: Sequence[float], keep: Sequence[int]) -> list[float]:
@@ -93,25 +93,3 @@ def _correlation(
     kept = set(keep)
     pairs = [(i, j) for i in range(n_room) for j in range(i, n_room)]
     return [value for (i, j), value in zip(pairs, flat, strict=True) if i in kept and j in kept]
-
-
-def drop_masked_amplitudes(
-    amplitudes: list[float], masked_leds: Sequence[int], n_fingerprint_leds: int, field: str
-) -> list[float]:
-    """One terminal's amplitudes without the masked LEDs' entries when it has one per room
-    LED; amplitudes already over the fingerprint's LEDs pass unchanged.
-
-    Raises
-    ------
-    InvalidInput
-        Naming ``field`` when the length fits neither the room nor the fingerprint.
-    """
-    if not masked_leds:
-        return amplitudes
-    masked = set(masked_leds)
-    n_room = n_fingerprint_leds + len(masked)
-    if len(amplitudes) == n_room:
-        return _kept(amplitudes, [i for i in range(n_room) if i not in masked])
-    if len(amplitudes) != n_fingerprint_leds:
-        raise _size_error(field, f"{n_room} amplitudes", n_room, n_fingerprint_leds)
-    return amplitudes

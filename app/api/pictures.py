@@ -18,6 +18,7 @@ from app.pictures import localization_png, room_map_png
 from app.registry import Registry
 from app.registry.errors import FingerprintNotReady
 from app.schemas import LocalizationPlot
+from app.schemas._common import MAX_VERSION
 from app.vlp.layout import Layout, layout_from_mapping
 
 from .deps import AnyRole, CacheDep, PicturesDep, RegistryDep, RoomId
@@ -90,7 +91,8 @@ async def room_map(
         ),
     ] = "coverage",
     fingerprint_version: Annotated[
-        int | None, Query(ge=1, description="whose layout to draw; default: the current one")
+        int | None,
+        Query(ge=1, le=MAX_VERSION, description="whose layout to draw; default: the current one"),
     ] = None,
     snr_db: Annotated[float, Query(ge=-20, le=100, description="SNR of the `crlb` map, dB")] = 30.0,
     width_px: Annotated[int, Query(ge=200, le=4000, description="width, pixels")] = 800,

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import io
 import math
+import warnings
 
 import numpy as np
 from matplotlib.axes import Axes
@@ -64,7 +65,13 @@ def png_bytes(figure: Figure) -> bytes:
     """Render a figure to PNG bytes (Agg), without a timestamp or software tag."""
     FigureCanvasAgg(figure)
     buffer = io.BytesIO()
-    figure.savefig(buffer, format="png", dpi=DPI, metadata={"Software": None})
+    with warnings.catch_warnings():
+        # A title or label with a character the font lacks is drawn with a box; the warning
+        # says so and must not fail the picture.
+        warnings.filterwarnings(
+            "ignore", message=r"Glyph .* missing from font", category=UserWarning
+        )
+        figure.savefig(buffer, format="png", dpi=DPI, metadata={"Software": None})
     return buffer.getvalue()
 
 

@@ -28,7 +28,7 @@ from sqlalchemy import Connection, Engine, and_, delete, func, insert, or_, sele
 from app.vlp.errors import MeasurementError
 
 from ._db import translate_errors, write_transaction
-from ._schema import epoch_measurements, epochs
+from ._schema import epoch_measurements, epochs, fingerprints
 from .errors import EpochClosed, EpochFull, EpochNotFound
 
 __all__ = [
@@ -208,14 +208,38 @@ def post_epoch_measurement(
         reason = _closed_reason(row, now)
         if reason is not None:
             raise EpochClosed(reason)
-        if len(amplitudes) != row.leds:
-            raise MeasurementError(
-                f"expected {row.leds} amplitudes (one per LED of fingerprint version "
-                f"{row.fingerprint_version}), got {len(amplitudes)}",
-                field="amplitudes",
-            )
-        _upsert(conn, row, terminal_id, [float(a) for a in amplitudes], now)
+        kept = _fingerprint_amplitudes(conn, row, amplitudes)
+        _upsert(conn, row, terminal_id, kept, now)
         return _read(conn, room_id=room_id, epoch_id=epoch_id)
+
+
+def _fingerprint_amplitudes(
+    conn: Connection, epoch: Any, amplitudes: Sequence[float]
+) -> list[float]:
+    """One amplitude per LED of the epoch's fingerprint. A calibration may have masked LEDs
+    (dropped from the fingerprint): terminals still send one per room LED, and the masked
+    ones are dropped here, as localize does."""
+    if len(amplitudes) == epoch.leds:
+        return [float(a) for a in amplitudes]
+    masked = (
+        conn.execute(
+            select(fingerprints.c.masked_leds).where(
+                fingerprints.c.room_id == epoch.room_id,
+                fingerprints.c.version == epoch.fingerprint_version,
+            )
+        ).scalar_one_or_none()
+        or []
+    )
+    n_room = epoch.leds + len(masked)
+    if masked and len(amplitudes) == n_room:
+        dropped = set(masked)
+        return [float(a) for i, a in enumerate(amplitudes) if i not in dropped]
+    expected = f"{epoch.leds}" if not masked else f"{n_room} (one per room LED) or {epoch.leds}"
+    raise MeasurementError(
+        f"expected {expected} amplitudes (fingerprint version {epoch.fingerprint_version} "
+        f"has {epoch.leds} LEDs), got {len(amplitudes)}",
+        field="amplitudes",
+    )
 
 
 def _upsert(

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import replace
 from datetime import datetime
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 import numpy as np
 from pydantic import ConfigDict, Field
@@ -12,7 +12,10 @@ from pydantic import ConfigDict, Field
 from app.vlp.calibration import simulate_survey
 from app.vlp.presets import paper_layout
 
-from ._common import FiniteFloat, RequestModel, ResponseModel
+from ._common import FiniteFloat, RequestInt, RequestModel, ResponseModel
+
+# No layout has more LEDs than this (the schema's own cap; the service's limit is lower).
+MAX_LED_INDEX = 1_000_000
 
 __all__ = [
     "MAX_SURVEY_ROWS",
@@ -63,7 +66,7 @@ class SurveyRow(RequestModel):
 
     x: FiniteFloat = Field(ge=0, description="m, on the receivers' plane")
     y: FiniteFloat = Field(ge=0, description="m")
-    led: int = Field(ge=0, description="LED index (0-based, layout order)")
+    led: RequestInt = Field(ge=0, le=MAX_LED_INDEX, description="LED index (0-based, layout order)")
     amplitude: FiniteFloat = Field(description="received pilot amplitude a = h x (+ noise)")
 
 
@@ -86,18 +89,20 @@ class CalibrationCreate(RequestModel):
     survey: list[SurveyRow] = Field(
         default_factory=list, max_length=MAX_SURVEY_ROWS, description="measured amplitudes"
     )
-    masked_leds: list[int] = Field(
+    masked_leds: list[Annotated[RequestInt, Field(ge=0, le=MAX_LED_INDEX)]] = Field(
         default_factory=list, max_length=4096, description="LED indices to drop (the full mask)"
     )
-    mask_dead_leds: bool = Field(default=True, description="also mask LEDs the fit finds dead")
-    dimmed_below: float = Field(
+    mask_dead_leds: bool = Field(
+        default=True, strict=True, description="also mask LEDs the fit finds dead"
+    )
+    dimmed_below: FiniteFloat = Field(
         default=0.75,
         ge=0,
         le=1,
         description="relative amplitude below which an LED is dimmed (0.75: a quarter of its "
         "light is gone; LEDs this far below the others also stay out of the receiver gain)",
     )
-    dead_below: float = Field(
+    dead_below: FiniteFloat = Field(
         default=0.1, ge=0, le=1, description="relative amplitude below which an LED is dead"
     )
 

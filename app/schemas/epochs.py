@@ -9,7 +9,7 @@ from pydantic import ConfigDict, Field
 
 from app.vlp.solvers.base import MAX_TARGETS
 
-from ._common import FiniteFloat, RequestModel, ResponseModel
+from ._common import MAX_VERSION, FiniteFloat, RequestInt, RequestModel, ResponseModel
 from .localize import TERMINAL_ID_PATTERN, Localization, ModelName, SolverName, terminals_example
 
 __all__ = [
@@ -74,27 +74,27 @@ class EpochCreate(RequestModel):
     )
 
     model: ModelName = Field(default="correlation", description="how the posts are aggregated")
-    targets: int | None = Field(
+    targets: RequestInt | None = Field(
         default=None,
         ge=1,
         le=MAX_TARGETS,
         description="K; default: the number of terminals that posted",
     )
     solver: SolverName = Field(default="gridless", description="as for localize")
-    min_terminals: int = Field(
+    min_terminals: RequestInt = Field(
         default=2,
         ge=1,
         le=MAX_TARGETS,
         description="fewer terminals than this when the window closes: the epoch expires",
     )
-    window_s: float = Field(
+    window_s: FiniteFloat = Field(
         default=2.0,
         gt=0,
         le=MAX_WINDOW_S,
         description=f"seconds from creation until the window closes (at most {MAX_WINDOW_S:g})",
     )
-    fingerprint_version: int | None = Field(
-        default=None, ge=1, description="default: the room's current version"
+    fingerprint_version: RequestInt | None = Field(
+        default=None, ge=1, le=MAX_VERSION, description="default: the room's current version"
     )
 
 

@@ -4,9 +4,13 @@ from __future__ import annotations
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from ._common import FiniteFloat, RequestModel
+from ._common import MAX_VERSION, FiniteFloat, RequestModel
 
-__all__ = ["LocalizationPlot", "PlotPoint"]
+__all__ = ["MAX_PLOT_M", "LocalizationPlot", "PlotPoint"]
+
+# Positions to draw, metres from the origin at most (far beyond any room; bounded so the
+# plot's axis limits stay finite).
+MAX_PLOT_M = 1e4
 
 
 class PlotPoint(BaseModel):
@@ -15,8 +19,8 @@ class PlotPoint(BaseModel):
 
     model_config = ConfigDict(extra="ignore")
 
-    x: FiniteFloat = Field(description="m")
-    y: FiniteFloat = Field(description="m")
+    x: FiniteFloat = Field(ge=-MAX_PLOT_M, le=MAX_PLOT_M, description="m")
+    y: FiniteFloat = Field(ge=-MAX_PLOT_M, le=MAX_PLOT_M, description="m")
     terminal_id: str | None = Field(default=None, max_length=64, description="drawn as a label")
 
 
@@ -42,7 +46,10 @@ class LocalizationPlot(RequestModel):
         default=None, max_length=4096, description="true positions, matched to the estimates"
     )
     fingerprint_version: int | None = Field(
-        default=None, ge=1, description="whose layout to draw; default: the current version"
+        default=None,
+        ge=1,
+        le=MAX_VERSION,
+        description="whose layout to draw; default: the current version",
     )
     width_px: int = Field(default=800, ge=200, le=4000, description="picture width, pixels")
     title: str | None = Field(default=None, max_length=200)

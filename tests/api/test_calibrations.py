@@ -13,6 +13,7 @@ from app.schemas.calibrations import calibration_example
 from app.schemas.rooms import paper_room_example
 from app.vlp.calibration import simulate_survey
 from app.vlp.layout import Layout, layout_from_mapping
+from app.vlp.presets import paper_layout
 from app.vlp.simulation import noisy_amplitudes, true_amplitudes
 
 from .conftest import ADMIN, TERMINAL, TestClient, wait_for_job, wait_for_room
@@ -241,3 +242,39 @@ def test_roles_and_unknown_ids(client: TestClient) -> None:
     assert job["kind"] == "calibration" and job["status"] == "queued"
     listed = client.get(url, headers=TERMINAL).json()["items"]
     assert listed[0]["status"] == "queued" and listed[0]["leds"] is None
+
+
+def test_epoch_posts_on_a_masked_room_send_one_amplitude_per_room_led(
+    worker_app: TestClient,
+) -> None:
+    # Terminals do not know about the mask: they post all 16 amplitudes, the epoch drops
+    # the masked LED's, as localize does; 15 (the fingerprint's LEDs) are fine too.
+    client = worker_app
+    room_id = _paper_room(client)
+    response = client.post(
+        f"/v1/rooms/{room_id}/calibrations", json={"masked_leds": [3]}, headers=ADMIN
+    )
+    version = wait_for_job(client, response.json()["id"])["result"]["fingerprint_version"]
+    nominal = paper_layout()
+    truth = np.array([[1.1, 1.3], [2.8, 2.9]])
+    amplitudes = true_amplitudes(nominal, truth)
+    epoch = client.post(
+        f"/v1/rooms/{room_id}/epochs",
+        json={"window_s": 30, "fingerprint_version": version},
+        headers=TERMINAL,
+    ).json()
+    url = f"/v1/rooms/{room_id}/epochs/{epoch['id']}"
+    room_sized = {"terminal_id": "t1", "amplitudes": amplitudes[0].tolist()}
+    assert client.post(f"{url}/measurements", json=room_sized, headers=TERMINAL).status_code == 202
+    kept = np.delete(amplitudes[1], 3).tolist()
+    fingerprint_sized = {"terminal_id": "t2", "amplitudes": kept}
+    answer = client.post(f"{url}/measurements", json=fingerprint_sized, headers=TERMINAL)
+    assert answer.status_code == 202
+    wrong = {"terminal_id": "t3", "amplitudes": amplitudes[0][:14].tolist()}
+    refused = client.post(f"{url}/measurements", json=wrong, headers=TERMINAL)
+    assert refused.status_code == 422 and "amplitudes" in refused.text
+    solved = client.post(f"{url}/solve", headers=TERMINAL).json()
+    assert solved["status"] == "solved"
+    found = {e["terminal_id"]: (e["x"], e["y"]) for e in solved["localization"]["estimates"]}
+    assert np.hypot(*(np.array(found["t1"]) - truth[0])) < 0.02
+    assert np.hypot(*(np.array(found["t2"]) - truth[1])) < 0.02

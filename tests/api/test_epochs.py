@@ -198,7 +198,7 @@ def test_solve_with_too_few_terminals_expires_the_epoch(client: TestClient) -> N
 
 
 def test_a_passed_window_is_solved_by_the_next_read(client: TestClient) -> None:
-    epoch = create(client, room_of(client), window_s=0.3)
+    epoch = create(client, room_of(client), window_s=1.0)
     for name, row in zip(["t1", "t2", "t3"], terminal_amplitudes(seed=4), strict=True):
         assert post(client, epoch, name, row).status_code == 202
     wait_past(epoch)
@@ -368,7 +368,7 @@ def test_the_sweeper_closes_passed_windows_without_any_request(
 ) -> None:
     swept = start(tmp_path / "data", database_url, epoch_sweep_seconds=0.05)
     try:
-        epoch = create(swept, room_of(swept), window_s=0.2)
+        epoch = create(swept, room_of(swept), window_s=1.0)
         for name, row in zip(["t1", "t2", "t3"], terminal_amplitudes(seed=10), strict=True):
             post(swept, epoch, name, row)
         registry = registry_of(swept)

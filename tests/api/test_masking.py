@@ -7,7 +7,7 @@ import pytest
 from numpy.testing import assert_allclose
 
 from app.api.errors import InvalidInput
-from app.api.masking import drop_masked_amplitudes, drop_masked_leds
+from app.api.masking import drop_masked_leds
 from app.schemas import Measurement
 from app.vlp.measurements import vech
 
@@ -55,16 +55,3 @@ def test_fingerprint_sized_input_passes_and_other_sizes_are_refused() -> None:
         drop_masked_leds(Measurement(power=[1.0] * 5), MASKED, N_ROOM - len(MASKED))
     unmasked = Measurement(power=[1.0] * N_ROOM)
     assert drop_masked_leds(unmasked, (), N_ROOM) is unmasked
-
-
-def test_one_terminals_amplitudes_for_epoch_posts(amplitudes: np.ndarray) -> None:
-    n_kept = N_ROOM - len(MASKED)
-    row = amplitudes[0].tolist()
-    assert drop_masked_amplitudes(row, MASKED, n_kept, "body.amplitudes") == [
-        row[i] for i in _kept()
-    ]
-    assert drop_masked_amplitudes(row[:n_kept], MASKED, n_kept, "body.amplitudes") == row[:n_kept]
-    assert drop_masked_amplitudes(row, (), N_ROOM, "body.amplitudes") is row
-    with pytest.raises(InvalidInput) as refused:
-        drop_masked_amplitudes(row[:5], MASKED, n_kept, "body.amplitudes")
-    assert "body.amplitudes" in str(refused.value.errors)
