@@ -180,10 +180,10 @@ class _WorkerLoop:
             calibration=claimed.calibration,
         )
         _log.info(
-            "job %s: %s of room %s",
+            "job %s: building room %s (%s)",
             claimed.job_id,
-            claimed.kind,
             claimed.room_id,
+            claimed.kind,
             extra=self._log_fields(claimed),
         )
         try:

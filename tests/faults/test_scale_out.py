@@ -63,7 +63,7 @@ def assert_rebuild_seen_by_both(apis: list[VlpProcess], room_id: str) -> None:
         response = client.post(f"/v1/rooms/{room_id}/fingerprints")
     assert response.status_code == 202, response.text
     done = wait_succeeded(apis[1], response.json()["id"])
-    assert done["result"] == {"fingerprint_version": 2}
+    assert done["result"]["fingerprint_version"] == 2
     finished = time.monotonic()
     pending = set(range(len(apis)))
     while pending:
@@ -92,7 +92,7 @@ def test_two_apis_two_workers_share_builds_see_rebuilds_survive_a_worker_death(
         survivor = workers[1 - workers.index(owner)]
         replacement = fleet.worker()
         finished = wait_succeeded(apis[1], hall_job, HALL_TIMEOUT_S)
-        assert finished["result"] == {"fingerprint_version": 1}
+        assert finished["result"]["fingerprint_version"] == 1
         rebuilt_by = [w for w in (survivor, replacement) if hall_job in jobs_built_by(w)]
         assert len(rebuilt_by) == 1, "exactly one live worker took the job over"
 
