@@ -302,33 +302,39 @@ class Objective:
         return self._residual(atoms, weights, theta[-1])
 
     def augmented(self, theta: FloatArray, weights: FloatArray | None) -> FloatArray:
-        """``[J | r]`` of shape (L, len(theta) + 1): the Jacobian of ``c * mu`` and the
-        residual in one array, so that one product gives ``J^T J``, ``J^T r`` and ``r^T r``.
+        """``[J | r]^T`` of shape (len(theta) + 1, L): the Jacobian of ``c * mu`` and the
+        residual as rows of one array, so that one product gives ``J^T J``, ``J^T r`` and
+        ``r^T r``. Rows rather than columns: every product below then runs on contiguous
+        memory, which is a third faster at these sizes than on strided column slices.
         """
         white = self.white
         k = self._n_targets(theta)
         if self.free_weights:
             weights = theta[2 * k : 3 * k]
-        # Columns [dg/dx | dg/dy | g | g] (rotated); rows a and b of each measurement entry.
-        blocks = white.rotate(self.kernel.gradients_xy(theta[:k], theta[k : 2 * k]))
-        left = blocks[white.upper]
-        right = blocks[white.lower]
-        atoms = left[:, 2 * k : 3 * k] * right[:, 2 * k : 3 * k]  # (L, K)
+        # Rows [dg/dx | dg/dy | g | g] (rotated: (U^T G)^T = G^T U); then the entries' a and b.
+        blocks = self.kernel.gradients_xy(theta[:k], theta[k : 2 * k]).T
+        if white.rotation is not None:
+            blocks = blocks @ white.rotation
+        left = blocks[:, white.upper]
+        right = blocks[:, white.lower]
+        atoms = left[2 * k : 3 * k] * right[2 * k : 3 * k]  # (K, L)
         n_params = theta.shape[0]
-        augmented = np.empty((atoms.shape[0], n_params + 1))
-        augmented[:, n_params] = self._residual(atoms, weights, theta[-1])
-        # d(g_a g_b)/dp = dg_a g_b + g_a dg_b, both axes at once: columns x_1..x_K, y_1..y_K.
-        positions = augmented[:, : 2 * k]
-        np.multiply(left[:, : 2 * k], right[:, 2 * k :], out=positions)
-        positions += left[:, 2 * k :] * right[:, : 2 * k]
+        augmented = np.empty((n_params + 1, atoms.shape[1]))
+        model = atoms.sum(axis=0) if weights is None else weights @ atoms
+        model *= white.weights
+        residual = augmented[n_params]
+        np.subtract(self.data, model, out=residual)
+        residual -= theta[-1] * white.weighted_diag
+        # d(g_a g_b)/dp = dg_a g_b + g_a dg_b, both axes at once: rows x_1..x_K, y_1..y_K.
+        positions = augmented[: 2 * k]
+        np.multiply(left[: 2 * k], right[2 * k :], out=positions)
+        positions += left[2 * k :] * right[: 2 * k]
         if weights is not None:
-            positions *= np.concatenate((weights, weights))
+            positions *= np.concatenate((weights, weights))[:, None]
+        positions *= white.weights
         if self.free_weights:
-            augmented[:, 2 * k : 3 * k] = atoms
-        positions *= white.weights[:, None]
-        augmented[:, n_params - 1] = white.weighted_diag
-        if self.free_weights:
-            augmented[:, 2 * k : 3 * k] *= white.weights[:, None]
+            np.multiply(atoms, white.weights, out=augmented[2 * k : 3 * k])
+        augmented[n_params - 1] = white.weighted_diag
         return augmented
 
     def _n_targets(self, theta: FloatArray) -> int:
@@ -411,6 +417,6 @@ def _gram(
 ) -> tuple[FloatArray, FloatArray, float]:
     """``J^T J``, ``J^T r`` and ``r^T r`` at ``theta`` (one BLAS call instead of three)."""
     augmented = objective.augmented(theta, weights)
-    gram = augmented.T @ augmented
+    gram = augmented @ augmented.T
     n_params = theta.shape[0]
     return gram[:n_params, :n_params], gram[:n_params, n_params], float(gram[n_params, n_params])
