@@ -7,7 +7,6 @@ sparse inverse problems", SIAM J. Optim. 2017) applied to the aggregated VLP mod
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TypeVar
 
 import numpy as np
 
@@ -16,51 +15,10 @@ from ..fingerprints import Fingerprint
 from ..measurements import Measurement, Model
 from ..simulation import mean_signal_power
 from ._gridless_fit import ChannelKernel, FitState, Objective, Whitening, levenberg_marquardt
+from ._gridless_options import LM_DEFAULTS, GridlessOptions, LevenbergMarquardtSettings, pick
 from .base import MAX_TARGETS, Solution, Solver, register_solver
 
 __all__ = ["LM_DEFAULTS", "GridlessOptions", "GridlessSolver"]
-
-_T = TypeVar("_T", int, float)
-
-
-@dataclass(frozen=True)
-class GridlessOptions:
-    """Tuning knobs (defaults are the measured best; see the solver's Notes)."""
-
-    free_weights: bool = False
-    whiten: bool = True
-    # None: the model's own default (see LM_DEFAULTS).
-    inner_iter: int | None = None
-    initial_damping: float | None = None
-    lm_tol: float | None = None
-    count_inner_iter: int = 4
-    final_iter: int = 50
-    whiten_rounds: int = 3
-    count_threshold: float = 0.2
-    count_lookahead: int = 2
-    relocate_passes: int = 1
-    restarts: int = 1
-    misfit_ratio: float = 1.5
-
-
-@dataclass(frozen=True)
-class _LevenbergMarquardt:
-    """LM settings: inner iterations per insertion, starting damping, relative tolerance."""
-
-    inner_iter: int
-    initial_damping: float
-    tol: float
-
-
-# Measured per model (paper, irregular and hall rooms, 20-40 dB, K = 3-8, 30-40 trials per
-# cell). Correlation: a damped start (0.1) and a 1e-4 relative tolerance need a third of
-# the evaluations of (4 iterations, 1e-3, 1e-7) at the same accuracy. Power has M values
-# for 2K + 1 unknowns, a much flatter, multimodal cost: the faster settings cost 15-25 %
-# accuracy there (K = 8: 40 -> 49 cm), so it keeps the careful ones.
-LM_DEFAULTS: dict[Model, _LevenbergMarquardt] = {
-    "correlation": _LevenbergMarquardt(inner_iter=2, initial_damping=1e-1, tol=1e-4),
-    "power": _LevenbergMarquardt(inner_iter=4, initial_damping=1e-3, tol=1e-7),
-}
 
 
 @dataclass
@@ -114,7 +72,7 @@ class GridlessSolver(Solver):
 
     Speed: pure NumPy, so Python overhead dominates: every LM trial computes residual
     and Jacobian together (one product of ``[J | r]`` gives ``J^T J``, ``J^T r`` and the
-    cost), about 70 of them at K = 8. Counted with callgrind (paper room, correlation,
+    cost), about 55 of them at K = 8. Counted with callgrind (paper room, correlation,
     30 dB, K = 8): 57 M instructions per solve, against 254 M before this layout of the
     loop; measured times are in ``docs/performance.md``.
 
@@ -168,10 +126,10 @@ class GridlessSolver(Solver):
         super().__init__(fingerprint, model)
         self.options = options or GridlessOptions()
         defaults = LM_DEFAULTS[model]
-        self._lm = _LevenbergMarquardt(
-            inner_iter=_pick(self.options.inner_iter, defaults.inner_iter),
-            initial_damping=_pick(self.options.initial_damping, defaults.initial_damping),
-            tol=_pick(self.options.lm_tol, defaults.tol),
+        self._lm = LevenbergMarquardtSettings(
+            inner_iter=pick(self.options.inner_iter, defaults.inner_iter),
+            initial_damping=pick(self.options.initial_damping, defaults.initial_damping),
+            tol=pick(self.options.lm_tol, defaults.tol),
         )
         layout = fingerprint.layout
         self._scale = float(np.sqrt(mean_signal_power(fingerprint)))
@@ -459,7 +417,3 @@ class GridlessSolver(Solver):
             n_iter=run.iterations,
             converged=run.converged,
         )
-
-
-def _pick(chosen: _T | None, default: _T) -> _T:
-    return default if chosen is None else chosen

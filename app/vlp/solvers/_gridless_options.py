@@ -1,0 +1,57 @@
+"""Options of the ``gridless`` solver and its per-model Levenberg-Marquardt settings."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TypeVar
+
+from ..measurements import Model
+
+__all__ = ["LM_DEFAULTS", "GridlessOptions", "LevenbergMarquardtSettings", "pick"]
+
+_Number = TypeVar("_Number", int, float)
+
+
+@dataclass(frozen=True)
+class GridlessOptions:
+    """Tuning knobs (defaults are the measured best; see the solver's Notes)."""
+
+    free_weights: bool = False
+    whiten: bool = True
+    # None: the model's own default (see LM_DEFAULTS).
+    inner_iter: int | None = None
+    initial_damping: float | None = None
+    lm_tol: float | None = None
+    count_inner_iter: int = 4
+    final_iter: int = 50
+    whiten_rounds: int = 3
+    count_threshold: float = 0.2
+    count_lookahead: int = 2
+    relocate_passes: int = 1
+    restarts: int = 1
+    misfit_ratio: float = 1.5
+
+
+@dataclass(frozen=True)
+class LevenbergMarquardtSettings:
+    """LM settings: inner iterations per insertion, starting damping, relative tolerance."""
+
+    inner_iter: int
+    initial_damping: float
+    tol: float
+
+
+# Measured per model (paper, irregular and hall rooms, 20-40 dB, K = 3-8, 30-40 trials per
+# cell). Correlation: a damped start (0.1) and a 1e-4 relative tolerance need a third of
+# the evaluations of (4 iterations, 1e-3, 1e-7) at the same accuracy. Power has M values
+# for 2K + 1 unknowns, a much flatter, multimodal cost: the faster settings cost 15-25 %
+# accuracy there (K = 8: 40 -> 49 cm), so it keeps the careful ones.
+LM_DEFAULTS: dict[Model, LevenbergMarquardtSettings] = {
+    "correlation": LevenbergMarquardtSettings(inner_iter=2, initial_damping=1e-1, tol=1e-4),
+    "power": LevenbergMarquardtSettings(inner_iter=4, initial_damping=1e-3, tol=1e-7),
+}
+
+
+def pick(chosen: _Number | None, default: _Number) -> _Number:
+    """``chosen`` unless it is None."""
+    return default if chosen is None else chosen
