@@ -135,6 +135,9 @@ class EpochSettler:
         localization = solve_and_label(
             self._cache,
             self._metrics,
+            fingerprint=self._cache.fingerprint(
+                claimed.record.room_id, settings.fingerprint_version
+            ),
             room_id=claimed.record.room_id,
             version=settings.fingerprint_version,
             measurement=measurement,

@@ -14,6 +14,7 @@ from app.vlp import measurements as vlp_measurements
 from app.vlp._typing import FloatArray
 from app.vlp.assignment import assign_terminals
 from app.vlp.errors import MeasurementError
+from app.vlp.fingerprints import Fingerprint
 from app.vlp.measurements import Model
 from app.vlp.solvers import solver_names
 
@@ -120,8 +121,7 @@ def _measurement(request: _Request, n_leds: int) -> vlp_measurements.Measurement
 def _localize(request: _Request, cache: FingerprintCache, metrics: Metrics) -> Localization:
     body = request.body
     version = body.fingerprint_version or cache.current_version(request.room_id)
-    fingerprint = cache.fingerprint(request.room_id, version)
-    masked = cache.masked_leds(request.room_id, version)
+    fingerprint, masked = cache.fingerprint_and_mask(request.room_id, version)
     if masked:  # sent for the room's M LEDs: drop the entries the fingerprint leaves out
         body = drop_masked_leds(body, masked, fingerprint.n_leds)
         request = _Request(request.room_id, body, request.form, request.model)
@@ -135,6 +135,7 @@ def _localize(request: _Request, cache: FingerprintCache, metrics: Metrics) -> L
     return solve_and_label(
         cache,
         metrics,
+        fingerprint=fingerprint,
         room_id=request.room_id,
         version=version,
         measurement=measurement,
@@ -156,6 +157,7 @@ def solve_and_label(
     cache: FingerprintCache,
     metrics: Metrics,
     *,
+    fingerprint: Fingerprint,
     room_id: str,
     version: int,
     measurement: vlp_measurements.Measurement,
@@ -166,9 +168,9 @@ def solve_and_label(
     """Solve an aggregated measurement on (room, version) and, when the terminals' own
     amplitudes are known, label each estimate with its terminal (an assignment problem).
 
-    Used by localize and by epochs, so both answer the same way.
+    Used by localize and by epochs, so both answer the same way. ``fingerprint`` is the
+    caller's (room, version) fingerprint, already looked up.
     """
-    fingerprint = cache.fingerprint(room_id, version)
     prepared = cache.solver(room_id, version, measurement.model, solver)
     with prepared.lock:
         started = time.perf_counter()

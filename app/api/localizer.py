@@ -88,9 +88,13 @@ class FingerprintCache:
         """The fingerprint of (room, version), loaded once and verified by the registry."""
         return self._entry(room_id, version).fingerprint
 
-    def masked_leds(self, room_id: str, version: int) -> tuple[int, ...]:
-        """Room LED indices the fingerprint of (room, version) leaves out (a calibration's mask)."""
-        return self._entry(room_id, version).masked_leds
+    def fingerprint_and_mask(
+        self, room_id: str, version: int
+    ) -> tuple[Fingerprint, tuple[int, ...]]:
+        """:meth:`fingerprint` and the room LED indices it leaves out (a calibration's mask),
+        from one cache lookup."""
+        entry = self._entry(room_id, version)
+        return entry.fingerprint, entry.masked_leds
 
     def solver(self, room_id: str, version: int, model: Model, name: str) -> PreparedSolver:
         """The solver ``name`` for (room, version, model), built once."""
