@@ -12,7 +12,7 @@ from sqlalchemy import Connection, Select, select
 from app.vlp.layout import layout_from_mapping
 
 from ._schema import jobs, matrices, rooms
-from .errors import InvalidCursor
+from .errors import InvalidCursor, RoomNotFound
 from .records import FingerprintRecord, JobRecord, MatrixInfo, RoomRecord
 
 __all__ = [
@@ -131,3 +131,18 @@ def fingerprint_record(row: Any, infos: dict[str, MatrixInfo]) -> FingerprintRec
         calibration_id=row.calibration_id,
         masked_leds=tuple(int(i) for i in row.masked_leds or ()),
     )
+
+
+def locked_layout_version(conn: Connection, room_id: str) -> int:
+    """The room's ``layout_version``, its row locked for the rest of the transaction.
+
+    Raises
+    ------
+    RoomNotFound
+    """
+    version = conn.execute(
+        select(rooms.c.layout_version).where(rooms.c.id == room_id).with_for_update()
+    ).scalar_one_or_none()
+    if version is None:
+        raise RoomNotFound(f"no room with id {room_id!r}", field="room_id")
+    return int(version)

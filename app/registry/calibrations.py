@@ -14,6 +14,7 @@ from sqlalchemy import Engine, select
 
 from ._calibration_rows import JOB_KIND_CALIBRATION, active_calibration
 from ._db import translate_errors, write_transaction
+from ._rows import locked_layout_version
 from ._schema import calibrations, jobs, rooms
 from .errors import NotFound, PreconditionFailed, RoomNotFound
 from .queue import enqueue_job, utcnow
@@ -37,11 +38,7 @@ def create_calibration(
     """
     calibration_id = uuid.uuid4().hex
     with write_transaction(engine) as conn:
-        current = conn.execute(
-            select(rooms.c.layout_version).where(rooms.c.id == room_id).with_for_update()
-        ).scalar_one_or_none()
-        if current is None:
-            raise RoomNotFound(f"no room with id {room_id!r}", field="room_id")
+        current = locked_layout_version(conn, room_id)
         if current != layout_version:
             raise PreconditionFailed(
                 f"room {room_id} changed to layout_version {current} while the survey was "

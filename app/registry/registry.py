@@ -34,6 +34,7 @@ from ._rows import (
     encode_cursor,
     fingerprint_record,
     job_record,
+    locked_layout_version,
     matrix_infos,
     normalised_layout,
     room_record,
@@ -200,11 +201,7 @@ class Registry:
         """
         mapping = normalised_layout(name, layout)
         with write_transaction(self.engine) as conn:
-            current = conn.execute(
-                select(rooms.c.layout_version).where(rooms.c.id == room_id).with_for_update()
-            ).scalar_one_or_none()
-            if current is None:
-                raise RoomNotFound(f"no room with id {room_id!r}", field="room_id")
+            current = locked_layout_version(conn, room_id)
             if current != expected_layout_version:
                 raise PreconditionFailed(
                     f"room {room_id} is at layout_version {current}, "
@@ -255,11 +252,7 @@ class Registry:
     def request_build(self, *, room_id: str) -> JobRecord:
         """Queue a build of the room's layout, or return the queued/running one for it."""
         with write_transaction(self.engine) as conn:
-            version = conn.execute(
-                select(rooms.c.layout_version).where(rooms.c.id == room_id).with_for_update()
-            ).scalar_one_or_none()
-            if version is None:
-                raise RoomNotFound(f"no room with id {room_id!r}", field="room_id")
+            version = locked_layout_version(conn, room_id)
             job_id = enqueue_build(conn, room_id=room_id, layout_version=version)
         return self.get_job(job_id=job_id)
 
