@@ -85,3 +85,21 @@ def live_server(data_dir: Path, *, timeout_s: float = 60.0, **env: str) -> Itera
         except subprocess.TimeoutExpired:
             process.kill()
             process.wait()
+
+
+def ready_demo_room(url: str, *, timeout_s: float = 120.0) -> str:
+    """The id of the server's demo room once its fingerprint is ready.
+
+    Raises
+    ------
+    TimeoutError
+        When it is not ready within ``timeout_s``.
+    """
+    with httpx.Client(base_url=url, headers={"X-API-Key": ADMIN_KEY}, timeout=30.0) as client:
+        room_id = str(client.get("/v1/rooms").json()["items"][0]["id"])
+        deadline = time.monotonic() + timeout_s
+        while client.get(f"/v1/rooms/{room_id}").json()["fingerprint"]["status"] != "ready":
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"the demo room was not built within {timeout_s:g} s")
+            time.sleep(0.1)
+    return room_id

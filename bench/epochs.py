@@ -24,18 +24,9 @@ import httpx
 from app.vlp.fingerprints import build_fingerprint
 from app.vlp.presets import paper_layout
 from app.vlp.simulation import noise_std_for_snr, noisy_amplitudes, random_positions
-from bench._server import TERMINAL_KEY, live_server
+from bench._server import TERMINAL_KEY, live_server, ready_demo_room
 
 _HEADERS = {"X-API-Key": TERMINAL_KEY}
-
-
-def _ready_room(client: httpx.Client) -> str:
-    room_id = str(client.get("/v1/rooms").json()["items"][0]["id"])
-    for _ in range(600):
-        if client.get(f"/v1/rooms/{room_id}").json()["fingerprint"]["status"] == "ready":
-            return room_id
-        time.sleep(0.1)
-    raise TimeoutError("demo room never became ready")
 
 
 def _timed(call: Callable[[], httpx.Response]) -> tuple[httpx.Response, float]:
@@ -83,7 +74,7 @@ def main() -> None:
         live_server(Path(tmp)) as server,
         httpx.Client(base_url=server.url, headers=_HEADERS, timeout=60) as client,
     ):
-        room_id = _ready_room(client)
+        room_id = ready_demo_room(server.url)
         _round(client, room_id, args.terminals, seed=10_000)  # warm the caches
         for seed in range(args.rounds):
             post_s, solve_s, round_s, localize_s = _round(client, room_id, args.terminals, seed)

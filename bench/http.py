@@ -21,22 +21,11 @@ from pathlib import Path
 import httpx
 import numpy as np
 
-from bench._server import ADMIN_KEY, TERMINAL_KEY, live_server
+from bench._server import TERMINAL_KEY, live_server, ready_demo_room
 
 
 def _percentile(values: list[float], q: float) -> float:
     return float(np.percentile(np.asarray(values), q))
-
-
-def _wait_ready_room(client: httpx.Client, url: str) -> str:
-    rooms = client.get(f"{url}/v1/rooms", headers={"X-API-Key": ADMIN_KEY}).json()["items"]
-    room_id = str(rooms[0]["id"])
-    for _ in range(600):
-        room = client.get(f"{url}/v1/rooms/{room_id}", headers={"X-API-Key": ADMIN_KEY}).json()
-        if room["fingerprint"]["status"] == "ready":
-            return room_id
-        time.sleep(0.1)
-    raise TimeoutError("demo room never became ready")
 
 
 async def _throughput(
@@ -72,7 +61,7 @@ def run(seconds: float, concurrency: int, sequential: int) -> dict[str, object]:
     with tempfile.TemporaryDirectory() as tmp, live_server(Path(tmp)) as server:
         url = server.url
         with httpx.Client(timeout=30.0) as client:
-            room_id = _wait_ready_room(client, url)
+            room_id = ready_demo_room(url)
             headers = {"X-API-Key": TERMINAL_KEY}
             sim = client.post(
                 f"{url}/v1/rooms/{room_id}/simulate",

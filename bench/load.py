@@ -30,7 +30,7 @@ import httpx
 import numpy as np
 
 from bench._common import machine_markdown, machine_record, replace_section
-from bench._server import ADMIN_KEY, TERMINAL_KEY, live_server
+from bench._server import ADMIN_KEY, TERMINAL_KEY, live_server, ready_demo_room
 
 __all__ = ["LevelResult", "LoadReport", "main", "markdown", "run"]
 
@@ -92,18 +92,9 @@ async def _drive(
 
 def _measurement(url: str, solver: str) -> tuple[str, dict[str, object]]:
     """The demo room's id (once ready) and a K = 8 measurement body for it."""
+    room_id = ready_demo_room(url)
     admin = {"X-API-Key": ADMIN_KEY}
     with httpx.Client(base_url=url, headers=admin, timeout=REQUEST_TIMEOUT_S) as client:
-        room_id = str(client.get("/v1/rooms").json()["items"][0]["id"])
-        deadline = time.monotonic() + 120
-
-        def status() -> str:
-            return str(client.get(f"/v1/rooms/{room_id}").json()["fingerprint"]["status"])
-
-        while status() != "ready":
-            if time.monotonic() > deadline:
-                raise TimeoutError("the demo room was not built within 120 s")
-            time.sleep(0.1)
         simulated = client.post(
             f"/v1/rooms/{room_id}/simulate",
             json={"targets": 8, "snr_db": 30, "seed": 1, "solver": solver},
