@@ -72,9 +72,9 @@ class GridlessSolver(Solver):
 
     Speed: pure NumPy, so Python overhead dominates: every LM trial computes residual
     and Jacobian together (one product of ``[J | r]`` gives ``J^T J``, ``J^T r`` and the
-    cost), about 55 of them at K = 8. Counted with callgrind (paper room, correlation,
-    30 dB, K = 8): 57 M instructions per solve, against 254 M before this layout of the
-    loop; measured times are in ``docs/performance.md``.
+    cost), about 55 of them at K = 8. Counted with callgrind (``bench/solve_loop.py``,
+    paper room, correlation, 30 dB, K = 8): 46 M instructions per solve, against 254 M
+    before this layout of the loop; measured times are in ``docs/performance.md``.
 
     Weights are fixed at one pilot unit per target (``w_k = 1``): each terminal brings
     exactly ``g g^T``. Measured (paper room, 30 dB, correlation, 50 placements, mean
