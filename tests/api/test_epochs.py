@@ -425,13 +425,14 @@ def test_an_epoch_whose_solver_died_is_taken_over_when_its_claim_runs_out(
     for name, row in zip(["t1", "t2", "t3"], terminal_amplitudes(seed=11), strict=True):
         post(client, epoch, name, row)
     ids = {"room_id": epoch["room_id"], "epoch_id": epoch["id"]}
-    # Another process claimed it and died: its claim (a lease) runs out after 0.1 s.
+    # Another process claimed it and died: its claim (a lease) runs out after 1 s (long
+    # enough that the read and the refused post below surely happen while it holds).
     dead = claim_epoch(
         registry_of(client).engine,
         **ids,
         owner="dead-process",
         now=utcnow(),
-        lease_s=0.1,
+        lease_s=1.0,
         max_attempts=3,
         force=True,
     )
@@ -439,7 +440,7 @@ def test_an_epoch_whose_solver_died_is_taken_over_when_its_claim_runs_out(
     being_solved = read(client, epoch)
     assert (being_solved["status"], being_solved["closed"]) == ("open", True)
     assert_problem(post(client, epoch, "t4", terminal_amplitudes(seed=11)[0]), 409)
-    time.sleep(0.15)  # let the dead process's lease run out
+    time.sleep(1.05)  # let the dead process's lease run out
     solved = solve(client, epoch)
     assert solved["status"] == "solved"
     assert_labelled_near_truth(solved, ["t1", "t2", "t3"])
