@@ -181,7 +181,7 @@ def test_a_closed_epoch_refuses_posts_and_stays_as_it_was(client: TestClient) ->
 
 
 def test_too_few_terminals_expire_when_the_window_passes(client: TestClient) -> None:
-    epoch = create(client, room_of(client), window_s=0.2, min_terminals=2)
+    epoch = create(client, room_of(client), window_s=1.0, min_terminals=2)
     post(client, epoch, "t1", terminal_amplitudes(seed=1)[0])
     wait_past(epoch)
     assert_problem(post(client, epoch, "t2", terminal_amplitudes(seed=1)[1]), 409)
