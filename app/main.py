@@ -12,6 +12,7 @@ from contextlib import asynccontextmanager
 from typing import Any
 
 from fastapi import FastAPI
+from fastapi.middleware.cors import CORSMiddleware
 from fastapi.routing import APIRoute
 from starlette.concurrency import run_in_threadpool
 from threadpoolctl import threadpool_limits
@@ -24,7 +25,7 @@ from app.api.localizer import FingerprintCache
 from app.api.metrics import Metrics
 from app.api.middleware import BodySizeLimitMiddleware, RequestContextMiddleware
 from app.api.picture_cache import PictureCache
-from app.api.security import provision_keys
+from app.api.security import KeyCache, provision_keys
 from app.jobs import EmbeddedWorkers
 from app.jobs.epochs import EpochSweeper
 from app.registry import Registry
@@ -67,6 +68,7 @@ _TAGS = [
         "description": "PNG pictures: the room plan with a coverage or CRLB heat map, and "
         "estimates against the truth",
     },
+    {"name": "keys", "description": "API keys: create, list, revoke (admin)"},
     {"name": "operations", "description": "Health, readiness, metrics (no key)"},
 ]
 
@@ -132,9 +134,8 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
         )
         await run_in_threadpool(registry.migrate)
         app.state.registry = registry
-        app.state.keys = await run_in_threadpool(
-            lambda: provision_keys(registry=registry, settings=settings)
-        )
+        await run_in_threadpool(lambda: provision_keys(registry=registry, settings=settings))
+        app.state.keys = KeyCache(registry=registry)
         if settings.demo:
             await run_in_threadpool(seed_demo_room, registry)
         metrics: Metrics = app.state.metrics
@@ -193,4 +194,20 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(api_router)
     app.add_middleware(BodySizeLimitMiddleware, max_body_bytes=settings.max_body_bytes)
     app.add_middleware(RequestContextMiddleware, metrics=metrics)
+    _install_cors(app, settings)
     return app
+
+
+def _install_cors(app: FastAPI, settings: Settings) -> None:
+    """CORS for the configured origins only (outermost, so preflights never need a key)."""
+    origins = settings.cors_origin_list()
+    if not origins:
+        return
+    app.add_middleware(
+        CORSMiddleware,
+        allow_origins=origins,
+        allow_methods=["GET", "POST", "PUT", "DELETE", "OPTIONS"],
+        allow_headers=["X-API-Key", "If-Match", "If-None-Match", "Content-Type"],
+        expose_headers=["ETag", "Location", "Retry-After", "X-Request-ID"],
+        max_age=600,
+    )
