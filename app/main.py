@@ -29,7 +29,7 @@ from app.api.security import KeyCache, provision_keys
 from app.jobs import EmbeddedWorkers
 from app.jobs.epochs import EpochSweeper
 from app.registry import Registry
-from app.registry.seed import seed_demo_room
+from app.registry.seed import find_demo_room, seed_demo_room
 from app.settings import Settings, get_settings
 
 __all__ = ["create_app"]
@@ -136,8 +136,10 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
         app.state.registry = registry
         await run_in_threadpool(lambda: provision_keys(registry=registry, settings=settings))
         app.state.keys = KeyCache(registry=registry)
+        demo_room = None
         if settings.demo:
             await run_in_threadpool(seed_demo_room, registry)
+            demo_room = await run_in_threadpool(find_demo_room, registry)
         metrics: Metrics = app.state.metrics
         app.state.cache = FingerprintCache(
             registry=registry,
@@ -152,11 +154,18 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
         workers = EmbeddedWorkers(registry=registry, settings=settings)
         if settings.embedded_workers > 0:
             workers.start()
+        docs_url = f"{settings.public_url.rstrip('/')}/docs"
+        demo_room_id = demo_room.id if demo_room is not None else None
+        # The message itself names the docs and the demo room: it is the line people read.
         _log.info(
-            "service started",
+            "service started: API docs at %s%s",
+            docs_url,
+            f", demo room {demo_room_id}" if demo_room_id else "",
             extra={
                 "data_dir": str(settings.data_dir),
                 "embedded_workers": settings.embedded_workers,
+                "docs_url": docs_url,
+                "demo_room_id": demo_room_id,
             },
         )
         try:

@@ -265,8 +265,11 @@ def _add_rooms(commands: Any) -> None:
 
 
 def add_remote_commands(commands: Any) -> None:
-    """Add ``rooms``, ``simulate`` and ``localize`` to the ``vlp`` sub-command parsers."""
+    """Add ``rooms``, ``keys``, ``simulate`` and ``localize`` to the ``vlp`` sub-commands."""
+    from ._keys import add_keys_command
+
     _add_rooms(commands)
+    add_keys_command(commands, _remote)
     simulate = _remote(
         commands, "simulate", _simulate, "simulate a measurement (and localize it with --localize)"
     )
