@@ -5,7 +5,7 @@ from __future__ import annotations
 from datetime import datetime
 from typing import Literal
 
-from pydantic import Field
+from pydantic import ConfigDict, Field
 
 from ._common import RequestModel, ResponseModel
 
@@ -17,6 +17,11 @@ KeySource = Literal["api", "environment", "generated"]
 
 class ApiKeyCreate(RequestModel):
     """A new key's role and a label to recognise it by (who or what holds it)."""
+
+    model_config = ConfigDict(
+        extra="forbid",
+        json_schema_extra={"examples": [{"role": "terminal", "label": "lobby kiosk"}]},
+    )
 
     role: KeyRole = Field(description="`admin` may do everything; `terminal` reads and localizes")
     label: str = Field(min_length=1, max_length=200, examples=["terminal of the lobby kiosk"])
