@@ -97,7 +97,8 @@ def _worker(args: argparse.Namespace) -> int:
     if settings is None:
         return EXIT_USAGE
     configure_logging(args.log_level)
-    run_worker(settings=settings)
+    address = None if args.metrics_port is None else (args.metrics_host, args.metrics_port)
+    run_worker(settings=settings, metrics_address=address)
     return 0
 
 
@@ -127,6 +128,13 @@ def _parser() -> argparse.ArgumentParser:
 
     worker = commands.add_parser("worker", help="run fingerprint-build workers")
     worker.add_argument("--log-level", default="info")
+    worker.add_argument(
+        "--metrics-port",
+        type=int,
+        default=None,
+        help="serve Prometheus metrics (process, jobs by status) at /metrics on this port",
+    )
+    worker.add_argument("--metrics-host", default="127.0.0.1", help="address for --metrics-port")
     worker.set_defaults(handler=_worker)
 
     openapi = commands.add_parser("openapi", help="write the OpenAPI document")

@@ -81,3 +81,9 @@ def test_an_epoch_measurement_says_when_the_window_closes(
         assert 1 <= int(answer.headers["retry-after"]) <= 60
     finally:
         client.__exit__(None, None, None)
+
+
+def test_metrics_include_process_metrics(client: TestClient) -> None:
+    text = client.get("/metrics").text
+    for name in ("process_cpu_seconds_total", "process_resident_memory_bytes", "python_info"):
+        assert name in text, name
