@@ -30,6 +30,7 @@ from pathlib import Path
 from typing import Literal
 
 from app.registry import Registry
+from app.registry.errors import RegistryError
 from app.settings import MIN_KEY_LENGTH, Settings
 
 __all__ = [
@@ -150,7 +151,11 @@ class KeyCache:
             if last is not None and now - last < self._touch_interval_s:
                 return
             self._touched[digest] = now
-        self._registry.touch_api_key(key_hash=digest, when=datetime.now(UTC))
+        try:
+            self._registry.touch_api_key(key_hash=digest, when=datetime.now(UTC))
+        except RegistryError:
+            # Best effort: a busy or unreachable registry must not fail the request.
+            _log.debug("last use of a key not recorded", exc_info=True)
 
 
 def _write_credentials(path: Path, *, url: str, admin_key: str, terminal_key: str) -> None:

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 from datetime import datetime
 from typing import Literal
 
-from sqlalchemy import Engine, and_, delete, func, insert, select, update
+from sqlalchemy import Engine, and_, delete, func, insert, select, text, update
 
 from ._db import translate_errors, write_transaction
 from ._schema import api_keys
@@ -40,6 +40,7 @@ __all__ = [
 ]
 
 KeySource = Literal["api", "environment", "generated"]
+_KEYS_LOCK = 0x564C505F4B455953  # "VLP_KEYS": one start at a time syncs the environment keys
 
 
 @dataclass(frozen=True)
@@ -160,9 +161,11 @@ def sync_environment_keys(
 ) -> tuple[list[str], list[str]]:
     """Make the stored environment keys those of ``configured`` ``(key_hash, role)`` pairs.
 
-    Keys of the pairs are stored (or re-marked ``environment`` with the configured role when
-    known from another source); environment keys not among them are deleted, and so are all
-    generated keys when ``configured`` is not empty. Revoked keys stay revoked.
+    Keys of the pairs are stored as ``environment`` keys (a key made through the API is
+    re-marked; a generated key set in the environment, e.g. from a shell that sourced the
+    credentials file, stays ``generated``). Environment keys not among them are deleted,
+    and so are generated keys not among them when ``configured`` is not empty. Revoked keys
+    stay revoked. Concurrent starts are serialised (an advisory lock on PostgreSQL).
 
     Returns
     -------
@@ -175,6 +178,8 @@ def sync_environment_keys(
     now = utcnow()
     revoked: list[str] = []
     with write_transaction(engine) as conn:
+        if conn.dialect.name == "postgresql":
+            conn.execute(text("SELECT pg_advisory_xact_lock(:key)"), {"key": _KEYS_LOCK})
         for key_hash, role in configured:
             row = conn.execute(
                 select(api_keys).where(api_keys.c.key_hash == key_hash)
@@ -192,7 +197,7 @@ def sync_environment_keys(
                 )
             elif row._mapping["revoked_at"] is not None:
                 revoked.append(str(row._mapping["id"]))
-            else:
+            elif row._mapping["source"] != "generated":
                 conn.execute(
                     update(api_keys)
                     .where(api_keys.c.key_hash == key_hash)

@@ -109,3 +109,16 @@ def test_migration_0004_keeps_older_keys_as_generated(database_url: str, tmp_pat
         assert len({key.id for key in keys}) == 2 and all(len(key.id) == 32 for key in keys)
     finally:
         registry.dispose()
+
+
+def test_generated_keys_set_in_the_environment_stay_generated(registry: Registry) -> None:
+    """A shell that sourced the credentials file and started the server keeps its keys."""
+    registry.create_api_key(key_hash="g" * 64, role="admin", label="g", source="generated")
+    registry.create_api_key(key_hash="h" * 64, role="terminal", label="h", source="generated")
+    configured = [("g" * 64, "admin"), ("h" * 64, "terminal")]
+    assert registry.sync_environment_keys(configured=configured) == ([], [])
+    assert registry.sync_environment_keys(configured=[]) == ([], [])
+    assert _in_force(registry) == {
+        "g" * 64: ("admin", "generated"),
+        "h" * 64: ("terminal", "generated"),
+    }
