@@ -193,13 +193,9 @@ def provision_keys(*, registry: Registry, settings: Settings) -> None:
     if configured or registry.count_active_admin_keys() > 0:
         return
     admin_key, terminal_key = generate_key(), generate_key()
-    for key, role in ((admin_key, "admin"), (terminal_key, "terminal")):
-        registry.create_api_key(
-            key_hash=hash_key(key),
-            role=role,
-            label=f"{role} key generated at start",
-            source="generated",
-        )
+    pair = [(hash_key(admin_key), "admin"), (hash_key(terminal_key), "terminal")]
+    if not registry.add_generated_keys_if_no_admin(keys=pair):
+        return  # another process starting at the same time generated them
     _write_credentials(
         credentials, url=settings.public_url, admin_key=admin_key, terminal_key=terminal_key
     )

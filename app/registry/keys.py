@@ -30,6 +30,7 @@ from .queue import utcnow
 __all__ = [
     "KeyRecord",
     "KeySource",
+    "add_generated_keys_if_no_admin",
     "count_active_admin_keys",
     "create_api_key",
     "get_active_key",
@@ -213,6 +214,37 @@ def sync_environment_keys(
         ]
         conn.execute(delete(api_keys).where(doomed))
     return revoked, sources
+
+
+def add_generated_keys_if_no_admin(engine: Engine, *, keys: list[tuple[str, str]]) -> bool:
+    """Store ``(key_hash, role)`` pairs as ``generated`` keys if no admin key is in force.
+
+    Returns whether they were stored; serialised like :func:`sync_environment_keys`, so of
+    several processes starting at once on an empty registry only one generates keys.
+    """
+    now = utcnow()
+    with write_transaction(engine) as conn:
+        if conn.dialect.name == "postgresql":
+            conn.execute(text("SELECT pg_advisory_xact_lock(:key)"), {"key": _KEYS_LOCK})
+        admins = conn.execute(
+            select(func.count())
+            .select_from(api_keys)
+            .where(and_(api_keys.c.role == "admin", _active))
+        ).scalar_one()
+        if admins:
+            return False
+        for key_hash, role in keys:
+            conn.execute(
+                insert(api_keys).values(
+                    key_hash=key_hash,
+                    id=uuid.uuid4().hex,
+                    role=role,
+                    label=f"{role} key generated at start",
+                    source="generated",
+                    created_at=now,
+                )
+            )
+    return True
 
 
 def count_active_admin_keys(engine: Engine) -> int:

@@ -145,6 +145,10 @@ class Registry:
         """Make the stored environment keys those configured (see app.registry.keys)."""
         return _keys.sync_environment_keys(self.engine, configured=configured)
 
+    def add_generated_keys_if_no_admin(self, *, keys: list[tuple[str, str]]) -> bool:
+        """Store these ``(key_hash, role)`` as generated keys unless an admin key is in force."""
+        return _keys.add_generated_keys_if_no_admin(self.engine, keys=keys)
+
     def count_active_admin_keys(self) -> int:
         """How many admin keys are in force."""
         return _keys.count_active_admin_keys(self.engine)

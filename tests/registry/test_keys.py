@@ -122,3 +122,14 @@ def test_generated_keys_set_in_the_environment_stay_generated(registry: Registry
         "g" * 64: ("admin", "generated"),
         "h" * 64: ("terminal", "generated"),
     }
+
+
+def test_generated_keys_only_when_no_admin_key_is_in_force(registry: Registry) -> None:
+    pair = [("g" * 64, "admin"), ("h" * 64, "terminal")]
+    assert registry.add_generated_keys_if_no_admin(keys=pair)
+    # A second process starting at the same time finds the admin key and stores nothing.
+    assert not registry.add_generated_keys_if_no_admin(keys=[("x" * 64, "admin")])
+    assert _in_force(registry) == {
+        "g" * 64: ("admin", "generated"),
+        "h" * 64: ("terminal", "generated"),
+    }
