@@ -174,6 +174,25 @@ def _write_credentials(path: Path, *, url: str, admin_key: str, terminal_key: st
     os.chmod(path, 0o600)
 
 
+def _upgrade_old_credentials(path: Path, *, registry: Registry, url: str) -> None:
+    """Rewrite a credentials file of the first format (plain ``VLP_*_KEYS=`` lines, which
+    ``source`` does not export) in the current one, if its keys are still in force."""
+    try:
+        lines = path.read_text(encoding="utf-8").splitlines()
+    except FileNotFoundError:
+        return
+    if any(line.startswith("export ") for line in lines):
+        return
+    values = dict(line.split("=", 1) for line in lines if "=" in line and line[:1] != "#")
+    admin_key, terminal_key = values.get("VLP_ADMIN_KEYS"), values.get("VLP_TERMINAL_KEYS")
+    if not admin_key or not terminal_key:
+        return
+    if registry.get_active_key(key_hash=hash_key(admin_key)) is None:
+        return
+    _write_credentials(path, url=url, admin_key=admin_key, terminal_key=terminal_key)
+    _log.info("credentials file rewritten with export lines", extra={"credentials": str(path)})
+
+
 def provision_keys(*, registry: Registry, settings: Settings) -> None:
     """Sync the environment keys and generate the first pair when needed (module docstring)."""
     configured = [(hash_key(key), "admin") for key in settings.admin_key_list()]
@@ -191,6 +210,7 @@ def provision_keys(*, registry: Registry, settings: Settings) -> None:
             extra={"removed": str(credentials)},
         )
     if configured or registry.count_active_admin_keys() > 0:
+        _upgrade_old_credentials(credentials, registry=registry, url=settings.public_url)
         return
     admin_key, terminal_key = generate_key(), generate_key()
     pair = [(hash_key(admin_key), "admin"), (hash_key(terminal_key), "terminal")]

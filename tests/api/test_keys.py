@@ -206,3 +206,32 @@ def test_a_key_revoked_through_one_process_is_refused_by_another(tmp_path: Path)
         while second.get(ROOMS, headers=secret).status_code != 401:
             assert time.monotonic() < deadline, "the second app still accepts the revoked key"
             time.sleep(KEY_CACHE_TTL_S / 10)
+
+
+def test_a_credentials_file_of_the_first_format_is_rewritten_with_exports(tmp_path: Path) -> None:
+    """Files written before the keys resource had plain `VLP_*_KEYS=` lines: not exported."""
+    bare = make_settings(tmp_path, admin_keys="", terminal_keys="")
+    with TestClient(create_app(bare)):
+        pass
+    path = tmp_path / CREDENTIALS_FILE
+    exported = dict(
+        line.removeprefix("export ").split("=", 1)
+        for line in path.read_text(encoding="utf-8").splitlines()
+        if line.startswith("export ADMIN_KEY=") or line.startswith("export TERMINAL_KEY=")
+    )
+    old_format = (
+        "# VLP API keys generated at first start; only their hashes are stored.\n"
+        f"VLP_ADMIN_KEYS={exported['ADMIN_KEY']}\nVLP_TERMINAL_KEYS={exported['TERMINAL_KEY']}\n"
+    )
+    path.write_text(old_format, encoding="utf-8")
+    with TestClient(create_app(bare)) as client:
+        text = path.read_text(encoding="utf-8")
+        assert f"export ADMIN_KEY={exported['ADMIN_KEY']}\n" in text
+        assert f"export TERMINAL_KEY={exported['TERMINAL_KEY']}\n" in text
+        headers = {"X-API-Key": exported["ADMIN_KEY"]}
+        assert client.get(ROOMS, headers=headers).status_code == 200
+    # A file naming keys no longer in force is left alone.
+    stale = old_format.replace(exported["ADMIN_KEY"], "z" * 43)
+    path.write_text(stale, encoding="utf-8")
+    with TestClient(create_app(bare)):
+        assert path.read_text(encoding="utf-8") == stale
