@@ -6,6 +6,7 @@ import time
 from datetime import datetime
 from pathlib import Path
 
+import httpx
 import pytest
 from pydantic import ValidationError
 
@@ -13,6 +14,8 @@ from app.api.security import CREDENTIALS_FILE, KEY_CACHE_TTL_S, KeyCache, hash_k
 from app.main import create_app
 from app.registry import Registry
 from app.registry.keys import KeyRecord
+from bench._server import ADMIN_KEY as LIVE_ADMIN_KEY
+from bench._server import live_server
 
 from .conftest import ADMIN, ADMIN_KEY, TERMINAL, TestClient, make_settings
 from .test_rooms import assert_problem
@@ -235,3 +238,26 @@ def test_a_credentials_file_of_the_first_format_is_rewritten_with_exports(tmp_pa
     path.write_text(stale, encoding="utf-8")
     with TestClient(create_app(bare)):
         assert path.read_text(encoding="utf-8") == stale
+
+
+def test_two_real_api_processes_on_postgresql_see_a_revocation(
+    tmp_path: Path, postgres_url: str
+) -> None:
+    """Two `vlp serve` processes sharing only PostgreSQL: a key revoked through the first is
+    refused by the second (which had it cached) once its cache entry expired."""
+    with (
+        live_server(tmp_path / "a", VLP_DATABASE_URL=postgres_url, VLP_DEMO="0") as first,
+        live_server(tmp_path / "b", VLP_DATABASE_URL=postgres_url, VLP_DEMO="0") as second,
+        httpx.Client(base_url=first.url, timeout=30) as a,
+        httpx.Client(base_url=second.url, timeout=30) as b,
+    ):
+        admin = {"X-API-Key": LIVE_ADMIN_KEY}
+        made = a.post("/v1/keys", json={"role": "terminal", "label": "t"}, headers=admin).json()
+        secret = {"X-API-Key": made["key"]}
+        assert b.get(ROOMS, headers=secret).status_code == 200
+        assert a.delete(f"/v1/keys/{made['id']}", headers=admin).status_code == 204
+        assert a.get(ROOMS, headers=secret).status_code == 401
+        deadline = time.monotonic() + 30.0  # a safety net only; the TTL is 1 s
+        while b.get(ROOMS, headers=secret).status_code != 401:
+            assert time.monotonic() < deadline, "the second process still accepts the key"
+            time.sleep(KEY_CACHE_TTL_S / 10)
