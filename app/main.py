@@ -12,6 +12,7 @@ from contextlib import asynccontextmanager
 from typing import Any
 
 from fastapi import FastAPI
+from fastapi.middleware.cors import CORSMiddleware
 from fastapi.routing import APIRoute
 from starlette.concurrency import run_in_threadpool
 from threadpoolctl import threadpool_limits
@@ -24,11 +25,11 @@ from app.api.localizer import FingerprintCache
 from app.api.metrics import Metrics
 from app.api.middleware import BodySizeLimitMiddleware, RequestContextMiddleware
 from app.api.picture_cache import PictureCache
-from app.api.security import provision_keys
+from app.api.security import KeyCache, provision_keys
 from app.jobs import EmbeddedWorkers
 from app.jobs.epochs import EpochSweeper
 from app.registry import Registry
-from app.registry.seed import seed_demo_room
+from app.registry.seed import find_demo_room, seed_demo_room
 from app.settings import Settings, get_settings
 
 __all__ = ["create_app"]
@@ -67,6 +68,7 @@ _TAGS = [
         "description": "PNG pictures: the room plan with a coverage or CRLB heat map, and "
         "estimates against the truth",
     },
+    {"name": "keys", "description": "API keys: create, list, revoke (admin)"},
     {"name": "operations", "description": "Health, readiness, metrics (no key)"},
 ]
 
@@ -132,11 +134,12 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
         )
         await run_in_threadpool(registry.migrate)
         app.state.registry = registry
-        app.state.keys = await run_in_threadpool(
-            lambda: provision_keys(registry=registry, settings=settings)
-        )
+        await run_in_threadpool(lambda: provision_keys(registry=registry, settings=settings))
+        app.state.keys = KeyCache(registry=registry)
+        demo_room = None
         if settings.demo:
             await run_in_threadpool(seed_demo_room, registry)
+            demo_room = await run_in_threadpool(find_demo_room, registry)
         metrics: Metrics = app.state.metrics
         app.state.cache = FingerprintCache(
             registry=registry,
@@ -151,11 +154,18 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
         workers = EmbeddedWorkers(registry=registry, settings=settings)
         if settings.embedded_workers > 0:
             workers.start()
+        docs_url = f"{settings.public_url.rstrip('/')}/docs"
+        demo_room_id = demo_room.id if demo_room is not None else None
+        # The message itself names the docs and the demo room: it is the line people read.
         _log.info(
-            "service started",
+            "service started: API docs at %s%s",
+            docs_url,
+            f", demo room {demo_room_id}" if demo_room_id else "",
             extra={
                 "data_dir": str(settings.data_dir),
                 "embedded_workers": settings.embedded_workers,
+                "docs_url": docs_url,
+                "demo_room_id": demo_room_id,
             },
         )
         try:
@@ -193,4 +203,20 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(api_router)
     app.add_middleware(BodySizeLimitMiddleware, max_body_bytes=settings.max_body_bytes)
     app.add_middleware(RequestContextMiddleware, metrics=metrics)
+    _install_cors(app, settings)
     return app
+
+
+def _install_cors(app: FastAPI, settings: Settings) -> None:
+    """CORS for the configured origins only (outermost, so preflights never need a key)."""
+    origins = settings.cors_origin_list()
+    if not origins:
+        return
+    app.add_middleware(
+        CORSMiddleware,
+        allow_origins=origins,
+        allow_methods=["GET", "POST", "PUT", "DELETE", "OPTIONS"],
+        allow_headers=["X-API-Key", "If-Match", "If-None-Match", "Content-Type"],
+        expose_headers=["ETag", "Location", "Retry-After", "X-Request-ID"],
+        max_age=600,
+    )

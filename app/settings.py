@@ -8,10 +8,13 @@ from __future__ import annotations
 from functools import lru_cache
 from pathlib import Path
 
-from pydantic import Field
+from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
-__all__ = ["Settings", "get_settings"]
+__all__ = ["MIN_KEY_LENGTH", "Settings", "get_settings"]
+
+# Keys from the environment must be at least this long (generated ones have 43 characters).
+MIN_KEY_LENGTH = 24
 
 
 class Settings(BaseSettings):
@@ -23,8 +26,22 @@ class Settings(BaseSettings):
     database_url: str | None = Field(
         default=None, description="SQLAlchemy URL; postgresql+psycopg://... for scale-out"
     )
-    admin_keys: str = Field(default="", description="comma-separated admin API keys")
-    terminal_keys: str = Field(default="", description="comma-separated terminal API keys")
+    admin_keys: str = Field(
+        default="", description=f"comma-separated admin API keys (>= {MIN_KEY_LENGTH} characters)"
+    )
+    terminal_keys: str = Field(
+        default="",
+        description=f"comma-separated terminal API keys (>= {MIN_KEY_LENGTH} characters)",
+    )
+    public_url: str = Field(
+        default="http://127.0.0.1:8000",
+        description="where clients reach the service (written to the credentials file; "
+        "`vlp serve` sets it from --host/--port unless VLP_PUBLIC_URL is set)",
+    )
+    cors_origins: str = Field(
+        default="",
+        description="comma-separated origins a browser may call the API from (none: no CORS)",
+    )
     embedded_workers: int = Field(default=1, ge=0, le=16)
     demo: bool = Field(default=True, description="seed the paper's room into an empty registry")
 
@@ -63,6 +80,19 @@ class Settings(BaseSettings):
     version_check_seconds: float = Field(default=1.0, ge=0)
     fingerprint_cache_size: int = Field(default=16, ge=1)
 
+    @field_validator("admin_keys", "terminal_keys")
+    @classmethod
+    def _keys_long_enough(cls, value: str) -> str:
+        short = [key.strip() for key in value.split(",") if 0 < len(key.strip()) < MIN_KEY_LENGTH]
+        if short:
+            lengths = ", ".join(str(len(key)) for key in short)
+            raise ValueError(
+                f"API keys must have at least {MIN_KEY_LENGTH} characters; got {len(short)} "
+                f"shorter (length {lengths}). Make one with: python -c "
+                "'import secrets; print(secrets.token_urlsafe(32))'"
+            )
+        return value
+
     def resolved_database_url(self) -> str:
         """The registry URL: ``database_url`` or a SQLite file in ``data_dir``."""
         if self.database_url:
@@ -76,6 +106,10 @@ class Settings(BaseSettings):
     def terminal_key_list(self) -> list[str]:
         """Configured terminal keys (empty strings dropped)."""
         return [key.strip() for key in self.terminal_keys.split(",") if key.strip()]
+
+    def cors_origin_list(self) -> list[str]:
+        """Origins allowed to call the API from a browser (empty: CORS off)."""
+        return [origin.strip() for origin in self.cors_origins.split(",") if origin.strip()]
 
 
 @lru_cache

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import argparse
+import csv
 import math
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -23,7 +25,7 @@ from .rooms import make_room
 if TYPE_CHECKING:
     from .results import Summary
 
-__all__ = ["MODEL_LABELS", "fig3", "fig4", "fig4_all", "method_label"]
+__all__ = ["MODEL_LABELS", "fig3", "fig4", "fig4_all", "main", "method_label", "read_summary"]
 
 MODEL_LABELS = {"power": "CSM-VLP", "correlation": "CoCSM-VLP", "-": ""}
 _STYLE = {"power": "-.", "correlation": "-", "-": "-"}
@@ -115,7 +117,9 @@ def fig4(summary: Sequence[Summary], room: str, path: Path) -> Path:
     n_leds = make_room(room).n_leds
     # Measured values per model; the CRLB is drawn only where 2K + 1 unknowns fit in them.
     n_values = {"power": n_leds, "correlation": n_leds * (n_leds + 1) // 2}
-    fig, axes = plt.subplots(1, len(snrs), figsize=(5.6 * len(snrs), 4.6), squeeze=False)
+    fig, axes = plt.subplots(
+        1, len(snrs), figsize=(5.6 * len(snrs), 4.6), squeeze=False, layout="constrained"
+    )
     for ax, snr in zip(axes[0], snrs, strict=True):
         cell = sorted((s for s in rows if s.snr_db == snr), key=lambda s: s.n_targets)
         for method, model in methods:
@@ -163,11 +167,14 @@ def fig4(summary: Sequence[Summary], room: str, path: Path) -> Path:
         ax.set_title(f"{snr:g} dB")
         ax.grid(alpha=0.3, which="both")
     handles, labels = axes[0][0].get_legend_handles_labels()
-    fig.legend(handles, labels, loc="lower center", ncol=min(len(labels), 5), fontsize=8)
+    # Columns the figure's width holds (about 2.6 inches per label at this font size): a
+    # one-panel figure gets 2, so the legend is never wider than the figure.
+    columns = max(1, min(len(labels), int(5.6 * len(snrs) / 2.6)))
+    fig.legend(handles, labels, loc="outside lower center", ncol=columns, fontsize=8)
     fig.suptitle(f"Mean over trials of the per-trial mean error, room '{room}'")
-    fig.tight_layout(rect=(0.0, 0.05 + 0.035 * math.ceil(len(labels) / 5), 1.0, 1.0))
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
+    # bbox_inches="tight" grows the canvas to whatever the legend needs, on every side.
+    fig.savefig(path, dpi=110, bbox_inches="tight")
     plt.close(fig)
     return path
 
@@ -186,3 +193,45 @@ def fig4_all(summary: Sequence[Summary], folder: Path) -> list[Path]:
     """One Fig. 4 per room in the summary: ``folder/fig4_error_vs_k_<room>.png``."""
     rooms = sorted({s.room for s in summary})
     return [fig4(summary, room, folder / f"fig4_error_vs_k_{room}.png") for room in rooms]
+
+
+def read_summary(path: Path) -> list[Summary]:
+    """The summaries of an ``accuracy_summary.csv`` written by ``bench.accuracy``."""
+    from .results import Summary
+
+    with path.open(newline="", encoding="utf-8") as handle:
+        rows = list(csv.DictReader(handle))
+    return [
+        Summary(
+            room=row["room"],
+            snr_db=float(row["snr_db"]),
+            n_targets=int(row["n_targets"]),
+            method=row["method"],
+            model=row["model"],
+            trials=int(row["trials"]),
+            failures=int(row["failures"]),
+            median_error_m=float(row["median_error_m"]),
+            mean_error_m=float(row["mean_error_m"]),
+            p90_error_m=float(row["p90_error_m"]),
+            median_time_ms=float(row["median_time_ms"]),
+            grid_floor_m=float(row["grid_floor_m"]),
+            crlb_m=float(row["crlb_m"]),
+            crlb_single_m=float(row["crlb_single_m"]),
+        )
+        for row in rows
+    ]
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Re-draw the Fig. 4 PNGs from a stored summary (no benchmark run)."""
+    parser = argparse.ArgumentParser(prog="python -m bench.plots", description=main.__doc__)
+    parser.add_argument("--summary", type=Path, default=Path("docs/data/accuracy_summary.csv"))
+    parser.add_argument("--out", type=Path, default=Path("docs/figures"))
+    args = parser.parse_args(argv)
+    for path in fig4_all(read_summary(args.summary), args.out):
+        print(f"wrote {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

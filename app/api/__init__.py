@@ -2,7 +2,17 @@
 
 from fastapi import APIRouter
 
-from . import calibrations, epochs, fingerprints, health, localize, pictures, rooms, simulate
+from . import (
+    calibrations,
+    epochs,
+    fingerprints,
+    health,
+    keys,
+    localize,
+    pictures,
+    rooms,
+    simulate,
+)
 
 __all__ = ["api_router"]
 
@@ -16,3 +26,4 @@ api_router.include_router(simulate.router)
 api_router.include_router(epochs.router)
 api_router.include_router(pictures.router)
 api_router.include_router(calibrations.router)
+api_router.include_router(keys.router)

@@ -12,7 +12,7 @@ from app.vlp.layout import Layout, layout_from_mapping
 
 from .deps import AdminRole, AnyRole, RegistryDep, RoomId
 from .errors import InvalidInput, problem_responses
-from .fingerprints import job_public
+from .fingerprints import JOB_ACCEPTED_HEADERS, JOB_POLL_AFTER_S, job_public
 
 __all__ = ["calibration_public", "router"]
 
@@ -94,7 +94,7 @@ def _checked_request(body: CalibrationCreate, layout: Layout) -> dict[str, Any]:
     status_code=status.HTTP_202_ACCEPTED,
     summary="Calibrate from a survey, or mask LEDs",
     responses={
-        202: {"headers": {"Location": {"schema": {"type": "string"}}}},
+        202: {"headers": JOB_ACCEPTED_HEADERS},
         **problem_responses(401, 403, 404, 412, 413, 422),
     },
 )
@@ -124,6 +124,7 @@ def create_calibration(
         room_id=room_id, layout_version=record.layout_version, request=request
     )
     response.headers["Location"] = f"/v1/jobs/{calibration.job_id}"
+    response.headers["Retry-After"] = str(JOB_POLL_AFTER_S)
     return job_public(registry.get_job(job_id=calibration.job_id))
 
 

@@ -17,13 +17,14 @@ from .errors import ApiProblem
 from .localizer import FingerprintCache
 from .metrics import Metrics
 from .picture_cache import PictureCache
-from .security import KeyRing, Role
+from .security import KeyCache, Role
 
 __all__ = [
     "AdminRole",
     "AnyRole",
     "CacheDep",
     "JobId",
+    "KeysDep",
     "MetricsDep",
     "PicturesDep",
     "RegistryDep",
@@ -60,6 +61,12 @@ def get_cache(request: Request) -> FingerprintCache:
     return cache
 
 
+def get_keys(request: Request) -> KeyCache:
+    """This process's API key cache."""
+    keys: KeyCache = request.app.state.keys
+    return keys
+
+
 def get_metrics(request: Request) -> Metrics:
     """The app's Prometheus metrics."""
     metrics: Metrics = request.app.state.metrics
@@ -88,11 +95,11 @@ SettingsDep = Annotated[Settings, Depends(get_settings)]
 CacheDep = Annotated[FingerprintCache, Depends(get_cache)]
 MetricsDep = Annotated[Metrics, Depends(get_metrics)]
 PicturesDep = Annotated[PictureCache, Depends(get_pictures)]
+KeysDep = Annotated[KeyCache, Depends(get_keys)]
 
 
 def current_role(
     request: Request,
-    registry: RegistryDep,
     key: Annotated[str | None, Security(api_key_header)] = None,
 ) -> Role:
     """The caller's role from ``X-API-Key``; 401 when it is missing or unknown."""
@@ -103,8 +110,7 @@ def current_role(
             kind="unauthorized",
             headers={"WWW-Authenticate": "X-API-Key"},
         )
-    keys: KeyRing = request.app.state.keys
-    role = keys.role_for(key, registry)
+    role = get_keys(request).role_for(key)
     if role is None:
         raise ApiProblem(
             401, "unknown API key", kind="unauthorized", headers={"WWW-Authenticate": "X-API-Key"}

@@ -11,7 +11,7 @@ from fastapi.openapi.docs import (
     get_swagger_ui_html,
     get_swagger_ui_oauth2_redirect_html,
 )
-from fastapi.responses import HTMLResponse
+from fastapi.responses import HTMLResponse, RedirectResponse
 from fastapi.staticfiles import StaticFiles
 
 __all__ = ["STATIC_DOCS_URL", "install_docs"]
@@ -21,7 +21,7 @@ _ASSETS = Path(fastapi_offline.__file__).parent / "static"
 
 
 def install_docs(app: FastAPI, *, openapi_url: str = "/openapi.json") -> None:
-    """Mount the assets and add ``/docs`` (Swagger UI) and ``/redoc``."""
+    """Mount the assets and add ``/docs`` (Swagger UI), ``/redoc`` and ``/`` (to ``/docs``)."""
     app.mount(STATIC_DOCS_URL, StaticFiles(directory=_ASSETS), name="static-docs")
     redirect_url = "/docs/oauth2-redirect"
 
@@ -36,6 +36,11 @@ def install_docs(app: FastAPI, *, openapi_url: str = "/openapi.json") -> None:
             swagger_favicon_url=f"{STATIC_DOCS_URL}/favicon.png",
             swagger_ui_parameters={"persistAuthorization": True, "tryItOutEnabled": True},
         )
+
+    @app.get("/", include_in_schema=False)
+    def root() -> RedirectResponse:
+        # A person who opens the bare address wants the docs; it shows no data, so no key.
+        return RedirectResponse("/docs", status_code=307)
 
     @app.get(redirect_url, include_in_schema=False)
     def swagger_ui_redirect() -> HTMLResponse:

@@ -7,7 +7,9 @@ Create an epoch, let each terminal post its amplitudes (again replaces), and rea
 from __future__ import annotations
 
 import asyncio
+import math
 import time
+from datetime import UTC, datetime
 from typing import Annotated
 
 from fastapi import APIRouter, Body, Depends, Path, Request, Response, status
@@ -119,12 +121,23 @@ def create_epoch(
     "/{room_id}/epochs/{epoch_id}/measurements",
     status_code=status.HTTP_202_ACCEPTED,
     summary="Post one terminal's amplitudes to an epoch",
-    responses=problem_responses(401, 404, 409, 413, 422, 503),
+    responses={
+        202: {
+            "headers": {
+                "Retry-After": {
+                    "schema": {"type": "integer"},
+                    "description": "seconds until the window closes (read the epoch then)",
+                }
+            }
+        },
+        **problem_responses(401, 404, 409, 413, 422, 503),
+    },
 )
 def post_epoch_measurement(
     room_id: RoomId,
     epoch_id: EpochId,
     body: Annotated[EpochMeasurement, Body(openapi_examples=epoch_measurement_examples())],
+    response: Response,
     registry: RegistryDep,
     _role: AnyRole,
 ) -> Epoch:
@@ -139,6 +152,8 @@ def post_epoch_measurement(
         terminal_id=body.terminal_id,
         amplitudes=body.amplitudes,
     )
+    to_close_s = (record.expires_at - datetime.now(UTC)).total_seconds()
+    response.headers["Retry-After"] = str(max(1, math.ceil(to_close_s)))
     return epoch_public(record)
 
 

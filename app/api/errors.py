@@ -118,9 +118,38 @@ def _validation_errors(exc: RequestValidationError) -> list[tuple[str, str]]:
         loc = [str(part) for part in error.get("loc", ())]
         message = str(error.get("msg", "invalid"))
         if error.get("type") == "json_invalid":
-            message = f"the body is not valid JSON: {error.get('ctx', {}).get('error', '')}"
+            # FastAPI puts the parser's character offset where a field path goes
+            # (`body.35`); it is no field, so name the body and say where it broke.
+            where = f" at character {loc[1]}" if len(loc) > 1 else ""
+            reason = error.get("ctx", {}).get("error", "")
+            message = f"the body is not valid JSON{where} (counted from 0): {reason}"
+            loc = loc[:1]
         errors.append((".".join(loc) or "body", message))
     return errors
+
+
+def _is_json(content_type: str) -> bool:
+    media = content_type.split(";", 1)[0].strip().lower()
+    return media == "application/json" or (
+        media.startswith("application/") and media.endswith("+json")
+    )
+
+
+def _unsupported_media(request: Request, exc: RequestValidationError) -> str | None:
+    """Why a body that is not declared JSON was refused (None when that is not the cause).
+
+    FastAPI does not parse a body without a JSON ``Content-Type``, so the model sees bytes and
+    answers a puzzling 422; a 415 says what to send instead.
+    """
+    content_type = request.headers.get("content-type", "")
+    sent_body = request.headers.get("content-length", "0") != "0" or (
+        "transfer-encoding" in request.headers
+    )
+    body_error = any(tuple(error.get("loc", ()))[:1] == ("body",) for error in exc.errors())
+    if not body_error or not sent_body or _is_json(content_type):
+        return None
+    got = f"Content-Type {content_type}" if content_type else "no Content-Type"
+    return f"send the body as JSON with Content-Type: application/json (got {got})"
 
 
 def _registry_status(exc: RegistryError) -> tuple[int, str]:
@@ -192,6 +221,15 @@ def install_error_handlers(app: FastAPI) -> None:
 
     async def on_validation(request: Request, exc: Exception) -> JSONResponse:
         assert isinstance(exc, RequestValidationError)
+        unsupported = _unsupported_media(request, exc)
+        if unsupported is not None:
+            return problem_response(
+                request,
+                415,
+                unsupported,
+                kind="unsupported-media-type",
+                errors=[("header.content-type", unsupported)],
+            )
         errors = _validation_errors(exc)
         return problem_response(
             request,
@@ -240,6 +278,7 @@ _DESCRIPTIONS = {
     409: "conflict with the resource's state (e.g. no fingerprint ready yet)",
     412: "`If-Match` does not match the room's current `ETag`",
     413: "request body larger than the configured limit",
+    415: "the body is not declared JSON (`Content-Type: application/json`)",
     422: "invalid input; `errors` names each field",
     428: "`If-Match` header missing",
     503: "the registry is unavailable (or a stored matrix failed its integrity check)",

@@ -14,7 +14,24 @@ from app.schemas import Fingerprint, FingerprintsList, Job, JobResult, MatrixMet
 from .deps import AdminRole, AnyRole, JobId, RegistryDep, RoomId
 from .errors import ApiProblem, problem_responses
 
-__all__ = ["fingerprint_public", "job_public", "jobs_router", "router"]
+__all__ = [
+    "JOB_ACCEPTED_HEADERS",
+    "JOB_POLL_AFTER_S",
+    "fingerprint_public",
+    "job_public",
+    "jobs_router",
+    "router",
+]
+
+# A 202 names the job to poll (Location) and how long to wait before the first poll.
+JOB_POLL_AFTER_S = 1
+JOB_ACCEPTED_HEADERS: dict[str, Any] = {
+    "Location": {"schema": {"type": "string"}, "description": "the job to poll"},
+    "Retry-After": {
+        "schema": {"type": "integer"},
+        "description": "seconds to wait before polling the job",
+    },
+}
 
 router = APIRouter(prefix="/v1/rooms/{room_id}/fingerprints", tags=["fingerprints"])
 jobs_router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
@@ -98,7 +115,7 @@ def list_fingerprints(room_id: RoomId, registry: RegistryDep, _role: AnyRole) ->
     status_code=status.HTTP_202_ACCEPTED,
     summary="Rebuild the fingerprint",
     responses={
-        202: {"headers": {"Location": {"schema": {"type": "string"}}}},
+        202: {"headers": JOB_ACCEPTED_HEADERS},
         **problem_responses(401, 403, 404),
     },
 )
@@ -111,6 +128,7 @@ def rebuild_fingerprint(
     """
     job = registry.request_build(room_id=room_id)
     response.headers["Location"] = f"/v1/jobs/{job.id}"
+    response.headers["Retry-After"] = str(JOB_POLL_AFTER_S)
     return job_public(job)
 
 

@@ -12,8 +12,13 @@ from .middleware import request_id_var
 
 __all__ = ["JsonFormatter", "configure_logging"]
 
-# Attributes every LogRecord has; anything else was passed through ``extra=``.
-_STANDARD = frozenset(vars(logging.makeLogRecord({})).keys()) | {"message", "asctime"}
+# Attributes every LogRecord has; anything else was passed through ``extra=``, except
+# uvicorn's ``color_message`` (the message again, with ANSI colour codes).
+_STANDARD = frozenset(vars(logging.makeLogRecord({})).keys()) | {
+    "message",
+    "asctime",
+    "color_message",
+}
 
 
 class JsonFormatter(logging.Formatter):

@@ -2,40 +2,23 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Callable, Mapping
 
 from prometheus_client import CollectorRegistry, Counter, Histogram
-from prometheus_client.core import GaugeMetricFamily
-from prometheus_client.registry import Collector
+
+from app.jobs.metrics import JOB_STATUSES, JobsCollector, register_process_collectors
 
 __all__ = ["JOB_STATUSES", "JobsCollector", "Metrics"]
 
-JOB_STATUSES = ("queued", "running", "succeeded", "failed")
 _LATENCY_BUCKETS = (0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0)
 
 
-class JobsCollector(Collector):
-    """Reads the jobs-by-status counts from the registry at scrape time."""
-
-    def __init__(self, count_jobs: Callable[[], Mapping[str, int] | None]) -> None:
-        self._count_jobs = count_jobs
-
-    def collect(self) -> Iterator[GaugeMetricFamily]:
-        """One gauge sample per job status (nothing while the counts are unavailable)."""
-        counts = self._count_jobs()
-        if counts is None:
-            return
-        gauge = GaugeMetricFamily("vlp_jobs", "Fingerprint build jobs by status", labels=["status"])
-        for status in JOB_STATUSES:
-            gauge.add_metric([status], float(counts.get(status, 0)))
-        yield gauge
-
-
 class Metrics:
-    """Request, localization and cache metrics of one app."""
+    """Request, localization, cache and process metrics of one app."""
 
     def __init__(self) -> None:
         self.registry = CollectorRegistry(auto_describe=True)
+        register_process_collectors(self.registry)
         self.requests = Counter(
             "vlp_http_requests",
             "HTTP requests by route template",

@@ -84,12 +84,13 @@ async def room_map(
     pictures: PicturesDep,
     _role: AnyRole,
     heatmap: Annotated[
-        Literal["coverage", "crlb", "none"],
+        Literal["auto", "coverage", "crlb", "none"],
         Query(
             description="`coverage`: LEDs in the receiver's field of view per point; `crlb`: "
-            "single-target Cramér-Rao bound (cm) at `snr_db`; `none`: plan only"
+            "single-target Cramér-Rao bound (cm) at `snr_db`; `none`: plan only; `auto`: "
+            "`coverage` unless it is the same everywhere (one flat colour), then `crlb`"
         ),
-    ] = "coverage",
+    ] = "auto",
     fingerprint_version: Annotated[
         int | None,
         Query(ge=1, le=MAX_VERSION, description="whose layout to draw; default: the current one"),

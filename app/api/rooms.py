@@ -115,14 +115,30 @@ def list_rooms(
 @router.get(
     "/{room_id}",
     summary="Read a room",
+    response_model=Room,
     responses={
         200: {"headers": {"ETag": {"schema": {"type": "string"}}}},
+        304: {
+            "description": "`If-None-Match` names the room's current `ETag`: unchanged, no body",
+            "headers": {"ETag": {"schema": {"type": "string"}}},
+        },
         **problem_responses(401, 404),
     },
 )
-def get_room(room_id: RoomId, response: Response, registry: RegistryDep, _role: AnyRole) -> Room:
-    """The room, with its `ETag` (send it back in `If-Match` to replace the room)."""
+def get_room(
+    room_id: RoomId,
+    response: Response,
+    registry: RegistryDep,
+    _role: AnyRole,
+    if_none_match: Annotated[
+        str | None, Header(description="an `ETag` read before: 304 while it is still current")
+    ] = None,
+) -> Room | Response:
+    """The room, with its `ETag` (send it back in `If-Match` to replace the room, or in
+    `If-None-Match` to get a bodiless 304 while the room is unchanged)."""
     record = registry.get_room(room_id=room_id)
+    if if_none_match is not None and _matches(if_none_match, record.etag):
+        return Response(status_code=status.HTTP_304_NOT_MODIFIED, headers={"ETag": record.etag})
     response.headers["ETag"] = record.etag
     return room_public(record)
 

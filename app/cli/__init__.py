@@ -16,9 +16,13 @@ import os
 import sys
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from ._bench import BENCHMARKS, run_benchmark
 from ._remote import add_remote_commands
+
+if TYPE_CHECKING:
+    from app.settings import Settings
 
 __all__ = ["EXIT_NO_ANSWER", "EXIT_REFUSED", "EXIT_USAGE", "main", "openapi_document"]
 
@@ -43,8 +47,30 @@ def openapi_document() -> str:
     return json.dumps(schema, sort_keys=True, indent=2) + "\n"
 
 
+def _settings_or_none(command: str, public_url: str | None = None) -> Settings | None:
+    """The environment's settings (with ``public_url`` unless set); None after a clear error."""
+    from pydantic import ValidationError
+
+    from app.settings import Settings
+
+    try:
+        settings = Settings()
+    except ValidationError as exc:
+        for error in exc.errors():
+            name = "VLP_" + "_".join(str(part) for part in error["loc"]).upper()
+            print(f"vlp {command}: {name}: {error['msg']}", file=sys.stderr)
+        return None
+    if public_url is not None and "VLP_PUBLIC_URL" not in os.environ:
+        settings = settings.model_copy(update={"public_url": public_url})
+    return settings
+
+
 def _serve(args: argparse.Namespace) -> int:
     _pin_blas()
+    host = "127.0.0.1" if args.host in ("0.0.0.0", "::", "") else args.host
+    settings = _settings_or_none("serve", f"http://{host}:{args.port}")
+    if settings is None:
+        return EXIT_USAGE
     import uvicorn
 
     from app.api.logs import configure_logging
@@ -52,7 +78,7 @@ def _serve(args: argparse.Namespace) -> int:
 
     configure_logging(args.log_level)
     uvicorn.run(
-        create_app(),
+        create_app(settings),
         host=args.host,
         port=args.port,
         log_config=None,
@@ -66,10 +92,13 @@ def _worker(args: argparse.Namespace) -> int:
     _pin_blas()
     from app.api.logs import configure_logging
     from app.jobs import run_worker
-    from app.settings import get_settings
 
+    settings = _settings_or_none("worker")
+    if settings is None:
+        return EXIT_USAGE
     configure_logging(args.log_level)
-    run_worker(settings=get_settings())
+    address = None if args.metrics_port is None else (args.metrics_host, args.metrics_port)
+    run_worker(settings=settings, metrics_address=address)
     return 0
 
 
@@ -99,6 +128,13 @@ def _parser() -> argparse.ArgumentParser:
 
     worker = commands.add_parser("worker", help="run fingerprint-build workers")
     worker.add_argument("--log-level", default="info")
+    worker.add_argument(
+        "--metrics-port",
+        type=int,
+        default=None,
+        help="serve Prometheus metrics (process, jobs by status) at /metrics on this port",
+    )
+    worker.add_argument("--metrics-host", default="127.0.0.1", help="address for --metrics-port")
     worker.set_defaults(handler=_worker)
 
     openapi = commands.add_parser("openapi", help="write the OpenAPI document")

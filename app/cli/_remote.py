@@ -137,12 +137,15 @@ def _rooms_calibrate(client: VLPClient, out: Output, args: argparse.Namespace) -
     if not args.wait:
         out.result(job)
         return 0
+    from ._calibration_report import show_calibration
+
     job = _wait(client, out, job, args)
     calibration_id = _calibration_id(job)
     if calibration_id is None:
         out.result(job)
     else:
-        out.result(client.get_calibration(args.room_id, calibration_id))
+        report = client.get_calibration(args.room_id, calibration_id)
+        out.result(report, lambda value: show_calibration(out, value))
     return 0
 
 
@@ -265,8 +268,11 @@ def _add_rooms(commands: Any) -> None:
 
 
 def add_remote_commands(commands: Any) -> None:
-    """Add ``rooms``, ``simulate`` and ``localize`` to the ``vlp`` sub-command parsers."""
+    """Add ``rooms``, ``keys``, ``simulate`` and ``localize`` to the ``vlp`` sub-commands."""
+    from ._keys import add_keys_command
+
     _add_rooms(commands)
+    add_keys_command(commands, _remote)
     simulate = _remote(
         commands, "simulate", _simulate, "simulate a measurement (and localize it with --localize)"
     )

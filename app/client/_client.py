@@ -11,6 +11,8 @@ import httpx
 from pydantic import BaseModel
 
 from app.schemas import (
+    ApiKeyCreated,
+    ApiKeysList,
     Fingerprint,
     FingerprintsList,
     Localization,
@@ -369,3 +371,17 @@ class VLPClient:
             "GET", f"/v1/rooms/{room_id}/calibrations/{calibration_id}"
         ).json()
         return report
+
+    # -- API keys (admin) -------------------------------------------------------------------
+
+    def create_key(self, role: str, label: str) -> ApiKeyCreated:
+        """A new key; its secret (``.key``) is in this answer only."""
+        return self._post("/v1/keys", ApiKeyCreated, {"role": role, "label": label})
+
+    def list_keys(self) -> ApiKeysList:
+        """The keys in force, without their secrets."""
+        return self._get("/v1/keys", ApiKeysList)
+
+    def revoke_key(self, key_id: str) -> None:
+        """Revoke a key by its id (every API process refuses it within 2 s)."""
+        self.request("DELETE", f"/v1/keys/{key_id}")

@@ -37,6 +37,7 @@ from app.registry.queue import (
 from app.settings import Settings
 
 from .build import BuildTask, build_and_store, init_build_process
+from .metrics import WorkerMetricsServer, serve_worker_metrics
 
 __all__ = ["BuildFunction", "EmbeddedWorkers", "run_worker"]
 
@@ -320,10 +321,25 @@ class EmbeddedWorkers:
         return any(thread.is_alive() for thread in self._threads)
 
 
-def run_worker(*, settings: Settings, stop: threading.Event | None = None) -> None:
+def _job_counts(registry: Registry) -> dict[str, int] | None:
+    """Jobs by status for a scrape; None (no sample) while the registry is unreachable."""
+    try:
+        return registry.count_jobs_by_status()
+    except RegistryError:
+        return None
+
+
+def run_worker(
+    *,
+    settings: Settings,
+    stop: threading.Event | None = None,
+    metrics_address: tuple[str, int] | None = None,
+) -> None:
     """``vlp worker``: migrate, then run ``max(1, embedded_workers)`` workers until stopped.
 
-    Without ``stop``, SIGINT and SIGTERM stop it (when called from the main thread).
+    Without ``stop``, SIGINT and SIGTERM stop it (when called from the main thread). With
+    ``metrics_address`` ``(host, port)``, Prometheus metrics (process, jobs by status) are
+    served at ``http://host:port/metrics`` while it runs.
     """
     if stop is None:
         stop = threading.Event()
@@ -337,10 +353,25 @@ def run_worker(*, settings: Settings, stop: threading.Event | None = None) -> No
         job_lease_seconds=settings.job_lease_seconds,
     )
     workers = EmbeddedWorkers(registry=registry, settings=settings)
+    n_workers = max(1, settings.embedded_workers)
+    metrics: WorkerMetricsServer | None = None
     try:
         registry.migrate()
-        workers.start(max(1, settings.embedded_workers))
+        if metrics_address is not None:
+            host, port = metrics_address
+            metrics = serve_worker_metrics(
+                host=host, port=port, count_jobs=lambda: _job_counts(registry), workers=n_workers
+            )
+            _log.info(
+                "worker metrics at http://%s:%d/metrics",
+                host,
+                metrics.port,
+                extra={"metrics_port": metrics.port},
+            )
+        workers.start(n_workers)
         stop.wait()
     finally:
         workers.stop()
+        if metrics is not None:
+            metrics.stop()
         registry.dispose()

@@ -29,7 +29,7 @@ __all__ = [
     "sample_grid",
 ]
 
-HeatmapKind = Literal["coverage", "crlb", "none"]
+HeatmapKind = Literal["auto", "coverage", "crlb", "none"]
 CrlbMap = Callable[[Layout, FloatArray, float], FloatArray]
 """``(layout, points (P, 2) in m, noise_std) -> single-target CRLB (P,) in metres``."""
 

@@ -28,9 +28,9 @@ from .heatmaps import (
     sample_grid,
 )
 
-__all__ = ["room_map_png"]
+__all__ = ["resolved_heatmap", "room_map_png"]
 
-_KINDS = ("coverage", "crlb", "none")
+_KINDS = ("auto", "coverage", "crlb", "none")
 # Coverage maps with at most this many LEDs in view get one discrete colour per count.
 _DISCRETE_COVERAGE_LIMIT = 20
 
@@ -38,7 +38,7 @@ _DISCRETE_COVERAGE_LIMIT = 20
 def room_map_png(
     layout: Layout,
     *,
-    heatmap: HeatmapKind = "coverage",
+    heatmap: HeatmapKind = "auto",
     snr_db: float = 30.0,
     noise_std: float | None = None,
     width_px: int = 800,
@@ -51,9 +51,11 @@ def room_map_png(
     Parameters
     ----------
     layout : Layout
-    heatmap : {"coverage", "crlb", "none"}, default="coverage"
+    heatmap : {"auto", "coverage", "crlb", "none"}, default="auto"
         ``coverage``: number of LEDs in the receiver's field of view per point;
-        ``crlb``: single-target Cramér-Rao bound in cm per point at ``snr_db``.
+        ``crlb``: single-target Cramér-Rao bound in cm per point at ``snr_db``;
+        ``auto``: ``coverage`` unless every point sees the same number of LEDs (one flat
+        colour, as in the paper's room), then ``crlb``.
     snr_db : float, default=30.0
         SNR of the ``crlb`` map, in the service's convention (``app.vlp.simulation``).
     noise_std : float, default=None
@@ -93,11 +95,13 @@ def room_map_png(
         raise GeometryError(f"snr_db must be finite, got {snr_db!r}", field="snr_db")
     if noise_std is not None and not (np.isfinite(noise_std) and noise_std > 0):
         raise GeometryError(f"noise_std must be positive, got {noise_std!r}", field="noise_std")
+    samples = sample_grid(layout, max_samples)
+    if heatmap == "auto":
+        heatmap = resolved_heatmap(layout, samples)
     # A colour bar beside a long, narrow room would dwarf it: put it below instead.
     below = heatmap != "none" and layout.room.width < 0.6 * layout.room.length
     figure = new_figure(layout, width_px, extra_height=1.2 if below else 0.0)
     axes = figure.add_subplot()
-    samples = sample_grid(layout, max_samples)
     if heatmap == "coverage":
         _draw_coverage(axes, layout, samples, below=below)
     elif heatmap == "crlb":
@@ -116,6 +120,12 @@ def room_map_png(
     )
     figure.legend(loc="outside lower center", ncols=4, fontsize="small", frameon=False)
     return png_bytes(figure)
+
+
+def resolved_heatmap(layout: Layout, samples: SampleGrid) -> HeatmapKind:
+    """What ``auto`` draws: ``coverage`` when it varies over the samples, else ``crlb``."""
+    counts = coverage_counts(layout, samples.points)
+    return "coverage" if counts.size and counts.min() != counts.max() else "crlb"
 
 
 def _default_title(

@@ -19,6 +19,7 @@ from sqlalchemy import (
     String,
     Table,
     Text,
+    UniqueConstraint,
 )
 from sqlalchemy.types import TypeDecorator
 
@@ -65,9 +66,16 @@ api_keys = Table(
     "api_keys",
     metadata,
     Column("key_hash", String(64), primary_key=True),
+    Column("id", ID, nullable=False),
     Column("role", String(16), nullable=False),
     Column("label", Text, nullable=False),
+    # "api" (POST /v1/keys), "environment" (VLP_*_KEYS) or "generated" (first start).
+    Column("source", String(16), nullable=False),
     Column("created_at", UTCDateTime(), nullable=False),
+    Column("last_used_at", UTCDateTime(), nullable=True),
+    # A revoked key's row stays, so the same key set again in the environment stays refused.
+    Column("revoked_at", UTCDateTime(), nullable=True),
+    UniqueConstraint("id", name="uq_api_keys_id"),
 )
 
 rooms = Table(

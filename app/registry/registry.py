@@ -11,6 +11,7 @@ from __future__ import annotations
 import uuid
 from collections.abc import Iterable, Sequence
 from dataclasses import replace
+from datetime import datetime
 from pathlib import Path
 from typing import Any
 
@@ -22,6 +23,7 @@ from app.vlp.fingerprints import Fingerprint
 from app.vlp.layout import layout_from_mapping
 
 from . import epochs as _epochs
+from . import keys as _keys
 from ._db import (
     create_registry_engine,
     migrate,
@@ -40,7 +42,7 @@ from ._rows import (
     room_record,
     room_select,
 )
-from ._schema import api_keys, calibrations, fingerprints, jobs, matrices, rooms
+from ._schema import calibrations, fingerprints, jobs, matrices, rooms
 from .calibrations import create_calibration, get_calibration, list_calibrations
 from .epochs import EpochRecord, EpochSettings
 from .errors import (
@@ -112,32 +114,44 @@ class Registry:
         """Close every pooled connection."""
         self.engine.dispose()
 
-    # -- API keys -------------------------------------------------------------------------
-    def count_api_keys(self) -> int:
-        """How many API keys are registered."""
-        with translate_errors(), self.engine.connect() as conn:
-            return int(conn.execute(select(func.count()).select_from(api_keys)).scalar_one())
+    # -- API keys (rules in app.registry.keys) ----------------------------------------------
+    def create_api_key(
+        self, *, key_hash: str, role: str, label: str, source: _keys.KeySource = "api"
+    ) -> _keys.KeyRecord:
+        """Store a new key by its sha256 hex hash."""
+        return _keys.create_api_key(
+            self.engine, key_hash=key_hash, role=role, label=label, source=source
+        )
 
-    def add_api_key(self, *, key_hash: str, role: str, label: str) -> None:
-        """Register a key by its sha256 hex hash (a known hash is left as it is)."""
-        with write_transaction(self.engine) as conn:
-            known = conn.execute(
-                select(api_keys.c.key_hash).where(api_keys.c.key_hash == key_hash)
-            ).one_or_none()
-            if known is None:
-                conn.execute(
-                    insert(api_keys).values(
-                        key_hash=key_hash, role=role, label=label, created_at=utcnow()
-                    )
-                )
+    def list_api_keys(self) -> list[_keys.KeyRecord]:
+        """The keys in force, oldest first."""
+        return _keys.list_api_keys(self.engine)
 
-    def role_for_key_hash(self, *, key_hash: str) -> str | None:
-        """The role of a key hash, or None for an unknown one."""
-        with translate_errors(), self.engine.connect() as conn:
-            role = conn.execute(
-                select(api_keys.c.role).where(api_keys.c.key_hash == key_hash)
-            ).scalar_one_or_none()
-        return None if role is None else str(role)
+    def get_active_key(self, *, key_hash: str) -> _keys.KeyRecord | None:
+        """The key in force with this hash, or None."""
+        return _keys.get_active_key(self.engine, key_hash=key_hash)
+
+    def revoke_api_key(self, *, key_id: str) -> _keys.KeyRecord:
+        """Revoke a key in force (NotFound; Conflict for the last admin key)."""
+        return _keys.revoke_api_key(self.engine, key_id=key_id)
+
+    def touch_api_key(self, *, key_hash: str, when: datetime) -> None:
+        """Record the key's last use."""
+        _keys.touch_api_key(self.engine, key_hash=key_hash, when=when)
+
+    def sync_environment_keys(
+        self, *, configured: list[tuple[str, str]]
+    ) -> tuple[list[str], list[str]]:
+        """Make the stored environment keys those configured (see app.registry.keys)."""
+        return _keys.sync_environment_keys(self.engine, configured=configured)
+
+    def add_generated_keys_if_no_admin(self, *, keys: list[tuple[str, str]]) -> bool:
+        """Store these ``(key_hash, role)`` as generated keys unless an admin key is in force."""
+        return _keys.add_generated_keys_if_no_admin(self.engine, keys=keys)
+
+    def count_active_admin_keys(self) -> int:
+        """How many admin keys are in force."""
+        return _keys.count_active_admin_keys(self.engine)
 
     # -- rooms ----------------------------------------------------------------------------
     def create_room(self, *, name: str, layout: dict[str, Any]) -> RoomRecord:

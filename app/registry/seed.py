@@ -7,7 +7,7 @@ from app.vlp.presets import paper_layout
 from .records import RoomRecord
 from .registry import Registry
 
-__all__ = ["seed_demo_room"]
+__all__ = ["find_demo_room", "seed_demo_room"]
 
 
 def seed_demo_room(registry: Registry) -> RoomRecord | None:
@@ -19,3 +19,10 @@ def seed_demo_room(registry: Registry) -> RoomRecord | None:
         return None
     layout = paper_layout().to_mapping()
     return registry.create_room(name=str(layout["name"]), layout=layout)
+
+
+def find_demo_room(registry: Registry) -> RoomRecord | None:
+    """The oldest room named like the paper's room among the first 100, or None."""
+    name = paper_layout().name
+    records, _ = registry.list_rooms(limit=100, cursor=None)
+    return next((record for record in records if record.name == name), None)

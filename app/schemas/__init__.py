@@ -9,6 +9,7 @@ from .calibrations import (
 )
 from .epochs import Epoch, EpochCreate, EpochMeasurement, EpochStatus
 from .fingerprints import Fingerprint, FingerprintsList, Job, JobResult, MatrixMeta, MatrixName
+from .keys import ApiKey, ApiKeyCreate, ApiKeyCreated, ApiKeysList
 from .localize import (
     SOLVER_NAMES,
     Estimate,
@@ -34,6 +35,10 @@ from .simulate import Simulation, SimulationRequest, TruthTarget
 
 __all__ = [
     "SOLVER_NAMES",
+    "ApiKey",
+    "ApiKeyCreate",
+    "ApiKeyCreated",
+    "ApiKeysList",
     "Calibration",
     "CalibrationCreate",
     "CalibrationsList",

@@ -32,8 +32,8 @@ __all__ = [
     "wait_for_room",
 ]
 
-ADMIN_KEY = "admin-test-key"
-TERMINAL_KEY = "term-key"
+ADMIN_KEY = "admin-test-key-0123456789"
+TERMINAL_KEY = "terminal-test-key-0123456789"
 ADMIN = {"X-API-Key": ADMIN_KEY}
 TERMINAL = {"X-API-Key": TERMINAL_KEY}
 BUILD_TIMEOUT_S = 90.0

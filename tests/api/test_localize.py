@@ -203,7 +203,7 @@ def test_invalid_measurements_name_the_field(ready_app: tuple[TestClient, str]) 
     _bad(client, room_id, {"power": ones, "fingerprint_version": 0}, ["body.fingerprint_version"])
     response = client.post(
         f"/v1/rooms/{room_id}/localize",
-        headers=TERMINAL,
+        headers={**TERMINAL, "Content-Type": "application/json"},
         content=b'{"power": [NaN' + b", 1.0" * 15 + b"]}",
     )
     assert_problem(response, 422)

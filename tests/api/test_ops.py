@@ -203,6 +203,7 @@ def test_vlp_serve_logs_json_and_vlp_rooms_lists(tmp_path: Path) -> None:
             )
             assert listed.returncode == 0, listed.stderr
             assert json.loads(listed.stdout)[0]["name"] == "Paper room"
+            demo_room_id = json.loads(listed.stdout)[0]["id"]
             denied = subprocess.run(
                 [str(vlp), "rooms", "list", "--json", "--url", url],
                 capture_output=True,
@@ -219,3 +220,9 @@ def test_vlp_serve_logs_json_and_vlp_rooms_lists(tmp_path: Path) -> None:
     access = [line for line in lines if line["logger"] == "app.access"]
     assert any(line["route"] == "/v1/rooms" and line["status"] == 200 for line in access)
     assert all(len(line["request_id"]) == 32 for line in access)
+    # Start-up names the docs URL and the demo room; uvicorn's ANSI duplicate is dropped.
+    started = next(line for line in lines if line["message"].startswith("service started"))
+    assert started["docs_url"] == f"{url}/docs" and started["demo_room_id"] == demo_room_id
+    assert f"{url}/docs" in started["message"] and demo_room_id in started["message"]
+    assert not any("color_message" in line for line in lines)
+    assert not any("\x1b[" in json.dumps(line) for line in lines)

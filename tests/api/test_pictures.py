@@ -47,11 +47,37 @@ def test_map_png_is_a_png_and_cached(ready_app: tuple[TestClient, str]) -> None:
 @pytest.mark.parametrize("heatmap", ["crlb", "none"])
 def test_map_png_other_heatmaps_differ(ready_app: tuple[TestClient, str], heatmap: str) -> None:
     client, room_id = ready_app
-    coverage = client.get(f"/v1/rooms/{room_id}/map.png?width_px=400", headers=ADMIN)
-    other = client.get(f"/v1/rooms/{room_id}/map.png?width_px=400&heatmap={heatmap}", headers=ADMIN)
+    url = f"/v1/rooms/{room_id}/map.png?width_px=400"
+    coverage = client.get(f"{url}&heatmap=coverage", headers=ADMIN)
+    other = client.get(f"{url}&heatmap={heatmap}", headers=ADMIN)
     assert other.status_code == 200
     assert _png(other.content).size[0] == 400
     assert other.content != coverage.content
+
+
+def test_default_map_of_the_demo_room_is_not_one_flat_colour(
+    ready_app: tuple[TestClient, str],
+) -> None:
+    """Every point of the paper's room sees all 16 LEDs, so coverage is one colour; the
+    default (`auto`) then draws the CRLB, which varies over the room."""
+    client, room_id = ready_app
+    url = f"/v1/rooms/{room_id}/map.png?width_px=400"
+    default = client.get(url, headers=ADMIN).content
+    assert default == client.get(f"{url}&heatmap=crlb", headers=ADMIN).content
+    assert default != client.get(f"{url}&heatmap=coverage", headers=ADMIN).content
+
+    def commonest_colour_share(content: bytes) -> float:
+        # Inside the room, away from the colour bar and labels.
+        image = _png(content).convert("RGB")
+        width, height = image.size
+        box = image.crop((width // 4, height // 3, width // 2, 2 * height // 3))
+        colours = box.getcolors(maxcolors=box.width * box.height)
+        assert colours is not None
+        return max(count for count, _ in colours) / (box.width * box.height)
+
+    coverage = client.get(f"{url}&heatmap=coverage", headers=ADMIN).content
+    assert commonest_colour_share(coverage) > 0.5  # the flat map the issue saw
+    assert commonest_colour_share(default) < 0.2
 
 
 @pytest.mark.parametrize(

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import stat
+import subprocess
 from pathlib import Path
 from typing import Any
 
@@ -137,7 +138,7 @@ def test_role_matrix(
     for response in answers.values():
         _assert_no_leak(response)
         assert response.status_code < 500, response.text
-    # Keys are never logged (only the first-start key pair is, once, at creation).
+    # Keys are never logged.
     for key in (ADMIN["X-API-Key"], TERMINAL["X-API-Key"], _UNKNOWN_KEY):
         assert key not in caplog.text
     if needed == "open":
@@ -173,22 +174,37 @@ def test_open_endpoints_need_no_key(client: TestClient, path: str) -> None:
 
 
 def _credentials(path: Path) -> dict[str, str]:
-    lines = path.read_text(encoding="utf-8").splitlines()
-    return dict(line.split("=", 1) for line in lines if line and not line.startswith("#"))
+    """The variables a shell has after ``source``-ing the credentials file (and only it)."""
+    names = ("VLP_URL", "ADMIN_KEY", "TERMINAL_KEY", "VLP_ADMIN_KEYS", "VLP_TERMINAL_KEYS")
+    script = 'set -eu; source "$1"; ' + "; ".join(f'echo "{n}=${{{n}}}"' for n in names)
+    result = subprocess.run(
+        ["bash", "-c", script, "bash", str(path)],
+        env={"PATH": "/usr/bin:/bin"},
+        capture_output=True,
+        text=True,
+        check=True,
+    )
+    return dict(line.split("=", 1) for line in result.stdout.splitlines())
 
 
-def test_first_start_generates_keys_once(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
-    settings = make_settings(tmp_path, admin_keys="", terminal_keys="")
-    with (
-        caplog.at_level("WARNING", logger="app.security"),
-        TestClient(create_app(settings)) as client,
-    ):
+def test_first_start_generates_keys_once(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture, capsys: pytest.CaptureFixture[str]
+) -> None:
+    settings = make_settings(
+        tmp_path, admin_keys="", terminal_keys="", public_url="http://127.0.0.1:8123"
+    )
+    with caplog.at_level(logging.DEBUG), TestClient(create_app(settings)) as client:
         path = tmp_path / CREDENTIALS_FILE
         assert stat.S_IMODE(path.stat().st_mode) == 0o600
         keys = _credentials(path)
-        admin, terminal = keys["VLP_ADMIN_KEYS"], keys["VLP_TERMINAL_KEYS"]
+        admin, terminal = keys["ADMIN_KEY"], keys["TERMINAL_KEY"]
+        assert keys["VLP_ADMIN_KEYS"] == admin and keys["VLP_TERMINAL_KEYS"] == terminal
+        assert keys["VLP_URL"] == "http://127.0.0.1:8123"
         assert len(admin) >= 40 and len(terminal) >= 40 and admin != terminal
-        assert admin in caplog.text and "printed once" in caplog.text
+        # Shown once on the terminal, never in a log record.
+        printed = capsys.readouterr().err
+        assert admin in printed and terminal in printed
+        assert admin not in caplog.text and terminal not in caplog.text
         assert (
             client.post("/v1/rooms", json=small_room(), headers={"X-API-Key": admin}).status_code
             == 201
@@ -204,13 +220,9 @@ def test_first_start_generates_keys_once(tmp_path: Path, caplog: pytest.LogCaptu
     assert hash_key(admin).encode() in database or _wal_has(tmp_path, hash_key(admin))
 
     # A second start reuses the stored hashes and generates nothing new.
-    caplog.clear()
     path.unlink()
-    with (
-        caplog.at_level("WARNING", logger="app.security"),
-        TestClient(create_app(settings)) as client,
-    ):
-        assert not path.exists() and "printed once" not in caplog.text
+    with TestClient(create_app(settings)) as client:
+        assert not path.exists() and admin not in capsys.readouterr().err
         assert client.get("/v1/rooms", headers={"X-API-Key": admin}).status_code == 200
 
 
@@ -220,12 +232,13 @@ def _wal_has(data_dir: Path, text: str) -> bool:
 
 
 def test_configured_keys_are_stored_as_hashes(tmp_path: Path) -> None:
-    settings = make_settings(tmp_path, admin_keys=" a-key , b-key ", terminal_keys="t-key")
+    a_key, b_key, t_key = "a-key-0123456789abcdefghij", "b-key-0123456789abcdefghij", "t" * 24
+    settings = make_settings(tmp_path, admin_keys=f" {a_key} , {b_key} ", terminal_keys=t_key)
     with TestClient(create_app(settings)) as client:
-        for key in ("a-key", "b-key"):
+        for key in (a_key, b_key):
             assert (
                 client.post("/v1/rooms", json=small_room(), headers={"X-API-Key": key}).status_code
                 == 201
             )
-        assert client.get("/v1/rooms", headers={"X-API-Key": "t-key"}).status_code == 200
+        assert client.get("/v1/rooms", headers={"X-API-Key": t_key}).status_code == 200
         assert not (tmp_path / CREDENTIALS_FILE).exists()

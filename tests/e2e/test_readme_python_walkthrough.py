@@ -4,24 +4,11 @@ from __future__ import annotations
 
 import json
 import math
-import re
-import subprocess
-import sys
 from pathlib import Path
 
 from scipy.optimize import linear_sum_assignment
 
-from bench._server import ADMIN_KEY, TERMINAL_KEY, live_server
-
-REPO = Path(__file__).resolve().parents[2]
-
-
-def python_walkthrough() -> str:
-    """The python block that follows the ``<!-- python-walkthrough -->`` marker in README.md."""
-    readme = (REPO / "README.md").read_text(encoding="utf-8")
-    match = re.search(r"<!-- python-walkthrough -->\s*```python\n(.*?)```", readme, re.DOTALL)
-    assert match, "README.md has no python walkthrough block"
-    return match.group(1)
+from .readme_blocks import PYTHON_WALKTHROUGH_FILE, readme_blocks, readme_checkout
 
 
 def _points(lines: list[str], label: str) -> list[tuple[float, float]]:
@@ -31,22 +18,20 @@ def _points(lines: list[str], label: str) -> list[tuple[float, float]]:
     ]
 
 
+def _run_line() -> str:
+    """The README's shell block that runs the saved walkthrough."""
+    found = [
+        block.code
+        for block in readme_blocks()
+        if block.language == "bash" and PYTHON_WALKTHROUGH_FILE in block.code
+    ]
+    assert len(found) == 1, found
+    return found[0]
+
+
 def test_readme_python_walkthrough_runs_and_localizes(tmp_path: Path) -> None:
-    with live_server(tmp_path / "data", VLP_DEMO="0") as server:
-        result = subprocess.run(
-            [sys.executable, "-c", python_walkthrough()],
-            cwd=REPO,
-            env={
-                "VLP": server.url,
-                "ADMIN_KEY": ADMIN_KEY,
-                "TERMINAL_KEY": TERMINAL_KEY,
-                "OPENBLAS_NUM_THREADS": "1",
-                "PATH": "/usr/local/bin:/usr/bin:/bin",
-            },
-            capture_output=True,
-            text=True,
-            timeout=120,
-        )
+    with readme_checkout(tmp_path / "checkout") as checkout:
+        result = checkout.run(_run_line(), timeout_s=180)
     assert result.returncode == 0, result.stderr
     lines = result.stdout.strip().splitlines()
     assert lines[-17] == "fingerprint: ready" and lines[-18] == "build 100%", lines

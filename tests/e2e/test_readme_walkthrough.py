@@ -4,41 +4,17 @@ from __future__ import annotations
 
 import json
 import math
-import re
-import subprocess
 from pathlib import Path
 
 from scipy.optimize import linear_sum_assignment
 
-from bench._server import ADMIN_KEY, TERMINAL_KEY, live_server
-
-REPO = Path(__file__).resolve().parents[2]
-
-
-def walkthrough_script() -> str:
-    """The bash block that follows the ``<!-- walkthrough -->`` marker in README.md."""
-    readme = (REPO / "README.md").read_text(encoding="utf-8")
-    match = re.search(r"<!-- walkthrough -->\s*```bash\n(.*?)```", readme, re.DOTALL)
-    assert match, "README.md has no walkthrough block"
-    return match.group(1)
+from .readme_blocks import block_with_marker, readme_checkout
 
 
 def test_readme_walkthrough_runs_and_localizes(tmp_path: Path) -> None:
-    script = walkthrough_script()
-    with live_server(tmp_path / "data", VLP_DEMO="0") as server:
-        result = subprocess.run(
-            ["bash", "-euo", "pipefail", "-c", script],
-            cwd=REPO,
-            env={
-                "VLP": server.url,
-                "ADMIN_KEY": ADMIN_KEY,
-                "TERMINAL_KEY": TERMINAL_KEY,
-                "PATH": "/usr/local/bin:/usr/bin:/bin",
-            },
-            capture_output=True,
-            text=True,
-            timeout=120,
-        )
+    script = block_with_marker("walkthrough").code
+    with readme_checkout(tmp_path / "checkout") as checkout:
+        result = checkout.run(script, timeout_s=180)
     assert result.returncode == 0, result.stderr
     lines = result.stdout.strip().splitlines()
     assert lines[0] == "build: succeeded"
@@ -57,3 +33,22 @@ def test_readme_walkthrough_runs_and_localizes(tmp_path: Path) -> None:
         for r, c in zip(rows, cols, strict=True)
     ]
     assert sum(errors) / len(errors) < 0.25
+
+
+def test_readme_walkthrough_stops_and_shows_the_problem_on_a_refused_key(
+    tmp_path: Path,
+) -> None:
+    """A wrong key must not loop and exit 0: the walkthrough stops at the 401 and says why."""
+    script = block_with_marker("walkthrough").code
+    with readme_checkout(tmp_path / "checkout") as checkout:
+        credentials = checkout.root / "var" / "credentials"
+        text = credentials.read_text(encoding="utf-8")
+        admin = next(line for line in text.splitlines() if line.startswith("export ADMIN_KEY="))
+        credentials.write_text(
+            text.replace(admin, "export ADMIN_KEY=not-a-key-0123456789abcdef"), encoding="utf-8"
+        )
+        result = checkout.run(script, timeout_s=60)
+    assert result.returncode != 0
+    assert "POST /v1/rooms failed" in result.stderr and '"status":401' in result.stderr
+    assert "unknown API key" in result.stderr
+    assert "build:" not in result.stdout

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import time
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -12,6 +13,7 @@ from matplotlib.figure import Figure
 from app.pictures import HeatmapKind, room_map_png
 from app.pictures._render import draw_leds
 from app.pictures.heatmaps import noise_std_on_samples, sample_grid
+from app.pictures.room_map import resolved_heatmap
 from app.vlp._typing import FloatArray
 from app.vlp.errors import GeometryError
 from app.vlp.layout import Grid, Layout, Led, Receiver, Room
@@ -145,3 +147,14 @@ def test_dense_ceilings_skip_footprints_then_labels(
     assert draw_leds(axes, room, footprints=True, labels=True) is footprints
     assert len(axes.collections) == (3 if footprints else 1)  # FOV, half-power, markers
     assert len(axes.texts) == (room.n_leds if labels else 0)
+
+
+def test_auto_heatmap_draws_coverage_only_when_it_varies(paper_room: Layout) -> None:
+    samples = sample_grid(paper_room, 50)
+    # Every point of the paper room sees all 16 LEDs: a flat coverage map.
+    assert resolved_heatmap(paper_room, samples) == "crlb"
+    narrow = replace(paper_room, receiver=replace(paper_room.receiver, fov_deg=30.0))
+    assert resolved_heatmap(narrow, sample_grid(narrow, 50)) == "coverage"
+    assert room_map_png(paper_room, width_px=300) == room_map_png(
+        paper_room, heatmap="crlb", width_px=300
+    )

@@ -179,14 +179,3 @@ def test_delete_removes_rows_jobs_and_unshared_files(registry: Registry) -> None
     with pytest.raises(JobNotFound):
         registry.get_job(job_id=other.job_id or "")
     assert registry.count_rooms() == 1
-
-
-def test_api_keys(registry: Registry) -> None:
-    assert registry.count_api_keys() == 0
-    registry.add_api_key(key_hash="a" * 64, role="admin", label="first")
-    registry.add_api_key(key_hash="a" * 64, role="terminal", label="again")
-    registry.add_api_key(key_hash="b" * 64, role="terminal", label="t")
-    assert registry.count_api_keys() == 2
-    assert registry.role_for_key_hash(key_hash="a" * 64) == "admin"
-    assert registry.role_for_key_hash(key_hash="b" * 64) == "terminal"
-    assert registry.role_for_key_hash(key_hash="c" * 64) is None

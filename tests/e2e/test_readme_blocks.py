@@ -1,0 +1,84 @@
+"""Every shell and Python block of README.md runs verbatim, or says why it cannot.
+
+The curl and Python walkthroughs have their own tests (they also check the positions); this
+module runs every other shell block and checks that no block is left out.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from app.schemas.calibrations import calibration_example
+
+from .readme_blocks import (
+    PYTHON_WALKTHROUGH_FILE,
+    REPO,
+    SHELL_LANGUAGES,
+    Block,
+    readme_blocks,
+    readme_checkout,
+)
+
+# Blocks run by test_readme_walkthrough.py and test_readme_python_walkthrough.py.
+_RUN_ELSEWHERE = ("walkthrough", "python-walkthrough")
+# What each marked block must print (beyond exiting 0).
+_EXPECTED_OUTPUT = {
+    "keys-walkthrough": ["lobby kiosk", "revoked "],
+    "cli-walkthrough": [
+        "estimates (gridless",
+        '"status": "ready"',
+        "LEDs flagged: 5 dimmed, 10 dead",
+        "masked: [10]",
+    ],
+}
+
+
+def _runs_elsewhere(block: Block) -> bool:
+    return block.marker in _RUN_ELSEWHERE or PYTHON_WALKTHROUGH_FILE in block.code
+
+
+def _run_here() -> list[Block]:
+    return [
+        block
+        for block in readme_blocks()
+        if block.language in SHELL_LANGUAGES
+        and block.not_run_reason is None
+        and not _runs_elsewhere(block)
+    ]
+
+
+def test_no_block_is_left_out() -> None:
+    blocks = readme_blocks()
+    assert blocks, "README.md has no code blocks"
+    for block in blocks:
+        where = f"README.md line {block.line}"
+        assert block.language, f"{where}: a fenced block without a language"
+        reason = block.not_run_reason
+        if reason is not None:
+            assert len(reason) >= 20, f"{where}: `not-run` needs a real reason, got {reason!r}"
+            continue
+        if block.language == "python":
+            assert block.marker == "python-walkthrough", f"{where}: a Python block no test runs"
+        elif block.language not in SHELL_LANGUAGES:
+            assert block.language in ("json", "text"), f"{where}: unexpected {block.language}"
+    # The few blocks that cannot run: `./run`/`./test` and the minute-long benchmark.
+    assert len([b for b in blocks if b.not_run_reason is not None]) <= 2
+    assert {marker for marker in _EXPECTED_OUTPUT} <= {b.marker for b in _run_here()}
+
+
+@pytest.mark.parametrize("block", _run_here(), ids=lambda block: block.name)
+def test_block_runs_verbatim(block: Block, tmp_path: Path) -> None:
+    with readme_checkout(tmp_path / "checkout") as checkout:
+        result = checkout.run(block.code)
+    assert result.returncode == 0, f"stdout:\n{result.stdout}\nstderr:\n{result.stderr}"
+    for expected in _EXPECTED_OUTPUT.get(block.marker or "", []):
+        assert expected in result.stdout, (expected, result.stdout)
+
+
+def test_example_survey_is_the_documented_simulation() -> None:
+    """examples/survey.json is calibration_example() (README: how the file was made)."""
+    stored = json.loads((REPO / "examples" / "survey.json").read_text(encoding="utf-8"))
+    assert stored == calibration_example()
