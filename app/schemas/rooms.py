@@ -7,7 +7,7 @@ from typing import Any, Literal
 
 from pydantic import ConfigDict, Field
 
-from app.vlp.layout import (
+from app.vlp.constants import (
     DEFAULT_FILTER_GAIN,
     DEFAULT_FOV_DEG,
     DEFAULT_HALF_POWER_ANGLE_DEG,

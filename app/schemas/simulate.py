@@ -6,7 +6,7 @@ from typing import Any, Literal
 
 from pydantic import ConfigDict, Field
 
-from app.vlp.solvers.base import MAX_TARGETS
+from app.vlp.constants import MAX_TARGETS
 
 from ._common import FiniteFloat, RequestInt, RequestModel, ResponseModel
 from .localize import ModelName, SolverName
