@@ -129,6 +129,7 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
             data_dir=settings.data_dir,
             max_build_attempts=settings.max_build_attempts,
             job_lease_seconds=settings.job_lease_seconds,
+            matrix_store=settings.resolved_matrix_store(),
         )
         await run_in_threadpool(registry.migrate)
         app.state.registry = registry
