@@ -250,10 +250,13 @@ _EXAMPLES: dict[int, tuple[str, str, list[dict[str, str]]]] = {
 
 
 def problem_example(status: int) -> dict[str, Any]:
-    """A problem body of ``status`` as the service answers it (the OpenAPI example)."""
-    kind, detail, errors = _EXAMPLES[status]
+    """A problem body of ``status`` as the service answers it (the OpenAPI example).
+
+    A status without an entry in ``_EXAMPLES`` gets a plain one from its description.
+    """
+    kind, detail, errors = _EXAMPLES.get(status, ("", _DESCRIPTIONS.get(status, ""), []))
     body: dict[str, Any] = {
-        "type": f"{_TYPE_PREFIX}{kind}",
+        "type": f"{_TYPE_PREFIX}{kind}" if kind else "about:blank",
         "title": "Validation failed" if status == 422 else HTTPStatus(status).phrase,
         "status": status,
         "detail": detail,
