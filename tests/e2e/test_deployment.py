@@ -11,6 +11,7 @@ from __future__ import annotations
 import re
 import shutil
 import subprocess
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -18,6 +19,7 @@ import pytest
 import yaml
 
 from app.cli import _parser
+from app.registry import Registry
 
 REPO = Path(__file__).resolve().parents[2]
 COMPOSE = REPO / "deploy" / "compose.yaml"
@@ -101,3 +103,20 @@ def test_the_container_image_does_not_seed_the_demo_room() -> None:
     env_block = re.search(r"^ENV (.*?)(?=^\S)", runtime, flags=re.MULTILINE | re.DOTALL)
     assert env_block is not None
     assert re.search(r"\bVLP_DEMO=0\b", env_block.group(1))
+
+
+def test_vlp_migrate_brings_a_fresh_registry_to_the_newest_schema(tmp_path: Path) -> None:
+    # The compose file's one-shot step: it must leave a database the services accept.
+    vlp = Path(sys.executable).with_name("vlp")
+    env = {"PATH": "/usr/bin:/bin", "VLP_DATA_DIR": str(tmp_path)}
+    completed = subprocess.run(
+        [str(vlp), "migrate"], env=env, capture_output=True, text=True, timeout=300, check=False
+    )
+    assert completed.returncode == 0, completed.stderr
+    registry = Registry(
+        database_url=f"sqlite:///{tmp_path / 'registry.sqlite3'}", data_dir=tmp_path
+    )
+    try:
+        assert registry.migrations_current()
+    finally:
+        registry.dispose()
