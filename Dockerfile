@@ -1,5 +1,6 @@
 # syntax=docker/dockerfile:1
 # Multi-stage: build wheels with the pinned constraints, then a slim runtime as a non-root user.
+# VLP_DEMO=0: a production container never seeds the demo room (run with -e VLP_DEMO=1 to try it).
 FROM python:3.11-slim AS build
 WORKDIR /src
 COPY pyproject.toml constraints.txt README.md ./
@@ -10,7 +11,8 @@ RUN python -m pip install --no-cache-dir --upgrade pip \
 FROM python:3.11-slim AS runtime
 ENV PYTHONDONTWRITEBYTECODE=1 PYTHONUNBUFFERED=1 \
     OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 \
-    VLP_DATA_DIR=/data
+    VLP_DATA_DIR=/data \
+    VLP_DEMO=0
 RUN useradd --create-home --uid 10001 vlp && mkdir -p /data && chown vlp:vlp /data
 COPY --from=build /wheels /wheels
 RUN python -m pip install --no-cache-dir /wheels/*.whl && rm -rf /wheels

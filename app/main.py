@@ -9,6 +9,7 @@ from __future__ import annotations
 import logging
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
+from importlib.metadata import version as package_version
 from typing import Any
 
 from fastapi import FastAPI
@@ -20,7 +21,7 @@ from threadpoolctl import threadpool_limits
 from app.api import api_router
 from app.api.docs import install_docs
 from app.api.epoch_settler import EpochSettler
-from app.api.errors import PROBLEM_MEDIA_TYPE, install_error_handlers
+from app.api.errors import PROBLEM_MEDIA_TYPE, install_error_handlers, problem_example
 from app.api.localizer import FingerprintCache
 from app.api.metrics import Metrics
 from app.api.middleware import BodySizeLimitMiddleware, RequestContextMiddleware
@@ -92,7 +93,8 @@ def _problem_validation_responses(app: FastAPI) -> None:
                     if status == "422" and PROBLEM_MEDIA_TYPE not in content:
                         answer["description"] = "invalid input; `errors` names each field"
                         content[PROBLEM_MEDIA_TYPE] = {
-                            "schema": {"$ref": "#/components/schemas/Problem"}
+                            "schema": {"$ref": "#/components/schemas/Problem"},
+                            "example": problem_example(422),
                         }
                     if status >= "400" and PROBLEM_MEDIA_TYPE in content:
                         content.pop("application/json", None)
@@ -131,6 +133,7 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
             data_dir=settings.data_dir,
             max_build_attempts=settings.max_build_attempts,
             job_lease_seconds=settings.job_lease_seconds,
+            matrix_store=settings.resolved_matrix_store(),
         )
         await run_in_threadpool(registry.migrate)
         app.state.registry = registry
@@ -183,7 +186,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     settings = settings or get_settings()
     app = FastAPI(
         title="VLP service",
-        version="1.0.0",
+        # One version number: the package's (pyproject.toml), so clients see what runs.
+        version=package_version("vlp-service"),
+        # Relative: the host that served this document (any deployment, any port).
+        servers=[{"url": "/", "description": "this server"}],
         description=_DESCRIPTION,
         openapi_tags=_TAGS,
         docs_url=None,

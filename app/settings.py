@@ -7,6 +7,7 @@ from __future__ import annotations
 
 from functools import lru_cache
 from pathlib import Path
+from typing import Literal
 
 from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
@@ -25,6 +26,12 @@ class Settings(BaseSettings):
     data_dir: Path = Field(default=Path("./var"), description="SQLite file and matrix store")
     database_url: str | None = Field(
         default=None, description="SQLAlchemy URL; postgresql+psycopg://... for scale-out"
+    )
+    matrix_store: Literal["auto", "files", "database"] = Field(
+        default="auto",
+        description="where fingerprint matrices are kept: `files` (under data_dir only), "
+        "`database` (in the registry, data_dir as a verified cache: hosts sharing only the "
+        "database serve the same rooms); `auto` is `database` on PostgreSQL, else `files`",
     )
     admin_keys: str = Field(
         default="", description=f"comma-separated admin API keys (>= {MIN_KEY_LENGTH} characters)"
@@ -98,6 +105,12 @@ class Settings(BaseSettings):
         if self.database_url:
             return self.database_url
         return f"sqlite:///{(self.data_dir / 'registry.sqlite3').resolve()}"
+
+    def resolved_matrix_store(self) -> Literal["files", "database"]:
+        """The matrix store in force: ``matrix_store``, with ``auto`` resolved by backend."""
+        if self.matrix_store != "auto":
+            return self.matrix_store
+        return "files" if self.resolved_database_url().startswith("sqlite") else "database"
 
     def admin_key_list(self) -> list[str]:
         """Configured admin keys (empty strings dropped)."""

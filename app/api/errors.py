@@ -35,6 +35,7 @@ __all__ = [
     "InvalidInput",
     "field_location",
     "install_error_handlers",
+    "problem_example",
     "problem_response",
     "problem_responses",
 ]
@@ -263,11 +264,58 @@ def install_error_handlers(app: FastAPI) -> None:
     app.add_exception_handler(RegistryError, on_registry)
 
 
-def _problem_doc(description: str) -> dict[str, Any]:
+# (kind, detail, errors) of a typical answer of each status, as the handlers write them.
+_ROOM_ID = "0f3c9a6e5b2d4c1a8e7f6a5b4c3d2e1f"
+_EXAMPLES: dict[int, tuple[str, str, list[dict[str, str]]]] = {
+    401: ("unauthorized", "this endpoint needs an API key in the X-API-Key header", []),
+    403: ("forbidden", "the terminal role may not do this; it needs an admin key", []),
+    404: ("not-found", f"no room with id '{_ROOM_ID}'", []),
+    409: ("fingerprint-not-ready", f"room {_ROOM_ID} has no ready fingerprint yet", []),
+    412: (
+        "precondition-failed",
+        'If-Match "1" is not the room\'s current ETag "2"; read the room again',
+        [],
+    ),
+    413: ("payload-too-large", "request body larger than 16777216 bytes", []),
+    422: (
+        "validation",
+        "body.grid.step: Input should be greater than 0",
+        [{"field": "body.grid.step", "message": "Input should be greater than 0"}],
+    ),
+    428: ("precondition-required", "send the room's current ETag in If-Match to replace it", []),
+    503: ("registry-unavailable", "the registry database is unavailable or busy; try again", []),
+}
+
+
+def problem_example(status: int) -> dict[str, Any]:
+    """A problem body of ``status`` as the service answers it (the OpenAPI example).
+
+    A status without an entry in ``_EXAMPLES`` gets a plain one from its description.
+    """
+    kind, detail, errors = _EXAMPLES.get(status, ("", _DESCRIPTIONS.get(status, ""), []))
+    body: dict[str, Any] = {
+        "type": f"{_TYPE_PREFIX}{kind}" if kind else "about:blank",
+        "title": "Validation failed" if status == 422 else HTTPStatus(status).phrase,
+        "status": status,
+        "detail": detail,
+        "instance": f"/v1/rooms/{_ROOM_ID}",
+    }
+    if errors:
+        body["errors"] = errors
+    body["request_id"] = "9b2e4f6a8c0d4e1fa3b5c7d9e1f2a4b6"
+    return body
+
+
+def _problem_doc(status: int) -> dict[str, Any]:
     return {
-        "description": description,
+        "description": _DESCRIPTIONS[status],
         "model": Problem,
-        "content": {PROBLEM_MEDIA_TYPE: {"schema": {"$ref": "#/components/schemas/Problem"}}},
+        "content": {
+            PROBLEM_MEDIA_TYPE: {
+                "schema": {"$ref": "#/components/schemas/Problem"},
+                "example": problem_example(status),
+            }
+        },
     }
 
 
@@ -287,4 +335,4 @@ _DESCRIPTIONS = {
 
 def problem_responses(*statuses: int) -> dict[int | str, dict[str, Any]]:
     """OpenAPI ``responses`` entries documenting problem answers of these statuses."""
-    return {status: _problem_doc(_DESCRIPTIONS[status]) for status in statuses}
+    return {status: _problem_doc(status) for status in statuses}

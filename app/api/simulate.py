@@ -8,7 +8,7 @@ import numpy as np
 from fastapi import APIRouter
 from starlette.concurrency import run_in_threadpool
 
-from app.schemas import Simulation, SimulationRequest, TruthTarget
+from app.schemas import Measurement, Simulation, SimulationRequest, TruthTarget
 from app.vlp import measurements as vlp_measurements
 from app.vlp._random import as_generator
 from app.vlp.layout import Layout
@@ -106,7 +106,7 @@ def _simulate(room_id: str, body: SimulationRequest, cache: FingerprintCache) ->
         for (x, y), cell, tid in zip(positions.tolist(), cells, ids, strict=True)
     ]
     return Simulation(
-        measurement=measurement,
+        measurement=Measurement.model_validate(measurement),
         truth=truth,
         noise_std=float(noise_std),
         fingerprint_version=version,
@@ -117,6 +117,8 @@ def _simulate(room_id: str, body: SimulationRequest, cache: FingerprintCache) ->
     "/{room_id}/simulate",
     summary="Simulate a measurement with its ground truth",
     responses=problem_responses(401, 404, 409, 413, 422, 503),
+    # The measurement carries only the fields it was built with (as a client sends it).
+    response_model_exclude_unset=True,
 )
 async def simulate(
     room_id: RoomId, body: SimulationRequest, cache: CacheDep, _role: AnyRole

@@ -1,6 +1,6 @@
 """The ``vlp`` console script.
 
-``serve``, ``worker``, ``openapi`` and ``bench`` run here; ``rooms``, ``simulate`` and
+``serve``, ``worker``, ``migrate``, ``openapi`` and ``bench`` run here; ``rooms``, ``simulate`` and
 ``localize`` talk to a running service through :class:`app.client.VLPClient` (``--json`` for
 scripts, tables and progress bars otherwise).
 
@@ -102,6 +102,23 @@ def _worker(args: argparse.Namespace) -> int:
     return 0
 
 
+def _migrate(args: argparse.Namespace) -> int:
+    """Bring the registry schema to the newest migration and exit (a deployment's one-shot
+    step; ``serve`` and ``worker`` would also do it, safely, on start)."""
+    del args
+    from app.registry import Registry
+    from app.settings import get_settings
+
+    settings = get_settings()
+    registry = Registry(database_url=settings.resolved_database_url(), data_dir=settings.data_dir)
+    try:
+        registry.migrate()
+    finally:
+        registry.dispose()
+    print("registry schema is up to date")
+    return 0
+
+
 def _openapi(args: argparse.Namespace) -> int:
     document = openapi_document()
     path: Path = args.output
@@ -136,6 +153,9 @@ def _parser() -> argparse.ArgumentParser:
     )
     worker.add_argument("--metrics-host", default="127.0.0.1", help="address for --metrics-port")
     worker.set_defaults(handler=_worker)
+
+    migrate = commands.add_parser("migrate", help="apply the registry's database migrations")
+    migrate.set_defaults(handler=_migrate)
 
     openapi = commands.add_parser("openapi", help="write the OpenAPI document")
     openapi.add_argument("--output", type=Path, default=DEFAULT_OPENAPI_PATH)

@@ -23,10 +23,10 @@ from sqlalchemy import Engine
 from threadpoolctl import threadpool_limits
 
 from app.registry._db import create_registry_engine
+from app.registry.blob_store import MatrixStorage, MatrixStoreKind, open_matrix_store
 from app.registry.errors import RegistryError
 from app.registry.queue import StoredBuild, report_progress
 from app.registry.records import MatrixInfo
-from app.registry.store import MatrixStore
 from app.vlp.fingerprints import PSI_DENSE_LIMIT, Fingerprint, build_fingerprint
 from app.vlp.layout import layout_from_mapping
 
@@ -58,6 +58,7 @@ class BuildTask:
     job_id: str
     worker_id: str
     layout: dict[str, Any]
+    matrix_store: MatrixStoreKind = "files"
     max_cells: int | None = None
     progress_interval_s: float = 0.5
     calibration: dict[str, Any] | None = None
@@ -120,7 +121,7 @@ class _ProgressReporter:
 
 
 def store_fingerprint(
-    fingerprint: Fingerprint, store: MatrixStore
+    fingerprint: Fingerprint, store: MatrixStorage
 ) -> dict[str, tuple[MatrixInfo, int]]:
     """Write H (always), J (when dense) and psi (when within the limit) into ``store``.
 
@@ -158,7 +159,14 @@ def build_and_store(task: BuildTask) -> StoredBuild:
     reporter = _ProgressReporter(task)
     try:
         fingerprint = build_fingerprint(layout, progress=reporter, max_cells=task.max_cells)
-        stored = store_fingerprint(fingerprint, MatrixStore(Path(task.data_dir) / "matrices"))
+        engine = create_registry_engine(task.database_url)
+        try:
+            store = open_matrix_store(
+                task.matrix_store, data_dir=Path(task.data_dir), engine=engine
+            )
+            stored = store_fingerprint(fingerprint, store)
+        finally:
+            engine.dispose()
     finally:
         reporter.close()
     return StoredBuild(

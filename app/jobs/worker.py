@@ -174,6 +174,7 @@ class _WorkerLoop:
         task = BuildTask(
             database_url=self.registry.database_url,
             data_dir=str(self.registry.data_dir),
+            matrix_store=self.registry.matrix_store,
             job_id=claimed.job_id,
             worker_id=claimed.worker_id,
             layout=claimed.layout,
@@ -351,6 +352,7 @@ def run_worker(
         data_dir=settings.data_dir,
         max_build_attempts=settings.max_build_attempts,
         job_lease_seconds=settings.job_lease_seconds,
+        matrix_store=settings.resolved_matrix_store(),
     )
     workers = EmbeddedWorkers(registry=registry, settings=settings)
     n_workers = max(1, settings.embedded_workers)

@@ -15,6 +15,7 @@ from sqlalchemy import (
     ForeignKeyConstraint,
     Index,
     Integer,
+    LargeBinary,
     MetaData,
     String,
     Table,
@@ -32,6 +33,8 @@ __all__ = [
     "fingerprints",
     "jobs",
     "matrices",
+    "matrix_blob_chunks",
+    "matrix_blobs",
     "metadata",
     "rooms",
 ]
@@ -147,6 +150,33 @@ matrices = Table(
         ondelete="CASCADE",
     ),
     Index("ix_matrices_sha256", "sha256"),
+)
+
+# Matrix files stored in the database (migration 0005), for hosts that share no filesystem:
+# one row per content-addressed file, its bytes in ordered chunks. The head row and its
+# chunks are written in one transaction, so a reader sees a whole file or none.
+matrix_blobs = Table(
+    "matrix_blobs",
+    metadata,
+    Column("sha256", String(64), primary_key=True),
+    Column("format", String(8), primary_key=True),
+    Column("upload_id", ID, nullable=False, unique=True),
+    Column("size_bytes", BigInteger, nullable=False),
+    Column("n_chunks", Integer, nullable=False),
+    Column("created_at", UTCDateTime(), nullable=False),
+)
+
+matrix_blob_chunks = Table(
+    "matrix_blob_chunks",
+    metadata,
+    Column(
+        "upload_id",
+        ID,
+        ForeignKey("matrix_blobs.upload_id", ondelete="CASCADE"),
+        primary_key=True,
+    ),
+    Column("chunk_index", Integer, primary_key=True),
+    Column("data", LargeBinary, nullable=False),
 )
 
 # Cooperation epochs (migration 0002): one row per window; ``status`` is open -> solving ->

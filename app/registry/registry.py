@@ -43,6 +43,7 @@ from ._rows import (
     room_select,
 )
 from ._schema import calibrations, fingerprints, jobs, matrices, rooms
+from .blob_store import MatrixStorage, MatrixStoreKind, open_matrix_store
 from .calibrations import create_calibration, get_calibration, list_calibrations
 from .epochs import EpochRecord, EpochSettings
 from .errors import (
@@ -56,7 +57,6 @@ from .errors import (
 )
 from .queue import enqueue_build, utcnow
 from .records import CalibrationRecord, FingerprintRecord, JobRecord, RoomRecord
-from .store import MatrixStore
 
 __all__ = ["Registry"]
 
@@ -76,9 +76,14 @@ class Registry:
     database_url : str
         SQLAlchemy URL (``sqlite:///...`` or ``postgresql+psycopg://...``).
     data_dir : Path
-        The matrix store lives in ``data_dir / "matrices"``.
+        The matrix files (or, with the ``database`` store, their verified local cache) live in
+        ``data_dir / "matrices"``.
     max_build_attempts : int, default=3
     job_lease_seconds : float, default=30.0
+    matrix_store : {"files", "database"}, default="files"
+        Where matrix files are kept: on the local disk only, or in the registry database so
+        that hosts sharing only the database serve the same rooms (``Settings`` picks
+        ``database`` for PostgreSQL unless told otherwise).
     """
 
     def __init__(
@@ -88,13 +93,17 @@ class Registry:
         data_dir: Path,
         max_build_attempts: int = 3,
         job_lease_seconds: float = 30.0,
+        matrix_store: MatrixStoreKind = "files",
     ) -> None:
         self.database_url = database_url
         self.data_dir = data_dir
         self.max_build_attempts = max_build_attempts
         self.job_lease_seconds = job_lease_seconds
         self.engine: Engine = create_registry_engine(database_url)
-        self.store = MatrixStore(data_dir / "matrices")
+        self.matrix_store: MatrixStoreKind = matrix_store
+        self.store: MatrixStorage = open_matrix_store(
+            matrix_store, data_dir=data_dir, engine=self.engine
+        )
 
     # -- lifecycle ------------------------------------------------------------------------
     def migrate(self) -> None:
@@ -381,8 +390,8 @@ class Registry:
                 f"fingerprint {version} of room {room_id} has no stored matrix {name!r}",
                 field="matrix",
             )
-        path = self.store.path_for(info.sha256, info.format)
-        if not self.store.verify(path, info.sha256):
+        path = self.store.verified_path(info.sha256, info.format)
+        if path is None:
             self.request_build(room_id=room_id)
             raise CorruptMatrix(
                 f"matrix {name} of fingerprint {version} of room {room_id} failed its sha256 "

@@ -20,6 +20,7 @@ import tempfile
 import threading
 import time
 import zipfile
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -125,7 +126,7 @@ class MatrixStore:
         sha256 = hashlib.sha256(payload).hexdigest()
         path = self.path_for(sha256, fmt)
         if not self.verify(path, sha256):
-            self._write_atomic(path, payload)
+            self._write_atomic(path, (payload,))
         info = MatrixInfo(shape=tuple(int(n) for n in matrix.shape), sha256=sha256, format=fmt)
         return info, len(payload)
 
@@ -152,6 +153,32 @@ class MatrixStore:
         with self._lock:
             self._verified[path] = (*key, now)
         return True
+
+    def verified_path(self, sha256: str, fmt: str) -> Path | None:
+        """The file with this hash and format when it exists and verifies, else None."""
+        path = self.path_for(sha256, fmt)
+        return path if self.verify(path, sha256) else None
+
+    def write_verified(self, sha256: str, fmt: str, chunks: Iterable[bytes]) -> Path | None:
+        """Write the file streamed as ``chunks`` under its name if they hash to ``sha256``.
+
+        The bytes are hashed as they are written, so a large file is never held in memory;
+        when the hash differs nothing is written and None is returned.
+        """
+        path = self.path_for(sha256, fmt)
+        digest = hashlib.sha256()
+
+        def hashed() -> Iterator[bytes]:
+            for chunk in chunks:
+                digest.update(chunk)
+                yield chunk
+
+        if not self._write_atomic(path, hashed(), accept=lambda: digest.hexdigest() == sha256):
+            return None
+        stat = path.stat()
+        with self._lock:
+            self._verified[path] = (stat.st_mtime_ns, stat.st_size, sha256, time.monotonic())
+        return path
 
     def delete(self, sha256: str, fmt: str) -> None:
         """Remove a file (missing files are fine)."""
@@ -181,16 +208,23 @@ class MatrixStore:
                 continue
         return removed
 
-    def _write_atomic(self, path: Path, payload: bytes) -> None:
+    def _write_atomic(
+        self, path: Path, chunks: Iterable[bytes], accept: Callable[[], bool] = lambda: True
+    ) -> bool:
+        """Write ``chunks`` to a temporary file and rename it over ``path`` if ``accept()``."""
         path.parent.mkdir(parents=True, exist_ok=True)
         handle, tmp_name = tempfile.mkstemp(
             dir=path.parent, prefix=_TEMP_PREFIX, suffix=path.suffix
         )
         try:
             with os.fdopen(handle, "wb") as tmp:
-                tmp.write(payload)
+                for chunk in chunks:
+                    tmp.write(chunk)
                 tmp.flush()
                 os.fsync(tmp.fileno())
+            if not accept():
+                Path(tmp_name).unlink(missing_ok=True)
+                return False
             os.chmod(tmp_name, 0o444)
             os.replace(tmp_name, path)
         except BaseException:
@@ -201,3 +235,4 @@ class MatrixStore:
             os.fsync(directory)
         finally:
             os.close(directory)
+        return True

@@ -2,11 +2,20 @@
 
 from __future__ import annotations
 
-from typing import Annotated
+from collections.abc import Callable
+from typing import Annotated, Any
 
 from pydantic import BaseModel, ConfigDict, Field
+from pydantic.config import JsonDict
 
-__all__ = ["MAX_VERSION", "FiniteFloat", "RequestInt", "RequestModel", "ResponseModel"]
+__all__ = [
+    "MAX_VERSION",
+    "FiniteFloat",
+    "RequestInt",
+    "RequestModel",
+    "ResponseModel",
+    "lazy_examples",
+]
 
 # Strict: a JSON number only (an integer is fine), never `true` or `"1.5"`, which lax
 # parsing would turn into 1.0 and 1.5 behind the caller's back; NaN and Infinity refused.
@@ -27,3 +36,16 @@ class ResponseModel(BaseModel):
     """Base of response bodies."""
 
     model_config = ConfigDict(extra="ignore")
+
+
+def lazy_examples(*factories: Callable[[], dict[str, Any]]) -> Callable[[JsonDict], None]:
+    """A ``json_schema_extra`` whose ``examples`` are computed when the schema is generated.
+
+    Some examples are computed by the science core (noiseless amplitudes in the paper room);
+    computing them at import would load numpy into every client of these schemas.
+    """
+
+    def add_examples(schema: JsonDict) -> None:
+        schema["examples"] = [factory() for factory in factories]
+
+    return add_examples

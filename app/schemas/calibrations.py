@@ -6,13 +6,9 @@ from dataclasses import replace
 from datetime import datetime
 from typing import Annotated, Any, Literal
 
-import numpy as np
 from pydantic import ConfigDict, Field
 
-from app.vlp.calibration import simulate_survey
-from app.vlp.presets import paper_layout
-
-from ._common import FiniteFloat, RequestInt, RequestModel, ResponseModel
+from ._common import FiniteFloat, RequestInt, RequestModel, ResponseModel, lazy_examples
 
 # No layout has more LEDs than this (the schema's own cap; the service's limit is lower).
 MAX_LED_INDEX = 1_000_000
@@ -35,8 +31,14 @@ def calibration_example() -> dict[str, Any]:
     """A survey of the paper room (16 LEDs) on a 1 m grid of 16 points: LED 5 dimmed to half,
     LED 10 dead, every beam a little narrower (55 degrees) than the layout's 60.
 
-    Amplitudes are noiseless ``h x`` of that perturbed room, rounded to 4 digits.
+    Amplitudes are noiseless ``h x`` of that perturbed room, rounded to 4 digits. The
+    science core is imported here so that importing the schemas does not load numpy.
     """
+    import numpy as np
+
+    from app.vlp.calibration import simulate_survey
+    from app.vlp.presets import paper_layout
+
     room = paper_layout()
     leds = tuple(
         replace(
@@ -83,7 +85,7 @@ class CalibrationCreate(RequestModel):
     """
 
     model_config = ConfigDict(
-        json_schema_extra={"examples": [calibration_example(), {"masked_leds": [10]}]}
+        json_schema_extra=lazy_examples(calibration_example, lambda: {"masked_leds": [10]})
     )
 
     survey: list[SurveyRow] = Field(

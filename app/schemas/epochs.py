@@ -7,7 +7,7 @@ from typing import Any, Literal
 
 from pydantic import ConfigDict, Field
 
-from app.vlp.solvers.base import MAX_TARGETS
+from app.vlp.constants import MAX_TARGETS
 
 from ._common import MAX_VERSION, FiniteFloat, RequestInt, RequestModel, ResponseModel
 from .localize import TERMINAL_ID_PATTERN, Localization, ModelName, SolverName, terminals_example

@@ -2,16 +2,23 @@
 
 from __future__ import annotations
 
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
-import numpy as np
 from pydantic import ConfigDict, Field
 
-from app.vlp.presets import paper_layout
-from app.vlp.simulation import true_amplitudes
-from app.vlp.solvers.base import MAX_TARGETS
+from app.vlp.constants import MAX_TARGETS
 
-from ._common import MAX_VERSION, FiniteFloat, RequestInt, RequestModel, ResponseModel
+from ._common import (
+    MAX_VERSION,
+    FiniteFloat,
+    RequestInt,
+    RequestModel,
+    ResponseModel,
+    lazy_examples,
+)
+
+if TYPE_CHECKING:
+    from app.vlp._typing import FloatArray
 
 __all__ = [
     "EXAMPLE_POSITIONS_M",
@@ -43,13 +50,27 @@ def _significant(value: float) -> float:
     return float(f"{value:.4g}")
 
 
+def _example_amplitudes() -> FloatArray:
+    """Noiseless amplitudes ``a_ik = h_ik x_i`` (K x M) at :data:`EXAMPLE_POSITIONS_M`.
+
+    The science core is imported here, not at module level, so that importing the schemas
+    (every client does) does not load numpy.
+    """
+    import numpy as np
+
+    from app.vlp.presets import paper_layout
+    from app.vlp.simulation import true_amplitudes
+
+    return true_amplitudes(paper_layout(), np.array(EXAMPLE_POSITIONS_M))
+
+
 def localize_example() -> dict[str, Any]:
     """Three terminals in the paper room as a 16 x 16 correlation matrix (CoCSM-VLP).
 
     ``R = A^T A`` of the noiseless amplitudes ``a_ik = h_ik x_i`` at
     :data:`EXAMPLE_POSITIONS_M`; it localizes to those points on the demo room.
     """
-    amplitudes = true_amplitudes(paper_layout(), np.array(EXAMPLE_POSITIONS_M))
+    amplitudes = _example_amplitudes()
     correlation = amplitudes.T @ amplitudes
     return {
         "model": "correlation",
@@ -61,7 +82,7 @@ def localize_example() -> dict[str, Any]:
 
 def terminals_example() -> dict[str, Any]:
     """The same three terminals, each sending its own amplitudes (the service aggregates)."""
-    amplitudes = true_amplitudes(paper_layout(), np.array(EXAMPLE_POSITIONS_M))
+    amplitudes = _example_amplitudes()
     return {
         "model": "correlation",
         "terminals": [
@@ -94,9 +115,7 @@ class Measurement(RequestModel):
     `model` defaults to `correlation`, or to `power` when `power` is sent.
     """
 
-    model_config = ConfigDict(
-        json_schema_extra={"examples": [localize_example(), terminals_example()]}
-    )
+    model_config = ConfigDict(json_schema_extra=lazy_examples(localize_example, terminals_example))
 
     model: ModelName = Field(default="correlation", description="measurement model")
     power: list[FiniteFloat] | None = Field(

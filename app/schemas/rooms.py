@@ -7,7 +7,7 @@ from typing import Any, Literal
 
 from pydantic import ConfigDict, Field
 
-from app.vlp.layout import (
+from app.vlp.constants import (
     DEFAULT_FILTER_GAIN,
     DEFAULT_FOV_DEG,
     DEFAULT_HALF_POWER_ANGLE_DEG,
@@ -160,7 +160,7 @@ class Room(ResponseModel):
 
     id: str
     name: str
-    layout: dict[str, Any] = Field(description="the full RoomLayout, defaults applied")
+    layout: RoomLayout = Field(description="the full layout, defaults applied")
     layout_version: int = Field(ge=1, description="1 on create, +1 on each replace")
     created_at: datetime
     updated_at: datetime

@@ -2,14 +2,14 @@
 
 from __future__ import annotations
 
-from typing import Any, Literal
+from typing import Literal
 
 from pydantic import ConfigDict, Field
 
-from app.vlp.solvers.base import MAX_TARGETS
+from app.vlp.constants import MAX_TARGETS
 
 from ._common import FiniteFloat, RequestInt, RequestModel, ResponseModel
-from .localize import ModelName, SolverName
+from .localize import Measurement, ModelName, SolverName
 
 __all__ = ["Simulation", "SimulationRequest", "TruthTarget"]
 
@@ -80,7 +80,9 @@ class TruthTarget(ResponseModel):
 class Simulation(ResponseModel):
     """A ready-to-send measurement and the truth behind it."""
 
-    measurement: dict[str, Any] = Field(description="a `Measurement` body for localize")
+    measurement: Measurement = Field(
+        description="a body for localize, as sent: only the fields it needs (no nulls)"
+    )
     truth: list[TruthTarget]
     noise_std: float = Field(description="noise std of one amplitude used")
     fingerprint_version: int

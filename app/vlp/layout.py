@@ -16,6 +16,14 @@ from typing import Any
 import numpy as np
 
 from ._typing import FloatArray, IntArray
+from .constants import (
+    DEFAULT_FILTER_GAIN,
+    DEFAULT_FOV_DEG,
+    DEFAULT_HALF_POWER_ANGLE_DEG,
+    DEFAULT_PILOT_AMPLITUDE,
+    DEFAULT_RECEIVER_AREA_M2,
+    DEFAULT_REFRACTIVE_INDEX,
+)
 from .errors import GeometryError
 
 __all__ = [
@@ -34,13 +42,6 @@ __all__ = [
     "layout_from_mapping",
 ]
 
-# Defaults of the public contract (API.md, "RoomLayout").
-DEFAULT_RECEIVER_AREA_M2 = 1e-4
-DEFAULT_FOV_DEG = 70.0
-DEFAULT_FILTER_GAIN = 1.0
-DEFAULT_REFRACTIVE_INDEX = 1.5
-DEFAULT_HALF_POWER_ANGLE_DEG = 60.0
-DEFAULT_PILOT_AMPLITUDE = 1.0
 # length / step must be a whole number within this relative tolerance.
 GRID_RELATIVE_TOLERANCE = 1e-9
 

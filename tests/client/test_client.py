@@ -131,5 +131,6 @@ def test_localize_before_any_fingerprint_is_a_conflict(live_app: LiveApp, tmp_pa
     ):
         room = vlp.create_room(_paper_room())
         with pytest.raises(Conflict) as conflict:
-            vlp.localize(room.id, {**measurement, "fingerprint_version": None})
+            # The measurement is typed (a Measurement): drop the demo room's version from it.
+            vlp.localize(room.id, measurement.model_copy(update={"fingerprint_version": None}))
     assert conflict.value.status == 409 and conflict.value.title

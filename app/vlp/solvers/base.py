@@ -19,6 +19,7 @@ from typing import ClassVar
 import numpy as np
 
 from .._typing import FloatArray, IntArray
+from ..constants import MAX_TARGETS
 from ..errors import MeasurementError, SolverError, UnknownSolverError
 from ..fingerprints import Fingerprint
 from ..measurements import Measurement, Model
@@ -32,9 +33,6 @@ __all__ = [
     "register_solver",
     "solver_names",
 ]
-
-# Upper bound on K accepted by any solver (and on the estimated count when K is unknown).
-MAX_TARGETS = 64
 
 
 @dataclass(frozen=True)

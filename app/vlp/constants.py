@@ -1,0 +1,28 @@
+"""Constants of the public contract that light modules need without the numerics.
+
+Nothing here imports numpy: ``app.schemas`` (and through it ``app.client``) read these, and a
+terminal app that only talks HTTP must not load the science stack to do so.
+"""
+
+from __future__ import annotations
+
+__all__ = [
+    "DEFAULT_FILTER_GAIN",
+    "DEFAULT_FOV_DEG",
+    "DEFAULT_HALF_POWER_ANGLE_DEG",
+    "DEFAULT_PILOT_AMPLITUDE",
+    "DEFAULT_RECEIVER_AREA_M2",
+    "DEFAULT_REFRACTIVE_INDEX",
+    "MAX_TARGETS",
+]
+
+# Defaults of the public contract (API.md, "RoomLayout").
+DEFAULT_RECEIVER_AREA_M2 = 1e-4
+DEFAULT_FOV_DEG = 70.0
+DEFAULT_FILTER_GAIN = 1.0
+DEFAULT_REFRACTIVE_INDEX = 1.5
+DEFAULT_HALF_POWER_ANGLE_DEG = 60.0
+DEFAULT_PILOT_AMPLITUDE = 1.0
+
+# Upper bound on K accepted by any solver (and on the estimated count when K is unknown).
+MAX_TARGETS = 64
