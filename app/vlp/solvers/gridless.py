@@ -6,6 +6,7 @@ sparse inverse problems", SIAM J. Optim. 2017) applied to the aggregated VLP mod
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -13,9 +14,27 @@ import numpy as np
 from .._typing import FloatArray
 from ..fingerprints import Fingerprint
 from ..measurements import Measurement, Model
+from ..scale import check_amplitude_scale
 from ..simulation import mean_signal_power
-from ._gridless_fit import ChannelKernel, FitState, Objective, Whitening, levenberg_marquardt
-from ._gridless_options import LM_DEFAULTS, GridlessOptions, LevenbergMarquardtSettings, pick
+from ..uncertainty import FitQuality, assess_fit
+from ._channel_kernel import ChannelKernel
+from ._gridless_fit import (
+    FitState,
+    Objective,
+    Priors,
+    Whitening,
+    gram,
+    levenberg_marquardt,
+)
+from ._gridless_options import (
+    LM_DEFAULTS,
+    GridlessOptions,
+    LevenbergMarquardtSettings,
+    diffuse_table,
+    nuisance_priors,
+    pick,
+)
+from ._terminal_fit import fit_terminal, starting_cells
 from .base import MAX_TARGETS, Solution, Solver, register_solver
 
 __all__ = ["LM_DEFAULTS", "GridlessOptions", "GridlessSolver"]
@@ -28,6 +47,8 @@ class _Run:
     values: FloatArray
     iterations: int = 0
     converged: bool = True
+    # Whether gains, scale and heights are fitted (the last stage only, see _with_nuisances).
+    nuisance: bool = False
 
 
 @register_solver
@@ -133,7 +154,9 @@ class GridlessSolver(Solver):
         )
         layout = fingerprint.layout
         self._scale = float(np.sqrt(mean_signal_power(fingerprint)))
-        self._kernel = ChannelKernel(layout, self._scale)
+        self._kernel = ChannelKernel(layout, self._scale, diffuse_table(fingerprint))
+        self._priors = nuisance_priors(layout, self.options)
+        self._growth_priors = Priors(height_mean=self._priors.height_mean)
         self._centres = layout.cell_centres()
         self._dense = fingerprint.is_dense
         # Restarts begin away from earlier first insertions, by half the mean LED height
@@ -150,6 +173,7 @@ class GridlessSolver(Solver):
         if self._dense:
             self._gains = fingerprint.dense_scaled_gains() / self._scale
             self._gains_sq = self._gains**2
+            self._column_energy = np.maximum(self._gains_sq.sum(axis=0), 1e-300)
         else:
             self._gains_sparse = fingerprint.scaled_gains() / self._scale
             self._gains_sq_sparse = self._gains_sparse.power(2)
@@ -157,6 +181,7 @@ class GridlessSolver(Solver):
             total = np.asarray(self._gains_sparse.power(2).sum(axis=0)).ravel()
             fourth = np.asarray(self._gains_sparse.power(4).sum(axis=0)).ravel()
             self._psi_norms = np.sqrt(0.5 * (total**2 + fourth))
+            self._column_energy = np.maximum(total, 1e-300)
 
     # -- insertion ---------------------------------------------------------------------
     def _correlations(
@@ -196,16 +221,16 @@ class GridlessSolver(Solver):
             norms = self._psi_norms**2
         return np.asarray(num), np.asarray(norms)
 
-    def _scores(self, white: Whitening, residual: FloatArray) -> FloatArray:
-        """Decrease of the whitened cost if a unit-weight target were added at each grid point.
+    def _scores(self, white: Whitening, residual: FloatArray, weight: float) -> FloatArray:
+        """Decrease of the whitened cost if a target of ``weight`` were added at each grid point.
 
-        ``2 <c psi_j, r> - ||c psi_j||^2`` for fixed unit weights; the normalised correlation
+        ``2 w <c psi_j, r> - w^2 ||c psi_j||^2`` for fixed weights; the normalised correlation
         ``<c psi_j, r> / ||c psi_j||`` for free weights.
         """
         num, norms_sq = self._correlations(white, residual)
         if self.options.free_weights:
             return np.asarray(num / np.sqrt(np.maximum(norms_sq, 1e-300)))
-        return np.asarray(2.0 * num - norms_sq)
+        return np.asarray(2.0 * weight * num - weight**2 * norms_sq)
 
     # -- main loop -----------------------------------------------------------------------
     def _whitening(self, state: FitState) -> Whitening:
@@ -213,14 +238,15 @@ class GridlessSolver(Solver):
             return Whitening.identity(self.model, self.fingerprint.n_leds)
         return Whitening.from_state(self.model, self._kernel, state, float(state.n_targets))
 
-    def _objective(self, run: _Run, white: Whitening) -> Objective:
-        return Objective(self._kernel, white, run.values, self.options.free_weights)
+    def _objective(self, run: _Run, white: Whitening, nuisance: bool = True) -> Objective:
+        priors = self._priors if nuisance and run.nuisance else self._growth_priors
+        return Objective(self._kernel, white, run.values, self.options.free_weights, priors)
 
     def _fit(
-        self, run: _Run, white: Whitening, state: FitState, max_iter: int
+        self, run: _Run, white: Whitening, state: FitState, max_iter: int, nuisance: bool = True
     ) -> tuple[FitState, float]:
         state, cost, used = levenberg_marquardt(
-            self._objective(run, white),
+            self._objective(run, white, nuisance),
             state,
             max_iter=max_iter,
             initial_damping=self._lm.initial_damping,
@@ -242,7 +268,7 @@ class GridlessSolver(Solver):
     def _residual(self, run: _Run, white: Whitening, state: FitState) -> FloatArray:
         if state.n_targets == 0:
             return white.data(run.values)
-        return self._objective(run, white).cost(state)[1]
+        return self._objective(run, white).data_cost(state)[1]
 
     def _insert(
         self, run: _Run, state: FitState, white: Whitening, avoid: FloatArray | None = None
@@ -254,7 +280,7 @@ class GridlessSolver(Solver):
             # rotated gains of every grid point.
             white = Whitening.identity(self.model, self.fingerprint.n_leds)
         residual = self._residual(run, white, state)
-        scores = self._scores(white, residual)
+        scores = self._scores(white, residual, math.exp(state.log_scale))
         if avoid is not None and avoid.shape[0] > 0:
             allowed = scores.copy()
             for point in avoid:
@@ -263,11 +289,7 @@ class GridlessSolver(Solver):
             if np.isfinite(allowed).any():
                 scores = allowed
         best = int(np.argmax(scores))
-        return FitState(
-            np.vstack([state.positions, self._centres[best]]),
-            np.append(state.weights, 1.0),
-            state.noise,
-        )
+        return state.with_target(self._centres[best], self._priors.height_mean)
 
     def _needs_escape(self, run: _Run, state: FitState) -> bool:
         """True when the fit looks like a local minimum worth relocating or restarting from.
@@ -290,9 +312,10 @@ class GridlessSolver(Solver):
             white = Whitening.identity(self.model, self.fingerprint.n_leds)
             residual = self._residual(run, white, state)
         num, norms_sq = self._correlations(white, residual)
-        gain = 2.0 * num - norms_sq
+        weight = math.exp(state.log_scale)
+        gain = 2.0 * weight * num - weight**2 * norms_sq
         best = int(np.argmax(gain))
-        return bool(gain[best] > self.options.count_threshold * norms_sq[best])
+        return bool(gain[best] > self.options.count_threshold * weight**2 * norms_sq[best])
 
     def _plain_cost(self, run: _Run, state: FitState) -> float:
         residual = self._residual(
@@ -300,11 +323,11 @@ class GridlessSolver(Solver):
         )
         return float(residual @ residual)
 
-    def _atom_energy(self, position: FloatArray) -> float:
+    def _atom_energy(self, position: FloatArray, weight: float) -> float:
         g2 = self._kernel.stacked(position[None, :], with_gradients=False)[:, 0] ** 2
         if self.model == "power":
-            return float(g2 @ g2)
-        return float(0.5 * (g2.sum() ** 2 + g2 @ g2))
+            return float(weight**2 * (g2 @ g2))
+        return float(weight**2 * 0.5 * (g2.sum() ** 2 + g2 @ g2))
 
     def _grow(
         self, run: _Run, state: FitState, inner_iter: int, avoid: FloatArray | None = None
@@ -314,7 +337,9 @@ class GridlessSolver(Solver):
         white = self._whitening(state)
         grown = self._insert(run, state, white, avoid)
         if inner_iter > 0:
-            grown, _ = self._fit(run, white, grown, inner_iter)
+            # Gains, scale and heights stay put while targets are being inserted: free, the
+            # first targets would take the energy of those not yet inserted.
+            grown, _ = self._fit(run, white, grown, inner_iter, nuisance=False)
         return grown
 
     def _count_and_fit(self, run: _Run) -> FitState:
@@ -333,7 +358,11 @@ class GridlessSolver(Solver):
             state = self._grow(run, state, opts.count_inner_iter)
             state_cost = self._plain_cost(run, state)
             extra = state.n_targets - best.n_targets
-            energy = sum(self._atom_energy(p) for p in state.positions[-extra:])
+            weights = state.effective_weights()[-extra:]
+            energy = sum(
+                self._atom_energy(p, float(w))
+                for p, w in zip(state.positions[-extra:], weights, strict=True)
+            )
             if best_cost - state_cost >= opts.count_threshold * energy:
                 best, best_cost = state, state_cost
             elif extra > opts.count_lookahead:
@@ -353,7 +382,7 @@ class GridlessSolver(Solver):
         cost = self._objective(run, white).cost(state)[0]
         for k in range(n_targets):
             keep = np.arange(n_targets) != k
-            others = FitState(state.positions[keep], state.weights[keep], state.noise)
+            others = state.subset(keep)
             candidate = self._insert(run, others, white)
             if np.linalg.norm(candidate.positions[-1] - state.positions[k]) <= 1.5 * step:
                 continue
@@ -361,9 +390,7 @@ class GridlessSolver(Solver):
             if candidate_cost < cost:
                 # Keep the original order: the moved target takes slot k.
                 order = np.insert(np.arange(n_targets - 1), k, n_targets - 1)
-                state = FitState(
-                    candidate.positions[order], candidate.weights[order], candidate.noise
-                )
+                state = candidate.reordered(order)
                 cost, moved = candidate_cost, True
         return state, moved
 
@@ -407,6 +434,8 @@ class GridlessSolver(Solver):
         residual = self._residual(
             run, Whitening.identity(self.model, self.fingerprint.n_leds), state
         )
+        state = self._with_nuisances(run, state)
+        covariances, fit = self._uncertainty(run, state)
         positions = state.positions
         return Solution(
             positions=positions,
@@ -416,4 +445,141 @@ class GridlessSolver(Solver):
             residual_norm=float(np.linalg.norm(residual)) * self._scale**2,
             n_iter=run.iterations,
             converged=run.converged,
+            covariances=covariances,
+            gains=np.exp(0.5 * state.log_scale + state.log_gains),
+            heights=state.heights.copy() if self._priors.fits_heights else None,
+            fit=fit,
         )
+
+    def solve_terminals(
+        self,
+        amplitudes: FloatArray,
+        heights: FloatArray | None = None,
+        normals: FloatArray | None = None,
+    ) -> Solution:
+        """Locate each terminal from its own amplitudes; estimate k belongs to terminal k.
+
+        Parameters
+        ----------
+        amplitudes : ndarray of shape (K, M)
+            Each terminal's received pilot amplitudes (validated by the caller).
+        heights : ndarray of shape (K,) or None, metres
+            Terminals' own heights; NaN (or None for all) where unknown.
+        normals : ndarray of shape (K, 3) or None
+            Terminals' photodiode unit normals; None for straight up.
+
+        Notes
+        -----
+        See :mod:`._terminal_fit`. Two passes: without priors, to estimate the amplitude
+        noise variance pooled over the terminals (its residual sum of squares over its
+        degrees of freedom), then with the gain and height priors weighted by it. The
+        covariance of each position is the inverse of its whitened normal matrix, inflated
+        by that terminal's reduced chi-square when above 1.
+        """
+        check_amplitude_scale(self.fingerprint, np.asarray(amplitudes, dtype=np.float64))
+        values = np.asarray(amplitudes, dtype=np.float64) / self._scale
+        n_terminals, n_leds = values.shape
+        if self._dense:
+            correlations = values @ self._gains
+        else:
+            correlations = np.asarray((self._gains_sparse.T @ values.T).T)
+        scores = np.where(correlations > 0.0, correlations**2 / self._column_energy, 0.0)
+        spacing = 2.0 * self.fingerprint.layout.grid.step
+        own_heights = [
+            None if heights is None or not np.isfinite(heights[k]) else float(heights[k])
+            for k in range(n_terminals)
+        ]
+        own_normals = [None if normals is None else normals[k] for k in range(n_terminals)]
+        first = []
+        for k in range(n_terminals):
+            cells = starting_cells(scores[k], self._centres, spacing)
+            first.append(
+                fit_terminal(
+                    self._kernel,
+                    values[k],
+                    self._centres[cells],
+                    priors=self._priors,
+                    sigma2=None,
+                    height=own_heights[k],
+                    normal=own_normals[k],
+                )
+            )
+        dof = np.array([max(n_leds - fit.n_params, 1) for fit in first])
+        sigma2 = sum(fit.rss for fit in first) / float(dof.sum())
+        fits = [
+            fit_terminal(
+                self._kernel,
+                values[k],
+                first[k].position[None, :],
+                priors=self._priors,
+                sigma2=sigma2,
+                height=own_heights[k],
+                normal=own_normals[k],
+            )
+            for k in range(n_terminals)
+        ]
+        chi2 = np.array([fit.rss for fit in fits]) / max(sigma2, 1e-300)
+        covariances = np.array(
+            [
+                np.linalg.pinv(fit.normal, hermitian=True)[:2, :2] * max(1.0, c / d)
+                for fit, c, d in zip(fits, chi2, dof, strict=True)
+            ]
+        )
+        log_gains = np.array([fit.log_gain for fit in fits])
+        positions = np.array([fit.position for fit in fits])
+        fit_quality = assess_fit(
+            float(chi2.sum()), int(dof.sum()), math.exp(float(np.median(log_gains)))
+        )
+        return Solution(
+            positions=positions,
+            grid_indices=self.fingerprint.layout.nearest_cell(positions),
+            weights=np.ones(n_terminals),
+            noise_power=n_terminals * sigma2 * self._scale**2,
+            residual_norm=math.sqrt(sum(fit.rss for fit in fits)) * self._scale,
+            n_iter=len(fits),
+            converged=True,
+            covariances=covariances,
+            gains=np.exp(log_gains),
+            heights=np.array([fit.height for fit in fits])
+            if self._priors.fits_heights or heights is not None
+            else None,
+            fit=fit_quality,
+        )
+
+    def _with_nuisances(self, run: _Run, fixed: FitState) -> FitState:
+        """Free the gains, the scale and the heights, keep that fit when it explains the data
+        significantly better than the unit-gain one.
+
+        Each free parameter lowers the whitened cost by about one unit of noise even when
+        the targets are exactly as modelled, and costs accuracy (K = 8 paper room: free
+        gains fit the noise); so the freer fit must beat the fixed one by more than its
+        extra parameters' chi-square would by chance (mean plus three standard deviations).
+        """
+        if not (self._priors.fits_gains or self._priors.fits_heights):
+            return fixed
+        run.nuisance = True
+        freed = self._polish(run, fixed)
+        white = self._whitening(freed)
+        objective = self._objective(run, white)
+        fixed_cost, _ = objective.data_cost(fixed)
+        freed_cost, _ = objective.cost(freed)
+        extra = objective.slots(freed.n_targets).size - 2 * freed.n_targets - 1
+        if fixed_cost - freed_cost > extra + 3.0 * math.sqrt(2.0 * extra):
+            return freed
+        run.nuisance = False
+        return fixed
+
+    def _uncertainty(self, run: _Run, state: FitState) -> tuple[FloatArray, FitQuality]:
+        """Position covariances from the Fisher information of the final whitened fit,
+        inflated by the reduced chi-square when it is above 1, and the fit's quality."""
+        objective = self._objective(run, self._whitening(state))
+        theta = objective.pack(state)
+        normal, _, _ = gram(objective, theta, state)
+        chi2, _ = objective.data_cost(state)
+        dof = objective.data.shape[0] - theta.shape[0]
+        fit = assess_fit(chi2, dof, math.exp(0.5 * state.log_scale))
+        inverse = np.linalg.pinv(normal, hermitian=True) * max(1.0, fit.chi2_per_dof)
+        k = state.n_targets
+        index = np.column_stack((np.arange(k), np.arange(k) + k))
+        covariances = inverse[index[:, :, None], index[:, None, :]]
+        return np.asarray(covariances), fit
