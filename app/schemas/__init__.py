@@ -12,6 +12,7 @@ from .fingerprints import Fingerprint, FingerprintsList, Job, JobResult, MatrixM
 from .localize import (
     SOLVER_NAMES,
     Estimate,
+    Fit,
     Localization,
     Measurement,
     ModelName,
@@ -46,6 +47,7 @@ __all__ = [
     "Fingerprint",
     "FingerprintState",
     "FingerprintsList",
+    "Fit",
     "GridSpec",
     "Job",
     "JobResult",

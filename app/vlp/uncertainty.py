@@ -13,6 +13,7 @@ from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
+from scipy import special
 
 from ._typing import FloatArray
 
@@ -33,10 +34,10 @@ POOR_FIT_CHI2 = 4.0
 # A common amplitude scale outside [1/f, f] says the measurement is not in the fingerprint's
 # units (or the pilots / receiver gains changed): answered, but flagged.
 SCALE_MISMATCH_FACTOR = 1.5
-# Angular quadrature nodes for the 2-D Gaussian's radial probability (periodic trapezoid:
-# exponentially accurate).
-_ANGLES = np.linspace(0.0, 2.0 * math.pi, 256, endpoint=False)
-_DIRECTIONS = np.stack([np.cos(_ANGLES), np.sin(_ANGLES)])
+# Gauss-Legendre nodes and weights on [-pi/2, pi/2] for the radial probability below.
+_NODES, _UNIT_WEIGHTS = np.polynomial.legendre.leggauss(96)
+_ANGLES = 0.5 * math.pi * _NODES
+_WEIGHTS = 0.5 * math.pi * _UNIT_WEIGHTS
 
 
 @dataclass(frozen=True)
@@ -54,12 +55,15 @@ class FitQuality:
     quality : {"ok", "poor", "scale_mismatch"}
     detail : str
         One sentence for a person.
+    dof : int
+        Degrees of freedom behind ``chi2_per_dof``.
     """
 
     chi2_per_dof: float
     scale: float
     quality: Quality
     detail: str
+    dof: int = 1
 
 
 def assess_fit(chi2: float, dof: int, scale: float) -> FitQuality:
@@ -81,28 +85,31 @@ def assess_fit(chi2: float, dof: int, scale: float) -> FitQuality:
     >>> assess_fit(95.0, 100, 3.0).quality
     'scale_mismatch'
     """
-    reduced = float(chi2) / max(int(dof), 1)
+    dof = max(int(dof), 1)
+    reduced = float(chi2) / dof
     if not (1.0 / SCALE_MISMATCH_FACTOR <= scale <= SCALE_MISMATCH_FACTOR):
         detail = (
             f"the measurement is {scale:.3g}x the fingerprint's amplitude scale: check the "
             "units, the pilot amplitudes and the receivers' gain (or calibrate the room)"
         )
-        return FitQuality(reduced, scale, "scale_mismatch", detail)
+        return FitQuality(reduced, scale, "scale_mismatch", detail, dof)
     if reduced > POOR_FIT_CHI2:
         detail = (
             f"the model leaves {reduced:.3g}x the expected residual: the room differs from its "
             "layout (reflections, receivers' gain, height or tilt, LEDs); calibrate the room"
         )
-        return FitQuality(reduced, scale, "poor", detail)
-    return FitQuality(reduced, scale, "ok", "the model explains the measurement to its noise")
+        return FitQuality(reduced, scale, "poor", detail, dof)
+    return FitQuality(reduced, scale, "ok", "the model explains the measurement to its noise", dof)
 
 
 def confidence_radius(covariance: FloatArray, level: float = 0.95) -> float:
     """Radius of the circle around the estimate that holds the truth with ``level``.
 
-    For a zero-mean 2-D Gaussian error with covariance ``C``, in polar coordinates
-    ``P(|e| <= r) = 1 / (2 pi sqrt(det C)) * int_0^{2 pi} (1 - exp(-r^2 q / 2)) / q dtheta``
-    with ``q = d^T C^-1 d``, ``d = (cos theta, sin theta)``; solved for ``r`` by bisection.
+    For a zero-mean 2-D Gaussian error with covariance eigenvalues ``l1 >= l2``,
+    ``|e|^2 = l1 X^2 + l2 Y^2`` with X, Y independent standard normals, so with
+    ``X = a sin(t)``, ``a = r / sqrt(l1)``:
+    ``P(|e| <= r) = int_{-pi/2}^{pi/2} phi(a sin t) (2 Phi(r cos(t) / sqrt(l2)) - 1) a cos(t) dt``
+    (Gauss-Legendre), solved for ``r`` by bisection.
 
     Parameters
     ----------
@@ -118,21 +125,24 @@ def confidence_radius(covariance: FloatArray, level: float = 0.95) -> float:
     >>> round(confidence_radius(np.eye(2) * 0.01), 4)  # sqrt(-2 ln 0.05) * 0.1
     0.2448
     """
-    cov = 0.5 * (np.asarray(covariance, dtype=np.float64) + np.asarray(covariance).T)
-    eigen = np.linalg.eigvalsh(cov)
-    if not np.all(np.isfinite(eigen)) or eigen[-1] <= 0.0:
-        return 0.0 if np.all(np.isfinite(eigen)) else math.inf
-    floor = max(eigen[-1] * 1e-12, 1e-300)
-    cov = cov + np.eye(2) * max(0.0, floor - eigen[0])
-    precision = np.linalg.inv(cov)
-    quad = np.einsum("ia,ij,ja->a", _DIRECTIONS, precision, _DIRECTIONS)
-    norm = 1.0 / (2.0 * math.pi * math.sqrt(max(np.linalg.det(cov), 1e-300)))
-    step = 2.0 * math.pi / _ANGLES.shape[0]
+    cov = np.asarray(covariance, dtype=np.float64)
+    eigen = np.linalg.eigvalsh(0.5 * (cov + cov.T))
+    if not np.all(np.isfinite(eigen)):
+        return math.inf
+    major = float(eigen[-1])
+    if major <= 0.0:
+        return 0.0
+    minor = max(float(eigen[0]), major * 1e-300, 1e-300)
+    cosines = np.cos(_ANGLES)
+    sines = np.sin(_ANGLES)
 
     def probability(radius: float) -> float:
-        return float(norm * step * np.sum(-np.expm1(-0.5 * radius**2 * quad) / quad))
+        reach = radius / math.sqrt(major)
+        inner = 2.0 * special.ndtr(radius * cosines / math.sqrt(minor)) - 1.0
+        density = np.exp(-0.5 * (reach * sines) ** 2) / math.sqrt(2.0 * math.pi)
+        return float(np.sum(_WEIGHTS * density * inner * reach * cosines))
 
-    low, high = 0.0, math.sqrt(eigen[-1]) * math.sqrt(-2.0 * math.log(1.0 - level)) * 1.01
+    low, high = 0.0, math.sqrt(major) * math.sqrt(-2.0 * math.log(1.0 - level)) * 1.01
     for _ in range(60):
         middle = 0.5 * (low + high)
         if probability(middle) < level:

@@ -275,8 +275,9 @@ class _Slots:
         scale = None
         if free_weights:
             weights, at = slice(at, at + k), at + k
-        elif priors.fits_gains:
-            gains, at = slice(at, at + k), at + k
+        else:
+            if priors.fits_gains:
+                gains, at = slice(at, at + k), at + k
             if priors.fits_scale:
                 scale, at = at, at + 1
         return cls(k, n_axes, weights, gains, scale, at + 1)

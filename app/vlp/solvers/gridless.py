@@ -7,7 +7,7 @@ sparse inverse problems", SIAM J. Optim. 2017) applied to the aggregated VLP mod
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -19,10 +19,12 @@ from ..simulation import mean_signal_power
 from ..uncertainty import FitQuality, assess_fit
 from ._channel_kernel import ChannelKernel
 from ._gridless_fit import (
+    MAX_LOG_SCALE,
     FitState,
     Objective,
     Priors,
     Whitening,
+    _Slots,
     gram,
     levenberg_marquardt,
 )
@@ -45,10 +47,9 @@ class _Run:
     """Per-call state (solver objects are shared between threads, so nothing lives on self)."""
 
     values: FloatArray
+    priors: Priors
     iterations: int = 0
     converged: bool = True
-    # Whether gains, scale and heights are fitted (the last stage only, see _with_nuisances).
-    nuisance: bool = False
 
 
 @register_solver
@@ -157,6 +158,17 @@ class GridlessSolver(Solver):
         self._kernel = ChannelKernel(layout, self._scale, diffuse_table(fingerprint))
         self._priors = nuisance_priors(layout, self.options)
         self._growth_priors = Priors(height_mean=self._priors.height_mean)
+        # Nuisances are freed in stages: the common scale and the heights, then the gains.
+        full = self._priors
+        scale_and_heights = replace(full, log_gain_sd=None)
+        self._stages = [
+            stage
+            for stage in (scale_and_heights, full)
+            if _Slots.make(1, stage, self.options.free_weights).size
+            > _Slots.make(1, self._growth_priors, self.options.free_weights).size
+        ]
+        if len(self._stages) == 2 and self._stages[0] == self._stages[1]:
+            self._stages.pop()
         self._centres = layout.cell_centres()
         self._dense = fingerprint.is_dense
         # Restarts begin away from earlier first insertions, by half the mean LED height
@@ -167,6 +179,14 @@ class GridlessSolver(Solver):
             fingerprint.n_leds
             if model == "power"
             else fingerprint.n_leds * (fingerprint.n_leds + 1) // 2
+        )
+        self._upper_lower = (
+            (
+                np.arange(fingerprint.n_leds),
+                np.arange(fingerprint.n_leds),
+            )
+            if model == "power"
+            else np.triu_indices(fingerprint.n_leds)
         )
         # Each target costs 2 coordinates and the noise power one more unknown.
         self._max_count = max(1, min(MAX_TARGETS, fingerprint.n_cells, (n_obs - 1) // 2))
@@ -182,6 +202,7 @@ class GridlessSolver(Solver):
             fourth = np.asarray(self._gains_sparse.power(4).sum(axis=0)).ravel()
             self._psi_norms = np.sqrt(0.5 * (total**2 + fourth))
             self._column_energy = np.maximum(total, 1e-300)
+        self._mean_column_energy = float(np.mean(self._column_energy))
 
     # -- insertion ---------------------------------------------------------------------
     def _correlations(
@@ -239,7 +260,7 @@ class GridlessSolver(Solver):
         return Whitening.from_state(self.model, self._kernel, state, float(state.n_targets))
 
     def _objective(self, run: _Run, white: Whitening, nuisance: bool = True) -> Objective:
-        priors = self._priors if nuisance and run.nuisance else self._growth_priors
+        priors = run.priors if nuisance else self._growth_priors
         return Objective(self._kernel, white, run.values, self.options.free_weights, priors)
 
     def _fit(
@@ -415,8 +436,24 @@ class GridlessSolver(Solver):
             state = self._grow(run, state, self._lm.inner_iter, avoid if first else None)
         return self._polish(run, state)
 
+    def _prescale(self, values: FloatArray, n_targets: int | None) -> float:
+        """A first guess of the common power scale: the received power per target over the
+        room's mean, when K is known and that ratio is beyond 1.5x either way (else 1: the
+        search then runs exactly as in a room measured as modelled)."""
+        if n_targets is None:
+            return 1.0
+        upper, lower = self._upper_lower
+        total = float(np.sum(values[upper == lower]))
+        ratio = total / (n_targets * self._mean_column_energy)
+        if not np.isfinite(ratio) or ratio <= 0.0 or 1.0 / 1.5 <= ratio <= 1.5:
+            return 1.0
+        return float(np.clip(ratio, math.exp(-MAX_LOG_SCALE), math.exp(MAX_LOG_SCALE)))
+
     def _solve(self, measurement: Measurement, n_targets: int | None) -> Solution:
-        run = _Run(values=measurement.values / self._scale**2)
+        values = measurement.values / self._scale**2
+        prescale = self._prescale(values, n_targets)
+        # The whole search runs on the measurement divided by the guessed scale.
+        run = _Run(values=values / prescale, priors=self._growth_priors)
         if n_targets is None:
             state = self._polish(run, self._count_and_fit(run))
         else:
@@ -436,13 +473,18 @@ class GridlessSolver(Solver):
         )
         state = self._with_nuisances(run, state)
         covariances, fit = self._uncertainty(run, state)
+        if prescale != 1.0:
+            state.log_scale += math.log(prescale)
+            fit = assess_fit(
+                fit.chi2_per_dof * max(fit.dof, 1), fit.dof, math.exp(0.5 * state.log_scale)
+            )
         positions = state.positions
         return Solution(
             positions=positions,
             grid_indices=self.fingerprint.layout.nearest_cell(positions),
             weights=state.weights.copy(),
-            noise_power=state.noise * self._scale**2,
-            residual_norm=float(np.linalg.norm(residual)) * self._scale**2,
+            noise_power=state.noise * prescale * self._scale**2,
+            residual_norm=float(np.linalg.norm(residual)) * prescale * self._scale**2,
             n_iter=run.iterations,
             converged=run.converged,
             covariances=covariances,
@@ -547,27 +589,30 @@ class GridlessSolver(Solver):
         )
 
     def _with_nuisances(self, run: _Run, fixed: FitState) -> FitState:
-        """Free the gains, the scale and the heights, keep that fit when it explains the data
-        significantly better than the unit-gain one.
+        """Free the common scale and the heights, then the targets' gains; keep each stage
+        only when it explains the data significantly better than the one before.
 
         Each free parameter lowers the whitened cost by about one unit of noise even when
-        the targets are exactly as modelled, and costs accuracy (K = 8 paper room: free
-        gains fit the noise); so the freer fit must beat the fixed one by more than its
-        extra parameters' chi-square would by chance (mean plus three standard deviations).
+        the targets are exactly as modelled, and costs accuracy (K = 8, paper room: free
+        gains fit the noise); so a freer fit must beat the one before by more than its extra
+        parameters' chi-square would by chance (mean plus three standard deviations).
         """
-        if not (self._priors.fits_gains or self._priors.fits_heights):
-            return fixed
-        run.nuisance = True
-        freed = self._polish(run, fixed)
-        white = self._whitening(freed)
-        objective = self._objective(run, white)
-        fixed_cost, _ = objective.data_cost(fixed)
-        freed_cost, _ = objective.cost(freed)
-        extra = objective.slots(freed.n_targets).size - 2 * freed.n_targets - 1
-        if fixed_cost - freed_cost > extra + 3.0 * math.sqrt(2.0 * extra):
-            return freed
-        run.nuisance = False
-        return fixed
+        best, kept = fixed, run.priors
+        k = fixed.n_targets
+        free_weights = self.options.free_weights
+        for priors in self._stages:
+            run.priors = priors
+            freed = self._polish(run, best)
+            objective = self._objective(run, self._whitening(freed))
+            before, _ = objective.cost(best)
+            after, _ = objective.cost(freed)
+            extra = (
+                _Slots.make(k, priors, free_weights).size - _Slots.make(k, kept, free_weights).size
+            )
+            if before - after > extra + 3.0 * math.sqrt(2.0 * extra):
+                best, kept = freed, priors
+        run.priors = kept
+        return best
 
     def _uncertainty(self, run: _Run, state: FitState) -> tuple[FloatArray, FitQuality]:
         """Position covariances from the Fisher information of the final whitened fit,
