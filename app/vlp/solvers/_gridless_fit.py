@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import functools
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -119,6 +119,8 @@ class FitState:
     heights: FloatArray
     log_gains: FloatArray
     log_scale: float = 0.0
+    # (all on the receivers' plane, unit multipliers), filled by the objective on first use.
+    facts: tuple[bool, bool] | None = field(default=None, compare=False, repr=False)
 
     @classmethod
     def empty(cls, log_scale: float = 0.0) -> FitState:
@@ -265,6 +267,7 @@ class _Slots:
     gains: slice | None
     scale: int | None
     size: int
+    n_prior: int
 
     @classmethod
     def make(cls, n_targets: int, priors: Priors, free_weights: bool) -> _Slots:
@@ -280,7 +283,9 @@ class _Slots:
                 gains, at = slice(at, at + k), at + k
             if priors.fits_scale:
                 scale, at = at, at + 1
-        return cls(k, n_axes, weights, gains, scale, at + 1)
+        n_prior = (k if gains is not None else 0) + (1 if scale is not None else 0)
+        n_prior += k if n_axes == 3 else 0
+        return cls(k, n_axes, weights, gains, scale, at + 1, n_prior)
 
 
 class Objective:
@@ -316,10 +321,14 @@ class Objective:
         self.data = white.data(values)
         self.free_weights = free_weights
         self.priors = priors or Priors()
+        self._slots: dict[int, _Slots] = {}
 
     def slots(self, n_targets: int) -> _Slots:
         """The parameter layout for K targets."""
-        return _Slots.make(n_targets, self.priors, self.free_weights)
+        found = self._slots.get(n_targets)
+        if found is None:
+            found = self._slots[n_targets] = _Slots.make(n_targets, self.priors, self.free_weights)
+        return found
 
     def pack(self, state: FitState) -> FloatArray:
         """``theta`` of a state."""
@@ -366,16 +375,32 @@ class Objective:
         log_scale = float(theta[slots.scale]) if slots.scale is not None else state.log_scale
         return FitState(positions, weights, float(theta[-1]), heights, log_gains, log_scale)
 
-    def _multipliers(self, theta: FloatArray, slots: _Slots, fixed: FitState) -> FloatArray:
-        """Each atom's multiplier ``w_k exp(v + 2 u_k)`` at ``theta``."""
-        weights = theta[slots.weights] if slots.weights is not None else fixed.weights
+    def _state_facts(self, fixed: FitState) -> tuple[bool, bool]:
+        """Whether ``fixed`` has every target on the receivers' plane, and unit multipliers
+        (remembered on the state: LM evaluates many thetas against one)."""
+        facts = fixed.facts
+        if facts is None:
+            on_plane = bool(np.all(fixed.heights == self.kernel.receiver_height))
+            unit = (
+                fixed.log_scale == 0.0
+                and not fixed.log_gains.any()
+                and bool(np.all(fixed.weights == 1.0))
+            )
+            facts = fixed.facts = (on_plane, unit)
+        return facts
+
+    def _multipliers(self, theta: FloatArray, slots: _Slots, fixed: FitState) -> FloatArray | None:
+        """Each atom's multiplier ``w_k exp(v + 2 u_k)`` at ``theta``; None when all are 1."""
+        if slots.weights is not None:
+            return np.asarray(theta[slots.weights])
+        if slots.gains is None and slots.scale is None and self._state_facts(fixed)[1]:
+            return None
         log_gains = theta[slots.gains] if slots.gains is not None else fixed.log_gains
         log_scale = theta[slots.scale] if slots.scale is not None else fixed.log_scale
-        if slots.gains is None and fixed.log_scale == 0.0 and slots.scale is None:
-            return np.asarray(weights)
-        return np.asarray(weights * np.exp(log_scale + 2.0 * log_gains))
+        return np.asarray(fixed.weights * np.exp(log_scale + 2.0 * log_gains))
 
-    def _prior_residuals(self, theta: FloatArray, slots: _Slots) -> FloatArray:
+    def prior_residuals(self, theta: FloatArray, slots: _Slots) -> FloatArray:
+        """The priors' pseudo-residuals at ``theta`` (empty without nuisance parameters)."""
         priors = self.priors
         parts: list[FloatArray] = []
         k = slots.n_targets
@@ -402,17 +427,18 @@ class Objective:
         xs, ys = theta[:k], theta[k : 2 * k]
         if slots.n_axes == 3:
             gains = self.kernel.gains_xyz(xs, ys, theta[2 * k : 3 * k])
-        elif np.all(fixed.heights == self.kernel.receiver_height):
+        elif self._state_facts(fixed)[0]:
             gains = self.kernel.gains_xy(xs, ys)
         else:
             gains = self.kernel.gains_xyz(xs, ys, fixed.heights)
         gains = white.rotate(gains)
         atoms = gains[white.upper] * gains[white.lower]
-        model = atoms @ self._multipliers(theta, slots, fixed)
+        multipliers = self._multipliers(theta, slots, fixed)
+        model = atoms.sum(axis=1) if multipliers is None else atoms @ multipliers
         model *= white.weights
         residual = self.data - model
         residual -= theta[-1] * white.weighted_diag
-        return np.concatenate((residual, self._prior_residuals(theta, slots)))
+        return np.concatenate((residual, self.prior_residuals(theta, slots)))
 
     def augmented(self, theta: FloatArray, fixed: FitState) -> FloatArray:
         """``[J | r]^T`` of shape (len(theta) + 1, L + n_prior): the Jacobian of the model
@@ -427,8 +453,11 @@ class Objective:
         # Rows [dg/dx | dg/dy | (dg/dz) | g | g | (g)] (rotated: (U^T G)^T = G^T U).
         if n_axes == 3:
             blocks = self.kernel.gradients_xyz(xs, ys, theta[2 * k : 3 * k]).T
-        else:
+        elif self._state_facts(fixed)[0]:
             blocks = self.kernel.gradients_xy(xs, ys).T
+        else:  # heights fixed off the plane: keep the x, y gradients and two gain blocks
+            full = self.kernel.gradients_xyz(xs, ys, fixed.heights).T
+            blocks = np.concatenate((full[: 2 * k], full[3 * k : 5 * k]))
         if white.rotation is not None:
             blocks = blocks @ white.rotation
         left = blocks[:, white.upper]
@@ -436,12 +465,11 @@ class Objective:
         n_grad = n_axes * k
         atoms = left[n_grad : n_grad + k] * right[n_grad : n_grad + k]  # (K, L)
         multipliers = self._multipliers(theta, slots, fixed)
-        priors = self._prior_residuals(theta, slots)
         n_data = atoms.shape[1]
         n_params = theta.shape[0]
-        augmented = np.zeros((n_params + 1, n_data + priors.shape[0]))
-        data_part = augmented[:, :n_data]
-        model = multipliers @ atoms
+        augmented = np.empty((n_params + 1, n_data + slots.n_prior))
+        data_part = augmented[:, :n_data] if slots.n_prior else augmented
+        model = atoms.sum(axis=0) if multipliers is None else multipliers @ atoms
         model *= white.weights
         residual = data_part[n_params]
         np.subtract(self.data, model, out=residual)
@@ -450,31 +478,39 @@ class Objective:
         positions = data_part[:n_grad]
         np.multiply(left[:n_grad], right[n_grad:], out=positions)
         positions += left[n_grad:] * right[:n_grad]
-        positions *= np.tile(multipliers, n_axes)[:, None]
+        if multipliers is not None:
+            for axis in range(n_axes):
+                positions[axis * k : (axis + 1) * k] *= multipliers[:, None]
         positions *= white.weights
         if slots.weights is not None:
             np.multiply(atoms, white.weights, out=data_part[slots.weights])
         if slots.gains is not None:
-            np.multiply(atoms, (2.0 * multipliers)[:, None], out=data_part[slots.gains])
+            twice = 2.0 * (np.ones(k) if multipliers is None else multipliers)
+            np.multiply(atoms, twice[:, None], out=data_part[slots.gains])
             data_part[slots.gains] *= white.weights
         if slots.scale is not None:
             data_part[slots.scale] = model
         data_part[n_params - 1] = white.weighted_diag
-        if priors.shape[0]:
-            prior_part = augmented[:, n_data:]
-            prior_part[n_params] = priors
-            column = 0
-            if slots.gains is not None and self.priors.log_gain_sd is not None:
-                rows = np.arange(slots.gains.start, slots.gains.stop)
-                prior_part[rows, column + np.arange(k)] = 1.0 / self.priors.log_gain_sd
-                column += k
-            if slots.scale is not None and self.priors.log_scale_sd is not None:
-                prior_part[slots.scale, column] = 1.0 / self.priors.log_scale_sd
-                column += 1
-            if n_axes == 3:
-                rows = np.arange(2 * k, 3 * k)
-                prior_part[rows, column + np.arange(k)] = 1.0 / self.priors.height_sd
+        if slots.n_prior:
+            self._fill_priors(augmented[:, n_data:], theta, slots)
         return augmented
+
+    def _fill_priors(self, prior_part: FloatArray, theta: FloatArray, slots: _Slots) -> None:
+        """The prior pseudo-residuals' columns of :meth:`augmented`."""
+        k = slots.n_targets
+        prior_part[:] = 0.0
+        prior_part[-1] = self.prior_residuals(theta, slots)
+        column = 0
+        if slots.gains is not None and self.priors.log_gain_sd is not None:
+            rows = np.arange(slots.gains.start, slots.gains.stop)
+            prior_part[rows, column + np.arange(k)] = 1.0 / self.priors.log_gain_sd
+            column += k
+        if slots.scale is not None and self.priors.log_scale_sd is not None:
+            prior_part[slots.scale, column] = 1.0 / self.priors.log_scale_sd
+            column += 1
+        if slots.n_axes == 3:
+            rows = np.arange(2 * k, 3 * k)
+            prior_part[rows, column + np.arange(k)] = 1.0 / self.priors.height_sd
 
     def data_cost(self, state: FitState) -> tuple[float, FloatArray]:
         """Cost and whitened residual of the data alone (no prior terms)."""

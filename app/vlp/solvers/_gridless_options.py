@@ -51,6 +51,8 @@ class GridlessOptions:
     # measurement (pilots, receivers' calibration, units).
     log_gain_sd: float | None = 0.1
     log_scale_sd: float | None = 0.5
+    # LM iterations of the trial that decides whether freeing a stage of nuisances pays.
+    stage_iter: int = 8
 
 
 @dataclass(frozen=True)

@@ -42,6 +42,15 @@ from .base import MAX_TARGETS, Solution, Solver, register_solver
 __all__ = ["LM_DEFAULTS", "GridlessOptions", "GridlessSolver"]
 
 
+@dataclass(frozen=True)
+class _Fisher:
+    """Normal matrix of a whitened fit, its data chi-square and number of observations."""
+
+    normal: FloatArray
+    chi2: float
+    n_observations: int
+
+
 @dataclass
 class _Run:
     """Per-call state (solver objects are shared between threads, so nothing lives on self)."""
@@ -471,10 +480,11 @@ class GridlessSolver(Solver):
         residual = self._residual(
             run, Whitening.identity(self.model, self.fingerprint.n_leds), state
         )
-        state = self._with_nuisances(run, state)
-        covariances, fit = self._uncertainty(run, state)
+        state, fisher = self._with_nuisances(run, state)
+        covariances, fit = self._uncertainty(run, state, fisher)
         if prescale != 1.0:
             state.log_scale += math.log(prescale)
+            state.facts = None
             fit = assess_fit(
                 fit.chi2_per_dof * max(fit.dof, 1), fit.dof, math.exp(0.5 * state.log_scale)
             )
@@ -588,42 +598,72 @@ class GridlessSolver(Solver):
             fit=fit_quality,
         )
 
-    def _with_nuisances(self, run: _Run, fixed: FitState) -> FitState:
+    def _with_nuisances(self, run: _Run, fixed: FitState) -> tuple[FitState, _Fisher | None]:
         """Free the common scale and the heights, then the targets' gains; keep each stage
         only when it explains the data significantly better than the one before.
 
         Each free parameter lowers the whitened cost by about one unit of noise even when
         the targets are exactly as modelled, and costs accuracy (K = 8, paper room: free
         gains fit the noise); so a freer fit must beat the one before by more than its extra
-        parameters' chi-square would by chance (mean plus three standard deviations).
+        parameters' chi-square would by chance (mean plus three standard deviations). A score
+        test comes first (one evaluation: the decrease the Gauss-Newton step of the freer
+        model promises at the current fit); only a promising stage is fitted.
+
+        Returns the kept fit and, when it is still ``fixed``, its Fisher information (read
+        off the score test's normal matrix, which holds it as a sub-block).
         """
         best, kept = fixed, run.priors
         k = fixed.n_targets
         free_weights = self.options.free_weights
-        for priors in self._stages:
+        white = self._whitening(best)
+        fisher: _Fisher | None = None
+        # The freest stage is tested first: when even it promises nothing, neither does any
+        # stage in between (one evaluation in the common case of a room as modelled).
+        for index, priors in enumerate([self._stages[-1], *self._stages] if self._stages else []):
             run.priors = priors
+            slots = _Slots.make(k, priors, free_weights)
+            extra = slots.size - _Slots.make(k, kept, free_weights).size
+            significant = extra + 3.0 * math.sqrt(2.0 * extra)
+            objective = self._objective(run, white)
+            theta = objective.pack(best)
+            normal, gradient, before = gram(objective, theta, best)
+            if best is fixed:
+                prior = objective.prior_residuals(theta, slots)
+                chi2 = before - float(prior @ prior)
+                shared = np.r_[np.arange(2 * k), slots.size - 1]
+                fisher = _Fisher(normal[np.ix_(shared, shared)], chi2, objective.data.shape[0])
+            try:
+                promised = float(gradient @ np.linalg.solve(normal, gradient))
+            except np.linalg.LinAlgError:
+                promised = float(gradient @ np.linalg.lstsq(normal, gradient, rcond=None)[0])
+            if promised <= significant:
+                if index == 0:
+                    break
+                continue
+            if index == 0 and len(self._stages) > 1:
+                continue  # promising: now stage by stage, the cheapest first
             freed = self._polish(run, best)
-            objective = self._objective(run, self._whitening(freed))
-            before, _ = objective.cost(best)
-            after, _ = objective.cost(freed)
-            extra = (
-                _Slots.make(k, priors, free_weights).size - _Slots.make(k, kept, free_weights).size
-            )
-            if before - after > extra + 3.0 * math.sqrt(2.0 * extra):
+            if before - objective.cost(freed)[0] > significant:
                 best, kept = freed, priors
+                white = self._whitening(best)
+                fisher = None
         run.priors = kept
-        return best
+        return best, fisher
 
-    def _uncertainty(self, run: _Run, state: FitState) -> tuple[FloatArray, FitQuality]:
+    def _uncertainty(
+        self, run: _Run, state: FitState, fisher: _Fisher | None
+    ) -> tuple[FloatArray, FitQuality]:
         """Position covariances from the Fisher information of the final whitened fit,
         inflated by the reduced chi-square when it is above 1, and the fit's quality."""
-        objective = self._objective(run, self._whitening(state))
-        theta = objective.pack(state)
-        normal, _, _ = gram(objective, theta, state)
-        chi2, _ = objective.data_cost(state)
-        dof = objective.data.shape[0] - theta.shape[0]
-        fit = assess_fit(chi2, dof, math.exp(0.5 * state.log_scale))
-        inverse = np.linalg.pinv(normal, hermitian=True) * max(1.0, fit.chi2_per_dof)
+        if fisher is None:
+            objective = self._objective(run, self._whitening(state))
+            theta = objective.pack(state)
+            normal, _, cost = gram(objective, theta, state)
+            prior = objective.prior_residuals(theta, objective.slots(state.n_targets))
+            fisher = _Fisher(normal, cost - float(prior @ prior), objective.data.shape[0])
+        dof = fisher.n_observations - fisher.normal.shape[0]
+        fit = assess_fit(fisher.chi2, dof, math.exp(0.5 * state.log_scale))
+        inverse = np.linalg.pinv(fisher.normal, hermitian=True) * max(1.0, fit.chi2_per_dof)
         k = state.n_targets
         index = np.column_stack((np.arange(k), np.arange(k) + k))
         covariances = inverse[index[:, :, None], index[:, None, :]]
