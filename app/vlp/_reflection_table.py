@@ -39,9 +39,10 @@ WALL_NODE_OFFSETS_M = (0.02, 0.05, 0.1)
 HEIGHT_SPACING_M = 0.1
 # Receivers on a wall's line are evaluated this far inside (the limit from inside the room).
 _WALL_INSET_M = 1e-4
-# Coefficients (nodes x LEDs x 4 or 8 Hermite terms) above which a table is refused: 64e6
-# float64 = 512 MB. Hall-scale rooms exceed it (docs/reflections.md).
-MAX_TABLE_ENTRIES = 64_000_000
+# Coefficients (nodes x LEDs x 4 or 8 Hermite terms) above which a table is refused: 8e6
+# float64 = 64 MB, and a build of minutes, not hours (its cost grows like nodes x LEDs x
+# wall length). Hall-scale rooms exceed it (docs/reflections.md).
+MAX_TABLE_ENTRIES = 8_000_000
 # Points evaluated per call of diffuse_gains while building (progress granularity).
 _BUILD_CHUNK = 64
 
@@ -105,18 +106,7 @@ class ReflectionTable:
         ProblemSizeError
             When the table would hold more than :data:`MAX_TABLE_ENTRIES` coefficients.
         """
-        x_nodes = _axis_nodes(layout.room.length)
-        y_nodes = _axis_nodes(layout.room.width)
-        z_nodes = _height_nodes(layout)
-        n_terms = 8 if z_nodes.size > 1 else 4
-        entries = x_nodes.size * y_nodes.size * z_nodes.size * n_terms * layout.n_leds
-        if entries > MAX_TABLE_ENTRIES:
-            raise ProblemSizeError(
-                f"a reflection table for this room needs {entries} coefficients, more than the "
-                f"limit {MAX_TABLE_ENTRIES}; reflections are supported up to rooms of a few "
-                "hundred square metres",
-                field="room.reflectance",
-            )
+        x_nodes, y_nodes, z_nodes = cls.check_size(layout)
         inset_x = np.clip(x_nodes, _WALL_INSET_M, layout.room.length - _WALL_INSET_M)
         inset_y = np.clip(y_nodes, _WALL_INSET_M, layout.room.width - _WALL_INSET_M)
         grid_x, grid_y, grid_z = np.meshgrid(inset_x, inset_y, z_nodes, indexing="ij")
@@ -135,6 +125,29 @@ class ReflectionTable:
             _hermite_coefficients(shaped, x_nodes, y_nodes, z_nodes),
             layout.grid.receiver_height,
         )
+
+    @staticmethod
+    def check_size(layout: Layout) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """The nodes a table for ``layout`` would have, after checking it fits the limit.
+
+        Raises
+        ------
+        ProblemSizeError
+            When the table would hold more than :data:`MAX_TABLE_ENTRIES` coefficients.
+        """
+        x_nodes = _axis_nodes(layout.room.length)
+        y_nodes = _axis_nodes(layout.room.width)
+        z_nodes = _height_nodes(layout)
+        n_terms = 8 if z_nodes.size > 1 else 4
+        entries = x_nodes.size * y_nodes.size * z_nodes.size * n_terms * layout.n_leds
+        if entries > MAX_TABLE_ENTRIES:
+            raise ProblemSizeError(
+                f"a reflection table for this room needs {entries} coefficients, more than the "
+                f"limit {MAX_TABLE_ENTRIES}; reflections are supported up to rooms of a few "
+                "hundred square metres",
+                field="room.reflectance",
+            )
+        return x_nodes, y_nodes, z_nodes
 
     def evaluate(
         self, xs: FloatArray, ys: FloatArray, zs: FloatArray | None = None

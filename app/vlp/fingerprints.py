@@ -209,6 +209,8 @@ def build_fingerprint(
         else math.inf
     )
     reflecting = layout.room.reflectance is not None
+    if reflecting:
+        ReflectionTable.check_size(layout)  # refuse before the line-of-sight work
     los_progress = progress
     if progress is not None and reflecting:
         outer = progress
