@@ -44,7 +44,14 @@ from app.vlp.metrics import mean_position_error
 from app.vlp.simulation import Impairments, random_positions, simulate_terminals
 from app.vlp.solvers import Solver, make_solver
 
-from ._common import REPO_ROOT, load_solvers, machine_markdown, machine_record, write_csv
+from ._common import (
+    REPO_ROOT,
+    load_solvers,
+    machine_markdown,
+    machine_record,
+    replace_section,
+    write_csv,
+)
 from .rooms import make_room
 
 __all__ = ["CONDITIONS", "Condition", "Localizer", "gridless_localizer", "main", "run"]
@@ -214,7 +221,8 @@ def _parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Run the benchmark; write ``real-rooms.md`` and ``data/real_rooms.csv`` into ``--out``."""
+    """Run the benchmark; write ``data/real_rooms.csv`` and the measured section of
+    ``real-rooms.md`` (between its ``real-rooms-bench`` markers) into ``--out``."""
     args = _parse_args(argv)
     load_solvers()
     trials = args.trials or (3 if args.quick else 30)
@@ -243,9 +251,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     for room in rooms:
         body += [f"### Room `{room}`", "", summary_table(rows, room, trials), ""]
     body += ["Machine:", "", machine_markdown(machine_record()), ""]
-    path = out / "real-rooms-bench.md"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text("\n".join(body), encoding="utf-8")
+    path = out / "real-rooms.md"
+    replace_section(path, "real-rooms-bench", "\n".join(body), preamble="# Real rooms\n")
     print(f"{len(rows)} rows, {elapsed:.0f} s; wrote {path}")
     return 0
 

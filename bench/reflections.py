@@ -13,12 +13,13 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import os
 import statistics
 import time
-import timeit
 from collections.abc import Callable
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from app.vlp.channel import los_gains
 from app.vlp.fingerprints import build_fingerprint
@@ -49,7 +50,15 @@ def _with(layout: Layout, reflectance: Reflectance, height_sd: float = 0.0) -> L
 
 
 def _median_us(call: Callable[[], object], number: int) -> float:
-    return statistics.median(timeit.repeat(call, number=number, repeat=11)) / number * 1e6
+    """Median over ``number`` timed calls (after a few warm-up calls), microseconds."""
+    for _ in range(3):
+        call()
+    samples = []
+    for _ in range(number):
+        started = time.perf_counter_ns()
+        call()
+        samples.append(time.perf_counter_ns() - started)
+    return statistics.median(samples) / 1e3
 
 
 def _convergence(layout: Layout) -> list[str]:
@@ -100,6 +109,11 @@ def _table_error(table: ReflectionTable, layout: Layout) -> str:
 
 def main() -> int:
     """Entry point of ``python -m bench.reflections``."""
+    with threadpool_limits(limits=1):  # as the solvers run in the service and benchmarks
+        return _run()
+
+
+def _run() -> int:
     layout = paper_layout()
     lines = ["## Convergence with the element size (NLoS/LoS, paper room, walls 0.7)", ""]
     lines += _convergence(layout)
@@ -112,11 +126,11 @@ def main() -> int:
     xyz = np.array([[0.3, 2.1, 0.85]])
     timings = {
         "diffuse_gains, one receiver, default cells (ms)": _median_us(
-            lambda: diffuse_gains(flat, xyz), 5
+            lambda: diffuse_gains(flat, xyz), 15
         )
         / 1e3,
         "diffuse_gains, one receiver, 0.1 m cells (simulator) (ms)": _median_us(
-            lambda: diffuse_gains(flat, xyz, element_size_m=0.1), 3
+            lambda: diffuse_gains(flat, xyz, element_size_m=0.1), 15
         )
         / 1e3,
     }
@@ -125,10 +139,10 @@ def main() -> int:
     for count in (1, 8, 50):
         xs, ys, zs = gen.uniform(0, 4, count), gen.uniform(0, 4, count), gen.uniform(0.7, 1, count)
         timings[f"evaluate, P = {count}, M = 16, one height (us)"] = _median_us(
-            functools.partial(table.evaluate, xs, ys), 500
+            functools.partial(table.evaluate, xs, ys), 3000
         )
         timings[f"evaluate, P = {count}, M = 16, heights sd 5 cm (us)"] = _median_us(
-            functools.partial(tall.evaluate, xs, ys, zs), 500
+            functools.partial(tall.evaluate, xs, ys, zs), 3000
         )
     started = time.perf_counter()
     fingerprint = build_fingerprint(flat)
@@ -142,6 +156,8 @@ def main() -> int:
         f"{tall.coefficients.size} |",
         f"| fingerprint with reflections, paper room (s, one run; nnz {fingerprint.gains.nnz} "
         f"of {16 * 400}) | {fingerprint_s:.1f} |",
+        "",
+        f"Load average at the end (1, 5, 15 min): {os.getloadavg()}.",
         "",
         "Machine:",
         "",
