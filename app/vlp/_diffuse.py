@@ -59,6 +59,13 @@ def diffuse_gains(
         When a point lies outside the room, a normal is not a unit vector, or
         ``element_size_m`` is not positive.
 
+    Notes
+    -----
+    A receiver exactly on a surface's plane gets nothing from that surface (it sees it edge
+    on); the limit from inside the room is larger (about half the configuration factor of the
+    wall's near part). :class:`~app.vlp.reflections.ReflectionTable` evaluates wall lines
+    0.1 mm inside for that reason.
+
     Examples
     --------
     >>> from app.vlp.layout import Reflectance
