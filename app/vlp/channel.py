@@ -161,7 +161,7 @@ def los_gains(
 
     Notes
     -----
-    The generalised Lambertian LoS gain (Komine and Nakagawa 2004, eq. 2). For upward normals at
+    The generalised Lambertian LoS gain (Komine and Nakagawa 2004). For upward normals at
     ``grid.receiver_height`` it equals :func:`channel_gains`.
 
     Examples

@@ -1,8 +1,7 @@
 """First-bounce diffuse reflections off the room's walls, floor and ceiling.
 
 Each surface element ``dA`` at ``q`` (inward normal ``n_q``, reflectance ``rho``) is lit by
-LED ``i`` and re-emits as a Lambertian source (Barry et al. 1993; Komine and Nakagawa 2004,
-eq. 4):
+LED ``i`` and re-emits as a Lambertian source (Barry et al. 1993; Komine and Nakagawa 2004):
 
 .. math::
 
