@@ -24,6 +24,9 @@ GRADING = 0.25
 _GAUSS_POINTS = 3
 # An LED or receiver closer than this to a plane is treated as lying on it (no grading there).
 ON_PLANE_M = 1e-9
+# LEDs closer to a plane than this many element sizes get cells graded towards their foot
+# (farther ones light it smoothly enough for the uniform cells; docs/reflections.md).
+_LED_GRADING_REACH = 2.0
 SURFACES = ("floor", "ceiling", "wall_x0", "wall_x1", "wall_y0", "wall_y1")
 
 
@@ -136,7 +139,7 @@ class LedFrame:
         led_u, led_v = offsets @ surface.axis_u, offsets @ surface.axis_v
         led_height = offsets @ surface.normal
         # Grade towards an LED's foot only where it is close enough to need finer cells.
-        near = led_height < size / GRADING
+        near = led_height < size * _LED_GRADING_REACH
         return cls(
             n_leds=n_leds,
             active=active,
