@@ -13,7 +13,8 @@ condition's impairments and the noisy amplitudes at 30 dB. The placements depend
 
 - ``correlation``: the K terminals' amplitudes aggregated into ``R = sum_k a_k a_k^T`` and one
   K-target solve;
-- ``alone``: each terminal's own amplitudes, one single-target (correlation) solve each.
+- ``terminals``: each terminal's own amplitudes, fitted terminal by terminal (the service's
+  ``terminals`` form with the default solver).
 
 The error of a trial is the mean distance between estimates and truth after optimal
 (Hungarian) matching; the table shows the mean over trials, in centimetres. Conditions
@@ -43,6 +44,7 @@ from app.vlp.measurements import Measurement, Model, measurement_from_amplitudes
 from app.vlp.metrics import mean_position_error
 from app.vlp.simulation import Impairments, random_positions, simulate_terminals
 from app.vlp.solvers import Solver, make_solver
+from app.vlp.solvers.gridless import GridlessSolver
 
 from ._common import (
     REPO_ROOT,
@@ -59,7 +61,7 @@ __all__ = ["CONDITIONS", "Condition", "Localizer", "gridless_localizer", "main",
 SEED = 20261123
 SNR_DB = 30.0
 KS = (1, 4, 8)
-MODES = ("correlation", "alone")
+MODES = ("correlation", "terminals")
 
 Localizer = Callable[[Fingerprint, Measurement, int], FloatArray]
 
@@ -71,6 +73,7 @@ class Condition:
     name: str
     impairments: Impairments
     reflectance_in_layout: Reflectance | None = None
+    height_sd_in_layout: float = 0.0
 
 
 WALLS = Reflectance(walls=0.7, floor=0.0, ceiling=0.0)
@@ -82,10 +85,17 @@ CONDITIONS: tuple[Condition, ...] = (
     Condition("reflections 0.7, in layout", Impairments.reflections(0.7), WALLS),
     Condition("gain sd 10 %", Impairments.gain_spread(0.10)),
     Condition("heights sd 15 cm", Impairments.heights(0.15)),
+    Condition("heights sd 15 cm, sd in layout", Impairments.heights(0.15), None, 0.15),
     Condition("tilt 0-20 deg", Impairments.tilts(20.0)),
     Condition("LED 5 % / 3 deg", Impairments.led_tolerances(0.05, 3.0)),
     Condition("realistic mix", MIX),
     Condition("realistic mix, reflectance in layout", MIX, MIX.reflectance),
+    Condition(
+        "realistic mix, reflectance and height sd in layout",
+        MIX,
+        MIX.reflectance,
+        MIX.height_sd_m,
+    ),
 )
 
 
@@ -107,16 +117,18 @@ def _solver(fingerprint: Fingerprint, model: Model) -> Solver:
 
 
 @cache
-def _layout(room: str, reflectance: Reflectance | None) -> Layout:
+def _layout(room: str, reflectance: Reflectance | None, height_sd: float = 0.0) -> Layout:
     layout = make_room(room)
     return dataclasses.replace(
-        layout, room=dataclasses.replace(layout.room, reflectance=reflectance)
+        layout,
+        room=dataclasses.replace(layout.room, reflectance=reflectance),
+        grid=dataclasses.replace(layout.grid, receiver_height_sd=height_sd),
     )
 
 
 @cache
-def _fingerprint(room: str, reflectance: Reflectance | None) -> Fingerprint:
-    return build_fingerprint(_layout(room, reflectance))
+def _fingerprint(room: str, reflectance: Reflectance | None, height_sd: float = 0.0) -> Fingerprint:
+    return build_fingerprint(_layout(room, reflectance, height_sd))
 
 
 def _generator(*key: object) -> np.random.Generator:
@@ -130,7 +142,7 @@ def run_trial(
     """Mean matched error (metres) of each mode in one trial; NaN where the solve failed."""
     truth_layout = _layout(room, None)
     positions = random_positions(truth_layout, count, rng=_generator(room, count, trial))
-    layout = _layout(room, condition.reflectance_in_layout)
+    layout = _layout(room, condition.reflectance_in_layout, condition.height_sd_in_layout)
     simulated = simulate_terminals(
         layout,
         positions,
@@ -138,7 +150,7 @@ def run_trial(
         snr_db=SNR_DB,
         rng=_generator(room, condition.name, count, trial),
     )
-    fingerprint = _fingerprint(room, condition.reflectance_in_layout)
+    fingerprint = _fingerprint(room, condition.reflectance_in_layout, condition.height_sd_in_layout)
     amplitudes = simulated.amplitudes
     errors: dict[str, float] = {}
     try:
@@ -149,21 +161,14 @@ def run_trial(
     except Exception:  # a failing solve is counted, not fatal
         errors["correlation"] = float("nan")
     try:
-        alone = np.vstack(
-            [
-                localize(
-                    fingerprint,
-                    measurement_from_amplitudes(
-                        amplitudes[k : k + 1], "correlation", layout.n_leds
-                    ),
-                    1,
-                )
-                for k in range(count)
-            ]
+        # The service's `terminals` form: each terminal fitted from its own amplitudes.
+        solver = _solver(fingerprint, "correlation")
+        assert isinstance(solver, GridlessSolver)
+        errors["terminals"] = mean_position_error(
+            solver.solve_terminals(amplitudes).positions, positions
         )
-        errors["alone"] = mean_position_error(alone, positions)
     except Exception:
-        errors["alone"] = float("nan")
+        errors["terminals"] = float("nan")
     return errors
 
 
@@ -193,12 +198,12 @@ def summary_table(
     rows: Sequence[tuple[str, str, int, int, str, float]], room: str, trials: int
 ) -> str:
     """Markdown table of the mean error (cm) per condition x (K, mode) for one room."""
-    header = "| condition | " + " | ".join(f"K = {k}" for k in KS) + " | alone, K = 8 |"
+    header = "| condition | " + " | ".join(f"K = {k}" for k in KS) + " | terminals, K = 8 |"
     lines = [header, "|---" * (len(KS) + 2) + "|"]
     names = list(dict.fromkeys(r[1] for r in rows if r[0] == room))
     for name in names:
         cells = []
-        for count, mode in [(k, "correlation") for k in KS] + [(8, "alone")]:
+        for count, mode in [(k, "correlation") for k in KS] + [(8, "terminals")]:
             values = [r[5] for r in rows if r[:3] == (room, name, count) and r[4] == mode]
             failed = sum(np.isnan(values))
             text = f"{100 * np.nanmean(values):.1f}" if len(values) > failed else "-"
@@ -245,7 +250,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         "",
         f"Command: `{command.strip()}` ({elapsed:.0f} s). Default solver (`gridless`), "
         f"{SNR_DB:.0f} dB, columns K = 1 / 4 / 8 aggregated correlation, then each of the "
-        "K = 8 terminals solved alone.",
+        "K = 8 terminals sent as `terminals` (each fitted from its own amplitudes).",
         "",
     ]
     for room in rooms:

@@ -85,7 +85,7 @@ def nuisance_priors(layout: Layout, options: GridlessOptions) -> Priors:
     """The priors of a room: gains and scale from the options, heights from the layout's
     ``grid.receiver_height_sd`` (0: every target on the receivers' plane)."""
     mean = layout.grid.receiver_height
-    spread = float(getattr(layout.grid, "receiver_height_sd", 0.0) or 0.0)
+    spread = layout.grid.receiver_height_sd
     top = float(layout.led_positions[:, 2].min()) - _HEIGHT_CLEARANCE_M
     bounds = (max(0.0, mean - _HEIGHT_SPAN_SD * spread), min(top, mean + _HEIGHT_SPAN_SD * spread))
     gain_sd = None if options.free_weights else options.log_gain_sd
@@ -95,6 +95,4 @@ def nuisance_priors(layout: Layout, options: GridlessOptions) -> Priors:
 
 def diffuse_table(fingerprint: Fingerprint) -> DiffuseTable | None:
     """The fingerprint's interpolated diffuse reflections, None for a line-of-sight room."""
-    if getattr(fingerprint.layout.room, "reflectance", None) is None:
-        return None
-    return None
+    return fingerprint.reflection_table()
