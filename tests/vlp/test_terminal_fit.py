@@ -15,7 +15,7 @@ from app.vlp.measurements import measurement_from_amplitudes
 from app.vlp.simulation import noise_std_for_snr, random_positions, true_amplitudes
 from app.vlp.solvers._channel_kernel import ChannelKernel
 from app.vlp.solvers._terminal_fit import los_with_normal
-from app.vlp.solvers.gridless import GridlessSolver
+from app.vlp.solvers.gridless import GridlessOptions, GridlessSolver
 from tests.vlp.test_gridless_nuisances import _matched
 
 
@@ -95,7 +95,8 @@ def test_noiseless_terminals_with_gains_heights_and_tilts_are_recovered_exactly(
     np.testing.assert_allclose(solution.positions, truth, atol=1e-3)
     assert solution.gains is not None
     np.testing.assert_allclose(solution.gains, gains, rtol=1e-2)
-    upright = solver.solve_terminals(amplitudes, heights)  # tilts ignored: centimetres off
+    level = GridlessSolver(solver.fingerprint, "correlation", GridlessOptions(tilt_sd=None))
+    upright = level.solve_terminals(amplitudes, heights)  # tilts ignored: centimetres off
     assert np.abs(upright.positions - truth).max() > 0.01
     assert solution.heights is not None
     np.testing.assert_allclose(solution.heights, heights)
@@ -130,3 +131,27 @@ def test_amplitudes_a_thousand_times_too_large_are_refused(
     assert caught.value.field == "terminals"
     flagged = solver.solve_terminals(amplitudes / 100)  # 10x: answered, flagged
     assert flagged.fit is not None and flagged.fit.quality == "scale_mismatch"
+
+
+def test_an_unknown_tilt_is_fitted_when_it_matters(
+    paper_room: Layout, paper_fingerprint: Fingerprint, solver: GridlessSolver
+) -> None:
+    # Hand-held phones: polar tilt uniform in [0, 20] deg, any azimuth, normals not sent.
+    sigma = noise_std_for_snr(paper_fingerprint, 30.0)
+    rng = np.random.default_rng(21)
+    level = GridlessSolver(paper_fingerprint, "correlation", GridlessOptions(tilt_sd=None))
+    fitted, ignored = [], []
+    for _ in range(3):
+        truth = random_positions(paper_room, 8, rng=rng)
+        polar = np.radians(rng.uniform(0.0, 20.0, 8))
+        azimuth = rng.uniform(0.0, 2.0 * math.pi, 8)
+        normals = np.column_stack(
+            (np.sin(polar) * np.cos(azimuth), np.sin(polar) * np.sin(azimuth), np.cos(polar))
+        )
+        amplitudes = np.array(
+            [_direct_los(paper_room, np.array([*truth[k], 0.85]), normals[k]) for k in range(8)]
+        )
+        amplitudes = amplitudes + sigma * rng.standard_normal(amplitudes.shape)
+        fitted += list(np.linalg.norm(solver.solve_terminals(amplitudes).positions - truth, axis=1))
+        ignored += list(np.linalg.norm(level.solve_terminals(amplitudes).positions - truth, axis=1))
+    assert np.mean(fitted) < 0.8 * np.mean(ignored)

@@ -51,6 +51,9 @@ class GridlessOptions:
     # measurement (pilots, receivers' calibration, units).
     log_gain_sd: float | None = 0.1
     log_scale_sd: float | None = 0.5
+    # Prior sd of each component (tangent) of a terminal's unknown photodiode tilt, fitted
+    # when terminals send their own amplitudes but not their normal (hand-held phones tilt).
+    tilt_sd: float | None = 0.15
     # LM iterations of the trial that decides whether freeing a stage of nuisances pays.
     stage_iter: int = 8
 

@@ -32,6 +32,10 @@ _STARTS = 3
 _MAX_ITER = 30
 # Smallest noise variance assumed, relative to a terminal's mean squared amplitude (40 dB).
 _SIGMA2_REL_FLOOR = 1e-4
+# A fitted tilt (tangent of its components) stays within +-45 degrees.
+_MAX_TILT = 1.0
+# Cost decrease a fitted tilt must bring to be kept: 2 + 3 sqrt(2 * 2).
+_TILT_SIGNIFICANCE = 8.0
 
 
 @dataclass(frozen=True)
@@ -45,6 +49,7 @@ class TerminalFit:
     rss: float
     normal: FloatArray
     n_params: int
+    cost: float = 0.0
 
 
 def los_with_normal(
@@ -100,6 +105,7 @@ def fit_terminal(
     sigma2: float | None,
     height: float | None,
     normal: FloatArray | None,
+    tilt_sd: float | None = None,
 ) -> TerminalFit:
     """Fit one terminal from each start, keep the lowest cost.
 
@@ -118,7 +124,10 @@ def fit_terminal(
     height : float or None
         The terminal's own height when it sent it.
     normal : ndarray of shape (3,) or None
-        Its photodiode's unit normal when it sent it (None: straight up).
+        Its photodiode's unit normal when it sent it (None: unknown).
+    tilt_sd : float or None
+        Prior standard deviation of each component of an unknown photodiode's tilt
+        (tangent units; with priors only); None keeps an unknown normal straight up.
     """
     best: TerminalFit | None = None
     floor = _SIGMA2_REL_FLOOR * float(amplitudes @ amplitudes) / amplitudes.shape[0]
@@ -135,11 +144,36 @@ def fit_terminal(
             priors,
             weight if sigma2 is not None else None,
             normal,
+            None,
         )
         if best is None or fit.rss < best.rss:
             best = fit
     assert best is not None
-    return best
+    if normal is not None or tilt_sd is None:
+        return best
+    if sigma2 is None:
+        # The noise estimate comes from a fit that may tilt (no prior): a tilted room's
+        # residuals would otherwise count its tilts as noise.
+        return _levenberg_marquardt(
+            kernel, amplitudes, best.position, z0, free_height, priors, None, None, tilt_sd
+        )
+    # An unknown tilt is fitted too, and kept only when it lowers the cost by more than its
+    # two components would by chance (mean plus three standard deviations of a chi-square
+    # with 2 degrees of freedom): tilt and position trade off, so a free tilt costs a level
+    # terminal accuracy (measured in docs/real-rooms.md).
+    tilted = _levenberg_marquardt(
+        kernel, amplitudes, best.position, z0, free_height, priors, weight, None, tilt_sd
+    )
+    return tilted if best.cost - tilted.cost > _TILT_SIGNIFICANCE else best
+
+
+def _tilted_normal(tilt: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Unit normal ``(tx, ty, 1) / |.|`` of a tilt ``(tx, ty)`` and its derivative (3, 2)."""
+    raw = np.array([tilt[0], tilt[1], 1.0])
+    length = float(np.linalg.norm(raw))
+    normal = raw / length
+    derivative = (np.eye(3)[:, :2] - np.outer(normal, normal[:2])) / length
+    return normal, derivative
 
 
 def _model(
@@ -148,25 +182,36 @@ def _model(
     free_height: bool,
     z0: float,
     normal: FloatArray | None,
+    free_tilt: bool = False,
 ) -> tuple[FloatArray, FloatArray]:
-    """Gains ``g`` (M,) and their gradient (M, 3) at ``theta = [x, y, (z), u]``."""
+    """Gains ``g`` (M,) and their gradient (M, 3 or 5) at ``theta = [x, y, (z), (tx, ty), u]``:
+    columns x, y, z, then the tilt's two components when the tilt is free."""
     x, y = float(theta[0]), float(theta[1])
     z = float(theta[2]) if free_height else z0
-    if normal is None:
+    if normal is None and not free_tilt:
         blocks = kernel.gradients_xyz(np.array([x]), np.array([y]), np.array([z]))
-        gains = blocks[:, 3]
-        gradient = blocks[:, :3]
-        return gains, gradient
-    los, gradient = los_with_normal(kernel, np.array([x, y, z]), normal)
+        return blocks[:, 3], blocks[:, :3]
+    at = 3 if free_height else 2
+    tilt_derivative = None
+    if free_tilt:
+        normal, tilt_derivative = _tilted_normal(theta[at : at + 2])
+    assert normal is not None
+    point = np.array([x, y, z])
+    los, gradient = los_with_normal(kernel, point, normal)
+    if tilt_derivative is not None:
+        offsets = kernel.led_xyz - point
+        facing = offsets @ normal
+        along_normal = np.where(los > 0.0, los / np.where(los > 0.0, facing, 1.0), 0.0)
+        tilt_gradient = (along_normal[:, None] * offsets) @ tilt_derivative
+        gradient = np.column_stack((gradient, tilt_gradient))
     if kernel.diffuse is not None:
         values, along_x, along_y, along_z = kernel.diffuse.evaluate(
             np.array([x]), np.array([y]), np.array([z])
         )
         scale = kernel.pilot_over_scale
         los = los + values[:, 0] * scale
-        gradient = (
-            gradient
-            + np.column_stack((along_x[:, 0], along_y[:, 0], along_z[:, 0])) * (scale[:, None])
+        gradient[:, :3] += (
+            np.column_stack((along_x[:, 0], along_y[:, 0], along_z[:, 0])) * (scale[:, None])
         )
     return los, gradient
 
@@ -180,26 +225,48 @@ def _levenberg_marquardt(
     priors: Priors,
     weight: float | None,
     normal: FloatArray | None,
+    tilt_sd: float | None,
 ) -> TerminalFit:
-    """Projected LM on ``[x, y, (z), u]`` with the Gaussian priors as pseudo-residuals."""
-    axes = 3 if free_height else 2
+    """Projected LM on ``[x, y, (z), (tx, ty), u]`` with the Gaussian priors as
+    pseudo-residuals (the tilt is free when ``tilt_sd`` is given and no normal was sent)."""
+    with_priors = weight is not None
+    free_tilt = normal is None and tilt_sd is not None
+    axes = (3 if free_height else 2) + (2 if free_tilt else 0)
+    gradient_columns = [0, 1, *([2] if free_height else []), *([3, 4] if free_tilt else [])]
     gains0, _ = _model(kernel, np.array([start[0], start[1], z0]), free_height, z0, normal)
     norm = float(gains0 @ gains0)
     u0 = math.log(max(float(gains0 @ amplitudes) / norm, 1e-6)) if norm > 0 else 0.0
-    theta = np.array([start[0], start[1], *([z0] if free_height else []), u0])
-    lower = np.array([0.0, 0.0, *([priors.height_bounds[0]] if free_height else []), -20.0])
-    upper = np.array([*kernel.bounds, *([priors.height_bounds[1]] if free_height else []), 20.0])
-    with_priors = weight is not None
+    theta = np.array(
+        [start[0], start[1], *([z0] if free_height else []), *([0.0, 0.0] if free_tilt else []), u0]
+    )
+    lower = np.array(
+        [
+            0.0,
+            0.0,
+            *([priors.height_bounds[0]] if free_height else []),
+            *([-_MAX_TILT, -_MAX_TILT] if free_tilt else []),
+            -20.0,
+        ]
+    )
+    upper = np.array(
+        [
+            *kernel.bounds,
+            *([priors.height_bounds[1]] if free_height else []),
+            *([_MAX_TILT, _MAX_TILT] if free_tilt else []),
+            20.0,
+        ]
+    )
     if with_priors and priors.log_gain_sd is not None:
         lower[-1], upper[-1] = -MAX_LOG_GAIN - 3.0, MAX_LOG_GAIN + 3.0
     data_weight = weight if weight is not None else 1.0
+    tilt_at = 3 if free_height else 2
 
     def evaluate(params: FloatArray) -> tuple[FloatArray, FloatArray, float]:
-        gains, gradient = _model(kernel, params, free_height, z0, normal)
+        gains, gradient = _model(kernel, params, free_height, z0, normal, free_tilt)
         amp = math.exp(float(params[-1]))
         residual = data_weight * (amplitudes - amp * gains)
         jacobian = np.empty((amplitudes.shape[0], params.shape[0]))
-        jacobian[:, :axes] = data_weight * amp * gradient[:, :axes]
+        jacobian[:, :axes] = data_weight * amp * gradient[:, gradient_columns]
         jacobian[:, -1] = data_weight * amp * gains
         rows_r: list[float] = []
         rows_j: list[FloatArray] = []
@@ -213,6 +280,12 @@ def _levenberg_marquardt(
             row = np.zeros(params.shape[0])
             row[2] = 1.0 / priors.height_sd
             rows_j.append(row)
+        if with_priors and free_tilt and tilt_sd is not None:
+            for offset in (0, 1):
+                rows_r.append(-float(params[tilt_at + offset]) / tilt_sd)
+                row = np.zeros(params.shape[0])
+                row[tilt_at + offset] = 1.0 / tilt_sd
+                rows_j.append(row)
         if rows_r:
             residual = np.concatenate((residual, rows_r))
             jacobian = np.vstack((jacobian, np.array(rows_j)))
@@ -249,6 +322,7 @@ def _levenberg_marquardt(
         height=float(theta[2]) if free_height else z0,
         log_gain=float(theta[-1]),
         rss=float(data_residual @ data_residual),
+        cost=cost,
         normal=jacobian.T @ jacobian,
         n_params=theta.shape[0],
     )

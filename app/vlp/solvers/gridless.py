@@ -554,6 +554,7 @@ class GridlessSolver(Solver):
                     sigma2=None,
                     height=own_heights[k],
                     normal=own_normals[k],
+                    tilt_sd=self.options.tilt_sd,
                 )
             )
         dof = np.array([max(n_leds - fit.n_params, 1) for fit in first])
@@ -567,6 +568,7 @@ class GridlessSolver(Solver):
                 sigma2=sigma2,
                 height=own_heights[k],
                 normal=own_normals[k],
+                tilt_sd=self.options.tilt_sd,
             )
             for k in range(n_terminals)
         ]
