@@ -5,10 +5,13 @@ on a 3.125 m pitch. Runs :func:`app.jobs.build.build_and_store` in this process 
 throwaway store and reports build and store time, H's size and the peak resident memory.
 
     python -m bench.hall_build
+    python -m bench.hall_build --reflectance 0.7,0.2,0.8   # walls, floor, ceiling
 """
 
 from __future__ import annotations
 
+import argparse
+import dataclasses
 import json
 import os
 import resource
@@ -18,8 +21,9 @@ from pathlib import Path
 
 from app.jobs.build import store_fingerprint
 from app.registry.store import MatrixStore
+from app.vlp.errors import ProblemSizeError
 from app.vlp.fingerprints import build_fingerprint
-from app.vlp.layout import Grid, Layout, Led, Room
+from app.vlp.layout import Grid, Layout, Led, Reflectance, Room
 from bench._common import machine_record
 
 __all__ = ["main", "million_point_hall"]
@@ -38,11 +42,26 @@ def million_point_hall() -> Layout:
     )
 
 
-def main() -> int:
+def main(argv: list[str] | None = None) -> int:
     """Entry point of ``python -m bench.hall_build``."""
+    parser = argparse.ArgumentParser(prog="python -m bench.hall_build")
+    parser.add_argument(
+        "--reflectance", default=None, help="walls,floor,ceiling (default: line of sight only)"
+    )
+    args = parser.parse_args(argv)
     layout = million_point_hall()
+    if args.reflectance:
+        walls, floor, ceiling = (float(v) for v in args.reflectance.split(","))
+        room = dataclasses.replace(layout.room, reflectance=Reflectance(walls, floor, ceiling))
+        layout = dataclasses.replace(layout, room=room)
     started = time.perf_counter()
-    fingerprint = build_fingerprint(layout)
+    try:
+        fingerprint = build_fingerprint(layout)
+    except ProblemSizeError as exc:
+        peak = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)
+        refusal = {"refused": exc.message, "field": exc.field, "peak_rss_mib": peak}
+        print(json.dumps(refusal, indent=2))
+        return 1
     built = time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:
         stored = store_fingerprint(fingerprint, MatrixStore(Path(tmp)))

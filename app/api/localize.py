@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass
 
@@ -9,14 +10,16 @@ import numpy as np
 from fastapi import APIRouter
 from starlette.concurrency import run_in_threadpool
 
-from app.schemas import Estimate, Localization, Measurement
+from app.schemas import Estimate, Fit, Localization, Measurement, TerminalAmplitudes
 from app.vlp import measurements as vlp_measurements
 from app.vlp._typing import FloatArray
 from app.vlp.assignment import assign_terminals
 from app.vlp.errors import MeasurementError
 from app.vlp.fingerprints import Fingerprint
 from app.vlp.measurements import Model
-from app.vlp.solvers import solver_names
+from app.vlp.solvers import Solution, solver_names
+from app.vlp.solvers.gridless import GridlessSolver
+from app.vlp.uncertainty import confidence_radius
 
 from .deps import AnyRole, CacheDep, MetricsDep, RoomId
 from .errors import InvalidInput, problem_responses
@@ -128,10 +131,7 @@ def _localize(request: _Request, cache: FingerprintCache, metrics: Metrics) -> L
     measurement = _measurement(request, fingerprint.n_leds)
     terminals = None
     if body.terminals:
-        terminals = TerminalSet(
-            ids=tuple(terminal.id for terminal in body.terminals),
-            amplitudes=np.array([terminal.amplitudes for terminal in body.terminals]),
-        )
+        terminals = _terminal_set(body.terminals)
     return solve_and_label(
         cache,
         metrics,
@@ -145,12 +145,43 @@ def _localize(request: _Request, cache: FingerprintCache, metrics: Metrics) -> L
     )
 
 
+def _terminal_set(sent: list[TerminalAmplitudes]) -> TerminalSet:
+    """The terminals' amplitudes, heights and unit normals (422 naming a normal that is
+    not a direction above the horizon)."""
+    errors = []
+    normals = []
+    for index, terminal in enumerate(sent):
+        vector = np.array(terminal.normal if terminal.normal is not None else (0.0, 0.0, 1.0))
+        length = float(np.linalg.norm(vector))
+        if not (np.isfinite(length) and length > 0.0 and vector[2] / length > 1e-6):
+            errors.append(
+                (
+                    f"body.terminals.{index}.normal",
+                    f"the photodiode's normal must point up (nz > 0), got {terminal.normal}",
+                )
+            )
+            continue
+        normals.append(vector / length)
+    if errors:
+        raise InvalidInput(errors)
+    heights = [np.nan if t.height is None else t.height for t in sent]
+    return TerminalSet(
+        ids=tuple(terminal.id for terminal in sent),
+        amplitudes=np.array([terminal.amplitudes for terminal in sent], dtype=np.float64),
+        heights=None if all(t.height is None for t in sent) else np.array(heights),
+        normals=None if all(t.normal is None for t in sent) else np.array(normals),
+    )
+
+
 @dataclass(frozen=True)
 class TerminalSet:
-    """Terminals' own amplitudes: ``amplitudes[k]`` (M numbers) were sent by ``ids[k]``."""
+    """Terminals' own amplitudes: ``amplitudes[k]`` (M numbers) were sent by ``ids[k]``;
+    ``heights[k]`` (NaN: unknown) and ``normals[k]`` (unit vectors) when they sent them."""
 
     ids: tuple[str, ...]
     amplitudes: FloatArray
+    heights: FloatArray | None = None
+    normals: FloatArray | None = None
 
 
 def solve_and_label(
@@ -172,38 +203,63 @@ def solve_and_label(
     caller's (room, version) fingerprint, already looked up.
     """
     prepared = cache.solver(room_id, version, measurement.model, solver)
+    if terminals is not None and targets is None:
+        targets = len(terminals.ids)  # the contract: one target per terminal sent
+    per_terminal = (
+        terminals is not None
+        and isinstance(prepared.solver, GridlessSolver)
+        and targets == len(terminals.ids)
+    )
     with prepared.lock:
         started = time.perf_counter()
-        solution = prepared.solver.solve(measurement, targets)
+        if per_terminal and terminals is not None and isinstance(prepared.solver, GridlessSolver):
+            solution = prepared.solver.solve_terminals(
+                terminals.amplitudes, terminals.heights, terminals.normals
+            )
+        else:
+            solution = prepared.solver.solve(measurement, targets)
         elapsed = time.perf_counter() - started
     metrics.localize_latency.labels(solver=solver, model=measurement.model).observe(elapsed)
     owners: list[str | None] = [None] * solution.n_targets
-    if terminals is not None:
+    if per_terminal and terminals is not None:
+        owners = list(terminals.ids)
+    elif terminals is not None:
         assigned = assign_terminals(fingerprint.layout, solution.positions, terminals.amplitudes)
         owners = [terminals.ids[int(index)] if index >= 0 else None for index in assigned]
-    estimates = [
-        Estimate(
-            x=float(position[0]),
-            y=float(position[1]),
-            grid_index=int(grid_index),
-            weight=float(weight),
-            terminal_id=owner,
-        )
-        for position, grid_index, weight, owner in zip(
-            solution.positions, solution.grid_indices, solution.weights, owners, strict=True
-        )
-    ]
     return Localization(
         room_id=room_id,
         fingerprint_version=version,
         model=measurement.model,
         solver=solver,
         targets=solution.n_targets,
-        estimates=estimates,
+        estimates=_estimates(solution, owners),
         residual_norm=float(solution.residual_norm),
         noise_power=float(solution.noise_power),
         elapsed_ms=round(elapsed * 1e3, 3),
+        fit=None if solution.fit is None else Fit(**dataclasses.asdict(solution.fit)),
     )
+
+
+def _estimates(solution: Solution, owners: list[str | None]) -> list[Estimate]:
+    """The answer's estimates, with their uncertainty, gain and height when the solver
+    gives them."""
+    estimates = []
+    for k in range(solution.n_targets):
+        covariance = None if solution.covariances is None else solution.covariances[k]
+        estimates.append(
+            Estimate(
+                x=float(solution.positions[k, 0]),
+                y=float(solution.positions[k, 1]),
+                grid_index=int(solution.grid_indices[k]),
+                weight=float(solution.weights[k]),
+                terminal_id=owners[k],
+                accuracy_m=None if covariance is None else confidence_radius(covariance),
+                covariance=None if covariance is None else covariance.tolist(),
+                gain=None if solution.gains is None else float(solution.gains[k]),
+                z=None if solution.heights is None else float(solution.heights[k]),
+            )
+        )
+    return estimates
 
 
 @router.post(

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-from app.schemas import Measurement, TerminalAmplitudes
+from app.schemas import Measurement
 
 from .errors import InvalidInput
 
@@ -66,7 +66,7 @@ def drop_masked_leds(
         return body.model_copy(update={"correlation": _correlation(body.correlation, keep, n_room)})
     terminals = body.terminals or []
     changed = [
-        TerminalAmplitudes(id=t.id, amplitudes=_kept(t.amplitudes, keep))
+        t.model_copy(update={"amplitudes": _kept(t.amplitudes, keep)})
         if len(t.amplitudes) == n_room
         else t
         for t in terminals

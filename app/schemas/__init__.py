@@ -13,6 +13,7 @@ from .keys import ApiKey, ApiKeyCreate, ApiKeyCreated, ApiKeysList
 from .localize import (
     SOLVER_NAMES,
     Estimate,
+    Fit,
     Localization,
     Measurement,
     ModelName,
@@ -51,6 +52,7 @@ __all__ = [
     "Fingerprint",
     "FingerprintState",
     "FingerprintsList",
+    "Fit",
     "GridSpec",
     "Job",
     "JobResult",

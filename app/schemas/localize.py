@@ -25,6 +25,7 @@ __all__ = [
     "SOLVER_NAMES",
     "TERMINAL_ID_PATTERN",
     "Estimate",
+    "Fit",
     "Localization",
     "Measurement",
     "ModelName",
@@ -101,6 +102,19 @@ class TerminalAmplitudes(RequestModel):
         pattern=TERMINAL_ID_PATTERN, description="the terminal's own id", examples=["t1"]
     )
     amplitudes: list[FiniteFloat] = Field(min_length=1, description="a_ik for each LED i")
+    height: FiniteFloat | None = Field(
+        default=None,
+        ge=0.0,
+        le=1000.0,
+        description="the photodiode's height above the floor, metres, when the terminal knows it",
+    )
+    normal: list[FiniteFloat] | None = Field(
+        default=None,
+        min_length=3,
+        max_length=3,
+        description="the photodiode's normal [nx, ny, nz] in room coordinates (nz > 0; "
+        "normalised by the service), e.g. from the phone's IMU; default straight up",
+    )
 
 
 class Measurement(RequestModel):
@@ -109,8 +123,11 @@ class Measurement(RequestModel):
     - `power` (model `power`, CSM-VLP): `p_i = sum_k a_ik^2`, M numbers.
     - `correlation` (model `correlation`, CoCSM-VLP): `R_il = sum_k a_ik a_lk` as the full
       M x M matrix or its M(M+1)/2 entries with `i <= l` in `numpy.triu_indices(M)` order.
-    - `terminals`: each terminal's own amplitudes; the service aggregates them under `model`
-      and labels each estimate with the terminal it belongs to.
+    - `terminals`: each terminal's own amplitudes (and, when known, its `height` and
+      photodiode `normal`). The default `gridless` solver fits every terminal from its own
+      amplitudes (strictly more information than their sums), so every estimate carries its
+      terminal's id; the grid solvers (`nnls`, `omp`, `l1`) aggregate them under `model`.
+      Left out, `targets` is the number of terminals.
 
     `model` defaults to `correlation`, or to `power` when `power` is sent.
     """
@@ -146,6 +163,40 @@ class Estimate(ResponseModel):
     grid_index: int = Field(description="the nearest grid point j = ix * ny + iy")
     weight: float = Field(description="fitted occupancy (about 1 per terminal)")
     terminal_id: str | None = Field(description="whose estimate it is, when terminals were sent")
+    accuracy_m: float | None = Field(
+        default=None,
+        description="radius of the 95 % confidence circle around (x, y), metres (solver "
+        "`gridless`; from the fit's Fisher information, widened when the fit is poor)",
+    )
+    covariance: list[list[float]] | None = Field(
+        default=None, description="[[sxx, sxy], [sxy, syy]] of (x, y), m^2 (solver `gridless`)"
+    )
+    gain: float | None = Field(
+        default=None,
+        description="fitted amplitude gain of this target relative to the fingerprint "
+        "(1 = exactly as modelled; solver `gridless`)",
+    )
+    z: float | None = Field(
+        default=None, description="the target's height, metres, when heights are free or sent"
+    )
+
+
+class Fit(ResponseModel):
+    """How well the model explains the measurement (solver `gridless`)."""
+
+    quality: Literal["ok", "poor", "scale_mismatch"] = Field(
+        description="`ok`; `poor`: the room differs from its layout (calibrate it); "
+        "`scale_mismatch`: the measurement is not in the fingerprint's scale (units, pilots)"
+    )
+    chi2_per_dof: float = Field(
+        description="whitened residual sum of squares per degree of freedom (about 1: the "
+        "model explains the measurement down to its noise)"
+    )
+    scale: float = Field(
+        description="fitted common amplitude scale of the measurement relative to the "
+        "fingerprint (1 = as modelled; a correlation 4x too large has scale 2)"
+    )
+    detail: str
 
 
 class Localization(ResponseModel):
@@ -160,3 +211,4 @@ class Localization(ResponseModel):
     residual_norm: float = Field(description="norm of measurement minus model prediction")
     noise_power: float = Field(description="fitted noise power sigma^2 (squared amplitudes)")
     elapsed_ms: float = Field(description="solver time, milliseconds")
+    fit: Fit | None = Field(default=None, description="goodness of fit (solver `gridless`)")

@@ -27,6 +27,8 @@ __all__ = [
     "concentrator_gain",
     "lambertian_order",
     "led_constants",
+    "los_gain_gradients",
+    "los_gains",
 ]
 
 
@@ -135,3 +137,107 @@ def _gains_and_offsets(
     gains = prefactors[:, None] * cos_incidence ** (orders[:, None] + 1.0) / dist_sq
     gains = np.where(in_view, gains, 0.0)
     return gains, (offsets, dist_sq, orders)
+
+
+def los_gains(
+    layout: Layout, points_xyz: FloatArray, normals: FloatArray | None = None
+) -> FloatArray:
+    """Line-of-sight gains at receivers anywhere in the room, with any photodiode normal.
+
+    Parameters
+    ----------
+    layout : Layout
+    points_xyz : ndarray of shape (P, 3)
+        Receiver positions ``(x, y, z)``, metres.
+    normals : ndarray of shape (P, 3), default=None
+        Unit normals of the photodiodes; None means straight up ``(0, 0, 1)``.
+
+    Returns
+    -------
+    gains : ndarray of shape (M, P)
+        ``h = (m+1)/(2 pi d^2) cos^m(alpha) A G_f G_c cos(phi)`` with ``cos(alpha) =
+        (z_led - z) / d`` (LEDs point down) and ``cos(phi) = n . (s - r) / d``; 0 when
+        ``phi > FOV``, ``cos(phi) <= 0`` or the LED is not above the receiver.
+
+    Notes
+    -----
+    The generalised Lambertian LoS gain (Komine and Nakagawa 2004). For upward normals at
+    ``grid.receiver_height`` it equals :func:`channel_gains`.
+
+    Examples
+    --------
+    >>> from app.vlp.presets import paper_layout
+    >>> lay = paper_layout()
+    >>> flat = channel_gains(lay, np.array([[1.1, 2.3]]))
+    >>> bool(np.allclose(los_gains(lay, np.array([[1.1, 2.3, 0.85]])), flat))
+    True
+    """
+    gains, _ = _los_parts(layout, points_xyz, normals)
+    return gains
+
+
+def los_gain_gradients(
+    layout: Layout, points_xyz: FloatArray, normals: FloatArray | None = None
+) -> tuple[FloatArray, FloatArray]:
+    """LoS gains and their analytic gradients with respect to the receiver's ``(x, y, z)``.
+
+    Parameters
+    ----------
+    layout : Layout
+    points_xyz : ndarray of shape (P, 3)
+        Receiver positions, metres.
+    normals : ndarray of shape (P, 3), default=None
+        Unit photodiode normals (held fixed); None means straight up.
+
+    Returns
+    -------
+    gains : ndarray of shape (M, P)
+    gradients : ndarray of shape (M, P, 3), per metre
+        With ``u = s - r`` (receiver to LED) and ``h = k u_z^m (n . u) |u|^-(m+3)``:
+        ``dh/dr = -h (m e_z / u_z + n / (n . u) - (m + 3) u / |u|^2)``; 0 outside the FOV.
+    """
+    gains, (to_led, dist_sq, cos_phi_num, orders) = _los_parts(layout, points_xyz, normals)
+    nrm = _normals(normals, to_led.shape[1])
+    height = to_led[:, :, 2]
+    visible = gains > 0
+    safe_height = np.where(visible, height, 1.0)
+    safe_num = np.where(visible, cos_phi_num, 1.0)
+    bracket = (
+        (orders[:, None, None] * np.array([0.0, 0.0, 1.0])) / safe_height[:, :, None]
+        + nrm[None, :, :] / safe_num[:, :, None]
+        - (orders[:, None, None] + 3.0) * to_led / dist_sq[:, :, None]
+    )
+    return gains, np.asarray(-gains[:, :, None] * bracket)
+
+
+def _normals(normals: FloatArray | None, count: int) -> FloatArray:
+    if normals is None:
+        return np.tile(np.array([0.0, 0.0, 1.0]), (count, 1))
+    nrm = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
+    if nrm.shape[0] != count:
+        raise GeometryError(
+            f"expected {count} normals (one per point), got shape {nrm.shape}", field="normals"
+        )
+    lengths = np.linalg.norm(nrm, axis=1)
+    if not np.all(np.isfinite(lengths)) or np.any(np.abs(lengths - 1.0) > 1e-6):
+        raise GeometryError("normals must be finite unit vectors", field="normals")
+    return nrm
+
+
+def _los_parts(
+    layout: Layout, points_xyz: FloatArray, normals: FloatArray | None
+) -> tuple[FloatArray, tuple[FloatArray, FloatArray, FloatArray, FloatArray]]:
+    pts = np.asarray(points_xyz, dtype=np.float64).reshape(-1, 3)
+    nrm = _normals(normals, pts.shape[0])
+    orders, prefactors = led_constants(layout)
+    to_led = layout.led_positions[:, None, :] - pts[None, :, :]  # (M, P, 3): u = s - r
+    dist_sq = np.einsum("mpk,mpk->mp", to_led, to_led)
+    dist = np.sqrt(dist_sq)
+    cos_alpha = to_led[:, :, 2] / dist
+    cos_phi_num = np.einsum("mpk,pk->mp", to_led, nrm)
+    cos_phi = cos_phi_num / dist
+    cos_fov = math.cos(math.radians(layout.receiver.fov_deg))
+    visible = (cos_alpha > 0) & (cos_phi > 0) & (cos_phi >= cos_fov - 1e-15)
+    safe_alpha = np.where(visible, cos_alpha, 1.0)
+    gains = prefactors[:, None] * safe_alpha ** orders[:, None] * cos_phi / dist_sq
+    return np.where(visible, gains, 0.0), (to_led, dist_sq, cos_phi_num, orders)

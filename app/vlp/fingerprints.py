@@ -22,9 +22,11 @@ from .channel import channel_gains
 from .errors import ProblemSizeError
 from .layout import Layout
 from .operators import CorrelationOperator
+from .reflections import ReflectionTable
 
 __all__ = [
     "DENSE_GAINS_LIMIT",
+    "NLOS_RELATIVE_FLOOR",
     "PSI_DENSE_LIMIT",
     "Fingerprint",
     "ProgressCallback",
@@ -35,6 +37,14 @@ __all__ = [
 DENSE_GAINS_LIMIT = 4_000_000
 # Entries (M(M+1)/2 * N) up to which Psi may be materialised (1.6e8 bytes of float64).
 PSI_DENSE_LIMIT = 20_000_000
+
+# Diffuse gains below this fraction of the LED's largest line-of-sight gain are left out of H
+# (keeps H sparse in large rooms; far below the noise at any usable SNR).
+NLOS_RELATIVE_FLOOR = 1e-4
+# Share of the progress reported for the line-of-sight part when reflections follow.
+_LOS_SHARE = 0.05
+# Grid points interpolated at once from the reflection table (bounds the gather's memory).
+_TABLE_CHUNK = 4096
 
 ProgressCallback = Callable[[float], None]
 _T = TypeVar("_T")
@@ -129,6 +139,18 @@ class Fingerprint:
 
         return self._cached("psi_dense", build)
 
+    def reflection_table(self) -> ReflectionTable | None:
+        """The diffuse gains off the grid (:class:`ReflectionTable`), or None without
+        ``room.reflectance``. Built on first use unless :func:`build_fingerprint` made it or
+        :meth:`attach_reflection_table` supplied a stored one."""
+        if self.layout.room.reflectance is None:
+            return None
+        return self._cached("reflection_table", lambda: ReflectionTable.build(self.layout))
+
+    def attach_reflection_table(self, table: ReflectionTable) -> None:
+        """Use ``table`` (e.g. loaded with :meth:`ReflectionTable.from_arrays`) from now on."""
+        self._cache["reflection_table"] = table
+
     def _require_dense(self, name: str) -> None:
         if not self.is_dense:
             raise ProblemSizeError(
@@ -152,7 +174,11 @@ def build_fingerprint(
     """Compute H for every LED and grid point, one LED (a chunk of rows) at a time.
 
     Only the grid points inside an LED's field-of-view disc are evaluated, so the cost and
-    memory are proportional to the number of nonzero gains, not to M * N.
+    memory are proportional to the number of nonzero gains, not to M * N. With
+    ``room.reflectance`` H is the total gain: the first-bounce diffuse gains, interpolated
+    from a :class:`~app.vlp.reflections.ReflectionTable` (kept with the fingerprint for
+    off-grid use), are added, except those below :data:`NLOS_RELATIVE_FLOOR` times the LED's
+    largest line-of-sight gain.
 
     Parameters
     ----------
@@ -169,7 +195,7 @@ def build_fingerprint(
     Raises
     ------
     ProblemSizeError
-        When ``layout.n_cells > max_cells``.
+        When ``layout.n_cells > max_cells``, or the room is too large for a reflection table.
     """
     if max_cells is not None and layout.n_cells > max_cells:
         raise ProblemSizeError(
@@ -182,6 +208,16 @@ def build_fingerprint(
         if layout.receiver.fov_deg < 90
         else math.inf
     )
+    reflecting = layout.room.reflectance is not None
+    if reflecting:
+        ReflectionTable.check_size(layout)  # refuse before the line-of-sight work
+    los_progress = progress
+    if progress is not None and reflecting:
+        outer = progress
+
+        def los_progress(fraction: float) -> None:
+            outer(_LOS_SHARE * fraction)
+
     rows: list[FloatArray] = []
     cols: list[FloatArray] = []
     vals: list[FloatArray] = []
@@ -196,14 +232,48 @@ def build_fingerprint(
         cols.append(cells[keep])
         vals.append(gains[keep])
         rows.append(np.full(int(keep.sum()), i, dtype=np.int64))
-        if progress is not None:
-            progress((i + 1) / layout.n_leds)
+        if los_progress is not None:
+            los_progress((i + 1) / layout.n_leds)
     matrix = sp.csr_array(
         (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
         shape=(layout.n_leds, layout.n_cells),
     )
     matrix.sort_indices()
-    return Fingerprint(layout=layout, gains=matrix)
+    if not reflecting:
+        return Fingerprint(layout=layout, gains=matrix)
+    table_progress = None
+    if progress is not None:
+        outer_progress = progress
+
+        def table_progress(fraction: float) -> None:
+            outer_progress(_LOS_SHARE + (1.0 - _LOS_SHARE) * fraction)
+
+    table = ReflectionTable.build(layout, progress=table_progress)
+    fingerprint = Fingerprint(layout=layout, gains=_with_reflections(layout, matrix, table))
+    fingerprint.attach_reflection_table(table)
+    return fingerprint
+
+
+def _with_reflections(layout: Layout, los: sp.csr_array, table: ReflectionTable) -> sp.csr_array:
+    """``los`` plus the table's diffuse gains at the grid centres, small ones left out."""
+    floor = NLOS_RELATIVE_FLOOR * np.asarray(los.max(axis=1).toarray()).ravel()
+    rows: list[IntArray] = []
+    cols: list[IntArray] = []
+    vals: list[FloatArray] = []
+    for start in range(0, layout.n_cells, _TABLE_CHUNK):
+        cells = np.arange(start, min(start + _TABLE_CHUNK, layout.n_cells), dtype=np.intp)
+        centres = layout.cell_centres(cells)
+        diffuse = table.evaluate(centres[:, 0], centres[:, 1])[0]  # (M, chunk)
+        led, column = np.nonzero(diffuse >= floor[:, None])
+        rows.append(led)
+        cols.append(cells[column])
+        vals.append(diffuse[led, column])
+    nlos = sp.csr_array(
+        (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=los.shape
+    )
+    total = sp.csr_array(los + nlos)
+    total.sort_indices()
+    return total
 
 
 def _cell_range(centre: float, radius: float, step: float, count: int) -> IntArray:

@@ -38,6 +38,7 @@ __all__ = [
     "Layout",
     "Led",
     "Receiver",
+    "Reflectance",
     "Room",
     "layout_from_mapping",
 ]
@@ -64,12 +65,38 @@ def _whole_cells(extent_m: float, step_m: float, name: str) -> int:
 
 
 @dataclass(frozen=True)
+class Reflectance:
+    """Diffuse (Lambertian) reflectance of the room's surfaces, each in [0, 1)."""
+
+    walls: float
+    floor: float
+    ceiling: float
+
+    def __post_init__(self) -> None:
+        for name in ("walls", "floor", "ceiling"):
+            value = getattr(self, name)
+            if not (isinstance(value, int | float) and math.isfinite(value) and 0 <= value < 1):
+                raise GeometryError(
+                    f"room.reflectance.{name} must be a number in [0, 1), got {value!r}",
+                    field=f"room.reflectance.{name}",
+                )
+
+    def to_mapping(self) -> dict[str, float]:
+        """``{"walls": ..., "floor": ..., "ceiling": ...}``."""
+        return {"walls": self.walls, "floor": self.floor, "ceiling": self.ceiling}
+
+
+@dataclass(frozen=True)
 class Room:
-    """The room box in metres."""
+    """The room box in metres and, optionally, its surfaces' reflectance.
+
+    ``reflectance`` None means line of sight only (the paper's model).
+    """
 
     length: float
     width: float
     height: float
+    reflectance: Reflectance | None = None
 
     def __post_init__(self) -> None:
         for name in ("length", "width", "height"):
@@ -78,10 +105,15 @@ class Room:
 
 @dataclass(frozen=True)
 class Grid:
-    """The candidate grid: cell size and the height of the receivers' plane, metres."""
+    """The candidate grid: cell size, the receivers' plane height and its spread, metres.
+
+    ``receiver_height_sd`` is the standard deviation of the terminals' heights around
+    ``receiver_height`` (0: all terminals at that height, the paper's model).
+    """
 
     step: float
     receiver_height: float
+    receiver_height_sd: float = 0.0
 
     def __post_init__(self) -> None:
         _check_positive(self.step, "grid.step")
@@ -89,6 +121,12 @@ class Grid:
             raise GeometryError(
                 f"grid.receiver_height must be a finite number >= 0, got {self.receiver_height!r}",
                 field="grid.receiver_height",
+            )
+        if not math.isfinite(self.receiver_height_sd) or self.receiver_height_sd < 0:
+            raise GeometryError(
+                "grid.receiver_height_sd must be a finite number >= 0, "
+                f"got {self.receiver_height_sd!r}",
+                field="grid.receiver_height_sd",
             )
 
 
@@ -262,15 +300,28 @@ class Layout:
         return np.array([led.pilot_amplitude for led in self.leds], dtype=np.float64)
 
     def to_mapping(self) -> dict[str, Any]:
-        """The layout as the JSON-like mapping of the public ``RoomLayout`` body."""
+        """The layout as the JSON-like mapping of the public ``RoomLayout`` body.
+
+        ``room.reflectance`` and ``grid.receiver_height_sd`` appear only when set (not None,
+        not 0), so a layout without them maps exactly as before they existed.
+        """
+        room: dict[str, Any] = {
+            "length": self.room.length,
+            "width": self.room.width,
+            "height": self.room.height,
+        }
+        if self.room.reflectance is not None:
+            room["reflectance"] = self.room.reflectance.to_mapping()
+        grid: dict[str, Any] = {
+            "step": self.grid.step,
+            "receiver_height": self.grid.receiver_height,
+        }
+        if self.grid.receiver_height_sd > 0:
+            grid["receiver_height_sd"] = self.grid.receiver_height_sd
         return {
             "name": self.name,
-            "room": {
-                "length": self.room.length,
-                "width": self.room.width,
-                "height": self.room.height,
-            },
-            "grid": {"step": self.grid.step, "receiver_height": self.grid.receiver_height},
+            "room": room,
+            "grid": grid,
             "receiver": {
                 "area": self.receiver.area,
                 "fov_deg": self.receiver.fov_deg,
@@ -299,9 +350,16 @@ def layout_from_mapping(data: Mapping[str, Any]) -> Layout:
         On a missing or invalid field; ``field`` names it.
     """
     try:
-        room = Room(**{k: float(data["room"][k]) for k in ("length", "width", "height")})
+        room = Room(
+            **{k: float(data["room"][k]) for k in ("length", "width", "height")},
+            reflectance=_reflectance_from_mapping(data["room"].get("reflectance")),
+        )
         grid = Grid(
-            step=float(data["grid"]["step"]), receiver_height=float(data["grid"]["receiver_height"])
+            step=float(data["grid"]["step"]),
+            receiver_height=float(data["grid"]["receiver_height"]),
+            receiver_height_sd=_float_field(
+                data["grid"].get("receiver_height_sd", 0.0), "grid.receiver_height_sd"
+            ),
         )
         receiver = Receiver(**{k: float(v) for k, v in dict(data.get("receiver") or {}).items()})
         leds_in: Sequence[Mapping[str, Any]] = data["leds"]
@@ -322,3 +380,31 @@ def layout_from_mapping(data: Mapping[str, Any]) -> Layout:
     return Layout(
         room=room, grid=grid, leds=leds, receiver=receiver, name=str(data.get("name", ""))
     )
+
+
+def _float_field(value: object, name: str) -> float:
+    if value is None:
+        return 0.0
+    if isinstance(value, bool) or not isinstance(value, int | float | str):
+        raise GeometryError(f"{name} must be a number, got {value!r}", field=name)
+    try:
+        return float(value)
+    except ValueError as exc:
+        raise GeometryError(f"{name} must be a number, got {value!r}", field=name) from exc
+
+
+def _reflectance_from_mapping(value: object) -> Reflectance | None:
+    if value is None:
+        return None
+    if not isinstance(value, Mapping):
+        raise GeometryError(
+            f"room.reflectance must be an object with walls, floor and ceiling, got {value!r}",
+            field="room.reflectance",
+        )
+    parts: dict[str, float] = {}
+    for name in ("walls", "floor", "ceiling"):
+        where = f"room.reflectance.{name}"
+        if value.get(name) is None:
+            raise GeometryError(f"{where} is missing", field=where)
+        parts[name] = _float_field(value[name], where)
+    return Reflectance(**parts)

@@ -9,7 +9,15 @@ import pytest
 from numpy.testing import assert_allclose, assert_array_equal
 
 from app.vlp.errors import GeometryError
-from app.vlp.layout import Grid, Layout, Led, Receiver, Room, layout_from_mapping
+from app.vlp.layout import (
+    Grid,
+    Layout,
+    Led,
+    Receiver,
+    Reflectance,
+    Room,
+    layout_from_mapping,
+)
 
 
 def _mapping() -> dict[str, Any]:
@@ -100,3 +108,71 @@ def test_led_arrays() -> None:
     assert_allclose(layout.half_power_angles_deg, [30.0, 60.0])
     assert_allclose(layout.pilot_amplitudes, [2.0, 1.0])
     assert layout.n_leds == 2
+
+
+def test_reflectance_and_height_spread_round_trip() -> None:
+    mapping = _mapping()
+    mapping["room"]["reflectance"] = {"walls": 0.7, "floor": 0.2, "ceiling": 0.8}
+    mapping["grid"]["receiver_height_sd"] = 0.05
+    layout = layout_from_mapping(mapping)
+    assert layout.room.reflectance == Reflectance(walls=0.7, floor=0.2, ceiling=0.8)
+    assert layout.grid.receiver_height_sd == 0.05
+    out = layout.to_mapping()
+    assert out["room"]["reflectance"] == {"walls": 0.7, "floor": 0.2, "ceiling": 0.8}
+    assert out["grid"]["receiver_height_sd"] == 0.05
+    assert layout_from_mapping(out) == layout
+
+
+def test_absent_reflectance_and_spread_map_exactly_as_before() -> None:
+    mapping = _mapping()
+    mapping["room"]["reflectance"] = None
+    mapping["grid"]["receiver_height_sd"] = 0.0
+    layout = layout_from_mapping(mapping)
+    assert layout.room.reflectance is None and layout.grid.receiver_height_sd == 0.0
+    out = layout.to_mapping()
+    assert set(out["room"]) == {"length", "width", "height"}
+    assert set(out["grid"]) == {"step", "receiver_height"}
+    assert layout == layout_from_mapping(_mapping())
+
+
+@pytest.mark.parametrize(
+    ("reflectance", "sd", "field"),
+    [
+        ({"walls": 1.0, "floor": 0.2, "ceiling": 0.8}, 0.0, "room.reflectance.walls"),
+        ({"walls": 0.5, "floor": -0.1, "ceiling": 0.8}, 0.0, "room.reflectance.floor"),
+        ({"walls": 0.5, "floor": 0.1, "ceiling": float("nan")}, 0.0, "room.reflectance.ceiling"),
+        ({"walls": 0.5, "floor": 0.1}, 0.0, "room.reflectance.ceiling"),
+        ({"walls": "shiny", "floor": 0.1, "ceiling": 0.1}, 0.0, "room.reflectance.walls"),
+        ([0.5, 0.1, 0.1], 0.0, "room.reflectance"),
+        (None, -0.05, "grid.receiver_height_sd"),
+        (None, float("inf"), "grid.receiver_height_sd"),
+    ],
+    ids=[
+        "walls-1",
+        "floor-negative",
+        "ceiling-nan",
+        "ceiling-missing",
+        "text",
+        "list",
+        "sd-negative",
+        "sd-inf",
+    ],
+)
+def test_reflectance_and_spread_validation_names_the_field(
+    reflectance: Any, sd: float, field: str
+) -> None:
+    mapping = _mapping()
+    mapping["room"]["reflectance"] = reflectance
+    mapping["grid"]["receiver_height_sd"] = sd
+    with pytest.raises(GeometryError) as info:
+        layout_from_mapping(mapping)
+    assert info.value.field == field
+
+
+def test_reflectance_dataclass_checks_its_own_range() -> None:
+    with pytest.raises(GeometryError) as info:
+        Reflectance(walls=0.5, floor=0.2, ceiling=1.5)
+    assert info.value.field == "room.reflectance.ceiling"
+    with pytest.raises(GeometryError) as info:
+        Grid(step=0.5, receiver_height=0.8, receiver_height_sd=-1.0)
+    assert info.value.field == "grid.receiver_height_sd"

@@ -22,15 +22,16 @@ from __future__ import annotations
 
 import functools
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 from scipy.linalg import lapack
 
 from .._typing import FloatArray, IntArray
-from ..channel import led_constants
-from ..layout import Layout
 from ..measurements import Model
+from ._channel_kernel import ChannelKernel
 
 # Relative floor on whitening eigenvalues (guards a noiseless fit against infinite weights).
 _EIG_FLOOR = 1e-9
@@ -47,106 +48,119 @@ _DAMPING_UP = 4.0
 _DAMPING_DOWN = 5.0
 
 
-class ChannelKernel:
-    """Normalised scaled gains ``g(p) = x * h(p) / scale`` and their position gradients.
+@dataclass(frozen=True)
+class Priors:
+    """Gaussian priors of the nuisance parameters; a None standard deviation = not fitted.
 
-    Parameters
+    Attributes
     ----------
-    layout : Layout
-    scale : float
-        Divisor of the gains (see the module docstring).
+    log_gain_sd : float or None
+        Standard deviation of each target's log amplitude gain ``u_k`` (mean 0).
+    log_scale_sd : float or None
+        Standard deviation of the common log power scale ``v`` (mean 0).
+    height_sd : float
+        Standard deviation of each target's height around ``height_mean``, metres; 0 keeps
+        every target on the receivers' plane.
+    height_mean : float
+        The receivers' nominal height, metres.
+    height_bounds : tuple of float
+        Heights are kept within these, metres.
     """
 
-    def __init__(self, layout: Layout, scale: float) -> None:
-        orders, prefactors = led_constants(layout)
-        leds = layout.led_positions
-        self.n_leds = layout.n_leds
-        self.led_xy = np.ascontiguousarray(leds[:, :2])
-        self.dz2 = (leds[:, 2] - layout.grid.receiver_height) ** 2
-        self.orders = orders
-        # h = pref * dz^(m+1) / d^(m+3); fold dz^(m+1), the pilot and 1/scale into one factor.
-        dz = np.sqrt(self.dz2)
-        self.factor = prefactors * dz ** (orders + 1.0) * layout.pilot_amplitudes / scale
-        self.half_exponent = 0.5 * (orders + 3.0)
-        # In view when dz / d >= cos(FOV), i.e. d^2 <= dz^2 / cos^2(FOV).
-        cos_fov = math.cos(math.radians(layout.receiver.fov_deg))
-        self.max_d2 = self.dz2 / max(cos_fov, 1e-300) ** 2 * (1.0 + 1e-12)
-        self.bounds = np.array([layout.room.length, layout.room.width])
-        # Column vectors (M, 1) for broadcasting against (M, P) in the hot path.
-        self._led_x = self.led_xy[:, :1]
-        self._led_y = self.led_xy[:, 1:]
-        self._dz2 = self.dz2[:, None]
-        self._factor = self.factor[:, None]
-        self._minus_half_exponent = -self.half_exponent[:, None]
-        self._minus_twice_half_exponent = -2.0 * self.half_exponent[:, None]
-        self._max_d2 = self.max_d2[:, None]
+    log_gain_sd: float | None = None
+    log_scale_sd: float | None = None
+    height_sd: float = 0.0
+    height_mean: float = 0.0
+    height_bounds: tuple[float, float] = (0.0, 0.0)
 
-    def stacked(self, points: FloatArray, with_gradients: bool) -> FloatArray:
-        """Columns ``[g | dg/dx | dg/dy]`` of shape (M, 3P), or ``g`` alone (M, P)."""
-        n_points = points.shape[0]
-        if not with_gradients:
-            return self.gains_xy(points[:, 0], points[:, 1])
-        blocks = self.gradients_xy(points[:, 0], points[:, 1])
-        return np.concatenate(
-            [blocks[:, 2 * n_points : 3 * n_points], blocks[:, : 2 * n_points]], axis=1
-        )
+    @property
+    def fits_gains(self) -> bool:
+        """True when each target's gain is a parameter."""
+        return self.log_gain_sd is not None
 
-    def gains_xy(self, xs: FloatArray, ys: FloatArray) -> FloatArray:
-        """``g`` at the points ``(xs, ys)`` (shapes (P,)), shape (M, P)."""
-        d2 = self._distances_squared(xs, ys)[2]
-        gains = np.power(d2, self._minus_half_exponent)
-        gains *= self._factor
-        gains *= d2 <= self._max_d2
-        return gains
+    @property
+    def fits_scale(self) -> bool:
+        """True when the common scale is a parameter."""
+        return self.log_scale_sd is not None
 
-    def gradients_xy(self, xs: FloatArray, ys: FloatArray) -> FloatArray:
-        """Columns ``[dg/dx | dg/dy | g | g]`` of shape (M, 4P) at the points ``(xs, ys)``.
+    @property
+    def fits_heights(self) -> bool:
+        """True when each target's height is a parameter."""
+        return self.height_sd > 0.0
 
-        The order suits :meth:`Objective.augmented`: the gains twice, next to both gradient
-        blocks, make the product rule one multiply per side.
-        """
-        n_points = xs.shape[0]
-        out = np.empty((self.n_leds, 4 * n_points))
-        gains = out[:, 2 * n_points : 3 * n_points]
-        dx, dy, d2 = self._distances_squared(xs, ys)
-        np.power(d2, self._minus_half_exponent, out=gains)
-        gains *= self._factor
-        gains *= d2 <= self._max_d2
-        slope = self._minus_twice_half_exponent * gains
-        slope /= d2
-        np.multiply(slope, dx, out=out[:, :n_points])
-        np.multiply(slope, dy, out=out[:, n_points : 2 * n_points])
-        out[:, 3 * n_points :] = gains
-        return out
 
-    def _distances_squared(
-        self, xs: FloatArray, ys: FloatArray
-    ) -> tuple[FloatArray, FloatArray, FloatArray]:
-        dx = xs - self._led_x
-        dy = ys - self._led_y
-        d2 = dx * dx
-        d2 += dy * dy
-        d2 += self._dz2
-        return dx, dy, d2
+# Log amplitude gains are kept within +-ln 2 (a terminal between half and twice the modelled
+# gain) and the log power scale within +-ln 10^4 (beyond, the measurement is refused).
+MAX_LOG_GAIN = math.log(2.0)
+MAX_LOG_SCALE = math.log(1e4)
 
 
 @dataclass
 class FitState:
-    """Current estimate: positions (K, 2) m, weights (K,), noise coefficient s (normalised)."""
+    """Current estimate.
+
+    Attributes
+    ----------
+    positions : ndarray of shape (K, 2), metres
+    weights : ndarray of shape (K,)
+        Fixed (or, with free weights, fitted) multipliers of each target's atom.
+    noise : float
+        Noise coefficient s (normalised units).
+    heights : ndarray of shape (K,), metres
+    log_gains : ndarray of shape (K,)
+        Each target's log amplitude gain ``u_k``.
+    log_scale : float
+        The common log power scale ``v``.
+    """
 
     positions: FloatArray
     weights: FloatArray
     noise: float
+    heights: FloatArray
+    log_gains: FloatArray
+    log_scale: float = 0.0
+    # (all on the receivers' plane, unit multipliers), filled by the objective on first use.
+    facts: tuple[bool, bool] | None = field(default=None, compare=False, repr=False)
 
     @classmethod
-    def empty(cls) -> FitState:
+    def empty(cls, log_scale: float = 0.0) -> FitState:
         """No targets yet."""
-        return cls(np.zeros((0, 2)), np.zeros(0), 0.0)
+        return cls(np.zeros((0, 2)), np.zeros(0), 0.0, np.zeros(0), np.zeros(0), log_scale)
 
     @property
     def n_targets(self) -> int:
         """K."""
         return int(self.positions.shape[0])
+
+    def effective_weights(self) -> FloatArray:
+        """``w_k exp(v + 2 u_k)``: each atom's multiplier in the model."""
+        return np.asarray(self.weights * np.exp(self.log_scale + 2.0 * self.log_gains))
+
+    def subset(self, keep: npt.NDArray[np.bool_] | npt.NDArray[np.integer[Any]]) -> FitState:
+        """The targets selected by the boolean or index array ``keep``."""
+        return FitState(
+            self.positions[keep],
+            self.weights[keep],
+            self.noise,
+            self.heights[keep],
+            self.log_gains[keep],
+            self.log_scale,
+        )
+
+    def with_target(self, position: FloatArray, height: float) -> FitState:
+        """This state plus one unit-gain target at ``position`` and ``height``."""
+        return FitState(
+            np.vstack([self.positions, position]),
+            np.append(self.weights, 1.0),
+            self.noise,
+            np.append(self.heights, height),
+            np.append(self.log_gains, 0.0),
+            self.log_scale,
+        )
+
+    def reordered(self, order: npt.NDArray[np.integer[Any]]) -> FitState:
+        """The targets in the order ``order``."""
+        return self.subset(order)
 
 
 @functools.lru_cache(maxsize=64)
@@ -197,16 +211,17 @@ class Whitening:
         cls, model: Model, kernel: ChannelKernel, state: FitState, n_terminals: float
     ) -> Whitening:
         """Plug-in whitening from the current fit (sigma^2 = s / K)."""
-        gains = kernel.stacked(state.positions, with_gradients=False)
+        gains = target_gains(kernel, state)
+        weights = state.effective_weights()
         # Floor sigma^2 at a fraction of the mean received power per LED and terminal: a
         # near-zero noise estimate would make the metric singular off the fitted signal.
-        power = float(np.sum(gains**2 * state.weights)) / (kernel.n_leds * max(n_terminals, 1.0))
+        power = float(np.sum(gains**2 * weights)) / (kernel.n_leds * max(n_terminals, 1.0))
         sigma2 = max(state.noise / max(n_terminals, 1.0), _SIGMA2_REL_FLOOR * power, _SIGMA2_FLOOR)
         half_noise = 0.5 * max(n_terminals, 1.0) * sigma2
         if model == "power":
-            var = 4.0 * sigma2 * ((gains**2) @ state.weights + half_noise)
+            var = 4.0 * sigma2 * ((gains**2) @ weights + half_noise)
             return cls(model, kernel.n_leds, None, 1.0 / np.sqrt(var))
-        signal = (gains * state.weights) @ gains.T
+        signal = (gains * weights) @ gains.T
         signal.flat[:: kernel.n_leds + 1] += half_noise
         lam, rot = np.linalg.eigh(signal)
         lam = np.maximum(lam, _EIG_FLOOR * max(float(lam[-1]), _SIGMA2_FLOOR))
@@ -234,10 +249,53 @@ class Whitening:
         return np.asarray(self.rotation_t @ vectors)
 
 
-class Objective:
-    """``||data - c * mu(theta)||^2`` in one whitened metric, with its Jacobian.
+def target_gains(kernel: ChannelKernel, state: FitState) -> FloatArray:
+    """``g`` of every target of a state (at its height), shape (M, K)."""
+    xs, ys = state.positions[:, 0], state.positions[:, 1]
+    if np.all(state.heights == kernel.receiver_height):
+        return kernel.gains_xy(xs, ys)
+    return kernel.gains_xyz(xs, ys, state.heights)
 
-    Parameters are packed as ``theta = [x_1..x_K, y_1..y_K, (w_1..w_K), s]``.
+
+@dataclass(frozen=True)
+class _Slots:
+    """Where each block of parameters sits in ``theta`` for K targets."""
+
+    n_targets: int
+    n_axes: int  # 2, or 3 when heights are free
+    weights: slice | None
+    gains: slice | None
+    scale: int | None
+    size: int
+    n_prior: int
+
+    @classmethod
+    def make(cls, n_targets: int, priors: Priors, free_weights: bool) -> _Slots:
+        k = n_targets
+        n_axes = 3 if priors.fits_heights else 2
+        at = n_axes * k
+        weights = gains = None
+        scale = None
+        if free_weights:
+            weights, at = slice(at, at + k), at + k
+        else:
+            if priors.fits_gains:
+                gains, at = slice(at, at + k), at + k
+            if priors.fits_scale:
+                scale, at = at, at + 1
+        n_prior = (k if gains is not None else 0) + (1 if scale is not None else 0)
+        n_prior += k if n_axes == 3 else 0
+        return cls(k, n_axes, weights, gains, scale, at + 1, n_prior)
+
+
+class Objective:
+    """``||data - c * mu(theta)||^2 + ||prior residuals||^2`` in one whitened metric.
+
+    Parameters are packed as ``theta = [x_1..x_K, y_1..y_K, (z_1..z_K), (w_1..w_K |
+    u_1..u_K, (v)), s]``: positions, heights when free, then either free weights or the log
+    amplitude gains and the common log scale, then the noise coefficient. Each target's
+    atom is multiplied by ``w_k exp(v + 2 u_k)``; the priors add ``u_k / sd``, ``v / sd``
+    and ``(z_k - z_0) / sd`` as pseudo-residuals (a Gaussian MAP fit).
 
     Parameters
     ----------
@@ -246,116 +304,223 @@ class Objective:
     values : ndarray of shape (L,)
         The measurement in normalised units (not yet whitened).
     free_weights : bool
+    priors : Priors, default=None
+        No nuisance parameters when None.
     """
 
     def __init__(
-        self, kernel: ChannelKernel, white: Whitening, values: FloatArray, free_weights: bool
+        self,
+        kernel: ChannelKernel,
+        white: Whitening,
+        values: FloatArray,
+        free_weights: bool,
+        priors: Priors | None = None,
     ) -> None:
         self.kernel = kernel
         self.white = white
         self.data = white.data(values)
         self.free_weights = free_weights
+        self.priors = priors or Priors()
+        self._slots: dict[int, _Slots] = {}
+
+    def slots(self, n_targets: int) -> _Slots:
+        """The parameter layout for K targets."""
+        found = self._slots.get(n_targets)
+        if found is None:
+            found = self._slots[n_targets] = _Slots.make(n_targets, self.priors, self.free_weights)
+        return found
 
     def pack(self, state: FitState) -> FloatArray:
         """``theta`` of a state."""
+        slots = self.slots(state.n_targets)
         parts = [state.positions[:, 0], state.positions[:, 1]]
-        if self.free_weights:
+        if slots.n_axes == 3:
+            parts.append(state.heights)
+        if slots.weights is not None:
             parts.append(state.weights)
+        if slots.gains is not None:
+            parts.append(state.log_gains)
+        if slots.scale is not None:
+            parts.append(np.array([state.log_scale]))
         parts.append(np.array([state.noise]))
         return np.concatenate(parts)
 
-    def project(self, theta: FloatArray, upper: FloatArray) -> FloatArray:
-        """Clip positions into the room and weights and noise to be nonnegative (in place);
-        ``upper`` holds the room's length K times, then its width K times, then infinities."""
-        return np.clip(theta, 0.0, upper, out=theta)
-
-    def upper_bounds(self, n_targets: int) -> FloatArray:
-        """The ``upper`` argument of :meth:`project`."""
+    def bounds(self, n_targets: int) -> tuple[FloatArray, FloatArray]:
+        """Lower and upper bounds of ``theta`` (positions in the room, heights within the
+        prior's bounds, gains and scale within :data:`MAX_LOG_GAIN` / :data:`MAX_LOG_SCALE`,
+        weights and noise nonnegative)."""
+        slots = self.slots(n_targets)
+        k = n_targets
         length, width = self.kernel.bounds
-        n_rest = (n_targets if self.free_weights else 0) + 1
-        return np.concatenate(
-            [np.full(n_targets, length), np.full(n_targets, width), np.full(n_rest, np.inf)]
-        )
+        lower = np.zeros(slots.size)
+        upper = np.full(slots.size, np.inf)
+        upper[:k] = length
+        upper[k : 2 * k] = width
+        if slots.n_axes == 3:
+            lower[2 * k : 3 * k], upper[2 * k : 3 * k] = self.priors.height_bounds
+        if slots.gains is not None:
+            lower[slots.gains], upper[slots.gains] = -MAX_LOG_GAIN, MAX_LOG_GAIN
+        if slots.scale is not None:
+            lower[slots.scale], upper[slots.scale] = -MAX_LOG_SCALE, MAX_LOG_SCALE
+        return lower, upper
 
     def unpack(self, theta: FloatArray, state: FitState) -> FitState:
-        """State of ``theta`` (fixed weights taken from ``state``)."""
+        """State of ``theta`` (what is not fitted is taken from ``state``)."""
+        slots = self.slots(state.n_targets)
         k = state.n_targets
         positions = np.column_stack((theta[:k], theta[k : 2 * k]))
-        weights = theta[2 * k : 3 * k].copy() if self.free_weights else state.weights
-        return FitState(positions, weights, float(theta[-1]))
+        heights = theta[2 * k : 3 * k].copy() if slots.n_axes == 3 else state.heights
+        weights = theta[slots.weights].copy() if slots.weights is not None else state.weights
+        log_gains = theta[slots.gains].copy() if slots.gains is not None else state.log_gains
+        log_scale = float(theta[slots.scale]) if slots.scale is not None else state.log_scale
+        return FitState(positions, weights, float(theta[-1]), heights, log_gains, log_scale)
 
-    def residual(self, theta: FloatArray, weights: FloatArray | None) -> FloatArray:
-        """Whitened residual ``c * (y - mu(theta))``, shape (L,).
+    def _state_facts(self, fixed: FitState) -> tuple[bool, bool]:
+        """Whether ``fixed`` has every target on the receivers' plane, and unit multipliers
+        (remembered on the state: LM evaluates many thetas against one)."""
+        facts = fixed.facts
+        if facts is None:
+            on_plane = bool(np.all(fixed.heights == self.kernel.receiver_height))
+            unit = (
+                fixed.log_scale == 0.0
+                and not fixed.log_gains.any()
+                and bool(np.all(fixed.weights == 1.0))
+            )
+            facts = fixed.facts = (on_plane, unit)
+        return facts
+
+    def _multipliers(self, theta: FloatArray, slots: _Slots, fixed: FitState) -> FloatArray | None:
+        """Each atom's multiplier ``w_k exp(v + 2 u_k)`` at ``theta``; None when all are 1."""
+        if slots.weights is not None:
+            return np.asarray(theta[slots.weights])
+        if slots.gains is None and slots.scale is None and self._state_facts(fixed)[1]:
+            return None
+        log_gains = theta[slots.gains] if slots.gains is not None else fixed.log_gains
+        log_scale = theta[slots.scale] if slots.scale is not None else fixed.log_scale
+        return np.asarray(fixed.weights * np.exp(log_scale + 2.0 * log_gains))
+
+    def prior_residuals(self, theta: FloatArray, slots: _Slots) -> FloatArray:
+        """The priors' pseudo-residuals at ``theta`` (empty without nuisance parameters)."""
+        priors = self.priors
+        parts: list[FloatArray] = []
+        k = slots.n_targets
+        if slots.gains is not None and priors.log_gain_sd is not None:
+            parts.append(-theta[slots.gains] / priors.log_gain_sd)
+        if slots.scale is not None and priors.log_scale_sd is not None:
+            parts.append(np.array([-theta[slots.scale] / priors.log_scale_sd]))
+        if slots.n_axes == 3:
+            parts.append(-(theta[2 * k : 3 * k] - priors.height_mean) / priors.height_sd)
+        return np.concatenate(parts) if parts else np.zeros(0)
+
+    def residual(self, theta: FloatArray, fixed: FitState) -> FloatArray:
+        """Whitened data residual ``c * (y - mu(theta))`` then the prior residuals.
 
         Parameters
         ----------
-        theta : ndarray of shape (2K + [K] + 1,)
-        weights : ndarray of shape (K,) or None
-            The fixed weights (ignored with free weights); None means all ones.
+        theta : ndarray
+        fixed : FitState
+            Supplies what ``theta`` does not hold (fixed weights, gains, heights).
         """
         white = self.white
-        k = self._n_targets(theta)
-        if self.free_weights:
-            weights = theta[2 * k : 3 * k]
-        gains = white.rotate(self.kernel.gains_xy(theta[:k], theta[k : 2 * k]))
+        slots = self.slots(fixed.n_targets)
+        k = slots.n_targets
+        xs, ys = theta[:k], theta[k : 2 * k]
+        if slots.n_axes == 3:
+            gains = self.kernel.gains_xyz(xs, ys, theta[2 * k : 3 * k])
+        elif self._state_facts(fixed)[0]:
+            gains = self.kernel.gains_xy(xs, ys)
+        else:
+            gains = self.kernel.gains_xyz(xs, ys, fixed.heights)
+        gains = white.rotate(gains)
         atoms = gains[white.upper] * gains[white.lower]
-        return self._residual(atoms, weights, theta[-1])
+        multipliers = self._multipliers(theta, slots, fixed)
+        model = atoms.sum(axis=1) if multipliers is None else atoms @ multipliers
+        model *= white.weights
+        residual = self.data - model
+        residual -= theta[-1] * white.weighted_diag
+        return np.concatenate((residual, self.prior_residuals(theta, slots)))
 
-    def augmented(self, theta: FloatArray, weights: FloatArray | None) -> FloatArray:
-        """``[J | r]^T`` of shape (len(theta) + 1, L): the Jacobian of ``c * mu`` and the
-        residual as rows of one array, so that one product gives ``J^T J``, ``J^T r`` and
-        ``r^T r``. Rows rather than columns: every product below then runs on contiguous
-        memory, which is a third faster at these sizes than on strided column slices.
+    def augmented(self, theta: FloatArray, fixed: FitState) -> FloatArray:
+        """``[J | r]^T`` of shape (len(theta) + 1, L + n_prior): the Jacobian of the model
+        (and of the priors) and the residual as rows of one array, so that one product
+        gives ``J^T J``, ``J^T r`` and ``r^T r``. Rows rather than columns: every product
+        below then runs on contiguous memory.
         """
         white = self.white
-        k = self._n_targets(theta)
-        if self.free_weights:
-            weights = theta[2 * k : 3 * k]
-        # Rows [dg/dx | dg/dy | g | g] (rotated: (U^T G)^T = G^T U); then the entries' a and b.
-        blocks = self.kernel.gradients_xy(theta[:k], theta[k : 2 * k]).T
+        slots = self.slots(fixed.n_targets)
+        k, n_axes = slots.n_targets, slots.n_axes
+        xs, ys = theta[:k], theta[k : 2 * k]
+        # Rows [dg/dx | dg/dy | (dg/dz) | g | g | (g)] (rotated: (U^T G)^T = G^T U).
+        if n_axes == 3:
+            blocks = self.kernel.gradients_xyz(xs, ys, theta[2 * k : 3 * k]).T
+        elif self._state_facts(fixed)[0]:
+            blocks = self.kernel.gradients_xy(xs, ys).T
+        else:  # heights fixed off the plane: keep the x, y gradients and two gain blocks
+            full = self.kernel.gradients_xyz(xs, ys, fixed.heights).T
+            blocks = np.concatenate((full[: 2 * k], full[3 * k : 5 * k]))
         if white.rotation is not None:
             blocks = blocks @ white.rotation
         left = blocks[:, white.upper]
         right = blocks[:, white.lower]
-        atoms = left[2 * k : 3 * k] * right[2 * k : 3 * k]  # (K, L)
+        n_grad = n_axes * k
+        atoms = left[n_grad : n_grad + k] * right[n_grad : n_grad + k]  # (K, L)
+        multipliers = self._multipliers(theta, slots, fixed)
+        n_data = atoms.shape[1]
         n_params = theta.shape[0]
-        augmented = np.empty((n_params + 1, atoms.shape[1]))
-        model = atoms.sum(axis=0) if weights is None else weights @ atoms
+        augmented = np.empty((n_params + 1, n_data + slots.n_prior))
+        data_part = augmented[:, :n_data] if slots.n_prior else augmented
+        model = atoms.sum(axis=0) if multipliers is None else multipliers @ atoms
         model *= white.weights
-        residual = augmented[n_params]
+        residual = data_part[n_params]
         np.subtract(self.data, model, out=residual)
         residual -= theta[-1] * white.weighted_diag
-        # d(g_a g_b)/dp = dg_a g_b + g_a dg_b, both axes at once: rows x_1..x_K, y_1..y_K.
-        positions = augmented[: 2 * k]
-        np.multiply(left[: 2 * k], right[2 * k :], out=positions)
-        positions += left[2 * k :] * right[: 2 * k]
-        if weights is not None:
-            positions *= np.concatenate((weights, weights))[:, None]
+        # d(g_a g_b)/dp = dg_a g_b + g_a dg_b, all axes at once: rows x_1..x_K, y_1..y_K, ...
+        positions = data_part[:n_grad]
+        np.multiply(left[:n_grad], right[n_grad:], out=positions)
+        positions += left[n_grad:] * right[:n_grad]
+        if multipliers is not None:
+            for axis in range(n_axes):
+                positions[axis * k : (axis + 1) * k] *= multipliers[:, None]
         positions *= white.weights
-        if self.free_weights:
-            np.multiply(atoms, white.weights, out=augmented[2 * k : 3 * k])
-        augmented[n_params - 1] = white.weighted_diag
+        if slots.weights is not None:
+            np.multiply(atoms, white.weights, out=data_part[slots.weights])
+        if slots.gains is not None:
+            twice = 2.0 * (np.ones(k) if multipliers is None else multipliers)
+            np.multiply(atoms, twice[:, None], out=data_part[slots.gains])
+            data_part[slots.gains] *= white.weights
+        if slots.scale is not None:
+            data_part[slots.scale] = model
+        data_part[n_params - 1] = white.weighted_diag
+        if slots.n_prior:
+            self._fill_priors(augmented[:, n_data:], theta, slots)
         return augmented
 
-    def _n_targets(self, theta: FloatArray) -> int:
-        return int((theta.shape[0] - 1) // (3 if self.free_weights else 2))
+    def _fill_priors(self, prior_part: FloatArray, theta: FloatArray, slots: _Slots) -> None:
+        """The prior pseudo-residuals' columns of :meth:`augmented`."""
+        k = slots.n_targets
+        prior_part[:] = 0.0
+        prior_part[-1] = self.prior_residuals(theta, slots)
+        column = 0
+        if slots.gains is not None and self.priors.log_gain_sd is not None:
+            rows = np.arange(slots.gains.start, slots.gains.stop)
+            prior_part[rows, column + np.arange(k)] = 1.0 / self.priors.log_gain_sd
+            column += k
+        if slots.scale is not None and self.priors.log_scale_sd is not None:
+            prior_part[slots.scale, column] = 1.0 / self.priors.log_scale_sd
+            column += 1
+        if slots.n_axes == 3:
+            rows = np.arange(2 * k, 3 * k)
+            prior_part[rows, column + np.arange(k)] = 1.0 / self.priors.height_sd
 
-    def _residual(self, atoms: FloatArray, weights: FloatArray | None, noise: float) -> FloatArray:
-        model = atoms.sum(axis=1) if weights is None else atoms @ weights
-        model *= self.white.weights
-        residual = self.data - model
-        residual -= noise * self.white.weighted_diag
-        return residual
-
-    def cost(self, state: FitState) -> tuple[float, FloatArray]:
-        """Cost and whitened residual of a state."""
-        residual = self.residual(self.pack(state), _fixed(state))
+    def data_cost(self, state: FitState) -> tuple[float, FloatArray]:
+        """Cost and whitened residual of the data alone (no prior terms)."""
+        residual = self.residual(self.pack(state), state)[: self.data.shape[0]]
         return float(residual @ residual), residual
 
-
-def _fixed(state: FitState) -> FloatArray | None:
-    """The fixed weights to pass to :meth:`Objective.residual` (None when all are one)."""
-    return None if bool(np.all(state.weights == 1.0)) else state.weights
+    def cost(self, state: FitState) -> tuple[float, FloatArray]:
+        """Cost (data and priors) and the whitened data residual of a state."""
+        full = self.residual(self.pack(state), state)
+        return float(full @ full), full[: self.data.shape[0]]
 
 
 def levenberg_marquardt(
@@ -367,7 +532,7 @@ def levenberg_marquardt(
     tol: float,
     step_tol_m: float = 1e-5,
 ) -> tuple[FitState, float, int]:
-    """Projected LM on an :class:`Objective` (positions kept inside the room).
+    """Projected LM on an :class:`Objective` (parameters kept within their bounds).
 
     Every trial computes residual and Jacobian together: most steps are accepted, and a
     second call for the Jacobian would cost more than the wasted one on a rejection.
@@ -375,10 +540,9 @@ def levenberg_marquardt(
     Returns the refined state, its cost and the number of iterations used.
     """
     n_targets = state.n_targets
-    weights = _fixed(state)
-    upper = objective.upper_bounds(n_targets)
+    lower, upper = objective.bounds(n_targets)
     theta = objective.pack(state)
-    normal, gradient, cost = _gram(objective, theta, weights)
+    normal, gradient, cost = gram(objective, theta, state)
     damping = initial_damping
     used = 0
     n_pos = 2 * n_targets
@@ -397,8 +561,8 @@ def levenberg_marquardt(
             converged = (
                 n_pos == 0 or float(np.abs(step[:n_pos]).max()) < step_tol_m
             ) or predicted < tol * cost
-            trial = objective.project(theta + step, upper)
-            trial_normal, trial_gradient, trial_cost = _gram(objective, trial, weights)
+            trial = np.clip(theta + step, lower, upper)
+            trial_normal, trial_gradient, trial_cost = gram(objective, trial, state)
             if trial_cost < cost:
                 converged = converged or (cost - trial_cost) < tol * cost
                 theta, normal, gradient, cost = trial, trial_normal, trial_gradient, trial_cost
@@ -412,11 +576,15 @@ def levenberg_marquardt(
     return objective.unpack(theta, state), cost, used
 
 
-def _gram(
-    objective: Objective, theta: FloatArray, weights: FloatArray | None
+def gram(
+    objective: Objective, theta: FloatArray, fixed: FitState
 ) -> tuple[FloatArray, FloatArray, float]:
     """``J^T J``, ``J^T r`` and ``r^T r`` at ``theta`` (one BLAS call instead of three)."""
-    augmented = objective.augmented(theta, weights)
-    gram = augmented @ augmented.T
+    augmented = objective.augmented(theta, fixed)
+    product = augmented @ augmented.T
     n_params = theta.shape[0]
-    return gram[:n_params, :n_params], gram[:n_params, n_params], float(gram[n_params, n_params])
+    return (
+        product[:n_params, :n_params],
+        product[:n_params, n_params],
+        float(product[n_params, n_params]),
+    )

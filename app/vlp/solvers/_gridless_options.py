@@ -5,9 +5,25 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import TypeVar
 
+from ..fingerprints import Fingerprint
+from ..layout import Layout
 from ..measurements import Model
+from ._channel_kernel import DiffuseTable
+from ._gridless_fit import Priors
 
-__all__ = ["LM_DEFAULTS", "GridlessOptions", "LevenbergMarquardtSettings", "pick"]
+__all__ = [
+    "LM_DEFAULTS",
+    "GridlessOptions",
+    "LevenbergMarquardtSettings",
+    "diffuse_table",
+    "nuisance_priors",
+    "pick",
+]
+
+# Heights are fitted within this many prior standard deviations of the receivers' plane.
+_HEIGHT_SPAN_SD = 4.0
+# ... and stay this far below the lowest LED (the channel is singular at an LED).
+_HEIGHT_CLEARANCE_M = 0.05
 
 _Number = TypeVar("_Number", int, float)
 
@@ -30,6 +46,16 @@ class GridlessOptions:
     relocate_passes: int = 1
     restarts: int = 1
     misfit_ratio: float = 1.5
+    # Priors of the nuisance parameters (log units; None: not fitted). Each target's
+    # amplitude gain (phones differ, are held differently) and the common power scale of the
+    # measurement (pilots, receivers' calibration, units).
+    log_gain_sd: float | None = 0.1
+    log_scale_sd: float | None = 0.5
+    # Prior sd of each component (tangent) of a terminal's unknown photodiode tilt, fitted
+    # when terminals send their own amplitudes but not their normal (hand-held phones tilt).
+    tilt_sd: float | None = 0.15
+    # LM iterations of the trial that decides whether freeing a stage of nuisances pays.
+    stage_iter: int = 8
 
 
 @dataclass(frozen=True)
@@ -56,3 +82,20 @@ LM_DEFAULTS: dict[Model, LevenbergMarquardtSettings] = {
 def pick(chosen: _Number | None, default: _Number) -> _Number:
     """``chosen`` unless it is None."""
     return default if chosen is None else chosen
+
+
+def nuisance_priors(layout: Layout, options: GridlessOptions) -> Priors:
+    """The priors of a room: gains and scale from the options, heights from the layout's
+    ``grid.receiver_height_sd`` (0: every target on the receivers' plane)."""
+    mean = layout.grid.receiver_height
+    spread = layout.grid.receiver_height_sd
+    top = float(layout.led_positions[:, 2].min()) - _HEIGHT_CLEARANCE_M
+    bounds = (max(0.0, mean - _HEIGHT_SPAN_SD * spread), min(top, mean + _HEIGHT_SPAN_SD * spread))
+    gain_sd = None if options.free_weights else options.log_gain_sd
+    scale_sd = None if gain_sd is None else options.log_scale_sd
+    return Priors(gain_sd, scale_sd, spread, mean, bounds)
+
+
+def diffuse_table(fingerprint: Fingerprint) -> DiffuseTable | None:
+    """The fingerprint's interpolated diffuse reflections, None for a line-of-sight room."""
+    return fingerprint.reflection_table()

@@ -23,6 +23,8 @@ from ..constants import MAX_TARGETS
 from ..errors import MeasurementError, SolverError, UnknownSolverError
 from ..fingerprints import Fingerprint
 from ..measurements import Measurement, Model
+from ..scale import check_measurement_scale
+from ..uncertainty import FitQuality
 
 __all__ = [
     "MAX_TARGETS",
@@ -55,6 +57,14 @@ class Solution:
         Iterations the solver used.
     converged : bool
         False when the solver stopped on an iteration limit.
+    covariances : ndarray of shape (K, 2, 2) or None, m^2
+        Covariance of each estimate's ``(x, y)`` (solvers that fit continuously).
+    gains : ndarray of shape (K,) or None
+        Each target's fitted amplitude gain relative to the fingerprint (1 = as modelled).
+    heights : ndarray of shape (K,) or None, metres
+        Each target's height, when heights were fitted or given.
+    fit : FitQuality or None
+        Goodness of the fit and the measurement's fitted scale.
     """
 
     positions: FloatArray
@@ -64,6 +74,10 @@ class Solution:
     residual_norm: float
     n_iter: int
     converged: bool
+    covariances: FloatArray | None = None
+    gains: FloatArray | None = None
+    heights: FloatArray | None = None
+    fit: FitQuality | None = None
 
     @property
     def n_targets(self) -> int:
@@ -121,6 +135,7 @@ class Solver(ABC):
                 raise SolverError(
                     f"targets must be between 1 and {limit}, got {n_targets}", field="targets"
                 )
+        check_measurement_scale(self.fingerprint, measurement, n_targets)
         solution = self._solve(measurement, n_targets)
         numbers = (solution.positions, solution.weights, solution.noise_power)
         if not all(np.all(np.isfinite(values)) for values in numbers) or not math.isfinite(

@@ -6,19 +6,49 @@ sparse inverse problems", SIAM J. Optim. 2017) applied to the aggregated VLP mod
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import math
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from .._typing import FloatArray
 from ..fingerprints import Fingerprint
 from ..measurements import Measurement, Model
+from ..scale import check_amplitude_scale
 from ..simulation import mean_signal_power
-from ._gridless_fit import ChannelKernel, FitState, Objective, Whitening, levenberg_marquardt
-from ._gridless_options import LM_DEFAULTS, GridlessOptions, LevenbergMarquardtSettings, pick
+from ..uncertainty import FitQuality, assess_fit
+from ._channel_kernel import ChannelKernel
+from ._gridless_fit import (
+    MAX_LOG_SCALE,
+    FitState,
+    Objective,
+    Priors,
+    Whitening,
+    _Slots,
+    gram,
+    levenberg_marquardt,
+)
+from ._gridless_options import (
+    LM_DEFAULTS,
+    GridlessOptions,
+    LevenbergMarquardtSettings,
+    diffuse_table,
+    nuisance_priors,
+    pick,
+)
+from ._terminal_fit import fit_terminal, starting_cells
 from .base import MAX_TARGETS, Solution, Solver, register_solver
 
 __all__ = ["LM_DEFAULTS", "GridlessOptions", "GridlessSolver"]
+
+
+@dataclass(frozen=True)
+class _Fisher:
+    """Normal matrix of a whitened fit, its data chi-square and number of observations."""
+
+    normal: FloatArray
+    chi2: float
+    n_observations: int
 
 
 @dataclass
@@ -26,6 +56,7 @@ class _Run:
     """Per-call state (solver objects are shared between threads, so nothing lives on self)."""
 
     values: FloatArray
+    priors: Priors
     iterations: int = 0
     converged: bool = True
 
@@ -133,7 +164,20 @@ class GridlessSolver(Solver):
         )
         layout = fingerprint.layout
         self._scale = float(np.sqrt(mean_signal_power(fingerprint)))
-        self._kernel = ChannelKernel(layout, self._scale)
+        self._kernel = ChannelKernel(layout, self._scale, diffuse_table(fingerprint))
+        self._priors = nuisance_priors(layout, self.options)
+        self._growth_priors = Priors(height_mean=self._priors.height_mean)
+        # Nuisances are freed in stages: the common scale and the heights, then the gains.
+        full = self._priors
+        scale_and_heights = replace(full, log_gain_sd=None)
+        self._stages = [
+            stage
+            for stage in (scale_and_heights, full)
+            if _Slots.make(1, stage, self.options.free_weights).size
+            > _Slots.make(1, self._growth_priors, self.options.free_weights).size
+        ]
+        if len(self._stages) == 2 and self._stages[0] == self._stages[1]:
+            self._stages.pop()
         self._centres = layout.cell_centres()
         self._dense = fingerprint.is_dense
         # Restarts begin away from earlier first insertions, by half the mean LED height
@@ -145,11 +189,20 @@ class GridlessSolver(Solver):
             if model == "power"
             else fingerprint.n_leds * (fingerprint.n_leds + 1) // 2
         )
+        self._upper_lower = (
+            (
+                np.arange(fingerprint.n_leds),
+                np.arange(fingerprint.n_leds),
+            )
+            if model == "power"
+            else np.triu_indices(fingerprint.n_leds)
+        )
         # Each target costs 2 coordinates and the noise power one more unknown.
         self._max_count = max(1, min(MAX_TARGETS, fingerprint.n_cells, (n_obs - 1) // 2))
         if self._dense:
             self._gains = fingerprint.dense_scaled_gains() / self._scale
             self._gains_sq = self._gains**2
+            self._column_energy = np.maximum(self._gains_sq.sum(axis=0), 1e-300)
         else:
             self._gains_sparse = fingerprint.scaled_gains() / self._scale
             self._gains_sq_sparse = self._gains_sparse.power(2)
@@ -157,6 +210,8 @@ class GridlessSolver(Solver):
             total = np.asarray(self._gains_sparse.power(2).sum(axis=0)).ravel()
             fourth = np.asarray(self._gains_sparse.power(4).sum(axis=0)).ravel()
             self._psi_norms = np.sqrt(0.5 * (total**2 + fourth))
+            self._column_energy = np.maximum(total, 1e-300)
+        self._mean_column_energy = float(np.mean(self._column_energy))
 
     # -- insertion ---------------------------------------------------------------------
     def _correlations(
@@ -196,16 +251,16 @@ class GridlessSolver(Solver):
             norms = self._psi_norms**2
         return np.asarray(num), np.asarray(norms)
 
-    def _scores(self, white: Whitening, residual: FloatArray) -> FloatArray:
-        """Decrease of the whitened cost if a unit-weight target were added at each grid point.
+    def _scores(self, white: Whitening, residual: FloatArray, weight: float) -> FloatArray:
+        """Decrease of the whitened cost if a target of ``weight`` were added at each grid point.
 
-        ``2 <c psi_j, r> - ||c psi_j||^2`` for fixed unit weights; the normalised correlation
+        ``2 w <c psi_j, r> - w^2 ||c psi_j||^2`` for fixed weights; the normalised correlation
         ``<c psi_j, r> / ||c psi_j||`` for free weights.
         """
         num, norms_sq = self._correlations(white, residual)
         if self.options.free_weights:
             return np.asarray(num / np.sqrt(np.maximum(norms_sq, 1e-300)))
-        return np.asarray(2.0 * num - norms_sq)
+        return np.asarray(2.0 * weight * num - weight**2 * norms_sq)
 
     # -- main loop -----------------------------------------------------------------------
     def _whitening(self, state: FitState) -> Whitening:
@@ -213,14 +268,15 @@ class GridlessSolver(Solver):
             return Whitening.identity(self.model, self.fingerprint.n_leds)
         return Whitening.from_state(self.model, self._kernel, state, float(state.n_targets))
 
-    def _objective(self, run: _Run, white: Whitening) -> Objective:
-        return Objective(self._kernel, white, run.values, self.options.free_weights)
+    def _objective(self, run: _Run, white: Whitening, nuisance: bool = True) -> Objective:
+        priors = run.priors if nuisance else self._growth_priors
+        return Objective(self._kernel, white, run.values, self.options.free_weights, priors)
 
     def _fit(
-        self, run: _Run, white: Whitening, state: FitState, max_iter: int
+        self, run: _Run, white: Whitening, state: FitState, max_iter: int, nuisance: bool = True
     ) -> tuple[FitState, float]:
         state, cost, used = levenberg_marquardt(
-            self._objective(run, white),
+            self._objective(run, white, nuisance),
             state,
             max_iter=max_iter,
             initial_damping=self._lm.initial_damping,
@@ -242,7 +298,7 @@ class GridlessSolver(Solver):
     def _residual(self, run: _Run, white: Whitening, state: FitState) -> FloatArray:
         if state.n_targets == 0:
             return white.data(run.values)
-        return self._objective(run, white).cost(state)[1]
+        return self._objective(run, white).data_cost(state)[1]
 
     def _insert(
         self, run: _Run, state: FitState, white: Whitening, avoid: FloatArray | None = None
@@ -254,7 +310,7 @@ class GridlessSolver(Solver):
             # rotated gains of every grid point.
             white = Whitening.identity(self.model, self.fingerprint.n_leds)
         residual = self._residual(run, white, state)
-        scores = self._scores(white, residual)
+        scores = self._scores(white, residual, math.exp(state.log_scale))
         if avoid is not None and avoid.shape[0] > 0:
             allowed = scores.copy()
             for point in avoid:
@@ -263,11 +319,7 @@ class GridlessSolver(Solver):
             if np.isfinite(allowed).any():
                 scores = allowed
         best = int(np.argmax(scores))
-        return FitState(
-            np.vstack([state.positions, self._centres[best]]),
-            np.append(state.weights, 1.0),
-            state.noise,
-        )
+        return state.with_target(self._centres[best], self._priors.height_mean)
 
     def _needs_escape(self, run: _Run, state: FitState) -> bool:
         """True when the fit looks like a local minimum worth relocating or restarting from.
@@ -290,9 +342,10 @@ class GridlessSolver(Solver):
             white = Whitening.identity(self.model, self.fingerprint.n_leds)
             residual = self._residual(run, white, state)
         num, norms_sq = self._correlations(white, residual)
-        gain = 2.0 * num - norms_sq
+        weight = math.exp(state.log_scale)
+        gain = 2.0 * weight * num - weight**2 * norms_sq
         best = int(np.argmax(gain))
-        return bool(gain[best] > self.options.count_threshold * norms_sq[best])
+        return bool(gain[best] > self.options.count_threshold * weight**2 * norms_sq[best])
 
     def _plain_cost(self, run: _Run, state: FitState) -> float:
         residual = self._residual(
@@ -300,11 +353,11 @@ class GridlessSolver(Solver):
         )
         return float(residual @ residual)
 
-    def _atom_energy(self, position: FloatArray) -> float:
+    def _atom_energy(self, position: FloatArray, weight: float) -> float:
         g2 = self._kernel.stacked(position[None, :], with_gradients=False)[:, 0] ** 2
         if self.model == "power":
-            return float(g2 @ g2)
-        return float(0.5 * (g2.sum() ** 2 + g2 @ g2))
+            return float(weight**2 * (g2 @ g2))
+        return float(weight**2 * 0.5 * (g2.sum() ** 2 + g2 @ g2))
 
     def _grow(
         self, run: _Run, state: FitState, inner_iter: int, avoid: FloatArray | None = None
@@ -314,7 +367,9 @@ class GridlessSolver(Solver):
         white = self._whitening(state)
         grown = self._insert(run, state, white, avoid)
         if inner_iter > 0:
-            grown, _ = self._fit(run, white, grown, inner_iter)
+            # Gains, scale and heights stay put while targets are being inserted: free, the
+            # first targets would take the energy of those not yet inserted.
+            grown, _ = self._fit(run, white, grown, inner_iter, nuisance=False)
         return grown
 
     def _count_and_fit(self, run: _Run) -> FitState:
@@ -333,7 +388,11 @@ class GridlessSolver(Solver):
             state = self._grow(run, state, opts.count_inner_iter)
             state_cost = self._plain_cost(run, state)
             extra = state.n_targets - best.n_targets
-            energy = sum(self._atom_energy(p) for p in state.positions[-extra:])
+            weights = state.effective_weights()[-extra:]
+            energy = sum(
+                self._atom_energy(p, float(w))
+                for p, w in zip(state.positions[-extra:], weights, strict=True)
+            )
             if best_cost - state_cost >= opts.count_threshold * energy:
                 best, best_cost = state, state_cost
             elif extra > opts.count_lookahead:
@@ -353,7 +412,7 @@ class GridlessSolver(Solver):
         cost = self._objective(run, white).cost(state)[0]
         for k in range(n_targets):
             keep = np.arange(n_targets) != k
-            others = FitState(state.positions[keep], state.weights[keep], state.noise)
+            others = state.subset(keep)
             candidate = self._insert(run, others, white)
             if np.linalg.norm(candidate.positions[-1] - state.positions[k]) <= 1.5 * step:
                 continue
@@ -361,9 +420,7 @@ class GridlessSolver(Solver):
             if candidate_cost < cost:
                 # Keep the original order: the moved target takes slot k.
                 order = np.insert(np.arange(n_targets - 1), k, n_targets - 1)
-                state = FitState(
-                    candidate.positions[order], candidate.weights[order], candidate.noise
-                )
+                state = candidate.reordered(order)
                 cost, moved = candidate_cost, True
         return state, moved
 
@@ -388,8 +445,24 @@ class GridlessSolver(Solver):
             state = self._grow(run, state, self._lm.inner_iter, avoid if first else None)
         return self._polish(run, state)
 
+    def _prescale(self, values: FloatArray, n_targets: int | None) -> float:
+        """A first guess of the common power scale: the received power per target over the
+        room's mean, when K is known and that ratio is beyond 1.5x either way (else 1: the
+        search then runs exactly as in a room measured as modelled)."""
+        if n_targets is None:
+            return 1.0
+        upper, lower = self._upper_lower
+        total = float(np.sum(values[upper == lower]))
+        ratio = total / (n_targets * self._mean_column_energy)
+        if not np.isfinite(ratio) or ratio <= 0.0 or 1.0 / 1.5 <= ratio <= 1.5:
+            return 1.0
+        return float(np.clip(ratio, math.exp(-MAX_LOG_SCALE), math.exp(MAX_LOG_SCALE)))
+
     def _solve(self, measurement: Measurement, n_targets: int | None) -> Solution:
-        run = _Run(values=measurement.values / self._scale**2)
+        values = measurement.values / self._scale**2
+        prescale = self._prescale(values, n_targets)
+        # The whole search runs on the measurement divided by the guessed scale.
+        run = _Run(values=values / prescale, priors=self._growth_priors)
         if n_targets is None:
             state = self._polish(run, self._count_and_fit(run))
         else:
@@ -407,13 +480,193 @@ class GridlessSolver(Solver):
         residual = self._residual(
             run, Whitening.identity(self.model, self.fingerprint.n_leds), state
         )
+        state, fisher = self._with_nuisances(run, state)
+        covariances, fit = self._uncertainty(run, state, fisher)
+        if prescale != 1.0:
+            state.log_scale += math.log(prescale)
+            state.facts = None
+            fit = assess_fit(
+                fit.chi2_per_dof * max(fit.dof, 1), fit.dof, math.exp(0.5 * state.log_scale)
+            )
         positions = state.positions
         return Solution(
             positions=positions,
             grid_indices=self.fingerprint.layout.nearest_cell(positions),
             weights=state.weights.copy(),
-            noise_power=state.noise * self._scale**2,
-            residual_norm=float(np.linalg.norm(residual)) * self._scale**2,
+            noise_power=state.noise * prescale * self._scale**2,
+            residual_norm=float(np.linalg.norm(residual)) * prescale * self._scale**2,
             n_iter=run.iterations,
             converged=run.converged,
+            covariances=covariances,
+            gains=np.exp(0.5 * state.log_scale + state.log_gains),
+            heights=state.heights.copy() if self._priors.fits_heights else None,
+            fit=fit,
         )
+
+    def solve_terminals(
+        self,
+        amplitudes: FloatArray,
+        heights: FloatArray | None = None,
+        normals: FloatArray | None = None,
+    ) -> Solution:
+        """Locate each terminal from its own amplitudes; estimate k belongs to terminal k.
+
+        Parameters
+        ----------
+        amplitudes : ndarray of shape (K, M)
+            Each terminal's received pilot amplitudes (validated by the caller).
+        heights : ndarray of shape (K,) or None, metres
+            Terminals' own heights; NaN (or None for all) where unknown.
+        normals : ndarray of shape (K, 3) or None
+            Terminals' photodiode unit normals; None for straight up.
+
+        Notes
+        -----
+        See :mod:`._terminal_fit`. Two passes: without priors, to estimate the amplitude
+        noise variance pooled over the terminals (its residual sum of squares over its
+        degrees of freedom), then with the gain and height priors weighted by it. The
+        covariance of each position is the inverse of its whitened normal matrix, inflated
+        by that terminal's reduced chi-square when above 1.
+        """
+        check_amplitude_scale(self.fingerprint, np.asarray(amplitudes, dtype=np.float64))
+        values = np.asarray(amplitudes, dtype=np.float64) / self._scale
+        n_terminals, n_leds = values.shape
+        if self._dense:
+            correlations = values @ self._gains
+        else:
+            correlations = np.asarray((self._gains_sparse.T @ values.T).T)
+        scores = np.where(correlations > 0.0, correlations**2 / self._column_energy, 0.0)
+        spacing = 2.0 * self.fingerprint.layout.grid.step
+        own_heights = [
+            None if heights is None or not np.isfinite(heights[k]) else float(heights[k])
+            for k in range(n_terminals)
+        ]
+        own_normals = [None if normals is None else normals[k] for k in range(n_terminals)]
+        first = []
+        for k in range(n_terminals):
+            cells = starting_cells(scores[k], self._centres, spacing)
+            first.append(
+                fit_terminal(
+                    self._kernel,
+                    values[k],
+                    self._centres[cells],
+                    priors=self._priors,
+                    sigma2=None,
+                    height=own_heights[k],
+                    normal=own_normals[k],
+                    tilt_sd=self.options.tilt_sd,
+                )
+            )
+        dof = np.array([max(n_leds - fit.n_params, 1) for fit in first])
+        sigma2 = sum(fit.rss for fit in first) / float(dof.sum())
+        fits = [
+            fit_terminal(
+                self._kernel,
+                values[k],
+                first[k].position[None, :],
+                priors=self._priors,
+                sigma2=sigma2,
+                height=own_heights[k],
+                normal=own_normals[k],
+                tilt_sd=self.options.tilt_sd,
+            )
+            for k in range(n_terminals)
+        ]
+        chi2 = np.array([fit.rss for fit in fits]) / max(sigma2, 1e-300)
+        covariances = np.array(
+            [
+                np.linalg.pinv(fit.normal, hermitian=True)[:2, :2] * max(1.0, c / d)
+                for fit, c, d in zip(fits, chi2, dof, strict=True)
+            ]
+        )
+        log_gains = np.array([fit.log_gain for fit in fits])
+        positions = np.array([fit.position for fit in fits])
+        fit_quality = assess_fit(
+            float(chi2.sum()), int(dof.sum()), math.exp(float(np.median(log_gains)))
+        )
+        return Solution(
+            positions=positions,
+            grid_indices=self.fingerprint.layout.nearest_cell(positions),
+            weights=np.ones(n_terminals),
+            noise_power=n_terminals * sigma2 * self._scale**2,
+            residual_norm=math.sqrt(sum(fit.rss for fit in fits)) * self._scale,
+            n_iter=len(fits),
+            converged=True,
+            covariances=covariances,
+            gains=np.exp(log_gains),
+            heights=np.array([fit.height for fit in fits])
+            if self._priors.fits_heights or heights is not None
+            else None,
+            fit=fit_quality,
+        )
+
+    def _with_nuisances(self, run: _Run, fixed: FitState) -> tuple[FitState, _Fisher | None]:
+        """Free the common scale and the heights, then the targets' gains; keep each stage
+        only when it explains the data significantly better than the one before.
+
+        Each free parameter lowers the whitened cost by about one unit of noise even when
+        the targets are exactly as modelled, and costs accuracy (K = 8, paper room: free
+        gains fit the noise); so a freer fit must beat the one before by more than its extra
+        parameters' chi-square would by chance (mean plus three standard deviations). A score
+        test comes first (one evaluation: the decrease the Gauss-Newton step of the freer
+        model promises at the current fit); only a promising stage is fitted.
+
+        Returns the kept fit and, when it is still ``fixed``, its Fisher information (read
+        off the score test's normal matrix, which holds it as a sub-block).
+        """
+        best, kept = fixed, run.priors
+        k = fixed.n_targets
+        free_weights = self.options.free_weights
+        white = self._whitening(best)
+        fisher: _Fisher | None = None
+        # The freest stage is tested first: when even it promises nothing, neither does any
+        # stage in between (one evaluation in the common case of a room as modelled).
+        for index, priors in enumerate([self._stages[-1], *self._stages] if self._stages else []):
+            run.priors = priors
+            slots = _Slots.make(k, priors, free_weights)
+            extra = slots.size - _Slots.make(k, kept, free_weights).size
+            significant = extra + 3.0 * math.sqrt(2.0 * extra)
+            objective = self._objective(run, white)
+            theta = objective.pack(best)
+            normal, gradient, before = gram(objective, theta, best)
+            if best is fixed:
+                prior = objective.prior_residuals(theta, slots)
+                chi2 = before - float(prior @ prior)
+                shared = np.r_[np.arange(2 * k), slots.size - 1]
+                fisher = _Fisher(normal[np.ix_(shared, shared)], chi2, objective.data.shape[0])
+            try:
+                promised = float(gradient @ np.linalg.solve(normal, gradient))
+            except np.linalg.LinAlgError:
+                promised = float(gradient @ np.linalg.lstsq(normal, gradient, rcond=None)[0])
+            if promised <= significant:
+                if index == 0:
+                    break
+                continue
+            if index == 0 and len(self._stages) > 1:
+                continue  # promising: now stage by stage, the cheapest first
+            freed = self._polish(run, best)
+            if before - objective.cost(freed)[0] > significant:
+                best, kept = freed, priors
+                white = self._whitening(best)
+                fisher = None
+        run.priors = kept
+        return best, fisher
+
+    def _uncertainty(
+        self, run: _Run, state: FitState, fisher: _Fisher | None
+    ) -> tuple[FloatArray, FitQuality]:
+        """Position covariances from the Fisher information of the final whitened fit,
+        inflated by the reduced chi-square when it is above 1, and the fit's quality."""
+        if fisher is None:
+            objective = self._objective(run, self._whitening(state))
+            theta = objective.pack(state)
+            normal, _, cost = gram(objective, theta, state)
+            prior = objective.prior_residuals(theta, objective.slots(state.n_targets))
+            fisher = _Fisher(normal, cost - float(prior @ prior), objective.data.shape[0])
+        dof = fisher.n_observations - fisher.normal.shape[0]
+        fit = assess_fit(fisher.chi2, dof, math.exp(0.5 * state.log_scale))
+        inverse = np.linalg.pinv(fisher.normal, hermitian=True) * max(1.0, fit.chi2_per_dof)
+        k = state.n_targets
+        index = np.column_stack((np.arange(k), np.arange(k) + k))
+        covariances = inverse[index[:, :, None], index[:, None, :]]
+        return np.asarray(covariances), fit

@@ -10,12 +10,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._random import RandomState, as_generator
-from ._typing import FloatArray
-from .channel import channel_gains
-from .errors import SolverError
-from .fingerprints import Fingerprint
-from .layout import Layout
+from .._random import RandomState, as_generator
+from .._typing import FloatArray
+from ..channel import channel_gains
+from ..errors import SolverError
+from ..fingerprints import Fingerprint
+from ..layout import Layout
 
 __all__ = [
     "mean_signal_power",

@@ -1,0 +1,174 @@
+"""Fast evaluation of the normalised channel and its gradients for the continuous solvers.
+
+``g(p) = x * (h_los(p) + h_diffuse(p)) / scale``: the line-of-sight Lambertian gain of every
+LED at a receiver looking straight up at ``p = (x, y, z)``, plus the diffuse reflections when
+the layout has a reflectance (interpolated from a :class:`DiffuseTable`), times the pilot
+amplitudes, divided by the solver's ``scale``. Private: callers validate.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Protocol
+
+import numpy as np
+
+from .._typing import FloatArray
+from ..channel import led_constants
+from ..layout import Layout
+
+__all__ = ["ChannelKernel", "DiffuseTable"]
+
+
+class DiffuseTable(Protocol):
+    """What the kernel needs of an interpolated diffuse-reflection table."""
+
+    def evaluate(
+        self, xs: FloatArray, ys: FloatArray, zs: FloatArray | None = None
+    ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+        """Gains ``(M, P)`` and their derivatives along x, y, z at the points."""
+        ...
+
+
+class ChannelKernel:
+    """Normalised scaled gains ``g(p) = x * h(p) / scale`` and their position gradients.
+
+    Parameters
+    ----------
+    layout : Layout
+    scale : float
+        Divisor of the gains.
+    diffuse : DiffuseTable, default=None
+        Interpolated diffuse reflections (upward receivers), added to the line of sight.
+    """
+
+    def __init__(self, layout: Layout, scale: float, diffuse: DiffuseTable | None = None) -> None:
+        orders, prefactors = led_constants(layout)
+        leds = layout.led_positions
+        self.n_leds = layout.n_leds
+        self.diffuse = diffuse
+        self.receiver_height = layout.grid.receiver_height
+        self.led_xy = np.ascontiguousarray(leds[:, :2])
+        self.led_xyz = np.ascontiguousarray(leds)
+        self.led_z = leds[:, 2].copy()
+        self.dz2 = (leds[:, 2] - layout.grid.receiver_height) ** 2
+        self.orders = orders
+        self.pilot_over_scale = layout.pilot_amplitudes / scale
+        # h = pref * dz^(m+1) / d^(m+3); fold dz^(m+1), the pilot and 1/scale into one factor.
+        dz = np.sqrt(self.dz2)
+        self.factor = prefactors * dz ** (orders + 1.0) * self.pilot_over_scale
+        self.free_height_factor = prefactors * self.pilot_over_scale
+        self.half_exponent = 0.5 * (orders + 3.0)
+        # In view when dz / d >= cos(FOV), i.e. d^2 <= dz^2 / cos^2(FOV).
+        cos_fov = math.cos(math.radians(layout.receiver.fov_deg))
+        self.cos_fov2 = max(cos_fov, 0.0) ** 2 * (1.0 - 1e-12)
+        self.max_d2 = self.dz2 / max(cos_fov, 1e-300) ** 2 * (1.0 + 1e-12)
+        self.bounds = np.array([layout.room.length, layout.room.width])
+        # Column vectors (M, 1) for broadcasting against (M, P) in the hot path.
+        self._led_x = self.led_xy[:, :1]
+        self._led_y = self.led_xy[:, 1:]
+        self._led_z = self.led_z[:, None]
+        self._dz2 = self.dz2[:, None]
+        self._factor = self.factor[:, None]
+        self._free_height_factor = self.free_height_factor[:, None]
+        self._orders_plus_one = (orders + 1.0)[:, None]
+        self._orders_plus_three = (orders + 3.0)[:, None]
+        self._minus_half_exponent = -self.half_exponent[:, None]
+        self._minus_twice_half_exponent = -2.0 * self.half_exponent[:, None]
+        self._max_d2 = self.max_d2[:, None]
+        self._pilot_over_scale = self.pilot_over_scale[:, None]
+
+    def stacked(self, points: FloatArray, with_gradients: bool) -> FloatArray:
+        """Columns ``[g | dg/dx | dg/dy]`` of shape (M, 3P), or ``g`` alone (M, P)."""
+        n_points = points.shape[0]
+        if not with_gradients:
+            return self.gains_xy(points[:, 0], points[:, 1])
+        blocks = self.gradients_xy(points[:, 0], points[:, 1])
+        return np.concatenate(
+            [blocks[:, 2 * n_points : 3 * n_points], blocks[:, : 2 * n_points]], axis=1
+        )
+
+    def gains_xy(self, xs: FloatArray, ys: FloatArray) -> FloatArray:
+        """``g`` at the points ``(xs, ys)`` (shapes (P,)) on the receivers' plane, (M, P)."""
+        d2 = self._distances_squared(xs, ys)[2]
+        gains = np.power(d2, self._minus_half_exponent)
+        gains *= self._factor
+        gains *= d2 <= self._max_d2
+        if self.diffuse is not None:
+            gains += self.diffuse.evaluate(xs, ys)[0] * self._pilot_over_scale
+        return gains
+
+    def gradients_xy(self, xs: FloatArray, ys: FloatArray) -> FloatArray:
+        """Columns ``[dg/dx | dg/dy | g | g]`` of shape (M, 4P) at the points ``(xs, ys)``.
+
+        The order suits the objective: the gains twice, next to both gradient blocks, make
+        the product rule one multiply per side.
+        """
+        n_points = xs.shape[0]
+        out = np.empty((self.n_leds, 4 * n_points))
+        gains = out[:, 2 * n_points : 3 * n_points]
+        dx, dy, d2 = self._distances_squared(xs, ys)
+        np.power(d2, self._minus_half_exponent, out=gains)
+        gains *= self._factor
+        gains *= d2 <= self._max_d2
+        slope = self._minus_twice_half_exponent * gains
+        slope /= d2
+        np.multiply(slope, dx, out=out[:, :n_points])
+        np.multiply(slope, dy, out=out[:, n_points : 2 * n_points])
+        if self.diffuse is not None:
+            values, along_x, along_y, _ = self.diffuse.evaluate(xs, ys)
+            gains += values * self._pilot_over_scale
+            out[:, :n_points] += along_x * self._pilot_over_scale
+            out[:, n_points : 2 * n_points] += along_y * self._pilot_over_scale
+        out[:, 3 * n_points :] = gains
+        return out
+
+    def gains_xyz(self, xs: FloatArray, ys: FloatArray, zs: FloatArray) -> FloatArray:
+        """``g`` at receivers at heights ``zs`` (all shapes (P,)), shape (M, P)."""
+        return self.gradients_xyz(xs, ys, zs)[:, 3 * xs.shape[0] : 4 * xs.shape[0]].copy()
+
+    def gradients_xyz(self, xs: FloatArray, ys: FloatArray, zs: FloatArray) -> FloatArray:
+        """Columns ``[dg/dx | dg/dy | dg/dz | g | g | g]`` of shape (M, 6P) at ``(xs, ys, zs)``.
+
+        With ``D = z_led - z``: ``h = pref D^(m+1) / d^(m+3)``, ``dh/dx = -(m+3) h dx / d^2``
+        and ``dh/dz = -h ((m+1) / D - (m+3) D / d^2)``.
+        """
+        n_points = xs.shape[0]
+        out = np.empty((self.n_leds, 6 * n_points))
+        dx = xs - self._led_x
+        dy = ys - self._led_y
+        drop = self._led_z - zs
+        drop = np.maximum(drop, 1e-9)
+        d2 = dx * dx + dy * dy + drop * drop
+        gains = out[:, 3 * n_points : 4 * n_points]
+        np.power(d2, self._minus_half_exponent, out=gains)
+        gains *= np.power(drop, self._orders_plus_one)
+        gains *= self._free_height_factor
+        gains *= drop * drop >= self.cos_fov2 * d2
+        slope = -self._orders_plus_three * gains / d2
+        np.multiply(slope, dx, out=out[:, :n_points])
+        np.multiply(slope, dy, out=out[:, n_points : 2 * n_points])
+        np.multiply(
+            gains,
+            self._orders_plus_three * drop / d2 - self._orders_plus_one / drop,
+            out=out[:, 2 * n_points : 3 * n_points],
+        )
+        if self.diffuse is not None:
+            values, along_x, along_y, along_z = self.diffuse.evaluate(xs, ys, zs)
+            gains += values * self._pilot_over_scale
+            out[:, :n_points] += along_x * self._pilot_over_scale
+            out[:, n_points : 2 * n_points] += along_y * self._pilot_over_scale
+            out[:, 2 * n_points : 3 * n_points] += along_z * self._pilot_over_scale
+        out[:, 4 * n_points : 5 * n_points] = gains
+        out[:, 5 * n_points :] = gains
+        return out
+
+    def _distances_squared(
+        self, xs: FloatArray, ys: FloatArray
+    ) -> tuple[FloatArray, FloatArray, FloatArray]:
+        dx = xs - self._led_x
+        dy = ys - self._led_y
+        d2 = dx * dx
+        d2 += dy * dy
+        d2 += self._dz2
+        return dx, dy, d2

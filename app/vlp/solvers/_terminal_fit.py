@@ -1,0 +1,328 @@
+"""Per-terminal fits: each terminal's own amplitudes locate that terminal.
+
+When terminals send their amplitudes ``a_k`` (M numbers each) rather than only their sums,
+every terminal is a single-target problem with M equations:
+
+.. math::
+
+    a_k = e^{u_k} g(p_k, z_k, n_k) + \\epsilon_k, \\qquad \\epsilon_k \\sim N(0, \\sigma^2 I),
+
+with ``g`` the normalised channel (line of sight for the photodiode's normal ``n_k``, plus
+the diffuse reflections of the room), ``u_k`` the terminal's log amplitude gain (Gaussian
+prior) and ``z_k`` its height (known, or free with the room's prior). This is strictly more
+information than any aggregate of the same amplitudes, and labels come for free. Private:
+callers validate.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from .._typing import FloatArray
+from ._channel_kernel import ChannelKernel
+from ._gridless_fit import MAX_LOG_GAIN, Priors
+
+__all__ = ["TerminalFit", "fit_terminal", "los_with_normal", "starting_cells"]
+
+# Candidate starts per terminal (the best grid points of its own correlation, kept apart).
+_STARTS = 3
+_MAX_ITER = 30
+# Smallest noise variance assumed, relative to a terminal's mean squared amplitude (40 dB).
+_SIGMA2_REL_FLOOR = 1e-4
+# A fitted tilt (tangent of its components) stays within +-45 degrees.
+_MAX_TILT = 1.0
+# Cost decrease a fitted tilt must bring to be kept: 2 + 3 sqrt(2 * 2).
+_TILT_SIGNIFICANCE = 8.0
+
+
+@dataclass(frozen=True)
+class TerminalFit:
+    """One terminal's fit: position (2,) m, height m, log gain, residual sum of squares,
+    the normal matrix of the whitened fit (for its covariance) and the parameter count."""
+
+    position: FloatArray
+    height: float
+    log_gain: float
+    rss: float
+    normal: FloatArray
+    n_params: int
+    cost: float = 0.0
+
+
+def los_with_normal(
+    kernel: ChannelKernel, point: FloatArray, normal: FloatArray
+) -> tuple[FloatArray, FloatArray]:
+    """Normalised line-of-sight gains (M,) and their gradient (M, 3) w.r.t. the receiver's
+    ``(x, y, z)`` for a photodiode of unit ``normal`` at ``point = (x, y, z)``.
+
+    ``h = pref D^m (n . v) / d^(m+3)`` with ``v`` = LED minus receiver, ``D = v_z``;
+    ``grad h = h (-m / D e_z - n / (n . v) + (m + 3) v / d^2)``; 0 outside the FOV.
+    """
+    offsets = kernel.led_xyz - point  # (M, 3): LED minus receiver
+    drop = np.maximum(offsets[:, 2], 1e-9)
+    dist2 = np.einsum("ij,ij->i", offsets, offsets)
+    facing = offsets @ normal
+    in_view = (facing > 0.0) & (facing * facing >= kernel.cos_fov2 * dist2)
+    orders = kernel.orders
+    gains = np.where(
+        in_view,
+        kernel.free_height_factor
+        * drop**orders
+        * np.maximum(facing, 1e-300)
+        * dist2 ** (-(orders + 3.0) / 2.0),
+        0.0,
+    )
+    safe_facing = np.where(in_view, facing, 1.0)
+    gradient = gains[:, None] * (
+        -(orders / drop)[:, None] * np.array([0.0, 0.0, 1.0])
+        - normal[None, :] / safe_facing[:, None]
+        + ((orders + 3.0) / dist2)[:, None] * offsets
+    )
+    return gains, gradient
+
+
+def starting_cells(scores: FloatArray, centres: FloatArray, min_distance_m: float) -> list[int]:
+    """Up to ``_STARTS`` best grid cells by ``scores``, each ``min_distance_m`` from the others."""
+    chosen: list[int] = []
+    for index in np.argsort(scores)[::-1][: 50 * _STARTS]:
+        point = centres[index]
+        if all(np.hypot(*(point - centres[c])) >= min_distance_m for c in chosen):
+            chosen.append(int(index))
+        if len(chosen) == _STARTS:
+            break
+    return chosen
+
+
+def fit_terminal(
+    kernel: ChannelKernel,
+    amplitudes: FloatArray,
+    starts: FloatArray,
+    *,
+    priors: Priors,
+    sigma2: float | None,
+    height: float | None,
+    normal: FloatArray | None,
+    tilt_sd: float | None = None,
+) -> TerminalFit:
+    """Fit one terminal from each start, keep the lowest cost.
+
+    Parameters
+    ----------
+    kernel : ChannelKernel
+    amplitudes : ndarray of shape (M,)
+        The terminal's amplitudes in normalised units.
+    starts : ndarray of shape (S, 2)
+        Starting positions, metres.
+    priors : Priors
+        ``log_gain_sd`` (None: gain fixed at 1) and the heights' prior.
+    sigma2 : float or None
+        Noise variance (normalised units) weighting the data against the priors; None fits
+        without priors (a first pass that estimates the noise).
+    height : float or None
+        The terminal's own height when it sent it.
+    normal : ndarray of shape (3,) or None
+        Its photodiode's unit normal when it sent it (None: unknown).
+    tilt_sd : float or None
+        Prior standard deviation of each component of an unknown photodiode's tilt
+        (tangent units; with priors only); None keeps an unknown normal straight up.
+    """
+    best: TerminalFit | None = None
+    floor = _SIGMA2_REL_FLOOR * float(amplitudes @ amplitudes) / amplitudes.shape[0]
+    weight = 1.0 / math.sqrt(max(sigma2, floor, 1e-300)) if sigma2 is not None else 1.0
+    free_height = height is None and priors.fits_heights
+    z0 = priors.height_mean if height is None else float(height)
+    for start in starts:
+        fit = _levenberg_marquardt(
+            kernel,
+            amplitudes,
+            start,
+            z0,
+            free_height,
+            priors,
+            weight if sigma2 is not None else None,
+            normal,
+            None,
+        )
+        if best is None or fit.rss < best.rss:
+            best = fit
+    assert best is not None
+    if normal is not None or tilt_sd is None:
+        return best
+    if sigma2 is None:
+        # The noise estimate comes from a fit that may tilt (no prior): a tilted room's
+        # residuals would otherwise count its tilts as noise.
+        return _levenberg_marquardt(
+            kernel, amplitudes, best.position, z0, free_height, priors, None, None, tilt_sd
+        )
+    # An unknown tilt is fitted too, and kept only when it lowers the cost by more than its
+    # two components would by chance (mean plus three standard deviations of a chi-square
+    # with 2 degrees of freedom): tilt and position trade off, so a free tilt costs a level
+    # terminal accuracy (measured in docs/real-rooms.md).
+    tilted = _levenberg_marquardt(
+        kernel, amplitudes, best.position, z0, free_height, priors, weight, None, tilt_sd
+    )
+    return tilted if best.cost - tilted.cost > _TILT_SIGNIFICANCE else best
+
+
+def _tilted_normal(tilt: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Unit normal ``(tx, ty, 1) / |.|`` of a tilt ``(tx, ty)`` and its derivative (3, 2)."""
+    raw = np.array([tilt[0], tilt[1], 1.0])
+    length = float(np.linalg.norm(raw))
+    normal = raw / length
+    derivative = (np.eye(3)[:, :2] - np.outer(normal, normal[:2])) / length
+    return normal, derivative
+
+
+def _model(
+    kernel: ChannelKernel,
+    theta: FloatArray,
+    free_height: bool,
+    z0: float,
+    normal: FloatArray | None,
+    free_tilt: bool = False,
+) -> tuple[FloatArray, FloatArray]:
+    """Gains ``g`` (M,) and their gradient (M, 3 or 5) at ``theta = [x, y, (z), (tx, ty), u]``:
+    columns x, y, z, then the tilt's two components when the tilt is free."""
+    x, y = float(theta[0]), float(theta[1])
+    z = float(theta[2]) if free_height else z0
+    if normal is None and not free_tilt:
+        blocks = kernel.gradients_xyz(np.array([x]), np.array([y]), np.array([z]))
+        return blocks[:, 3], blocks[:, :3]
+    at = 3 if free_height else 2
+    tilt_derivative = None
+    if free_tilt:
+        normal, tilt_derivative = _tilted_normal(theta[at : at + 2])
+    assert normal is not None
+    point = np.array([x, y, z])
+    los, gradient = los_with_normal(kernel, point, normal)
+    if tilt_derivative is not None:
+        offsets = kernel.led_xyz - point
+        facing = offsets @ normal
+        along_normal = np.where(los > 0.0, los / np.where(los > 0.0, facing, 1.0), 0.0)
+        tilt_gradient = (along_normal[:, None] * offsets) @ tilt_derivative
+        gradient = np.column_stack((gradient, tilt_gradient))
+    if kernel.diffuse is not None:
+        values, along_x, along_y, along_z = kernel.diffuse.evaluate(
+            np.array([x]), np.array([y]), np.array([z])
+        )
+        scale = kernel.pilot_over_scale
+        los = los + values[:, 0] * scale
+        gradient[:, :3] += (
+            np.column_stack((along_x[:, 0], along_y[:, 0], along_z[:, 0])) * (scale[:, None])
+        )
+    return los, gradient
+
+
+def _levenberg_marquardt(
+    kernel: ChannelKernel,
+    amplitudes: FloatArray,
+    start: FloatArray,
+    z0: float,
+    free_height: bool,
+    priors: Priors,
+    weight: float | None,
+    normal: FloatArray | None,
+    tilt_sd: float | None,
+) -> TerminalFit:
+    """Projected LM on ``[x, y, (z), (tx, ty), u]`` with the Gaussian priors as
+    pseudo-residuals (the tilt is free when ``tilt_sd`` is given and no normal was sent)."""
+    with_priors = weight is not None
+    free_tilt = normal is None and tilt_sd is not None
+    axes = (3 if free_height else 2) + (2 if free_tilt else 0)
+    gradient_columns = [0, 1, *([2] if free_height else []), *([3, 4] if free_tilt else [])]
+    gains0, _ = _model(kernel, np.array([start[0], start[1], z0]), free_height, z0, normal)
+    norm = float(gains0 @ gains0)
+    u0 = math.log(max(float(gains0 @ amplitudes) / norm, 1e-6)) if norm > 0 else 0.0
+    theta = np.array(
+        [start[0], start[1], *([z0] if free_height else []), *([0.0, 0.0] if free_tilt else []), u0]
+    )
+    lower = np.array(
+        [
+            0.0,
+            0.0,
+            *([priors.height_bounds[0]] if free_height else []),
+            *([-_MAX_TILT, -_MAX_TILT] if free_tilt else []),
+            -20.0,
+        ]
+    )
+    upper = np.array(
+        [
+            *kernel.bounds,
+            *([priors.height_bounds[1]] if free_height else []),
+            *([_MAX_TILT, _MAX_TILT] if free_tilt else []),
+            20.0,
+        ]
+    )
+    if with_priors and priors.log_gain_sd is not None:
+        lower[-1], upper[-1] = -MAX_LOG_GAIN - 3.0, MAX_LOG_GAIN + 3.0
+    data_weight = weight if weight is not None else 1.0
+    tilt_at = 3 if free_height else 2
+
+    def evaluate(params: FloatArray) -> tuple[FloatArray, FloatArray, float]:
+        gains, gradient = _model(kernel, params, free_height, z0, normal, free_tilt)
+        amp = math.exp(float(params[-1]))
+        residual = data_weight * (amplitudes - amp * gains)
+        jacobian = np.empty((amplitudes.shape[0], params.shape[0]))
+        jacobian[:, :axes] = data_weight * amp * gradient[:, gradient_columns]
+        jacobian[:, -1] = data_weight * amp * gains
+        rows_r: list[float] = []
+        rows_j: list[FloatArray] = []
+        if with_priors and priors.log_gain_sd is not None:
+            rows_r.append(-float(params[-1]) / priors.log_gain_sd)
+            row = np.zeros(params.shape[0])
+            row[-1] = 1.0 / priors.log_gain_sd
+            rows_j.append(row)
+        if with_priors and free_height:
+            rows_r.append(-(float(params[2]) - priors.height_mean) / priors.height_sd)
+            row = np.zeros(params.shape[0])
+            row[2] = 1.0 / priors.height_sd
+            rows_j.append(row)
+        if with_priors and free_tilt and tilt_sd is not None:
+            for offset in (0, 1):
+                rows_r.append(-float(params[tilt_at + offset]) / tilt_sd)
+                row = np.zeros(params.shape[0])
+                row[tilt_at + offset] = 1.0 / tilt_sd
+                rows_j.append(row)
+        if rows_r:
+            residual = np.concatenate((residual, rows_r))
+            jacobian = np.vstack((jacobian, np.array(rows_j)))
+        return residual, jacobian, float(residual @ residual)
+
+    residual, jacobian, cost = evaluate(theta)
+    damping = 1e-3
+    for _ in range(_MAX_ITER):
+        normal_matrix = jacobian.T @ jacobian
+        gradient = jacobian.T @ residual
+        improved = False
+        for _ in range(10):
+            scaled = normal_matrix + damping * np.diag(np.maximum(normal_matrix.diagonal(), 1e-30))
+            try:
+                step = np.linalg.solve(scaled, gradient)
+            except np.linalg.LinAlgError:
+                damping *= 10.0
+                continue
+            trial = np.clip(theta + step, lower, upper)
+            trial_residual, trial_jacobian, trial_cost = evaluate(trial)
+            if trial_cost < cost:
+                done = cost - trial_cost < 1e-10 * cost or float(np.abs(step[:2]).max()) < 1e-6
+                theta, residual, jacobian, cost = trial, trial_residual, trial_jacobian, trial_cost
+                damping = max(damping / 5.0, 1e-9)
+                improved = True
+                break
+            damping *= 4.0
+        if not improved or done:
+            break
+    n_data = amplitudes.shape[0]
+    data_residual = residual[:n_data] / data_weight
+    return TerminalFit(
+        position=theta[:2].copy(),
+        height=float(theta[2]) if free_height else z0,
+        log_gain=float(theta[-1]),
+        rss=float(data_residual @ data_residual),
+        cost=cost,
+        normal=jacobian.T @ jacobian,
+        n_params=theta.shape[0],
+    )

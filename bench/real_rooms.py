@@ -1,0 +1,266 @@
+"""Accuracy in rooms that are not the paper's model: reflections, gains, heights, tilts, LEDs.
+
+Run from the repository root::
+
+    python -m bench.real_rooms                 # 30 trials per cell, writes under docs/
+    python -m bench.real_rooms --quick         # 3 trials, paper room, under bench/out/quick/
+
+For each room (the paper's and the irregular ``hall`` of :mod:`bench.rooms`), condition
+(:data:`CONDITIONS`), K in {1, 4, 8} and trial, K terminals are placed uniformly in the room
+(no two in one grid cell) and :func:`app.vlp.simulation.simulate_terminals` draws the
+condition's impairments and the noisy amplitudes at 30 dB. The placements depend only on
+(room, K, trial), so every condition sees the same terminals. Two ways to locate them:
+
+- ``correlation``: the K terminals' amplitudes aggregated into ``R = sum_k a_k a_k^T`` and one
+  K-target solve;
+- ``terminals``: each terminal's own amplitudes, fitted terminal by terminal (the service's
+  ``terminals`` form with the default solver).
+
+The error of a trial is the mean distance between estimates and truth after optimal
+(Hungarian) matching; the table shows the mean over trials, in centimetres. Conditions
+marked "in layout" give the service a layout whose ``room.reflectance`` matches the truth,
+so its fingerprint includes the reflections; the others give it the line-of-sight layout.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+import time
+import zlib
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from functools import cache
+from pathlib import Path
+
+import numpy as np
+from threadpoolctl import threadpool_limits
+
+from app.vlp._typing import FloatArray
+from app.vlp.fingerprints import Fingerprint, build_fingerprint
+from app.vlp.layout import Layout, Reflectance
+from app.vlp.measurements import Measurement, Model, measurement_from_amplitudes
+from app.vlp.metrics import mean_position_error
+from app.vlp.simulation import Impairments, random_positions, simulate_terminals
+from app.vlp.solvers import Solver, make_solver
+from app.vlp.solvers.gridless import GridlessSolver
+
+from ._common import (
+    REPO_ROOT,
+    load_solvers,
+    machine_markdown,
+    machine_record,
+    replace_section,
+    write_csv,
+)
+from .rooms import make_room
+
+__all__ = ["CONDITIONS", "Condition", "Localizer", "gridless_localizer", "main", "run"]
+
+SEED = 20261123
+SNR_DB = 30.0
+KS = (1, 4, 8)
+MODES = ("correlation", "terminals")
+
+Localizer = Callable[[Fingerprint, Measurement, int], FloatArray]
+
+
+@dataclass(frozen=True)
+class Condition:
+    """One row of the table: what the room really does, and what the layout tells."""
+
+    name: str
+    impairments: Impairments
+    reflectance_in_layout: Reflectance | None = None
+    height_sd_in_layout: float = 0.0
+
+
+WALLS = Reflectance(walls=0.7, floor=0.0, ceiling=0.0)
+MIX = Impairments.realistic_mix()
+
+CONDITIONS: tuple[Condition, ...] = (
+    Condition("ideal", Impairments.ideal()),
+    Condition("reflections 0.7", Impairments.reflections(0.7)),
+    Condition("reflections 0.7, in layout", Impairments.reflections(0.7), WALLS),
+    Condition("gain sd 10 %", Impairments.gain_spread(0.10)),
+    Condition("heights sd 15 cm", Impairments.heights(0.15)),
+    Condition("heights sd 15 cm, sd in layout", Impairments.heights(0.15), None, 0.15),
+    Condition("tilt 0-20 deg", Impairments.tilts(20.0)),
+    Condition("LED 5 % / 3 deg", Impairments.led_tolerances(0.05, 3.0)),
+    Condition("realistic mix", MIX),
+    Condition("realistic mix, reflectance in layout", MIX, MIX.reflectance),
+    Condition(
+        "realistic mix, reflectance and height sd in layout",
+        MIX,
+        MIX.reflectance,
+        MIX.height_sd_m,
+    ),
+)
+
+
+def gridless_localizer(
+    fingerprint: Fingerprint, measurement: Measurement, count: int
+) -> FloatArray:
+    """Today's default: the ``gridless`` solver, one per (fingerprint, model), reused."""
+    return _solver(fingerprint, measurement.model).solve(measurement, count).positions
+
+
+_SOLVERS: dict[tuple[int, Model], Solver] = {}
+
+
+def _solver(fingerprint: Fingerprint, model: Model) -> Solver:
+    key = (id(fingerprint), model)
+    if key not in _SOLVERS:
+        _SOLVERS[key] = make_solver("gridless", fingerprint, model)
+    return _SOLVERS[key]
+
+
+@cache
+def _layout(room: str, reflectance: Reflectance | None, height_sd: float = 0.0) -> Layout:
+    layout = make_room(room)
+    return dataclasses.replace(
+        layout,
+        room=dataclasses.replace(layout.room, reflectance=reflectance),
+        grid=dataclasses.replace(layout.grid, receiver_height_sd=height_sd),
+    )
+
+
+@cache
+def _fingerprint(room: str, reflectance: Reflectance | None, height_sd: float = 0.0) -> Fingerprint:
+    return build_fingerprint(_layout(room, reflectance, height_sd))
+
+
+def _generator(*key: object) -> np.random.Generator:
+    words = tuple(zlib.crc32(str(part).encode()) for part in key)
+    return np.random.default_rng(np.random.SeedSequence(SEED, spawn_key=words))
+
+
+def run_trial(
+    room: str, condition: Condition, count: int, trial: int, localize: Localizer
+) -> dict[str, float]:
+    """Mean matched error (metres) of each mode in one trial; NaN where the solve failed."""
+    truth_layout = _layout(room, None)
+    positions = random_positions(truth_layout, count, rng=_generator(room, count, trial))
+    layout = _layout(room, condition.reflectance_in_layout, condition.height_sd_in_layout)
+    simulated = simulate_terminals(
+        layout,
+        positions,
+        condition.impairments,
+        snr_db=SNR_DB,
+        rng=_generator(room, condition.name, count, trial),
+    )
+    fingerprint = _fingerprint(room, condition.reflectance_in_layout, condition.height_sd_in_layout)
+    amplitudes = simulated.amplitudes
+    errors: dict[str, float] = {}
+    try:
+        together = measurement_from_amplitudes(amplitudes, "correlation", layout.n_leds)
+        errors["correlation"] = mean_position_error(
+            localize(fingerprint, together, count), positions
+        )
+    except Exception:  # a failing solve is counted, not fatal
+        errors["correlation"] = float("nan")
+    try:
+        # The service's `terminals` form: each terminal fitted from its own amplitudes.
+        solver = _solver(fingerprint, "correlation")
+        assert isinstance(solver, GridlessSolver)
+        errors["terminals"] = mean_position_error(
+            solver.solve_terminals(amplitudes).positions, positions
+        )
+    except Exception:
+        errors["terminals"] = float("nan")
+    return errors
+
+
+def run(
+    rooms: Sequence[str],
+    conditions: Sequence[Condition],
+    trials: int,
+    localize: Localizer = gridless_localizer,
+    *,
+    progress: bool = True,
+) -> list[tuple[str, str, int, int, str, float]]:
+    """Every (room, condition, K, trial, mode) error in metres."""
+    rows: list[tuple[str, str, int, int, str, float]] = []
+    started = time.perf_counter()
+    cells = [(r, c, k) for r in rooms for c in conditions for k in KS]
+    for done, (room, condition, count) in enumerate(cells, start=1):
+        for trial in range(trials):
+            errors = run_trial(room, condition, count, trial, localize)
+            rows += [(room, condition.name, count, trial, m, errors[m]) for m in MODES]
+        if progress:
+            elapsed = time.perf_counter() - started
+            print(f"  {done}/{len(cells)} cells, {elapsed:.0f} s", file=sys.stderr, flush=True)
+    return rows
+
+
+def summary_table(
+    rows: Sequence[tuple[str, str, int, int, str, float]], room: str, trials: int
+) -> str:
+    """Markdown table of the mean error (cm) per condition x (K, mode) for one room."""
+    header = "| condition | " + " | ".join(f"K = {k}" for k in KS) + " | terminals, K = 8 |"
+    lines = [header, "|---" * (len(KS) + 2) + "|"]
+    names = list(dict.fromkeys(r[1] for r in rows if r[0] == room))
+    for name in names:
+        cells = []
+        for count, mode in [(k, "correlation") for k in KS] + [(8, "terminals")]:
+            values = [r[5] for r in rows if r[:3] == (room, name, count) and r[4] == mode]
+            failed = sum(np.isnan(values))
+            text = f"{100 * np.nanmean(values):.1f}" if len(values) > failed else "-"
+            cells.append(text + (f" ({failed} failed)" if failed else ""))
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + f"\n\n({trials} trials per cell, mean matched error in cm.)"
+
+
+def _parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(
+        prog="python -m bench.real_rooms",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("--quick", action="store_true", help="3 trials, paper room only")
+    parser.add_argument("--trials", type=int, default=None, help="trials per cell (default 30)")
+    parser.add_argument("--rooms", default=None, help="comma-separated subset of paper,hall")
+    parser.add_argument("--out", type=Path, default=None, help="output folder")
+    return parser.parse_args(argv)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the benchmark; write ``data/real_rooms.csv`` and the measured section of
+    ``real-rooms.md`` (between its ``real-rooms-bench`` markers) into ``--out``."""
+    args = _parse_args(argv)
+    load_solvers()
+    trials = args.trials or (3 if args.quick else 30)
+    rooms = (
+        args.rooms.split(",") if args.rooms else (["paper"] if args.quick else ["paper", "hall"])
+    )
+    out = args.out or (REPO_ROOT / ("bench/out/quick" if args.quick else "docs"))
+    started = time.perf_counter()
+    with threadpool_limits(limits=1):
+        rows = run(rooms, CONDITIONS, trials)
+    elapsed = time.perf_counter() - started
+    write_csv(
+        out / "data" / "real_rooms.csv",
+        ("room", "condition", "k", "trial", "mode", "error_m"),
+        rows,
+    )
+    command = "python -m bench.real_rooms " + " ".join(argv if argv is not None else sys.argv[1:])
+    body = [
+        "## Measured (`bench/real_rooms.py`)",
+        "",
+        f"Command: `{command.strip()}` ({elapsed:.0f} s). Default solver (`gridless`), "
+        f"{SNR_DB:.0f} dB, columns K = 1 / 4 / 8 aggregated correlation, then each of the "
+        "K = 8 terminals sent as `terminals` (each fitted from its own amplitudes).",
+        "",
+    ]
+    for room in rooms:
+        body += [f"### Room `{room}`", "", summary_table(rows, room, trials), ""]
+    body += ["Machine:", "", machine_markdown(machine_record()), ""]
+    path = out / "real-rooms.md"
+    replace_section(path, "real-rooms-bench", "\n".join(body), preamble="# Real rooms\n")
+    print(f"{len(rows)} rows, {elapsed:.0f} s; wrote {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

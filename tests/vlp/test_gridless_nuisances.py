@@ -1,0 +1,110 @@
+"""The default solver's nuisance parameters: target gains, a common scale, honest uncertainty."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.optimize import linear_sum_assignment
+
+from app.vlp.errors import MeasurementError
+from app.vlp.fingerprints import Fingerprint
+from app.vlp.layout import Layout
+from app.vlp.measurements import measurement_from_amplitudes
+from app.vlp.simulation import noise_std_for_snr, random_positions, true_amplitudes
+from app.vlp.solvers.gridless import GridlessOptions, GridlessSolver
+from app.vlp.uncertainty import confidence_radius
+
+
+def _matched(truth: np.ndarray, estimate: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    cost = np.linalg.norm(truth[:, None, :] - estimate[None, :, :], axis=2)
+    rows, cols = linear_sum_assignment(cost)
+    return cols[np.argsort(rows)], cost[rows, cols]
+
+
+@pytest.fixture(scope="module")
+def solver(paper_fingerprint: Fingerprint) -> GridlessSolver:
+    return GridlessSolver(paper_fingerprint, "correlation")
+
+
+def test_noiseless_targets_with_their_own_gains_are_recovered_exactly(
+    paper_room: Layout, solver: GridlessSolver
+) -> None:
+    truth = np.array([[0.93, 1.41], [2.72, 3.05], [3.3, 0.6]])
+    gains = np.array([0.85, 1.1, 1.2])
+    amplitudes = true_amplitudes(paper_room, truth) * gains[:, None]
+    solution = solver.solve(measurement_from_amplitudes(amplitudes, "correlation", 16), 3)
+    order, distances = _matched(truth, solution.positions)
+    # The gain prior pulls the (noiseless) fit a little towards unit gains: sub-millimetre.
+    assert distances.max() < 1e-3
+    assert solution.gains is not None
+    np.testing.assert_allclose(solution.gains[order], gains, rtol=1e-2)
+    fixed = GridlessSolver(solver.fingerprint, "correlation", GridlessOptions(log_gain_sd=None))
+    unit_gains = fixed.solve(measurement_from_amplitudes(amplitudes, "correlation", 16), 3)
+    assert _matched(truth, unit_gains.positions)[1].max() > 10 * distances.max()
+
+
+@pytest.mark.parametrize("scale", [1.1, 1.25, 1.4])
+def test_a_common_scale_is_fitted_and_reported(
+    paper_room: Layout, solver: GridlessSolver, scale: float
+) -> None:
+    sigma = noise_std_for_snr(solver.fingerprint, 30.0)
+    rng = np.random.default_rng(int(scale * 100))
+    truth = random_positions(paper_room, 4, rng=rng)
+    amplitudes = scale * true_amplitudes(paper_room, truth)
+    amplitudes = amplitudes + sigma * rng.standard_normal(amplitudes.shape)
+    solution = solver.solve(measurement_from_amplitudes(amplitudes, "correlation", 16), 4)
+    assert _matched(truth, solution.positions)[1].max() < 0.08
+    assert solution.fit is not None
+    assert solution.fit.scale == pytest.approx(scale, rel=0.03)
+    assert solution.fit.quality == "ok"
+    unscaled = GridlessSolver(
+        solver.fingerprint, "correlation", GridlessOptions(log_gain_sd=None)
+    ).solve(measurement_from_amplitudes(amplitudes / scale, "correlation", 16), 4)
+    assert unscaled.fit is not None and unscaled.fit.scale == 1.0
+
+
+def test_ten_times_the_scale_is_flagged_and_a_thousand_refused(
+    paper_room: Layout, paper_fingerprint: Fingerprint, solver: GridlessSolver
+) -> None:
+    truth = random_positions(paper_room, 4, rng=4)
+    sigma = noise_std_for_snr(paper_fingerprint, 30.0)
+    rng = np.random.default_rng(4)
+    amplitudes = true_amplitudes(paper_room, truth) + sigma * rng.standard_normal((4, 16))
+    flagged = solver.solve(measurement_from_amplitudes(10 * amplitudes, "correlation", 16), 4)
+    assert flagged.fit is not None and flagged.fit.quality == "scale_mismatch"
+    assert flagged.fit.scale == pytest.approx(10.0, rel=0.1)
+    huge = measurement_from_amplitudes(1000 * amplitudes, "correlation", 16)  # 10^6 in power
+    with pytest.raises(MeasurementError, match=r"larger than any placement") as caught:
+        solver.solve(huge, 4)
+    assert caught.value.field == "correlation"
+    with pytest.raises(MeasurementError):
+        solver.solve(huge)  # K unknown: judged as one target
+
+
+def test_a_close_pair_stays_two_targets(paper_room: Layout, solver: GridlessSolver) -> None:
+    # 25 cm apart: a free weight would merge them into one target of weight 2.
+    truth = np.array([[1.9, 2.0], [2.15, 2.0]])
+    sigma = noise_std_for_snr(solver.fingerprint, 30.0)
+    amplitudes = true_amplitudes(paper_room, truth)
+    amplitudes = amplitudes + sigma * np.random.default_rng(11).standard_normal(amplitudes.shape)
+    solution = solver.solve(measurement_from_amplitudes(amplitudes, "correlation", 16), 2)
+    assert _matched(truth, solution.positions)[1].max() < 0.08
+    assert solution.gains is not None and np.all(np.abs(solution.gains - 1.0) < 0.3)
+
+
+def test_95_percent_radii_cover_the_truth_about_95_percent_of_the_time(
+    paper_room: Layout, paper_fingerprint: Fingerprint, solver: GridlessSolver
+) -> None:
+    sigma = noise_std_for_snr(paper_fingerprint, 30.0)
+    rng = np.random.default_rng(2026)
+    inside = []
+    for _ in range(40):
+        truth = random_positions(paper_room, 4, rng=rng)
+        amplitudes = true_amplitudes(paper_room, truth) + sigma * rng.standard_normal((4, 16))
+        solution = solver.solve(measurement_from_amplitudes(amplitudes, "correlation", 16), 4)
+        assert solution.covariances is not None
+        order, distances = _matched(truth, solution.positions)
+        radii = [confidence_radius(solution.covariances[k]) for k in order]
+        inside += list(distances <= np.array(radii))
+    # 160 estimates: a 95 % coverage lies in [0.88, 1] with overwhelming probability.
+    assert 0.88 <= float(np.mean(inside)) <= 1.0

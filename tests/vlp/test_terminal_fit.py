@@ -1,0 +1,157 @@
+"""Per-terminal fits: each terminal's own amplitudes locate it (solvers/_terminal_fit.py)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from app.vlp.channel import channel_gains, led_constants
+from app.vlp.errors import MeasurementError
+from app.vlp.fingerprints import Fingerprint
+from app.vlp.layout import Layout
+from app.vlp.measurements import measurement_from_amplitudes
+from app.vlp.simulation import noise_std_for_snr, random_positions, true_amplitudes
+from app.vlp.solvers._channel_kernel import ChannelKernel
+from app.vlp.solvers._terminal_fit import los_with_normal
+from app.vlp.solvers.gridless import GridlessOptions, GridlessSolver
+from tests.vlp.test_gridless_nuisances import _matched
+
+
+@pytest.fixture(scope="module")
+def solver(paper_fingerprint: Fingerprint) -> GridlessSolver:
+    return GridlessSolver(paper_fingerprint, "correlation")
+
+
+def _direct_los(layout: Layout, point: np.ndarray, normal: np.ndarray) -> np.ndarray:
+    """Paper eq. 1 LED by LED, with cos(alpha) and cos(phi) from the geometry."""
+    orders, prefactors = led_constants(layout)
+    fov = math.radians(layout.receiver.fov_deg)
+    gains = []
+    for led, order, prefactor in zip(layout.leds, orders, prefactors, strict=True):
+        towards = np.array([led.x, led.y, led.z]) - point
+        distance = float(np.linalg.norm(towards))
+        cos_alpha = towards[2] / distance
+        cos_phi = float(towards @ normal) / distance
+        seen = cos_phi > 0 and math.acos(min(cos_phi, 1.0)) <= fov
+        gains.append(prefactor * cos_alpha**order * cos_phi / distance**2 if seen else 0.0)
+    return np.array(gains) * layout.pilot_amplitudes
+
+
+def test_upward_normal_matches_the_channel_model(paper_room: Layout) -> None:
+    kernel = ChannelKernel(paper_room, scale=1.0)
+    points = random_positions(paper_room, 5, rng=2)
+    expected = channel_gains(paper_room, points) * paper_room.pilot_amplitudes[:, None]
+    for k, (x, y) in enumerate(points):
+        gains, _ = los_with_normal(kernel, np.array([x, y, 0.85]), np.array([0.0, 0.0, 1.0]))
+        np.testing.assert_allclose(gains, expected[:, k], rtol=1e-12)
+
+
+@pytest.mark.parametrize("tilt_deg", [5.0, 20.0, 45.0])
+def test_tilted_normal_matches_the_geometry_and_its_gradient(
+    paper_room: Layout, tilt_deg: float
+) -> None:
+    kernel = ChannelKernel(paper_room, scale=1.0)
+    tilt = math.radians(tilt_deg)
+    normal = np.array([math.sin(tilt) * math.cos(0.3), math.sin(tilt) * math.sin(0.3), 0.0])
+    normal[2] = math.cos(tilt)
+    point = np.array([1.3, 2.6, 1.1])
+    gains, gradient = los_with_normal(kernel, point, normal)
+    np.testing.assert_allclose(gains, _direct_los(paper_room, point, normal), rtol=1e-12)
+    for axis in range(3):
+        step = np.zeros(3)
+        step[axis] = 1e-6
+        ahead = los_with_normal(kernel, point + step, normal)[0]
+        behind = los_with_normal(kernel, point - step, normal)[0]
+        inside = (ahead > 0) & (behind > 0)
+        np.testing.assert_allclose(
+            gradient[inside, axis], ((ahead - behind) / 2e-6)[inside], rtol=1e-5, atol=1e-12
+        )
+
+
+def test_noiseless_terminals_with_gains_heights_and_tilts_are_recovered_exactly(
+    paper_room: Layout, solver: GridlessSolver
+) -> None:
+    truth = np.array([[0.7, 1.2], [2.9, 3.3], [2.2, 0.4]])
+    heights = np.array([0.8, 1.2, 0.85])
+    tilt = math.radians(12.0)
+    normals = np.array(
+        [
+            [0.0, 0.0, 1.0],
+            [math.sin(tilt), 0.0, math.cos(tilt)],
+            [0.0, -math.sin(tilt), math.cos(tilt)],
+        ]
+    )
+    gains = np.array([1.0, 0.8, 1.3])
+    amplitudes = np.array(
+        [
+            gains[k] * _direct_los(paper_room, np.array([*truth[k], heights[k]]), normals[k])
+            for k in range(3)
+        ]
+    )
+    solution = solver.solve_terminals(amplitudes, heights, normals)
+    # Noiseless, only the gain prior (sd 0.1 in log) pulls a 1.3x terminal: sub-millimetre.
+    np.testing.assert_allclose(solution.positions, truth, atol=1e-3)
+    assert solution.gains is not None
+    np.testing.assert_allclose(solution.gains, gains, rtol=1e-2)
+    level = GridlessSolver(solver.fingerprint, "correlation", GridlessOptions(tilt_sd=None))
+    upright = level.solve_terminals(amplitudes, heights)  # tilts ignored: centimetres off
+    assert np.abs(upright.positions - truth).max() > 0.01
+    assert solution.heights is not None
+    np.testing.assert_allclose(solution.heights, heights)
+
+
+def test_each_terminal_alone_beats_their_aggregate(
+    paper_room: Layout, paper_fingerprint: Fingerprint, solver: GridlessSolver
+) -> None:
+    sigma = noise_std_for_snr(paper_fingerprint, 30.0)
+    rng = np.random.default_rng(8)
+    alone, pooled = [], []
+    for _ in range(12):
+        truth = random_positions(paper_room, 8, rng=rng)
+        amplitudes = true_amplitudes(paper_room, truth) + sigma * rng.standard_normal((8, 16))
+        each = solver.solve_terminals(amplitudes)
+        # Labels are known: estimate k is terminal k's.
+        alone.append(float(np.mean(np.linalg.norm(each.positions - truth, axis=1))))
+        aggregate = measurement_from_amplitudes(amplitudes, "correlation", 16)
+        pooled.append(float(np.mean(_matched(truth, solver.solve(aggregate, 8).positions)[1])))
+    # The single-terminal Cramer-Rao bound here is about 2.3 cm; the aggregate's at K = 8
+    # about 5.4 cm (docs/accuracy.md).
+    assert np.mean(alone) < 0.04
+    assert np.mean(alone) < np.mean(pooled)
+
+
+def test_amplitudes_a_thousand_times_too_large_are_refused(
+    paper_room: Layout, solver: GridlessSolver
+) -> None:
+    amplitudes = 1000 * true_amplitudes(paper_room, np.array([[1.0, 1.0], [3.0, 2.0]]))
+    with pytest.raises(MeasurementError, match="larger than any point") as caught:
+        solver.solve_terminals(amplitudes)
+    assert caught.value.field == "terminals"
+    flagged = solver.solve_terminals(amplitudes / 100)  # 10x: answered, flagged
+    assert flagged.fit is not None and flagged.fit.quality == "scale_mismatch"
+
+
+def test_an_unknown_tilt_is_fitted_when_it_matters(
+    paper_room: Layout, paper_fingerprint: Fingerprint, solver: GridlessSolver
+) -> None:
+    # Hand-held phones: polar tilt uniform in [0, 20] deg, any azimuth, normals not sent.
+    sigma = noise_std_for_snr(paper_fingerprint, 30.0)
+    rng = np.random.default_rng(21)
+    level = GridlessSolver(paper_fingerprint, "correlation", GridlessOptions(tilt_sd=None))
+    fitted, ignored = [], []
+    for _ in range(3):
+        truth = random_positions(paper_room, 8, rng=rng)
+        polar = np.radians(rng.uniform(0.0, 20.0, 8))
+        azimuth = rng.uniform(0.0, 2.0 * math.pi, 8)
+        normals = np.column_stack(
+            (np.sin(polar) * np.cos(azimuth), np.sin(polar) * np.sin(azimuth), np.cos(polar))
+        )
+        amplitudes = np.array(
+            [_direct_los(paper_room, np.array([*truth[k], 0.85]), normals[k]) for k in range(8)]
+        )
+        amplitudes = amplitudes + sigma * rng.standard_normal(amplitudes.shape)
+        fitted += list(np.linalg.norm(solver.solve_terminals(amplitudes).positions - truth, axis=1))
+        ignored += list(np.linalg.norm(level.solve_terminals(amplitudes).positions - truth, axis=1))
+    assert np.mean(fitted) < 0.8 * np.mean(ignored)

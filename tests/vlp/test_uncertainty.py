@@ -1,0 +1,60 @@
+"""Confidence radii and fit classification (app/vlp/uncertainty.py)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from app.vlp.uncertainty import (
+    POOR_FIT_CHI2,
+    SCALE_MISMATCH_FACTOR,
+    assess_fit,
+    confidence_radius,
+)
+
+
+@pytest.mark.parametrize("sigma", [1e-3, 0.05, 2.0])
+@pytest.mark.parametrize("level", [0.5, 0.95, 0.99])
+def test_isotropic_radius_is_the_rayleigh_quantile(sigma: float, level: float) -> None:
+    # |e| of an isotropic 2-D Gaussian is Rayleigh: P(|e| <= r) = 1 - exp(-r^2 / (2 sigma^2)).
+    expected = sigma * math.sqrt(-2.0 * math.log(1.0 - level))
+    radius = confidence_radius(np.eye(2) * sigma**2, level)
+    assert radius == pytest.approx(expected, rel=1e-9)
+
+
+def test_a_degenerate_ellipse_tends_to_the_one_dimensional_quantile() -> None:
+    # All the variance along one rotated axis: |e| = |N(0, s^2)|, 95 % at 1.959964 s.
+    direction = np.array([math.cos(0.7), math.sin(0.7)])
+    covariance = 0.04 * np.outer(direction, direction) + 1e-14 * np.eye(2)
+    assert confidence_radius(covariance) == pytest.approx(1.959964 * 0.2, rel=1e-5)
+
+
+def test_radius_matches_monte_carlo_for_a_correlated_ellipse() -> None:
+    covariance = np.array([[0.03, 0.012], [0.012, 0.01]])
+    radius = confidence_radius(covariance)
+    draws = np.random.default_rng(7).multivariate_normal([0.0, 0.0], covariance, 400_000)
+    inside = float(np.mean(np.linalg.norm(draws, axis=1) <= radius))
+    assert inside == pytest.approx(0.95, abs=0.002)  # 5 binomial standard errors
+
+
+def test_radius_is_invariant_under_rotation() -> None:
+    covariance = np.array([[0.02, 0.0], [0.0, 0.005]])
+    angle = 1.1
+    rotation = np.array([[math.cos(angle), -math.sin(angle)], [math.sin(angle), math.cos(angle)]])
+    rotated = rotation @ covariance @ rotation.T
+    assert confidence_radius(rotated) == pytest.approx(confidence_radius(covariance), rel=1e-9)
+
+
+def test_fit_quality_classes() -> None:
+    assert assess_fit(100.0, 100, 1.0).quality == "ok"
+    poor = assess_fit(100.0 * (POOR_FIT_CHI2 + 1.0), 100, 1.0)
+    assert poor.quality == "poor"
+    assert poor.chi2_per_dof == pytest.approx(POOR_FIT_CHI2 + 1.0)
+    for scale in (SCALE_MISMATCH_FACTOR * 1.01, 1.0 / (SCALE_MISMATCH_FACTOR * 1.01), 1000.0):
+        mismatch = assess_fit(100.0, 100, scale)
+        assert mismatch.quality == "scale_mismatch"
+        assert "units" in mismatch.detail
+    # A scale mismatch is reported before a poor fit: it is the likelier cause.
+    assert assess_fit(1e6, 100, 10.0).quality == "scale_mismatch"
