@@ -9,10 +9,17 @@ from fastapi import APIRouter
 from starlette.concurrency import run_in_threadpool
 
 from app.schemas import Measurement, Simulation, SimulationRequest, TruthTarget
+from app.schemas.simulate import ImpairmentsSpec
 from app.vlp import measurements as vlp_measurements
 from app.vlp._random import as_generator
-from app.vlp.layout import Layout
-from app.vlp.simulation import noise_std_for_snr, noisy_amplitudes, random_positions
+from app.vlp.layout import Layout, Reflectance
+from app.vlp.simulation import (
+    Impairments,
+    noise_std_for_snr,
+    noisy_amplitudes,
+    random_positions,
+    simulate_terminals,
+)
 
 from .deps import AnyRole, CacheDep, RoomId
 from .errors import InvalidInput, problem_responses
@@ -36,6 +43,10 @@ def _check(body: SimulationRequest) -> None:
             (f"body.{name}", "send snr_db or noise_std, not both")
             for name in ("snr_db", "noise_std")
         ]
+    if body.impairments is not None and body.noise_std is not None:
+        errors.append(
+            ("body.noise_std", "with impairments, give the noise as snr_db (default 30 dB)")
+        )
     if errors:
         raise InvalidInput(errors)
 
@@ -56,6 +67,23 @@ def _given_positions(body: SimulationRequest, layout: Layout) -> np.ndarray[Any,
     return positions
 
 
+def _impairments(spec: ImpairmentsSpec) -> Impairments:
+    """The science core's impairments of a request's."""
+    surfaces = spec.reflectance
+    return Impairments(
+        reflectance=None
+        if surfaces is None
+        else Reflectance(walls=surfaces.walls, floor=surfaces.floor, ceiling=surfaces.ceiling),
+        gain_sd=spec.gain_sd,
+        height_sd_m=spec.height_sd_m,
+        tilt_max_deg=spec.tilt_max_deg,
+        led_amplitude_sd=spec.led_amplitude_sd,
+        led_half_power_sd_deg=spec.led_half_power_sd_deg,
+        led_position_sd_m=spec.led_position_sd_m,
+        common_scale=spec.common_scale,
+    )
+
+
 def _simulate(room_id: str, body: SimulationRequest, cache: FingerprintCache) -> Simulation:
     version = cache.current_version(room_id)
     fingerprint = cache.fingerprint(room_id, version)
@@ -72,7 +100,19 @@ def _simulate(room_id: str, body: SimulationRequest, cache: FingerprintCache) ->
             fingerprint, body.snr_db if body.snr_db is not None else DEFAULT_SNR_DB
         )
     )
-    amplitudes = noisy_amplitudes(layout, positions, noise_std, rng=rng)
+    simulated = None
+    if body.impairments is not None:
+        simulated = simulate_terminals(
+            layout,
+            positions,
+            _impairments(body.impairments),
+            snr_db=body.snr_db if body.snr_db is not None else DEFAULT_SNR_DB,
+            rng=rng,
+        )
+        amplitudes = simulated.amplitudes
+        noise_std = simulated.noise_std
+    else:
+        amplitudes = noisy_amplitudes(layout, positions, noise_std, rng=rng)
     n_targets = int(positions.shape[0])
     measurement: dict[str, Any] = {
         "model": body.model,
@@ -102,8 +142,11 @@ def _simulate(room_id: str, body: SimulationRequest, cache: FingerprintCache) ->
             y=float(y),
             grid_index=int(cell),
             terminal_id=tid if body.form == "terminals" else None,
+            z=None if simulated is None else float(simulated.heights[k]),
+            normal=None if simulated is None else simulated.normals[k].tolist(),
+            gain=None if simulated is None else float(simulated.gains[k]),
         )
-        for (x, y), cell, tid in zip(positions.tolist(), cells, ids, strict=True)
+        for k, ((x, y), cell, tid) in enumerate(zip(positions.tolist(), cells, ids, strict=True))
     ]
     return Simulation(
         measurement=Measurement.model_validate(measurement),

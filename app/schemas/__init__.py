@@ -29,6 +29,7 @@ from .rooms import (
     ReceiverSpec,
     Room,
     RoomBox,
+    SurfaceReflectance,
     RoomLayout,
     RoomsPage,
 )
@@ -69,6 +70,7 @@ __all__ = [
     "ReceiverSpec",
     "Room",
     "RoomBox",
+    "SurfaceReflectance",
     "RoomLayout",
     "RoomsPage",
     "Simulation",

@@ -25,6 +25,7 @@ __all__ = [
     "ReceiverSpec",
     "Room",
     "RoomBox",
+    "SurfaceReflectance",
     "RoomLayout",
     "RoomsPage",
     "paper_room_example",
@@ -65,12 +66,25 @@ def paper_room_example() -> dict[str, Any]:
     }
 
 
+class SurfaceReflectance(RequestModel):
+    """Diffuse (Lambertian) reflectance of the room's surfaces, each in [0, 1)."""
+
+    walls: FiniteFloat = Field(ge=0.0, lt=1.0, description="the four walls", examples=[0.7])
+    floor: FiniteFloat = Field(ge=0.0, lt=1.0, description="the floor", examples=[0.2])
+    ceiling: FiniteFloat = Field(ge=0.0, lt=1.0, description="the ceiling", examples=[0.8])
+
+
 class RoomBox(RequestModel):
     """The room box: `x` in [0, length], `y` in [0, width], `z` in [0, height], metres."""
 
     length: FiniteFloat = Field(ge=_MIN_EXTENT_M, le=_MAX_EXTENT_M, description="extent along x, m")
     width: FiniteFloat = Field(ge=_MIN_EXTENT_M, le=_MAX_EXTENT_M, description="extent along y, m")
     height: FiniteFloat = Field(ge=_MIN_EXTENT_M, le=_MAX_EXTENT_M, description="ceiling height, m")
+    reflectance: SurfaceReflectance | None = Field(
+        default=None,
+        description="the surfaces' diffuse reflectance; when given, fingerprints include the "
+        "first diffuse bounce and H is the total gain (absent: line of sight only)",
+    )
 
 
 class GridSpec(RequestModel):
@@ -82,6 +96,13 @@ class GridSpec(RequestModel):
     step: FiniteFloat = Field(gt=0, le=_MAX_EXTENT_M, description="cell size, m")
     receiver_height: FiniteFloat = Field(
         ge=0, le=_MAX_EXTENT_M, description="height of the photodetectors, m"
+    )
+    receiver_height_sd: FiniteFloat = Field(
+        default=0.0,
+        ge=0.0,
+        le=_MAX_EXTENT_M,
+        description="spread (standard deviation) of the terminals' heights around "
+        "receiver_height, m; the default solver then fits each target's height",
     )
 
 

@@ -10,10 +10,45 @@ from app.vlp.constants import MAX_TARGETS
 
 from ._common import FiniteFloat, RequestInt, RequestModel, ResponseModel
 from .localize import Measurement, ModelName, SolverName
+from .rooms import SurfaceReflectance
 
-__all__ = ["Simulation", "SimulationRequest", "TruthTarget"]
+__all__ = ["ImpairmentsSpec", "Simulation", "SimulationRequest", "TruthTarget"]
 
 Point = tuple[FiniteFloat, FiniteFloat]
+
+
+class ImpairmentsSpec(RequestModel):
+    """How the simulated room differs from its layout (all optional; absent = as modelled).
+
+    Ranges seen in practice: reflectance of walls 0.5-0.8, floor 0.2, ceiling 0.8; terminal
+    gains a few to 10 % apart; heights a few to 15 cm apart; hand-held tilts up to 10-20
+    degrees; LED flux within about 5-7 % and beams within a few degrees (docs/real-rooms.md).
+    """
+
+    reflectance: SurfaceReflectance | None = Field(
+        default=None, description="the room's TRUE surfaces (first diffuse bounce)"
+    )
+    gain_sd: FiniteFloat = Field(
+        default=0.0, ge=0.0, le=1.0, description="terminals' gain spread, relative sd"
+    )
+    height_sd_m: FiniteFloat = Field(
+        default=0.0, ge=0.0, le=2.0, description="terminals' heights around receiver_height, sd, m"
+    )
+    tilt_max_deg: FiniteFloat = Field(
+        default=0.0, ge=0.0, le=60.0, description="photodiode tilt, uniform in [0, max], degrees"
+    )
+    led_amplitude_sd: FiniteFloat = Field(
+        default=0.0, ge=0.0, le=1.0, description="LEDs' pilot amplitudes, relative sd"
+    )
+    led_half_power_sd_deg: FiniteFloat = Field(
+        default=0.0, ge=0.0, le=20.0, description="LEDs' half-power angles, sd, degrees"
+    )
+    led_position_sd_m: FiniteFloat = Field(
+        default=0.0, ge=0.0, le=1.0, description="LEDs' x, y placement, sd, m"
+    )
+    common_scale: FiniteFloat = Field(
+        default=1.0, gt=0.0, le=1e6, description="one factor on every amplitude"
+    )
 
 
 class SimulationRequest(RequestModel):
@@ -63,6 +98,11 @@ class SimulationRequest(RequestModel):
         "amplitudes (`terminals`); the power model sends `power` unless `terminals`",
     )
     solver: SolverName = Field(default="gridless", description="copied into the measurement")
+    impairments: ImpairmentsSpec | None = Field(
+        default=None,
+        description="simulate a real room instead of the layout's model (needs snr_db, not "
+        "noise_std); the truth then carries each terminal's height, normal and gain",
+    )
     seed: RequestInt | None = Field(
         default=None, ge=0, le=2**64 - 1, description="for a reproducible simulation"
     )
@@ -75,6 +115,11 @@ class TruthTarget(ResponseModel):
     y: float
     grid_index: int
     terminal_id: str | None
+    z: float | None = Field(default=None, description="its height, m (with impairments)")
+    normal: list[float] | None = Field(
+        default=None, description="its photodiode's unit normal (with impairments)"
+    )
+    gain: float | None = Field(default=None, description="its gain (with impairments)")
 
 
 class Simulation(ResponseModel):

@@ -1,0 +1,116 @@
+"""Real rooms through the API: reflective layouts, height spread, simulated impairments."""
+
+from __future__ import annotations
+
+import io
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from app.vlp.fingerprints import build_fingerprint
+from app.vlp.layout import layout_from_mapping
+
+from .conftest import ADMIN, TERMINAL, TestClient, wait_for_room
+from .test_rooms import assert_problem
+
+PAPER_ROOM = json.loads(Path("examples/paper-room.json").read_text(encoding="utf-8"))
+REFLECTIVE = PAPER_ROOM | {
+    "name": "Reflective meeting room",
+    "room": PAPER_ROOM["room"] | {"reflectance": {"walls": 0.7, "floor": 0.2, "ceiling": 0.8}},
+    "grid": PAPER_ROOM["grid"] | {"receiver_height_sd": 0.05},
+}
+
+
+@pytest.fixture(scope="module")
+def reflective(worker_app: TestClient) -> tuple[TestClient, dict[str, Any]]:
+    response = worker_app.post("/v1/rooms", json=REFLECTIVE, headers=ADMIN)
+    assert response.status_code == 201, response.text
+    return worker_app, wait_for_room(worker_app, response.json()["id"])
+
+
+def test_a_reflective_layout_is_kept_and_its_h_includes_the_reflections(
+    reflective: tuple[TestClient, dict[str, Any]],
+) -> None:
+    client, room = reflective
+    assert room["layout"]["room"]["reflectance"] == {"walls": 0.7, "floor": 0.2, "ceiling": 0.8}
+    assert room["layout"]["grid"]["receiver_height_sd"] == 0.05
+    response = client.get(f"/v1/rooms/{room['id']}/fingerprints/current/H.npy", headers=TERMINAL)
+    assert response.status_code == 200
+    served = np.load(io.BytesIO(response.content))
+    line_of_sight = build_fingerprint(layout_from_mapping(PAPER_ROOM)).dense_gains()
+    expected = build_fingerprint(layout_from_mapping(REFLECTIVE)).dense_gains()
+    np.testing.assert_allclose(served, expected, rtol=1e-12)
+    extra = served.sum() / line_of_sight.sum() - 1.0
+    assert 0.15 < extra < 0.35  # about a quarter of the light bounces off the walls
+
+
+def test_impaired_simulations_localize_with_their_heights_and_quality(
+    reflective: tuple[TestClient, dict[str, Any]],
+) -> None:
+    client, room = reflective
+    impairments = {
+        "reflectance": {"walls": 0.7, "floor": 0.2, "ceiling": 0.8},
+        "gain_sd": 0.05,
+        "height_sd_m": 0.05,
+        "tilt_max_deg": 5.0,
+    }
+    body = {"targets": 4, "snr_db": 30, "seed": 3, "form": "terminals", "impairments": impairments}
+    response = client.post(f"/v1/rooms/{room['id']}/simulate", json=body, headers=TERMINAL)
+    assert response.status_code == 200, response.text
+    simulation = response.json()
+    truth = simulation["truth"]
+    assert all(t["z"] is not None and t["gain"] is not None for t in truth)
+    assert all(abs(np.linalg.norm(t["normal"]) - 1.0) < 1e-9 for t in truth)
+    located = client.post(
+        f"/v1/rooms/{room['id']}/localize", json=simulation["measurement"], headers=TERMINAL
+    )
+    assert located.status_code == 200, located.text
+    answer = located.json()
+    by_id = {e["terminal_id"]: e for e in answer["estimates"]}
+    errors = [
+        np.hypot(by_id[t["terminal_id"]]["x"] - t["x"], by_id[t["terminal_id"]]["y"] - t["y"])
+        for t in truth
+    ]
+    assert float(np.mean(errors)) < 0.15
+    assert all(by_id[t["terminal_id"]]["z"] is not None for t in truth)
+    assert answer["fit"]["quality"] in ("ok", "poor")
+
+
+@pytest.mark.parametrize(
+    "change, field",
+    [
+        (
+            {
+                "room": REFLECTIVE["room"]
+                | {"reflectance": {"walls": 1.0, "floor": 0.2, "ceiling": 0.8}}
+            },
+            "body.room.reflectance.walls",
+        ),
+        (
+            {"room": REFLECTIVE["room"] | {"reflectance": {"walls": 0.7}}},
+            "body.room.reflectance.floor",
+        ),
+        (
+            {"grid": REFLECTIVE["grid"] | {"receiver_height_sd": -0.1}},
+            "body.grid.receiver_height_sd",
+        ),
+    ],
+    ids=["reflectance-1", "reflectance-incomplete", "negative-height-sd"],
+)
+def test_bad_real_room_fields_are_refused_naming_them(
+    client: TestClient, change: dict[str, Any], field: str
+) -> None:
+    response = client.post("/v1/rooms", json=REFLECTIVE | change, headers=ADMIN)
+    assert_problem(response, 422, [field])
+
+
+def test_impairments_want_the_noise_as_an_snr(
+    reflective: tuple[TestClient, dict[str, Any]],
+) -> None:
+    client, room = reflective
+    body = {"targets": 2, "noise_std": 1e-7, "impairments": {"gain_sd": 0.1}}
+    response = client.post(f"/v1/rooms/{room['id']}/simulate", json=body, headers=TERMINAL)
+    assert_problem(response, 422, ["body.noise_std"])
