@@ -43,7 +43,7 @@ _SIGMA2_REL_FLOOR = 1e-4
 _MAX_REJECTIONS = 12
 # Marquardt damping factors after a rejected / accepted step (the start is the caller's).
 # Nielsen's adaptive update needs a third fewer evaluations but lands in worse local
-# minima on irregular rooms (measured: 12-LED irregular room, 40 dB, K=4 1.52 -> 3.79 cm).
+# minima on irregular rooms (docs/accuracy.md, "Design measurements").
 _DAMPING_UP = 4.0
 _DAMPING_DOWN = 5.0
 

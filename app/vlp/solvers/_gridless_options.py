@@ -30,7 +30,7 @@ _Number = TypeVar("_Number", int, float)
 
 @dataclass(frozen=True)
 class GridlessOptions:
-    """Tuning knobs (defaults are the measured best; see the solver's Notes)."""
+    """Tuning knobs and the nuisance parameters' priors (see the solver's Notes)."""
 
     free_weights: bool = False
     whiten: bool = True
@@ -67,12 +67,9 @@ class LevenbergMarquardtSettings:
     tol: float
 
 
-# Measured per model (paper, irregular and hall rooms, 20-40 dB, K = 3-8, 30-40 trials per
-# cell). Correlation: 2 iterations, a damped start (0.1) and a 1e-4 relative tolerance
-# need about 55 LM evaluations per K = 8 solve against about 190 with (4, 1e-3, 1e-7), at
-# the same accuracy. Power has M values
-# for 2K + 1 unknowns, a much flatter, multimodal cost: the faster settings cost 15-25 %
-# accuracy there (K = 8: 40 -> 49 cm), so it keeps the careful ones.
+# Per model: correlation takes few damped iterations at a loose tolerance (as accurate, a
+# third of the evaluations); power has M values for 2K + 1 unknowns, a much flatter,
+# multimodal cost, and keeps the careful settings (docs/accuracy.md, "Design measurements").
 LM_DEFAULTS: dict[Model, LevenbergMarquardtSettings] = {
     "correlation": LevenbergMarquardtSettings(inner_iter=2, initial_damping=1e-1, tol=1e-4),
     "power": LevenbergMarquardtSettings(inner_iter=4, initial_damping=1e-3, tol=1e-7),

@@ -70,68 +70,50 @@ class GridlessSolver(Solver):
     fingerprint : Fingerprint
     model : {"power", "correlation"}
     options : GridlessOptions, default=None
-        Tuning knobs; the defaults are the measured best.
+        Tuning knobs and priors (defaults: see :class:`GridlessOptions`).
 
     Notes
     -----
-    Model (normalised units, see :mod:`._gridless_fit`): ``y = sum_k w_k phi(g(p_k)) + s a``
-    with ``phi(g) = vech(g g^T)`` (correlation) or ``g o g`` (power) and ``a`` the noise
-    atom, since ``E[R] = sum_k g_k g_k^T + K sigma^2 I``. The loop (ADCG, Boyd, Schiebinger
-    and Recht, SIAM J. Optim. 27(2), 2017):
+    Model (normalised units, see :mod:`._gridless_fit`):
+    ``y = sum_k w_k e^(v + 2 u_k) phi(g(p_k, z_k)) + s a`` with ``phi(g) = vech(g g^T)``
+    (correlation) or ``g o g`` (power), ``a`` the noise atom (``E[R] = sum_k g_k g_k^T +
+    K sigma^2 I``), ``g`` the line of sight plus the room's interpolated diffuse reflections,
+    ``u_k`` each target's log amplitude gain, ``v`` the common log power scale and ``z_k``
+    its height. The loop (ADCG, Boyd, Schiebinger and Recht, SIAM J. Optim. 27(2), 2017):
 
-    1. *Insert* a unit-weight target at the grid point that most lowers the (whitened)
-       cost, ``argmax_j 2 <c psi_j, r> - ||c psi_j||^2`` (dense dictionary for small rooms,
+    1. *Insert* a target at the grid point that most lowers the (whitened) cost,
+       ``argmax_j 2 w <c psi_j, r> - w^2 ||c psi_j||^2`` (dense dictionary for small rooms,
        the matrix-free ``Psi^T`` and plain residual for large ones).
     2. *Refine* all positions and ``s`` jointly with projected Levenberg-Marquardt on the
        continuous channel model (analytic gradients; positions clipped to the room), for
-       ``inner_iter`` iterations (:data:`LM_DEFAULTS`: 2 for correlation, 4 for power;
-       ``count_inner_iter``, 4, when K is being counted: with 2 the correct-count rate at
-       K = 8, 30 dB fell from 0.97 to 0.83).
+       ``inner_iter`` iterations (:data:`LM_DEFAULTS`; ``count_inner_iter`` when K is
+       being counted). Gains, scale and heights stay fixed while targets are inserted.
     3. After K insertions: LM rounds whitened by the plug-in covariance of the aggregated
        noise (``Cov <A, R> = 4 sigma^2 tr(A M0 A)``, ``M0 = S + K sigma^2 / 2 I``,
        ``sigma^2 = s / K``; exact and O(M^3) in the eigenbasis of ``M0``).
-    4. Escapes, only when the fit looks stuck (:meth:`_needs_escape`: whitened cost per
-       degree of freedom above ``misfit_ratio`` (1.5), or a unit target would still bring
-       ``count_threshold`` of its energy somewhere): one pass of *relocation* moves (take a
-       target out, re-insert it where the others' residual says, keep it if the cost
-       drops), then, with K known and K > 1, ``restarts`` (1) more runs whose first
-       insertion avoids the earlier ones' (by half the mean LED height); the lowest plain
-       cost wins. Running them every time doubles the time; gated, they keep nearly all
-       of their gain (30 trials each, mean error, never / gated / always): irregular
-       12-LED room K = 8 at 40 dB 7.61 / 4.99 / 4.89 cm, hall K = 8 at 40 dB 6.04 / 5.62 /
-       5.60 cm; no change in the paper room, where the gate almost never fires.
+    4. Escapes, only when the fit looks stuck (:meth:`_needs_escape`): one pass of
+       *relocation* moves, then, with K known and K > 1, ``restarts`` more runs whose first
+       insertion avoids the earlier ones'; the lowest plain cost wins.
+    5. Nuisances in stages (:meth:`_with_nuisances`): the common scale and the heights
+       (when ``grid.receiver_height_sd`` > 0), then each target's gain, each with a
+       Gaussian prior (:class:`GridlessOptions`), kept only when a score test and then the
+       fit show a decrease beyond the chance level of their extra parameters. Free
+       weights instead of priors let a close pair merge into one target of weight 2.
+    6. Uncertainty (:meth:`_uncertainty`): the inverse Fisher information of the final
+       whitened fit, inflated by the reduced chi-square when above 1, and the fit's
+       quality (:func:`app.vlp.uncertainty.assess_fit`).
 
-    Speed: pure NumPy, so Python overhead dominates: every LM trial computes residual
-    and Jacobian together (one product of ``[J | r]`` gives ``J^T J``, ``J^T r`` and the
-    cost), about 55 of them at K = 8. Counted with callgrind (``bench/solve_loop.py``,
-    paper room, correlation, 30 dB, K = 8): 46 M instructions per solve, against 254 M
-    before this layout of the loop; measured times are in ``docs/performance.md``.
+    With K known the measurement is first divided by a guessed common scale when its power
+    per target is more than 1.5x off the room's mean (:meth:`_prescale`). Unknown K: targets
+    are added one at a time; a state with more targets is kept when its plain cost is below
+    the best so far by ``count_threshold`` times the energy ``||phi(p)||^2`` of the targets
+    it adds, trying up to ``count_lookahead`` more before stopping. Terminals that send
+    their own amplitudes are fitted one by one (:meth:`solve_terminals`).
 
-    Weights are fixed at one pilot unit per target (``w_k = 1``): each terminal brings
-    exactly ``g g^T``. Measured (paper room, 30 dB, correlation, 50 placements, mean
-    matched error): fixed 2.36 / 2.98 / 5.18 cm at K = 1 / 4 / 8, free weights
-    2.64 / 5.99 / 24.5 cm (a close pair merges into one target of weight 2 while the
-    spare one fits noise). Without whitening (plain least squares, fixed weights):
-    2.38 / 6.03 / 15.5 cm: the whitened fit is what brings K = 8 near the bound.
-
-    Unknown K: targets are added one at a time; a state with more targets is kept when its
-    plain cost is below the best so far by ``count_threshold`` (0.2) times the energy
-    ``||phi(p)||^2`` of the targets it adds (a real target removes about its own energy, a
-    spurious unit-weight one adds about as much), trying up to ``count_lookahead`` (2)
-    more before stopping. Fraction of correct counts (paper room, correlation, 50
-    placements per cell)::
-
-        SNR    K=1   2     3     4     5     6     7     8
-        20 dB  1.00  0.98  0.98  1.00  0.96  0.94  0.90  0.78
-        30 dB  1.00  1.00  1.00  1.00  1.00  0.98  0.98  0.96
-        40 dB  1.00  1.00  1.00  0.98  1.00  0.98  0.92  0.94
-
-    Accuracy (same setting, K known; ``bench/tune_gridless.py``): mean error 2.36, 2.57,
-    3.06, 2.98, 3.96, 4.85, 4.86, 5.18 cm for K = 1..8 and 13.0 cm at K = 16 (30 dB);
-    7.46 / 9.14 / 15.9 cm at 20 dB and 0.75 / 0.97 / 1.77 cm at 40 dB for K = 1 / 4 / 8.
-    The grid's own quantisation floor is 7.65 cm; the aggregated CRB
-    (:func:`app.vlp.crlb.aggregated_crlb`, mean over the same placements) is 2.47, 2.81,
-    3.28, 3.42, 4.31, 4.89, 5.82, 6.84 cm for K = 1..8 at 30 dB.
+    Accuracy, counting and speed are measured by ``bench/accuracy.py``,
+    ``bench/real_rooms.py``, ``bench/tune_gridless.py``, ``bench/solver_timing.py`` and
+    ``bench/solve_loop.py`` (instruction counts); the figures are in ``docs/accuracy.md``,
+    ``docs/real-rooms.md`` and ``docs/performance.md``.
 
     Examples
     --------
@@ -328,10 +310,9 @@ class GridlessSolver(Solver):
         ``misfit_ratio``: a complete fit leaves only noise, about one unit per degree of
         freedom in the whitened metric; (2) one more unit-weight target would still lower
         the cost by at least ``count_threshold`` of its own energy somewhere: a target the
-        fit has not found (two estimates sharing one terminal, another left out). Measured
-        on three rooms (bench/tune_gridless.py): the good fits' ratio has a 95th percentile
-        of 1.1-1.5, the gross failures 2-20; escaping every time doubles the time for
-        little gain (paper room: none).
+        fit has not found (two estimates sharing one terminal, another left out). The
+        threshold separates good fits from gross failures (bench/tune_gridless.py,
+        docs/accuracy.md, "Design measurements").
         """
         white = self._whitening(state)
         residual = self._residual(run, white, state)
