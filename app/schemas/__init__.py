@@ -29,9 +29,9 @@ from .rooms import (
     ReceiverSpec,
     Room,
     RoomBox,
-    SurfaceReflectance,
     RoomLayout,
     RoomsPage,
+    SurfaceReflectance,
 )
 from .simulate import Simulation, SimulationRequest, TruthTarget
 
@@ -70,12 +70,12 @@ __all__ = [
     "ReceiverSpec",
     "Room",
     "RoomBox",
-    "SurfaceReflectance",
     "RoomLayout",
     "RoomsPage",
     "Simulation",
     "SimulationRequest",
     "SolverName",
+    "SurfaceReflectance",
     "SurveyRow",
     "TerminalAmplitudes",
     "TruthTarget",

@@ -25,9 +25,9 @@ __all__ = [
     "ReceiverSpec",
     "Room",
     "RoomBox",
-    "SurfaceReflectance",
     "RoomLayout",
     "RoomsPage",
+    "SurfaceReflectance",
     "paper_room_example",
 ]
 
