@@ -458,10 +458,10 @@ class GridlessSolver(Solver):
                 other_cost = self._plain_cost(run, other)
                 if other_cost < cost:
                     state, cost = other, other_cost
+        state, fisher = self._with_nuisances(run, state)
         residual = self._residual(
             run, Whitening.identity(self.model, self.fingerprint.n_leds), state
         )
-        state, fisher = self._with_nuisances(run, state)
         covariances, fit = self._uncertainty(run, state, fisher)
         if prescale != 1.0:
             state.log_scale += math.log(prescale)
@@ -606,7 +606,7 @@ class GridlessSolver(Solver):
             run.priors = priors
             slots = _Slots.make(k, priors, free_weights)
             extra = slots.size - _Slots.make(k, kept, free_weights).size
-            significant = extra + 3.0 * math.sqrt(2.0 * extra)
+            significant = extra + self.options.stage_significance * math.sqrt(2.0 * extra)
             objective = self._objective(run, white)
             theta = objective.pack(best)
             normal, gradient, before = gram(objective, theta, best)
