@@ -54,8 +54,9 @@ class GridlessOptions:
     # Prior sd of each component (tangent) of a terminal's unknown photodiode tilt, fitted
     # when terminals send their own amplitudes but not their normal (hand-held phones tilt).
     tilt_sd: float | None = 0.15
-    # LM iterations of the trial that decides whether freeing a stage of nuisances pays.
-    stage_iter: int = 8
+    # A stage of nuisances is kept when it lowers the whitened cost by more than its extra
+    # parameters' chi-square mean plus this many standard deviations.
+    stage_significance: float = 3.0
 
 
 @dataclass(frozen=True)

@@ -147,7 +147,14 @@ class GridlessSolver(Solver):
         layout = fingerprint.layout
         self._scale = float(np.sqrt(mean_signal_power(fingerprint)))
         self._kernel = ChannelKernel(layout, self._scale, diffuse_table(fingerprint))
-        self._priors = nuisance_priors(layout, self.options)
+        # The power model has M values for 2K + 1 unknowns and a poorly identified noise
+        # level (its noise atom is nearly a signal direction): its whitened statistics cannot
+        # tell a freed nuisance from noise (an ideal room freed the scale in 20 % of K = 1
+        # solves and lost accuracy), so nuisances are fitted for correlation (and terminals).
+        self._priors = nuisance_priors(
+            layout,
+            self.options if model == "correlation" else replace(self.options, log_gain_sd=None),
+        )
         self._growth_priors = Priors(height_mean=self._priors.height_mean)
         # Nuisances are freed in stages: the common scale and the heights, then the gains.
         full = self._priors
@@ -194,6 +201,11 @@ class GridlessSolver(Solver):
             self._psi_norms = np.sqrt(0.5 * (total**2 + fourth))
             self._column_energy = np.maximum(total, 1e-300)
         self._mean_column_energy = float(np.mean(self._column_energy))
+        # The faintest (5th percentile: corners out of view aside) and brightest grid points.
+        self._energy_band = (
+            float(np.percentile(self._column_energy, 5.0)),
+            float(np.max(self._column_energy)),
+        )
 
     # -- insertion ---------------------------------------------------------------------
     def _correlations(
@@ -427,16 +439,18 @@ class GridlessSolver(Solver):
         return self._polish(run, state)
 
     def _prescale(self, values: FloatArray, n_targets: int | None) -> float:
-        """A first guess of the common power scale: the received power per target over the
-        room's mean, when K is known and that ratio is beyond 1.5x either way (else 1: the
-        search then runs exactly as in a room measured as modelled)."""
+        """A first guess of the common power scale, when K is known and the received power
+        per target is more than 1.5x outside what any grid point gives (brightest to
+        faintest): the power per target over the room's mean. Else 1, and the search runs
+        exactly as in a room measured as modelled."""
         if n_targets is None:
             return 1.0
         upper, lower = self._upper_lower
-        total = float(np.sum(values[upper == lower]))
-        ratio = total / (n_targets * self._mean_column_energy)
-        if not np.isfinite(ratio) or ratio <= 0.0 or 1.0 / 1.5 <= ratio <= 1.5:
+        per_target = float(np.sum(values[upper == lower])) / n_targets
+        low, high = self._energy_band
+        if not np.isfinite(per_target) or low / 1.5 <= per_target <= 1.5 * high:
             return 1.0
+        ratio = max(per_target, 1e-300) / self._mean_column_energy
         return float(np.clip(ratio, math.exp(-MAX_LOG_SCALE), math.exp(MAX_LOG_SCALE)))
 
     def _solve(self, measurement: Measurement, n_targets: int | None) -> Solution:
@@ -458,10 +472,10 @@ class GridlessSolver(Solver):
                 other_cost = self._plain_cost(run, other)
                 if other_cost < cost:
                     state, cost = other, other_cost
+        state, fisher = self._with_nuisances(run, state)
         residual = self._residual(
             run, Whitening.identity(self.model, self.fingerprint.n_leds), state
         )
-        state, fisher = self._with_nuisances(run, state)
         covariances, fit = self._uncertainty(run, state, fisher)
         if prescale != 1.0:
             state.log_scale += math.log(prescale)
@@ -606,7 +620,7 @@ class GridlessSolver(Solver):
             run.priors = priors
             slots = _Slots.make(k, priors, free_weights)
             extra = slots.size - _Slots.make(k, kept, free_weights).size
-            significant = extra + 3.0 * math.sqrt(2.0 * extra)
+            significant = extra + self.options.stage_significance * math.sqrt(2.0 * extra)
             objective = self._objective(run, white)
             theta = objective.pack(best)
             normal, gradient, before = gram(objective, theta, best)

@@ -1,0 +1,118 @@
+"""How often the truth falls inside the answers' 95 % radius (``accuracy_m``).
+
+The default solver reports, per estimate, the radius of the 95 % confidence circle from its
+fit's Fisher information (widened by the reduced chi-square when the fit is poor). This
+counts, over fixed-seed placements at 30 dB, the fraction of true positions inside that
+radius around their (Hungarian-matched) estimate, for the aggregated correlation and the
+``terminals`` form, on the ideal model and under the realistic mix (reflectance in the
+layout), in the paper room and the irregular room of ``bench/rooms.py``.
+
+    python -m bench.coverage             # writes the coverage section of docs/accuracy.md
+    python -m bench.coverage --trials 10 --out bench/out/quick
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+from threadpoolctl import threadpool_limits
+
+from app.vlp.measurements import measurement_from_amplitudes
+from app.vlp.simulation import Impairments, random_positions, simulate_terminals
+from app.vlp.solvers.gridless import GridlessSolver
+from app.vlp.uncertainty import confidence_radius
+
+from ._common import REPO_ROOT, machine_markdown, machine_record, replace_section
+from .real_rooms import MIX, _fingerprint, _generator, _layout
+
+__all__ = ["coverage", "main"]
+
+KS = (1, 4, 8)
+SNR_DB = 30.0
+
+
+def coverage(room: str, mix: bool, count: int, trials: int) -> tuple[float, float]:
+    """Fractions of truths inside the 95 % radius: (aggregated correlation, terminals)."""
+    reflectance = MIX.reflectance if mix else None
+    layout = _layout(room, reflectance)
+    fingerprint = _fingerprint(room, reflectance)
+    solver = GridlessSolver(fingerprint, "correlation")
+    impairments = MIX if mix else Impairments.ideal()
+    inside: dict[str, list[bool]] = {"correlation": [], "terminals": []}
+    for trial in range(trials):
+        truth = random_positions(layout, count, rng=_generator("coverage", room, count, trial))
+        simulated = simulate_terminals(
+            layout,
+            truth,
+            impairments,
+            snr_db=SNR_DB,
+            rng=_generator("coverage", room, mix, count, trial),
+        )
+        amplitudes = simulated.amplitudes
+        measurement = measurement_from_amplitudes(amplitudes, "correlation", layout.n_leds)
+        for mode, solution in (
+            ("correlation", solver.solve(measurement, count)),
+            ("terminals", solver.solve_terminals(amplitudes)),
+        ):
+            assert solution.covariances is not None
+            distance = np.linalg.norm(truth[:, None, :] - solution.positions[None, :, :], axis=2)
+            rows, cols = linear_sum_assignment(distance)
+            for row, col in zip(rows, cols, strict=True):
+                radius = confidence_radius(solution.covariances[col])
+                inside[mode].append(bool(distance[row, col] <= radius))
+    return float(np.mean(inside["correlation"])), float(np.mean(inside["terminals"]))
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of ``python -m bench.coverage``."""
+    parser = argparse.ArgumentParser(prog="python -m bench.coverage", description=__doc__)
+    parser.add_argument("--trials", type=int, default=40, help="placements per cell")
+    parser.add_argument("--out", type=Path, default=REPO_ROOT / "docs")
+    args = parser.parse_args(argv)
+    started = time.perf_counter()
+    lines = [
+        "| room | model | K | aggregated correlation | `terminals` |",
+        "|---|---|---|---|---|",
+    ]
+    with threadpool_limits(limits=1):
+        for room in ("paper", "hall"):
+            for mix in (False, True):
+                for count in KS:
+                    aggregated, terminals = coverage(room, mix, count, args.trials)
+                    name = "realistic mix, reflectance in layout" if mix else "ideal"
+                    lines.append(
+                        f"| {room} | {name} | {count} | {aggregated:.3f} | {terminals:.3f} |"
+                    )
+                    print(lines[-1], file=sys.stderr, flush=True)
+    elapsed = time.perf_counter() - started
+    command = "python -m bench.coverage " + " ".join(argv if argv is not None else sys.argv[1:])
+    body = "\n".join(
+        [
+            "## Coverage of the 95 % radius (`bench/coverage.py`)",
+            "",
+            f"Command: `{command.strip()}` ({elapsed:.0f} s), 30 dB, {args.trials} placements "
+            "per cell: the fraction of true positions inside `accuracy_m` of their estimate "
+            "(target 0.90-0.98 on the ideal model).",
+            "",
+            *lines,
+            "",
+            "Machine:",
+            "",
+            machine_markdown(machine_record()),
+            "",
+        ]
+    )
+    path = args.out / "accuracy.md"
+    replace_section(path, "coverage", body, preamble="# Accuracy\n")
+    print(f"wrote {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
