@@ -25,6 +25,7 @@ from app.api.metrics import Metrics
 from app.api.middleware import BodySizeLimitMiddleware, RequestContextMiddleware
 from app.api.picture_cache import PictureCache
 from app.api.security import provision_keys
+from app.clock import Clock, SystemClock
 from app.jobs import EmbeddedWorkers
 from app.jobs.epochs import EpochSweeper
 from app.registry import Registry
@@ -122,6 +123,9 @@ def _epoch_sweeper(settler: EpochSettler, settings: Settings) -> EpochSweeper | 
 @asynccontextmanager
 async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
     settings: Settings = app.state.settings
+    # The one clock of this process: leases, epoch windows and version re-reads follow it.
+    given: Clock | None = app.state.clock
+    clock: Clock = SystemClock() if given is None else given
     with threadpool_limits(limits=1):
         settings.data_dir.mkdir(parents=True, exist_ok=True)
         registry = Registry(
@@ -129,6 +133,7 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
             data_dir=settings.data_dir,
             max_build_attempts=settings.max_build_attempts,
             job_lease_seconds=settings.job_lease_seconds,
+            clock=clock,
         )
         await run_in_threadpool(registry.migrate)
         app.state.registry = registry
@@ -143,12 +148,17 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
             size=settings.fingerprint_cache_size,
             version_check_seconds=settings.version_check_seconds,
             metrics=metrics,
+            clock=clock,
         )
         app.state.epoch_settler = EpochSettler(
-            registry=registry, cache=app.state.cache, metrics=metrics, settings=settings
+            registry=registry,
+            cache=app.state.cache,
+            metrics=metrics,
+            settings=settings,
+            clock=clock,
         )
         sweeper = _epoch_sweeper(app.state.epoch_settler, settings)
-        workers = EmbeddedWorkers(registry=registry, settings=settings)
+        workers = EmbeddedWorkers(registry=registry, settings=settings, clock=clock)
         if settings.embedded_workers > 0:
             workers.start()
         _log.info(
@@ -168,8 +178,12 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
             registry.dispose()
 
 
-def create_app(settings: Settings | None = None) -> FastAPI:
-    """Build the service app (the registry and workers start in its lifespan)."""
+def create_app(settings: Settings | None = None, *, clock: Clock | None = None) -> FastAPI:
+    """Build the service app (the registry and workers start in its lifespan).
+
+    ``clock`` is what "now" is for the app's leases, epoch windows and version re-reads (a
+    :class:`app.clock.SystemClock` when None; tests pass an :class:`app.clock.FakeClock`).
+    """
     settings = settings or get_settings()
     app = FastAPI(
         title="VLP service",
@@ -184,6 +198,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     )
     metrics = Metrics()
     app.state.settings = settings
+    app.state.clock = clock
     app.state.metrics = metrics
     app.state.pictures = PictureCache()
     metrics.watch_jobs(lambda: _count_jobs(app))

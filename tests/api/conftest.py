@@ -12,7 +12,6 @@ import pytest
 
 from app.main import create_app
 from app.settings import Settings
-from tests.db_fixtures import database_url, postgres_url
 
 with warnings.catch_warnings():
     # starlette prefers httpx2 for its test client; the suite's httpx works the same.
@@ -25,9 +24,7 @@ __all__ = [
     "TERMINAL",
     "TERMINAL_KEY",
     "TestClient",
-    "database_url",
     "make_settings",
-    "postgres_url",
     "wait_for_job",
     "wait_for_room",
 ]

@@ -10,12 +10,11 @@ import scipy.sparse as sp
 
 from app.jobs.build import BuildTask, build_and_store, store_fingerprint
 from app.registry import Registry
-from app.registry.queue import claim_job
 from app.registry.store import MatrixStore
 from app.vlp.errors import ProblemSizeError
 from app.vlp.fingerprints import Fingerprint, build_fingerprint
 from app.vlp.presets import paper_layout
-from tests.db_fixtures import hall_layout
+from tests.db_fixtures import claim_next, hall_layout
 
 
 def test_store_fingerprint_dense_room(tmp_path: Path, paper_fingerprint: Fingerprint) -> None:
@@ -42,7 +41,7 @@ def test_build_and_store_reports_progress_and_matches(
     registry: Registry, paper_fingerprint: Fingerprint
 ) -> None:
     room = registry.create_room(name="Paper room", layout=paper_layout().to_mapping())
-    claimed = claim_job(registry.engine, worker_id="w", lease_seconds=60, max_attempts=3)
+    claimed = claim_next(registry, lease_seconds=60)
     assert claimed is not None
     task = BuildTask(
         database_url=registry.database_url,

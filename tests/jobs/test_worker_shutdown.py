@@ -12,8 +12,7 @@ from app.jobs import EmbeddedWorkers
 from app.jobs.build import build_and_store
 from app.jobs.worker import _Pool, _WorkerLoop
 from app.registry import Registry
-from app.registry.queue import claim_job
-from tests.db_fixtures import small_layout
+from tests.db_fixtures import claim_next, small_layout
 
 from .test_worker import _settings, _wait_for, slow_build, workers
 
@@ -54,10 +53,9 @@ def test_a_shut_down_pool_hands_the_job_back_uncounted(registry: Registry) -> No
         pool=pool,
         stop=threading.Event(),
         build=build_and_store,
+        clock=registry.clock,
     )
-    claimed = claim_job(
-        registry.engine, worker_id=loop.worker_id, lease_seconds=5.0, max_attempts=2
-    )
+    claimed = claim_next(registry, worker_id=loop.worker_id, lease_seconds=5.0)
     assert claimed is not None and claimed.job_id == room.job_id
     loop.run_one(claimed)
     job = registry.get_job(job_id=room.job_id or "")
