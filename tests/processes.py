@@ -12,7 +12,6 @@ import json
 import os
 import signal
 import subprocess
-import sys
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager, suppress
@@ -22,7 +21,15 @@ from typing import Any
 
 import httpx
 
-from bench._server import ADMIN_KEY, TERMINAL_KEY, free_port, server_env, wait_until_healthy
+from bench._server import (
+    ADMIN_KEY,
+    TERMINAL_KEY,
+    VLP,
+    bound_url,
+    serve_args,
+    server_env,
+    wait_until_healthy,
+)
 
 __all__ = [
     "ADMIN",
@@ -38,7 +45,6 @@ __all__ = [
 
 ADMIN = {"X-API-Key": ADMIN_KEY}
 TERMINAL = {"X-API-Key": TERMINAL_KEY}
-VLP = Path(sys.executable).with_name("vlp")
 
 # Short leases so a dead worker's job is reclaimed in seconds, not the production 30 s.
 FAST_JOBS = {
@@ -150,10 +156,10 @@ class ProcessFleet:
         return started
 
     def serve(self, *, timeout_s: float = 60.0, **env: str) -> VlpProcess:
-        """Start ``vlp serve`` on a free loopback port and wait until ``/readyz`` is 200."""
-        port = free_port()
-        server = self._start("serve", ["--host", "127.0.0.1", "--port", str(port)], env)
-        server.url = f"http://127.0.0.1:{port}"
+        """Start ``vlp serve`` on a loopback port it picks and wait until ``/readyz`` is 200."""
+        port_file = self.data_dir.parent / f"serve-{len(self.processes)}.port"
+        server = self._start("serve", serve_args(port_file), env)
+        server.url = bound_url(port_file, server.process, timeout_s)
         wait_until_healthy(server.url, server.process, timeout_s)
         return server
 
