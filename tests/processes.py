@@ -13,7 +13,7 @@ import os
 import signal
 import subprocess
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator, Mapping
 from contextlib import contextmanager, suppress
 from dataclasses import dataclass
 from pathlib import Path
@@ -40,27 +40,18 @@ __all__ = [
     "peak_rss_bytes",
     "pid_alive",
     "process_fleet",
-    "wait_for",
 ]
 
 ADMIN = {"X-API-Key": ADMIN_KEY}
 TERMINAL = {"X-API-Key": TERMINAL_KEY}
 
-# Short leases so a dead worker's job is reclaimed in seconds, not the production 30 s.
+# A dead worker's job is reclaimed in seconds, not the production 30 s; a live worker renews
+# its lease 20 times per lease, so a loaded machine does not lose it a job by a late beat.
 FAST_JOBS = {
-    "VLP_JOB_LEASE_SECONDS": "4",
+    "VLP_JOB_LEASE_SECONDS": "10",
     "VLP_JOB_HEARTBEAT_SECONDS": "0.5",
     "VLP_JOB_POLL_SECONDS": "0.1",
 }
-
-
-def wait_for(condition: Callable[[], bool], what: str, timeout_s: float = 120.0) -> None:
-    """Poll ``condition`` every 0.1 s; fail naming ``what`` after ``timeout_s``."""
-    deadline = time.monotonic() + timeout_s
-    while not condition():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
-        time.sleep(0.1)
 
 
 def child_pids(pid: int) -> list[int]:
@@ -155,10 +146,11 @@ class ProcessFleet:
         self.processes.append(started)
         return started
 
-    def serve(self, *, timeout_s: float = 60.0, **env: str) -> VlpProcess:
-        """Start ``vlp serve`` on a loopback port it picks and wait until ``/readyz`` is 200."""
+    def serve(self, env: Mapping[str, str] | None = None, *, timeout_s: float = 60.0) -> VlpProcess:
+        """Start ``vlp serve`` (with ``env`` on top of the fleet's) on a loopback port it picks
+        and wait until ``/readyz`` is 200."""
         port_file = self.data_dir.parent / f"serve-{len(self.processes)}.port"
-        server = self._start("serve", serve_args(port_file), env)
+        server = self._start("serve", serve_args(port_file), dict(env or {}))
         server.url = bound_url(port_file, server.process, timeout_s)
         wait_until_healthy(server.url, server.process, timeout_s)
         return server

@@ -12,11 +12,20 @@ import httpx
 import pytest
 
 from app.vlp.presets import paper_layout
+from tests.build_gate import BuildGate
 from tests.db_fixtures import million_point_hall
-from tests.processes import VlpProcess, peak_rss_bytes, process_fleet, wait_for
+from tests.processes import VlpProcess, peak_rss_bytes, process_fleet
+from tests.waiting import wait_for
 
 from .checks import assert_nothing_lost, registry_of
-from .steps import HALL_TIMEOUT_S, assert_orphans_exit, create_room, kill_mid_build, wait_succeeded
+from .steps import (
+    HALL_TIMEOUT_S,
+    MID_BUILD,
+    assert_orphans_exit,
+    create_room,
+    kill_mid_build,
+    wait_succeeded,
+)
 
 pytestmark = pytest.mark.slow
 
@@ -49,13 +58,15 @@ def corrupt_then_repaired(server: VlpProcess, room_id: str) -> None:
 def test_kill9_server_mid_hall_build_then_restart_finishes(tmp_path: Path) -> None:
     data_dir = tmp_path / "data"
     env = {"VLP_DEMO": "0", "VLP_EMBEDDED_WORKERS": "1"}
+    gate = BuildGate(tmp_path / "gate", at=MID_BUILD)
     with process_fleet(data_dir, **env) as fleet:
-        first = fleet.serve()
+        first = fleet.serve(gate.env())
         paper = create_room(first, paper_layout().to_mapping())
         paper_done = wait_succeeded(first, paper["fingerprint"]["job_id"])
+        gate.shut()
         hall = create_room(first, million_point_hall().to_mapping())
         hall_job = hall["fingerprint"]["job_id"]
-        orphans = kill_mid_build(first, first, hall_job)
+        orphans = kill_mid_build(first, first, hall_job, gate)
         assert_orphans_exit(orphans)
 
         registry = registry_of(data_dir)
