@@ -40,6 +40,7 @@ __all__ = [
     "database_url",
     "hall_layout",
     "million_point_hall",
+    "overwrite",
     "postgres_url",
     "record_build",
     "registry",
@@ -205,3 +206,17 @@ def small_layout(n_leds: int = 2) -> dict[str, Any]:
         "grid": {"step": 0.5, "receiver_height": 0.85},
         "leds": [{"x": 0.5 + 0.5 * i, "y": 1.0} for i in range(n_leds)],
     }
+
+
+def overwrite(path: Path, payload: bytes) -> None:
+    """Write ``payload`` over ``path`` and make the change show in its mtime.
+
+    Two writes within one tick of a coarse filesystem clock can leave the mtime as it was;
+    the matrix store would then trust its earlier check (by design: it re-hashes a file
+    whose mtime or size changed, or after ``reverify_after_s``), so a test damaging a file
+    states the change instead of depending on the kernel's timestamp granularity.
+    """
+    before = path.stat()
+    os.chmod(path, 0o644)
+    path.write_bytes(payload)
+    os.utime(path, ns=(before.st_atime_ns, before.st_mtime_ns + 1_000_000_000))

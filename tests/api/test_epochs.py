@@ -31,8 +31,7 @@ from app.vlp.simulation import noise_std_for_snr, noisy_amplitudes, true_amplitu
 from tests.db_fixtures import build_now
 from tests.waiting import wait_for
 
-from .conftest import ADMIN, TERMINAL, TestClient, make_settings
-from .test_rooms import assert_problem
+from .conftest import ADMIN, TERMINAL, TestClient, assert_problem, make_settings
 
 TRUTH = np.array([[0.7, 0.9], [2.1, 3.3], [3.4, 1.5]])
 

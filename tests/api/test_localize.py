@@ -17,8 +17,15 @@ from app.vlp.fingerprints import Fingerprint
 from app.vlp.measurements import measurement_from_correlation, vech
 from app.vlp.solvers import make_solver
 
-from .conftest import ADMIN, TERMINAL, TestClient, make_settings, wait_for_room
-from .test_rooms import assert_problem, small_room
+from .conftest import (
+    ADMIN,
+    TERMINAL,
+    TestClient,
+    assert_problem,
+    make_settings,
+    small_room,
+    wait_for_room,
+)
 
 # Two grid cells of the paper room (0.2 m grid, n_y = 20): centres (1.3, 0.5) and (2.7, 3.1).
 CELLS = [6 * 20 + 2, 13 * 20 + 15]

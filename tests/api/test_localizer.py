@@ -14,8 +14,7 @@ from app.main import create_app
 from app.registry import Registry
 from app.registry.errors import FingerprintNotReady, RoomNotFound
 
-from .conftest import ADMIN, TestClient, make_settings, wait_for_room
-from .test_rooms import small_room
+from .conftest import ADMIN, TestClient, make_settings, small_room, wait_for_room
 
 
 @pytest.fixture

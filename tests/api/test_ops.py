@@ -17,8 +17,7 @@ from app.cli import openapi_document
 from app.registry.errors import RegistryUnavailable
 from bench._server import bound_url, wait_until_healthy
 
-from .conftest import ADMIN, TERMINAL, TestClient
-from .test_rooms import assert_problem
+from .conftest import ADMIN, TERMINAL, TestClient, assert_problem
 
 REPO = Path(__file__).resolve().parents[2]
 OPENAPI_FILE = REPO / "openapi" / "openapi.json"

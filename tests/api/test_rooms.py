@@ -12,31 +12,7 @@ import app.api.rooms
 from app.schemas.rooms import paper_room_example
 from app.vlp.layout import layout_from_mapping
 
-from .conftest import ADMIN, TERMINAL, TestClient, make_settings
-
-
-def small_room(name: str = "Small room", **changes: Any) -> dict[str, Any]:
-    """A 2 x 1 m room with two LEDs (defaults left out on purpose)."""
-    body: dict[str, Any] = {
-        "name": name,
-        "room": {"length": 2.0, "width": 1.0, "height": 2.5},
-        "grid": {"step": 0.25, "receiver_height": 0.8},
-        "leds": [{"x": 0.5, "y": 0.5}, {"x": 1.5, "y": 0.5, "pilot_amplitude": 2.0}],
-    }
-    body.update(changes)
-    return body
-
-
-def assert_problem(response: Any, status: int, fields: list[str] | None = None) -> dict[str, Any]:
-    """The response is a problem of ``status`` naming exactly ``fields`` (when given)."""
-    assert response.status_code == status, response.text
-    assert response.headers["content-type"] == "application/problem+json"
-    problem: dict[str, Any] = response.json()
-    assert {"type", "title", "status", "detail", "instance"} <= problem.keys()
-    assert problem["status"] == status
-    if fields is not None:
-        assert sorted(error["field"] for error in problem["errors"]) == sorted(fields)
-    return problem
+from .conftest import ADMIN, TERMINAL, TestClient, assert_problem, make_settings, small_room
 
 
 def test_create_applies_defaults_and_answers_location_and_etag(client: TestClient) -> None:

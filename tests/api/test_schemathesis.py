@@ -24,8 +24,7 @@ from schemathesis.core.parameters import ParameterLocation
 
 from app.main import create_app
 
-from .conftest import ADMIN_KEY, TERMINAL_KEY, TestClient, make_settings, wait_for_room
-from .test_rooms import small_room
+from .conftest import ADMIN_KEY, TERMINAL_KEY, TestClient, make_settings, small_room, wait_for_room
 
 ApiCase = schemathesis.Case[schemathesis.APIOperation[Any, Any, Any, Any]]
 SEED = 20261122

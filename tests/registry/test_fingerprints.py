@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import hashlib
-import os
 
 import numpy as np
 import pytest
@@ -23,6 +22,7 @@ from tests.db_fixtures import (
     build_now,
     claim_next,
     hall_layout,
+    overwrite,
     record_build,
     small_layout,
     stored_build,
@@ -150,11 +150,10 @@ def test_corrupt_matrix_is_refused_and_the_rebuild_repairs_it(
     build_now(registry, room_id=room.id)
     path = registry.matrix_path(room_id=room.id, version=1, name="H")
     good = path.read_bytes()
-    os.chmod(path, 0o644)
     if damage == "flip":
-        path.write_bytes(good[:-1] + bytes([good[-1] ^ 0xFF]))
+        overwrite(path, good[:-1] + bytes([good[-1] ^ 0xFF]))
     elif damage == "truncate":
-        path.write_bytes(good[:100])
+        overwrite(path, good[:100])
     else:
         path.unlink()
     with pytest.raises(CorruptMatrix, match="rebuild"):
