@@ -63,6 +63,9 @@ def _schema(*, key: str, modes: list[GenerationMode], max_examples: int) -> sche
         with_security_parameters=False,
     )
     schema.config.update(headers={"X-API-Key": key})
+    # Nothing is written into the repository (schemathesis' cache lives in .schemathesis/
+    # of the working directory) and no run starts from what an earlier run left there.
+    schema.config.cache.enabled = False
     # A schema-valid request may still be refused for what JSON Schema cannot say: a stale
     # If-Match (412) or none (428), cross-field rules such as a grid step that must divide
     # the room, a vector of M numbers, a cursor the server never issued (422). Those answers
