@@ -87,7 +87,7 @@ def wait_until_healthy(url: str, process: subprocess.Popen[bytes], timeout_s: fl
 
 
 @contextmanager
-def live_server(data_dir: Path, *, timeout_s: float = 60.0, **env: str) -> Iterator[LiveServer]:
+def live_server(data_dir: Path, *, timeout_s: float = 120.0, **env: str) -> Iterator[LiveServer]:
     """Start ``vlp serve`` on a free port; stop it (SIGTERM, then SIGKILL) on exit."""
     port_file = data_dir / "serve.port"
     port_file.unlink(missing_ok=True)

@@ -30,6 +30,7 @@ from bench._server import (
     server_env,
     wait_until_healthy,
 )
+from tests.waiting import SAFETY_TIMEOUT_S
 
 __all__ = [
     "ADMIN",
@@ -146,7 +147,9 @@ class ProcessFleet:
         self.processes.append(started)
         return started
 
-    def serve(self, env: Mapping[str, str] | None = None, *, timeout_s: float = 60.0) -> VlpProcess:
+    def serve(
+        self, env: Mapping[str, str] | None = None, *, timeout_s: float = SAFETY_TIMEOUT_S
+    ) -> VlpProcess:
         """Start ``vlp serve`` (with ``env`` on top of the fleet's) on a loopback port it picks
         and wait until ``/readyz`` is 200."""
         port_file = self.data_dir.parent / f"serve-{len(self.processes)}.port"

@@ -16,6 +16,7 @@ from app.cli import main as vlp_main
 from app.cli import openapi_document
 from app.registry.errors import RegistryUnavailable
 from bench._server import bound_url, wait_until_healthy
+from tests.waiting import SAFETY_TIMEOUT_S
 
 from .conftest import ADMIN, TERMINAL, TestClient, assert_problem
 
@@ -184,8 +185,8 @@ def test_vlp_serve_logs_json_and_vlp_rooms_lists(tmp_path: Path) -> None:
             stderr=log,
         )
         try:
-            url = bound_url(port_file, server, timeout_s=60)
-            wait_until_healthy(url, server, timeout_s=60)
+            url = bound_url(port_file, server, timeout_s=SAFETY_TIMEOUT_S)
+            wait_until_healthy(url, server, timeout_s=SAFETY_TIMEOUT_S)
             listed = subprocess.run(
                 [str(vlp), "rooms", "list", "--json", "--url", url, "--key", TERMINAL["X-API-Key"]],
                 capture_output=True,

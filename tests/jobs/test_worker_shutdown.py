@@ -16,7 +16,7 @@ from app.jobs.worker import _Pool, _WorkerLoop
 from app.registry import Registry
 from app.registry.queue import ClaimedJob, claim_job
 from tests.db_fixtures import claim_next, small_layout
-from tests.waiting import wait_for
+from tests.waiting import SAFETY_TIMEOUT_S, wait_for
 
 from .builds import endless_build
 from .conftest import StartWorkers, job_settings
@@ -33,7 +33,7 @@ def test_stop_ends_the_build_processes(registry: Registry, workers: StartWorkers
     # The job is marked running when claimed, just before its build process starts.
     wait_for(lambda: bool(new_children()), "the build's child process")
     children = new_children()
-    pool.stop(timeout=1)
+    pool.stop(timeout=SAFETY_TIMEOUT_S)  # joins the threads; the children get 2 s, then end
     # stop() ends them (join, then terminate + join); allow the OS a moment to reap on a
     # loaded machine, but a child the pool lost track of would still be alive after this.
     wait_for(lambda: not any(child.is_alive() for child in children), "the children to end")
@@ -82,7 +82,7 @@ def test_stopped_workers_leave_new_jobs_queued(
         t for t in threading.enumerate() if t not in before and t.name.startswith("vlp-worker")
     ]
     wait_for(lambda: bool(claims), "the worker to poll the queue")
-    pool.stop(timeout=60)
+    pool.stop(timeout=SAFETY_TIMEOUT_S)
     assert threads and not any(thread.is_alive() for thread in threads)
     stopped = {worker_id for worker_id, _ in claims}
     polls_before_stop = len(claims)
@@ -100,7 +100,7 @@ def test_stopped_workers_leave_new_jobs_queued(
 def test_workers_restart_after_stop(registry: Registry, workers: StartWorkers) -> None:
     """The same EmbeddedWorkers (one per app lifespan) can start again after a stop."""
     pool = workers()
-    pool.stop(timeout=60)
+    pool.stop(timeout=SAFETY_TIMEOUT_S)
     pool.start()
     room = registry.create_room(name="a", layout=small_layout())
     wait_for(lambda: registry.get_room(room_id=room.id).fingerprint_status == "ready", "ready")
