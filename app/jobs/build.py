@@ -134,7 +134,7 @@ class _BuildGate:
     def hold(self, job_id: str) -> None:
         """Announce the hold (unless another build has it) and wait for the gate to open."""
         # link() publishes the whole marker at once and fails if another build has one.
-        draft = self._held.with_name(f"{self._held.name}.{os.getpid()}")
+        draft = self._held.with_name(f"{self._held.name}.{os.getpid()}.{threading.get_ident()}")
         draft.write_text(job_id, encoding="utf-8")
         try:
             os.link(draft, self._held)
