@@ -27,6 +27,7 @@ from app.api.metrics import Metrics
 from app.api.middleware import BodySizeLimitMiddleware, RequestContextMiddleware
 from app.api.picture_cache import PictureCache
 from app.api.security import KeyCache, provision_keys
+from app.clock import Clock, SystemClock
 from app.jobs import EmbeddedWorkers
 from app.jobs.epochs import EpochSweeper
 from app.registry import Registry
@@ -126,6 +127,9 @@ def _epoch_sweeper(settler: EpochSettler, settings: Settings) -> EpochSweeper | 
 @asynccontextmanager
 async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
     settings: Settings = app.state.settings
+    # The one clock of this process: leases, epoch windows and version re-reads follow it.
+    given: Clock | None = app.state.clock
+    clock: Clock = SystemClock() if given is None else given
     with threadpool_limits(limits=1):
         settings.data_dir.mkdir(parents=True, exist_ok=True)
         registry = Registry(
@@ -134,6 +138,7 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
             max_build_attempts=settings.max_build_attempts,
             job_lease_seconds=settings.job_lease_seconds,
             matrix_store=settings.resolved_matrix_store(),
+            clock=clock,
         )
         await run_in_threadpool(registry.migrate)
         app.state.registry = registry
@@ -149,12 +154,17 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
             size=settings.fingerprint_cache_size,
             version_check_seconds=settings.version_check_seconds,
             metrics=metrics,
+            clock=clock,
         )
         app.state.epoch_settler = EpochSettler(
-            registry=registry, cache=app.state.cache, metrics=metrics, settings=settings
+            registry=registry,
+            cache=app.state.cache,
+            metrics=metrics,
+            settings=settings,
+            clock=clock,
         )
         sweeper = _epoch_sweeper(app.state.epoch_settler, settings)
-        workers = EmbeddedWorkers(registry=registry, settings=settings)
+        workers = EmbeddedWorkers(registry=registry, settings=settings, clock=clock)
         if settings.embedded_workers > 0:
             workers.start()
         docs_url = f"{settings.public_url.rstrip('/')}/docs"
@@ -181,8 +191,12 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
             registry.dispose()
 
 
-def create_app(settings: Settings | None = None) -> FastAPI:
-    """Build the service app (the registry and workers start in its lifespan)."""
+def create_app(settings: Settings | None = None, *, clock: Clock | None = None) -> FastAPI:
+    """Build the service app (the registry and workers start in its lifespan).
+
+    ``clock`` is what "now" is for the app's leases, epoch windows and version re-reads (a
+    :class:`app.clock.SystemClock` when None; tests pass an :class:`app.clock.FakeClock`).
+    """
     settings = settings or get_settings()
     app = FastAPI(
         title="VLP service",
@@ -200,6 +214,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     )
     metrics = Metrics()
     app.state.settings = settings
+    app.state.clock = clock
     app.state.metrics = metrics
     app.state.pictures = PictureCache()
     metrics.watch_jobs(lambda: _count_jobs(app))

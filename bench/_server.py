@@ -1,9 +1,12 @@
-"""Run a real ``vlp serve`` process on a free loopback port (benchmarks and end-to-end tests)."""
+"""Run a real ``vlp serve`` process on a free loopback port (benchmarks and end-to-end tests).
+
+The server binds port 0 itself and writes the port it got to a file (``--port-file``), so no
+other process can take the port between choosing and binding it.
+"""
 
 from __future__ import annotations
 
 import os
-import socket
 import subprocess
 import sys
 import time
@@ -16,6 +19,7 @@ import httpx
 
 ADMIN_KEY = "e2e-admin-key-0123456789"
 TERMINAL_KEY = "e2e-terminal-key-0123456789"
+VLP = Path(sys.executable).with_name("vlp")
 
 
 @dataclass(frozen=True)
@@ -27,11 +31,30 @@ class LiveServer:
     process: subprocess.Popen[bytes]
 
 
-def free_port() -> int:
-    """A TCP port on 127.0.0.1 that is free right now."""
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
+def serve_args(port_file: Path) -> list[str]:
+    """Arguments of ``vlp serve`` for a loopback port of the kernel's choosing, reported in
+    ``port_file``."""
+    return ["--host", "127.0.0.1", "--port", "0", "--port-file", str(port_file)]
+
+
+def bound_url(port_file: Path, process: subprocess.Popen[bytes], timeout_s: float) -> str:
+    """The base URL of a server started with :func:`serve_args`, once it has bound.
+
+    Raises
+    ------
+    RuntimeError
+        When the process exits first.
+    TimeoutError
+        When no port is reported within ``timeout_s`` (a safety timeout).
+    """
+    deadline = time.monotonic() + timeout_s
+    while not port_file.exists():
+        if process.poll() is not None:
+            raise RuntimeError(f"server exited early with code {process.returncode}")
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"the server reported no port in {port_file} after {timeout_s} s")
+        time.sleep(0.05)
+    return f"http://127.0.0.1:{int(port_file.read_text(encoding='utf-8'))}"
 
 
 def server_env(data_dir: Path, **extra: str) -> dict[str, str]:
@@ -64,18 +87,18 @@ def wait_until_healthy(url: str, process: subprocess.Popen[bytes], timeout_s: fl
 
 
 @contextmanager
-def live_server(data_dir: Path, *, timeout_s: float = 60.0, **env: str) -> Iterator[LiveServer]:
+def live_server(data_dir: Path, *, timeout_s: float = 120.0, **env: str) -> Iterator[LiveServer]:
     """Start ``vlp serve`` on a free port; stop it (SIGTERM, then SIGKILL) on exit."""
-    port = free_port()
-    url = f"http://127.0.0.1:{port}"
-    vlp = Path(sys.executable).with_name("vlp")
+    port_file = data_dir / "serve.port"
+    port_file.unlink(missing_ok=True)
     process = subprocess.Popen(
-        [str(vlp), "serve", "--host", "127.0.0.1", "--port", str(port)],
+        [str(VLP), "serve", *serve_args(port_file)],
         env=server_env(data_dir, **env),
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,
     )
     try:
+        url = bound_url(port_file, process, timeout_s)
         wait_until_healthy(url, process, timeout_s)
         yield LiveServer(url=url, data_dir=data_dir, process=process)
     finally:

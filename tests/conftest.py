@@ -1,4 +1,4 @@
-"""Fixtures shared by the whole suite."""
+"""Fixtures shared by the whole suite (the database fixtures come from a plugin)."""
 
 from __future__ import annotations
 
@@ -8,6 +8,9 @@ import pytest
 from app.vlp.fingerprints import Fingerprint, build_fingerprint
 from app.vlp.layout import Layout
 from app.vlp.presets import paper_layout
+
+# database_url, postgres_url, sqlite_url, clock and registry, for every test directory.
+pytest_plugins = ["tests.db_fixtures"]
 
 
 @pytest.fixture

@@ -5,9 +5,10 @@ PostgreSQL (``VLP_TEST_POSTGRES_URL``, default ``postgresql+psycopg://postgres@1
 PostgreSQL is required: when it does not answer the test fails with a clear message (the
 CI entry point starts it), it is never skipped.
 
-Register it once for the whole suite with ``pytest_plugins = ["tests.db_fixtures"]`` in
-``tests/conftest.py``; until then ``tests/registry`` and ``tests/jobs`` import it in their
-``conftest.py``.
+Registered for the whole suite by ``pytest_plugins`` in ``tests/conftest.py``: every test
+can ask for these fixtures by name, no import needed. ``registry`` runs on the ``clock``
+fixture, the real clock; a test module that steps time overrides ``clock`` with a
+:class:`app.clock.FakeClock`.
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ import psycopg
 import pytest
 from sqlalchemy import make_url
 
+from app.clock import Clock, SystemClock
 from app.jobs.build import store_fingerprint
 from app.jobs.calibrate import apply_calibration
 from app.registry import Registry
@@ -33,10 +35,14 @@ from bench.hall_build import million_point_hall
 
 __all__ = [
     "build_now",
+    "claim_next",
+    "clock",
     "database_url",
     "hall_layout",
     "million_point_hall",
+    "overwrite",
     "postgres_url",
+    "record_build",
     "registry",
     "small_layout",
     "sqlite_url",
@@ -106,14 +112,45 @@ def database_url(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[str
 
 
 @pytest.fixture
-def registry(database_url: str, tmp_path: Path) -> Iterator[Registry]:
+def clock() -> Clock:
+    """The clock of ``registry``: the real one (override with a FakeClock to step time)."""
+    return SystemClock()
+
+
+@pytest.fixture
+def registry(database_url: str, tmp_path: Path, clock: Clock) -> Iterator[Registry]:
     """A migrated registry on ``database_url`` with its matrix store in ``tmp_path``."""
-    reg = Registry(database_url=database_url, data_dir=tmp_path / "data", max_build_attempts=3)
+    reg = Registry(
+        database_url=database_url, data_dir=tmp_path / "data", max_build_attempts=3, clock=clock
+    )
     reg.migrate()
     try:
         yield reg
     finally:
         reg.dispose()
+
+
+def claim_next(
+    registry: Registry,
+    *,
+    worker_id: str = "w",
+    lease_seconds: float = 30.0,
+    room_id: str | None = None,
+) -> ClaimedJob | None:
+    """Claim the oldest claimable job as a worker would, at the registry clock's now."""
+    return claim_job(
+        registry.engine,
+        worker_id=worker_id,
+        now=registry.clock.now(),
+        lease_seconds=lease_seconds,
+        max_attempts=registry.max_build_attempts,
+        room_id=room_id,
+    )
+
+
+def record_build(registry: Registry, claimed: ClaimedJob, build: StoredBuild) -> int | None:
+    """Record a finished build as a worker would (at the registry clock's now); the version."""
+    return complete_job(registry.engine, claimed=claimed, build=build, now=registry.clock.now())
 
 
 def build_now(registry: Registry, *, room_id: str, worker_id: str = "test-builder") -> int:
@@ -122,17 +159,10 @@ def build_now(registry: Registry, *, room_id: str, worker_id: str = "test-builde
     For tests that need a ready fingerprint quickly: claims the room's job, builds with
     :func:`app.jobs.build.store_fingerprint` and records it exactly as a worker would.
     """
-    claimed = claim_job(
-        registry.engine,
-        worker_id=worker_id,
-        lease_seconds=60.0,
-        max_attempts=registry.max_build_attempts,
-        room_id=room_id,
-    )
+    claimed = claim_next(registry, worker_id=worker_id, lease_seconds=60.0, room_id=room_id)
     if claimed is None:
         raise AssertionError(f"room {room_id} has no claimable build job")
-    build = stored_build(registry, claimed)
-    version = complete_job(registry.engine, claimed=claimed, build=build)
+    version = record_build(registry, claimed, stored_build(registry, claimed))
     if version is None:
         raise AssertionError(f"job {claimed.job_id} was lost while building")
     return version
@@ -176,3 +206,17 @@ def small_layout(n_leds: int = 2) -> dict[str, Any]:
         "grid": {"step": 0.5, "receiver_height": 0.85},
         "leds": [{"x": 0.5 + 0.5 * i, "y": 1.0} for i in range(n_leds)],
     }
+
+
+def overwrite(path: Path, payload: bytes) -> None:
+    """Write ``payload`` over ``path`` and make the change show in its mtime.
+
+    Two writes within one tick of a coarse filesystem clock can leave the mtime as it was;
+    the matrix store would then trust its earlier check (by design: it re-hashes a file
+    whose mtime or size changed, or after ``reverify_after_s``), so a test damaging a file
+    states the change instead of depending on the kernel's timestamp granularity.
+    """
+    before = path.stat()
+    os.chmod(path, 0o644)
+    path.write_bytes(payload)
+    os.utime(path, ns=(before.st_atime_ns, before.st_mtime_ns + 1_000_000_000))

@@ -12,9 +12,8 @@ import json
 import os
 import signal
 import subprocess
-import sys
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator, Mapping
 from contextlib import contextmanager, suppress
 from dataclasses import dataclass
 from pathlib import Path
@@ -22,7 +21,16 @@ from typing import Any
 
 import httpx
 
-from bench._server import ADMIN_KEY, TERMINAL_KEY, free_port, server_env, wait_until_healthy
+from bench._server import (
+    ADMIN_KEY,
+    TERMINAL_KEY,
+    VLP,
+    bound_url,
+    serve_args,
+    server_env,
+    wait_until_healthy,
+)
+from tests.waiting import SAFETY_TIMEOUT_S
 
 __all__ = [
     "ADMIN",
@@ -33,28 +41,18 @@ __all__ = [
     "peak_rss_bytes",
     "pid_alive",
     "process_fleet",
-    "wait_for",
 ]
 
 ADMIN = {"X-API-Key": ADMIN_KEY}
 TERMINAL = {"X-API-Key": TERMINAL_KEY}
-VLP = Path(sys.executable).with_name("vlp")
 
-# Short leases so a dead worker's job is reclaimed in seconds, not the production 30 s.
+# A dead worker's job is reclaimed in seconds, not the production 30 s; a live worker renews
+# its lease 20 times per lease, so a loaded machine does not lose it a job by a late beat.
 FAST_JOBS = {
-    "VLP_JOB_LEASE_SECONDS": "4",
+    "VLP_JOB_LEASE_SECONDS": "10",
     "VLP_JOB_HEARTBEAT_SECONDS": "0.5",
     "VLP_JOB_POLL_SECONDS": "0.1",
 }
-
-
-def wait_for(condition: Callable[[], bool], what: str, timeout_s: float = 120.0) -> None:
-    """Poll ``condition`` every 0.1 s; fail naming ``what`` after ``timeout_s``."""
-    deadline = time.monotonic() + timeout_s
-    while not condition():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
-        time.sleep(0.1)
 
 
 def child_pids(pid: int) -> list[int]:
@@ -149,11 +147,14 @@ class ProcessFleet:
         self.processes.append(started)
         return started
 
-    def serve(self, *, timeout_s: float = 60.0, **env: str) -> VlpProcess:
-        """Start ``vlp serve`` on a free loopback port and wait until ``/readyz`` is 200."""
-        port = free_port()
-        server = self._start("serve", ["--host", "127.0.0.1", "--port", str(port)], env)
-        server.url = f"http://127.0.0.1:{port}"
+    def serve(
+        self, env: Mapping[str, str] | None = None, *, timeout_s: float = SAFETY_TIMEOUT_S
+    ) -> VlpProcess:
+        """Start ``vlp serve`` (with ``env`` on top of the fleet's) on a loopback port it picks
+        and wait until ``/readyz`` is 200."""
+        port_file = self.data_dir.parent / f"serve-{len(self.processes)}.port"
+        server = self._start("serve", serve_args(port_file), dict(env or {}))
+        server.url = bound_url(port_file, server.process, timeout_s)
         wait_until_healthy(server.url, server.process, timeout_s)
         return server
 

@@ -17,12 +17,12 @@ from __future__ import annotations
 import logging
 import os
 import socket
-import time
 import uuid
 from datetime import timedelta
 
 import numpy as np
 
+from app.clock import Clock
 from app.errors import NotFound, RegistryError, RegistryUnavailable, VLPError
 from app.registry import Registry
 from app.registry.epochs import (
@@ -34,7 +34,6 @@ from app.registry.epochs import (
     finish_epoch,
     purge_epochs,
 )
-from app.registry.queue import utcnow
 from app.settings import Settings
 from app.vlp import measurements as vlp_measurements
 
@@ -51,15 +50,25 @@ _PURGE_INTERVAL_S = 60.0
 
 
 class EpochSettler:
-    """Settles (expires or solves) the epochs of one API process; thread-safe."""
+    """Settles (expires or solves) the epochs of one API process; thread-safe.
+
+    Windows, claims and the purge schedule follow ``clock`` (the registry's when None).
+    """
 
     def __init__(
-        self, *, registry: Registry, cache: FingerprintCache, metrics: Metrics, settings: Settings
+        self,
+        *,
+        registry: Registry,
+        cache: FingerprintCache,
+        metrics: Metrics,
+        settings: Settings,
+        clock: Clock | None = None,
     ) -> None:
         self._registry = registry
         self._cache = cache
         self._metrics = metrics
         self._settings = settings
+        self._clock = registry.clock if clock is None else clock
         self.owner = f"{socket.gethostname()[:30]}:{os.getpid()}:{uuid.uuid4().hex[:8]}"
         self._next_purge = 0.0
 
@@ -72,7 +81,7 @@ class EpochSettler:
         EpochNotFound, RegistryUnavailable
         """
         record = self._registry.get_epoch(room_id=room_id, epoch_id=epoch_id)
-        now = utcnow()
+        now = self._clock.now()
         due = record.status == "solving" or (record.status == "open" and record.expires_at <= now)
         if record.status in EPOCH_FINAL_STATUSES or not (force or due):
             return record  # nothing to do: no write transaction for a plain read
@@ -95,17 +104,17 @@ class EpochSettler:
         ``epoch_retention_seconds``); how many of the due epochs are closed afterwards."""
         settled = 0
         for room_id, epoch_id in due_epochs(
-            self._registry.engine, now=utcnow(), limit=_SWEEP_BATCH
+            self._registry.engine, now=self._clock.now(), limit=_SWEEP_BATCH
         ):
             try:
                 record = self.settle(room_id=room_id, epoch_id=epoch_id, force=False)
             except NotFound:
                 continue  # its room was deleted meanwhile
             settled += record.status != "solving"
-        if time.monotonic() >= self._next_purge:
-            self._next_purge = time.monotonic() + _PURGE_INTERVAL_S
+        if self._clock.monotonic() >= self._next_purge:
+            self._next_purge = self._clock.monotonic() + _PURGE_INTERVAL_S
             retention = timedelta(seconds=self._settings.epoch_retention_seconds)
-            purge_epochs(self._registry.engine, finished_before=utcnow() - retention)
+            purge_epochs(self._registry.engine, finished_before=self._clock.now() - retention)
         return settled
 
     def _conclude(self, claimed: ClaimedEpoch) -> None:
@@ -159,7 +168,7 @@ class EpochSettler:
             self._registry.engine,
             claimed=claimed,
             status=status,
-            now=utcnow(),
+            now=self._clock.now(),
             localization=localization,
             error=error,
         )

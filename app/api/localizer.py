@@ -2,19 +2,18 @@
 
 Fingerprints are cached per (room, version) in an LRU of ``fingerprint_cache_size``; the
 solvers built from one are kept with it, per (model, solver name). A room's current version
-is re-read from the registry at most every ``version_check_seconds``, so every API process
-switches to a newly built version within that time (a room with no ready version is re-read
-on every request).
+is re-read from the registry at most every ``version_check_seconds`` of the cache's clock,
+so every API process switches to a newly built version within that time (a room with no
+ready version is re-read on every request).
 """
 
 from __future__ import annotations
 
 import threading
-import time
 from collections import OrderedDict
-from collections.abc import Callable
 from dataclasses import dataclass, field
 
+from app.clock import Clock
 from app.registry import Registry
 from app.registry.errors import FingerprintNotReady
 from app.vlp.fingerprints import Fingerprint
@@ -42,7 +41,10 @@ class _Entry:
 
 
 class FingerprintCache:
-    """Loaded fingerprints and solvers of one process (thread-safe)."""
+    """Loaded fingerprints and solvers of one process (thread-safe).
+
+    Version re-reads are timed by ``clock.monotonic()`` (the registry's clock when None).
+    """
 
     def __init__(
         self,
@@ -51,13 +53,13 @@ class FingerprintCache:
         size: int,
         version_check_seconds: float,
         metrics: Metrics,
-        clock: Callable[[], float] = time.monotonic,
+        clock: Clock | None = None,
     ) -> None:
         self._registry = registry
         self._size = size
         self._interval = version_check_seconds
         self._metrics = metrics
-        self._clock = clock
+        self._clock = registry.clock if clock is None else clock
         self._lock = threading.Lock()
         self._versions: dict[str, tuple[int, float]] = {}
         self._entries: OrderedDict[tuple[str, int], _Entry] = OrderedDict()
@@ -70,7 +72,7 @@ class FingerprintCache:
         ------
         RoomNotFound, FingerprintNotReady
         """
-        now = self._clock()
+        now = self._clock.monotonic()
         with self._lock:
             cached = self._versions.get(room_id)
         if cached is not None and now - cached[1] < self._interval:

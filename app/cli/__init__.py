@@ -31,6 +31,8 @@ DEFAULT_OPENAPI_PATH = Path("openapi/openapi.json")
 EXIT_REFUSED = 1
 EXIT_USAGE = 2
 EXIT_NO_ANSWER = 3
+# What `uvicorn.run` exits with when the app does not start (e.g. the registry is away).
+_EXIT_STARTUP_FAILURE = 3
 
 
 def _pin_blas() -> None:
@@ -65,6 +67,14 @@ def _settings_or_none(command: str, public_url: str | None = None) -> Settings |
     return settings
 
 
+def _write_port_file(path: Path, port: int) -> None:
+    """Write the bound port atomically: a reader sees no file or the whole number."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    temporary.write_text(f"{port}\n", encoding="utf-8")
+    os.replace(temporary, path)
+
+
 def _serve(args: argparse.Namespace) -> int:
     _pin_blas()
     host = "127.0.0.1" if args.host in ("0.0.0.0", "::", "") else args.host
@@ -77,15 +87,26 @@ def _serve(args: argparse.Namespace) -> int:
     from app.main import create_app
 
     configure_logging(args.log_level)
-    uvicorn.run(
-        create_app(settings),
+    app = create_app(settings)
+    config = uvicorn.Config(
+        app,
         host=args.host,
         port=args.port,
         log_config=None,
         access_log=False,
         proxy_headers=False,
     )
-    return 0
+    # Bind here, once, so that `--port 0` takes a free port from the kernel and the port
+    # actually bound can be reported: no other process can take it in between.
+    sock = config.bind_socket()
+    bound = int(sock.getsockname()[1])
+    if args.port == 0 and "VLP_PUBLIC_URL" not in os.environ:
+        settings.public_url = f"http://{host}:{bound}"  # read by the lifespan, at start-up
+    if args.port_file is not None:
+        _write_port_file(args.port_file, bound)
+    server = uvicorn.Server(config)
+    server.run(sockets=[sock])
+    return 0 if server.started else _EXIT_STARTUP_FAILURE
 
 
 def _worker(args: argparse.Namespace) -> int:
@@ -139,7 +160,13 @@ def _parser() -> argparse.ArgumentParser:
 
     serve = commands.add_parser("serve", help="serve the HTTP API (uvicorn)")
     serve.add_argument("--host", default="127.0.0.1")
-    serve.add_argument("--port", type=int, default=8000)
+    serve.add_argument("--port", type=int, default=8000, help="0: any free port")
+    serve.add_argument(
+        "--port-file",
+        type=Path,
+        default=None,
+        help="write the port actually bound to this file (e.g. with --port 0)",
+    )
     serve.add_argument("--log-level", default="info")
     serve.set_defaults(handler=_serve)
 

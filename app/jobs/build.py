@@ -8,6 +8,10 @@ lease). BLAS is limited to one thread per child: the pool already runs builds in
 A child whose parent dies (``kill -9`` of ``vlp serve`` or ``vlp worker``) ends itself within
 a second instead of finishing a build nobody will record, which would hold the memory of a
 second build while the job is rebuilt elsewhere.
+
+Test-only hook (inert unless ``VLP_TEST_BUILD_GATE`` is set; see :class:`_BuildGate`): the
+fault tests hold a real build at a chosen progress so that their ``kill -9`` always lands
+mid-build, whatever the machine's speed.
 """
 
 from __future__ import annotations
@@ -43,6 +47,9 @@ __all__ = [
 _BLAS_ENV = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 _ORPHAN_CHECK_SECONDS = 0.5
 _ORPHAN_EXIT_CODE = 70
+_GATE_ENV = "VLP_TEST_BUILD_GATE"
+_GATE_AT_ENV = "VLP_TEST_BUILD_GATE_AT"
+_GATE_POLL_SECONDS = 0.05
 
 
 @dataclass(frozen=True)
@@ -90,6 +97,56 @@ def watch_parent(parent_pid: int, interval_s: float = _ORPHAN_CHECK_SECONDS) -> 
     return thread
 
 
+class _BuildGate:
+    """Test-only: hold one build at a given progress until the test lets it go on.
+
+    Read from the environment of the build process (inherited from ``vlp serve`` or
+    ``vlp worker``); without ``VLP_TEST_BUILD_GATE`` nothing here ever runs.
+
+    - ``VLP_TEST_BUILD_GATE``: path of a gate file that the test creates and deletes.
+    - ``VLP_TEST_BUILD_GATE_AT``: the progress fraction to hold at (default 0).
+
+    The first build whose progress reaches the fraction while the gate file exists takes the
+    hold: it creates ``<gate>.held`` (exclusively, so only one build per gate is held)
+    holding its job id, after its progress is in the job row. It then waits, polling, until
+    the gate file is deleted. Other builds pass by.
+    """
+
+    def __init__(self, path: str, at: float) -> None:
+        self._gate = Path(path)
+        self._held = Path(f"{path}.held")
+        self._at = at
+        self._passed = False
+
+    @classmethod
+    def from_environment(cls) -> _BuildGate | None:
+        path = os.environ.get(_GATE_ENV)
+        if not path:
+            return None
+        return cls(path, float(os.environ.get(_GATE_AT_ENV, "0")))
+
+    def should_hold(self, fraction: float) -> bool:
+        """True once, when ``fraction`` first reaches the hold point while the gate is shut."""
+        if self._passed or fraction < self._at:
+            return False
+        self._passed = True
+        return self._gate.exists()
+
+    def hold(self, job_id: str) -> None:
+        """Announce the hold (unless another build has it) and wait for the gate to open."""
+        # link() publishes the whole marker at once and fails if another build has one.
+        draft = self._held.with_name(f"{self._held.name}.{os.getpid()}.{threading.get_ident()}")
+        draft.write_text(job_id, encoding="utf-8")
+        try:
+            os.link(draft, self._held)
+        except FileExistsError:
+            return
+        finally:
+            draft.unlink()
+        while self._gate.exists():
+            time.sleep(_GATE_POLL_SECONDS)
+
+
 class _ProgressReporter:
     """Writes the fraction done into the job row, throttled; never fails the build."""
 
@@ -97,12 +154,19 @@ class _ProgressReporter:
         self._task = task
         self._engine: Engine | None = None
         self._last = time.monotonic()
+        self._gate = _BuildGate.from_environment()
 
     def __call__(self, fraction: float) -> None:
         now = time.monotonic()
-        if now - self._last < self._task.progress_interval_s or fraction >= 1.0:
+        held = self._gate is not None and self._gate.should_hold(fraction)
+        if not held and (now - self._last < self._task.progress_interval_s or fraction >= 1.0):
             return
         self._last = now
+        self._report(fraction)
+        if held and self._gate is not None:
+            self._gate.hold(self._task.job_id)
+
+    def _report(self, fraction: float) -> None:
         if self._engine is None:
             self._engine = create_registry_engine(self._task.database_url)
         try:

@@ -5,6 +5,9 @@ to a ``spawn`` process pool, renew the lease every ``job_heartbeat_seconds`` whi
 works, then record the result (or the error, retried up to ``max_build_attempts``) in one
 transaction. The API process runs :class:`EmbeddedWorkers` from its lifespan; ``vlp worker``
 runs :func:`run_worker`. Any number of both can share one PostgreSQL registry.
+
+Leases are stamped with the workers' :class:`app.clock.Clock` (the registry's unless given
+another); how often a thread polls and heartbeats is real time (pacing only).
 """
 
 from __future__ import annotations
@@ -23,6 +26,7 @@ from concurrent.futures import TimeoutError as FutureTimeout
 from concurrent.futures.process import BrokenProcessPool
 from multiprocessing.process import BaseProcess
 
+from app.clock import Clock
 from app.registry import Registry
 from app.registry.errors import RegistryError
 from app.registry.queue import (
@@ -126,12 +130,14 @@ class _WorkerLoop:
         pool: _Pool,
         stop: threading.Event,
         build: BuildFunction,
+        clock: Clock,
     ) -> None:
         self.registry = registry
         self.settings = settings
         self.pool = pool
         self.stop = stop
         self.build = build
+        self.clock = clock
         self.worker_id = f"{socket.gethostname()}:{os.getpid()}:{uuid.uuid4().hex[:12]}"
 
     def run(self) -> None:
@@ -141,6 +147,7 @@ class _WorkerLoop:
                 claimed = claim_job(
                     self.registry.engine,
                     worker_id=self.worker_id,
+                    now=self.clock.now(),
                     lease_seconds=self.settings.job_lease_seconds,
                     max_attempts=self.settings.max_build_attempts,
                     max_per_room=self.settings.max_concurrent_builds_per_room,
@@ -215,6 +222,7 @@ class _WorkerLoop:
                         self.registry.engine,
                         job_id=claimed.job_id,
                         worker_id=claimed.worker_id,
+                        now=self.clock.now(),
                         lease_seconds=self.settings.job_lease_seconds,
                     )
             except BrokenProcessPool:
@@ -224,7 +232,9 @@ class _WorkerLoop:
             except Exception as exc:
                 self._fail(claimed, f"{type(exc).__name__}: {exc}")
                 return
-        version = complete_job(self.registry.engine, claimed=claimed, build=result)
+        version = complete_job(
+            self.registry.engine, claimed=claimed, build=result, now=self.clock.now()
+        )
         if version is None:  # lease lost or room deleted: nothing refers to the files
             self.registry.drop_unreferenced_files(
                 (info.sha256, info.format) for info, _ in result.matrices.values()
@@ -252,6 +262,7 @@ class _WorkerLoop:
             claimed=claimed,
             error=error,
             max_attempts=self.settings.max_build_attempts,
+            now=self.clock.now(),
         )
         _log.warning(
             "job %s: attempt %d failed (%s): %s",
@@ -272,14 +283,22 @@ class EmbeddedWorkers:
     settings : Settings
     build : callable, default=build_and_store
         The function run in the child (a module-level function; tests swap it).
+    clock : Clock, default=None
+        Stamps claims, heartbeats and outcomes (the registry's clock when None).
     """
 
     def __init__(
-        self, *, registry: Registry, settings: Settings, build: BuildFunction = build_and_store
+        self,
+        *,
+        registry: Registry,
+        settings: Settings,
+        build: BuildFunction = build_and_store,
+        clock: Clock | None = None,
     ) -> None:
         self.registry = registry
         self.settings = settings
         self.build = build
+        self.clock = registry.clock if clock is None else clock
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
         self._pool: _Pool | None = None
@@ -301,6 +320,7 @@ class EmbeddedWorkers:
                 pool=self._pool,
                 stop=self._stop,
                 build=self.build,
+                clock=self.clock,
             )
             thread = threading.Thread(target=loop.run, name=f"vlp-worker-{index}", daemon=True)
             thread.start()

@@ -21,10 +21,11 @@ from typing import Literal, Protocol
 from sqlalchemy import Engine, delete, insert, select
 from sqlalchemy.exc import IntegrityError
 
+from app.clock import SystemClock
+
 from ._db import translate_errors, write_transaction
 from ._schema import matrix_blob_chunks, matrix_blobs
 from ._typing import StoredMatrix
-from .queue import utcnow
 from .records import MatrixInfo
 from .store import STALE_TEMPORARY_SECONDS, MatrixStore
 
@@ -36,6 +37,9 @@ __all__ = [
     "MatrixStoreKind",
     "open_matrix_store",
 ]
+
+# Rows stamped here (key use, blob upload) are records, not timing logic: real time.
+_SYSTEM_CLOCK = SystemClock()
 
 # Large enough that a 500 MB file is ~125 round trips, small enough that a chunk (and the
 # driver's encoded copy of it) is a negligible amount of memory next to a build.
@@ -51,6 +55,11 @@ class _BlobVanished(Exception):
 
 class MatrixStorage(Protocol):
     """What the registry and the builds need from a matrix store."""
+
+    @property
+    def root(self) -> Path:
+        """The folder of the (local) matrix files."""
+        ...
 
     def put(self, matrix: StoredMatrix) -> tuple[MatrixInfo, int]:
         """Store ``matrix`` (idempotent); its metadata and size in bytes."""
@@ -87,6 +96,11 @@ class DatabaseMatrixStore:
     def __init__(self, engine: Engine, cache_root: Path) -> None:
         self.engine = engine
         self.cache = MatrixStore(cache_root)
+
+    @property
+    def root(self) -> Path:
+        """The folder of the verified local cache."""
+        return self.cache.root
 
     def put(self, matrix: StoredMatrix) -> tuple[MatrixInfo, int]:
         """Write ``matrix`` into the cache, then upload it unless the database has it."""
@@ -167,7 +181,7 @@ class DatabaseMatrixStore:
                         upload_id=upload_id,
                         size_bytes=size_bytes,
                         n_chunks=n_chunks,
-                        created_at=utcnow(),
+                        created_at=_SYSTEM_CLOCK.now(),
                     )
                 )
                 for index in range(n_chunks):

@@ -8,6 +8,7 @@ layout version it was asked for; a PUT of the layout leaves it listed but no lon
 from __future__ import annotations
 
 import uuid
+from datetime import datetime
 from typing import Any
 
 from sqlalchemy import Engine, select
@@ -17,16 +18,17 @@ from ._db import translate_errors, write_transaction
 from ._rows import locked_layout_version
 from ._schema import calibrations, jobs, rooms
 from .errors import NotFound, PreconditionFailed, RoomNotFound
-from .queue import enqueue_job, utcnow
+from .queue import enqueue_job
 from .records import CalibrationRecord
 
 __all__ = ["create_calibration", "get_calibration", "list_calibrations"]
 
 
 def create_calibration(
-    engine: Engine, *, room_id: str, layout_version: int, request: dict[str, Any]
+    engine: Engine, *, room_id: str, layout_version: int, request: dict[str, Any], now: datetime
 ) -> tuple[str, str]:
-    """Store a calibration request and queue its job; returns ``(calibration_id, job_id)``.
+    """Store a calibration request and queue its job (at ``now``); returns
+    ``(calibration_id, job_id)``.
 
     ``request`` was validated against the room's layout at ``layout_version``.
 
@@ -46,7 +48,7 @@ def create_calibration(
                 field="layout_version",
             )
         job_id = enqueue_job(
-            conn, room_id=room_id, layout_version=current, kind=JOB_KIND_CALIBRATION
+            conn, room_id=room_id, layout_version=current, kind=JOB_KIND_CALIBRATION, now=now
         )
         conn.execute(
             calibrations.insert().values(
@@ -55,7 +57,7 @@ def create_calibration(
                 layout_version=current,
                 job_id=job_id,
                 request=request,
-                created_at=utcnow(),
+                created_at=now,
             )
         )
     return calibration_id, job_id

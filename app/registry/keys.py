@@ -22,10 +22,11 @@ from typing import Literal
 
 from sqlalchemy import Engine, and_, delete, func, insert, select, text, update
 
+from app.clock import SystemClock
+
 from ._db import translate_errors, write_transaction
 from ._schema import api_keys
 from .errors import Conflict, NotFound
-from .queue import utcnow
 
 __all__ = [
     "KeyRecord",
@@ -39,6 +40,9 @@ __all__ = [
     "sync_environment_keys",
     "touch_api_key",
 ]
+
+# Rows stamped here (key use, blob upload) are records, not timing logic: real time.
+_SYSTEM_CLOCK = SystemClock()
 
 KeySource = Literal["api", "environment", "generated"]
 _KEYS_LOCK = 0x564C505F4B455953  # "VLP_KEYS": one start at a time syncs the environment keys
@@ -91,7 +95,7 @@ def create_api_key(
                 role=role,
                 label=label,
                 source=source,
-                created_at=utcnow(),
+                created_at=_SYSTEM_CLOCK.now(),
             )
         )
         row = conn.execute(select(api_keys).where(api_keys.c.id == key_id)).one()
@@ -145,7 +149,9 @@ def revoke_api_key(engine: Engine, *, key_id: str) -> KeyRecord:
                     "before revoking it",
                     field="key_id",
                 )
-        conn.execute(update(api_keys).where(api_keys.c.id == key_id).values(revoked_at=utcnow()))
+        conn.execute(
+            update(api_keys).where(api_keys.c.id == key_id).values(revoked_at=_SYSTEM_CLOCK.now())
+        )
     return record
 
 
@@ -176,7 +182,7 @@ def sync_environment_keys(
         The source of each deleted row.
     """
     hashes = [key_hash for key_hash, _ in configured]
-    now = utcnow()
+    now = _SYSTEM_CLOCK.now()
     revoked: list[str] = []
     with write_transaction(engine) as conn:
         if conn.dialect.name == "postgresql":
@@ -222,7 +228,7 @@ def add_generated_keys_if_no_admin(engine: Engine, *, keys: list[tuple[str, str]
     Returns whether they were stored; serialised like :func:`sync_environment_keys`, so of
     several processes starting at once on an empty registry only one generates keys.
     """
-    now = utcnow()
+    now = _SYSTEM_CLOCK.now()
     with write_transaction(engine) as conn:
         if conn.dialect.name == "postgresql":
             conn.execute(text("SELECT pg_advisory_xact_lock(:key)"), {"key": _KEYS_LOCK})

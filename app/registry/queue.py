@@ -7,12 +7,16 @@ again, so a job of a worker that died is picked up by another one. Every state c
 job is guarded by ``lease_owner`` so a worker that lost its lease cannot overwrite the new
 owner's work. Lock order is room row, then job rows; the claim only *tries* the room lock
 (``SKIP LOCKED``), so it never waits in the opposite order.
+
+No function here reads a clock: the caller passes ``now`` (timezone-aware UTC, from the
+:class:`app.clock.Clock` it was given), so lease expiry is decided by the caller's clock and
+tests can step it.
 """
 
 from __future__ import annotations
 
 import uuid
-from datetime import UTC, datetime, timedelta
+from datetime import datetime, timedelta
 from typing import Any
 
 from sqlalchemy import Connection, Engine, func, insert, select, update
@@ -41,12 +45,7 @@ _ACTIVE = ("queued", "running")
 _CANDIDATES = 16
 
 
-def utcnow() -> datetime:
-    """The current time, timezone-aware UTC."""
-    return datetime.now(UTC)
-
-
-def enqueue_build(conn: Connection, *, room_id: str, layout_version: int) -> str:
+def enqueue_build(conn: Connection, *, room_id: str, layout_version: int, now: datetime) -> str:
     """Queue a build of the room's ``layout_version``; returns the job id.
 
     The caller holds the room row lock. A build job already running for this layout version,
@@ -73,10 +72,14 @@ def enqueue_build(conn: Connection, *, room_id: str, layout_version: int) -> str
             )
             conn.execute(update(rooms).where(rooms.c.id == room_id).values(latest_job_id=row.id))
             return str(row.id)
-    return enqueue_job(conn, room_id=room_id, layout_version=layout_version, kind=JOB_KIND_BUILD)
+    return enqueue_job(
+        conn, room_id=room_id, layout_version=layout_version, kind=JOB_KIND_BUILD, now=now
+    )
 
 
-def enqueue_job(conn: Connection, *, room_id: str, layout_version: int, kind: str) -> str:
+def enqueue_job(
+    conn: Connection, *, room_id: str, layout_version: int, kind: str, now: datetime
+) -> str:
     """Insert a new queued job of ``kind`` and make it the room's latest; returns its id.
 
     The caller holds the room row lock.
@@ -92,7 +95,7 @@ def enqueue_job(conn: Connection, *, room_id: str, layout_version: int, kind: st
             error=None,
             attempts=0,
             layout_version=layout_version,
-            created_at=utcnow(),
+            created_at=now,
         )
     )
     conn.execute(update(rooms).where(rooms.c.id == room_id).values(latest_job_id=job_id))
@@ -103,6 +106,7 @@ def claim_job(
     engine: Engine,
     *,
     worker_id: str,
+    now: datetime,
     lease_seconds: float,
     max_attempts: int,
     max_per_room: int = 1,
@@ -110,13 +114,13 @@ def claim_job(
 ) -> ClaimedJob | None:
     """Atomically take the oldest claimable job, or None when there is none.
 
-    Claimable: ``queued``, or ``running`` with an expired lease. An expired job that already
+    Claimable: ``queued``, or ``running`` with a lease that expired before ``now``. The claim
+    holds until ``now + lease_seconds``. An expired job that already
     used ``max_attempts`` attempts, or whose layout is no longer the room's, is marked
     ``failed`` instead. A room with ``max_per_room`` live builds is skipped. ``room_id``
     restricts the claim to one room's jobs.
     """
     with write_transaction(engine) as conn:
-        now = utcnow()
         query = select(
             jobs.c.id,
             jobs.c.kind,
@@ -146,7 +150,7 @@ def claim_job(
             # A calibration was asked for one layout version: after a PUT it no longer applies.
             stale = job.kind == JOB_KIND_CALIBRATION and job.layout_version != room.layout_version
             if (job.status == "running" or stale) and _give_up(
-                conn, job, room.layout_version, max_attempts
+                conn, job, room.layout_version, max_attempts, now
             ):
                 continue
             if _live_builds(conn, job.room_id, job.id, now) >= max_per_room:
@@ -170,7 +174,9 @@ def claim_job(
     return None
 
 
-def _give_up(conn: Connection, job: Any, layout_version: int, max_attempts: int) -> bool:
+def _give_up(
+    conn: Connection, job: Any, layout_version: int, max_attempts: int, now: datetime
+) -> bool:
     if job.attempts < max_attempts and job.layout_version == layout_version:
         return False
     reason = (
@@ -181,7 +187,7 @@ def _give_up(conn: Connection, job: Any, layout_version: int, max_attempts: int)
     conn.execute(
         update(jobs)
         .where(jobs.c.id == job.id)
-        .values(status="failed", error=reason, finished_at=utcnow(), lease_owner=None)
+        .values(status="failed", error=reason, finished_at=now, lease_owner=None)
     )
     return True
 
@@ -205,9 +211,15 @@ def _owned(job_id: str, worker_id: str) -> Any:
     return (jobs.c.id == job_id) & (jobs.c.lease_owner == worker_id) & (jobs.c.status == "running")
 
 
-def heartbeat_job(engine: Engine, *, job_id: str, worker_id: str, lease_seconds: float) -> bool:
-    """Renew the lease; False when the worker no longer owns the job (stop reporting)."""
-    now = utcnow()
+def heartbeat_job(
+    engine: Engine, *, job_id: str, worker_id: str, now: datetime, lease_seconds: float
+) -> bool:
+    """Renew the lease until ``now + lease_seconds``; False when the worker no longer owns the
+    job (stop reporting).
+
+    A worker whose lease ran out still owns the job until another worker claims it, so a late
+    heartbeat of a worker nobody replaced keeps its build.
+    """
     with write_transaction(engine) as conn:
         result = conn.execute(
             update(jobs)
@@ -228,8 +240,10 @@ def report_progress(engine: Engine, *, job_id: str, worker_id: str, progress: fl
     return bool(result.rowcount)
 
 
-def complete_job(engine: Engine, *, claimed: ClaimedJob, build: StoredBuild) -> int | None:
-    """Record the fingerprint and finish the job in one transaction.
+def complete_job(
+    engine: Engine, *, claimed: ClaimedJob, build: StoredBuild, now: datetime
+) -> int | None:
+    """Record the fingerprint and finish the job in one transaction (at ``now``).
 
     Returns the new fingerprint version, or None when the worker lost the job (lease taken
     over, room deleted) and nothing was recorded. The room's current version switches to the
@@ -247,7 +261,6 @@ def complete_job(engine: Engine, *, claimed: ClaimedJob, build: StoredBuild) -> 
         ).one_or_none()
         if room is None or owned is None:
             return None
-        now = utcnow()
         latest = conn.execute(
             select(func.max(fingerprints.c.version)).where(
                 fingerprints.c.room_id == claimed.room_id
@@ -318,8 +331,11 @@ def _insert_fingerprint(
         )
 
 
-def fail_job(engine: Engine, *, claimed: ClaimedJob, error: str, max_attempts: int) -> str | None:
-    """Record a failed attempt: back to ``queued`` while attempts remain, else ``failed``.
+def fail_job(
+    engine: Engine, *, claimed: ClaimedJob, error: str, max_attempts: int, now: datetime
+) -> str | None:
+    """Record a failed attempt: back to ``queued`` while attempts remain, else ``failed``
+    (finished at ``now``).
 
     Returns the new status, or None when the worker no longer owns the job.
     """
@@ -331,7 +347,7 @@ def fail_job(engine: Engine, *, claimed: ClaimedJob, error: str, max_attempts: i
         "lease_expires_at": None,
     }
     if final:
-        values["finished_at"] = utcnow()
+        values["finished_at"] = now
     with translate_errors(), write_transaction(engine) as conn:
         result = conn.execute(
             update(jobs).where(_owned(claimed.job_id, claimed.worker_id)).values(**values)

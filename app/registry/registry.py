@@ -19,6 +19,7 @@ import numpy as np
 import scipy.sparse as sp
 from sqlalchemy import Engine, delete, func, insert, select, text, update
 
+from app.clock import Clock, SystemClock
 from app.vlp.fingerprints import Fingerprint
 from app.vlp.layout import layout_from_mapping
 
@@ -55,7 +56,7 @@ from .errors import (
     PreconditionFailed,
     RoomNotFound,
 )
-from .queue import enqueue_build, utcnow
+from .queue import enqueue_build
 from .records import CalibrationRecord, FingerprintRecord, JobRecord, RoomRecord
 
 __all__ = ["Registry"]
@@ -84,6 +85,10 @@ class Registry:
         Where matrix files are kept: on the local disk only, or in the registry database so
         that hosts sharing only the database serve the same rooms (``Settings`` picks
         ``database`` for PostgreSQL unless told otherwise).
+    clock : Clock, default=None
+        What "now" is for the rows it stamps and the epoch windows it checks; a
+        :class:`app.clock.SystemClock` when None. Workers, the epoch settler and the
+        fingerprint cache built on this registry use the same clock unless given another.
     """
 
     def __init__(
@@ -94,8 +99,10 @@ class Registry:
         max_build_attempts: int = 3,
         job_lease_seconds: float = 30.0,
         matrix_store: MatrixStoreKind = "files",
+        clock: Clock | None = None,
     ) -> None:
         self.database_url = database_url
+        self.clock: Clock = SystemClock() if clock is None else clock
         self.data_dir = data_dir
         self.max_build_attempts = max_build_attempts
         self.job_lease_seconds = job_lease_seconds
@@ -173,7 +180,7 @@ class Registry:
         """
         mapping = normalised_layout(name, layout)
         room_id = uuid.uuid4().hex
-        now = utcnow()
+        now = self.clock.now()
         with write_transaction(self.engine) as conn:
             conn.execute(
                 insert(rooms).values(
@@ -185,7 +192,7 @@ class Registry:
                     updated_at=now,
                 )
             )
-            enqueue_build(conn, room_id=room_id, layout_version=1)
+            enqueue_build(conn, room_id=room_id, layout_version=1, now=now)
         return self.get_room(room_id=room_id)
 
     def list_rooms(self, *, limit: int, cursor: str | None) -> tuple[list[RoomRecord], str | None]:
@@ -223,6 +230,7 @@ class Registry:
         RoomNotFound, PreconditionFailed, app.vlp.errors.GeometryError
         """
         mapping = normalised_layout(name, layout)
+        now = self.clock.now()
         with write_transaction(self.engine) as conn:
             current = locked_layout_version(conn, room_id)
             if current != expected_layout_version:
@@ -234,9 +242,9 @@ class Registry:
             conn.execute(
                 update(rooms)
                 .where(rooms.c.id == room_id)
-                .values(name=name, layout=mapping, layout_version=current + 1, updated_at=utcnow())
+                .values(name=name, layout=mapping, layout_version=current + 1, updated_at=now)
             )
-            enqueue_build(conn, room_id=room_id, layout_version=current + 1)
+            enqueue_build(conn, room_id=room_id, layout_version=current + 1, now=now)
         return self.get_room(room_id=room_id)
 
     def delete_room(self, *, room_id: str) -> None:
@@ -276,7 +284,9 @@ class Registry:
         """Queue a build of the room's layout, or return the queued/running one for it."""
         with write_transaction(self.engine) as conn:
             version = locked_layout_version(conn, room_id)
-            job_id = enqueue_build(conn, room_id=room_id, layout_version=version)
+            job_id = enqueue_build(
+                conn, room_id=room_id, layout_version=version, now=self.clock.now()
+            )
         return self.get_job(job_id=job_id)
 
     def count_jobs_by_status(self) -> dict[str, int]:
@@ -312,7 +322,11 @@ class Registry:
         RoomNotFound, PreconditionFailed (the layout changed meanwhile)
         """
         calibration_id, _ = create_calibration(
-            self.engine, room_id=room_id, layout_version=layout_version, request=request
+            self.engine,
+            room_id=room_id,
+            layout_version=layout_version,
+            request=request,
+            now=self.clock.now(),
         )
         return self.get_calibration(room_id=room_id, calibration_id=calibration_id)
 
@@ -428,7 +442,9 @@ class Registry:
         """
         fingerprint = self.get_fingerprint(room_id=room_id, version=fingerprint_version)
         pinned = replace(settings, fingerprint_version=fingerprint.version, leds=fingerprint.leds)
-        return _epochs.create_epoch(self.engine, room_id=room_id, settings=pinned, now=utcnow())
+        return _epochs.create_epoch(
+            self.engine, room_id=room_id, settings=pinned, now=self.clock.now()
+        )
 
     def get_epoch(self, *, room_id: str, epoch_id: str) -> EpochRecord:
         """One epoch of a room; :class:`EpochNotFound` when unknown."""
@@ -449,5 +465,5 @@ class Registry:
             epoch_id=epoch_id,
             terminal_id=terminal_id,
             amplitudes=amplitudes,
-            now=utcnow(),
+            now=self.clock.now(),
         )

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import time
 import warnings
 from collections.abc import Iterator
 from pathlib import Path
@@ -12,7 +11,7 @@ import pytest
 
 from app.main import create_app
 from app.settings import Settings
-from tests.db_fixtures import database_url, postgres_url
+from tests.waiting import wait_for
 
 with warnings.catch_warnings():
     # starlette prefers httpx2 for its test client; the suite's httpx works the same.
@@ -25,9 +24,9 @@ __all__ = [
     "TERMINAL",
     "TERMINAL_KEY",
     "TestClient",
-    "database_url",
+    "assert_problem",
     "make_settings",
-    "postgres_url",
+    "small_room",
     "wait_for_job",
     "wait_for_room",
 ]
@@ -36,7 +35,7 @@ ADMIN_KEY = "admin-test-key-0123456789"
 TERMINAL_KEY = "terminal-test-key-0123456789"
 ADMIN = {"X-API-Key": ADMIN_KEY}
 TERMINAL = {"X-API-Key": TERMINAL_KEY}
-BUILD_TIMEOUT_S = 90.0
+BUILD_TIMEOUT_S = 120.0  # a safety timeout
 
 
 def make_settings(data_dir: Path, **overrides: Any) -> Settings:
@@ -54,19 +53,58 @@ def make_settings(data_dir: Path, **overrides: Any) -> Settings:
     return Settings(**values)
 
 
+def small_room(name: str = "Small room", **changes: Any) -> dict[str, Any]:
+    """A 2 x 1 m room with two LEDs (defaults left out on purpose)."""
+    body: dict[str, Any] = {
+        "name": name,
+        "room": {"length": 2.0, "width": 1.0, "height": 2.5},
+        "grid": {"step": 0.25, "receiver_height": 0.8},
+        "leds": [{"x": 0.5, "y": 0.5}, {"x": 1.5, "y": 0.5, "pilot_amplitude": 2.0}],
+    }
+    body.update(changes)
+    return body
+
+
+def assert_problem(response: Any, status: int, fields: list[str] | None = None) -> dict[str, Any]:
+    """The response is a problem of ``status`` naming exactly ``fields`` (when given)."""
+    assert response.status_code == status, response.text
+    assert response.headers["content-type"] == "application/problem+json"
+    problem: dict[str, Any] = response.json()
+    assert {"type", "title", "status", "detail", "instance"} <= problem.keys()
+    assert problem["status"] == status
+    if fields is not None:
+        assert sorted(error["field"] for error in problem["errors"]) == sorted(fields)
+    return problem
+
+
 def wait_for_room(
     client: TestClient, room_id: str, timeout_s: float = BUILD_TIMEOUT_S
 ) -> dict[str, Any]:
-    """Poll the room until its fingerprint is ready (fail on `failed` or timeout)."""
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        room: dict[str, Any] = client.get(f"/v1/rooms/{room_id}", headers=TERMINAL).json()
-        status = room["fingerprint"]["status"]
-        assert status != "failed", room
-        if status == "ready":
-            return room
-        time.sleep(0.1)
-    raise AssertionError(f"room {room_id} not ready after {timeout_s} s")
+    """Poll the room until its fingerprint is ready (fail at once on `failed`)."""
+    room: dict[str, Any] = {}
+
+    def ready() -> bool:
+        room.update(client.get(f"/v1/rooms/{room_id}", headers=TERMINAL).json())
+        assert room["fingerprint"]["status"] != "failed", room
+        return bool(room["fingerprint"]["status"] == "ready")
+
+    wait_for(ready, f"room {room_id} to be ready", timeout_s)
+    return room
+
+
+def wait_for_job(
+    client: TestClient, job_id: str, timeout_s: float = BUILD_TIMEOUT_S
+) -> dict[str, Any]:
+    """Poll a job until it succeeded (fail at once on `failed`) and return it."""
+    job: dict[str, Any] = {}
+
+    def succeeded() -> bool:
+        job.update(client.get(f"/v1/jobs/{job_id}", headers=TERMINAL).json())
+        assert job["status"] != "failed", job
+        return bool(job["status"] == "succeeded")
+
+    wait_for(succeeded, f"job {job_id} to succeed", timeout_s)
+    return job
 
 
 @pytest.fixture
@@ -94,17 +132,3 @@ def worker_app(tmp_path_factory: pytest.TempPathFactory) -> Iterator[TestClient]
     settings = make_settings(tmp_path_factory.mktemp("worker"), embedded_workers=1)
     with TestClient(create_app(settings)) as test_client:
         yield test_client
-
-
-def wait_for_job(
-    client: TestClient, job_id: str, timeout_s: float = BUILD_TIMEOUT_S
-) -> dict[str, Any]:
-    """Poll a job until it succeeded (fail on `failed` or timeout) and return it."""
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        job: dict[str, Any] = client.get(f"/v1/jobs/{job_id}", headers=TERMINAL).json()
-        assert job["status"] != "failed", job
-        if job["status"] == "succeeded":
-            return job
-        time.sleep(0.1)
-    raise AssertionError(f"job {job_id} not done after {timeout_s} s")

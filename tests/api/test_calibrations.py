@@ -16,8 +16,7 @@ from app.vlp.layout import Layout, layout_from_mapping
 from app.vlp.presets import paper_layout
 from app.vlp.simulation import noisy_amplitudes, true_amplitudes
 
-from .conftest import ADMIN, TERMINAL, TestClient, wait_for_job, wait_for_room
-from .test_rooms import assert_problem
+from .conftest import ADMIN, TERMINAL, TestClient, assert_problem, wait_for_job, wait_for_room
 
 DIMMED, DEAD = 5, 10
 

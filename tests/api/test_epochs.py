@@ -1,11 +1,14 @@
-"""Epochs over HTTP: join, replace, solve once, expire, 409, labels, restart, two processes."""
+"""Epochs over HTTP: join, replace, solve once, expire, 409, labels, restart, two processes.
+
+Every app runs on a :class:`FakeClock`: a window closes (and a solve claim runs out) when the
+test advances the clock, so three posts always fit in a window however slow the machine is.
+"""
 
 from __future__ import annotations
 
 import functools
 import math
 import threading
-import time
 from collections.abc import Iterator
 from datetime import datetime
 from pathlib import Path
@@ -16,19 +19,19 @@ import pytest
 from fastapi import FastAPI
 
 import app.api.epoch_settler
+from app.clock import FakeClock
 from app.main import create_app
 from app.registry import Registry
 from app.registry.epochs import claim_epoch
-from app.registry.queue import utcnow
 from app.schemas.epochs import epoch_create_examples, epoch_measurement_examples
 from app.vlp.errors import SolverError
 from app.vlp.fingerprints import build_fingerprint
 from app.vlp.presets import paper_layout
 from app.vlp.simulation import noise_std_for_snr, noisy_amplitudes, true_amplitudes
 from tests.db_fixtures import build_now
+from tests.waiting import wait_for
 
-from .conftest import ADMIN, TERMINAL, TestClient, make_settings
-from .test_rooms import assert_problem
+from .conftest import ADMIN, TERMINAL, TestClient, assert_problem, make_settings
 
 TRUTH = np.array([[0.7, 0.9], [2.1, 3.3], [3.4, 1.5]])
 
@@ -43,12 +46,24 @@ def registry_of(client: TestClient) -> Registry:
     return registry
 
 
-def start(data_dir: Path, database_url: str, **overrides: Any) -> TestClient:
-    """An app on ``database_url`` whose demo (paper) room has a ready fingerprint."""
+def clock_of(client: TestClient) -> FakeClock:
+    clock = service(client).state.clock
+    assert isinstance(clock, FakeClock)
+    return clock
+
+
+def start(
+    data_dir: Path, database_url: str, clock: FakeClock | None = None, **overrides: Any
+) -> TestClient:
+    """An app on ``database_url`` whose demo (paper) room has a ready fingerprint.
+
+    It runs on ``clock`` (a new FakeClock when None); apps that stand for processes sharing
+    one registry share one clock, as processes on one machine share its time.
+    """
     values: dict[str, Any] = {"database_url": database_url, "demo": True}
     values["epoch_sweep_seconds"] = 0  # windows close lazily unless a test turns it on
     settings = make_settings(data_dir, **{**values, **overrides})
-    client = TestClient(create_app(settings))
+    client = TestClient(create_app(settings, clock=FakeClock() if clock is None else clock))
     client.__enter__()
     registry = registry_of(client)
     room_id = room_of(client)
@@ -104,10 +119,11 @@ def read(client: TestClient, epoch: dict[str, Any]) -> dict[str, Any]:
     return result
 
 
-def wait_past(epoch: dict[str, Any]) -> None:
-    """Sleep until the epoch's window has passed (its deadline, not a timed assertion)."""
-    deadline = datetime.fromisoformat(epoch["expires_at"]).timestamp()
-    time.sleep(max(0.0, deadline - time.time()) + 0.05)
+def let_window_pass(client: TestClient, epoch: dict[str, Any]) -> None:
+    """Advance the app's clock to the epoch's deadline: from then on its window is closed."""
+    clock = clock_of(client)
+    deadline = datetime.fromisoformat(epoch["expires_at"])
+    clock.advance(max(0.0, (deadline - clock.now()).total_seconds()))
 
 
 @functools.cache
@@ -183,7 +199,7 @@ def test_a_closed_epoch_refuses_posts_and_stays_as_it_was(client: TestClient) ->
 def test_too_few_terminals_expire_when_the_window_passes(client: TestClient) -> None:
     epoch = create(client, room_of(client), window_s=1.0, min_terminals=2)
     post(client, epoch, "t1", terminal_amplitudes(seed=1)[0])
-    wait_past(epoch)
+    let_window_pass(client, epoch)
     assert_problem(post(client, epoch, "t2", terminal_amplitudes(seed=1)[1]), 409)
     expired = read(client, epoch)
     assert expired["status"] == "expired" and expired["localization"] is None
@@ -201,7 +217,8 @@ def test_a_passed_window_is_solved_by_the_next_read(client: TestClient) -> None:
     epoch = create(client, room_of(client), window_s=1.0)
     for name, row in zip(["t1", "t2", "t3"], terminal_amplitudes(seed=4), strict=True):
         assert post(client, epoch, name, row).status_code == 202
-    wait_past(epoch)
+    assert read(client, epoch)["status"] == "open"  # a read before the deadline leaves it open
+    let_window_pass(client, epoch)
     solved = read(client, epoch)
     assert solved["status"] == "solved"
     assert_labelled_near_truth(solved, ["t1", "t2", "t3"])
@@ -308,13 +325,14 @@ def test_a_crashing_solver_fails_the_epoch_instead_of_sticking(
 
 def test_epochs_survive_a_restart(tmp_path: Path, database_url: str) -> None:
     amplitudes = terminal_amplitudes(seed=8)
-    first = start(tmp_path / "data", database_url)
+    clock = FakeClock()
+    first = start(tmp_path / "data", database_url, clock)
     try:
         epoch = create(first, room_of(first), window_s=60)
         assert post(first, epoch, "t1", amplitudes[0]).status_code == 202
     finally:
         first.__exit__(None, None, None)
-    second = start(tmp_path / "data", database_url)
+    second = start(tmp_path / "data", database_url, clock)
     try:
         assert read(second, epoch)["terminals"] == 1
         for name, row in zip(["t2", "t3"], amplitudes[1:], strict=True):
@@ -334,7 +352,8 @@ def settled(client: TestClient, status: str) -> float:
 
 @pytest.mark.postgres
 def test_two_processes_share_one_epoch_and_solve_it_once(tmp_path: Path, postgres_url: str) -> None:
-    apps = [start(tmp_path / "data", postgres_url) for _ in range(2)]
+    clock = FakeClock()
+    apps = [start(tmp_path / "data", postgres_url, clock) for _ in range(2)]
     try:
         epoch = create(apps[0], room_of(apps[0]))
         amplitudes = terminal_amplitudes(seed=9)
@@ -370,14 +389,15 @@ def test_the_sweeper_closes_passed_windows_without_any_request(
     try:
         epoch = create(swept, room_of(swept), window_s=1.0)
         for name, row in zip(["t1", "t2", "t3"], terminal_amplitudes(seed=10), strict=True):
-            post(swept, epoch, name, row)
+            assert post(swept, epoch, name, row).status_code == 202
         registry = registry_of(swept)
-        deadline = time.monotonic() + 30
-        record = registry.get_epoch(room_id=epoch["room_id"], epoch_id=epoch["id"])
-        while record.status in ("open", "solving") and time.monotonic() < deadline:
-            time.sleep(0.05)
-            record = registry.get_epoch(room_id=epoch["room_id"], epoch_id=epoch["id"])
-        assert record.status == "solved"
+        ids = {"room_id": epoch["room_id"], "epoch_id": epoch["id"]}
+        let_window_pass(swept, epoch)
+        wait_for(
+            lambda: registry.get_epoch(**ids).status not in ("open", "solving"),
+            "the sweeper to close the passed window",
+        )
+        assert registry.get_epoch(**ids).status == "solved"
         assert settled(swept, "solved") == 1
         assert_labelled_near_truth(read(swept, epoch), ["t1", "t2", "t3"])
     finally:
@@ -390,7 +410,7 @@ def test_a_sweep_purges_epochs_past_their_retention(tmp_path: Path, database_url
         epoch = create(brief, room_of(brief))
         kept = create(brief, room_of(brief))
         assert solve(brief, epoch)["status"] == "expired"
-        time.sleep(0.01)  # let its retention pass
+        clock_of(brief).advance(0.5)  # past its retention, not past the other's 2 s window
         service(brief).state.epoch_settler.sweep()
         gone = brief.get(f"/v1/rooms/{epoch['room_id']}/epochs/{epoch['id']}", headers=TERMINAL)
         assert_problem(gone, 404)
@@ -425,13 +445,13 @@ def test_an_epoch_whose_solver_died_is_taken_over_when_its_claim_runs_out(
     for name, row in zip(["t1", "t2", "t3"], terminal_amplitudes(seed=11), strict=True):
         post(client, epoch, name, row)
     ids = {"room_id": epoch["room_id"], "epoch_id": epoch["id"]}
-    # Another process claimed it and died: its claim (a lease) runs out after 1 s (long
-    # enough that the read and the refused post below surely happen while it holds).
+    # Another process claimed it and died: its claim (a lease) runs out after 1 s.
+    clock = clock_of(client)
     dead = claim_epoch(
         registry_of(client).engine,
         **ids,
         owner="dead-process",
-        now=utcnow(),
+        now=clock.now(),
         lease_s=1.0,
         max_attempts=3,
         force=True,
@@ -440,7 +460,7 @@ def test_an_epoch_whose_solver_died_is_taken_over_when_its_claim_runs_out(
     being_solved = read(client, epoch)
     assert (being_solved["status"], being_solved["closed"]) == ("open", True)
     assert_problem(post(client, epoch, "t4", terminal_amplitudes(seed=11)[0]), 409)
-    time.sleep(1.05)  # let the dead process's lease run out
+    clock.advance(1.0)  # the dead process's lease runs out
     solved = solve(client, epoch)
     assert solved["status"] == "solved"
     assert_labelled_near_truth(solved, ["t1", "t2", "t3"])

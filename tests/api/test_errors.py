@@ -11,8 +11,7 @@ import pytest
 
 from app.main import create_app
 
-from .conftest import ADMIN, TestClient, make_settings
-from .test_rooms import assert_problem, small_room
+from .conftest import ADMIN, TestClient, assert_problem, make_settings, small_room
 
 
 def test_unknown_route_is_problem_404(client: TestClient) -> None:

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import hashlib
 import io
-import time
 from pathlib import Path
 from typing import Any
 
@@ -16,9 +15,18 @@ from numpy.testing import assert_allclose
 from app.main import create_app
 from app.vlp.fingerprints import Fingerprint, build_fingerprint
 from app.vlp.layout import layout_from_mapping
+from tests.waiting import wait_for
 
-from .conftest import ADMIN, TERMINAL, TestClient, make_settings, wait_for_room
-from .test_rooms import assert_problem, small_room
+from .conftest import (
+    ADMIN,
+    TERMINAL,
+    TestClient,
+    assert_problem,
+    make_settings,
+    small_room,
+    wait_for_job,
+    wait_for_room,
+)
 
 
 def test_metadata_of_current_and_numbered_version_agree(ready_app: tuple[TestClient, str]) -> None:
@@ -98,12 +106,8 @@ def test_rebuild_answers_202_with_job_location(client: TestClient) -> None:
 
 def test_rebuild_job_runs_to_success(ready_app: tuple[TestClient, str]) -> None:
     client, room_id = ready_app
-    job: dict[str, Any] = client.post(f"/v1/rooms/{room_id}/fingerprints", headers=ADMIN).json()
-    deadline = time.monotonic() + 60
-    while job["status"] not in ("succeeded", "failed") and time.monotonic() < deadline:
-        time.sleep(0.1)
-        job = client.get(f"/v1/jobs/{job['id']}", headers=TERMINAL).json()
-    assert job["status"] == "succeeded", job
+    queued = client.post(f"/v1/rooms/{room_id}/fingerprints", headers=ADMIN).json()
+    job = wait_for_job(client, queued["id"])
     assert job["progress"] == 1.0 and job["error"] is None
     version = job["result"]["fingerprint_version"]
     assert version >= 1
@@ -159,8 +163,6 @@ def test_corrupt_matrix_is_never_served_and_gets_rebuilt(tmp_path: Path) -> None
         url = f"/v1/rooms/{room_id}/fingerprints/{meta['version']}/J.npy"
         problem = assert_problem(client.get(url, headers=TERMINAL), 503)
         assert "not the matrix" not in problem["detail"]
-        deadline = time.monotonic() + 60
-        while (response := client.get(url, headers=TERMINAL)).status_code != 200:
-            assert time.monotonic() < deadline, response.text
-            time.sleep(0.1)
+        wait_for(lambda: client.get(url, headers=TERMINAL).status_code == 200, "the rebuild")
+        response = client.get(url, headers=TERMINAL)
         assert hashlib.sha256(response.content).hexdigest() == sha

@@ -20,8 +20,15 @@ import pytest
 from app.main import create_app
 from app.schemas.rooms import paper_room_example
 
-from .conftest import ADMIN, TERMINAL, TestClient, make_settings, wait_for_room
-from .test_rooms import assert_problem, small_room
+from .conftest import (
+    ADMIN,
+    TERMINAL,
+    TestClient,
+    assert_problem,
+    make_settings,
+    small_room,
+    wait_for_room,
+)
 
 M_DEMO = 16
 N_SMALL = 32  # small_room(): 2 x 1 m at 0.25 m

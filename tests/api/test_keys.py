@@ -17,8 +17,7 @@ from app.registry.keys import KeyRecord
 from bench._server import ADMIN_KEY as LIVE_ADMIN_KEY
 from bench._server import live_server
 
-from .conftest import ADMIN, ADMIN_KEY, TERMINAL, TestClient, make_settings
-from .test_rooms import assert_problem
+from .conftest import ADMIN, ADMIN_KEY, TERMINAL, TestClient, assert_problem, make_settings
 
 ROOMS = "/v1/rooms"
 

@@ -6,8 +6,7 @@ from pathlib import Path
 
 from app.main import create_app
 
-from .conftest import ADMIN, TestClient, make_settings, wait_for_room
-from .test_rooms import small_room
+from .conftest import ADMIN, TestClient, make_settings, small_room, wait_for_room
 
 
 def test_lifespan_twice_keeps_building_and_fails_no_job(tmp_path: Path) -> None:

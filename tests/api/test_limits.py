@@ -10,8 +10,7 @@ import pytest
 from app.main import create_app
 from app.settings import Settings
 
-from .conftest import ADMIN, ADMIN_KEY, TERMINAL_KEY, TestClient
-from .test_rooms import assert_problem, small_room
+from .conftest import ADMIN, ADMIN_KEY, TERMINAL_KEY, TestClient, assert_problem, small_room
 
 
 @pytest.fixture

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import itertools
 import math
-import time
 from pathlib import Path
 from typing import Any
 
@@ -12,13 +11,21 @@ import numpy as np
 import pytest
 from numpy.testing import assert_allclose
 
+from app.clock import FakeClock
 from app.main import create_app
 from app.vlp.fingerprints import Fingerprint
 from app.vlp.measurements import measurement_from_correlation, vech
 from app.vlp.solvers import make_solver
 
-from .conftest import ADMIN, TERMINAL, TestClient, make_settings, wait_for_room
-from .test_rooms import assert_problem, small_room
+from .conftest import (
+    ADMIN,
+    TERMINAL,
+    TestClient,
+    assert_problem,
+    make_settings,
+    small_room,
+    wait_for_room,
+)
 
 # Two grid cells of the paper room (0.2 m grid, n_y = 20): centres (1.3, 0.5) and (2.7, 3.1).
 CELLS = [6 * 20 + 2, 13 * 20 + 15]
@@ -234,10 +241,13 @@ def test_localize_before_ready_is_409(client: TestClient) -> None:
     assert "fingerprint" in problem["detail"]
 
 
-def test_other_process_notices_a_new_version_within_2s(tmp_path: Path) -> None:
-    """Two apps on one registry: B only reads; A replaces the room and builds version 2."""
+def test_other_process_notices_a_new_version_after_the_check_interval(tmp_path: Path) -> None:
+    """Two apps on one registry: B only reads, on a stepped clock; A replaces the room and
+    builds version 2. B answers with version 1 until its re-read interval (1 s) has passed
+    on its clock, and the next request after that answers with version 2."""
+    clock = FakeClock()
     builder = TestClient(create_app(make_settings(tmp_path, demo=True, embedded_workers=1)))
-    reader = TestClient(create_app(make_settings(tmp_path, version_check_seconds=1.0)))
+    reader = TestClient(create_app(make_settings(tmp_path, version_check_seconds=1.0), clock=clock))
     with builder, reader:
         room = builder.get("/v1/rooms", headers=ADMIN).json()["items"][0]
         room = wait_for_room(builder, room["id"])
@@ -255,13 +265,10 @@ def test_other_process_notices_a_new_version_within_2s(tmp_path: Path) -> None:
             f"/v1/rooms/{room['id']}", json=layout, headers={**ADMIN, "If-Match": etag}
         )
         assert put.status_code == 200, put.text
-        wait_for_room(builder, room["id"])
-        while (
-            builder.get(f"/v1/rooms/{room['id']}", headers=ADMIN).json()["fingerprint"]["version"]
-            == first
-        ):
-            time.sleep(0.05)
-        switched = time.monotonic()
-        while localize(reader, room["id"], body)["fingerprint_version"] == first:
-            assert time.monotonic() - switched < 2.0
-            time.sleep(0.05)
+        rebuilt = wait_for_room(builder, room["id"])["fingerprint"]["version"]
+        assert rebuilt == first + 1
+        assert localize(reader, room["id"], body)["fingerprint_version"] == first
+        clock.advance(0.5)
+        assert localize(reader, room["id"], body)["fingerprint_version"] == first
+        clock.advance(0.5)  # the interval has passed since B last read the version
+        assert localize(reader, room["id"], body)["fingerprint_version"] == rebuilt

@@ -11,8 +11,7 @@ import pytest
 from app.vlp.presets import paper_layout
 from app.vlp.simulation import true_amplitudes
 
-from .conftest import TERMINAL, TestClient
-from .test_rooms import assert_problem
+from .conftest import TERMINAL, TestClient, assert_problem
 
 TRUTH = np.array([[0.8, 1.1], [2.9, 3.2], [2.2, 0.6]])
 

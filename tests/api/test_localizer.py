@@ -9,22 +9,12 @@ import pytest
 
 from app.api.localizer import FingerprintCache
 from app.api.metrics import Metrics
+from app.clock import FakeClock
 from app.main import create_app
 from app.registry import Registry
 from app.registry.errors import FingerprintNotReady, RoomNotFound
 
-from .conftest import ADMIN, TestClient, make_settings, wait_for_room
-from .test_rooms import small_room
-
-
-class Clock:
-    """A hand-moved monotonic clock."""
-
-    def __init__(self) -> None:
-        self.now = 0.0
-
-    def __call__(self) -> float:
-        return self.now
+from .conftest import ADMIN, TestClient, make_settings, small_room, wait_for_room
 
 
 @pytest.fixture
@@ -53,16 +43,16 @@ def test_version_is_reread_only_after_the_interval(
     two_ready_rooms: tuple[TestClient, Registry, list[str]],
 ) -> None:
     client, registry, (room_id, _) = two_ready_rooms
-    clock = Clock()
+    clock = FakeClock()
     cache = FingerprintCache(
         registry=registry, size=4, version_check_seconds=1.0, metrics=Metrics(), clock=clock
     )
     version = cache.current_version(room_id)
     assert version == registry.current_version(room_id=room_id)
     client.delete(f"/v1/rooms/{room_id}", headers=ADMIN)
-    clock.now = 0.9
+    clock.advance(0.9)
     assert cache.current_version(room_id) == version  # still cached
-    clock.now = 1.0
+    clock.advance(0.1)
     with pytest.raises(RoomNotFound):
         cache.current_version(room_id)
 

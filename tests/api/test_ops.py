@@ -5,22 +5,20 @@ from __future__ import annotations
 import json
 import os
 import re
-import socket
 import subprocess
 import sys
-import time
 from pathlib import Path
 from typing import Any
 
-import httpx
 import pytest
 
 from app.cli import main as vlp_main
 from app.cli import openapi_document
 from app.registry.errors import RegistryUnavailable
+from bench._server import bound_url, wait_until_healthy
+from tests.waiting import SAFETY_TIMEOUT_S
 
-from .conftest import ADMIN, TERMINAL, TestClient
-from .test_rooms import assert_problem
+from .conftest import ADMIN, TERMINAL, TestClient, assert_problem
 
 REPO = Path(__file__).resolve().parents[2]
 OPENAPI_FILE = REPO / "openapi" / "openapi.json"
@@ -166,11 +164,10 @@ def test_docs_work_offline(client: TestClient) -> None:
 
 
 def test_vlp_serve_logs_json_and_vlp_rooms_lists(tmp_path: Path) -> None:
-    """A real `vlp serve` process: JSON log lines with request ids; `vlp rooms` reads it."""
+    """A real `vlp serve` process on the port it picked: JSON log lines with request ids;
+    `vlp rooms` reads it."""
     vlp = Path(sys.executable).with_name("vlp")
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        port = sock.getsockname()[1]
+    port_file = tmp_path / "serve.port"
     env = {
         **os.environ,
         "VLP_DATA_DIR": str(tmp_path),
@@ -182,18 +179,14 @@ def test_vlp_serve_logs_json_and_vlp_rooms_lists(tmp_path: Path) -> None:
     log_path = tmp_path / "server.log"
     with log_path.open("wb") as log:
         server = subprocess.Popen(
-            [str(vlp), "serve", "--port", str(port)], env=env, stdout=log, stderr=log
+            [str(vlp), "serve", "--port", "0", "--port-file", str(port_file)],
+            env=env,
+            stdout=log,
+            stderr=log,
         )
         try:
-            url = f"http://127.0.0.1:{port}"
-            deadline = time.monotonic() + 30
-            while True:
-                assert server.poll() is None and time.monotonic() < deadline, log_path.read_text()
-                try:
-                    if httpx.get(f"{url}/readyz", timeout=1).status_code == 200:
-                        break
-                except httpx.HTTPError:
-                    time.sleep(0.1)
+            url = bound_url(port_file, server, timeout_s=SAFETY_TIMEOUT_S)
+            wait_until_healthy(url, server, timeout_s=SAFETY_TIMEOUT_S)
             listed = subprocess.run(
                 [str(vlp), "rooms", "list", "--json", "--url", url, "--key", TERMINAL["X-API-Key"]],
                 capture_output=True,
@@ -217,6 +210,7 @@ def test_vlp_serve_logs_json_and_vlp_rooms_lists(tmp_path: Path) -> None:
             server.terminate()
             server.wait(timeout=15)
     lines = [json.loads(line) for line in log_path.read_text().splitlines() if line.strip()]
+    assert any(line["message"].startswith(f"Uvicorn running on {url} ") for line in lines)
     access = [line for line in lines if line["logger"] == "app.access"]
     assert any(line["route"] == "/v1/rooms" and line["status"] == 200 for line in access)
     assert all(len(line["request_id"]) == 32 for line in access)

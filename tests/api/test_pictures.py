@@ -11,8 +11,15 @@ from PIL import Image
 from app.api.picture_cache import PictureCache
 from app.schemas.rooms import paper_room_example
 
-from .conftest import ADMIN, TERMINAL, TestClient, wait_for_job, wait_for_room
-from .test_rooms import assert_problem, small_room
+from .conftest import (
+    ADMIN,
+    TERMINAL,
+    TestClient,
+    assert_problem,
+    small_room,
+    wait_for_job,
+    wait_for_room,
+)
 
 
 def _png(content: bytes) -> Image.Image:

@@ -13,8 +13,7 @@ import pytest
 from app.vlp.fingerprints import build_fingerprint
 from app.vlp.layout import layout_from_mapping
 
-from .conftest import ADMIN, TERMINAL, TestClient, wait_for_room
-from .test_rooms import assert_problem
+from .conftest import ADMIN, TERMINAL, TestClient, assert_problem, wait_for_room
 
 PAPER_ROOM = json.loads(Path("examples/paper-room.json").read_text(encoding="utf-8"))
 REFLECTIVE = PAPER_ROOM | {

@@ -3,39 +3,16 @@
 from __future__ import annotations
 
 import copy
-import time
+import tracemalloc
 from typing import Any
 
 import pytest
 
+import app.api.rooms
 from app.schemas.rooms import paper_room_example
 from app.vlp.layout import layout_from_mapping
 
-from .conftest import ADMIN, TERMINAL, TestClient, make_settings
-
-
-def small_room(name: str = "Small room", **changes: Any) -> dict[str, Any]:
-    """A 2 x 1 m room with two LEDs (defaults left out on purpose)."""
-    body: dict[str, Any] = {
-        "name": name,
-        "room": {"length": 2.0, "width": 1.0, "height": 2.5},
-        "grid": {"step": 0.25, "receiver_height": 0.8},
-        "leds": [{"x": 0.5, "y": 0.5}, {"x": 1.5, "y": 0.5, "pilot_amplitude": 2.0}],
-    }
-    body.update(changes)
-    return body
-
-
-def assert_problem(response: Any, status: int, fields: list[str] | None = None) -> dict[str, Any]:
-    """The response is a problem of ``status`` naming exactly ``fields`` (when given)."""
-    assert response.status_code == status, response.text
-    assert response.headers["content-type"] == "application/problem+json"
-    problem: dict[str, Any] = response.json()
-    assert {"type", "title", "status", "detail", "instance"} <= problem.keys()
-    assert problem["status"] == status
-    if fields is not None:
-        assert sorted(error["field"] for error in problem["errors"]) == sorted(fields)
-    return problem
+from .conftest import ADMIN, TERMINAL, TestClient, assert_problem, make_settings, small_room
 
 
 def test_create_applies_defaults_and_answers_location_and_etag(client: TestClient) -> None:
@@ -205,15 +182,31 @@ def test_invalid_layout_names_the_field(
     assert client.get("/v1/rooms", headers=ADMIN).json()["items"] == []
 
 
-def test_tiny_grid_step_is_refused_before_any_allocation(client: TestClient) -> None:
+def test_tiny_grid_step_is_refused_before_any_allocation(
+    client: TestClient, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The grid size is checked from the numbers alone: the layout is never built and the
+    request allocates next to nothing (traced by tracemalloc). Its speed is in
+    docs/performance.md (bench.bounded_work)."""
     # 1e-5 m over 4 x 4 m would be 1.6e11 grid points.
     body = small_room(
         room={"length": 4.0, "width": 4.0, "height": 3.0},
         grid={"step": 1e-5, "receiver_height": 0.8},
     )
-    started = time.perf_counter()
-    response = client.post("/v1/rooms", json=body, headers=ADMIN)
-    assert time.perf_counter() - started < 2.0
+
+    def refuse_to_build(*_args: object, **_kwargs: object) -> None:
+        raise AssertionError("the layout was built before its grid size was checked")
+
+    monkeypatch.setattr(app.api.rooms, "layout_from_mapping", refuse_to_build)
+    tracemalloc.start()
+    try:
+        response = client.post("/v1/rooms", json=body, headers=ADMIN)
+        peak_bytes = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    # The request needs well under 1 MB. One float64 per grid point would be 1.3 TB, a
+    # chunk of a million of them 8 MB.
+    assert peak_bytes < 4 * 1024**2, peak_bytes
     problem = assert_problem(response, 422, ["body.grid.step"])
     assert "1.6e+11" in problem["detail"]
 

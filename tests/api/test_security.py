@@ -13,8 +13,7 @@ import pytest
 from app.api.security import CREDENTIALS_FILE, hash_key
 from app.main import create_app
 
-from .conftest import ADMIN, TERMINAL, TestClient, make_settings
-from .test_rooms import assert_problem, small_room
+from .conftest import ADMIN, TERMINAL, TestClient, assert_problem, make_settings, small_room
 
 # Operations anyone may call without a key (API.md); every other operation must need one.
 _OPEN = {("GET", "/healthz"), ("GET", "/readyz"), ("GET", "/metrics")}

@@ -11,8 +11,7 @@ from numpy.testing import assert_allclose
 from app.vlp.fingerprints import Fingerprint
 from app.vlp.measurements import vech
 
-from .conftest import ADMIN, TERMINAL, TestClient
-from .test_rooms import assert_problem, small_room
+from .conftest import ADMIN, TERMINAL, TestClient, assert_problem, small_room
 
 CELLS = [6 * 20 + 2, 13 * 20 + 15]
 

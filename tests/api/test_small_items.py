@@ -5,9 +5,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from .conftest import ADMIN, TERMINAL, TestClient
+from .conftest import ADMIN, TERMINAL, TestClient, assert_problem, small_room
 from .test_epochs import create, post, room_of, start
-from .test_rooms import assert_problem, small_room
 
 
 def test_root_redirects_to_the_docs(client: TestClient) -> None:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import socket
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -15,7 +16,7 @@ from app.cli import _remote as remote_commands
 from app.cli._bench import run_benchmark
 from app.client import VLPClient
 from app.schemas.localize import localize_example
-from bench._server import ADMIN_KEY, TERMINAL_KEY, LiveServer, free_port, live_server
+from bench._server import ADMIN_KEY, TERMINAL_KEY, LiveServer, live_server
 
 REPO = Path(__file__).resolve().parents[2]
 PAPER_ROOM = REPO / "examples" / "paper-room.json"
@@ -127,8 +128,12 @@ def test_errors_exit_with_the_problem(
 
 
 def test_unreachable_service_exits_3(capsys: pytest.CaptureFixture[str]) -> None:
-    url = f"http://127.0.0.1:{free_port()}"
-    code, out, err = _run(capsys, "rooms", "list", "--url", url, "--key", "k")
+    # A port this test holds bound but never listens on: connections to it are refused, and
+    # no other process can start listening there while the test runs.
+    with socket.socket() as closed:
+        closed.bind(("127.0.0.1", 0))
+        url = f"http://127.0.0.1:{closed.getsockname()[1]}"
+        code, out, err = _run(capsys, "rooms", "list", "--url", url, "--key", "k")
     assert code == EXIT_NO_ANSWER and out == "" and f"no answer from {url}" in err
 
 

@@ -4,10 +4,13 @@ from __future__ import annotations
 
 from typing import Any
 
-from tests.processes import VlpProcess, pid_alive, wait_for
+from tests.build_gate import BuildGate
+from tests.processes import VlpProcess, pid_alive
+from tests.waiting import wait_for
 
 __all__ = [
     "HALL_TIMEOUT_S",
+    "MID_BUILD",
     "assert_orphans_exit",
     "create_room",
     "job",
@@ -16,6 +19,8 @@ __all__ = [
 ]
 
 HALL_TIMEOUT_S = 600.0
+# Where the gate holds a build that a test kills: well under way, far from done.
+MID_BUILD = 0.2
 
 
 def job(server: VlpProcess, job_id: str) -> dict[str, Any]:
@@ -48,18 +53,21 @@ def wait_succeeded(server: VlpProcess, job_id: str, timeout_s: float = 120.0) ->
     return job(server, job_id)
 
 
-def kill_mid_build(process: VlpProcess, server: VlpProcess, job_id: str) -> list[int]:
-    """Wait until the build is well under way, ``kill -9`` ``process``; its build children."""
+def kill_mid_build(
+    process: VlpProcess, server: VlpProcess, job_id: str, gate: BuildGate
+) -> list[int]:
+    """``kill -9`` ``process`` while its build of ``job_id`` is held at the (shut) gate, at
+    ``gate.at`` of the way; open the gate; return the killed process's build children.
 
-    def under_way() -> bool:
-        state = job(server, job_id)
-        assert state["status"] in ("queued", "running"), state
-        return bool(state["status"] == "running" and state["progress"] >= 0.2)
-
-    wait_for(under_way, "the hall build to be 20 % done", HALL_TIMEOUT_S)
+    The build cannot finish before the kill, however fast the machine: it waits at the gate.
+    """
+    assert gate.wait_held(HALL_TIMEOUT_S) == job_id
+    state = job(server, job_id)
+    assert state["status"] == "running" and state["progress"] >= gate.at, state
     children = process.build_children()
     assert children, "the build runs in a child process"
     process.kill9()
+    gate.open()  # the orphan ends by itself (it watches its parent); later builds pass
     return children
 
 

@@ -3,6 +3,7 @@ admins, and two ``vlp worker`` processes sharing one queue (SQLite and PostgreSQ
 
 from __future__ import annotations
 
+import operator
 import threading
 from collections import Counter
 from functools import partial
@@ -17,10 +18,13 @@ from app.registry import Registry
 from app.registry.errors import PreconditionFailed
 from app.vlp.measurements import measurement_from_power
 from app.vlp.solvers import make_solver
+from tests.build_gate import BuildGate
 from tests.db_fixtures import hall_layout, small_layout
-from tests.processes import TERMINAL, VlpProcess, process_fleet, wait_for
+from tests.processes import TERMINAL, VlpProcess, process_fleet
+from tests.waiting import wait_for
 
 from .checks import assert_nothing_lost, registry_of
+from .steps import MID_BUILD
 
 pytestmark = pytest.mark.slow
 
@@ -62,8 +66,11 @@ def current_version(client: httpx.Client, room_id: str) -> int | None:
     return None if version is None else int(version)
 
 
-def churn(server: VlpProcess, room_id: str, layouts: tuple[dict[str, Any], ...]) -> None:
-    """Alternately replace the layout and rebuild the same one, waiting for each new version."""
+def churn(
+    server: VlpProcess, room_id: str, layouts: tuple[dict[str, Any], ...], answered: set[int]
+) -> None:
+    """Alternately replace the layout and rebuild the same one; after each change, wait until
+    the new version is current and a localize answer has named it (``answered``)."""
     with server.client() as client:
         for change in range(N_LAYOUT_CHANGES):
             before = current_version(client, room_id) or 0
@@ -75,6 +82,9 @@ def churn(server: VlpProcess, room_id: str, layouts: tuple[dict[str, Any], ...])
             wait_for(
                 partial(newer_than, client, room_id, before), "the new version to become current"
             )
+            version = current_version(client, room_id)
+            named = partial(operator.contains, answered, version)
+            wait_for(named, f"a localize answer naming version {version}")
 
 
 def newer_than(client: httpx.Client, room_id: str, version: int) -> bool:
@@ -83,15 +93,21 @@ def newer_than(client: httpx.Client, room_id: str, version: int) -> bool:
 
 
 def localize_until(
-    server: VlpProcess, room_id: str, body: dict[str, Any], stop: threading.Event
+    server: VlpProcess,
+    room_id: str,
+    body: dict[str, Any],
+    stop: threading.Event,
+    answered: set[int],
 ) -> list[dict[str, Any]]:
-    """Localize in a loop until ``stop``; every answer must be 200."""
+    """Localize in a loop until ``stop``; every answer must be 200. Adds the version each
+    answer names to ``answered``."""
     answers = []
     with httpx.Client(base_url=server.url, headers=TERMINAL, timeout=30.0) as client:
         while not stop.is_set():
             response = client.post(f"/v1/rooms/{room_id}/localize", json=body)
             assert response.status_code == 200, response.text
             answers.append(response.json())
+            answered.add(int(answers[-1]["fingerprint_version"]))
     return answers
 
 
@@ -112,12 +128,13 @@ def test_each_localize_answer_matches_the_version_it_names(tmp_path: Path) -> No
         # Unpinned: each request takes whatever version is current when it is served.
         body = {**simulated.json()["measurement"], "targets": 2, "fingerprint_version": None}
         stop = threading.Event()
+        answered: set[int] = set()
         results: list[list[dict[str, Any]]] = [[] for _ in range(N_LOCALIZERS)]
         errors: list[BaseException] = []
 
         def localizer(index: int) -> None:
             try:
-                results[index] = localize_until(server, room_id, body, stop)
+                results[index] = localize_until(server, room_id, body, stop, answered)
             except BaseException as exc:  # reported below, in the test's thread
                 errors.append(exc)
                 raise
@@ -126,7 +143,7 @@ def test_each_localize_answer_matches_the_version_it_names(tmp_path: Path) -> No
         for thread in threads:
             thread.start()
         try:
-            churn(server, room_id, layouts)
+            churn(server, room_id, layouts, answered)
         finally:
             stop.set()
             for thread in threads:
@@ -145,7 +162,8 @@ def check_answers(
 ) -> None:
     """Each answer equals nnls run here on the stored matrices of the version it names."""
     by_version = Counter(answer["fingerprint_version"] for answer in answers)
-    assert len(by_version) >= 3, by_version  # the answers span rebuilds and replacements
+    # The answers span rebuilds and replacements (churn waited for each version's answer).
+    assert len(by_version) == 1 + N_LAYOUT_CHANGES, by_version
     expected = {}
     for version in by_version:
         fingerprint = registry.load_fingerprint(room_id=room_id, version=version)
@@ -233,16 +251,31 @@ def test_racing_replacements_one_wins_per_version(registry: Registry) -> None:
 
 
 def test_two_worker_processes_never_build_the_same_job(database_url: str, tmp_path: Path) -> None:
+    """Eight rooms, two workers: each job is built once. The first build is held at the
+    gate, so the other worker (one build thread each) surely takes jobs too."""
     data_dir = tmp_path / "data"
-    with process_fleet(data_dir, VLP_DATABASE_URL=database_url) as fleet:
+    gate = BuildGate(tmp_path / "gate", at=MID_BUILD)
+    with process_fleet(data_dir, VLP_DATABASE_URL=database_url, **gate.env()) as fleet:
         workers = [fleet.worker(), fleet.worker()]
         registry = registry_of(data_dir, database_url)
         try:
             wait_for(registry.migrations_current, "the workers to migrate")
-            rooms = [
+            gate.shut()
+            rooms = [registry.create_room(name="hall 0", layout=hall_layout().to_mapping())]
+            assert gate.wait_held() == rooms[0].job_id
+            rooms += [
                 registry.create_room(name=f"hall {i}", layout=hall_layout().to_mapping())
-                for i in range(8)
+                for i in range(1, 8)
             ]
+            wait_for(
+                lambda: all(
+                    registry.get_room(room_id=room.id).fingerprint_status == "ready"
+                    for room in rooms[1:]
+                ),
+                "the other worker to build the rooms after the held one",
+                300,
+            )
+            gate.open()
             wait_for(
                 lambda: all(
                     registry.get_room(room_id=room.id).fingerprint_status == "ready"

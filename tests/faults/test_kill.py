@@ -8,54 +8,64 @@ from __future__ import annotations
 import hashlib
 from pathlib import Path
 
-import httpx
 import pytest
 
 from app.vlp.presets import paper_layout
-from tests.db_fixtures import million_point_hall
-from tests.processes import VlpProcess, peak_rss_bytes, process_fleet, wait_for
+from tests.build_gate import BuildGate
+from tests.db_fixtures import million_point_hall, overwrite
+from tests.processes import VlpProcess, peak_rss_bytes, process_fleet
 
 from .checks import assert_nothing_lost, registry_of
-from .steps import HALL_TIMEOUT_S, assert_orphans_exit, create_room, kill_mid_build, wait_succeeded
+from .steps import (
+    HALL_TIMEOUT_S,
+    MID_BUILD,
+    assert_orphans_exit,
+    create_room,
+    kill_mid_build,
+    wait_succeeded,
+)
 
 pytestmark = pytest.mark.slow
 
 
 def corrupt_then_repaired(server: VlpProcess, room_id: str) -> None:
-    """Flip bytes of a stored matrix (same size): 503 naming the hash, then a rebuild heals it."""
+    """Flip bytes of a stored matrix (same size): 503 naming the hash, then the rebuild that
+    answer queued heals it.
+
+    The test waits for that rebuild job to succeed, not for the download to heal: the build
+    writes the file before its job is recorded, so a healed download alone does not mean
+    the job has finished (nothing may be left ``running`` afterwards)."""
     with server.client() as client:
         meta = client.get(f"/v1/rooms/{room_id}/fingerprints/current").json()
         sha = meta["matrices"]["H"]["sha256"]
         path = server.data_dir / "matrices" / sha[:2] / f"{sha}.npy"
         payload = bytearray(path.read_bytes())
         payload[-64:] = bytes(255 - b for b in payload[-64:])
-        path.chmod(0o644)
-        path.write_bytes(bytes(payload))
+        overwrite(path, bytes(payload))
         url = f"/v1/rooms/{room_id}/fingerprints/{meta['version']}/H.npy"
         refused = client.get(url)
         assert refused.status_code == 503, refused.text
         assert refused.headers["content-type"] == "application/problem+json"
         assert "sha256" in refused.json()["detail"]
-
-        def healed() -> bool:
-            response: httpx.Response = client.get(url)
-            return (
-                response.status_code == 200 and hashlib.sha256(response.content).hexdigest() == sha
-            )
-
-        wait_for(healed, "the corrupt matrix to be rebuilt")
+        # The refusal queued the rebuild: it is the room's latest job (in whatever state).
+        wait_succeeded(server, client.get(f"/v1/rooms/{room_id}").json()["fingerprint"]["job_id"])
+        healed = client.get(url)
+        assert healed.status_code == 200, healed.text
+        assert hashlib.sha256(healed.content).hexdigest() == sha
 
 
 def test_kill9_server_mid_hall_build_then_restart_finishes(tmp_path: Path) -> None:
     data_dir = tmp_path / "data"
     env = {"VLP_DEMO": "0", "VLP_EMBEDDED_WORKERS": "1"}
+    gate = BuildGate(tmp_path / "gate", at=MID_BUILD)
     with process_fleet(data_dir, **env) as fleet:
-        first = fleet.serve()
+        first = fleet.serve(gate.env())
         paper = create_room(first, paper_layout().to_mapping())
         paper_done = wait_succeeded(first, paper["fingerprint"]["job_id"])
+        gate.shut()
         hall = create_room(first, million_point_hall().to_mapping())
         hall_job = hall["fingerprint"]["job_id"]
-        orphans = kill_mid_build(first, first, hall_job)
+        orphans = kill_mid_build(first, first, hall_job, gate)
         assert_orphans_exit(orphans)
 
         registry = registry_of(data_dir)

@@ -42,8 +42,8 @@ def test_two_apis_and_a_worker_sharing_only_postgresql_serve_the_same_rooms(
     env = {"VLP_DATABASE_URL": postgres_url, "VLP_DEMO": "0", "VLP_EMBEDDED_WORKERS": "0"}
     with process_fleet(tmp_path / "fleet", **env) as fleet:
         apis = [
-            fleet.serve(VLP_DATA_DIR=str(dirs["api-a"])),
-            fleet.serve(VLP_DATA_DIR=str(dirs["api-b"])),
+            fleet.serve({"VLP_DATA_DIR": str(dirs["api-a"])}),
+            fleet.serve({"VLP_DATA_DIR": str(dirs["api-b"])}),
         ]
         fleet.worker(VLP_DATA_DIR=str(dirs["worker"]))
         room = create_room(apis[0], paper_room_example())
@@ -90,7 +90,7 @@ def test_with_local_files_only_the_other_hosts_cannot_serve_the_matrices(
         "VLP_MATRIX_STORE": "files",
     }
     with process_fleet(tmp_path / "fleet", **env) as fleet:
-        api = fleet.serve(VLP_DATA_DIR=str(tmp_path / "api"))
+        api = fleet.serve({"VLP_DATA_DIR": str(tmp_path / "api")})
         fleet.worker(VLP_DATA_DIR=str(tmp_path / "worker"))
         room = create_room(api, paper_room_example())
         wait_succeeded(api, room["fingerprint"]["job_id"])

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -10,12 +11,13 @@ import scipy.sparse as sp
 
 from app.jobs.build import BuildTask, build_and_store, store_fingerprint
 from app.registry import Registry
-from app.registry.queue import claim_job
 from app.registry.store import MatrixStore
 from app.vlp.errors import ProblemSizeError
 from app.vlp.fingerprints import Fingerprint, build_fingerprint
 from app.vlp.presets import paper_layout
-from tests.db_fixtures import hall_layout
+from tests.build_gate import BuildGate
+from tests.db_fixtures import claim_next, hall_layout
+from tests.waiting import SAFETY_TIMEOUT_S
 
 
 def test_store_fingerprint_dense_room(tmp_path: Path, paper_fingerprint: Fingerprint) -> None:
@@ -42,7 +44,7 @@ def test_build_and_store_reports_progress_and_matches(
     registry: Registry, paper_fingerprint: Fingerprint
 ) -> None:
     room = registry.create_room(name="Paper room", layout=paper_layout().to_mapping())
-    claimed = claim_job(registry.engine, worker_id="w", lease_seconds=60, max_attempts=3)
+    claimed = claim_next(registry, lease_seconds=60)
     assert claimed is not None
     task = BuildTask(
         database_url=registry.database_url,
@@ -60,6 +62,40 @@ def test_build_and_store_reports_progress_and_matches(
     info, _ = result.matrices["H"]
     h = np.load(registry.store.path_for(info.sha256, info.format))
     np.testing.assert_array_equal(h, paper_fingerprint.dense_gains())
+
+
+def test_the_test_gate_holds_one_build_at_its_progress_until_opened(
+    registry: Registry, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    gate = BuildGate(tmp_path / "gate", at=0.5)
+    for name, value in gate.env().items():
+        monkeypatch.setenv(name, value)
+    gate.shut()
+    rooms = [registry.create_room(name=n, layout=paper_layout().to_mapping()) for n in "ab"]
+    tasks = []
+    for room in rooms:
+        claimed = claim_next(registry, worker_id=f"w-{room.name}", room_id=room.id)
+        assert claimed is not None
+        tasks.append(
+            BuildTask(
+                database_url=registry.database_url,
+                data_dir=str(registry.data_dir),
+                job_id=claimed.job_id,
+                worker_id=claimed.worker_id,
+                layout=claimed.layout,
+            )
+        )
+    held = threading.Thread(target=build_and_store, args=(tasks[0],))
+    held.start()
+    assert gate.wait_held() == tasks[0].job_id
+    progress = registry.get_job(job_id=tasks[0].job_id).progress
+    assert 0.5 <= progress < 1.0  # recorded before the hold was announced
+    # One hold per shutting of the gate: the other build passes while the first waits.
+    assert build_and_store(tasks[1]).grid_points == 400
+    assert held.is_alive()
+    gate.open()
+    held.join(SAFETY_TIMEOUT_S)
+    assert not held.is_alive()
 
 
 def test_build_refuses_too_many_cells(tmp_path: Path) -> None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -12,7 +13,6 @@ import httpx
 import pytest
 
 from app.jobs.metrics import serve_worker_metrics
-from bench._server import free_port
 
 
 def test_worker_metrics_endpoint_serves_process_and_job_metrics() -> None:
@@ -40,21 +40,22 @@ def test_unreachable_registry_gives_no_job_sample() -> None:
 
 
 def test_vlp_worker_metrics_port(tmp_path: Path) -> None:
-    """A real `vlp worker --metrics-port`: its /metrics answers while it runs."""
-    port = free_port()
+    """A real `vlp worker --metrics-port 0`: it binds a port itself, logs it, and its
+    /metrics answers there while it runs."""
     env = {**os.environ, "VLP_DATA_DIR": str(tmp_path), "OPENBLAS_NUM_THREADS": "1"}
     env.pop("VLP_DATABASE_URL", None)
     vlp = Path(sys.executable).with_name("vlp")
     log = tmp_path / "worker.log"
     with log.open("wb") as sink:
         process = subprocess.Popen(
-            [str(vlp), "worker", "--metrics-port", str(port)],
+            [str(vlp), "worker", "--metrics-port", "0"],
             env=env,
             stdout=subprocess.DEVNULL,
             stderr=sink,
         )
     try:
         deadline = time.monotonic() + 60.0  # a safety net only
+        port = _logged_metrics_port(process, log, deadline)
         while True:
             assert process.poll() is None, log.read_text()
             try:
@@ -68,3 +69,14 @@ def test_vlp_worker_metrics_port(tmp_path: Path) -> None:
     finally:
         process.terminate()
         process.wait(timeout=30)
+
+
+def _logged_metrics_port(process: subprocess.Popen[bytes], log: Path, deadline: float) -> int:
+    """The port the worker's JSON log says its metrics server bound."""
+    while True:
+        assert process.poll() is None, log.read_text()
+        for line in log.read_text(encoding="utf-8", errors="replace").splitlines():
+            if '"metrics_port"' in line:
+                return int(json.loads(line)["metrics_port"])
+        assert time.monotonic() < deadline, "the worker never logged its metrics port"
+        time.sleep(0.1)

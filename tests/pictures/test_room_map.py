@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
 
@@ -10,11 +9,18 @@ import numpy as np
 import pytest
 from matplotlib.figure import Figure
 
+import app.pictures.room_map
 from app.pictures import HeatmapKind, room_map_png
 from app.pictures._render import draw_leds
-from app.pictures.heatmaps import noise_std_on_samples, sample_grid
+from app.pictures.heatmaps import (
+    MAX_SAMPLES_PER_SIDE,
+    amplitude_crlb_m,
+    coverage_counts,
+    noise_std_on_samples,
+    sample_grid,
+)
 from app.pictures.room_map import resolved_heatmap
-from app.vlp._typing import FloatArray
+from app.vlp._typing import FloatArray, IntArray
 from app.vlp.errors import GeometryError
 from app.vlp.layout import Grid, Layout, Led, Receiver, Room
 
@@ -83,15 +89,40 @@ def test_injected_crlb_map_receives_samples_and_noise(paper_room: Layout) -> Non
     assert calls[-1] == (paper_room.n_cells, 3e-7)
 
 
-def test_million_point_room_renders_quickly() -> None:
+def test_million_point_room_is_drawn_from_a_bounded_sample(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A 10^6-point room costs what a 200 x 200 one does: each heat map is evaluated on at
+    most MAX_SAMPLES_PER_SIDE^2 block centres, and no array of every grid point is made.
+    (Render times: ``python -m bench.bounded_work``, docs/performance.md.)"""
     leds = tuple(Led(x, y, 4.0) for x in (20.0, 50.0, 80.0) for y in (25.0, 75.0))
     big = Layout(Room(100.0, 100.0, 4.0), Grid(0.1, 0.85), leds, name="Big")
     assert big.n_cells == 1_000_000
+    evaluated: list[int] = []
+    centred: list[int] = []
+
+    def counted_coverage(layout: Layout, points: FloatArray) -> IntArray:
+        evaluated.append(points.shape[0])
+        return coverage_counts(layout, points)
+
+    def counted_crlb(layout: Layout, points: FloatArray, noise_std: float) -> FloatArray:
+        evaluated.append(points.shape[0])
+        return amplitude_crlb_m(layout, points, noise_std)
+
+    cell_centres = Layout.cell_centres
+
+    def counted_centres(layout: Layout, indices: IntArray | None = None) -> FloatArray:
+        centres = cell_centres(layout, indices)
+        centred.append(centres.shape[0])
+        return centres
+
+    monkeypatch.setattr(app.pictures.room_map, "coverage_counts", counted_coverage)
+    monkeypatch.setattr(Layout, "cell_centres", counted_centres)
     for heatmap in ("coverage", "crlb"):
-        start = time.perf_counter()
-        png = room_map_png(big, heatmap=heatmap, width_px=600)
-        assert time.perf_counter() - start < 10.0
+        png = room_map_png(big, heatmap=heatmap, width_px=600, crlb_map=counted_crlb)
         assert png_size(png)[0] == 600
+    assert evaluated == [MAX_SAMPLES_PER_SIDE**2] * 2
+    assert max(centred, default=0) <= MAX_SAMPLES_PER_SIDE**2
 
 
 @pytest.mark.parametrize(

@@ -13,10 +13,9 @@ from sqlalchemy import func, select
 from app.registry import Registry
 from app.registry._schema import calibrations
 from app.registry.errors import NotFound, PreconditionFailed
-from app.registry.queue import claim_job
 from app.vlp.calibration import simulate_survey
 from app.vlp.layout import layout_from_mapping
-from tests.db_fixtures import build_now, small_layout
+from tests.db_fixtures import build_now, claim_next, small_layout
 
 
 def _room(registry: Registry) -> str:
@@ -140,7 +139,7 @@ def test_calibration_queued_before_a_put_fails_as_superseded(registry: Registry)
     registry.replace_room(
         room_id=room_id, name="Cal", layout=room.layout, expected_layout_version=1
     )
-    claimed = claim_job(registry.engine, worker_id="w", lease_seconds=30, max_attempts=3)
+    claimed = claim_next(registry, lease_seconds=30)
     assert claimed is not None and claimed.kind == "build_fingerprint"  # the PUT's build
     failed = registry.get_calibration(room_id=room_id, calibration_id=record.id)
     assert failed.status == "failed" and failed.error is not None

@@ -1,4 +1,8 @@
-"""Epochs in the registry: pinning, posts and replacement, exactly-once claims, leases, purge."""
+"""Epochs in the registry: pinning, posts and replacement, exactly-once claims, leases, purge.
+
+The registry runs on a :class:`FakeClock` that no test advances: windows and claims end at the
+times the tests name (``seconds_later``), not when the machine gets there.
+"""
 
 from __future__ import annotations
 
@@ -7,6 +11,7 @@ from datetime import timedelta
 
 import pytest
 
+from app.clock import FakeClock
 from app.registry import Registry
 from app.registry.epochs import (
     ClaimedEpoch,
@@ -26,7 +31,6 @@ from app.registry.errors import (
     FingerprintNotReady,
     RoomNotFound,
 )
-from app.registry.queue import utcnow
 from app.vlp.errors import MeasurementError
 from tests.db_fixtures import build_now, small_layout
 
@@ -46,6 +50,12 @@ def wanted(**changes: object) -> EpochSettings:
     }
     values.update(changes)
     return EpochSettings(**values)  # type: ignore[arg-type]
+
+
+@pytest.fixture
+def clock() -> FakeClock:
+    """The registry's clock (overrides the real one of ``tests/db_fixtures.py``)."""
+    return FakeClock()
 
 
 @pytest.fixture
@@ -70,7 +80,7 @@ def claim(
         room_id=epoch.room_id,
         epoch_id=epoch.id,
         owner=owner,
-        now=utcnow() + timedelta(seconds=seconds_later),
+        now=registry.clock.now() + timedelta(seconds=seconds_later),
         **options,  # type: ignore[arg-type]
     )
 
@@ -173,7 +183,7 @@ def test_an_open_window_is_claimed_only_when_due_or_forced(
     registry: Registry, epoch: EpochRecord
 ) -> None:
     assert claim(registry, epoch, "sweeper", force=False) is None
-    assert due_epochs(registry.engine, now=utcnow(), limit=10) == []
+    assert due_epochs(registry.engine, now=registry.clock.now(), limit=10) == []
     later = epoch.expires_at + timedelta(seconds=1)
     assert due_epochs(registry.engine, now=later, limit=10) == [(epoch.room_id, epoch.id)]
     assert claim(registry, epoch, "sweeper", force=False, seconds_later=61) is not None
@@ -187,9 +197,15 @@ def test_a_lost_solver_is_taken_over_and_cannot_overwrite(
     assert claim(registry, epoch, "impatient") is None  # the lease still runs
     second = claim(registry, epoch, "heir", seconds_later=31)
     assert second is not None and second.record.attempts == 2
-    assert not finish_epoch(registry.engine, claimed=first, status="solved", now=utcnow())
+    assert not finish_epoch(
+        registry.engine, claimed=first, status="solved", now=registry.clock.now()
+    )
     assert finish_epoch(
-        registry.engine, claimed=second, status="solved", now=utcnow(), localization={"k": 1}
+        registry.engine,
+        claimed=second,
+        status="solved",
+        now=registry.clock.now(),
+        localization={"k": 1},
     )
     done = registry.get_epoch(room_id=epoch.room_id, epoch_id=epoch.id)
     assert done.status == "solved" and done.localization == {"k": 1}
@@ -215,9 +231,17 @@ def test_purge_drops_old_finished_epochs_with_their_posts(
     still_open = registry.create_epoch(room_id=room_id, settings=wanted())
     claimed = claim(registry, epoch, "p")
     assert claimed is not None
-    assert finish_epoch(registry.engine, claimed=claimed, status="expired", now=utcnow())
-    assert purge_epochs(registry.engine, finished_before=utcnow() - timedelta(hours=1)) == 0
-    assert purge_epochs(registry.engine, finished_before=utcnow() + timedelta(seconds=1)) == 1
+    assert finish_epoch(
+        registry.engine, claimed=claimed, status="expired", now=registry.clock.now()
+    )
+    assert (
+        purge_epochs(registry.engine, finished_before=registry.clock.now() - timedelta(hours=1))
+        == 0
+    )
+    assert (
+        purge_epochs(registry.engine, finished_before=registry.clock.now() + timedelta(seconds=1))
+        == 1
+    )
     with pytest.raises(EpochNotFound):
         registry.get_epoch(room_id=room_id, epoch_id=epoch.id)
     assert registry.get_epoch(room_id=room_id, epoch_id=still_open.id).status == "open"
@@ -238,4 +262,4 @@ def test_finish_takes_only_final_statuses(registry: Registry, epoch: EpochRecord
     claimed = claim(registry, epoch, "p")
     assert claimed is not None
     with pytest.raises(ValueError, match="finishes as one of"):
-        finish_epoch(registry.engine, claimed=claimed, status="open", now=utcnow())
+        finish_epoch(registry.engine, claimed=claimed, status="open", now=registry.clock.now())

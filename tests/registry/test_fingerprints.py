@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import hashlib
-import os
 
 import numpy as np
 import pytest
@@ -16,11 +15,18 @@ from app.registry.errors import (
     MatrixNotFound,
     RoomNotFound,
 )
-from app.registry.queue import claim_job, complete_job
 from app.vlp.fingerprints import Fingerprint, build_fingerprint
 from app.vlp.layout import layout_from_mapping
 from app.vlp.presets import paper_layout
-from tests.db_fixtures import build_now, hall_layout, small_layout, stored_build
+from tests.db_fixtures import (
+    build_now,
+    claim_next,
+    hall_layout,
+    overwrite,
+    record_build,
+    small_layout,
+    stored_build,
+)
 
 
 def test_not_ready_before_the_first_build(registry: Registry) -> None:
@@ -101,24 +107,24 @@ def test_version_switches_only_when_the_build_finishes(registry: Registry) -> No
     room = registry.create_room(name="a", layout=small_layout())
     build_now(registry, room_id=room.id)
     registry.request_build(room_id=room.id)
-    claimed = claim_job(registry.engine, worker_id="w", lease_seconds=30, max_attempts=3)
+    claimed = claim_next(registry, lease_seconds=30)
     assert claimed is not None
     during = registry.get_room(room_id=room.id)
     assert (during.fingerprint_status, during.fingerprint_version) == ("building", 1)
     assert registry.get_fingerprint(room_id=room.id, version=None).version == 1
-    assert complete_job(registry.engine, claimed=claimed, build=stored_build(registry, claimed))
+    assert record_build(registry, claimed, stored_build(registry, claimed))
     after = registry.get_room(room_id=room.id)
     assert (after.fingerprint_status, after.fingerprint_version) == ("ready", 2)
 
 
 def test_build_of_an_old_layout_does_not_become_current(registry: Registry) -> None:
     room = registry.create_room(name="a", layout=small_layout(2))
-    old = claim_job(registry.engine, worker_id="w", lease_seconds=30, max_attempts=3)
+    old = claim_next(registry, lease_seconds=30)
     assert old is not None
     registry.replace_room(
         room_id=room.id, name="a", layout=small_layout(3), expected_layout_version=1
     )
-    assert complete_job(registry.engine, claimed=old, build=stored_build(registry, old)) == 1
+    assert record_build(registry, old, stored_build(registry, old)) == 1
     stale = registry.get_room(room_id=room.id)
     assert (stale.fingerprint_version, stale.fingerprint_status) == (None, "pending")
     assert registry.get_fingerprint(room_id=room.id, version=1).layout_version == 1
@@ -129,11 +135,11 @@ def test_build_of_an_old_layout_does_not_become_current(registry: Registry) -> N
 
 def test_completion_after_delete_records_nothing(registry: Registry) -> None:
     room = registry.create_room(name="a", layout=small_layout())
-    claimed = claim_job(registry.engine, worker_id="w", lease_seconds=30, max_attempts=3)
+    claimed = claim_next(registry, lease_seconds=30)
     assert claimed is not None
     build = stored_build(registry, claimed)
     registry.delete_room(room_id=room.id)
-    assert complete_job(registry.engine, claimed=claimed, build=build) is None
+    assert record_build(registry, claimed, build) is None
 
 
 @pytest.mark.parametrize("damage", ["flip", "truncate", "remove"])
@@ -144,11 +150,10 @@ def test_corrupt_matrix_is_refused_and_the_rebuild_repairs_it(
     build_now(registry, room_id=room.id)
     path = registry.matrix_path(room_id=room.id, version=1, name="H")
     good = path.read_bytes()
-    os.chmod(path, 0o644)
     if damage == "flip":
-        path.write_bytes(good[:-1] + bytes([good[-1] ^ 0xFF]))
+        overwrite(path, good[:-1] + bytes([good[-1] ^ 0xFF]))
     elif damage == "truncate":
-        path.write_bytes(good[:100])
+        overwrite(path, good[:100])
     else:
         path.unlink()
     with pytest.raises(CorruptMatrix, match="rebuild"):
@@ -195,7 +200,7 @@ def test_large_hall_stores_sparse_h_and_no_psi(registry: Registry) -> None:
 
 def test_files_of_a_lost_build_can_be_dropped(registry: Registry) -> None:
     room = registry.create_room(name="a", layout=small_layout())
-    claimed = claim_job(registry.engine, worker_id="w", lease_seconds=30, max_attempts=3)
+    claimed = claim_next(registry, lease_seconds=30)
     assert claimed is not None
     build = stored_build(registry, claimed)
     files = [(info.sha256, info.format) for info, _ in build.matrices.values()]

@@ -1,13 +1,17 @@
-"""The jobs table as a queue: atomic claims, leases, retries, coalescing, per-room limits."""
+"""The jobs table as a queue: atomic claims, leases, retries, coalescing, per-room limits.
+
+The registry runs on a :class:`FakeClock`: leases run out when a test advances it, never
+because the machine was slow.
+"""
 
 from __future__ import annotations
 
 import threading
-import time
 from collections import Counter
 
 import pytest
 
+from app.clock import FakeClock
 from app.registry import Registry
 from app.registry.queue import (
     ClaimedJob,
@@ -18,6 +22,12 @@ from app.registry.queue import (
     report_progress,
 )
 from tests.db_fixtures import small_layout
+
+
+@pytest.fixture
+def clock() -> FakeClock:
+    """The registry's clock (overrides the real one of ``tests/db_fixtures.py``)."""
+    return FakeClock()
 
 
 def _claim(
@@ -31,6 +41,7 @@ def _claim(
     return claim_job(
         registry.engine,
         worker_id=worker,
+        now=registry.clock.now(),
         lease_seconds=lease,
         max_attempts=3,
         max_per_room=max_per_room,
@@ -38,8 +49,9 @@ def _claim(
     )
 
 
-def test_claim_takes_oldest_and_marks_running(registry: Registry) -> None:
+def test_claim_takes_oldest_and_marks_running(registry: Registry, clock: FakeClock) -> None:
     first = registry.create_room(name="a", layout=small_layout())
+    clock.advance(1.0)
     registry.create_room(name="b", layout=small_layout())
     claimed = _claim(registry, "w1")
     assert claimed is not None
@@ -72,42 +84,56 @@ def test_concurrent_claimers_never_share_a_job(registry: Registry) -> None:
     assert sorted(claims) == sorted(room.job_id or "" for room in rooms)
 
 
-def test_expired_lease_is_reclaimed_and_old_owner_is_fenced(registry: Registry) -> None:
+def test_expired_lease_is_reclaimed_and_old_owner_is_fenced(
+    registry: Registry, clock: FakeClock
+) -> None:
     room = registry.create_room(name="a", layout=small_layout())
-    first = _claim(registry, "dead", lease=0.2)
+    first = _claim(registry, "dead", lease=10.0)
     assert first is not None
+    clock.advance(9.999)
     assert _claim(registry, "other") is None  # lease still valid
-    time.sleep(0.35)
+    clock.advance(0.002)
     second = _claim(registry, "other")
     assert second is not None
     assert (second.job_id, second.attempts) == (first.job_id, 2)
+    now = clock.now()
     assert not heartbeat_job(
-        registry.engine, job_id=first.job_id, worker_id="dead", lease_seconds=30
+        registry.engine, job_id=first.job_id, worker_id="dead", now=now, lease_seconds=30
     )
     assert not report_progress(registry.engine, job_id=first.job_id, worker_id="dead", progress=0.5)
-    assert fail_job(registry.engine, claimed=first, error="late", max_attempts=3) is None
-    assert heartbeat_job(registry.engine, job_id=second.job_id, worker_id="other", lease_seconds=30)
+    assert fail_job(registry.engine, claimed=first, error="late", max_attempts=3, now=now) is None
+    assert heartbeat_job(
+        registry.engine, job_id=second.job_id, worker_id="other", now=now, lease_seconds=30
+    )
     assert report_progress(registry.engine, job_id=second.job_id, worker_id="other", progress=0.25)
     assert registry.get_job(job_id=room.job_id or "").progress == pytest.approx(0.25)
 
 
-def test_heartbeat_keeps_the_lease(registry: Registry) -> None:
+def test_heartbeat_keeps_the_lease(registry: Registry, clock: FakeClock) -> None:
     registry.create_room(name="a", layout=small_layout())
-    claimed = _claim(registry, "w", lease=0.3)
+    claimed = _claim(registry, "w", lease=10.0)
     assert claimed is not None
-    for _ in range(3):
-        time.sleep(0.15)
+    for _ in range(3):  # each heartbeat comes 8 s after the last: in time, never early
+        clock.advance(8.0)
         assert heartbeat_job(
-            registry.engine, job_id=claimed.job_id, worker_id="w", lease_seconds=0.3
+            registry.engine,
+            job_id=claimed.job_id,
+            worker_id="w",
+            now=clock.now(),
+            lease_seconds=10.0,
         )
+    clock.advance(8.0)  # 32 s after the claim: long past its lease, not past the last renewal
     assert _claim(registry, "thief") is None
+    clock.advance(2.001)  # the last renewal runs out
+    stolen = _claim(registry, "thief")
+    assert stolen is not None and (stolen.job_id, stolen.attempts) == (claimed.job_id, 2)
 
 
-def test_lost_worker_exhausts_attempts(registry: Registry) -> None:
+def test_lost_worker_exhausts_attempts(registry: Registry, clock: FakeClock) -> None:
     room = registry.create_room(name="a", layout=small_layout())
     for _ in range(3):
-        assert _claim(registry, "dies", lease=0.05) is not None
-        time.sleep(0.1)
+        assert _claim(registry, "dies", lease=5.0) is not None
+        clock.advance(5.001)
     assert _claim(registry, "late") is None
     job = registry.get_job(job_id=room.job_id or "")
     assert job.status == "failed"
@@ -124,7 +150,13 @@ def test_failures_are_retried_then_failed_with_error(registry: Registry) -> None
         assert claimed is not None
         assert claimed.attempts == attempt
         statuses.append(
-            fail_job(registry.engine, claimed=claimed, error=f"boom {attempt}", max_attempts=3)
+            fail_job(
+                registry.engine,
+                claimed=claimed,
+                error=f"boom {attempt}",
+                max_attempts=3,
+                now=registry.clock.now(),
+            )
         )
     assert statuses == ["queued", "queued", "failed"]
     assert _claim(registry, "w") is None
@@ -168,14 +200,16 @@ def test_one_live_build_per_room(registry: Registry) -> None:
     assert _claim(registry, "w2", max_per_room=2) is not None
 
 
-def test_stale_running_job_is_superseded(registry: Registry) -> None:
+def test_stale_running_job_is_superseded(registry: Registry, clock: FakeClock) -> None:
     room = registry.create_room(name="a", layout=small_layout())
-    stale = _claim(registry, "dead", lease=0.05)
+    stale = _claim(registry, "dead", lease=5.0)
     assert stale is not None
+    clock.advance(1.0)  # the replacement's job is the younger one
     registry.replace_room(
         room_id=room.id, name="a", layout=small_layout(3), expected_layout_version=1
     )
-    time.sleep(0.1)
+    assert _claim(registry, "w") is None  # the dead owner's lease still holds the room
+    clock.advance(4.001)
     fresh = _claim(registry, "w")
     assert fresh is not None
     assert (fresh.layout_version, len(fresh.layout["leds"])) == (2, 3)
@@ -192,7 +226,7 @@ def test_claim_for_one_room(registry: Registry) -> None:
     assert claimed.room_id == second.id
 
 
-def test_count_jobs_by_status(registry: Registry) -> None:
+def test_count_jobs_by_status(registry: Registry, clock: FakeClock) -> None:
     assert registry.count_jobs_by_status() == {
         "queued": 0,
         "running": 0,
@@ -203,7 +237,7 @@ def test_count_jobs_by_status(registry: Registry) -> None:
         registry.create_room(name=name, layout=small_layout())
     claimed = _claim(registry, "w")
     assert claimed is not None
-    fail_job(registry.engine, claimed=claimed, error="x", max_attempts=1)
+    fail_job(registry.engine, claimed=claimed, error="x", max_attempts=1, now=clock.now())
     assert _claim(registry, "w") is not None
     assert registry.count_jobs_by_status() == {
         "queued": 1,

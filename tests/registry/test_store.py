@@ -14,6 +14,7 @@ import pytest
 import scipy.sparse as sp
 
 from app.registry.store import STALE_TEMPORARY_SECONDS, MatrixStore, matrix_bytes
+from tests.db_fixtures import overwrite
 
 
 def _sparse(rng: np.random.Generator) -> sp.csr_array:
@@ -78,8 +79,7 @@ def test_verify_detects_corruption_and_put_repairs_it(
     path = store.path_for(info.sha256, info.format)
     assert store.verify(path, info.sha256)
     good = path.read_bytes()
-    os.chmod(path, 0o644)
-    path.write_bytes(good[:-8] + b"\0" * 8)
+    overwrite(path, good[:-8] + b"\0" * 8)
     assert not store.verify(path, info.sha256)
     store.put(array)
     assert path.read_bytes() == good

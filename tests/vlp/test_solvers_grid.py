@@ -6,7 +6,6 @@ import json
 import subprocess
 import sys
 import textwrap
-import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
@@ -353,9 +352,11 @@ _HALL_SCRIPT = textwrap.dedent("""
 @pytest.mark.slow
 @pytest.mark.timeout(400)
 def test_large_hall_in_a_subprocess() -> None:
-    """100 m x 100 m at 0.1 m (N = 10^6), 1024 LEDs: bounded memory, targets found."""
+    """100 m x 100 m at 0.1 m (N = 10^6), 1024 LEDs: bounded memory, targets found.
+
+    The run's time is reported (``build_s``, ``total_s``) but not asserted: the timeout is a
+    safety bound. Build time and memory of this hall: ``python -m bench.hall_build``."""
     root = Path(__file__).resolve().parents[2]
-    started = time.perf_counter()
     result = subprocess.run(
         [sys.executable, "-W", "error", "-c", _HALL_SCRIPT],
         cwd=root,
@@ -366,13 +367,11 @@ def test_large_hall_in_a_subprocess() -> None:
     )
     assert result.returncode == 0, result.stderr[-3000:]
     report = json.loads(result.stdout.strip().splitlines()[-1])
-    elapsed = time.perf_counter() - started
     assert report["n_cells"] == 1_000_000 and report["n_leds"] == 1024
     assert not report["dense"]
     assert report["maxrss_bytes"] < 2 * 1024**3, report
     for key in ("power-nnls", "power-omp", "correlation-omp"):
         assert report[key] < 0.3, report
-    assert elapsed < 300, report
 
 
 def test_l1_is_safe_to_share_between_threads(

@@ -1,7 +1,0 @@
-"""Registry test fixtures: the shared database fixtures (see ``tests/db_fixtures.py``)."""
-
-from __future__ import annotations
-
-from tests.db_fixtures import database_url, postgres_url, registry, sqlite_url
-
-__all__ = ["database_url", "postgres_url", "registry", "sqlite_url"]
