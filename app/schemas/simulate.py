@@ -89,7 +89,11 @@ class SimulationRequest(RequestModel):
         description="mean(J) / noise variance of one amplitude, dB; default 30",
     )
     noise_std: FiniteFloat | None = Field(
-        default=None, ge=0, description="noise std of one amplitude (instead of snr_db)"
+        default=None,
+        ge=0,
+        le=1e40,
+        description="noise std of one amplitude (instead of snr_db); at most 1e40 so that "
+        "sums of squared amplitudes stay finite",
     )
     model: ModelName = Field(default="correlation")
     form: Literal["matrix", "upper", "terminals"] = Field(

@@ -44,7 +44,8 @@ def jobs_built_by(worker: VlpProcess) -> list[str]:
 
 def localized_version(api: VlpProcess, room_id: str) -> int:
     """The fingerprint version a localize answer from ``api`` names."""
-    body = {"power": [1e-6, 2e-6, 1e-6, 3e-6], "targets": 1, "solver": "nnls"}
+    # Powers of the small room's own scale: 100x above it is refused as other units.
+    body = {"power": [1e-10, 2e-10, 1e-10, 3e-10], "targets": 1, "solver": "nnls"}
     with api.client() as client:
         response = client.post(f"/v1/rooms/{room_id}/localize", json=body, headers=TERMINAL)
     assert response.status_code == 200, response.text
