@@ -7,22 +7,25 @@ The tree::
     ├── MeasurementError             a measurement of the wrong shape, sign or value
     ├── ProblemSizeError             a problem above a configured limit
     └── SolverError
-        └── UnknownSolverError
+        ├── UnknownSolverError
+        └── SolverFailed             a valid problem the solver found no answer to (503)
     RegistryError                    the registry refuses or cannot do (app.registry.errors)
-    ├── NotFound
+    ├── RecordNotFound
     │   ├── RoomNotFound, JobNotFound, FingerprintNotFound, MatrixNotFound, EpochNotFound
-    ├── Conflict
+    ├── StateConflict
     │   ├── EpochClosed, EpochFull
     ├── PreconditionFailed, FingerprintNotReady, CorruptMatrix, InvalidCursor
     └── RegistryUnavailable
+    InvalidFields (ValueError)       the service layer refuses a request, naming each field
 
 ``app.api.errors`` maps each family to an HTTP problem answer.
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 from app.registry.errors import (
-    Conflict,
     CorruptMatrix,
     EpochClosed,
     EpochFull,
@@ -32,23 +35,24 @@ from app.registry.errors import (
     InvalidCursor,
     JobNotFound,
     MatrixNotFound,
-    NotFound,
     PreconditionFailed,
+    RecordNotFound,
     RegistryError,
     RegistryUnavailable,
     RoomNotFound,
+    StateConflict,
 )
 from app.vlp.errors import (
     GeometryError,
     MeasurementError,
     ProblemSizeError,
     SolverError,
+    SolverFailed,
     UnknownSolverError,
     VLPError,
 )
 
 __all__ = [
-    "Conflict",
     "CorruptMatrix",
     "EpochClosed",
     "EpochFull",
@@ -57,16 +61,32 @@ __all__ = [
     "FingerprintNotReady",
     "GeometryError",
     "InvalidCursor",
+    "InvalidFields",
     "JobNotFound",
     "MatrixNotFound",
     "MeasurementError",
-    "NotFound",
     "PreconditionFailed",
     "ProblemSizeError",
+    "RecordNotFound",
     "RegistryError",
     "RegistryUnavailable",
     "RoomNotFound",
     "SolverError",
+    "SolverFailed",
+    "StateConflict",
     "UnknownSolverError",
     "VLPError",
 ]
+
+
+class InvalidFields(ValueError):
+    """A request the service layer refuses for more than one field at once (the science core
+    names one field per error).
+
+    ``errors`` holds ``(field, message)`` pairs; fields are paths in the request body as the
+    science core writes them (``"power"``, ``"terminals[1].id"``).
+    """
+
+    def __init__(self, errors: Sequence[tuple[str, str]]) -> None:
+        self.errors = list(errors)
+        super().__init__("; ".join(f"{field}: {message}" for field, message in self.errors))

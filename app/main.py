@@ -20,10 +20,7 @@ from threadpoolctl import threadpool_limits
 
 from app.api import api_router
 from app.api.docs import install_docs
-from app.api.epoch_settler import EpochSettler
 from app.api.errors import PROBLEM_MEDIA_TYPE, install_error_handlers, problem_example
-from app.api.localizer import FingerprintCache
-from app.api.metrics import Metrics
 from app.api.middleware import BodySizeLimitMiddleware, RequestContextMiddleware
 from app.api.picture_cache import PictureCache
 from app.api.security import KeyCache, provision_keys
@@ -32,7 +29,11 @@ from app.jobs import EmbeddedWorkers
 from app.jobs.epochs import EpochSweeper
 from app.registry import Registry
 from app.registry.seed import find_demo_room, seed_demo_room
+from app.services.epoch_settler import EpochSettler
+from app.services.fingerprint_cache import FingerprintCache
 from app.settings import Settings, get_settings
+from app.telemetry import Metrics
+from app.vlp.solvers import warm_up as warm_up_solvers
 
 __all__ = ["create_app"]
 
@@ -141,6 +142,7 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
             clock=clock,
         )
         await run_in_threadpool(registry.migrate)
+        await run_in_threadpool(warm_up_solvers)  # compile the solver kernels before serving
         app.state.registry = registry
         await run_in_threadpool(lambda: provision_keys(registry=registry, settings=settings))
         app.state.keys = KeyCache(registry=registry)

@@ -50,6 +50,13 @@ class Settings(BaseSettings):
         description="comma-separated origins a browser may call the API from (none: no CORS)",
     )
     embedded_workers: int = Field(default=1, ge=0, le=16)
+    workers: int = Field(
+        default=1,
+        ge=1,
+        le=64,
+        description="API processes of `vlp serve` on its one port (`--workers`); the embedded "
+        "build workers and the epoch sweeper run in the first one only",
+    )
     demo: bool = Field(default=True, description="seed the paper's room into an empty registry")
 
     # Limits (security by default; the defaults admit a 10^6-point, 4096-LED hall).
@@ -60,6 +67,14 @@ class Settings(BaseSettings):
     max_leds: int = Field(default=4096, ge=1, description="LEDs per room layout (else 422)")
     max_grid_points: int = Field(
         default=1_000_000, ge=1, description="grid points per room layout (else 422)"
+    )
+    max_localize_work: int = Field(
+        default=100_000_000_000,
+        ge=1,
+        description="grid points x observations x targets one localize request may ask for "
+        "(observations: M for power and terminals, M(M+1)/2 for correlation; K unknown counts "
+        "as 64); larger requests answer 422. The default admits 64 targets in a "
+        "10^6-point, 1024-LED hall as power or terminals, not its correlation matrix",
     )
     max_concurrent_builds_per_room: int = Field(
         default=1,

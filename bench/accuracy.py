@@ -29,7 +29,6 @@ from pathlib import Path
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from app.vlp._typing import FloatArray
 from app.vlp.baseline import rss_localize
 from app.vlp.crlb import aggregated_crlb, single_target_crlb
 from app.vlp.fingerprints import Fingerprint, build_fingerprint
@@ -38,6 +37,7 @@ from app.vlp.measurements import MODELS, Model, measurement_from_amplitudes
 from app.vlp.metrics import mean_position_error
 from app.vlp.simulation import noise_std_for_snr, noisy_amplitudes, random_positions
 from app.vlp.solvers import Solver, make_solver
+from app.vlp.typing import FloatArray
 
 from ._common import REPO_ROOT, load_solvers, machine_record, write_csv
 from .results import (

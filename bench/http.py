@@ -1,101 +1,267 @@
-"""HTTP benchmark: localize latency and throughput of one uvicorn worker on loopback.
+"""HTTP benchmark: the localize path over loopback, real ``vlp serve`` processes.
 
-Paper room, K = 8, correlation measurements at 30 dB, default solver. Reports sequential
-localize latency (p50, p99) and concurrent throughput of localize against a trivial endpoint
-(`/healthz`) measured in the same run, and their ratio.
+Paper room (the demo room), K = 8 correlation measurements at 30 dB (seeds 0..N-1, cycled),
+default solver unless said otherwise, BLAS one thread. Three figures, each a ratio measured
+in one run:
 
-    python -m bench.http [--seconds 10] [--concurrency 8]
+(a) sequential client, one API process: localize p50 against ``/healthz`` p50, the two
+    requests interleaved so both see the same load; also localize with the ``omp`` solver
+    (the path with an almost free solver) and the solver's own median (``elapsed_ms``), to
+    show what the path costs besides the solve; and the server process's CPU time per
+    request of each kind, which a loaded shared machine does not stretch as it does latency;
+(b) throughput at concurrency C (default 8) of ``vlp serve --workers 2`` against
+    ``--workers 1``: both servers run for the whole benchmark, phases alternate between them
+    (W1, W2, W2, W1, ...), medians over the rounds;
+(c) a batch of B (default 100) measurements in one ``localize/batch`` request against the
+    same B sent as single requests one after another (one keep-alive connection), wall time,
+    alternating, medians; again with the ``omp`` solver, where the solve is nearly free and
+    what a batch saves (HTTP, key check, lookups per request) shows.
+
+    python -m bench.http [--sequential 300] [--seconds 5] [--rounds 5] [--concurrency 8]
+                         [--batch 100] [--batch-rounds 5]
 """
 
 from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import json
+import os
 import platform
 import statistics
+import subprocess
 import tempfile
 import time
+from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 import httpx
 import numpy as np
 
-from bench._server import TERMINAL_KEY, live_server, ready_demo_room
+from bench._server import TERMINAL_KEY, LiveServer, live_server, ready_demo_room
+
+_HEADERS = {"X-API-Key": TERMINAL_KEY}
 
 
-def _percentile(values: list[float], q: float) -> float:
-    return float(np.percentile(np.asarray(values), q))
+def _measurements(url: str, room_id: str, count: int) -> list[dict[str, Any]]:
+    """``count`` K = 8 correlation measurements at 30 dB (seeds 0..count-1), current version."""
+    bodies = []
+    with httpx.Client(base_url=url, headers=_HEADERS, timeout=60.0) as client:
+        for seed in range(count):
+            simulation = client.post(
+                f"/v1/rooms/{room_id}/simulate", json={"targets": 8, "snr_db": 30, "seed": seed}
+            )
+            simulation.raise_for_status()
+            body = simulation.json()["measurement"]
+            body.pop("fingerprint_version", None)
+            bodies.append(body)
+    return bodies
+
+
+def _ratio(numerator: float, denominator: float) -> float | None:
+    return round(numerator / denominator, 2) if denominator > 0 else None
+
+
+def _cpu_seconds(pid: int) -> float:
+    """User + system CPU time of a process so far (all its threads), from ``/proc``."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def _server_cpu_ms(
+    client: httpx.Client, pid: int, requests: int, send: Callable[[httpx.Client, int], object]
+) -> float:
+    """The server's CPU milliseconds per request over ``requests`` requests made by ``send``:
+    unlike latency, what a loaded, shared machine does not stretch."""
+    before = _cpu_seconds(pid)
+    for index in range(requests):
+        send(client, index)
+    return (_cpu_seconds(pid) - before) / requests * 1e3
+
+
+def _sequential(
+    server: LiveServer, room_id: str, bodies: list[dict[str, Any]], requests: int
+) -> dict[str, float | None]:
+    """(a): interleaved healthz / localize / localize(omp), one connection; then the server's
+    CPU time per request of each kind."""
+    url = server.url
+    path = f"/v1/rooms/{room_id}/localize"
+    healthz, default, omp, solver = [], [], [], []
+    with httpx.Client(base_url=url, headers=_HEADERS, timeout=60.0) as client:
+        for body in bodies[:20]:  # warm the fingerprint and solver caches
+            client.post(path, json=body).raise_for_status()
+            client.post(path, json={**body, "solver": "omp"}).raise_for_status()
+        for index in range(requests):
+            body = bodies[index % len(bodies)]
+            start = time.perf_counter()
+            client.get("/healthz").raise_for_status()
+            healthz.append(time.perf_counter() - start)
+            start = time.perf_counter()
+            answer = client.post(path, json=body)
+            default.append(time.perf_counter() - start)
+            answer.raise_for_status()
+            solver.append(float(answer.json()["elapsed_ms"]))
+            start = time.perf_counter()
+            client.post(path, json={**body, "solver": "omp"}).raise_for_status()
+            omp.append(time.perf_counter() - start)
+        pid = server.process.pid
+        cpu_healthz = _server_cpu_ms(
+            client, pid, requests, lambda c, _i: c.get("/healthz").raise_for_status()
+        )
+        cpu_omp = _server_cpu_ms(
+            client,
+            pid,
+            requests,
+            lambda c, i: c.post(
+                path, json={**bodies[i % len(bodies)], "solver": "omp"}
+            ).raise_for_status(),
+        )
+        cpu_default = _server_cpu_ms(
+            client,
+            pid,
+            requests,
+            lambda c, i: c.post(path, json=bodies[i % len(bodies)]).raise_for_status(),
+        )
+    healthz_ms = statistics.median(healthz) * 1e3
+    localize_ms = statistics.median(default) * 1e3
+    omp_ms = statistics.median(omp) * 1e3
+    return {
+        "requests_each": requests,
+        "healthz_p50_ms": round(healthz_ms, 3),
+        "localize_p50_ms": round(localize_ms, 3),
+        "localize_p99_ms": round(float(np.percentile(np.asarray(default) * 1e3, 99)), 3),
+        "localize_over_healthz": round(localize_ms / healthz_ms, 2),
+        "solver_p50_ms": round(statistics.median(solver), 3),
+        "localize_omp_p50_ms": round(omp_ms, 3),
+        "localize_omp_over_healthz": round(omp_ms / healthz_ms, 2),
+        "server_cpu_ms_per_healthz": round(cpu_healthz, 3),
+        "server_cpu_ms_per_localize": round(cpu_default, 3),
+        "server_cpu_ms_per_localize_omp": round(cpu_omp, 3),
+        # None when too few requests for the kernel's CPU clock ticks (10 ms) to see healthz.
+        "server_cpu_localize_over_healthz": _ratio(cpu_default, cpu_healthz),
+        "server_cpu_localize_omp_over_healthz": _ratio(cpu_omp, cpu_healthz),
+    }
 
 
 async def _throughput(
-    url: str, path: str, body: dict[str, object] | None, seconds: float, concurrency: int
+    url: str, path: str, bodies: list[dict[str, Any]], seconds: float, concurrency: int
 ) -> tuple[float, int]:
-    headers = {"X-API-Key": TERMINAL_KEY}
     done = 0
     errors = 0
     stop_at = time.monotonic() + seconds
 
-    async def worker(client: httpx.AsyncClient) -> None:
+    async def worker(client: httpx.AsyncClient, offset: int) -> None:
         nonlocal done, errors
+        index = offset
         while time.monotonic() < stop_at:
-            if body is None:
-                response = await client.get(path, headers=headers)
-            else:
-                response = await client.post(path, headers=headers, json=body)
+            response = await client.post(path, json=bodies[index % len(bodies)])
+            index += concurrency
             if response.status_code == 200:
                 done += 1
             else:
                 errors += 1
 
     limits = httpx.Limits(max_connections=concurrency)
-    async with httpx.AsyncClient(base_url=url, limits=limits, timeout=30.0) as client:
+    async with httpx.AsyncClient(
+        base_url=url, headers=_HEADERS, limits=limits, timeout=60.0
+    ) as client:
         start = time.monotonic()
-        await asyncio.gather(*(worker(client) for _ in range(concurrency)))
+        await asyncio.gather(*(worker(client, offset) for offset in range(concurrency)))
         elapsed = time.monotonic() - start
     return done / elapsed, errors
 
 
-def run(seconds: float, concurrency: int, sequential: int) -> dict[str, object]:
-    """Start a server, measure, and return the figures."""
-    with tempfile.TemporaryDirectory() as tmp, live_server(Path(tmp)) as server:
-        url = server.url
-        with httpx.Client(timeout=30.0) as client:
-            room_id = ready_demo_room(url)
-            headers = {"X-API-Key": TERMINAL_KEY}
-            sim = client.post(
-                f"{url}/v1/rooms/{room_id}/simulate",
-                headers=headers,
-                json={"targets": 8, "snr_db": 30, "seed": 1},
-            ).json()
-            body = sim["measurement"]
-            path = f"/v1/rooms/{room_id}/localize"
-            for _ in range(20):  # warm the fingerprint and solver caches
-                client.post(f"{url}{path}", headers=headers, json=body).raise_for_status()
-            latencies = []
-            for _ in range(sequential):
-                start = time.perf_counter()
-                client.post(f"{url}{path}", headers=headers, json=body).raise_for_status()
-                latencies.append((time.perf_counter() - start) * 1000.0)
-        trivial_rps, trivial_errors = asyncio.run(
-            _throughput(url, "/healthz", None, seconds, concurrency)
-        )
-        localize_rps, localize_errors = asyncio.run(
-            _throughput(url, path, body, seconds, concurrency)
-        )
+def _scaling(
+    servers: dict[int, tuple[LiveServer, str, list[dict[str, Any]]]],
+    seconds: float,
+    rounds: int,
+    concurrency: int,
+) -> dict[str, Any]:
+    """(b): localize throughput of each server, alternating W1 W2 / W2 W1 phases."""
+    rates: dict[int, list[float]] = {workers: [] for workers in servers}
+    errors = 0
+    for server, room_id, bodies in servers.values():  # warm every process
+        asyncio.run(_throughput(server.url, _path(room_id), bodies, 2.0, concurrency))
+    for round_index in range(rounds):
+        order = sorted(servers) if round_index % 2 == 0 else sorted(servers, reverse=True)
+        for workers in order:
+            server, room_id, bodies = servers[workers]
+            rate, failed = asyncio.run(
+                _throughput(server.url, _path(room_id), bodies, seconds, concurrency)
+            )
+            rates[workers].append(rate)
+            errors += failed
+    medians = {workers: statistics.median(values) for workers, values in rates.items()}
     return {
-        "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
-        "machine": f"{platform.processor() or platform.machine()}, {_cpu_model()}",
-        "sequential_requests": sequential,
-        "localize_p50_ms": round(statistics.median(latencies), 2),
-        "localize_p99_ms": round(_percentile(latencies, 99), 2),
         "concurrency": concurrency,
         "seconds_per_phase": seconds,
-        "trivial_rps": round(trivial_rps, 1),
-        "localize_rps": round(localize_rps, 1),
-        "throughput_ratio": round(localize_rps / trivial_rps, 3),
-        "errors": trivial_errors + localize_errors,
+        "rounds": rounds,
+        "rps_per_round": {str(w): [round(r, 1) for r in values] for w, values in rates.items()},
+        "rps_median": {str(w): round(value, 1) for w, value in medians.items()},
+        "workers_2_over_1": round(medians[2] / medians[1], 2),
+        "errors": errors,
     }
+
+
+def _path(room_id: str) -> str:
+    return f"/v1/rooms/{room_id}/localize"
+
+
+def _batch(url: str, room_id: str, bodies: list[dict[str, Any]], rounds: int) -> dict[str, Any]:
+    """(c): one batch of the bodies against the same bodies as single requests."""
+    singles, batches = [], []
+    with httpx.Client(base_url=url, headers=_HEADERS, timeout=300.0) as client:
+        batch_answers: list[dict[str, Any]] = []
+        single_answers: list[dict[str, Any]] = []
+        for round_index in range(rounds):
+            for kind in ("single", "batch") if round_index % 2 == 0 else ("batch", "single"):
+                start = time.perf_counter()
+                if kind == "batch":
+                    response = client.post(
+                        f"/v1/rooms/{room_id}/localize/batch", json={"items": bodies}
+                    )
+                    response.raise_for_status()
+                    batches.append(time.perf_counter() - start)
+                    batch_answers = response.json()["items"]
+                else:
+                    single_answers = []
+                    for body in bodies:
+                        answer = client.post(_path(room_id), json=body)
+                        answer.raise_for_status()
+                        single_answers.append(answer.json())
+                    singles.append(time.perf_counter() - start)
+    same = all(
+        a["estimates"] == b["estimates"] for a, b in zip(batch_answers, single_answers, strict=True)
+    )
+    single_s, batch_s = statistics.median(singles), statistics.median(batches)
+    return {
+        "measurements": len(bodies),
+        "rounds": rounds,
+        "singles_s_median": round(single_s, 3),
+        "batch_s_median": round(batch_s, 3),
+        "batch_speedup": round(single_s / batch_s, 2),
+        "same_estimates": same,
+    }
+
+
+@contextlib.contextmanager
+def _servers(root: Path) -> Iterator[dict[int, LiveServer]]:
+    with (
+        live_server(root / "w1", timeout_s=300.0, VLP_WORKERS="1") as one,
+        live_server(root / "w2", timeout_s=300.0, VLP_WORKERS="2") as two,
+    ):
+        yield {1: one, 2: two}
+
+
+def _commit() -> str:
+    try:
+        return subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, check=True
+        ).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
 
 
 def _cpu_model() -> str:
@@ -105,17 +271,48 @@ def _cpu_model() -> str:
                 return line.split(":", 1)[1].strip()
     except OSError:
         pass
-    return "unknown CPU"
+    return platform.processor() or platform.machine()
+
+
+def run(args: argparse.Namespace) -> dict[str, Any]:
+    """Start the servers, measure (a), (b), (c) and return the figures."""
+    load = " ".join(f"{value:.2f}" for value in os.getloadavg())
+    with tempfile.TemporaryDirectory() as tmp, _servers(Path(tmp)) as servers:
+        prepared = {}
+        for workers, server in servers.items():
+            room_id = ready_demo_room(server.url, timeout_s=300.0)
+            count = max(args.batch, args.measurements)
+            prepared[workers] = (server, room_id, _measurements(server.url, room_id, count))
+        one, room_one, bodies_one = prepared[1]
+        sequential = _sequential(one, room_one, bodies_one, args.sequential)
+        batch = _batch(one.url, room_one, bodies_one[: args.batch], args.batch_rounds)
+        omp_bodies = [{**body, "solver": "omp"} for body in bodies_one[: args.batch]]
+        batch_omp = _batch(one.url, room_one, omp_bodies, args.batch_rounds)
+        scaling = _scaling(prepared, args.seconds, args.rounds, args.concurrency)
+    return {
+        "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+        "machine": f"{_cpu_model()}, {os.cpu_count()} cores",
+        "commit": _commit(),
+        "load_average_at_start": load,
+        "sequential_one_worker": sequential,
+        "batch_vs_singles": batch,
+        "batch_vs_singles_omp": batch_omp,
+        "throughput_workers": scaling,
+    }
 
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``python -m bench.http`` and ``vlp bench http``."""
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--seconds", type=float, default=10.0, help="per throughput phase")
+    parser = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
+    parser.add_argument("--sequential", type=int, default=300, help="requests of each kind")
+    parser.add_argument("--measurements", type=int, default=100, help="distinct bodies cycled")
+    parser.add_argument("--seconds", type=float, default=5.0, help="per throughput phase")
+    parser.add_argument("--rounds", type=int, default=5, help="throughput phases per server")
     parser.add_argument("--concurrency", type=int, default=8)
-    parser.add_argument("--sequential", type=int, default=300)
+    parser.add_argument("--batch", type=int, default=100, help="measurements per batch")
+    parser.add_argument("--batch-rounds", type=int, default=5)
     args = parser.parse_args(argv)
-    print(json.dumps(run(args.seconds, args.concurrency, args.sequential), indent=2))
+    print(json.dumps(run(args), indent=2))
     return 0
 
 

@@ -51,11 +51,15 @@ def _admin(url: str) -> psycopg.Connection[tuple[object, ...]]:
 
 
 def _measure(database_url: str, work: Path) -> dict[str, object]:
-    registry = Registry(database_url=database_url, data_dir=work / "host-a")
+    # Two hosts sharing one database: each registry's store caches under its own data_dir.
+    registry = Registry(
+        database_url=database_url, data_dir=work / "host-a", matrix_store="database"
+    )
+    other = Registry(database_url=database_url, data_dir=work / "host-b", matrix_store="database")
     registry.migrate()
     try:
-        writer = DatabaseMatrixStore(registry.engine, work / "host-a" / "matrices")
-        reader = DatabaseMatrixStore(registry.engine, work / "host-b" / "matrices")
+        writer, reader = registry.store, other.store
+        assert isinstance(writer, DatabaseMatrixStore) and isinstance(reader, DatabaseMatrixStore)
         fingerprint = build_fingerprint(million_point_hall())
         started = time.perf_counter()
         info, size_bytes = writer.cache.put(fingerprint.gains)
@@ -86,6 +90,7 @@ def _measure(database_url: str, work: Path) -> dict[str, object]:
         }
     finally:
         registry.dispose()
+        other.dispose()
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -17,8 +17,8 @@ import matplotlib.pyplot as plt
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from app.vlp._typing import FloatArray
 from app.vlp.layout import Layout
+from app.vlp.typing import FloatArray
 
 from .rooms import make_room
 

@@ -4,6 +4,8 @@ Run from the repository root::
 
     python -m bench.real_rooms                 # 30 trials per cell, writes under docs/
     python -m bench.real_rooms --quick         # 3 trials, paper room, under bench/out/quick/
+    python -m bench.real_rooms --bounds        # Cramer-Rao bounds with nuisances, same placements
+    python -m bench.real_rooms --calibrated    # realistic mix, K = 8, before / after a survey
 
 For each room (the paper's and the irregular ``hall`` of :mod:`bench.rooms`), condition
 (:data:`CONDITIONS`), K in {1, 4, 8} and trial, K terminals are placed uniformly in the room
@@ -25,7 +27,9 @@ so its fingerprint includes the reflections; the others give it the line-of-sigh
 from __future__ import annotations
 
 import argparse
+import csv
 import dataclasses
+import math
 import sys
 import time
 import zlib
@@ -37,14 +41,19 @@ from pathlib import Path
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from app.vlp._typing import FloatArray
 from app.vlp.fingerprints import Fingerprint, build_fingerprint
 from app.vlp.layout import Layout, Reflectance
 from app.vlp.measurements import Measurement, Model, measurement_from_amplitudes
 from app.vlp.metrics import mean_position_error
-from app.vlp.simulation import Impairments, random_positions, simulate_terminals
+from app.vlp.simulation import (
+    Impairments,
+    noise_std_for_snr,
+    random_positions,
+    simulate_terminals,
+)
 from app.vlp.solvers import Solver, make_solver
 from app.vlp.solvers.gridless import GridlessSolver
+from app.vlp.typing import FloatArray
 
 from ._common import (
     REPO_ROOT,
@@ -54,6 +63,7 @@ from ._common import (
     replace_section,
     write_csv,
 )
+from ._real_rooms_extra import BOUND_CASES, CALIBRATIONS, run_bounds, run_calibrated
 from .rooms import make_room
 
 __all__ = ["CONDITIONS", "Condition", "Localizer", "gridless_localizer", "main", "run"]
@@ -222,7 +232,154 @@ def _parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument("--trials", type=int, default=None, help="trials per cell (default 30)")
     parser.add_argument("--rooms", default=None, help="comma-separated subset of paper,hall")
     parser.add_argument("--out", type=Path, default=None, help="output folder")
+    parser.add_argument(
+        "--conditions",
+        default=None,
+        help="main table: a subset of the conditions, names separated by ';'",
+    )
+    parser.add_argument(
+        "--achieved",
+        type=Path,
+        default=None,
+        help="--bounds: the main table's CSV to compare with (default docs/data/real_rooms.csv)",
+    )
+    parser.add_argument(
+        "--first-trial",
+        type=int,
+        default=0,
+        help="--calibrated: start at this trial (to split a run between processes)",
+    )
+    parser.add_argument(
+        "--bounds",
+        action="store_true",
+        help="instead: the Cramer-Rao bounds with nuisances at the same placements",
+    )
+    parser.add_argument(
+        "--calibrated",
+        action="store_true",
+        help="instead: the realistic mix at K = 8, uncalibrated vs after a survey calibration",
+    )
     return parser.parse_args(argv)
+
+
+def _noise_std(room: str) -> float:
+    return noise_std_for_snr(_fingerprint(room, None), SNR_DB)
+
+
+def _placements(room: str, count: int, trial: int) -> FloatArray:
+    return random_positions(_layout(room, None), count, rng=_generator(room, count, trial))
+
+
+Rows = Sequence[tuple[str, str, int, int, str, float]]
+
+
+def _mean_cells(rows: Rows, room: str, name: str, count: int, mode: str) -> float:
+    values = [r[5] for r in rows if r[:3] == (room, name, count) and r[4] == mode]
+    return float(100 * np.nanmean(values)) if values else float("nan")
+
+
+def bounds_table(
+    rows: Sequence[tuple[str, str, int, int, str, float]],
+    achieved: Sequence[tuple[str, str, int, int, str, float]],
+    room: str,
+    trials: int,
+) -> str:
+    """Markdown: bound (cm) per case x (K, mode), with the achieved K = 8 mean beside it."""
+    lines = [
+        "| case | K = 1 | K = 4 | K = 8 | terminals, K = 8 | achieved K = 8 (terminals) |",
+        "|---|---|---|---|---|---|",
+    ]
+    for case in BOUND_CASES:
+        cells = [f"{_mean_cells(rows, room, case.name, k, 'correlation'):.1f}" for k in KS]
+        cells.append(f"{_mean_cells(rows, room, case.name, 8, 'terminals'):.1f}")
+        done = _mean_cells(achieved, room, case.achieved, 8, "correlation")
+        alone = _mean_cells(achieved, room, case.achieved, 8, "terminals")
+        cells.append("-" if math.isnan(done) else f"{done:.1f} ({alone:.1f})")
+        lines.append(f"| {case.name} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + (
+        f"\n\n(bound: RMS position error sqrt(var_x + var_y) averaged over the targets, mean "
+        f"over {trials} placements, cm; for Gaussian errors the mean error is 0.89x the RMS. "
+        "Achieved: mean matched error of the main table's row, same placements.)"
+    )
+
+
+def _read_rows(path: Path) -> list[tuple[str, str, int, int, str, float]]:
+    if not path.exists():
+        return []
+    with path.open(newline="", encoding="utf-8") as handle:
+        records = list(csv.reader(handle))[1:]
+    return [
+        (room, condition, int(k), int(trial), mode, float(error))
+        for room, condition, k, trial, mode, error in records
+    ]
+
+
+def _section(out: Path, tag: str, title: str, command: str, text: list[str]) -> Path:
+    body = [f"## {title}", "", f"Command: `{command.strip()}`.", "", *text]
+    body += ["Machine:", "", machine_markdown(machine_record()), ""]
+    path = out / "real-rooms.md"
+    replace_section(path, tag, "\n".join(body), preamble="# Real rooms\n")
+    return path
+
+
+def _main_bounds(args: argparse.Namespace, rooms: list[str], trials: int, command: str) -> int:
+    out = args.out or (REPO_ROOT / ("bench/out/quick" if args.quick else "docs"))
+    started = time.perf_counter()
+    with threadpool_limits(limits=1):
+        rows = run_bounds(rooms, trials, KS, _placements, _noise_std)
+    elapsed = time.perf_counter() - started
+    write_csv(
+        out / "data" / "real_rooms_bounds.csv",
+        ("room", "case", "k", "trial", "mode", "bound_m"),
+        rows,
+    )
+    achieved = _read_rows(args.achieved or REPO_ROOT / "docs" / "data" / "real_rooms.csv")
+    text = []
+    for room in rooms:
+        text += [f"### Room `{room}`", "", bounds_table(rows, achieved, room, trials), ""]
+    path = _section(
+        out, "real-rooms-bounds", f"Bounds with nuisances ({elapsed:.0f} s)", command, text
+    )
+    print(f"{len(rows)} rows, {elapsed:.0f} s; wrote {path}")
+    return 0
+
+
+def _main_calibrated(args: argparse.Namespace, rooms: list[str], trials: int, command: str) -> int:
+    out = args.out or (REPO_ROOT / ("bench/out/quick" if args.quick else "docs"))
+    started = time.perf_counter()
+    name = "realistic mix, reflectance in layout"
+    with threadpool_limits(limits=1):
+        rows = run_calibrated(rooms, trials, MIX, name, _generator, first_trial=args.first_trial)
+    elapsed = time.perf_counter() - started
+    write_csv(
+        out / "data" / "real_rooms_calibrated.csv",
+        ("room", "calibration", "k", "trial", "mode", "error_m"),
+        rows,
+    )
+    text = []
+    for room in rooms:
+        text += [
+            f"### Room `{room}`",
+            "",
+            "| model used by the service | aggregated correlation, K = 8 | terminals, K = 8 |",
+            "|---|---|---|",
+        ]
+        for calibration in CALIBRATIONS:
+            cells = [
+                f"{_mean_cells(rows, room, calibration.name, 8, mode):.1f}"
+                for mode in ("correlation", "terminals")
+            ]
+            text.append(f"| {calibration.name} | " + " | ".join(cells) + " |")
+        text += ["", f"({trials} trials, mean matched error in cm.)", ""]
+    path = _section(
+        out,
+        "real-rooms-calibrated",
+        f"Realistic mix, uncalibrated vs survey calibration ({elapsed:.0f} s)",
+        command,
+        text,
+    )
+    print(f"{len(rows)} rows, {elapsed:.0f} s; wrote {path}")
+    return 0
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -234,17 +391,27 @@ def main(argv: Sequence[str] | None = None) -> int:
     rooms = (
         args.rooms.split(",") if args.rooms else (["paper"] if args.quick else ["paper", "hall"])
     )
+    command = "python -m bench.real_rooms " + " ".join(argv if argv is not None else sys.argv[1:])
+    if args.bounds:
+        return _main_bounds(args, rooms, trials, command)
+    if args.calibrated:
+        return _main_calibrated(args, rooms, trials, command)
     out = args.out or (REPO_ROOT / ("bench/out/quick" if args.quick else "docs"))
     started = time.perf_counter()
+    conditions = CONDITIONS
+    if args.conditions:
+        wanted = args.conditions.split(";")
+        conditions = tuple(c for c in CONDITIONS if c.name in wanted)
+        if len(conditions) != len(wanted):
+            raise SystemExit(f"unknown condition in {wanted}")
     with threadpool_limits(limits=1):
-        rows = run(rooms, CONDITIONS, trials)
+        rows = run(rooms, conditions, trials)
     elapsed = time.perf_counter() - started
     write_csv(
         out / "data" / "real_rooms.csv",
         ("room", "condition", "k", "trial", "mode", "error_m"),
         rows,
     )
-    command = "python -m bench.real_rooms " + " ".join(argv if argv is not None else sys.argv[1:])
     body = [
         "## Measured (`bench/real_rooms.py`)",
         "",

@@ -19,7 +19,8 @@ __all__ = ["GRID_FLOOR_FACTOR", "ISSUE_TARGETS_CM", "issue_target_rows", "write_
 
 # Mean distance from a uniform point of the unit square to its centre, (sqrt2 + ln(1+sqrt2))/6.
 GRID_FLOOR_FACTOR = (math.sqrt(2.0) + math.log(1.0 + math.sqrt(2.0))) / 6.0
-# Issue 2: paper room, 30 dB, correlation model, default solver: mean error ceilings (cm).
+# Accuracy targets (docs/accuracy.md): paper room, 30 dB, correlation model, default
+# solver: mean error ceilings (cm).
 ISSUE_TARGETS_CM = {1: 3.0, 4: 6.0, 8: 10.0}
 PREAMBLE = """# Accuracy: the paper's Fig. 3 and Fig. 4, reproduced
 

@@ -6,7 +6,9 @@ callgrind twice, with 0 and with 10 solves, and divide the difference by 10::
     valgrind --tool=callgrind --callgrind-out-file=/dev/null python -m bench.solve_loop 0
     valgrind --tool=callgrind --callgrind-out-file=/dev/null python -m bench.solve_loop 10
 
-(paper room, correlation, 30 dB; one warm-up solve in both runs).
+(paper room, correlation, 30 dB; one warm-up solve in both runs, after the compiled kernels'
+warm-up). ``--kernels reference`` runs the plain NumPy kernels instead of the compiled ones;
+``--model`` and ``--targets`` pick another measurement model and K.
 """
 
 from __future__ import annotations
@@ -16,10 +18,11 @@ import argparse
 import numpy as np
 
 from app.vlp.fingerprints import build_fingerprint
-from app.vlp.measurements import measurement_from_amplitudes
+from app.vlp.measurements import Model, measurement_from_amplitudes
 from app.vlp.presets import paper_layout
 from app.vlp.simulation import noise_std_for_snr, noisy_amplitudes, random_positions
-from app.vlp.solvers import make_solver
+from app.vlp.solvers import make_solver, warm_up
+from app.vlp.solvers._kernels import KERNELS, use_kernels
 
 N_TARGETS = 8
 
@@ -29,21 +32,30 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("solves", type=int, help="how many measurements to solve")
     parser.add_argument("--solver", default="gridless")
+    parser.add_argument("--model", default="correlation", choices=("correlation", "power"))
+    parser.add_argument("--targets", type=int, default=N_TARGETS, help="K (default 8)")
+    parser.add_argument("--kernels", default="compiled", choices=KERNELS)
     args = parser.parse_args(argv)
+    with use_kernels(args.kernels):
+        warm_up()
+        _solve_all(args.solver, args.model, args.targets, args.solves)
+    return 0
+
+
+def _solve_all(name: str, model: Model, n_targets: int, solves: int) -> None:
     layout = paper_layout()
     fingerprint = build_fingerprint(layout)
-    solver = make_solver(args.solver, fingerprint, "correlation")
+    solver = make_solver(name, fingerprint, model)
     sigma = noise_std_for_snr(fingerprint, 30.0)
     measurements = []
-    for seed in range(max(args.solves, 1)):
+    for seed in range(max(solves, 1)):
         rng = np.random.default_rng(5000 + seed)
-        truth = random_positions(layout, N_TARGETS, rng=rng)
+        truth = random_positions(layout, n_targets, rng=rng)
         amplitudes = noisy_amplitudes(layout, truth, sigma, rng=rng)
-        measurements.append(measurement_from_amplitudes(amplitudes, "correlation", layout.n_leds))
-    solver.solve(measurements[0], N_TARGETS)  # warm-up, in both runs
-    for measurement in measurements[: args.solves]:
-        solver.solve(measurement, N_TARGETS)
-    return 0
+        measurements.append(measurement_from_amplitudes(amplitudes, model, layout.n_leds))
+    solver.solve(measurements[0], n_targets)  # warm-up, in both runs
+    for measurement in measurements[:solves]:
+        solver.solve(measurement, n_targets)
 
 
 if __name__ == "__main__":

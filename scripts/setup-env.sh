@@ -16,5 +16,8 @@ if [[ ! -f "$stamp" || "$(cat "$stamp")" != "$want" ]]; then
   spec="."
   [[ -n "$extras" ]] && spec=".[$extras]"
   .venv/bin/python -m pip install --quiet --disable-pip-version-check -c constraints.txt -e "$spec"
+  # Compile the solver's numba kernels into their on-disk cache now, as part of installing,
+  # so the first `vlp serve` after an install loads them instead of compiling them.
+  OPENBLAS_NUM_THREADS=1 .venv/bin/python -c "from app.vlp.solvers import warm_up; warm_up()"
   echo "$want" > "$stamp"
 fi

@@ -22,13 +22,13 @@ from typing import Any
 
 import psycopg
 import pytest
-from sqlalchemy import make_url
+from sqlalchemy import Engine, make_url
 
 from app.clock import Clock, SystemClock
 from app.jobs.build import store_fingerprint
 from app.jobs.calibrate import apply_calibration
 from app.registry import Registry
-from app.registry.queue import ClaimedJob, StoredBuild, claim_job, complete_job
+from app.registry.records import ClaimedJob, StoredBuild
 from app.vlp.fingerprints import build_fingerprint
 from app.vlp.layout import Grid, Layout, Led, Room, layout_from_mapping
 from bench.hall_build import million_point_hall
@@ -42,6 +42,7 @@ __all__ = [
     "million_point_hall",
     "overwrite",
     "postgres_url",
+    "raw_engine",
     "record_build",
     "registry",
     "small_layout",
@@ -130,6 +131,13 @@ def registry(database_url: str, tmp_path: Path, clock: Clock) -> Iterator[Regist
         reg.dispose()
 
 
+def raw_engine(registry: Registry) -> Engine:
+    """The registry's engine, for tests that read or damage stored rows directly (schema
+    checks, row counts, a corrupted chunk). Test-only: the service reaches the database only
+    through :class:`Registry` and its ``jobs`` and ``epochs`` doors."""
+    return registry._engine
+
+
 def claim_next(
     registry: Registry,
     *,
@@ -138,8 +146,7 @@ def claim_next(
     room_id: str | None = None,
 ) -> ClaimedJob | None:
     """Claim the oldest claimable job as a worker would, at the registry clock's now."""
-    return claim_job(
-        registry.engine,
+    return registry.jobs.claim(
         worker_id=worker_id,
         now=registry.clock.now(),
         lease_seconds=lease_seconds,
@@ -150,7 +157,7 @@ def claim_next(
 
 def record_build(registry: Registry, claimed: ClaimedJob, build: StoredBuild) -> int | None:
     """Record a finished build as a worker would (at the registry clock's now); the version."""
-    return complete_job(registry.engine, claimed=claimed, build=build, now=registry.clock.now())
+    return registry.jobs.complete(claimed=claimed, build=build, now=registry.clock.now())
 
 
 def build_now(registry: Registry, *, room_id: str, worker_id: str = "test-builder") -> int:

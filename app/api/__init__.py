@@ -9,6 +9,7 @@ from . import (
     health,
     keys,
     localize,
+    localize_batch,
     pictures,
     rooms,
     simulate,
@@ -22,6 +23,7 @@ api_router.include_router(rooms.router)
 api_router.include_router(fingerprints.router)
 api_router.include_router(fingerprints.jobs_router)
 api_router.include_router(localize.router)
+api_router.include_router(localize_batch.router)
 api_router.include_router(simulate.router)
 api_router.include_router(epochs.router)
 api_router.include_router(pictures.router)

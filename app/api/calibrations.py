@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
-from typing import Annotated, Any
+from typing import Annotated, Any, TypeVar
 
 from fastapi import APIRouter, Path, Response, status
 
 from app.registry import CalibrationRecord
 from app.schemas import Calibration, CalibrationCreate, CalibrationsList, Job, LedCalibration
+from app.schemas.calibrations import CalibratedReflectance, ReflectanceSd
 from app.vlp.layout import Layout, layout_from_mapping
 
 from .deps import AdminRole, AnyRole, RegistryDep, RoomId
@@ -15,6 +16,8 @@ from .errors import InvalidInput, problem_responses
 from .fingerprints import JOB_ACCEPTED_HEADERS, JOB_POLL_AFTER_S, job_public
 
 __all__ = ["calibration_public", "router"]
+
+_Model = TypeVar("_Model", CalibratedReflectance, ReflectanceSd)
 
 router = APIRouter(prefix="/v1/rooms/{room_id}/calibrations", tags=["calibration"])
 
@@ -47,7 +50,16 @@ def calibration_public(record: CalibrationRecord) -> Calibration:
         noise_std=report.get("noise_std"),
         converged=report.get("converged"),
         leds=None if leds is None else [LedCalibration(**led) for led in leds],
+        led_position_bound_m=float(record.request.get("led_position_bound_m", 0.0)),
+        fit_reflectance=bool(record.request.get("fit_reflectance", False)),
+        apply_receiver_gain=bool(record.request.get("apply_receiver_gain", True)),
+        reflectance=_optional(CalibratedReflectance, report.get("reflectance")),
+        reflectance_sd=_optional(ReflectanceSd, report.get("reflectance_sd")),
     )
+
+
+def _optional(model: type[_Model], value: dict[str, Any] | None) -> _Model | None:
+    return None if value is None else model(**value)
 
 
 def _checked_request(body: CalibrationCreate, layout: Layout) -> dict[str, Any]:
@@ -86,6 +98,9 @@ def _checked_request(body: CalibrationCreate, layout: Layout) -> dict[str, Any]:
         "mask_dead_leds": body.mask_dead_leds,
         "dimmed_below": body.dimmed_below,
         "dead_below": body.dead_below,
+        "led_position_bound_m": body.led_position_bound_m,
+        "fit_reflectance": body.fit_reflectance,
+        "apply_receiver_gain": body.apply_receiver_gain,
     }
 
 
@@ -107,11 +122,13 @@ def create_calibration(
 ) -> Job:
     """Queue a `calibration` job; poll `Location` (the job) until it `succeeded`.
 
-    The job fits each LED's pilot amplitude and Lambertian order and the receiver gain to the
-    `survey` (least squares), stores the report (`GET .../calibrations/{id}`, id in the job's
-    `result.calibration_id`) and builds a new fingerprint version from the calibrated model,
-    which localization then uses. Later rebuilds of the same layout keep the calibration; a
-    `PUT` of the layout drops it (it no longer applies to the new LEDs).
+    The job fits each LED's pilot amplitude, Lambertian order and `x`, `y` (within
+    `led_position_bound_m`), the receiver gain and, with `fit_reflectance`, the surfaces'
+    reflectances to the `survey` (least squares), stores the report
+    (`GET .../calibrations/{id}`, id in the job's `result.calibration_id`) and builds a new
+    fingerprint version from the calibrated model, which localization then uses. Later
+    rebuilds of the same layout keep the calibration; a `PUT` of the layout drops it (it no
+    longer applies to the new LEDs).
 
     Without a `survey`, only the mask changes (re-using the active calibration): e.g.
     `{"masked_leds": [10]}` drops a dead LED without a new layout or survey. Masked LEDs'
@@ -141,8 +158,9 @@ def list_calibrations(room_id: RoomId, registry: RegistryDep, _role: AnyRole) ->
 def get_calibration(
     room_id: RoomId, calibration_id: CalibrationId, registry: RegistryDep, _role: AnyRole
 ) -> Calibration:
-    """Per LED: fitted pilot amplitude and Lambertian order, RMS residual before and after,
-    flag (`ok`, `dimmed`, `dead`, `unsurveyed`) and whether it is masked; the receiver gain.
+    """Per LED: fitted pilot amplitude, Lambertian order and position, RMS residual before
+    and after, flag (`ok`, `dimmed`, `dead`, `unsurveyed`) and whether it is masked; the
+    receiver gain and the reflectances (fitted, with their sd, when asked).
     """
     return calibration_public(
         registry.get_calibration(room_id=room_id, calibration_id=calibration_id)

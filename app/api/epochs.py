@@ -1,7 +1,7 @@
 """Cooperation epochs: terminals post their own amplitudes into a short window; solved once.
 
 Create an epoch, let each terminal post its amplitudes (again replaces), and read it or call
-``solve``; see :mod:`app.api.epoch_settler` for how and when windows close.
+``solve``; see :mod:`app.services.epoch_settler` for how and when windows close.
 """
 
 from __future__ import annotations
@@ -15,14 +15,14 @@ from typing import Annotated
 from fastapi import APIRouter, Body, Depends, Path, Request, Response, status
 from starlette.concurrency import run_in_threadpool
 
-from app.registry.epochs import EpochRecord, EpochSettings
+from app.registry.records import EpochRecord, EpochSettings
 from app.schemas import Epoch, EpochCreate, EpochMeasurement, Localization
 from app.schemas.epochs import epoch_create_examples, epoch_measurement_examples
+from app.services.epoch_settler import EpochSettler
+from app.services.epochs import open_epoch, post_to_epoch
 
 from .deps import AnyRole, RegistryDep, RoomId, SettingsDep
-from .epoch_settler import EpochSettler
 from .errors import InvalidInput, problem_responses
-from .localize import require_installed
 
 __all__ = ["epoch_public", "router"]
 
@@ -89,7 +89,6 @@ def create_epoch(
     The epoch uses the room's current fingerprint (409 while there is none).
     """
     body = body or EpochCreate()
-    require_installed(body.solver)
     if body.min_terminals > settings.epoch_max_terminals:
         raise InvalidInput(
             [
@@ -107,11 +106,11 @@ def create_epoch(
         min_terminals=body.min_terminals,
         max_terminals=settings.epoch_max_terminals,
         window_s=body.window_s,
-        fingerprint_version=0,  # pinned by the registry
+        fingerprint_version=0,  # pinned by open_epoch
         leds=0,
     )
-    record = registry.create_epoch(
-        room_id=room_id, settings=wanted, fingerprint_version=body.fingerprint_version
+    record = open_epoch(
+        registry, room_id=room_id, settings=wanted, fingerprint_version=body.fingerprint_version
     )
     response.headers["Location"] = f"/v1/rooms/{room_id}/epochs/{record.id}"
     return epoch_public(record)
@@ -146,7 +145,8 @@ def post_epoch_measurement(
 
     409 once the window has closed or the epoch has its maximum of terminals.
     """
-    record = registry.post_epoch_measurement(
+    record = post_to_epoch(
+        registry,
         room_id=room_id,
         epoch_id=epoch_id,
         terminal_id=body.terminal_id,

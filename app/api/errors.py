@@ -2,12 +2,16 @@
 
 One place maps the error families (``app.errors``) and the framework's own errors (404, 405,
 request validation) to problem answers; handlers raise, they never build error bodies.
+:class:`ProblemKind` is the one table of problem kinds (``type`` is
+``urn:vlp:problem:<kind>``); ``_REGISTRY_PROBLEMS`` and ``_SCIENCE_PROBLEMS`` give each error
+class its status and kind.
 """
 
 from __future__ import annotations
 
 import re
 from collections.abc import Iterable, Mapping, Sequence
+from enum import StrEnum
 from http import HTTPStatus
 from typing import Any
 
@@ -17,14 +21,17 @@ from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from app.errors import (
-    Conflict,
     CorruptMatrix,
     FingerprintNotReady,
     InvalidCursor,
-    NotFound,
+    InvalidFields,
+    MatrixNotFound,
     PreconditionFailed,
+    RecordNotFound,
     RegistryError,
     RegistryUnavailable,
+    SolverFailed,
+    StateConflict,
     VLPError,
 )
 from app.schemas import Problem
@@ -33,8 +40,11 @@ __all__ = [
     "PROBLEM_MEDIA_TYPE",
     "ApiProblem",
     "InvalidInput",
+    "ProblemKind",
+    "as_problem",
     "field_location",
     "install_error_handlers",
+    "problem_body",
     "problem_example",
     "problem_response",
     "problem_responses",
@@ -42,6 +52,55 @@ __all__ = [
 
 PROBLEM_MEDIA_TYPE = "application/problem+json"
 _TYPE_PREFIX = "urn:vlp:problem:"
+
+
+class ProblemKind(StrEnum):
+    """Every kind of problem the service answers (the ``type`` is ``urn:vlp:problem:<kind>``)."""
+
+    VALIDATION = "validation"
+    BAD_REQUEST = "bad-request"
+    UNSUPPORTED_MEDIA_TYPE = "unsupported-media-type"
+    PAYLOAD_TOO_LARGE = "payload-too-large"
+    UNAUTHORIZED = "unauthorized"
+    FORBIDDEN = "forbidden"
+    NOT_FOUND = "not-found"
+    CONFLICT = "conflict"
+    FINGERPRINT_NOT_READY = "fingerprint-not-ready"
+    MATRIX_NOT_MATERIALISED = "matrix-not-materialised"
+    MATRIX_FORMAT = "matrix-format"
+    PRECONDITION_FAILED = "precondition-failed"
+    PRECONDITION_REQUIRED = "precondition-required"
+    NOT_READY = "not-ready"
+    CORRUPT_MATRIX = "corrupt-matrix"
+    REGISTRY_UNAVAILABLE = "registry-unavailable"
+    REGISTRY_ERROR = "registry-error"
+    SOLVER_FAILED = "solver-failed"
+    INTERNAL = "internal"
+
+    @property
+    def type_uri(self) -> str:
+        """The problem's ``type`` member."""
+        return f"{_TYPE_PREFIX}{self.value}"
+
+
+# Each registry error class's status and kind; the first matching row wins (subclasses first).
+_REGISTRY_PROBLEMS: tuple[tuple[type[RegistryError], int, ProblemKind], ...] = (
+    (MatrixNotFound, 409, ProblemKind.MATRIX_NOT_MATERIALISED),
+    (RecordNotFound, 404, ProblemKind.NOT_FOUND),
+    (PreconditionFailed, 412, ProblemKind.PRECONDITION_FAILED),
+    (FingerprintNotReady, 409, ProblemKind.FINGERPRINT_NOT_READY),
+    (StateConflict, 409, ProblemKind.CONFLICT),
+    (InvalidCursor, 422, ProblemKind.VALIDATION),
+    (CorruptMatrix, 503, ProblemKind.CORRUPT_MATRIX),
+    (RegistryUnavailable, 503, ProblemKind.REGISTRY_UNAVAILABLE),
+)
+# The science core's: a solver that found no answer is the server's failure, not the input's
+# (503: another solver, or the same one later under less load, may answer); the rest is
+# invalid input.
+_SCIENCE_PROBLEMS: tuple[tuple[type[VLPError], int, ProblemKind], ...] = (
+    (SolverFailed, 503, ProblemKind.SOLVER_FAILED),
+    (VLPError, 422, ProblemKind.VALIDATION),
+)
 _INDEX = re.compile(r"\[(\d+)\]")
 
 
@@ -53,7 +112,7 @@ class ApiProblem(Exception):
         status: int,
         detail: str,
         *,
-        kind: str | None = None,
+        kind: ProblemKind | None = None,
         title: str | None = None,
         errors: Sequence[tuple[str, str]] = (),
         headers: Mapping[str, str] | None = None,
@@ -72,7 +131,9 @@ class InvalidInput(ApiProblem):
 
     def __init__(self, errors: Sequence[tuple[str, str]]) -> None:
         detail = "; ".join(f"{field}: {message}" for field, message in errors)
-        super().__init__(422, detail, kind="validation", title="Validation failed", errors=errors)
+        super().__init__(
+            422, detail, kind=ProblemKind.VALIDATION, title="Validation failed", errors=errors
+        )
 
 
 def field_location(field: str | None, prefix: str = "body") -> str:
@@ -83,31 +144,53 @@ def field_location(field: str | None, prefix: str = "body") -> str:
     return f"{prefix}.{dotted}"
 
 
+def problem_body(
+    status: int,
+    detail: str,
+    *,
+    instance: str,
+    kind: ProblemKind | None = None,
+    title: str | None = None,
+    errors: Iterable[tuple[str, str]] = (),
+    request_id: str | None = None,
+) -> dict[str, Any]:
+    """The problem object for one error (the body of an answer, or an item of a batch's)."""
+    phrase = HTTPStatus(status).phrase if status in HTTPStatus._value2member_map_ else "Error"
+    body: dict[str, Any] = {
+        "type": kind.type_uri if kind else "about:blank",
+        "title": title or phrase,
+        "status": status,
+        "detail": detail,
+        "instance": instance,
+    }
+    error_list = [{"field": field, "message": message} for field, message in errors]
+    if error_list:
+        body["errors"] = error_list
+    if request_id:
+        body["request_id"] = request_id
+    return body
+
+
 def problem_response(
     request: Request,
     status: int,
     detail: str,
     *,
-    kind: str | None = None,
+    kind: ProblemKind | None = None,
     title: str | None = None,
     errors: Iterable[tuple[str, str]] = (),
     headers: Mapping[str, str] | None = None,
 ) -> JSONResponse:
     """The problem answer for one error."""
-    phrase = HTTPStatus(status).phrase if status in HTTPStatus._value2member_map_ else "Error"
-    body: dict[str, Any] = {
-        "type": f"{_TYPE_PREFIX}{kind}" if kind else "about:blank",
-        "title": title or phrase,
-        "status": status,
-        "detail": detail,
-        "instance": request.url.path,
-    }
-    error_list = [{"field": field, "message": message} for field, message in errors]
-    if error_list:
-        body["errors"] = error_list
-    request_id = getattr(request.state, "request_id", None)
-    if request_id:
-        body["request_id"] = request_id
+    body = problem_body(
+        status,
+        detail,
+        instance=request.url.path,
+        kind=kind,
+        title=title,
+        errors=errors,
+        request_id=getattr(request.state, "request_id", None),
+    )
     return JSONResponse(
         body, status_code=status, headers=dict(headers or {}), media_type=PROBLEM_MEDIA_TYPE
     )
@@ -153,20 +236,45 @@ def _unsupported_media(request: Request, exc: RequestValidationError) -> str | N
     return f"send the body as JSON with Content-Type: application/json (got {got})"
 
 
-def _registry_status(exc: RegistryError) -> tuple[int, str]:
-    table: tuple[tuple[type[RegistryError], int, str], ...] = (
-        (NotFound, 404, "not-found"),
-        (PreconditionFailed, 412, "precondition-failed"),
-        (FingerprintNotReady, 409, "fingerprint-not-ready"),
-        (Conflict, 409, "conflict"),
-        (InvalidCursor, 422, "validation"),
-        (CorruptMatrix, 503, "corrupt-matrix"),
-        (RegistryUnavailable, 503, "registry-unavailable"),
-    )
-    for cls, status, kind in table:
+def _registry_status(exc: RegistryError) -> tuple[int, ProblemKind]:
+    for cls, status, kind in _REGISTRY_PROBLEMS:
         if isinstance(exc, cls):
             return status, kind
-    return 500, "registry-error"
+    return 500, ProblemKind.REGISTRY_ERROR
+
+
+def _science_status(exc: VLPError) -> tuple[int, ProblemKind]:
+    for cls, status, kind in _SCIENCE_PROBLEMS:
+        if isinstance(exc, cls):
+            return status, kind
+    return 422, ProblemKind.VALIDATION
+
+
+def as_problem(exc: Exception) -> ApiProblem:
+    """The problem a service, science or registry error is answered with: the one mapping
+    the handlers below and a batch's items (``app.api.localize_batch``) use.
+
+    Raises
+    ------
+    TypeError
+        For an exception that is none of those (a programming error: answered as a 500).
+    """
+    if isinstance(exc, ApiProblem):
+        return exc
+    if isinstance(exc, InvalidFields):
+        return InvalidInput([(field_location(field), message) for field, message in exc.errors])
+    if isinstance(exc, VLPError):
+        status, kind = _science_status(exc)
+        if status != 422:  # not the input's fault: no field to correct
+            return ApiProblem(status, exc.message, kind=kind)
+        errors = [(field_location(exc.field), exc.message)]
+        return ApiProblem(422, exc.message, kind=kind, title="Validation failed", errors=errors)
+    if isinstance(exc, RegistryError):
+        status, kind = _registry_status(exc)
+        errors = [(field_location(exc.field, "query"), exc.message)] if status == 422 else []
+        headers = {"Retry-After": "5"} if status == 503 else None
+        return ApiProblem(status, exc.message, kind=kind, errors=errors, headers=headers)
+    raise TypeError(f"no problem mapping for {type(exc).__name__}")
 
 
 def _unreadable_body(exc: StarletteHTTPException) -> str | None:
@@ -228,7 +336,7 @@ def install_error_handlers(app: FastAPI) -> None:
                 request,
                 415,
                 unsupported,
-                kind="unsupported-media-type",
+                kind=ProblemKind.UNSUPPORTED_MEDIA_TYPE,
                 errors=[("header.content-type", unsupported)],
             )
         errors = _validation_errors(exc)
@@ -236,54 +344,58 @@ def install_error_handlers(app: FastAPI) -> None:
             request,
             422,
             f"{len(errors)} invalid input(s): " + "; ".join(f"{f}: {m}" for f, m in errors),
-            kind="validation",
+            kind=ProblemKind.VALIDATION,
             title="Validation failed",
             errors=errors,
         )
 
-    async def on_vlp(request: Request, exc: Exception) -> JSONResponse:
-        assert isinstance(exc, VLPError)
-        errors = [(field_location(exc.field), exc.message)]
-        return problem_response(
-            request, 422, exc.message, kind="validation", title="Validation failed", errors=errors
-        )
-
-    async def on_registry(request: Request, exc: Exception) -> JSONResponse:
-        assert isinstance(exc, RegistryError)
-        status, kind = _registry_status(exc)
-        errors = [(field_location(exc.field, "query"), exc.message)] if status == 422 else []
-        headers = {"Retry-After": "5"} if status == 503 else None
-        return problem_response(
-            request, status, exc.message, kind=kind, errors=errors, headers=headers
-        )
+    async def on_domain_error(request: Request, exc: Exception) -> JSONResponse:
+        return await on_api_problem(request, as_problem(exc))
 
     app.add_exception_handler(ApiProblem, on_api_problem)
+    app.add_exception_handler(InvalidFields, on_domain_error)
     app.add_exception_handler(StarletteHTTPException, on_http)
     app.add_exception_handler(RequestValidationError, on_validation)
-    app.add_exception_handler(VLPError, on_vlp)
-    app.add_exception_handler(RegistryError, on_registry)
+    app.add_exception_handler(VLPError, on_domain_error)
+    app.add_exception_handler(RegistryError, on_domain_error)
 
 
 # (kind, detail, errors) of a typical answer of each status, as the handlers write them.
 _ROOM_ID = "0f3c9a6e5b2d4c1a8e7f6a5b4c3d2e1f"
-_EXAMPLES: dict[int, tuple[str, str, list[dict[str, str]]]] = {
-    401: ("unauthorized", "this endpoint needs an API key in the X-API-Key header", []),
-    403: ("forbidden", "the terminal role may not do this; it needs an admin key", []),
-    404: ("not-found", f"no room with id '{_ROOM_ID}'", []),
-    409: ("fingerprint-not-ready", f"room {_ROOM_ID} has no ready fingerprint yet", []),
+_EXAMPLES: dict[int, tuple[ProblemKind, str, list[dict[str, str]]]] = {
+    401: (
+        ProblemKind.UNAUTHORIZED,
+        "this endpoint needs an API key in the X-API-Key header",
+        [],
+    ),
+    403: (ProblemKind.FORBIDDEN, "the terminal role may not do this; it needs an admin key", []),
+    404: (ProblemKind.NOT_FOUND, f"no room with id '{_ROOM_ID}'", []),
+    409: (
+        ProblemKind.FINGERPRINT_NOT_READY,
+        f"room {_ROOM_ID} has no ready fingerprint yet",
+        [],
+    ),
     412: (
-        "precondition-failed",
+        ProblemKind.PRECONDITION_FAILED,
         'If-Match "1" is not the room\'s current ETag "2"; read the room again',
         [],
     ),
-    413: ("payload-too-large", "request body larger than 16777216 bytes", []),
+    413: (ProblemKind.PAYLOAD_TOO_LARGE, "request body larger than 16777216 bytes", []),
     422: (
-        "validation",
+        ProblemKind.VALIDATION,
         "body.grid.step: Input should be greater than 0",
         [{"field": "body.grid.step", "message": "Input should be greater than 0"}],
     ),
-    428: ("precondition-required", "send the room's current ETag in If-Match to replace it", []),
-    503: ("registry-unavailable", "the registry database is unavailable or busy; try again", []),
+    428: (
+        ProblemKind.PRECONDITION_REQUIRED,
+        "send the room's current ETag in If-Match to replace it",
+        [],
+    ),
+    503: (
+        ProblemKind.REGISTRY_UNAVAILABLE,
+        "the registry database is unavailable or busy; try again",
+        [],
+    ),
 }
 
 
@@ -292,9 +404,10 @@ def problem_example(status: int) -> dict[str, Any]:
 
     A status without an entry in ``_EXAMPLES`` gets a plain one from its description.
     """
-    kind, detail, errors = _EXAMPLES.get(status, ("", _DESCRIPTIONS.get(status, ""), []))
+    entry = _EXAMPLES.get(status)
+    kind, detail, errors = entry or (None, _DESCRIPTIONS.get(status, ""), [])
     body: dict[str, Any] = {
-        "type": f"{_TYPE_PREFIX}{kind}" if kind else "about:blank",
+        "type": kind.type_uri if kind else "about:blank",
         "title": "Validation failed" if status == 422 else HTTPStatus(status).phrase,
         "status": status,
         "detail": detail,

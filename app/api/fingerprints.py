@@ -10,9 +10,10 @@ from fastapi.responses import FileResponse
 from app.registry import FingerprintRecord, JobRecord
 from app.registry.errors import MatrixNotFound
 from app.schemas import Fingerprint, FingerprintsList, Job, JobResult, MatrixMeta, MatrixName
+from app.services.matrices import rebuilding_if_corrupt
 
 from .deps import AdminRole, AnyRole, JobId, RegistryDep, RoomId
-from .errors import ApiProblem, problem_responses
+from .errors import ApiProblem, ProblemKind, problem_responses
 
 __all__ = [
     "JOB_ACCEPTED_HEADERS",
@@ -153,23 +154,20 @@ def _matrix_file(
     record = registry.get_fingerprint(room_id=room_id, version=_version(version))
     info = record.matrices.get(name)
     if info is None:
-        raise ApiProblem(
-            409,
+        raise MatrixNotFound(
             f"{name} of version {record.version} is not materialised (too "
             "large); H and the LEDs' pilot amplitudes define it exactly",
-            kind="matrix-not-materialised",
+            field="matrix",
         )
     if info.format != file_format:
         raise ApiProblem(
             409,
             f"{name} of version {record.version} is stored as .{info.format}; "
             f"download {name}.{info.format}",
-            kind="matrix-format",
+            kind=ProblemKind.MATRIX_FORMAT,
         )
-    try:
+    with rebuilding_if_corrupt(registry, room_id=room_id):
         path = registry.matrix_path(room_id=room_id, version=record.version, name=name)
-    except MatrixNotFound as exc:
-        raise ApiProblem(409, str(exc), kind="matrix-not-materialised") from exc
     headers = {"ETag": f'"{info.sha256}"', "Cache-Control": "private, max-age=31536000, immutable"}
     return FileResponse(
         path,

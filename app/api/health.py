@@ -11,7 +11,7 @@ from pydantic import BaseModel
 from starlette.concurrency import run_in_threadpool
 
 from .deps import MetricsDep, RegistryDep
-from .errors import ApiProblem, problem_responses
+from .errors import ApiProblem, ProblemKind, problem_responses
 
 __all__ = ["router"]
 
@@ -42,7 +42,7 @@ def _check_ready(registry: RegistryDep) -> None:
         raise ApiProblem(
             503,
             "the registry schema is not at the current migration",
-            kind="not-ready",
+            kind=ProblemKind.NOT_READY,
             headers={"Retry-After": "5"},
         )
 

@@ -6,7 +6,7 @@ from typing import Annotated
 
 from fastapi import APIRouter, Path, Response, status
 
-from app.registry.keys import KeyRecord
+from app.registry.records import KeyRecord
 from app.schemas import ApiKey, ApiKeyCreate, ApiKeyCreated, ApiKeysList
 
 from .deps import AdminRole, KeysDep, RegistryDep

@@ -13,8 +13,9 @@ from typing import Any
 
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from .errors import PROBLEM_MEDIA_TYPE
-from .metrics import Metrics
+from app.telemetry import Metrics
+
+from .errors import PROBLEM_MEDIA_TYPE, ProblemKind
 
 __all__ = ["BodySizeLimitMiddleware", "RequestContextMiddleware", "request_id_var"]
 
@@ -27,10 +28,10 @@ _error_log = logging.getLogger("app.errors")
 
 
 async def _send_problem(
-    send: Send, scope: Scope, status: int, detail: str, kind: str, request_id: str | None
+    send: Send, scope: Scope, status: int, detail: str, kind: ProblemKind, request_id: str | None
 ) -> None:
     body: dict[str, Any] = {
-        "type": f"urn:vlp:problem:{kind}",
+        "type": kind.type_uri,
         "title": HTTPStatus(status).phrase,
         "status": status,
         "detail": detail,
@@ -95,7 +96,7 @@ class RequestContextMiddleware:
                     scope,
                     500,
                     "internal error; quote the request id when reporting it",
-                    "internal",
+                    ProblemKind.INTERNAL,
                     request_id,
                 )
         finally:
@@ -141,11 +142,16 @@ class BodySizeLimitMiddleware:
         declared = _header(scope, b"content-length")
         if declared is not None and not declared.strip().isdigit():
             await _send_problem(
-                send, scope, 400, "Content-Length is not a number", "bad-request", request_id
+                send,
+                scope,
+                400,
+                "Content-Length is not a number",
+                ProblemKind.BAD_REQUEST,
+                request_id,
             )
             return
         if declared is not None and int(declared) > limit:
-            await _send_problem(send, scope, 413, detail, "payload-too-large", request_id)
+            await _send_problem(send, scope, 413, detail, ProblemKind.PAYLOAD_TOO_LARGE, request_id)
             return
         received = 0
         too_large = False
@@ -166,7 +172,9 @@ class BodySizeLimitMiddleware:
             if too_large:
                 if message["type"] == "http.response.start" and not started:
                     started = True
-                    await _send_problem(send, scope, 413, detail, "payload-too-large", request_id)
+                    await _send_problem(
+                        send, scope, 413, detail, ProblemKind.PAYLOAD_TOO_LARGE, request_id
+                    )
                 return
             if message["type"] == "http.response.start":
                 started = True
@@ -177,4 +185,6 @@ class BodySizeLimitMiddleware:
         except _BodyTooLarge:
             if not started:
                 started = True
-                await _send_problem(send, scope, 413, detail, "payload-too-large", request_id)
+                await _send_problem(
+                    send, scope, 413, detail, ProblemKind.PAYLOAD_TOO_LARGE, request_id
+                )

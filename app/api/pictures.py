@@ -18,12 +18,12 @@ from app.pictures import localization_png, room_map_png
 from app.registry import Registry
 from app.registry.errors import FingerprintNotReady
 from app.schemas import LocalizationPlot
-from app.schemas._common import MAX_VERSION
+from app.schemas.common import MAX_VERSION
+from app.services.fingerprint_cache import FingerprintCache
 from app.vlp.layout import Layout, layout_from_mapping
 
 from .deps import AnyRole, CacheDep, PicturesDep, RegistryDep, RoomId
 from .errors import problem_responses
-from .localizer import FingerprintCache
 
 __all__ = ["router"]
 

@@ -13,7 +13,7 @@ from app.settings import Settings
 from app.vlp.layout import layout_from_mapping
 
 from .deps import AdminRole, AnyRole, CacheDep, RegistryDep, RoomId, SettingsDep
-from .errors import ApiProblem, InvalidInput, problem_responses
+from .errors import ApiProblem, InvalidInput, ProblemKind, problem_responses
 
 __all__ = ["room_public", "router", "validated_layout"]
 
@@ -174,7 +174,7 @@ def replace_room(
         raise ApiProblem(
             428,
             "send the room's current ETag in If-Match to replace it",
-            kind="precondition-required",
+            kind=ProblemKind.PRECONDITION_REQUIRED,
         )
     layout = validated_layout(body, settings)
     current = registry.get_room(room_id=room_id)
@@ -183,7 +183,7 @@ def replace_room(
             412,
             f"If-Match {if_match} is not the room's current ETag "
             f"{current.etag}; read the room again",
-            kind="precondition-failed",
+            kind=ProblemKind.PRECONDITION_FAILED,
         )
     record = registry.replace_room(
         room_id=room_id,

@@ -49,7 +49,8 @@ __all__ = [
 Role = Literal["admin", "terminal"]
 ROLES: tuple[Role, ...] = ("admin", "terminal")
 CREDENTIALS_FILE = "credentials"
-# A revoked key must answer 401 in every API process within 2 s (API.md): 1 s of cache.
+# A revoked key must answer 401 in every API process within 2 s (docs/reliability.md,
+# "Keys"): 1 s of cache.
 KEY_CACHE_TTL_S = 1.0
 LAST_USED_INTERVAL_S = 60.0
 _MAX_CACHED_KEYS = 4096
@@ -125,6 +126,21 @@ class KeyCache:
         if role is not None:
             self._touch(digest, now)
         return role
+
+    def fresh_role(self, key: str) -> Role | None:
+        """The role of ``key`` when this cache can answer from memory (read within the TTL,
+        ``last_used_at`` not due), else None: then :meth:`role_for` must ask the registry."""
+        digest = hash_key(key)
+        now = self._clock()
+        with self._lock:
+            entry = self._entries.get(digest)
+            if entry is None or now >= entry.fresh_until:
+                return None
+            last = self._touched.get(digest)
+            if last is None or now - last >= self._touch_interval_s:
+                return None
+            self._entries.move_to_end(digest)
+            return entry.role
 
     def forget(self, key_hash: str) -> None:
         """Drop a key from this process's cache (after revoking it here)."""

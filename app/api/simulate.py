@@ -10,9 +10,10 @@ from starlette.concurrency import run_in_threadpool
 
 from app.schemas import Measurement, Simulation, SimulationRequest, TruthTarget
 from app.schemas.simulate import ImpairmentsSpec
+from app.services.fingerprint_cache import FingerprintCache
 from app.vlp import measurements as vlp_measurements
-from app.vlp._random import as_generator
 from app.vlp.layout import Layout, Reflectance
+from app.vlp.rng import as_generator
 from app.vlp.simulation import (
     Impairments,
     noise_std_for_snr,
@@ -23,7 +24,6 @@ from app.vlp.simulation import (
 
 from .deps import AnyRole, CacheDep, RoomId
 from .errors import InvalidInput, problem_responses
-from .localizer import FingerprintCache
 
 __all__ = ["DEFAULT_SNR_DB", "router"]
 

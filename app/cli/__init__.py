@@ -20,6 +20,8 @@ from typing import TYPE_CHECKING
 
 from ._bench import BENCHMARKS, run_benchmark
 from ._remote import add_remote_commands
+from ._workers import EXIT_STARTUP_FAILURE as _EXIT_STARTUP_FAILURE
+from ._workers import bind_listening_socket
 
 if TYPE_CHECKING:
     from app.settings import Settings
@@ -31,8 +33,7 @@ DEFAULT_OPENAPI_PATH = Path("openapi/openapi.json")
 EXIT_REFUSED = 1
 EXIT_USAGE = 2
 EXIT_NO_ANSWER = 3
-# What `uvicorn.run` exits with when the app does not start (e.g. the registry is away).
-_EXIT_STARTUP_FAILURE = 3
+_APP_FACTORY = "app.main:create_app"
 
 
 def _pin_blas() -> None:
@@ -84,12 +85,13 @@ def _serve(args: argparse.Namespace) -> int:
     import uvicorn
 
     from app.api.logs import configure_logging
-    from app.main import create_app
 
     configure_logging(args.log_level)
-    app = create_app(settings)
+    workers = settings.workers if args.workers is None else args.workers
     config = uvicorn.Config(
-        app,
+        # The app is made below, after binding: with --workers > 1 each API process makes
+        # its own and the supervisor never imports it.
+        _APP_FACTORY,
         host=args.host,
         port=args.port,
         log_config=None,
@@ -98,12 +100,19 @@ def _serve(args: argparse.Namespace) -> int:
     )
     # Bind here, once, so that `--port 0` takes a free port from the kernel and the port
     # actually bound can be reported: no other process can take it in between.
-    sock = config.bind_socket()
+    sock = bind_listening_socket(config)
     bound = int(sock.getsockname()[1])
     if args.port == 0 and "VLP_PUBLIC_URL" not in os.environ:
         settings.public_url = f"http://{host}:{bound}"  # read by the lifespan, at start-up
     if args.port_file is not None:
         _write_port_file(args.port_file, bound)
+    if workers > 1:
+        from ._workers import serve_workers
+
+        return serve_workers(settings=settings, sock=sock, count=workers, log_level=args.log_level)
+    from app.main import create_app
+
+    config.app = create_app(settings)
     server = uvicorn.Server(config)
     server.run(sockets=[sock])
     return 0 if server.started else _EXIT_STARTUP_FAILURE
@@ -154,6 +163,17 @@ def _openapi(args: argparse.Namespace) -> int:
     return 0
 
 
+def _positive_count(text: str) -> int:
+    """An ``--workers`` value: a whole number from 1 to 64."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if not 1 <= value <= 64:
+        raise argparse.ArgumentTypeError(f"must be from 1 to 64, got {value}")
+    return value
+
+
 def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="vlp", description="Visible-light positioning service")
     commands = parser.add_subparsers(dest="command", required=True)
@@ -166,6 +186,13 @@ def _parser() -> argparse.ArgumentParser:
         type=Path,
         default=None,
         help="write the port actually bound to this file (e.g. with --port 0)",
+    )
+    serve.add_argument(
+        "--workers",
+        type=_positive_count,
+        default=None,
+        help="API processes sharing the port (default: VLP_WORKERS, else 1); build workers "
+        "and the epoch sweeper run in the first one only",
     )
     serve.add_argument("--log-level", default="info")
     serve.set_defaults(handler=_serve)

@@ -207,9 +207,33 @@ def _simulate(client: VLPClient, out: Output, args: argparse.Namespace) -> int:
 
 
 def _localize(client: VLPClient, out: Output, args: argparse.Namespace) -> int:
+    if args.batch:
+        return _localize_batch(client, out, args)
     located = client.localize(args.room_id, _read_json(args.file))
     out.result(located, lambda value: _show_localization(out, value, None))
     return 0
+
+
+def _localize_batch(client: VLPClient, out: Output, args: argparse.Namespace) -> int:
+    """``localize --batch``: exit 1 when any item is a problem (all answers are shown)."""
+    from app.schemas import Localization
+
+    sent = _read_json(args.file)
+    items = sent.get("items") if isinstance(sent, dict) else sent
+    if not isinstance(items, list):
+        raise InputFileError(
+            f'{args.file}: expected a JSON list of measurements or {{"items": [...]}}'
+        )
+    answers = client.localize_batch(args.room_id, items).items
+    rows = [
+        [index, "ok", answer.targets, f"{answer.elapsed_ms:.1f}"]
+        if isinstance(answer, Localization)
+        else [index, answer.status, "-", answer.detail]
+        for index, answer in enumerate(answers)
+    ]
+    columns = ["item", "status", "targets", "ms / problem"]
+    out.result(answers, lambda _value: out.table(f"{len(answers)} answers", columns, rows))
+    return 0 if all(isinstance(answer, Localization) for answer in answers) else 1
 
 
 def _client_options(parser: argparse.ArgumentParser) -> None:
@@ -287,3 +311,9 @@ def add_remote_commands(commands: Any) -> None:
     localize = _remote(commands, "localize", _localize, "localize a Measurement JSON file")
     localize.add_argument("room_id")
     localize.add_argument("file", type=Path, help="Measurement JSON ('-': stdin)")
+    localize.add_argument(
+        "--batch",
+        action="store_true",
+        help='FILE holds up to 1000 measurements (a JSON list or {"items": [...]}), '
+        "localized in one request; exit 1 when any of them is refused",
+    )

@@ -16,6 +16,7 @@ from app.schemas import (
     Fingerprint,
     FingerprintsList,
     Localization,
+    LocalizationBatch,
     Measurement,
     Room,
     RoomLayout,
@@ -309,6 +310,18 @@ class VLPClient:
     def localize(self, room_id: str, measurement: Measurement | Mapping[str, Any]) -> Localization:
         """Locate the targets behind an aggregated measurement."""
         return self._post(f"/v1/rooms/{room_id}/localize", Localization, _json_body(measurement))
+
+    def localize_batch(
+        self, room_id: str, measurements: Sequence[Measurement | Mapping[str, Any]]
+    ) -> LocalizationBatch:
+        """Locate the targets behind up to 1000 measurements of one room in one request.
+
+        The answer's ``items`` are in the order of ``measurements``: each a
+        :class:`~app.schemas.Localization`, or the :class:`~app.schemas.Problem` (with its
+        ``status``) that a single :meth:`localize` of that measurement would have raised.
+        """
+        body = {"items": [_json_body(measurement) for measurement in measurements]}
+        return self._post(f"/v1/rooms/{room_id}/localize/batch", LocalizationBatch, body)
 
     def simulate(
         self,

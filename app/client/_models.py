@@ -9,11 +9,12 @@ every version the client may talk to.
 from __future__ import annotations
 
 from datetime import datetime
-from typing import Any, Literal
+from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field
 
 from app.schemas import Localization
+from app.schemas.statuses import EpochStatus, JobStatus
 
 __all__ = ["Epoch", "Job"]
 
@@ -26,7 +27,7 @@ class Job(BaseModel):
     id: str
     kind: str
     room_id: str | None = None
-    status: Literal["queued", "running", "succeeded", "failed"]
+    status: JobStatus
     progress: float = Field(default=0.0, ge=0, le=1)
     error: str | None = None
     created_at: datetime | None = None
@@ -43,13 +44,13 @@ class Job(BaseModel):
 
 
 class Epoch(BaseModel):
-    """A cooperation window that terminals join one by one (API.md, Epoch)."""
+    """A cooperation window that terminals join one by one (docs/epochs.md)."""
 
     model_config = ConfigDict(extra="allow")
 
     id: str
     room_id: str
-    status: Literal["open", "solved", "expired", "failed"]
+    status: EpochStatus
     terminals: int = Field(ge=0, description="terminals that posted so far")
     expires_at: datetime | None = None
     localization: Localization | None = None

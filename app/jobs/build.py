@@ -26,10 +26,10 @@ from typing import Any
 from sqlalchemy import Engine
 from threadpoolctl import threadpool_limits
 
-from app.registry._db import create_registry_engine
 from app.registry.blob_store import MatrixStorage, MatrixStoreKind, open_matrix_store
+from app.registry.db import create_registry_engine
 from app.registry.errors import RegistryError
-from app.registry.queue import StoredBuild, report_progress
+from app.registry.queue import JobQueue, StoredBuild
 from app.registry.records import MatrixInfo
 from app.vlp.fingerprints import PSI_DENSE_LIMIT, Fingerprint, build_fingerprint
 from app.vlp.layout import layout_from_mapping
@@ -170,8 +170,7 @@ class _ProgressReporter:
         if self._engine is None:
             self._engine = create_registry_engine(self._task.database_url)
         try:
-            report_progress(
-                self._engine,
+            JobQueue(self._engine).report_progress(
                 job_id=self._task.job_id,
                 worker_id=self._task.worker_id,
                 progress=fraction,

@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 
 from app.vlp.calibration import (
+    SURFACE_NAMES,
     CalibrationResult,
     calibrate,
     calibrated_layout,
@@ -37,7 +38,10 @@ def apply_calibration(nominal: Layout, payload: dict[str, Any]) -> dict[str, Any
     payload : dict
         ``{"request": {...}, "base": None | {"id", "calibrated_layout", "report"}}``; the
         request has ``survey`` (rows ``[x, y, led, amplitude]``, may be empty),
-        ``masked_leds``, ``mask_dead_leds``, ``dimmed_below`` and ``dead_below``.
+        ``masked_leds``, ``mask_dead_leds``, ``dimmed_below``, ``dead_below`` and, in
+        requests stored since they exist, ``led_position_bound_m``, ``fit_reflectance``
+        and ``apply_receiver_gain`` (absent: no position fit, no reflectance fit, gain
+        folded in, as the requests stored before them were fitted).
 
     Returns
     -------
@@ -59,8 +63,12 @@ def apply_calibration(nominal: Layout, payload: dict[str, Any]) -> dict[str, Any
             survey_from_rows(np.asarray(survey_rows, dtype=np.float64)),
             dimmed_below=float(request.get("dimmed_below", 0.75)),
             dead_below=float(request.get("dead_below", 0.1)),
+            led_position_bound_m=float(request.get("led_position_bound_m", 0.0)),
+            fit_reflectance=bool(request.get("fit_reflectance", False)),
         )
-        calibrated = calibrated_layout(nominal, result)
+        calibrated = calibrated_layout(
+            nominal, result, apply_receiver_gain=bool(request.get("apply_receiver_gain", True))
+        )
         report = _report(nominal, result, len(survey_rows))
     elif base is not None:
         calibrated = layout_from_mapping(base["calibrated_layout"])
@@ -107,15 +115,30 @@ def _report(nominal: Layout, result: CalibrationResult, n_rows: int) -> dict[str
             "survey_points": int(result.points_per_led[i]),
             "points_in_view": int(result.points_in_view[i]),
             "masked": False,
+            "x": float(result.led_positions[i, 0]),
+            "y": float(result.led_positions[i, 1]),
+            "nominal_x": float(nominal.leds[i].x),
+            "nominal_y": float(nominal.leds[i].y),
+            "shift_m": float(np.hypot(*result.led_shifts_m[i])),
         }
         for i in range(nominal.n_leds)
     ]
+    fitted = np.isfinite(result.reflectance_sd)
     return {
         "survey_rows": n_rows,
         "receiver_gain": float(result.receiver_gain),
         "noise_std": _number(float(result.noise_std)),
         "converged": bool(result.converged),
         "leds": leds,
+        "reflectance": None if result.reflectance is None else result.reflectance.to_mapping(),
+        "reflectance_sd": (
+            {
+                name: _number(float(result.reflectance_sd[s])) if fitted[s] else None
+                for s, name in enumerate(SURFACE_NAMES)
+            }
+            if fitted.any()
+            else None
+        ),
     }
 
 
@@ -138,13 +161,21 @@ def _nominal_report(nominal: Layout) -> dict[str, Any]:
             "survey_points": 0,
             "points_in_view": 0,
             "masked": False,
+            "x": float(led.x),
+            "y": float(led.y),
+            "nominal_x": float(led.x),
+            "nominal_y": float(led.y),
+            "shift_m": 0.0,
         }
         for i, led in enumerate(nominal.leds)
     ]
+    reflectance = nominal.room.reflectance
     return {
         "survey_rows": 0,
         "receiver_gain": 1.0,
         "noise_std": None,
         "converged": True,
         "leds": leds,
+        "reflectance": None if reflectance is None else reflectance.to_mapping(),
+        "reflectance_sd": None,
     }

@@ -1,7 +1,7 @@
 """The epoch sweeper: a thread that closes cooperation windows once they have passed.
 
 Every API process runs one (from its lifespan). Each sweep calls ``sweep`` (in practice
-:meth:`app.api.epoch_settler.EpochSettler.sweep`), which settles the due epochs; several
+:meth:`app.services.epoch_settler.EpochSettler.sweep`), which settles the due epochs; several
 processes sweeping one registry is safe because settling claims each epoch with a
 conditional update that only one of them wins. The sweeper only paces and survives errors;
 it knows nothing of HTTP, so ``app.jobs`` does not import ``app.api``.

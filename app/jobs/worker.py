@@ -29,19 +29,11 @@ from multiprocessing.process import BaseProcess
 from app.clock import Clock
 from app.registry import Registry
 from app.registry.errors import RegistryError
-from app.registry.queue import (
-    ClaimedJob,
-    StoredBuild,
-    claim_job,
-    complete_job,
-    fail_job,
-    heartbeat_job,
-    release_job,
-)
+from app.registry.records import ClaimedJob, StoredBuild
 from app.settings import Settings
 
 from .build import BuildTask, build_and_store, init_build_process
-from .metrics import WorkerMetricsServer, serve_worker_metrics
+from .telemetry import WorkerMetricsServer, serve_worker_metrics
 
 __all__ = ["BuildFunction", "EmbeddedWorkers", "run_worker"]
 
@@ -144,8 +136,7 @@ class _WorkerLoop:
         """Claim and run jobs until ``stop`` is set; never dies on one job's trouble."""
         while not self.stop.is_set():
             try:
-                claimed = claim_job(
-                    self.registry.engine,
+                claimed = self.registry.jobs.claim(
                     worker_id=self.worker_id,
                     now=self.clock.now(),
                     lease_seconds=self.settings.job_lease_seconds,
@@ -160,7 +151,7 @@ class _WorkerLoop:
                 self.stop.wait(self.settings.job_poll_seconds)
                 continue
             if self.stop.is_set():  # stopped while claiming: not this worker's job any more
-                release_job(self.registry.engine, claimed=claimed)
+                self.registry.jobs.release(claimed=claimed)
                 return
             try:
                 self.run_one(claimed)
@@ -204,7 +195,7 @@ class _WorkerLoop:
             # The pool is shut down, or the interpreter is exiting ("cannot schedule new
             # futures after shutdown"): not the job's fault, so hand it back uncounted.
             _log.warning("job %s: handed back, no build process to run it: %s", claimed.job_id, exc)
-            release_job(self.registry.engine, claimed=claimed)
+            self.registry.jobs.release(claimed=claimed)
             self.stop.wait(self.settings.job_poll_seconds)
             return
         owned = True
@@ -215,11 +206,10 @@ class _WorkerLoop:
             except FutureTimeout:
                 if self.stop.is_set():
                     future.cancel()
-                    release_job(self.registry.engine, claimed=claimed)
+                    self.registry.jobs.release(claimed=claimed)
                     return
                 if owned:
-                    owned = heartbeat_job(
-                        self.registry.engine,
+                    owned = self.registry.jobs.heartbeat(
                         job_id=claimed.job_id,
                         worker_id=claimed.worker_id,
                         now=self.clock.now(),
@@ -232,9 +222,7 @@ class _WorkerLoop:
             except Exception as exc:
                 self._fail(claimed, f"{type(exc).__name__}: {exc}")
                 return
-        version = complete_job(
-            self.registry.engine, claimed=claimed, build=result, now=self.clock.now()
-        )
+        version = self.registry.jobs.complete(claimed=claimed, build=result, now=self.clock.now())
         if version is None:  # lease lost or room deleted: nothing refers to the files
             self.registry.drop_unreferenced_files(
                 (info.sha256, info.format) for info, _ in result.matrices.values()
@@ -257,8 +245,7 @@ class _WorkerLoop:
         }
 
     def _fail(self, claimed: ClaimedJob, error: str) -> None:
-        status = fail_job(
-            self.registry.engine,
+        status = self.registry.jobs.fail(
             claimed=claimed,
             error=error,
             max_attempts=self.settings.max_build_attempts,

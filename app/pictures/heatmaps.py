@@ -14,9 +14,9 @@ from typing import Literal
 
 import numpy as np
 
-from app.vlp._typing import FloatArray, IntArray
 from app.vlp.channel import channel_gain_gradients, channel_gains
 from app.vlp.layout import Layout
+from app.vlp.typing import FloatArray, IntArray
 
 __all__ = [
     "MAX_SAMPLES_PER_SIDE",

@@ -7,9 +7,9 @@ from collections.abc import Sequence
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from app.vlp._typing import FloatArray, IntArray
 from app.vlp.errors import MeasurementError
 from app.vlp.layout import Layout
+from app.vlp.typing import FloatArray, IntArray
 
 from ._render import draw_grid, draw_leds, draw_room, new_figure, png_bytes
 

@@ -12,9 +12,9 @@ from matplotlib.figure import Figure
 from matplotlib.patches import Patch
 from matplotlib.ticker import FormatStrFormatter, MaxNLocator
 
-from app.vlp._typing import FloatArray
 from app.vlp.errors import GeometryError
 from app.vlp.layout import Layout
+from app.vlp.typing import FloatArray
 
 from ._render import draw_grid, draw_leds, draw_room, new_figure, png_bytes
 from .heatmaps import (

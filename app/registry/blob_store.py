@@ -23,9 +23,9 @@ from sqlalchemy.exc import IntegrityError
 
 from app.clock import SystemClock
 
-from ._db import translate_errors, write_transaction
 from ._schema import matrix_blob_chunks, matrix_blobs
 from ._typing import StoredMatrix
+from .db import translate_errors, write_transaction
 from .records import MatrixInfo
 from .store import STALE_TEMPORARY_SECONDS, MatrixStore
 

@@ -14,10 +14,10 @@ from typing import Any
 from sqlalchemy import Engine, select
 
 from ._calibration_rows import JOB_KIND_CALIBRATION, active_calibration
-from ._db import translate_errors, write_transaction
 from ._rows import locked_layout_version
 from ._schema import calibrations, jobs, rooms
-from .errors import NotFound, PreconditionFailed, RoomNotFound
+from .db import translate_errors, write_transaction
+from .errors import PreconditionFailed, RecordNotFound, RoomNotFound
 from .queue import enqueue_job
 from .records import CalibrationRecord
 
@@ -111,14 +111,14 @@ def list_calibrations(engine: Engine, *, room_id: str) -> list[CalibrationRecord
 
 
 def get_calibration(engine: Engine, *, room_id: str, calibration_id: str) -> CalibrationRecord:
-    """One calibration of the room; :class:`NotFound` when the room does not have it."""
+    """One calibration of the room; :class:`RecordNotFound` when the room does not have it."""
     with translate_errors(), engine.connect() as conn:
         active_id = _active_id(conn, room_id)
         row = conn.execute(
             _select().where(calibrations.c.room_id == room_id, calibrations.c.id == calibration_id)
         ).one_or_none()
     if row is None:
-        raise NotFound(
+        raise RecordNotFound(
             f"room {room_id} has no calibration {calibration_id!r}", field="calibration_id"
         )
     return _record(row, active_id)

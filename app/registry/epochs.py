@@ -19,74 +19,19 @@ from __future__ import annotations
 
 import uuid
 from collections.abc import Sequence
-from dataclasses import dataclass
 from datetime import datetime, timedelta
 from typing import Any
 
 from sqlalchemy import Connection, Engine, and_, delete, func, insert, or_, select, update
 
-from app.vlp.errors import MeasurementError
+from app.schemas.statuses import EPOCH_FINAL_STATUSES
 
-from ._db import translate_errors, write_transaction
-from ._schema import epoch_measurements, epochs, fingerprints
+from ._schema import epoch_measurements, epochs
+from .db import translate_errors, write_transaction
 from .errors import EpochClosed, EpochFull, EpochNotFound
+from .records import ClaimedEpoch, EpochRecord, EpochSettings
 
-__all__ = [
-    "EPOCH_FINAL_STATUSES",
-    "ClaimedEpoch",
-    "EpochRecord",
-    "EpochSettings",
-    "claim_epoch",
-    "create_epoch",
-    "due_epochs",
-    "finish_epoch",
-    "get_epoch",
-    "post_epoch_measurement",
-    "purge_epochs",
-]
-
-EPOCH_FINAL_STATUSES = ("solved", "expired", "failed")
-
-
-@dataclass(frozen=True)
-class EpochSettings:
-    """What an epoch is created with (validated by the caller)."""
-
-    model: str
-    solver: str
-    targets: int | None
-    min_terminals: int
-    max_terminals: int
-    window_s: float
-    fingerprint_version: int
-    leds: int
-
-
-@dataclass(frozen=True)
-class EpochRecord:
-    """An epoch as the registry holds it; ``terminals`` counts the terminals that posted."""
-
-    id: str
-    room_id: str
-    status: str
-    settings: EpochSettings
-    terminals: int
-    created_at: datetime
-    expires_at: datetime
-    finished_at: datetime | None
-    attempts: int
-    localization: dict[str, Any] | None
-    error: str | None
-
-
-@dataclass(frozen=True)
-class ClaimedEpoch:
-    """An epoch this process has claimed, with every terminal's amplitudes (posting order)."""
-
-    record: EpochRecord
-    owner: str
-    terminal_ids: tuple[str, ...]
-    amplitudes: tuple[tuple[float, ...], ...]
+__all__ = ["EpochStore"]
 
 
 def _terminal_count() -> Any:
@@ -135,111 +80,12 @@ def _read(conn: Connection, *, room_id: str, epoch_id: str) -> EpochRecord:
     return _record(row)
 
 
-def create_epoch(
-    engine: Engine, *, room_id: str, settings: EpochSettings, now: datetime
-) -> EpochRecord:
-    """Open a new epoch of a room (the caller checked the room and its fingerprint)."""
-    epoch_id = uuid.uuid4().hex
-    with write_transaction(engine) as conn:
-        conn.execute(
-            insert(epochs).values(
-                id=epoch_id,
-                room_id=room_id,
-                status="open",
-                model=settings.model,
-                solver=settings.solver,
-                targets=settings.targets,
-                min_terminals=settings.min_terminals,
-                max_terminals=settings.max_terminals,
-                window_s=settings.window_s,
-                fingerprint_version=settings.fingerprint_version,
-                leds=settings.leds,
-                created_at=now,
-                expires_at=now + timedelta(seconds=settings.window_s),
-                attempts=0,
-            )
-        )
-        return _read(conn, room_id=room_id, epoch_id=epoch_id)
-
-
-def get_epoch(engine: Engine, *, room_id: str, epoch_id: str) -> EpochRecord:
-    """One epoch of a room; :class:`EpochNotFound` when unknown."""
-    with translate_errors(), engine.connect() as conn:
-        return _read(conn, room_id=room_id, epoch_id=epoch_id)
-
-
 def _closed_reason(row: Any, now: datetime) -> str | None:
     if row.status != "open":
         return f"epoch {row.id} is {row.status}; posts are taken only while it is open"
     if row.expires_at <= now:
         return f"the window of epoch {row.id} closed at {row.expires_at.isoformat()}"
     return None
-
-
-def post_epoch_measurement(
-    engine: Engine,
-    *,
-    room_id: str,
-    epoch_id: str,
-    terminal_id: str,
-    amplitudes: Sequence[float],
-    now: datetime,
-) -> EpochRecord:
-    """Store (or replace) one terminal's amplitudes while the epoch is open.
-
-    Raises
-    ------
-    EpochNotFound
-    EpochClosed
-        The epoch is not open or its window has passed.
-    EpochFull
-        A new terminal when ``max_terminals`` have posted already.
-    app.vlp.errors.MeasurementError
-        Not one amplitude per LED of the epoch's fingerprint.
-    """
-    with write_transaction(engine) as conn:
-        row = conn.execute(
-            select(epochs)
-            .where(epochs.c.id == epoch_id, epochs.c.room_id == room_id)
-            .with_for_update()
-        ).one_or_none()
-        if row is None:
-            raise EpochNotFound(f"room {room_id} has no epoch {epoch_id!r}", field="epoch_id")
-        reason = _closed_reason(row, now)
-        if reason is not None:
-            raise EpochClosed(reason)
-        kept = _fingerprint_amplitudes(conn, row, amplitudes)
-        _upsert(conn, row, terminal_id, kept, now)
-        return _read(conn, room_id=room_id, epoch_id=epoch_id)
-
-
-def _fingerprint_amplitudes(
-    conn: Connection, epoch: Any, amplitudes: Sequence[float]
-) -> list[float]:
-    """One amplitude per LED of the epoch's fingerprint. A calibration may have masked LEDs
-    (dropped from the fingerprint): terminals still send one per room LED, and the masked
-    ones are dropped here, as localize does."""
-    if len(amplitudes) == epoch.leds:
-        return [float(a) for a in amplitudes]
-    masked = (
-        conn.execute(
-            select(fingerprints.c.masked_leds).where(
-                fingerprints.c.room_id == epoch.room_id,
-                fingerprints.c.version == epoch.fingerprint_version,
-            )
-        ).scalar_one_or_none()
-        or []
-    )
-    n_room = epoch.leds + len(masked)
-    if masked and len(amplitudes) == n_room:
-        dropped = set(masked)
-        return [float(a) for i, a in enumerate(amplitudes) if i not in dropped]
-    expected = f"{epoch.leds}" if not masked else f"{n_room} (one per room LED) or {epoch.leds}"
-    raise MeasurementError(
-        f"expected {expected} amplitudes (fingerprint version {epoch.fingerprint_version} "
-        f"has {epoch.leds} LEDs), got {len(amplitudes)}",
-        field="amplitudes",
-    )
 
 
 def _upsert(
@@ -267,55 +113,6 @@ def _upsert(
     )
 
 
-def claim_epoch(
-    engine: Engine,
-    *,
-    room_id: str,
-    epoch_id: str,
-    owner: str,
-    now: datetime,
-    lease_s: float,
-    max_attempts: int,
-    force: bool,
-) -> ClaimedEpoch | None:
-    """Take the epoch for solving, or None when it is not this caller's to solve.
-
-    Claimable: ``open`` with its window passed (or any ``open`` one when ``force``, i.e. an
-    explicit ``solve``), or ``solving`` with an expired claim and fewer than ``max_attempts``
-    claims so far (one that used them all is marked ``failed`` here instead).
-    """
-    lease_over = (epochs.c.status == "solving") & (epochs.c.claim_expires_at <= now)
-    mine = (epochs.c.id == epoch_id) & (epochs.c.room_id == room_id)
-    with write_transaction(engine) as conn:
-        # Lost too often: give up rather than crash every process that picks it up.
-        conn.execute(
-            update(epochs)
-            .where(mine, lease_over, epochs.c.attempts >= max_attempts)
-            .values(
-                status="failed",
-                error=f"the solve was lost {max_attempts} times (solver process gone)",
-                finished_at=now,
-                claim_owner=None,
-            )
-        )
-        openable = epochs.c.status == "open"
-        if not force:
-            openable = and_(openable, epochs.c.expires_at <= now)
-        claimed = conn.execute(
-            update(epochs)
-            .where(mine, or_(openable, lease_over))
-            .values(
-                status="solving",
-                claim_owner=owner,
-                claim_expires_at=now + timedelta(seconds=lease_s),
-                attempts=epochs.c.attempts + 1,
-            )
-        ).rowcount
-        if claimed != 1:
-            return None
-        return _claimed(conn, _read(conn, room_id=room_id, epoch_id=epoch_id), owner)
-
-
 def _claimed(conn: Connection, record: EpochRecord, owner: str) -> ClaimedEpoch:
     rows = conn.execute(
         select(epoch_measurements.c.terminal_id, epoch_measurements.c.amplitudes)
@@ -330,62 +127,185 @@ def _claimed(conn: Connection, record: EpochRecord, owner: str) -> ClaimedEpoch:
     )
 
 
-def finish_epoch(
-    engine: Engine,
-    *,
-    claimed: ClaimedEpoch,
-    status: str,
-    now: datetime,
-    localization: dict[str, Any] | None = None,
-    error: str | None = None,
-) -> bool:
-    """Record the outcome of a claimed epoch; False when the claim was lost meanwhile."""
-    if status not in EPOCH_FINAL_STATUSES:
-        raise ValueError(f"an epoch finishes as one of {EPOCH_FINAL_STATUSES}, not {status!r}")
-    with write_transaction(engine) as conn:
-        changed = conn.execute(
-            update(epochs)
-            .where(
-                epochs.c.id == claimed.record.id,
-                epochs.c.status == "solving",
-                epochs.c.claim_owner == claimed.owner,
-            )
-            .values(
-                status=status,
-                localization=localization,
-                error=error,
-                finished_at=now,
-                claim_owner=None,
-                claim_expires_at=None,
-            )
-        ).rowcount
-    return bool(changed == 1)
+class EpochStore:
+    """The epochs and their posts: the one door to them (``Registry.epochs``)."""
 
+    def __init__(self, engine: Engine) -> None:
+        self._engine = engine
 
-def due_epochs(engine: Engine, *, now: datetime, limit: int) -> list[tuple[str, str]]:
-    """``(room_id, epoch_id)`` of epochs to settle now: open past their window, or solving
-    with an expired claim; oldest deadline first."""
-    with translate_errors(), engine.connect() as conn:
-        rows = conn.execute(
-            select(epochs.c.room_id, epochs.c.id)
-            .where(
-                ((epochs.c.status == "open") & (epochs.c.expires_at <= now))
-                | ((epochs.c.status == "solving") & (epochs.c.claim_expires_at <= now))
-            )
-            .order_by(epochs.c.expires_at, epochs.c.id)
-            .limit(limit)
-        ).all()
-    return [(str(row.room_id), str(row.id)) for row in rows]
-
-
-def purge_epochs(engine: Engine, *, finished_before: datetime) -> int:
-    """Delete finished epochs (and their posts) older than ``finished_before``; how many."""
-    with write_transaction(engine) as conn:
-        return int(
+    def create(self, *, room_id: str, settings: EpochSettings, now: datetime) -> EpochRecord:
+        """Open a new epoch of a room (the caller checked the room and its fingerprint)."""
+        epoch_id = uuid.uuid4().hex
+        with write_transaction(self._engine) as conn:
             conn.execute(
-                delete(epochs).where(
-                    epochs.c.status.in_(EPOCH_FINAL_STATUSES),
-                    epochs.c.finished_at < finished_before,
+                insert(epochs).values(
+                    id=epoch_id,
+                    room_id=room_id,
+                    status="open",
+                    model=settings.model,
+                    solver=settings.solver,
+                    targets=settings.targets,
+                    min_terminals=settings.min_terminals,
+                    max_terminals=settings.max_terminals,
+                    window_s=settings.window_s,
+                    fingerprint_version=settings.fingerprint_version,
+                    leds=settings.leds,
+                    created_at=now,
+                    expires_at=now + timedelta(seconds=settings.window_s),
+                    attempts=0,
+                )
+            )
+            return _read(conn, room_id=room_id, epoch_id=epoch_id)
+
+    def get(self, *, room_id: str, epoch_id: str) -> EpochRecord:
+        """One epoch of a room; :class:`EpochNotFound` when unknown."""
+        with translate_errors(), self._engine.connect() as conn:
+            return _read(conn, room_id=room_id, epoch_id=epoch_id)
+
+    def post_measurement(
+        self,
+        *,
+        room_id: str,
+        epoch_id: str,
+        terminal_id: str,
+        amplitudes: Sequence[float],
+        now: datetime,
+    ) -> EpochRecord:
+        """Store (or replace) one terminal's amplitudes while the epoch is open.
+
+        Raises
+        ------
+        EpochNotFound
+        EpochClosed
+            The epoch is not open or its window has passed.
+        EpochFull
+            A new terminal when ``max_terminals`` have posted already.
+        ValueError
+            Not one amplitude per LED of the epoch's fingerprint (the caller fits a
+            terminal's values to the fingerprint first, see
+            :func:`app.services.masking.fit_to_fingerprint`).
+        """
+        with write_transaction(self._engine) as conn:
+            row = conn.execute(
+                select(epochs)
+                .where(epochs.c.id == epoch_id, epochs.c.room_id == room_id)
+                .with_for_update()
+            ).one_or_none()
+            if row is None:
+                raise EpochNotFound(f"room {room_id} has no epoch {epoch_id!r}", field="epoch_id")
+            reason = _closed_reason(row, now)
+            if reason is not None:
+                raise EpochClosed(reason)
+            if len(amplitudes) != row.leds:
+                raise ValueError(
+                    f"expected {row.leds} amplitudes (the epoch's fingerprint LEDs), "
+                    f"got {len(amplitudes)}: fit them to the fingerprint before posting"
+                )
+            _upsert(conn, row, terminal_id, [float(a) for a in amplitudes], now)
+            return _read(conn, room_id=room_id, epoch_id=epoch_id)
+
+    def claim(
+        self,
+        *,
+        room_id: str,
+        epoch_id: str,
+        owner: str,
+        now: datetime,
+        lease_s: float,
+        max_attempts: int,
+        force: bool,
+    ) -> ClaimedEpoch | None:
+        """Take the epoch for solving, or None when it is not this caller's to solve.
+
+        Claimable: ``open`` with its window passed (or any ``open`` one when ``force``, i.e. an
+        explicit ``solve``), or ``solving`` with an expired claim and fewer than ``max_attempts``
+        claims so far (one that used them all is marked ``failed`` here instead).
+        """
+        lease_over = (epochs.c.status == "solving") & (epochs.c.claim_expires_at <= now)
+        mine = (epochs.c.id == epoch_id) & (epochs.c.room_id == room_id)
+        with write_transaction(self._engine) as conn:
+            # Lost too often: give up rather than crash every process that picks it up.
+            conn.execute(
+                update(epochs)
+                .where(mine, lease_over, epochs.c.attempts >= max_attempts)
+                .values(
+                    status="failed",
+                    error=f"the solve was lost {max_attempts} times (solver process gone)",
+                    finished_at=now,
+                    claim_owner=None,
+                )
+            )
+            openable = epochs.c.status == "open"
+            if not force:
+                openable = and_(openable, epochs.c.expires_at <= now)
+            claimed = conn.execute(
+                update(epochs)
+                .where(mine, or_(openable, lease_over))
+                .values(
+                    status="solving",
+                    claim_owner=owner,
+                    claim_expires_at=now + timedelta(seconds=lease_s),
+                    attempts=epochs.c.attempts + 1,
                 )
             ).rowcount
-        )
+            if claimed != 1:
+                return None
+            return _claimed(conn, _read(conn, room_id=room_id, epoch_id=epoch_id), owner)
+
+    def finish(
+        self,
+        *,
+        claimed: ClaimedEpoch,
+        status: str,
+        now: datetime,
+        localization: dict[str, Any] | None = None,
+        error: str | None = None,
+    ) -> bool:
+        """Record the outcome of a claimed epoch; False when the claim was lost meanwhile."""
+        if status not in EPOCH_FINAL_STATUSES:
+            raise ValueError(f"an epoch finishes as one of {EPOCH_FINAL_STATUSES}, not {status!r}")
+        with write_transaction(self._engine) as conn:
+            changed = conn.execute(
+                update(epochs)
+                .where(
+                    epochs.c.id == claimed.record.id,
+                    epochs.c.status == "solving",
+                    epochs.c.claim_owner == claimed.owner,
+                )
+                .values(
+                    status=status,
+                    localization=localization,
+                    error=error,
+                    finished_at=now,
+                    claim_owner=None,
+                    claim_expires_at=None,
+                )
+            ).rowcount
+        return bool(changed == 1)
+
+    def due(self, *, now: datetime, limit: int) -> list[tuple[str, str]]:
+        """``(room_id, epoch_id)`` of epochs to settle now: open past their window, or solving
+        with an expired claim; oldest deadline first."""
+        with translate_errors(), self._engine.connect() as conn:
+            rows = conn.execute(
+                select(epochs.c.room_id, epochs.c.id)
+                .where(
+                    ((epochs.c.status == "open") & (epochs.c.expires_at <= now))
+                    | ((epochs.c.status == "solving") & (epochs.c.claim_expires_at <= now))
+                )
+                .order_by(epochs.c.expires_at, epochs.c.id)
+                .limit(limit)
+            ).all()
+        return [(str(row.room_id), str(row.id)) for row in rows]
+
+    def purge(self, *, finished_before: datetime) -> int:
+        """Delete finished epochs (and their posts) older than ``finished_before``; how many."""
+        with write_transaction(self._engine) as conn:
+            return int(
+                conn.execute(
+                    delete(epochs).where(
+                        epochs.c.status.in_(EPOCH_FINAL_STATUSES),
+                        epochs.c.finished_at < finished_before,
+                    )
+                ).rowcount
+            )

@@ -3,13 +3,14 @@
 The tree::
 
     RegistryError                 anything the registry refuses or cannot do
-    ├── NotFound                  an unknown id or version
+    ├── RecordNotFound            an unknown id or version (app.client has its own NotFound)
     │   ├── RoomNotFound
     │   ├── JobNotFound
     │   ├── FingerprintNotFound   an unknown fingerprint version of a known room
-    │   ├── MatrixNotFound        a matrix that is not stored (e.g. psi above the dense limit)
+    │   ├── MatrixNotFound        a matrix that is not stored (psi above the dense limit):
+    │   │                         answered 409 (it exists but is not materialised)
     │   └── EpochNotFound         an unknown epoch (or one of another room)
-    ├── Conflict                  the resource's state does not allow the request
+    ├── StateConflict             the resource's state does not allow the request
     │   ├── EpochClosed           a post to an epoch whose window has closed
     │   └── EpochFull             a new terminal in an epoch that has its maximum
     ├── PreconditionFailed        a replace against a stale ``layout_version``
@@ -25,7 +26,6 @@ translated once, at the boundary, and chained with ``from``.
 from __future__ import annotations
 
 __all__ = [
-    "Conflict",
     "CorruptMatrix",
     "EpochClosed",
     "EpochFull",
@@ -35,11 +35,12 @@ __all__ = [
     "InvalidCursor",
     "JobNotFound",
     "MatrixNotFound",
-    "NotFound",
     "PreconditionFailed",
+    "RecordNotFound",
     "RegistryError",
     "RegistryUnavailable",
     "RoomNotFound",
+    "StateConflict",
 ]
 
 
@@ -52,39 +53,39 @@ class RegistryError(Exception):
         self.field = field
 
 
-class NotFound(RegistryError):
+class RecordNotFound(RegistryError):
     """An id or version the registry does not know."""
 
 
-class RoomNotFound(NotFound):
+class RoomNotFound(RecordNotFound):
     """No room with this id."""
 
 
-class JobNotFound(NotFound):
+class JobNotFound(RecordNotFound):
     """No job with this id (jobs go with their room)."""
 
 
-class FingerprintNotFound(NotFound):
+class FingerprintNotFound(RecordNotFound):
     """The room exists but has no fingerprint with this version."""
 
 
-class MatrixNotFound(NotFound):
+class MatrixNotFound(RecordNotFound):
     """The fingerprint exists but this matrix was not stored (too large or unknown name)."""
 
 
-class EpochNotFound(NotFound):
+class EpochNotFound(RecordNotFound):
     """No epoch with this id in this room."""
 
 
-class Conflict(RegistryError):
+class StateConflict(RegistryError):
     """The resource's current state does not allow the request (HTTP 409)."""
 
 
-class EpochClosed(Conflict):
+class EpochClosed(StateConflict):
     """The epoch's window has closed (solved, expired, failed or being solved)."""
 
 
-class EpochFull(Conflict):
+class EpochFull(StateConflict):
     """The epoch already holds its maximum number of terminals."""
 
 

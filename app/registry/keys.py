@@ -16,21 +16,18 @@ environment stays refused; every lookup skips revoked rows.
 from __future__ import annotations
 
 import uuid
-from dataclasses import dataclass
 from datetime import datetime
-from typing import Literal
 
 from sqlalchemy import Engine, and_, delete, func, insert, select, text, update
 
 from app.clock import SystemClock
 
-from ._db import translate_errors, write_transaction
 from ._schema import api_keys
-from .errors import Conflict, NotFound
+from .db import translate_errors, write_transaction
+from .errors import RecordNotFound, StateConflict
+from .records import KeyRecord, KeySource
 
 __all__ = [
-    "KeyRecord",
-    "KeySource",
     "add_generated_keys_if_no_admin",
     "count_active_admin_keys",
     "create_api_key",
@@ -44,21 +41,7 @@ __all__ = [
 # Rows stamped here (key use, blob upload) are records, not timing logic: real time.
 _SYSTEM_CLOCK = SystemClock()
 
-KeySource = Literal["api", "environment", "generated"]
 _KEYS_LOCK = 0x564C505F4B455953  # "VLP_KEYS": one start at a time syncs the environment keys
-
-
-@dataclass(frozen=True)
-class KeyRecord:
-    """A stored key (never its secret; ``key_hash`` is the sha256 hex digest)."""
-
-    id: str
-    key_hash: str
-    role: str
-    label: str
-    source: str
-    created_at: datetime
-    last_used_at: datetime | None
 
 
 def _record(row: object) -> KeyRecord:
@@ -80,14 +63,14 @@ _active = api_keys.c.revoked_at.is_(None)
 def create_api_key(
     engine: Engine, *, key_hash: str, role: str, label: str, source: KeySource
 ) -> KeyRecord:
-    """Store a new key by its hash (a hash already stored raises :class:`Conflict`)."""
+    """Store a new key by its hash (a hash already stored raises :class:`StateConflict`)."""
     key_id = uuid.uuid4().hex
     with write_transaction(engine) as conn:
         known = conn.execute(
             select(api_keys.c.id).where(api_keys.c.key_hash == key_hash)
         ).one_or_none()
         if known is not None:
-            raise Conflict("this key is already stored", field="key")
+            raise StateConflict("this key is already stored", field="key")
         conn.execute(
             insert(api_keys).values(
                 key_hash=key_hash,
@@ -125,9 +108,9 @@ def revoke_api_key(engine: Engine, *, key_id: str) -> KeyRecord:
 
     Raises
     ------
-    NotFound
+    RecordNotFound
         When no key in force has this id (``field="key_id"``).
-    Conflict
+    StateConflict
         When it is the last admin key in force: revoking it would lock every admin out.
     """
     with write_transaction(engine) as conn:
@@ -135,7 +118,7 @@ def revoke_api_key(engine: Engine, *, key_id: str) -> KeyRecord:
             select(api_keys).where(and_(api_keys.c.id == key_id, _active))
         ).one_or_none()
         if row is None:
-            raise NotFound(f"no key {key_id} in force", field="key_id")
+            raise RecordNotFound(f"no key {key_id} in force", field="key_id")
         record = _record(row)
         if record.role == "admin":
             admins = conn.execute(
@@ -144,7 +127,7 @@ def revoke_api_key(engine: Engine, *, key_id: str) -> KeyRecord:
                 .where(and_(api_keys.c.role == "admin", _active))
             ).scalar_one()
             if admins <= 1:
-                raise Conflict(
+                raise StateConflict(
                     f"key {key_id} is the last admin key in force; create another admin key "
                     "before revoking it",
                     field="key_id",

@@ -4,20 +4,29 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from datetime import datetime
-from typing import Any
+from typing import Any, Literal
+
+from app.vlp.fingerprints import Fingerprint
 
 __all__ = [
     "JOB_KIND_BUILD",
     "CalibrationRecord",
+    "ClaimedEpoch",
     "ClaimedJob",
+    "EpochRecord",
+    "EpochSettings",
     "FingerprintRecord",
     "JobRecord",
+    "KeyRecord",
+    "KeySource",
+    "LoadedFingerprint",
     "MatrixInfo",
     "RoomRecord",
     "StoredBuild",
 ]
 
 JOB_KIND_BUILD = "build_fingerprint"
+KeySource = Literal["api", "environment", "generated"]
 
 
 @dataclass(frozen=True)
@@ -150,3 +159,65 @@ class CalibrationRecord:
     masked_leds: tuple[int, ...] | None
     fingerprint_version: int | None
     active: bool
+
+
+@dataclass(frozen=True)
+class KeyRecord:
+    """A stored key (never its secret; ``key_hash`` is the sha256 hex digest)."""
+
+    id: str
+    key_hash: str
+    role: str
+    label: str
+    source: str
+    created_at: datetime
+    last_used_at: datetime | None
+
+
+@dataclass(frozen=True)
+class EpochSettings:
+    """What an epoch is created with (validated by the caller)."""
+
+    model: str
+    solver: str
+    targets: int | None
+    min_terminals: int
+    max_terminals: int
+    window_s: float
+    fingerprint_version: int
+    leds: int
+
+
+@dataclass(frozen=True)
+class EpochRecord:
+    """An epoch as the registry holds it; ``terminals`` counts the terminals that posted."""
+
+    id: str
+    room_id: str
+    status: str
+    settings: EpochSettings
+    terminals: int
+    created_at: datetime
+    expires_at: datetime
+    finished_at: datetime | None
+    attempts: int
+    localization: dict[str, Any] | None
+    error: str | None
+
+
+@dataclass(frozen=True)
+class ClaimedEpoch:
+    """An epoch this process has claimed, with every terminal's amplitudes (posting order)."""
+
+    record: EpochRecord
+    owner: str
+    terminal_ids: tuple[str, ...]
+    amplitudes: tuple[tuple[float, ...], ...]
+
+
+@dataclass(frozen=True)
+class LoadedFingerprint:
+    """A fingerprint version's record and its loaded fingerprint (verified H)."""
+
+    record: FingerprintRecord
+    fingerprint: Fingerprint

@@ -1,16 +1,16 @@
 """The registry: rooms, API keys, fingerprint metadata and the matrix store.
 
 Rows never leave this module: every method returns frozen records from
-:mod:`app.registry.records`. All methods are keyword-only. The job queue itself
-(claim, heartbeat, finish) lives in :mod:`app.registry.queue` and is reached through
-:attr:`Registry.engine` by :mod:`app.jobs`.
+:mod:`app.registry.records`. All methods are keyword-only. The registry owns one door per
+other concern on the same database: :attr:`Registry.jobs` (:class:`~app.registry.queue.JobQueue`:
+claim, heartbeat, finish, used by :mod:`app.jobs`) and :attr:`Registry.epochs`
+(:class:`~app.registry.epochs.EpochStore`); nothing outside this package touches the engine.
 """
 
 from __future__ import annotations
 
 import uuid
-from collections.abc import Iterable, Sequence
-from dataclasses import replace
+from collections.abc import Iterable
 from datetime import datetime
 from pathlib import Path
 from typing import Any
@@ -20,18 +20,11 @@ import scipy.sparse as sp
 from sqlalchemy import Engine, delete, func, insert, select, text, update
 
 from app.clock import Clock, SystemClock
+from app.schemas.statuses import JOB_STATUSES
 from app.vlp.fingerprints import Fingerprint
 from app.vlp.layout import layout_from_mapping
 
-from . import epochs as _epochs
 from . import keys as _keys
-from ._db import (
-    create_registry_engine,
-    migrate,
-    migrations_current,
-    translate_errors,
-    write_transaction,
-)
 from ._rows import (
     decode_cursor,
     encode_cursor,
@@ -46,7 +39,14 @@ from ._rows import (
 from ._schema import calibrations, fingerprints, jobs, matrices, rooms
 from .blob_store import MatrixStorage, MatrixStoreKind, open_matrix_store
 from .calibrations import create_calibration, get_calibration, list_calibrations
-from .epochs import EpochRecord, EpochSettings
+from .db import (
+    create_registry_engine,
+    migrate,
+    migrations_current,
+    translate_errors,
+    write_transaction,
+)
+from .epochs import EpochStore
 from .errors import (
     CorruptMatrix,
     FingerprintNotFound,
@@ -56,8 +56,16 @@ from .errors import (
     PreconditionFailed,
     RoomNotFound,
 )
-from .queue import enqueue_build
-from .records import CalibrationRecord, FingerprintRecord, JobRecord, RoomRecord
+from .queue import JobQueue, enqueue_build
+from .records import (
+    CalibrationRecord,
+    FingerprintRecord,
+    JobRecord,
+    KeyRecord,
+    KeySource,
+    LoadedFingerprint,
+    RoomRecord,
+)
 
 __all__ = ["Registry"]
 
@@ -106,68 +114,70 @@ class Registry:
         self.data_dir = data_dir
         self.max_build_attempts = max_build_attempts
         self.job_lease_seconds = job_lease_seconds
-        self.engine: Engine = create_registry_engine(database_url)
+        self._engine: Engine = create_registry_engine(database_url)
         self.matrix_store: MatrixStoreKind = matrix_store
         self.store: MatrixStorage = open_matrix_store(
-            matrix_store, data_dir=data_dir, engine=self.engine
+            matrix_store, data_dir=data_dir, engine=self._engine
         )
+        self.jobs = JobQueue(self._engine)
+        self.epochs = EpochStore(self._engine)
 
     # -- lifecycle ------------------------------------------------------------------------
     def migrate(self) -> None:
         """Apply the Alembic migrations up to head (idempotent, safe concurrently)."""
-        migrate(self.engine)
+        migrate(self._engine)
 
     def ping(self) -> None:
         """Raise :class:`RegistryUnavailable` when the database does not answer."""
-        with translate_errors(), self.engine.connect() as conn:
+        with translate_errors(), self._engine.connect() as conn:
             conn.execute(text("SELECT 1"))
 
     def migrations_current(self) -> bool:
         """True when the schema is at the newest migration."""
-        return migrations_current(self.engine)
+        return migrations_current(self._engine)
 
     def dispose(self) -> None:
         """Close every pooled connection."""
-        self.engine.dispose()
+        self._engine.dispose()
 
     # -- API keys (rules in app.registry.keys) ----------------------------------------------
     def create_api_key(
-        self, *, key_hash: str, role: str, label: str, source: _keys.KeySource = "api"
-    ) -> _keys.KeyRecord:
+        self, *, key_hash: str, role: str, label: str, source: KeySource = "api"
+    ) -> KeyRecord:
         """Store a new key by its sha256 hex hash."""
         return _keys.create_api_key(
-            self.engine, key_hash=key_hash, role=role, label=label, source=source
+            self._engine, key_hash=key_hash, role=role, label=label, source=source
         )
 
-    def list_api_keys(self) -> list[_keys.KeyRecord]:
+    def list_api_keys(self) -> list[KeyRecord]:
         """The keys in force, oldest first."""
-        return _keys.list_api_keys(self.engine)
+        return _keys.list_api_keys(self._engine)
 
-    def get_active_key(self, *, key_hash: str) -> _keys.KeyRecord | None:
+    def get_active_key(self, *, key_hash: str) -> KeyRecord | None:
         """The key in force with this hash, or None."""
-        return _keys.get_active_key(self.engine, key_hash=key_hash)
+        return _keys.get_active_key(self._engine, key_hash=key_hash)
 
-    def revoke_api_key(self, *, key_id: str) -> _keys.KeyRecord:
-        """Revoke a key in force (NotFound; Conflict for the last admin key)."""
-        return _keys.revoke_api_key(self.engine, key_id=key_id)
+    def revoke_api_key(self, *, key_id: str) -> KeyRecord:
+        """Revoke a key in force (RecordNotFound; StateConflict for the last admin key)."""
+        return _keys.revoke_api_key(self._engine, key_id=key_id)
 
     def touch_api_key(self, *, key_hash: str, when: datetime) -> None:
         """Record the key's last use."""
-        _keys.touch_api_key(self.engine, key_hash=key_hash, when=when)
+        _keys.touch_api_key(self._engine, key_hash=key_hash, when=when)
 
     def sync_environment_keys(
         self, *, configured: list[tuple[str, str]]
     ) -> tuple[list[str], list[str]]:
         """Make the stored environment keys those configured (see app.registry.keys)."""
-        return _keys.sync_environment_keys(self.engine, configured=configured)
+        return _keys.sync_environment_keys(self._engine, configured=configured)
 
     def add_generated_keys_if_no_admin(self, *, keys: list[tuple[str, str]]) -> bool:
         """Store these ``(key_hash, role)`` as generated keys unless an admin key is in force."""
-        return _keys.add_generated_keys_if_no_admin(self.engine, keys=keys)
+        return _keys.add_generated_keys_if_no_admin(self._engine, keys=keys)
 
     def count_active_admin_keys(self) -> int:
         """How many admin keys are in force."""
-        return _keys.count_active_admin_keys(self.engine)
+        return _keys.count_active_admin_keys(self._engine)
 
     # -- rooms ----------------------------------------------------------------------------
     def create_room(self, *, name: str, layout: dict[str, Any]) -> RoomRecord:
@@ -181,7 +191,7 @@ class Registry:
         mapping = normalised_layout(name, layout)
         room_id = uuid.uuid4().hex
         now = self.clock.now()
-        with write_transaction(self.engine) as conn:
+        with write_transaction(self._engine) as conn:
             conn.execute(
                 insert(rooms).values(
                     id=room_id,
@@ -204,7 +214,7 @@ class Registry:
                 (rooms.c.created_at > created_at)
                 | ((rooms.c.created_at == created_at) & (rooms.c.id > room_id))
             )
-        with translate_errors(), self.engine.connect() as conn:
+        with translate_errors(), self._engine.connect() as conn:
             rows = conn.execute(query).all()
         records = [room_record(row) for row in rows[:limit]]
         if len(rows) <= limit or not records:
@@ -214,7 +224,7 @@ class Registry:
 
     def get_room(self, *, room_id: str) -> RoomRecord:
         """One room; :class:`RoomNotFound` when unknown."""
-        with translate_errors(), self.engine.connect() as conn:
+        with translate_errors(), self._engine.connect() as conn:
             row = conn.execute(room_select().where(rooms.c.id == room_id)).one_or_none()
         if row is None:
             raise RoomNotFound(f"no room with id {room_id!r}", field="room_id")
@@ -231,7 +241,7 @@ class Registry:
         """
         mapping = normalised_layout(name, layout)
         now = self.clock.now()
-        with write_transaction(self.engine) as conn:
+        with write_transaction(self._engine) as conn:
             current = locked_layout_version(conn, room_id)
             if current != expected_layout_version:
                 raise PreconditionFailed(
@@ -249,7 +259,7 @@ class Registry:
 
     def delete_room(self, *, room_id: str) -> None:
         """Delete the room, its jobs and fingerprints, and matrix files nobody else uses."""
-        with write_transaction(self.engine) as conn:
+        with write_transaction(self._engine) as conn:
             files = conn.execute(
                 select(matrices.c.sha256, matrices.c.format)
                 .where(matrices.c.room_id == room_id)
@@ -266,7 +276,7 @@ class Registry:
 
     def drop_unreferenced_files(self, files: Iterable[tuple[str, str]]) -> None:
         """Delete those ``(sha256, format)`` files that no stored matrix refers to."""
-        with translate_errors(), self.engine.connect() as conn:
+        with translate_errors(), self._engine.connect() as conn:
             for sha256, fmt in files:
                 users = conn.execute(
                     select(func.count()).select_from(matrices).where(matrices.c.sha256 == sha256)
@@ -276,13 +286,13 @@ class Registry:
 
     def count_rooms(self) -> int:
         """How many rooms exist."""
-        with translate_errors(), self.engine.connect() as conn:
+        with translate_errors(), self._engine.connect() as conn:
             return int(conn.execute(select(func.count()).select_from(rooms)).scalar_one())
 
     # -- builds ---------------------------------------------------------------------------
     def request_build(self, *, room_id: str) -> JobRecord:
         """Queue a build of the room's layout, or return the queued/running one for it."""
-        with write_transaction(self.engine) as conn:
+        with write_transaction(self._engine) as conn:
             version = locked_layout_version(conn, room_id)
             job_id = enqueue_build(
                 conn, room_id=room_id, layout_version=version, now=self.clock.now()
@@ -291,8 +301,8 @@ class Registry:
 
     def count_jobs_by_status(self) -> dict[str, int]:
         """How many jobs are in each status (all four keys, zeros included), for metrics."""
-        counts = dict.fromkeys(("queued", "running", "succeeded", "failed"), 0)
-        with translate_errors(), self.engine.connect() as conn:
+        counts: dict[str, int] = dict.fromkeys(JOB_STATUSES, 0)
+        with translate_errors(), self._engine.connect() as conn:
             for status, count in conn.execute(
                 select(jobs.c.status, func.count()).group_by(jobs.c.status)
             ):
@@ -301,7 +311,7 @@ class Registry:
 
     def get_job(self, *, job_id: str) -> JobRecord:
         """One job; :class:`JobNotFound` when unknown (jobs go with their room)."""
-        with translate_errors(), self.engine.connect() as conn:
+        with translate_errors(), self._engine.connect() as conn:
             row = conn.execute(
                 select(jobs, calibrations.c.id.label("calibration_id"))
                 .select_from(jobs.outerjoin(calibrations, calibrations.c.job_id == jobs.c.id))
@@ -322,7 +332,7 @@ class Registry:
         RoomNotFound, PreconditionFailed (the layout changed meanwhile)
         """
         calibration_id, _ = create_calibration(
-            self.engine,
+            self._engine,
             room_id=room_id,
             layout_version=layout_version,
             request=request,
@@ -332,17 +342,17 @@ class Registry:
 
     def list_calibrations(self, *, room_id: str) -> list[CalibrationRecord]:
         """The room's calibrations, newest first."""
-        return list_calibrations(self.engine, room_id=room_id)
+        return list_calibrations(self._engine, room_id=room_id)
 
     def get_calibration(self, *, room_id: str, calibration_id: str) -> CalibrationRecord:
-        """One calibration of the room (NotFound when unknown)."""
-        return get_calibration(self.engine, room_id=room_id, calibration_id=calibration_id)
+        """One calibration of the room (RecordNotFound when unknown)."""
+        return get_calibration(self._engine, room_id=room_id, calibration_id=calibration_id)
 
     # -- fingerprints ---------------------------------------------------------------------
     def list_fingerprints(self, *, room_id: str) -> list[FingerprintRecord]:
         """The room's fingerprint versions, newest first."""
         self.get_room(room_id=room_id)
-        with translate_errors(), self.engine.connect() as conn:
+        with translate_errors(), self._engine.connect() as conn:
             rows = conn.execute(
                 select(fingerprints)
                 .where(fingerprints.c.room_id == room_id)
@@ -358,13 +368,19 @@ class Registry:
         ------
         RoomNotFound, FingerprintNotReady (no current version), FingerprintNotFound
         """
+        return self._fingerprint_row(room_id=room_id, version=version)[0]
+
+    def _fingerprint_row(
+        self, *, room_id: str, version: int | None
+    ) -> tuple[FingerprintRecord, Any]:
+        # The record and its row (which holds the layout snapshot), in one read.
         if version is None:
             version = self.current_version(room_id=room_id)
             if version is None:
                 raise FingerprintNotReady(
                     f"room {room_id} has no ready fingerprint yet", field="fingerprint_version"
                 )
-        with translate_errors(), self.engine.connect() as conn:
+        with translate_errors(), self._engine.connect() as conn:
             row = conn.execute(
                 select(fingerprints).where(
                     fingerprints.c.room_id == room_id, fingerprints.c.version == version
@@ -376,11 +392,11 @@ class Registry:
             raise FingerprintNotFound(
                 f"room {room_id} has no fingerprint version {version}", field="version"
             )
-        return fingerprint_record(row, infos.get(version, {}))
+        return fingerprint_record(row, infos.get(version, {})), row
 
     def current_version(self, *, room_id: str) -> int | None:
         """The version localization uses now (one indexed read); RoomNotFound when unknown."""
-        with translate_errors(), self.engine.connect() as conn:
+        with translate_errors(), self._engine.connect() as conn:
             row = conn.execute(
                 select(rooms.c.current_version).where(rooms.c.id == room_id)
             ).one_or_none()
@@ -389,81 +405,53 @@ class Registry:
         return None if row.current_version is None else int(row.current_version)
 
     def matrix_path(self, *, room_id: str, version: int, name: str) -> Path:
-        """The verified file of one stored matrix.
+        """The verified file of one stored matrix (a read: it never queues anything).
 
         Raises
         ------
         FingerprintNotFound, MatrixNotFound
             Unknown version, or a matrix that was not stored (e.g. psi above the limit).
         CorruptMatrix
-            The file is missing or its sha256 does not match; a rebuild has been queued.
+            The file is missing or its sha256 does not match; the caller decides whether to
+            queue a rebuild (:meth:`request_build`).
         """
-        info = self.get_fingerprint(room_id=room_id, version=version).matrices.get(name)
+        record = self.get_fingerprint(room_id=room_id, version=version)
+        return self._verified_path(record, name)
+
+    def _verified_path(self, record: FingerprintRecord, name: str) -> Path:
+        info = record.matrices.get(name)
         if info is None:
             raise MatrixNotFound(
-                f"fingerprint {version} of room {room_id} has no stored matrix {name!r}",
+                f"fingerprint {record.version} of room {record.room_id} has no stored matrix "
+                f"{name!r}",
                 field="matrix",
             )
         path = self.store.verified_path(info.sha256, info.format)
         if path is None:
-            self.request_build(room_id=room_id)
             raise CorruptMatrix(
-                f"matrix {name} of fingerprint {version} of room {room_id} failed its sha256 "
-                "check; a rebuild has been queued"
+                f"matrix {name} of fingerprint {record.version} of room {record.room_id} "
+                "failed its sha256 check"
             )
         return path
 
     def load_fingerprint(self, *, room_id: str, version: int) -> Fingerprint:
-        """The fingerprint of that version: its layout snapshot and the verified H."""
-        path = self.matrix_path(room_id=room_id, version=version, name="H")
-        with translate_errors(), self.engine.connect() as conn:
-            snapshot = conn.execute(
-                select(fingerprints.c.layout).where(
-                    fingerprints.c.room_id == room_id, fingerprints.c.version == version
-                )
-            ).scalar_one()
+        """The fingerprint of that version (see :meth:`load_version`)."""
+        return self.load_version(room_id=room_id, version=version).fingerprint
+
+    def load_version(self, *, room_id: str, version: int) -> LoadedFingerprint:
+        """One version's record and its fingerprint (layout snapshot and verified H), from
+        one read of its row.
+
+        Raises
+        ------
+        RoomNotFound, FingerprintNotFound, MatrixNotFound, CorruptMatrix
+        """
+        record, row = self._fingerprint_row(room_id=room_id, version=version)
+        path = self._verified_path(record, "H")
         if path.suffix == ".npz":
             gains = sp.csr_array(sp.load_npz(path))
         else:
             gains = sp.csr_array(np.load(path, allow_pickle=False))
         gains.sort_indices()
-        return Fingerprint(layout=layout_from_mapping(snapshot), gains=gains)
-
-    # -- epochs: app.registry.epochs (claims are reached through .engine, like the queue) -----
-    def create_epoch(
-        self, *, room_id: str, settings: EpochSettings, fingerprint_version: int | None = None
-    ) -> EpochRecord:
-        """Open an epoch pinned to ``fingerprint_version`` (default: the current one), whose
-        version and LED count replace those in ``settings``.
-
-        Raises
-        ------
-        RoomNotFound, FingerprintNotReady, FingerprintNotFound
-        """
-        fingerprint = self.get_fingerprint(room_id=room_id, version=fingerprint_version)
-        pinned = replace(settings, fingerprint_version=fingerprint.version, leds=fingerprint.leds)
-        return _epochs.create_epoch(
-            self.engine, room_id=room_id, settings=pinned, now=self.clock.now()
-        )
-
-    def get_epoch(self, *, room_id: str, epoch_id: str) -> EpochRecord:
-        """One epoch of a room; :class:`EpochNotFound` when unknown."""
-        return _epochs.get_epoch(self.engine, room_id=room_id, epoch_id=epoch_id)
-
-    def post_epoch_measurement(
-        self, *, room_id: str, epoch_id: str, terminal_id: str, amplitudes: Sequence[float]
-    ) -> EpochRecord:
-        """Store or replace one terminal's amplitudes while the epoch is open.
-
-        Raises
-        ------
-        EpochNotFound, EpochClosed, EpochFull, app.vlp.errors.MeasurementError
-        """
-        return _epochs.post_epoch_measurement(
-            self.engine,
-            room_id=room_id,
-            epoch_id=epoch_id,
-            terminal_id=terminal_id,
-            amplitudes=amplitudes,
-            now=self.clock.now(),
-        )
+        fingerprint = Fingerprint(layout=layout_from_mapping(row.layout), gains=gains)
+        return LoadedFingerprint(record=record, fingerprint=fingerprint)

@@ -1,5 +1,6 @@
 """Public request and answer bodies of the HTTP API (pydantic)."""
 
+from .batch import MAX_BATCH_ITEMS, LocalizationBatch, MeasurementBatch
 from .calibrations import (
     Calibration,
     CalibrationCreate,
@@ -7,11 +8,10 @@ from .calibrations import (
     LedCalibration,
     SurveyRow,
 )
-from .epochs import Epoch, EpochCreate, EpochMeasurement, EpochStatus
+from .epochs import Epoch, EpochCreate, EpochMeasurement
 from .fingerprints import Fingerprint, FingerprintsList, Job, JobResult, MatrixMeta, MatrixName
 from .keys import ApiKey, ApiKeyCreate, ApiKeyCreated, ApiKeysList
 from .localize import (
-    SOLVER_NAMES,
     Estimate,
     Fit,
     Localization,
@@ -34,9 +34,10 @@ from .rooms import (
     SurfaceReflectance,
 )
 from .simulate import Simulation, SimulationRequest, TruthTarget
+from .statuses import EpochStatus
 
 __all__ = [
-    "SOLVER_NAMES",
+    "MAX_BATCH_ITEMS",
     "ApiKey",
     "ApiKeyCreate",
     "ApiKeyCreated",
@@ -60,10 +61,12 @@ __all__ = [
     "LedCalibration",
     "LedSpec",
     "Localization",
+    "LocalizationBatch",
     "LocalizationPlot",
     "MatrixMeta",
     "MatrixName",
     "Measurement",
+    "MeasurementBatch",
     "ModelName",
     "PlotPoint",
     "Problem",

@@ -8,17 +8,23 @@ from typing import Annotated, Any, Literal
 
 from pydantic import ConfigDict, Field
 
-from ._common import FiniteFloat, RequestInt, RequestModel, ResponseModel, lazy_examples
+from .common import FiniteFloat, RequestInt, RequestModel, ResponseModel, lazy_examples
+from .statuses import JobStatus
 
+# Same value as app.vlp.calibration.DEFAULT_LED_POSITION_BOUND_M (a test checks); not
+# imported so that importing the schemas does not load numpy.
+DEFAULT_LED_POSITION_BOUND_M = 0.3
 # No layout has more LEDs than this (the schema's own cap; the service's limit is lower).
 MAX_LED_INDEX = 1_000_000
 
 __all__ = [
     "MAX_SURVEY_ROWS",
+    "CalibratedReflectance",
     "Calibration",
     "CalibrationCreate",
     "CalibrationsList",
     "LedCalibration",
+    "ReflectanceSd",
     "SurveyRow",
     "calibration_example",
 ]
@@ -75,8 +81,9 @@ class SurveyRow(RequestModel):
 class CalibrationCreate(RequestModel):
     """A survey to fit, and/or LEDs to mask.
 
-    - With `survey`: fit each LED's pilot amplitude and Lambertian order, and the receiver
-      gain, by least squares; build the fingerprint from the calibrated model.
+    - With `survey`: fit each LED's pilot amplitude, Lambertian order and `x`, `y` (within
+      `led_position_bound_m`), the receiver gain and, with `fit_reflectance`, the surfaces'
+      reflectances, by least squares; build the fingerprint from the calibrated model.
     - Without `survey` (only `masked_leds`): re-use the room's active calibration (or the
       nominal layout when it has none) and only change which LEDs are masked.
 
@@ -107,6 +114,28 @@ class CalibrationCreate(RequestModel):
     dead_below: FiniteFloat = Field(
         default=0.1, ge=0, le=1, description="relative amplitude below which an LED is dead"
     )
+    led_position_bound_m: FiniteFloat = Field(
+        default=DEFAULT_LED_POSITION_BOUND_M,
+        ge=0,
+        le=1,
+        description="fit each LED's x and y within this many metres of the layout's (0: keep "
+        "the layout's positions); needs 8 survey points in the LED's view",
+    )
+    fit_reflectance: bool = Field(
+        default=False,
+        strict=True,
+        description="also fit the reflectance of each surface whose reflection reaches the "
+        "surveyed points (walls for receivers facing up), reported with its sd; the others "
+        "keep the layout's value (0 when the layout has none)",
+    )
+    apply_receiver_gain: bool = Field(
+        default=True,
+        strict=True,
+        description="fold the survey receiver's fitted gain into the fingerprint (true: "
+        "terminals are like the survey receiver, or the layout's absolute scale is unknown; "
+        "false: keep the layout's receiver, so a survey receiver whose gain drifted does not "
+        "move the fingerprint)",
+    )
 
 
 class LedCalibration(ResponseModel):
@@ -125,6 +154,29 @@ class LedCalibration(ResponseModel):
     residual_rms_after: float | None = Field(description="RMS(measured - calibrated model)")
     survey_points: int
     points_in_view: int
+    x: float | None = Field(default=None, description="fitted x of the LED, m")
+    y: float | None = Field(default=None, description="fitted y of the LED, m")
+    nominal_x: float | None = Field(default=None, description="the layout's x, m")
+    nominal_y: float | None = Field(default=None, description="the layout's y, m")
+    shift_m: float | None = Field(
+        default=None, description="distance between the fitted and the layout's (x, y), m"
+    )
+
+
+class CalibratedReflectance(ResponseModel):
+    """The surfaces' diffuse reflectance of the calibrated model."""
+
+    walls: float
+    floor: float
+    ceiling: float
+
+
+class ReflectanceSd(ResponseModel):
+    """Standard deviation of each fitted reflectance (null: that surface was not fitted)."""
+
+    walls: float | None
+    floor: float | None
+    ceiling: float | None
 
 
 class Calibration(ResponseModel):
@@ -133,7 +185,7 @@ class Calibration(ResponseModel):
     id: str
     room_id: str
     layout_version: int = Field(description="the layout it applies to")
-    status: Literal["queued", "running", "succeeded", "failed"]
+    status: JobStatus
     error: str | None
     job_id: str
     created_at: datetime
@@ -149,6 +201,21 @@ class Calibration(ResponseModel):
     noise_std: float | None = Field(description="estimated amplitude noise std")
     converged: bool | None
     leds: list[LedCalibration] | None
+    led_position_bound_m: float = Field(
+        default=0.0, description="the requested bound of the LEDs' position fit, m"
+    )
+    fit_reflectance: bool = Field(default=False, description="reflectances were requested")
+    apply_receiver_gain: bool = Field(
+        default=True, description="the receiver gain was folded into the fingerprint"
+    )
+    reflectance: CalibratedReflectance | None = Field(
+        default=None,
+        description="the surfaces' reflectance of the calibrated model (fitted when "
+        "`fit_reflectance`, else the layout's; null: line of sight only)",
+    )
+    reflectance_sd: ReflectanceSd | None = Field(
+        default=None, description="sd of the fitted reflectances (null when none was fitted)"
+    )
 
 
 class CalibrationsList(ResponseModel):

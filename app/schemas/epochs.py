@@ -3,14 +3,15 @@
 from __future__ import annotations
 
 from datetime import datetime
-from typing import Any, Literal
+from typing import Any
 
 from pydantic import ConfigDict, Field
 
 from app.vlp.constants import MAX_TARGETS
 
-from ._common import MAX_VERSION, FiniteFloat, RequestInt, RequestModel, ResponseModel
+from .common import MAX_VERSION, FiniteFloat, RequestInt, RequestModel, ResponseModel
 from .localize import TERMINAL_ID_PATTERN, Localization, ModelName, SolverName, terminals_example
+from .statuses import EpochStatus
 
 __all__ = [
     "MAX_WINDOW_S",
@@ -25,7 +26,6 @@ __all__ = [
 # The contract's four statuses. Internally an epoch may also be `solving` (closed, one
 # process is solving it); it is shown as `open` with `closed: true` so clients built on
 # the four-value enum keep working.
-EpochStatus = Literal["open", "solved", "expired", "failed"]
 # A cooperation window is short: terminals that moved for a minute are no longer where they
 # measured, so longer windows would only mix stale positions.
 MAX_WINDOW_S = 60.0

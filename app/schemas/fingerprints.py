@@ -8,7 +8,8 @@ from typing import Literal
 
 from pydantic import Field
 
-from ._common import ResponseModel
+from .common import ResponseModel
+from .statuses import JobStatus
 
 __all__ = ["Fingerprint", "FingerprintsList", "Job", "JobResult", "MatrixMeta", "MatrixName"]
 
@@ -71,7 +72,7 @@ class Job(ResponseModel):
     id: str
     kind: str = Field(examples=["build_fingerprint", "calibration"])
     room_id: str | None = Field(description="null once the room was deleted")
-    status: Literal["queued", "running", "succeeded", "failed"]
+    status: JobStatus
     progress: float = Field(ge=0, le=1)
     error: str | None
     created_at: datetime

@@ -7,7 +7,7 @@ from typing import Literal
 
 from pydantic import ConfigDict, Field
 
-from ._common import RequestModel, ResponseModel
+from .common import RequestModel, ResponseModel
 
 __all__ = ["ApiKey", "ApiKeyCreate", "ApiKeyCreated", "ApiKeysList", "KeyRole", "KeySource"]
 

@@ -8,7 +8,7 @@ from pydantic import ConfigDict, Field
 
 from app.vlp.constants import MAX_TARGETS
 
-from ._common import (
+from .common import (
     MAX_VERSION,
     FiniteFloat,
     RequestInt,
@@ -18,11 +18,10 @@ from ._common import (
 )
 
 if TYPE_CHECKING:
-    from app.vlp._typing import FloatArray
+    from app.vlp.typing import FloatArray
 
 __all__ = [
     "EXAMPLE_POSITIONS_M",
-    "SOLVER_NAMES",
     "TERMINAL_ID_PATTERN",
     "Estimate",
     "Fit",
@@ -36,9 +35,9 @@ __all__ = [
 ]
 
 ModelName = Literal["power", "correlation"]
-# The contract's solver names (API.md); the server checks at request time which are installed.
+# The solvers the HTTP contract offers: the science core registers exactly these
+# (app.vlp.solvers.solver_names; tests/api/test_localize.py pins the two equal).
 SolverName = Literal["gridless", "nnls", "omp", "l1"]
-SOLVER_NAMES: tuple[str, ...] = ("gridless", "nnls", "omp", "l1")
 TERMINAL_ID_PATTERN = r"^[A-Za-z0-9._:-]{1,64}$"
 
 
@@ -211,4 +210,9 @@ class Localization(ResponseModel):
     residual_norm: float = Field(description="norm of measurement minus model prediction")
     noise_power: float = Field(description="fitted noise power sigma^2 (squared amplitudes)")
     elapsed_ms: float = Field(description="solver time, milliseconds")
+    converged: bool = Field(
+        default=True,
+        description="false when the solver stopped at its iteration limit: the estimates are "
+        "its last iterate, usable but less certain than the fit's figures suggest",
+    )
     fit: Fit | None = Field(default=None, description="goodness of fit (solver `gridless`)")

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from ._common import MAX_VERSION, FiniteFloat, RequestModel
+from .common import MAX_VERSION, FiniteFloat, RequestModel
 
 __all__ = ["MAX_PLOT_M", "LocalizationPlot", "PlotPoint"]
 

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from datetime import datetime
-from typing import Any, Literal
+from typing import Any
 
 from pydantic import ConfigDict, Field
 
@@ -16,7 +16,8 @@ from app.vlp.constants import (
     DEFAULT_REFRACTIVE_INDEX,
 )
 
-from ._common import FiniteFloat, RequestModel, ResponseModel
+from .common import FiniteFloat, RequestModel, ResponseModel
+from .statuses import FingerprintStatus
 
 __all__ = [
     "FingerprintState",
@@ -169,9 +170,7 @@ class RoomLayout(RequestModel):
 class FingerprintState(ResponseModel):
     """Where the room's fingerprint stands."""
 
-    status: Literal["pending", "building", "ready", "failed"] = Field(
-        description="state of the latest build"
-    )
+    status: FingerprintStatus = Field(description="state of the latest build")
     version: int | None = Field(description="the version localization uses now")
     job_id: str | None = Field(description="the latest build job")
 

@@ -8,7 +8,7 @@ from pydantic import ConfigDict, Field
 
 from app.vlp.constants import MAX_TARGETS
 
-from ._common import FiniteFloat, RequestInt, RequestModel, ResponseModel
+from .common import FiniteFloat, RequestInt, RequestModel, ResponseModel
 from .localize import Measurement, ModelName, SolverName
 from .rooms import SurfaceReflectance
 

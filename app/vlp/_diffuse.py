@@ -16,10 +16,10 @@ from ._diffuse_quadrature import (
     receiver_kernel,
     room_surfaces,
 )
-from ._typing import FloatArray
 from .channel import concentrator_gain, led_constants
 from .errors import GeometryError
 from .layout import Layout, Reflectance
+from .typing import FloatArray
 
 __all__ = ["diffuse_gains", "surface_flux_fractions", "view_factors"]
 

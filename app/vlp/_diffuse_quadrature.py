@@ -11,9 +11,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ._typing import FloatArray, IntArray
 from .errors import GeometryError
 from .layout import Layout, Reflectance
+from .typing import FloatArray, IntArray
 
 # Largest quadrature cell (metres). Each cell carries a 3 x 3 Gauss rule, so the far field of
 # a smooth integrand is resolved far below this; near-field accuracy comes from GRADING.

@@ -22,9 +22,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ._diffuse import diffuse_gains
-from ._typing import FloatArray, IntArray
 from .errors import GeometryError, ProblemSizeError
 from .layout import Layout
+from .typing import FloatArray, IntArray
 
 __all__ = [
     "HEIGHT_SPACING_M",

@@ -10,10 +10,10 @@ from __future__ import annotations
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from ._typing import FloatArray, IntArray
 from .channel import channel_gains
 from .errors import MeasurementError
 from .layout import Layout
+from .typing import FloatArray, IntArray
 
 __all__ = ["assign_terminals", "assignment_costs"]
 

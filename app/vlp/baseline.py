@@ -10,10 +10,10 @@ from __future__ import annotations
 import numpy as np
 from scipy.optimize import least_squares
 
-from ._typing import FloatArray
 from .channel import channel_gain_gradients, led_constants
 from .errors import MeasurementError
 from .layout import Layout
+from .typing import FloatArray
 
 __all__ = ["MAX_TRILATERATION_LEDS", "rss_localize"]
 

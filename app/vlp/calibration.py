@@ -1,28 +1,38 @@
-"""Survey calibration: fit each LED's pilot amplitude and Lambertian order to measured amplitudes.
+"""Survey calibration: fit each LED's pilot amplitude, Lambertian order and x, y (and the
+surfaces' reflectances) to measured amplitudes.
 
 The paper assumes the channel information is "collected via beforehand channel estimation
 indoors". An admin walks a receiver over surveyed points ``p_k`` (on the receivers' plane) and
-records, per LED ``i``, the received pilot amplitude ``a_k``. The model (``channel.py``) is
+records, per LED ``i``, the received pilot amplitude ``a_k``. The model (``channel.py``,
+``reflections.py``) is
 
 .. math::
 
-    a_k = g\\, x_i\\, h(p_k; m_i) + n_k, \\qquad
-    h(p; m) = \\frac{(m+1) A G_f G_c}{2 \\pi} \\frac{dz^{m+1}}{d^{m+3}} \\ (\\phi \\le FOV),
+    a_k = g\\, x_i \\big(h(p_k; m_i, s_i) + \\sum_j \\rho_j D_{ij}(p_k)\\big) + n_k, \\qquad
+    h(p; m, s) = \\frac{(m+1) A G_f G_c}{2 \\pi} \\frac{dz^{m+1}}{d^{m+3}} \\ (\\phi \\le FOV),
 
-with ``x_i`` the pilot amplitude, ``m_i`` the Lambertian order and ``g`` the receiver's gain
-relative to the nominal receiver of the layout.
+with ``x_i`` the pilot amplitude, ``m_i`` the Lambertian order, ``s_i`` the LED's ``(x, y)``
+(``d`` its distance to ``p``), ``g`` the receiver's gain relative to the nominal receiver of
+the layout, and ``D_ij`` the first diffuse bounce off surface ``j`` (walls, floor, ceiling)
+per unit reflectance ``rho_j``, computed once with the nominal LEDs (a shift of a few
+centimetres or degrees changes the reflected part, a fraction of the signal, to second
+order). Without ``room.reflectance`` and without ``fit_reflectance`` the sum is absent.
 
-Identifiability and the choice made here: only the products ``s_i = g x_i`` can be told apart
-from amplitudes, so the fit is done on ``(s_i, m_i)``. It then separates into M independent
-two-parameter problems (each LED's rows depend only on its own parameters), solved by
-``scipy.optimize.least_squares`` with bounds, started from a log-linear fit and from the nominal
-values (the lower cost wins). The products are split into one receiver gain ``g`` and per-LED
+Identifiability and the choice made here: only the products ``r_i = g x_i / x_i^nominal``
+can be told apart from amplitudes, so the fit is done on ``(r_i, m_i, s_i)``. With the
+reflectances fixed (the layout's) it separates into M independent problems of up to four
+parameters (each LED's rows depend only on its own), solved by
+``scipy.optimize.least_squares`` with bounds (``s_i`` within ``led_position_bound_m`` of the
+layout's), started from a log-linear fit and from the nominal values (the lower cost wins).
+With ``fit_reflectance`` the reflectances that the survey can see are then fitted jointly with
+every LED (sparse Jacobian), and their standard deviations come from the Schur complement of
+the Fisher information. The products are split into one receiver gain ``g`` and per-LED
 ``x_i`` by fixing the geometric mean of ``x_i / x_i^nominal`` over the healthy LEDs to 1:
-``g`` is that geometric mean of ``s_i / x_i^nominal``, so a survey receiver that is uniformly
+``g`` is that geometric mean of the ``r_i``, so a survey receiver that is uniformly
 more or less sensitive than the nominal one is not mistaken for dimmed LEDs. LEDs whose
 relative amplitude ``x_i / x_i^nominal`` is below ``dead_below`` are reported dead, below
 ``dimmed_below`` dimmed. :func:`calibrated_layout` folds ``g`` into the receiver's
-``filter_gain``, so the calibrated model reproduces the surveyed amplitudes ``s_i h``.
+``filter_gain``, so the calibrated model reproduces the surveyed amplitudes.
 """
 
 from __future__ import annotations
@@ -33,14 +43,29 @@ from typing import Any
 
 import numpy as np
 
-from ._calibration_fit import classify, fit_led, led_rows, model_amplitudes, rms_per_led
-from ._typing import BoolArray, FloatArray, IntArray
+from ._calibration_fit import (
+    MIN_ROWS_FOR_POSITION,
+    SURFACE_NAMES,
+    LedFit,
+    LedRows,
+    classify,
+    diffuse_rows,
+    fit_jointly,
+    fit_led,
+    identifiable_surfaces,
+    led_rows,
+    rms_per_led,
+)
 from .channel import led_constants
 from .errors import MeasurementError
-from .layout import Layout, Led
+from .layout import Layout, Led, Reflectance
 from .survey import Survey, check_survey, simulate_survey, survey_from_rows
+from .typing import BoolArray, FloatArray, IntArray
 
 __all__ = [
+    "DEFAULT_LED_POSITION_BOUND_M",
+    "MIN_ROWS_FOR_POSITION",
+    "SURFACE_NAMES",
     "CalibrationResult",
     "Survey",
     "calibrate",
@@ -55,6 +80,12 @@ __all__ = [
 # An LED is detected when its fitted signal energy over its rows exceeds this many noise
 # variances (a fit of two parameters to pure noise gives about chi-squared with 2 d.o.f.).
 _DETECTION_SNR = 25.0
+# How far (metres, in x and in y) a fitted LED may move from the layout's position: fittings
+# are placed to a few centimetres, a wrong drawing or a swapped fitting is further off.
+DEFAULT_LED_POSITION_BOUND_M = 0.3
+# Where a fitted reflectance starts when the layout gives none (the lighting-design default
+# for walls, docs/real-rooms.md).
+_REFLECTANCE_START = 0.5
 
 
 @dataclass(frozen=True)
@@ -88,6 +119,17 @@ class CalibrationResult:
         ``dead_below``), with a weak one, and without any row in view.
     converged : bool
         Every per-LED least-squares fit ended on a convergence criterion.
+    led_positions : ndarray of shape (M, 2), metres
+        Fitted ``(x, y)`` of each LED (the layout's for dead LEDs and LEDs with fewer than
+        :data:`MIN_ROWS_FOR_POSITION` rows in view).
+    led_shifts_m : ndarray of shape (M, 2), metres
+        ``led_positions`` minus the layout's.
+    reflectance : Reflectance or None
+        The surfaces' reflectance of the calibrated model: fitted when asked (surfaces the
+        survey cannot see keep the layout's value, or 0), else the layout's.
+    reflectance_sd : ndarray of shape (3,)
+        Standard deviation of each fitted reflectance (walls, floor, ceiling) from the fit's
+        Fisher information with every LED parameter free; NaN where not fitted.
     """
 
     pilot_amplitudes: FloatArray
@@ -104,6 +146,10 @@ class CalibrationResult:
     dimmed_leds: tuple[int, ...]
     unsurveyed_leds: tuple[int, ...]
     converged: bool
+    led_positions: FloatArray
+    led_shifts_m: FloatArray
+    reflectance: Reflectance | None
+    reflectance_sd: FloatArray
 
     def to_mapping(self) -> dict[str, Any]:
         """The result as JSON-ready plain values (NaN residuals become None)."""
@@ -124,20 +170,34 @@ def half_power_angle_deg(order: float | FloatArray) -> FloatArray:
 
 
 def calibrate(
-    layout: Layout, survey: Survey, *, dimmed_below: float = 0.5, dead_below: float = 0.1
+    layout: Layout,
+    survey: Survey,
+    *,
+    dimmed_below: float = 0.5,
+    dead_below: float = 0.1,
+    led_position_bound_m: float = DEFAULT_LED_POSITION_BOUND_M,
+    fit_reflectance: bool = False,
 ) -> CalibrationResult:
-    """Fit per-LED pilot amplitudes and Lambertian orders (and the receiver gain) to a survey.
+    """Fit per-LED pilot amplitudes, Lambertian orders and ``x, y`` (and the receiver gain,
+    and optionally the surfaces' reflectances) to a survey.
 
     Parameters
     ----------
     layout : Layout
-        The nominal room (LED positions, receiver and grid height are taken as exact).
+        The nominal room (LED heights, receiver and grid height are taken as exact; its
+        ``room.reflectance``, when set, is the reflected part of the model).
     survey : Survey
         S rows of measured amplitudes.
     dimmed_below : float, default=0.5
         LEDs whose relative amplitude ``x_i / x_i^nominal`` is below this are dimmed.
     dead_below : float, default=0.1
         ... and below this dead (no usable signal).
+    led_position_bound_m : float, default=0.3
+        Each LED's ``x`` and ``y`` are fitted within this many metres of the layout's (0: kept
+        as in the layout). Needs :data:`MIN_ROWS_FOR_POSITION` rows in the LED's view.
+    fit_reflectance : bool, default=False
+        Also fit the reflectance of every surface whose first-bounce reflection reaches the
+        survey's receivers (others keep the layout's value, or 0), jointly with all LEDs.
 
     Returns
     -------
@@ -147,8 +207,8 @@ def calibrate(
     ------
     MeasurementError
         When an LED index is out of range (``field="led_indices"``), a point lies outside
-        the room (``field="points"``) or the thresholds are not
-        ``0 <= dead_below <= dimmed_below <= 1``.
+        the room (``field="points"``), the thresholds are not
+        ``0 <= dead_below <= dimmed_below <= 1`` or the position bound is not in [0, 1] m.
 
     Notes
     -----
@@ -175,39 +235,63 @@ def calibrate(
             f"need 0 <= dead_below <= dimmed_below <= 1, got {dead_below!r} and {dimmed_below!r}",
             field="dimmed_below",
         )
+    if not (math.isfinite(led_position_bound_m) and 0.0 <= led_position_bound_m <= 1.0):
+        raise MeasurementError(
+            f"led_position_bound_m must be in [0, 1] m, got {led_position_bound_m!r}",
+            field="led_position_bound_m",
+        )
     check_survey(layout, survey)
     n_leds = layout.n_leds
     orders_nominal, _ = led_constants(layout)
     nominal = layout.pilot_amplitudes
-    ones = np.ones(n_leds)
-    before = rms_per_led(
-        survey, survey.amplitudes - model_amplitudes(layout, survey, ones, orders_nominal), n_leds
+    given = layout.room.reflectance
+    rho = np.array([getattr(given, n) if given else 0.0 for n in SURFACE_NAMES])
+    reflected = given is not None or fit_reflectance
+    groups = [np.flatnonzero(survey.led_indices == i) for i in range(n_leds)]
+    per_row = diffuse_rows(layout, survey) if reflected else None
+    fitted_surfaces = np.zeros(len(SURFACE_NAMES), dtype=bool)
+    if fit_reflectance:
+        fitted_surfaces = identifiable_surfaces(_rows(layout, survey, groups, per_row))
+        rho = np.where(fitted_surfaces & (rho == 0.0), _REFLECTANCE_START, rho)
+    before = _model(
+        _rows(layout, survey, groups, per_row),
+        groups,
+        survey.n_rows,
+        _nominal_fits(orders_nominal),
+        rho,
     )
-    ratios, orders = ones.copy(), orders_nominal.copy()
-    in_view = np.zeros(n_leds, dtype=np.intp)
-    converged = True
-    for i in range(n_leds):
-        mine = survey.led_indices == i
-        rows, _ = led_rows(layout, i, survey.points[mine], survey.amplitudes[mine])
-        in_view[i] = rows.amplitudes.size
-        if in_view[i]:
-            ratios[i], orders[i], ok = fit_led(rows, float(orders_nominal[i]))
-            converged = converged and ok
-    modelled = model_amplitudes(layout, survey, ratios, orders)
+    rows, fits, rho_fit, rho_sd, converged = _fit_all(
+        layout, survey, groups, per_row, rho, fitted_surfaces, led_position_bound_m
+    )
+    if per_row is not None and any(np.any(f.free) for f in fits):
+        # The reflected part was computed with the nominal LEDs: once more with the fitted
+        # positions and beams (a displaced LED lights the walls differently).
+        per_row = diffuse_rows(_refreshed(layout, fits), survey)
+        rows, fits, rho_fit, rho_sd, converged = _fit_all(
+            layout, survey, groups, per_row, rho_fit, fitted_surfaces, led_position_bound_m
+        )
+    rho = rho_fit
+    in_view = np.array([int(np.count_nonzero(r.in_view())) for r in rows], dtype=np.intp)
+    ratios = np.array([f.ratio for f in fits])
+    orders = np.array([f.order for f in fits])
+    shifts = np.array([f.shift for f in fits]).reshape(n_leds, 2)
+    modelled = _model(rows, groups, survey.n_rows, fits, rho)
     residuals = survey.amplitudes - modelled
-    dof = max(survey.n_rows - 2 * int(np.count_nonzero(in_view)), 1)
+    n_params = sum(int(np.count_nonzero(f.free)) for f, v in zip(fits, in_view, strict=True) if v)
+    dof = max(survey.n_rows - n_params - int(fitted_surfaces.sum()), 1)
     noise_var = float(residuals @ residuals) / dof
     energy = np.bincount(survey.led_indices, weights=modelled**2, minlength=n_leds)
     detected = (energy > 0) & (energy > _DETECTION_SNR * noise_var)
     gain, relative, dead, dimmed = classify(ratios, in_view > 0, detected, dimmed_below, dead_below)
     orders = np.where(dead, orders_nominal, orders)
+    shifts = np.where(dead[:, None], 0.0, shifts)
     return CalibrationResult(
         pilot_amplitudes=np.where(dead, nominal, relative * nominal),
         lambertian_orders=orders,
         half_power_angles_deg=half_power_angle_deg(orders),
         receiver_gain=gain,
         relative_amplitudes=relative,
-        residual_rms_before=before,
+        residual_rms_before=rms_per_led(survey, survey.amplitudes - before, n_leds),
         residual_rms_after=rms_per_led(survey, residuals, n_leds),
         noise_std=math.sqrt(noise_var),
         points_per_led=np.bincount(survey.led_indices, minlength=n_leds).astype(np.intp),
@@ -216,16 +300,31 @@ def calibrate(
         dimmed_leds=_indices(dimmed),
         unsurveyed_leds=_indices(in_view == 0),
         converged=converged,
+        led_positions=layout.led_positions[:, :2] + shifts,
+        led_shifts_m=shifts,
+        reflectance=(
+            None
+            if not reflected
+            else Reflectance(**{n: float(rho[s]) for s, n in enumerate(SURFACE_NAMES)})
+        ),
+        reflectance_sd=rho_sd,
     )
 
 
-def calibrated_layout(layout: Layout, result: CalibrationResult) -> Layout:
-    """The layout with fitted pilot amplitudes and half-power angles, receiver gain folded in.
+def calibrated_layout(
+    layout: Layout, result: CalibrationResult, *, apply_receiver_gain: bool = True
+) -> Layout:
+    """The layout with fitted pilot amplitudes, half-power angles, LED ``x, y`` and
+    reflectances, receiver gain folded in.
 
     LED indices are kept: dead LEDs stay with their nominal parameters (drop them with
-    :func:`masked_layout`). The receiver's ``filter_gain`` is multiplied by
-    ``result.receiver_gain`` so that ``h x`` of the calibrated layout reproduces the survey
-    (valid for terminals whose receivers are like the survey receiver).
+    :func:`masked_layout`). With ``apply_receiver_gain`` the receiver's ``filter_gain`` is
+    multiplied by ``result.receiver_gain`` so that ``h x`` of the calibrated layout
+    reproduces the survey (right for terminals whose receivers are like the survey
+    receiver, and when the layout's absolute scale is unknown). Without it the model keeps
+    the layout's receiver: the fingerprint does not depend on the survey receiver's gain,
+    so a survey made with a receiver whose gain drifted gives the same fingerprint (the
+    geometric mean of the relative amplitudes is 1 either way).
 
     Raises
     ------
@@ -238,18 +337,22 @@ def calibrated_layout(layout: Layout, result: CalibrationResult) -> Layout:
             f"{layout.n_leds}",
             field="result",
         )
+    upper = np.array([layout.room.length, layout.room.width])
+    where = np.clip(result.led_positions, 0.0, upper)
     leds = tuple(
         replace(
             led,
+            x=float(where[i, 0]),
+            y=float(where[i, 1]),
             pilot_amplitude=float(result.pilot_amplitudes[i]),
             half_power_angle_deg=float(result.half_power_angles_deg[i]),
         )
         for i, led in enumerate(layout.leds)
     )
-    receiver = replace(
-        layout.receiver, filter_gain=layout.receiver.filter_gain * result.receiver_gain
-    )
-    return replace(layout, leds=leds, receiver=receiver)
+    gain = result.receiver_gain if apply_receiver_gain else 1.0
+    receiver = replace(layout.receiver, filter_gain=layout.receiver.filter_gain * gain)
+    room = replace(layout.room, reflectance=result.reflectance)
+    return replace(layout, room=room, leds=leds, receiver=receiver)
 
 
 def masked_layout(layout: Layout, dead_led_indices: tuple[int, ...] | list[int]) -> Layout:
@@ -277,6 +380,8 @@ def masked_layout(layout: Layout, dead_led_indices: tuple[int, ...] | list[int])
 # -- private kernels (inputs already validated) -------------------------------------------------
 def _plain(value: object) -> object:
     """Arrays and tuples as lists, non-finite floats as None."""
+    if isinstance(value, Reflectance):
+        return value.to_mapping()
     if isinstance(value, np.ndarray | tuple):
         return [_plain(v) for v in value]
     if isinstance(value, np.integer):
@@ -288,3 +393,73 @@ def _plain(value: object) -> object:
 
 def _indices(mask: BoolArray) -> tuple[int, ...]:
     return tuple(int(i) for i in np.flatnonzero(mask))
+
+
+def _rows(
+    layout: Layout, survey: Survey, groups: list[IntArray], per_row: FloatArray | None
+) -> list[LedRows]:
+    return [
+        led_rows(
+            layout,
+            i,
+            survey.points[g],
+            survey.amplitudes[g],
+            None if per_row is None else per_row[g],
+        )
+        for i, g in enumerate(groups)
+    ]
+
+
+def _fit_all(
+    layout: Layout,
+    survey: Survey,
+    groups: list[IntArray],
+    per_row: FloatArray | None,
+    rho: FloatArray,
+    fitted_surfaces: BoolArray,
+    bound: float,
+) -> tuple[list[LedRows], list[LedFit], FloatArray, FloatArray, bool]:
+    """Each LED alone with ``rho`` fixed, then (when surfaces are fitted) all jointly."""
+    orders_nominal, _ = led_constants(layout)
+    rows = _rows(layout, survey, groups, per_row)
+    fits = _nominal_fits(orders_nominal)
+    live = [i for i, r in enumerate(rows) if np.any(r.in_view())]
+    for i in live:
+        fits[i] = fit_led(rows[i], float(orders_nominal[i]), rho, bound)
+    converged = all(f.converged for f in fits)
+    rho_sd = np.full(len(SURFACE_NAMES), np.nan)
+    if fitted_surfaces.any() and live:
+        joint = fit_jointly(
+            [rows[i] for i in live], [fits[i] for i in live], rho, fitted_surfaces, bound
+        )
+        for i, f in zip(live, joint.leds, strict=True):
+            fits[i] = f
+        rho, rho_sd, converged = joint.rho, joint.rho_sd, converged and joint.converged
+    return rows, fits, rho, rho_sd, converged
+
+
+def _refreshed(layout: Layout, fits: list[LedFit]) -> Layout:
+    """The layout with the fitted LED positions and beams (nominal pilots: the ratios
+    multiply the reflected part as they do the direct one)."""
+    upper = np.array([layout.room.length, layout.room.width])
+    leds = []
+    for led, fit in zip(layout.leds, fits, strict=True):
+        usable = fit.ratio > 0 and math.isfinite(fit.order)
+        x, y = np.clip(np.array([led.x, led.y]) + (fit.shift if usable else 0.0), 0.0, upper)
+        angle = float(half_power_angle_deg(fit.order)) if usable else led.half_power_angle_deg
+        leds.append(replace(led, x=float(x), y=float(y), half_power_angle_deg=angle))
+    return replace(layout, leds=tuple(leds))
+
+
+def _nominal_fits(orders: FloatArray) -> list[LedFit]:
+    return [LedFit(1.0, float(m), np.zeros(2), (False,) * 4) for m in orders]
+
+
+def _model(
+    rows: list[LedRows], groups: list[IntArray], n_rows: int, fits: list[LedFit], rho: FloatArray
+) -> FloatArray:
+    """The modelled amplitude of every survey row (survey order)."""
+    out = np.zeros(n_rows)
+    for r, g, f in zip(rows, groups, fits, strict=True):
+        out[g] = r.model(f.ratio, f.order, f.shift, rho)
+    return out

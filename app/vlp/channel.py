@@ -1,4 +1,4 @@
-"""The line-of-sight Lambertian channel (paper eqs. 1-3; ``shared/API.md``).
+"""The line-of-sight Lambertian channel (paper eqs. 1-3).
 
 For an LED pointing down and a detector pointing up, ``cos(alpha) = cos(phi) = dz / d``, so
 
@@ -17,9 +17,9 @@ import math
 
 import numpy as np
 
-from ._typing import FloatArray
 from .errors import GeometryError
 from .layout import Layout
+from .typing import FloatArray
 
 __all__ = [
     "channel_gain_gradients",

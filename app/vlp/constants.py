@@ -16,7 +16,7 @@ __all__ = [
     "MAX_TARGETS",
 ]
 
-# Defaults of the public contract (API.md, "RoomLayout").
+# Defaults of the public contract (the ``RoomLayout`` schema, :mod:`app.schemas.rooms`).
 DEFAULT_RECEIVER_AREA_M2 = 1e-4
 DEFAULT_FOV_DEG = 70.0
 DEFAULT_FILTER_GAIN = 1.0

@@ -7,7 +7,9 @@ The tree::
     ├── MeasurementError          a measurement of the wrong shape, sign or value
     ├── ProblemSizeError          a problem larger than a configured limit
     └── SolverError               a solver that cannot run on the given problem
-        └── UnknownSolverError    a solver name that is not registered
+        ├── UnknownSolverError    a solver name that is not registered
+        └── SolverFailed          the solver ran on a valid problem and found no answer
+                                  (e.g. l1 did not converge): not the input's fault
 
 Each error carries ``field`` (a dotted path such as ``"leds[3].z"`` or ``"correlation"``)
 when one input is to blame, so the web layer can name it in a problem detail.
@@ -20,6 +22,7 @@ __all__ = [
     "MeasurementError",
     "ProblemSizeError",
     "SolverError",
+    "SolverFailed",
     "UnknownSolverError",
     "VLPError",
 ]
@@ -52,3 +55,9 @@ class SolverError(VLPError):
 
 class UnknownSolverError(SolverError):
     """A solver name that is not registered."""
+
+
+class SolverFailed(SolverError):
+    """A valid problem on which the solver found no answer (a numerical failure, such as a
+    convex program that did not converge); the web layer answers it as a server-side
+    problem, not as invalid input."""

@@ -1,9 +1,9 @@
 """Room layouts: the room box, the candidate grid, the receiver and the ceiling LEDs.
 
-Conventions (``shared/API.md``): ``x`` in [0, length], ``y`` in [0, width], ``z`` up from the
-floor, metres. The grid has ``n_x = length / step`` by ``n_y = width / step`` cells; the
-centre of cell ``(ix, iy)`` is ``((ix + 1/2) step, (iy + 1/2) step)`` and its column index is
-``j = ix * n_y + iy``.
+Conventions (those of the public ``RoomLayout`` schema, :mod:`app.schemas.rooms`): ``x`` in
+[0, length], ``y`` in [0, width], ``z`` up from the floor, metres. The grid has
+``n_x = length / step`` by ``n_y = width / step`` cells; the centre of cell ``(ix, iy)`` is
+``((ix + 1/2) step, (iy + 1/2) step)`` and its column index is ``j = ix * n_y + iy``.
 """
 
 from __future__ import annotations
@@ -15,7 +15,6 @@ from typing import Any
 
 import numpy as np
 
-from ._typing import FloatArray, IntArray
 from .constants import (
     DEFAULT_FILTER_GAIN,
     DEFAULT_FOV_DEG,
@@ -25,6 +24,7 @@ from .constants import (
     DEFAULT_REFRACTIVE_INDEX,
 )
 from .errors import GeometryError
+from .typing import FloatArray, IntArray
 
 __all__ = [
     "DEFAULT_FILTER_GAIN",

@@ -10,8 +10,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from ._typing import FloatArray, IntArray
 from .errors import MeasurementError
+from .typing import FloatArray, IntArray
 
 __all__ = [
     "match_positions",

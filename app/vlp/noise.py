@@ -25,10 +25,10 @@ import math
 
 import numpy as np
 
-from ._typing import FloatArray
 from .channel import channel_gains
 from .errors import MeasurementError
 from .layout import Layout
+from .typing import FloatArray
 
 __all__ = [
     "BOLTZMANN",

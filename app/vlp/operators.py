@@ -5,8 +5,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from ._typing import FloatArray
-from .errors import MeasurementError
+from .typing import FloatArray
 
 __all__ = ["CorrelationOperator", "dottest"]
 
@@ -37,11 +36,16 @@ class CorrelationOperator:
         self.shape = (self.n_leds * (self.n_leds + 1) // 2, self.n_cells)
         self._upper = np.triu_indices(self.n_leds)
 
+    @property
+    def gains_by_cell(self) -> sp.csr_array:
+        """``G^T``, sparse of shape (N, M): row j holds grid point j's scaled gains."""
+        return self._gains_t
+
     def matvec(self, theta: FloatArray) -> FloatArray:
         """``Psi @ theta``: theta of shape (N,) -> vech of shape (M(M+1)/2,)."""
         theta = np.asarray(theta, dtype=np.float64)
         if theta.shape != (self.n_cells,):
-            raise MeasurementError(f"expected theta of shape ({self.n_cells},), got {theta.shape}")
+            raise ValueError(f"expected theta of shape ({self.n_cells},), got {theta.shape}")
         weighted = self._gains @ sp.diags_array(theta)
         corr = (weighted @ self._gains_t).toarray()
         return np.asarray(corr[self._upper])
@@ -50,9 +54,7 @@ class CorrelationOperator:
         """``Psi^T @ r``: r of shape (M(M+1)/2,) -> shape (N,)."""
         residual = np.asarray(residual, dtype=np.float64)
         if residual.shape != (self.shape[0],):
-            raise MeasurementError(
-                f"expected a vech of shape ({self.shape[0]},), got {residual.shape}"
-            )
+            raise ValueError(f"expected a vech of shape ({self.shape[0]},), got {residual.shape}")
         half = np.zeros((self.n_leds, self.n_leds))
         half[self._upper] = residual
         symmetric = 0.5 * (half + half.T)  # diagonal kept whole, off-diagonals halved

@@ -12,10 +12,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._typing import FloatArray
 from .errors import MeasurementError
 from .fingerprints import Fingerprint
 from .measurements import Measurement
+from .typing import FloatArray
 
 __all__ = ["MAX_SCALE_FACTOR", "check_amplitude_scale", "check_measurement_scale"]
 

@@ -13,11 +13,12 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from ._random import RandomState, as_generator
-from ._typing import FloatArray, IntArray
 from .channel import channel_gains
 from .errors import MeasurementError
 from .layout import Layout
+from .reflections import diffuse_gains
+from .rng import RandomState, as_generator
+from .typing import FloatArray, IntArray
 
 __all__ = ["Survey", "check_survey", "simulate_survey", "survey_from_rows"]
 
@@ -85,19 +86,31 @@ def survey_from_rows(rows: FloatArray) -> Survey:
 
 
 def simulate_survey(
-    layout: Layout, points: FloatArray, noise_std: float = 0.0, *, rng: RandomState = None
+    layout: Layout,
+    points: FloatArray,
+    noise_std: float = 0.0,
+    *,
+    rng: RandomState = None,
+    receiver_gain: float = 1.0,
+    element_size_m: float | None = None,
 ) -> Survey:
     """Survey every LED at every point of a (true) layout, with Gaussian amplitude noise.
 
     Parameters
     ----------
     layout : Layout
-        The true room (perturbed amplitudes and angles as the real LEDs are).
+        The true room (perturbed amplitudes, angles and positions as the real LEDs are); when
+        its ``room.reflectance`` is set, the first diffuse bounce is added
+        (:func:`app.vlp.reflections.diffuse_gains`).
     points : ndarray of shape (P, 2)
-        Surveyed positions, metres.
+        Surveyed positions, metres, on the receivers' plane.
     noise_std : float, default=0.0
         Standard deviation of the additive noise on each amplitude.
     rng : Generator, int or None
+    receiver_gain : float, default=1.0
+        The survey receiver's gain relative to the layout's receiver (e.g. one that drifted).
+    element_size_m : float, default=None
+        Largest quadrature cell of the reflections (the module's default when None).
 
     Returns
     -------
@@ -105,7 +118,11 @@ def simulate_survey(
         S = P * M rows, point-major (rows ``k * M .. k * M + M - 1`` belong to point k).
     """
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
-    clean = channel_gains(layout, pts) * layout.pilot_amplitudes[:, None]  # (M, P)
+    gains = channel_gains(layout, pts)
+    if layout.room.reflectance is not None:
+        xyz = np.column_stack((pts, np.full(pts.shape[0], layout.grid.receiver_height)))
+        gains = gains + diffuse_gains(layout, xyz, element_size_m=element_size_m)
+    clean = receiver_gain * gains * layout.pilot_amplitudes[:, None]  # (M, P)
     noisy = clean + noise_std * as_generator(rng).standard_normal(clean.shape)
     n_leds = layout.n_leds
     return Survey(

@@ -12,7 +12,7 @@ from app.pictures.localization import match_estimates
 from app.schemas.calibrations import calibration_example
 from app.schemas.rooms import paper_room_example
 from app.vlp.calibration import simulate_survey
-from app.vlp.layout import Layout, layout_from_mapping
+from app.vlp.layout import Layout, Reflectance, layout_from_mapping
 from app.vlp.presets import paper_layout
 from app.vlp.simulation import noisy_amplitudes, true_amplitudes
 
@@ -203,6 +203,42 @@ def test_swagger_example_then_mask_only(worker_app: TestClient) -> None:
     assert [item["active"] for item in items] == [True, False]
 
 
+def test_calibration_fits_led_positions_and_walls(worker_app: TestClient) -> None:
+    """A displaced LED and reflecting walls the layout does not know: the report has the
+    fitted position (and shift) of every LED and the walls' reflectance with its sd."""
+    client = worker_app
+    room_id = _paper_room(client)
+    nominal = layout_from_mapping(
+        client.get(f"/v1/rooms/{room_id}", headers=ADMIN).json()["layout"]
+    )
+    moved = replace(nominal.leds[6], x=nominal.leds[6].x + 0.15, y=nominal.leds[6].y - 0.1)
+    true = replace(
+        nominal,
+        room=replace(nominal.room, reflectance=Reflectance(walls=0.6, floor=0.0, ceiling=0.0)),
+        leds=(*nominal.leds[:6], moved, *nominal.leds[7:]),
+    )
+    typical = float(np.median(true_amplitudes(nominal, np.array([[2.0, 2.0]]))))
+    body = {**_survey_body(true, 0.01 * typical), "fit_reflectance": True}
+    response = client.post(f"/v1/rooms/{room_id}/calibrations", json=body, headers=ADMIN)
+    assert response.status_code == 202, response.text
+    result = wait_for_job(client, response.json()["id"])["result"]
+    report = client.get(
+        f"/v1/rooms/{room_id}/calibrations/{result['calibration_id']}", headers=TERMINAL
+    ).json()
+    assert report["fit_reflectance"] is True and report["led_position_bound_m"] == 0.3
+    led = report["leds"][6]
+    assert (led["nominal_x"], led["nominal_y"]) == (nominal.leds[6].x, nominal.leds[6].y)
+    assert led["x"] == pytest.approx(moved.x, abs=0.03) and led["y"] == pytest.approx(
+        moved.y, abs=0.03
+    )
+    assert led["shift_m"] == pytest.approx(np.hypot(0.15, 0.1), abs=0.03)
+    others = [item["shift_m"] for item in report["leds"] if item["index"] != 6]
+    assert max(others) < 0.03
+    walls, sd = report["reflectance"]["walls"], report["reflectance_sd"]["walls"]
+    assert 0 < sd < 0.1 and abs(walls - 0.6) < 3 * sd
+    assert report["reflectance_sd"]["floor"] is None and report["reflectance"]["floor"] == 0.0
+
+
 @pytest.mark.parametrize(
     ("body", "fields"),
     [
@@ -213,8 +249,20 @@ def test_swagger_example_then_mask_only(worker_app: TestClient) -> None:
         ({"masked_leds": list(range(16))}, ["body.masked_leds"]),
         ({"dead_below": 0.8, "dimmed_below": 0.5}, ["body.dead_below"]),
         ({"surveys": []}, None),
+        ({"led_position_bound_m": 1.5}, ["body.led_position_bound_m"]),
+        ({"fit_reflectance": "yes"}, ["body.fit_reflectance"]),
     ],
-    ids=["led-range", "outside", "not-a-number", "mask-range", "mask-all", "thresholds", "typo"],
+    ids=[
+        "led-range",
+        "outside",
+        "not-a-number",
+        "mask-range",
+        "mask-all",
+        "thresholds",
+        "typo",
+        "position-bound",
+        "reflectance-flag",
+    ],
 )
 def test_bad_requests_name_the_field(
     client: TestClient, body: dict[str, Any], fields: list[str] | None

@@ -18,11 +18,10 @@ import numpy as np
 import pytest
 from fastapi import FastAPI
 
-import app.api.epoch_settler
+import app.services.epoch_settler
 from app.clock import FakeClock
 from app.main import create_app
 from app.registry import Registry
-from app.registry.epochs import claim_epoch
 from app.schemas.epochs import epoch_create_examples, epoch_measurement_examples
 from app.vlp.errors import SolverError
 from app.vlp.fingerprints import build_fingerprint
@@ -314,7 +313,7 @@ def test_a_crashing_solver_fails_the_epoch_instead_of_sticking(
     def broken(*_args: object, **_kwargs: object) -> None:
         raise SolverError("the solver diverged")
 
-    monkeypatch.setattr(app.api.epoch_settler, "solve_and_label", broken)
+    monkeypatch.setattr(app.services.epoch_settler, "localize_terminals", broken)
     epoch = create(client, room_of(client))
     for name, row in zip(["t1", "t2"], terminal_amplitudes(seed=7)[:2], strict=True):
         post(client, epoch, name, row)
@@ -376,7 +375,7 @@ def test_two_processes_share_one_epoch_and_solve_it_once(tmp_path: Path, postgre
         assert_labelled_near_truth(answers[0], ["t1", "t2", "t3"])
         assert sum(settled(c, "solved") for c in apps) == 1
         registry = registry_of(apps[1])
-        assert registry.get_epoch(room_id=epoch["room_id"], epoch_id=epoch["id"]).attempts == 1
+        assert registry.epochs.get(room_id=epoch["room_id"], epoch_id=epoch["id"]).attempts == 1
     finally:
         for test_client in apps:
             test_client.__exit__(None, None, None)
@@ -394,10 +393,10 @@ def test_the_sweeper_closes_passed_windows_without_any_request(
         ids = {"room_id": epoch["room_id"], "epoch_id": epoch["id"]}
         let_window_pass(swept, epoch)
         wait_for(
-            lambda: registry.get_epoch(**ids).status not in ("open", "solving"),
+            lambda: registry.epochs.get(**ids).status not in ("open", "solving"),
             "the sweeper to close the passed window",
         )
-        assert registry.get_epoch(**ids).status == "solved"
+        assert registry.epochs.get(**ids).status == "solved"
         assert settled(swept, "solved") == 1
         assert_labelled_near_truth(read(swept, epoch), ["t1", "t2", "t3"])
     finally:
@@ -447,8 +446,7 @@ def test_an_epoch_whose_solver_died_is_taken_over_when_its_claim_runs_out(
     ids = {"room_id": epoch["room_id"], "epoch_id": epoch["id"]}
     # Another process claimed it and died: its claim (a lease) runs out after 1 s.
     clock = clock_of(client)
-    dead = claim_epoch(
-        registry_of(client).engine,
+    dead = registry_of(client).epochs.claim(
         **ids,
         owner="dead-process",
         now=clock.now(),
@@ -464,4 +462,28 @@ def test_an_epoch_whose_solver_died_is_taken_over_when_its_claim_runs_out(
     solved = solve(client, epoch)
     assert solved["status"] == "solved"
     assert_labelled_near_truth(solved, ["t1", "t2", "t3"])
-    assert registry_of(client).get_epoch(**ids).attempts == 2
+    assert registry_of(client).epochs.get(**ids).attempts == 2
+
+
+def test_an_epoch_above_the_work_limit_fails_naming_the_limit(
+    tmp_path: Path, database_url: str
+) -> None:
+    """VLP_MAX_LOCALIZE_WORK bounds an epoch's solve as it bounds localize: the paper room
+    (400 points, 16 LEDs) with a limit of 400 x 16 x 2 solves two terminals fitted on their
+    own, and fails (without solving) an epoch of three."""
+    client = start(tmp_path / "data", database_url, max_localize_work=400 * 16 * 2)
+    try:
+        room_id = room_of(client)
+        amplitudes = terminal_amplitudes(seed=3)
+        two = create(client, room_id, window_s=60)
+        for name, row in zip(["t1", "t2"], amplitudes, strict=False):
+            assert post(client, two, name, row).status_code == 202
+        assert solve(client, two)["status"] == "solved"
+        three = create(client, room_id, window_s=60)
+        for name, row in zip(["t1", "t2", "t3"], amplitudes, strict=True):
+            assert post(client, three, name, row).status_code == 202
+        failed = solve(client, three)
+        assert failed["status"] == "failed" and failed["localization"] is None
+        assert "VLP_MAX_LOCALIZE_WORK" in failed["error"] and "19200" in failed["error"]
+    finally:
+        client.__exit__(None, None, None)

@@ -121,10 +121,10 @@ def test_every_error_family_is_exported_and_mapped() -> None:
         "RoomNotFound": 404,
         "JobNotFound": 404,
         "FingerprintNotFound": 404,
-        "MatrixNotFound": 404,
+        "MatrixNotFound": 409,
         "EpochNotFound": 404,
-        "NotFound": 404,
-        "Conflict": 409,
+        "RecordNotFound": 404,
+        "StateConflict": 409,
         "EpochClosed": 409,
         "EpochFull": 409,
         "PreconditionFailed": 412,
@@ -138,6 +138,15 @@ def test_every_error_family_is_exported_and_mapped() -> None:
     for name, status in expected.items():
         error = getattr(app.registry.errors, name)("message")
         assert _registry_status(error)[0] == status, name
+
+
+def test_science_errors_are_input_problems_except_a_failed_solver() -> None:
+    from app.api.errors import ProblemKind, _science_status
+    from app.errors import GeometryError, MeasurementError, SolverError, SolverFailed
+
+    assert _science_status(SolverFailed("no answer")) == (503, ProblemKind.SOLVER_FAILED)
+    for error in (GeometryError, MeasurementError, SolverError):
+        assert _science_status(error("bad")) == (422, ProblemKind.VALIDATION)
 
 
 @pytest.mark.parametrize(

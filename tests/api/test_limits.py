@@ -9,8 +9,19 @@ import pytest
 
 from app.main import create_app
 from app.settings import Settings
+from app.vlp.workload import localize_work
 
-from .conftest import ADMIN, ADMIN_KEY, TERMINAL_KEY, TestClient, assert_problem, small_room
+from .conftest import (
+    ADMIN,
+    ADMIN_KEY,
+    TERMINAL,
+    TERMINAL_KEY,
+    TestClient,
+    assert_problem,
+    make_settings,
+    small_room,
+    wait_for_room,
+)
 
 
 @pytest.fixture
@@ -62,7 +73,12 @@ def test_limits_are_read_from_the_environment(env_limited_client: TestClient) ->
 
 @pytest.mark.parametrize(
     "name, value",
-    [("VLP_MAX_LEDS", "0"), ("VLP_MAX_GRID_POINTS", "-1"), ("VLP_MAX_BODY_BYTES", "10")],
+    [
+        ("VLP_MAX_LEDS", "0"),
+        ("VLP_MAX_GRID_POINTS", "-1"),
+        ("VLP_MAX_BODY_BYTES", "10"),
+        ("VLP_MAX_LOCALIZE_WORK", "0"),
+    ],
 )
 def test_nonsense_limits_are_refused_at_start(
     monkeypatch: pytest.MonkeyPatch, name: str, value: str
@@ -88,3 +104,63 @@ def test_rebuild_requests_coalesce_into_one_queued_job(client: TestClient) -> No
     assert job.json()["layout_version"] == 2
     counts = client.app.state.registry.count_jobs_by_status()  # type: ignore[attr-defined]
     assert counts["queued"] == 1 and counts["running"] == 0
+
+
+def test_localize_work_above_the_limit_is_refused_naming_the_field(tmp_path: Path) -> None:
+    """VLP_MAX_LOCALIZE_WORK bounds grid points x observations x targets per request:
+    small_room() has 32 grid points and 2 LEDs, so a limit of 128 admits K = 2 as power
+    (32 x 2 x 2) and two terminals fitted on their own, and refuses one more of either;
+    correlation has 3 observations (32 x 3 x 1 = 96 fits, K = 2 does not)."""
+    settings = make_settings(tmp_path, embedded_workers=1, max_localize_work=128)
+    with TestClient(create_app(settings)) as client:
+        room = client.post("/v1/rooms", json=small_room(), headers=ADMIN).json()
+        wait_for_room(client, room["id"])
+        path = f"/v1/rooms/{room['id']}/localize"
+
+        def terminals(count: int) -> list[dict[str, object]]:
+            return [{"id": f"t{k}", "amplitudes": [1e-6, 2e-6]} for k in range(count)]
+
+        admitted: list[dict[str, object]] = [
+            {"power": [1e-12, 2e-12], "targets": 2},
+            {"correlation": [1e-12, 0.0, 2e-12], "targets": 1},
+            {"terminals": terminals(2)},
+            {"terminals": terminals(3), "targets": 1, "solver": "nnls"},
+        ]
+        for body in admitted:
+            response = client.post(path, json=body, headers=TERMINAL)
+            assert response.status_code == 200, (body, response.text)
+        refused: list[tuple[dict[str, object], str]] = [
+            ({"power": [1e-12, 2e-12], "targets": 3}, "body.targets"),
+            ({"power": [1e-12, 2e-12]}, "body.targets"),  # K unknown counts as 64
+            ({"correlation": [1e-12, 0.0, 2e-12], "targets": 2}, "body.targets"),
+            ({"terminals": terminals(3)}, "body.terminals"),
+        ]
+        for body, field in refused:
+            problem = assert_problem(client.post(path, json=body, headers=TERMINAL), 422, [field])
+            assert "128" in problem["detail"] and "VLP_MAX_LOCALIZE_WORK" in problem["detail"]
+            assert "32 grid points" in problem["detail"]
+
+
+def test_correlation_too_large_even_for_one_target_names_the_measurement(tmp_path: Path) -> None:
+    """When even K = 1 is above the limit, the measurement itself is named (and the power
+    form suggested)."""
+    settings = make_settings(tmp_path, embedded_workers=1, max_localize_work=95)
+    with TestClient(create_app(settings)) as client:
+        room = client.post("/v1/rooms", json=small_room(), headers=ADMIN).json()
+        wait_for_room(client, room["id"])
+        body = {"correlation": [1e-12, 0.0, 2e-12], "targets": 1}
+        response = client.post(f"/v1/rooms/{room['id']}/localize", json=body, headers=TERMINAL)
+        problem = assert_problem(response, 422, ["body.correlation"])
+        assert "power" in problem["detail"]
+
+
+def test_default_localize_work_admits_the_hall_as_power_or_terminals_not_as_correlation() -> None:
+    """The million-point hall (bench/hall_build.py: 10^6 points, 1024 LEDs): up to 64
+    targets as power or terminals fit the default; its correlation matrix (524800
+    observations) does not, even for one target."""
+    limit = Settings().max_localize_work
+    hall = {"n_cells": 1_000_000, "n_leds": 1024}
+    assert localize_work(**hall, model="power", targets=64).units == 64 * 1024 * 10**6 <= limit
+    assert localize_work(**hall, model="correlation", targets=None, terminals=64).units <= limit
+    one = localize_work(**hall, model="correlation", targets=1)
+    assert one.observations == 1024 * 1025 // 2 and one.units > limit

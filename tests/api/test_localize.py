@@ -5,7 +5,7 @@ from __future__ import annotations
 import itertools
 import math
 from pathlib import Path
-from typing import Any
+from typing import Any, get_args
 
 import numpy as np
 import pytest
@@ -13,9 +13,12 @@ from numpy.testing import assert_allclose
 
 from app.clock import FakeClock
 from app.main import create_app
+from app.schemas import SolverName
+from app.vlp.errors import SolverFailed
 from app.vlp.fingerprints import Fingerprint
 from app.vlp.measurements import measurement_from_correlation, vech
-from app.vlp.solvers import make_solver
+from app.vlp.solvers import l1 as l1_module
+from app.vlp.solvers import make_solver, solver_names
 
 from .conftest import (
     ADMIN,
@@ -76,6 +79,31 @@ def test_answer_equals_the_solver_called_directly(
     assert all(e["terminal_id"] is None for e in result["estimates"])
     assert result["elapsed_ms"] >= 0
     assert result["residual_norm"] == pytest.approx(direct.residual_norm, rel=1e-6, abs=1e-18)
+    assert result["converged"] is bool(direct.converged)
+
+
+def test_the_contract_offers_exactly_the_registered_solvers() -> None:
+    assert sorted(get_args(SolverName)) == sorted(solver_names())
+
+
+def test_a_solver_that_finds_no_answer_is_a_503_not_invalid_input(
+    ready_app: tuple[TestClient, str],
+    paper_fingerprint: Fingerprint,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The client's input was fine: the answer names the solver's failure, no field."""
+    client, room_id = ready_app
+
+    def no_convergence(*_args: object, **_kwargs: object) -> None:
+        raise SolverFailed("l1 minimisation did not converge (status 'infeasible')")
+
+    monkeypatch.setattr(l1_module, "_run", no_convergence)
+    amplitudes = on_grid_amplitudes(paper_fingerprint)
+    body = {"power": (amplitudes**2).sum(axis=0).tolist(), "targets": 2, "solver": "l1"}
+    response = client.post(f"/v1/rooms/{room_id}/localize", json=body, headers=TERMINAL)
+    problem = assert_problem(response, 503)
+    assert problem["type"] == "urn:vlp:problem:solver-failed"
+    assert "did not converge" in problem["detail"] and "errors" not in problem
 
 
 @pytest.mark.parametrize("solver", ["gridless", "nnls", "l1"])

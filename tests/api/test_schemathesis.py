@@ -19,6 +19,7 @@ from typing import Any
 import pytest
 import schemathesis
 from schemathesis import GenerationMode
+from schemathesis.checks import negative_data_rejection
 from schemathesis.config import HealthCheck, PositiveDataAcceptanceConfig
 from schemathesis.core.parameters import ParameterLocation
 
@@ -138,10 +139,18 @@ def _send(client: TestClient, case: ApiCase) -> Any:
     )
 
 
+# A batch answers a schema-violating *item* with a problem in its place, not a 4xx for the
+# whole request (API.md): the other items are still solved. Every other check still applies
+# to it (documented status, answer schema); tests/api/test_localize_batch.py asserts the
+# item problems themselves.
+_ITEMS_ANSWERED_ONE_BY_ONE = "/v1/rooms/{room_id}/localize/batch"
+
+
 def _check(client: TestClient, case: ApiCase) -> None:
     response = _send(client, case)
     assert response.status_code < 500, f"{case.method} {case.formatted_path}: {response.text}"
-    case.validate_response(response)
+    excluded = [negative_data_rejection] if case.path == _ITEMS_ANSWERED_ONE_BY_ONE else None
+    case.validate_response(response, excluded_checks=excluded)
 
 
 @pytest.fixture(scope="module")

@@ -15,7 +15,7 @@ from app.main import create_app
 
 from .conftest import ADMIN, TERMINAL, TestClient, assert_problem, make_settings, small_room
 
-# Operations anyone may call without a key (API.md); every other operation must need one.
+# Operations anyone may call without a key (openapi/openapi.json); every other one needs a key.
 _OPEN = {("GET", "/healthz"), ("GET", "/readyz"), ("GET", "/metrics")}
 _UNKNOWN_KEY = "vlp-unknown-key-5f1c0f7a9d"
 # What may not appear in any answer: keys, stack traces, SQL, driver names.

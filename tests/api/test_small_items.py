@@ -1,4 +1,4 @@
-"""Issue 11's smaller items: `GET /`, 415 without a JSON Content-Type, malformed JSON names
+"""Small items of the HTTP contract: `GET /`, 415 without a JSON Content-Type, malformed JSON names
 the body, `If-None-Match` on a room, `Retry-After` on 202 answers."""
 
 from __future__ import annotations

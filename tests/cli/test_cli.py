@@ -102,6 +102,22 @@ def test_simulate_and_localize(
     assert "8 estimates (gridless" in out and "to nearest truth" in out
 
 
+def test_localize_batch(
+    server: tuple[LiveServer, str], capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    live, room_id = server
+    batch = tmp_path / "batch.json"
+    batch.write_text(json.dumps({"items": [localize_example()] * 2}), encoding="utf-8")
+    answers = _json(capsys, live, "localize", room_id, str(batch), "--batch", key=TERMINAL_KEY)
+    assert [answer["targets"] for answer in answers] == [3, 3]
+    batch.write_text(json.dumps([localize_example(), {"targets": 1}]), encoding="utf-8")
+    code, out, err = _run(
+        capsys, "localize", room_id, str(batch), "--batch", "--url", live.url, "--key", ADMIN_KEY
+    )
+    assert code == 1, err
+    assert "2 answers" in out and "422" in out
+
+
 def test_errors_exit_with_the_problem(
     server: tuple[LiveServer, str], capsys: pytest.CaptureFixture[str], tmp_path: Path
 ) -> None:

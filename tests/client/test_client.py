@@ -22,7 +22,7 @@ from app.client import (
     VLPClient,
 )
 from app.main import create_app
-from app.schemas import Localization, Room, Simulation
+from app.schemas import Localization, Problem, Room, Simulation
 from tests.api.conftest import TestClient, make_settings
 
 from .conftest import ADMIN_KEY, TERMINAL_KEY, LiveApp
@@ -72,6 +72,19 @@ def test_simulate_then_localize_finds_the_terminals(live_app: LiveApp) -> None:
     ]
     rows, cols = linear_sum_assignment(distances)
     assert max(distances[r][c] for r, c in zip(rows, cols, strict=True)) < 0.3
+
+
+def test_localize_batch_answers_each_item_in_order(live_app: LiveApp) -> None:
+    vlp = live_app.client(TERMINAL_KEY)
+    room_id = live_app.demo_room_id
+    measurements = [vlp.simulate(room_id, targets=k, seed=k).measurement for k in (1, 3)]
+    answers = vlp.localize_batch(room_id, [measurements[0], {"targets": 1}, measurements[1]])
+    first, bad, last = answers.items
+    assert isinstance(first, Localization) and isinstance(last, Localization)
+    assert (first.targets, last.targets) == (1, 3)
+    assert first.estimates == vlp.localize(room_id, measurements[0]).estimates
+    assert isinstance(bad, Problem) and bad.status == 422
+    assert bad.errors is not None and "body.items.1.power" in {e.field for e in bad.errors}
 
 
 def test_create_waits_for_the_build_with_progress(live_app: LiveApp) -> None:

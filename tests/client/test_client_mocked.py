@@ -1,7 +1,7 @@
 """VLPClient over httpx.MockTransport: endpoints other branches add, and failure paths.
 
 The epoch, calibration and map endpoints are coded against their agreed shapes
-(/work/shared/API.md and the issue); a fake server checks what the client sends.
+(openapi/openapi.json); a fake server checks what the client sends.
 """
 
 from __future__ import annotations

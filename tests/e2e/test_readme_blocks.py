@@ -27,6 +27,7 @@ _RUN_ELSEWHERE = ("walkthrough", "python-walkthrough")
 # What each marked block must print (beyond exiting 0).
 _EXPECTED_OUTPUT = {
     "keys-walkthrough": ["lobby kiosk", "revoked "],
+    "batch-walkthrough": ["3 answers", "\n422\n"],
     "cli-walkthrough": [
         "estimates (gridless",
         '"status": "ready"',

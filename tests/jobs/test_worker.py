@@ -23,7 +23,7 @@ from app.registry.store import STALE_TEMPORARY_SECONDS
 from app.vlp.fingerprints import Fingerprint
 from app.vlp.presets import paper_layout
 from tests.build_gate import BuildGate
-from tests.db_fixtures import claim_next, small_layout
+from tests.db_fixtures import claim_next, raw_engine, small_layout
 from tests.waiting import SAFETY_TIMEOUT_S, wait_for
 
 from .builds import crash_build, endless_build
@@ -32,7 +32,7 @@ from .conftest import StartWorkers, job_settings
 
 def lease_expiry(registry: Registry, job_id: str) -> datetime | None:
     """When the job's lease runs out, as stored."""
-    with registry.engine.connect() as conn:
+    with raw_engine(registry).connect() as conn:
         expiry: datetime | None = conn.execute(
             select(jobs.c.lease_expires_at).where(jobs.c.id == job_id)
         ).scalar_one()

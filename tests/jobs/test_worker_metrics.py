@@ -12,7 +12,7 @@ from pathlib import Path
 import httpx
 import pytest
 
-from app.jobs.metrics import serve_worker_metrics
+from app.jobs.telemetry import serve_worker_metrics
 
 
 def test_worker_metrics_endpoint_serves_process_and_job_metrics() -> None:

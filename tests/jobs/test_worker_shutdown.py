@@ -8,13 +8,12 @@ from multiprocessing.process import BaseProcess
 from typing import Any
 
 import pytest
-from sqlalchemy import Engine
 
-import app.jobs.worker
 from app.jobs.build import build_and_store
 from app.jobs.worker import _Pool, _WorkerLoop
 from app.registry import Registry
-from app.registry.queue import ClaimedJob, claim_job
+from app.registry.queue import JobQueue
+from app.registry.records import ClaimedJob
 from tests.db_fixtures import claim_next, small_layout
 from tests.waiting import SAFETY_TIMEOUT_S, wait_for
 
@@ -70,12 +69,14 @@ def test_stopped_workers_leave_new_jobs_queued(
     afterwards waits for the next live worker, which takes it on its first attempt."""
     claims: list[tuple[str, ClaimedJob | None]] = []
 
-    def recorded_claim(engine: Engine, *, worker_id: str, **kwargs: Any) -> ClaimedJob | None:
-        claimed = claim_job(engine, worker_id=worker_id, **kwargs)
+    original_claim = JobQueue.claim
+
+    def recorded_claim(queue: JobQueue, *, worker_id: str, **kwargs: Any) -> ClaimedJob | None:
+        claimed = original_claim(queue, worker_id=worker_id, **kwargs)
         claims.append((worker_id, claimed))
         return claimed
 
-    monkeypatch.setattr(app.jobs.worker, "claim_job", recorded_claim)
+    monkeypatch.setattr(JobQueue, "claim", recorded_claim)
     before = set(threading.enumerate())
     pool = workers()
     threads = [

@@ -8,7 +8,7 @@ import struct
 import numpy as np
 from matplotlib.image import imread
 
-from app.vlp._typing import FloatArray
+from app.vlp.typing import FloatArray
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 

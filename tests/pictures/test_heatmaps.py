@@ -14,12 +14,12 @@ from app.pictures.heatmaps import (
     noise_std_on_samples,
     sample_grid,
 )
-from app.vlp._typing import FloatArray
 from app.vlp.channel import channel_gains
 from app.vlp.crlb import single_target_crlb
 from app.vlp.fingerprints import Fingerprint
 from app.vlp.layout import Grid, Layout, Led, Receiver, Room
 from app.vlp.simulation import noise_std_for_snr
+from app.vlp.typing import FloatArray
 
 
 def _hall() -> Layout:

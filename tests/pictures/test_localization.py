@@ -9,9 +9,9 @@ import pytest
 
 from app.pictures import localization_png
 from app.pictures.localization import match_estimates
-from app.vlp._typing import FloatArray
 from app.vlp.errors import MeasurementError
 from app.vlp.layout import Layout
+from app.vlp.typing import FloatArray
 
 from .conftest import decode, png_size
 

@@ -20,9 +20,9 @@ from app.pictures.heatmaps import (
     sample_grid,
 )
 from app.pictures.room_map import resolved_heatmap
-from app.vlp._typing import FloatArray, IntArray
 from app.vlp.errors import GeometryError
 from app.vlp.layout import Grid, Layout, Led, Receiver, Room
+from app.vlp.typing import FloatArray, IntArray
 
 from .conftest import decode, png_size
 

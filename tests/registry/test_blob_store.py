@@ -20,8 +20,9 @@ from app.registry import Registry
 from app.registry._schema import matrix_blob_chunks, matrix_blobs
 from app.registry.blob_store import CHUNK_BYTES, DatabaseMatrixStore
 from app.registry.errors import CorruptMatrix
+from app.services.matrices import rebuilding_if_corrupt
 from app.settings import Settings
-from tests.db_fixtures import build_now, small_layout
+from tests.db_fixtures import build_now, raw_engine, small_layout
 
 
 @pytest.fixture
@@ -41,7 +42,7 @@ def hosts(database_url: str, tmp_path: Path) -> Iterator[tuple[Registry, Registr
 
 def blob_count(registry: Registry) -> tuple[int, int]:
     """How many files and chunks the database holds."""
-    with registry.engine.connect() as conn:
+    with raw_engine(registry).connect() as conn:
         files = conn.execute(select(func.count()).select_from(matrix_blobs)).scalar_one()
         chunks = conn.execute(select(func.count()).select_from(matrix_blob_chunks)).scalar_one()
     return int(files), int(chunks)
@@ -86,9 +87,12 @@ def test_a_corrupt_database_copy_is_refused_and_the_rebuild_repairs_it(
     room = builder.create_room(name="a", layout=small_layout())
     build_now(builder, room_id=room.id)
     good = builder.matrix_path(room_id=room.id, version=1, name="H").read_bytes()
-    with builder.engine.begin() as conn:  # H's only chunk: its first byte changed
+    with raw_engine(builder).begin() as conn:  # H's only chunk: its first byte changed
         conn.execute(update(matrix_blob_chunks).values(data=b"\x00" + good[1:]))
-    with pytest.raises(CorruptMatrix, match="rebuild"):
+    with (
+        pytest.raises(CorruptMatrix, match="rebuild"),
+        rebuilding_if_corrupt(other, room_id=room.id),
+    ):
         other.matrix_path(room_id=room.id, version=1, name="H")
     assert not (other.data_dir / "matrices").exists() or not any(
         (other.data_dir / "matrices").rglob("*.np*")
@@ -113,8 +117,8 @@ def test_a_large_file_moves_in_chunks_in_bounded_memory(
     hosts: tuple[Registry, Registry], tmp_path: Path
 ) -> None:
     builder, _ = hosts
-    writer = DatabaseMatrixStore(builder.engine, tmp_path / "writer-cache")
-    reader = DatabaseMatrixStore(builder.engine, tmp_path / "reader-cache")
+    writer = DatabaseMatrixStore(raw_engine(builder), tmp_path / "writer-cache")
+    reader = DatabaseMatrixStore(raw_engine(builder), tmp_path / "reader-cache")
     matrix = np.random.default_rng(5).random((8, CHUNK_BYTES // 8 + 1))  # 8 chunks and a bit
     info, size_bytes = writer.cache.put(matrix)  # the local file, as a build writes it
     del matrix

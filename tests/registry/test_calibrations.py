@@ -12,10 +12,10 @@ from sqlalchemy import func, select
 
 from app.registry import Registry
 from app.registry._schema import calibrations
-from app.registry.errors import NotFound, PreconditionFailed
+from app.registry.errors import PreconditionFailed, RecordNotFound
 from app.vlp.calibration import simulate_survey
 from app.vlp.layout import layout_from_mapping
-from tests.db_fixtures import build_now, claim_next, small_layout
+from tests.db_fixtures import build_now, claim_next, raw_engine, small_layout
 
 
 def _room(registry: Registry) -> str:
@@ -159,9 +159,9 @@ def test_stale_layout_version_and_unknown_ids_are_refused(registry: Registry) ->
     room_id = _room(registry)
     with pytest.raises(PreconditionFailed):
         registry.create_calibration(room_id=room_id, layout_version=7, request={"survey": []})
-    with pytest.raises(NotFound):
+    with pytest.raises(RecordNotFound):
         registry.get_calibration(room_id=room_id, calibration_id="nope")
-    with pytest.raises(NotFound):
+    with pytest.raises(RecordNotFound):
         registry.list_calibrations(room_id="nope")
 
 
@@ -169,7 +169,7 @@ def test_delete_room_deletes_its_calibrations(registry: Registry) -> None:
     room_id = _room(registry)
     _calibrate(registry, room_id, _survey_request(registry, room_id))
     registry.delete_room(room_id=room_id)
-    with pytest.raises(NotFound):
+    with pytest.raises(RecordNotFound):
         registry.list_calibrations(room_id=room_id)
-    with registry.engine.connect() as conn:
+    with raw_engine(registry).connect() as conn:
         assert conn.execute(select(func.count()).select_from(calibrations)).scalar_one() == 0

@@ -8,21 +8,12 @@ from __future__ import annotations
 
 import threading
 from datetime import timedelta
+from functools import partial
 
 import pytest
 
 from app.clock import FakeClock
 from app.registry import Registry
-from app.registry.epochs import (
-    ClaimedEpoch,
-    EpochRecord,
-    EpochSettings,
-    claim_epoch,
-    due_epochs,
-    finish_epoch,
-    post_epoch_measurement,
-    purge_epochs,
-)
 from app.registry.errors import (
     EpochClosed,
     EpochFull,
@@ -31,6 +22,8 @@ from app.registry.errors import (
     FingerprintNotReady,
     RoomNotFound,
 )
+from app.registry.records import ClaimedEpoch, EpochRecord, EpochSettings
+from app.services.epochs import open_epoch, post_to_epoch
 from app.vlp.errors import MeasurementError
 from tests.db_fixtures import build_now, small_layout
 
@@ -67,7 +60,7 @@ def room_id(registry: Registry) -> str:
 
 @pytest.fixture
 def epoch(registry: Registry, room_id: str) -> EpochRecord:
-    return registry.create_epoch(room_id=room_id, settings=wanted())
+    return open_epoch(registry, room_id=room_id, settings=wanted())
 
 
 def claim(
@@ -75,8 +68,7 @@ def claim(
 ) -> ClaimedEpoch | None:
     options: dict[str, object] = {"lease_s": 30.0, "max_attempts": 3, "force": True}
     options.update(kw)
-    return claim_epoch(
-        registry.engine,
+    return registry.epochs.claim(
         room_id=epoch.room_id,
         epoch_id=epoch.id,
         owner=owner,
@@ -92,24 +84,24 @@ def test_create_pins_the_current_fingerprint_and_its_led_count(
     assert epoch.settings.fingerprint_version == 1 and epoch.settings.leds == N_LEDS
     assert epoch.settings.min_terminals == 2 and epoch.settings.window_s == 60.0
     assert epoch.expires_at - epoch.created_at == timedelta(seconds=60)
-    assert registry.get_epoch(room_id=epoch.room_id, epoch_id=epoch.id) == epoch
+    assert registry.epochs.get(room_id=epoch.room_id, epoch_id=epoch.id) == epoch
 
 
 def test_create_needs_a_known_room_and_a_ready_fingerprint(registry: Registry) -> None:
     with pytest.raises(RoomNotFound):
-        registry.create_epoch(room_id="nope", settings=wanted())
+        open_epoch(registry, room_id="nope", settings=wanted())
     room = registry.create_room(name="Unbuilt", layout=small_layout())
     with pytest.raises(FingerprintNotReady):
-        registry.create_epoch(room_id=room.id, settings=wanted())
+        open_epoch(registry, room_id=room.id, settings=wanted())
     build_now(registry, room_id=room.id)
     with pytest.raises(FingerprintNotFound):
-        registry.create_epoch(room_id=room.id, settings=wanted(), fingerprint_version=7)
+        open_epoch(registry, room_id=room.id, settings=wanted(), fingerprint_version=7)
 
 
 def test_a_terminal_posting_again_replaces_its_amplitudes(
     registry: Registry, epoch: EpochRecord
 ) -> None:
-    post = registry.post_epoch_measurement
+    post = partial(post_to_epoch, registry)
     post(room_id=epoch.room_id, epoch_id=epoch.id, terminal_id="t1", amplitudes=[1.0, 2.0, 3.0])
     post(room_id=epoch.room_id, epoch_id=epoch.id, terminal_id="t2", amplitudes=[4.0, 5.0, 6.0])
     again = post(
@@ -127,34 +119,33 @@ def test_a_terminal_posting_again_replaces_its_amplitudes(
 def test_posts_are_refused_when_wrong_closed_full_or_unknown(
     registry: Registry, room_id: str
 ) -> None:
-    epoch = registry.create_epoch(room_id=room_id, settings=wanted(max_terminals=2))
+    epoch = open_epoch(registry, room_id=room_id, settings=wanted(max_terminals=2))
     ids = {"room_id": room_id, "epoch_id": epoch.id}
     with pytest.raises(MeasurementError, match="expected 3 amplitudes") as info:
-        registry.post_epoch_measurement(**ids, terminal_id="t1", amplitudes=[1.0, 2.0])
+        post_to_epoch(registry, **ids, terminal_id="t1", amplitudes=[1.0, 2.0])
     assert info.value.field == "amplitudes"
     for terminal in ("t1", "t2", "t2"):
-        registry.post_epoch_measurement(**ids, terminal_id=terminal, amplitudes=[1.0, 1.0, 1.0])
+        post_to_epoch(registry, **ids, terminal_id=terminal, amplitudes=[1.0, 1.0, 1.0])
     with pytest.raises(EpochFull):
-        registry.post_epoch_measurement(**ids, terminal_id="t3", amplitudes=[1.0, 1.0, 1.0])
+        post_to_epoch(registry, **ids, terminal_id="t3", amplitudes=[1.0, 1.0, 1.0])
     with pytest.raises(EpochClosed, match="window"):
-        post_epoch_measurement(
-            registry.engine,
+        registry.epochs.post_measurement(
             **ids,
             terminal_id="t1",
             amplitudes=[1.0, 1.0, 1.0],
             now=epoch.expires_at,
         )
     with pytest.raises(EpochNotFound):
-        registry.post_epoch_measurement(
-            room_id=room_id, epoch_id="nope", terminal_id="t1", amplitudes=[1.0, 1.0, 1.0]
+        post_to_epoch(
+            registry, room_id=room_id, epoch_id="nope", terminal_id="t1", amplitudes=[1.0, 1.0, 1.0]
         )
     other = registry.create_room(name="Other", layout=small_layout())
     with pytest.raises(EpochNotFound):
-        registry.get_epoch(room_id=other.id, epoch_id=epoch.id)
+        registry.epochs.get(room_id=other.id, epoch_id=epoch.id)
     assert claim(registry, epoch, "solver-a") is not None
     with pytest.raises(EpochClosed, match="solving"):
-        registry.post_epoch_measurement(**ids, terminal_id="t1", amplitudes=[1.0, 1.0, 1.0])
-    assert registry.get_epoch(**ids).terminals == 2
+        post_to_epoch(registry, **ids, terminal_id="t1", amplitudes=[1.0, 1.0, 1.0])
+    assert registry.epochs.get(**ids).terminals == 2
 
 
 def test_only_one_of_many_concurrent_claims_wins(registry: Registry, epoch: EpochRecord) -> None:
@@ -175,7 +166,7 @@ def test_only_one_of_many_concurrent_claims_wins(registry: Registry, epoch: Epoc
         thread.join(60)
     winners = [result for result in results if result is not None]
     assert len(results) == 6 and len(winners) == 1
-    state = registry.get_epoch(room_id=epoch.room_id, epoch_id=epoch.id)
+    state = registry.epochs.get(room_id=epoch.room_id, epoch_id=epoch.id)
     assert state.status == "solving" and state.attempts == 1
 
 
@@ -183,9 +174,9 @@ def test_an_open_window_is_claimed_only_when_due_or_forced(
     registry: Registry, epoch: EpochRecord
 ) -> None:
     assert claim(registry, epoch, "sweeper", force=False) is None
-    assert due_epochs(registry.engine, now=registry.clock.now(), limit=10) == []
+    assert registry.epochs.due(now=registry.clock.now(), limit=10) == []
     later = epoch.expires_at + timedelta(seconds=1)
-    assert due_epochs(registry.engine, now=later, limit=10) == [(epoch.room_id, epoch.id)]
+    assert registry.epochs.due(now=later, limit=10) == [(epoch.room_id, epoch.id)]
     assert claim(registry, epoch, "sweeper", force=False, seconds_later=61) is not None
 
 
@@ -197,17 +188,14 @@ def test_a_lost_solver_is_taken_over_and_cannot_overwrite(
     assert claim(registry, epoch, "impatient") is None  # the lease still runs
     second = claim(registry, epoch, "heir", seconds_later=31)
     assert second is not None and second.record.attempts == 2
-    assert not finish_epoch(
-        registry.engine, claimed=first, status="solved", now=registry.clock.now()
-    )
-    assert finish_epoch(
-        registry.engine,
+    assert not registry.epochs.finish(claimed=first, status="solved", now=registry.clock.now())
+    assert registry.epochs.finish(
         claimed=second,
         status="solved",
         now=registry.clock.now(),
         localization={"k": 1},
     )
-    done = registry.get_epoch(room_id=epoch.room_id, epoch_id=epoch.id)
+    done = registry.epochs.get(room_id=epoch.room_id, epoch_id=epoch.id)
     assert done.status == "solved" and done.localization == {"k": 1}
     assert claim(registry, epoch, "late", seconds_later=3600) is None
 
@@ -218,48 +206,40 @@ def test_an_epoch_whose_solver_is_lost_too_often_fails(
     for attempt in range(3):
         assert claim(registry, epoch, f"p{attempt}", seconds_later=31 * attempt) is not None
     assert claim(registry, epoch, "p3", seconds_later=31 * 3) is None
-    failed = registry.get_epoch(room_id=epoch.room_id, epoch_id=epoch.id)
+    failed = registry.epochs.get(room_id=epoch.room_id, epoch_id=epoch.id)
     assert failed.status == "failed" and failed.error is not None and "3 times" in failed.error
 
 
 def test_purge_drops_old_finished_epochs_with_their_posts(
     registry: Registry, room_id: str, epoch: EpochRecord
 ) -> None:
-    registry.post_epoch_measurement(
-        room_id=room_id, epoch_id=epoch.id, terminal_id="t1", amplitudes=[1.0, 1.0, 1.0]
+    post_to_epoch(
+        registry, room_id=room_id, epoch_id=epoch.id, terminal_id="t1", amplitudes=[1.0, 1.0, 1.0]
     )
-    still_open = registry.create_epoch(room_id=room_id, settings=wanted())
+    still_open = open_epoch(registry, room_id=room_id, settings=wanted())
     claimed = claim(registry, epoch, "p")
     assert claimed is not None
-    assert finish_epoch(
-        registry.engine, claimed=claimed, status="expired", now=registry.clock.now()
-    )
-    assert (
-        purge_epochs(registry.engine, finished_before=registry.clock.now() - timedelta(hours=1))
-        == 0
-    )
-    assert (
-        purge_epochs(registry.engine, finished_before=registry.clock.now() + timedelta(seconds=1))
-        == 1
-    )
+    assert registry.epochs.finish(claimed=claimed, status="expired", now=registry.clock.now())
+    assert registry.epochs.purge(finished_before=registry.clock.now() - timedelta(hours=1)) == 0
+    assert registry.epochs.purge(finished_before=registry.clock.now() + timedelta(seconds=1)) == 1
     with pytest.raises(EpochNotFound):
-        registry.get_epoch(room_id=room_id, epoch_id=epoch.id)
-    assert registry.get_epoch(room_id=room_id, epoch_id=still_open.id).status == "open"
+        registry.epochs.get(room_id=room_id, epoch_id=epoch.id)
+    assert registry.epochs.get(room_id=room_id, epoch_id=still_open.id).status == "open"
 
 
 def test_deleting_the_room_deletes_its_epochs(
     registry: Registry, room_id: str, epoch: EpochRecord
 ) -> None:
-    registry.post_epoch_measurement(
-        room_id=room_id, epoch_id=epoch.id, terminal_id="t1", amplitudes=[1.0, 1.0, 1.0]
+    post_to_epoch(
+        registry, room_id=room_id, epoch_id=epoch.id, terminal_id="t1", amplitudes=[1.0, 1.0, 1.0]
     )
     registry.delete_room(room_id=room_id)
     with pytest.raises(EpochNotFound):
-        registry.get_epoch(room_id=room_id, epoch_id=epoch.id)
+        registry.epochs.get(room_id=room_id, epoch_id=epoch.id)
 
 
 def test_finish_takes_only_final_statuses(registry: Registry, epoch: EpochRecord) -> None:
     claimed = claim(registry, epoch, "p")
     assert claimed is not None
     with pytest.raises(ValueError, match="finishes as one of"):
-        finish_epoch(registry.engine, claimed=claimed, status="open", now=registry.clock.now())
+        registry.epochs.finish(claimed=claimed, status="open", now=registry.clock.now())

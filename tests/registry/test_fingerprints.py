@@ -15,6 +15,7 @@ from app.registry.errors import (
     MatrixNotFound,
     RoomNotFound,
 )
+from app.services.matrices import rebuilding_if_corrupt
 from app.vlp.fingerprints import Fingerprint, build_fingerprint
 from app.vlp.layout import layout_from_mapping
 from app.vlp.presets import paper_layout
@@ -156,13 +157,20 @@ def test_corrupt_matrix_is_refused_and_the_rebuild_repairs_it(
         overwrite(path, good[:100])
     else:
         path.unlink()
-    with pytest.raises(CorruptMatrix, match="rebuild"):
+    with pytest.raises(CorruptMatrix, match="sha256"):
+        registry.matrix_path(room_id=room.id, version=1, name="H")
+    assert registry.get_room(room_id=room.id).fingerprint_status == "ready"  # reads never write
+    # The service's reads queue the repair explicitly.
+    with (
+        pytest.raises(CorruptMatrix, match="rebuild"),
+        rebuilding_if_corrupt(registry, room_id=room.id),
+    ):
         registry.matrix_path(room_id=room.id, version=1, name="H")
     rebuild = registry.get_room(room_id=room.id)
     assert rebuild.fingerprint_status == "pending"
     assert rebuild.fingerprint_version == 1
-    with pytest.raises(CorruptMatrix):  # a second read coalesces onto the same job
-        registry.load_fingerprint(room_id=room.id, version=1)
+    with pytest.raises(CorruptMatrix), rebuilding_if_corrupt(registry, room_id=room.id):
+        registry.load_fingerprint(room_id=room.id, version=1)  # coalesces onto the same job
     assert registry.get_room(room_id=room.id).job_id == rebuild.job_id
     assert build_now(registry, room_id=room.id) == 2
     assert path.read_bytes() == good

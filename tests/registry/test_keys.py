@@ -10,8 +10,9 @@ import sqlalchemy as sa
 from alembic import command
 
 from app.registry import Registry
-from app.registry._db import alembic_config, write_transaction
-from app.registry.errors import Conflict, NotFound
+from app.registry.db import alembic_config, write_transaction
+from app.registry.errors import RecordNotFound, StateConflict
+from tests.db_fixtures import raw_engine
 
 
 def _in_force(registry: Registry) -> dict[str, tuple[str, str]]:
@@ -61,18 +62,18 @@ def test_a_revoked_key_stays_refused_when_configured_again(registry: Registry) -
     )
     assert revoked == [first.id]
     assert registry.get_active_key(key_hash="a" * 64) is None
-    with pytest.raises(NotFound, match=first.id):
+    with pytest.raises(RecordNotFound, match=first.id):
         registry.revoke_api_key(key_id=first.id)
 
 
 def test_the_last_admin_key_cannot_be_revoked(registry: Registry) -> None:
     admin = registry.create_api_key(key_hash="a" * 64, role="admin", label="a", source="api")
     terminal = registry.create_api_key(key_hash="t" * 64, role="terminal", label="t", source="api")
-    with pytest.raises(Conflict, match="last admin key"):
+    with pytest.raises(StateConflict, match="last admin key"):
         registry.revoke_api_key(key_id=admin.id)
     registry.revoke_api_key(key_id=terminal.id)
     assert registry.count_active_admin_keys() == 1
-    with pytest.raises(Conflict, match="already stored"):
+    with pytest.raises(StateConflict, match="already stored"):
         registry.create_api_key(key_hash="a" * 64, role="terminal", label="again", source="api")
 
 
@@ -90,7 +91,7 @@ def test_migration_0004_keeps_older_keys_as_generated(database_url: str, tmp_pat
     registry = Registry(database_url=database_url, data_dir=tmp_path / "data")
     try:
         config = alembic_config()
-        with write_transaction(registry.engine) as conn:
+        with write_transaction(raw_engine(registry)) as conn:
             config.attributes["connection"] = conn
             command.upgrade(config, "0003")
             conn.execute(

@@ -17,6 +17,7 @@ from app.registry._schema import metadata
 from app.registry.errors import RegistryError, RegistryUnavailable
 from app.registry.seed import seed_demo_room
 from app.vlp.presets import paper_layout
+from tests.db_fixtures import raw_engine
 
 
 def test_concurrent_migrations_are_safe(database_url: str, tmp_path: Path) -> None:
@@ -91,6 +92,6 @@ def test_public_surface() -> None:
 
 
 def test_migrations_match_the_table_definitions(registry: Registry) -> None:
-    with registry.engine.connect() as conn:
+    with raw_engine(registry).connect() as conn:
         diff = compare_metadata(MigrationContext.configure(conn), metadata)
     assert diff == []

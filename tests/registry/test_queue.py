@@ -13,14 +13,7 @@ import pytest
 
 from app.clock import FakeClock
 from app.registry import Registry
-from app.registry.queue import (
-    ClaimedJob,
-    claim_job,
-    fail_job,
-    heartbeat_job,
-    release_job,
-    report_progress,
-)
+from app.registry.records import ClaimedJob
 from tests.db_fixtures import small_layout
 
 
@@ -38,8 +31,7 @@ def _claim(
     max_per_room: int = 1,
     room_id: str | None = None,
 ) -> ClaimedJob | None:
-    return claim_job(
-        registry.engine,
+    return registry.jobs.claim(
         worker_id=worker,
         now=registry.clock.now(),
         lease_seconds=lease,
@@ -97,15 +89,15 @@ def test_expired_lease_is_reclaimed_and_old_owner_is_fenced(
     assert second is not None
     assert (second.job_id, second.attempts) == (first.job_id, 2)
     now = clock.now()
-    assert not heartbeat_job(
-        registry.engine, job_id=first.job_id, worker_id="dead", now=now, lease_seconds=30
+    assert not registry.jobs.heartbeat(
+        job_id=first.job_id, worker_id="dead", now=now, lease_seconds=30
     )
-    assert not report_progress(registry.engine, job_id=first.job_id, worker_id="dead", progress=0.5)
-    assert fail_job(registry.engine, claimed=first, error="late", max_attempts=3, now=now) is None
-    assert heartbeat_job(
-        registry.engine, job_id=second.job_id, worker_id="other", now=now, lease_seconds=30
+    assert not registry.jobs.report_progress(job_id=first.job_id, worker_id="dead", progress=0.5)
+    assert registry.jobs.fail(claimed=first, error="late", max_attempts=3, now=now) is None
+    assert registry.jobs.heartbeat(
+        job_id=second.job_id, worker_id="other", now=now, lease_seconds=30
     )
-    assert report_progress(registry.engine, job_id=second.job_id, worker_id="other", progress=0.25)
+    assert registry.jobs.report_progress(job_id=second.job_id, worker_id="other", progress=0.25)
     assert registry.get_job(job_id=room.job_id or "").progress == pytest.approx(0.25)
 
 
@@ -115,8 +107,7 @@ def test_heartbeat_keeps_the_lease(registry: Registry, clock: FakeClock) -> None
     assert claimed is not None
     for _ in range(3):  # each heartbeat comes 8 s after the last: in time, never early
         clock.advance(8.0)
-        assert heartbeat_job(
-            registry.engine,
+        assert registry.jobs.heartbeat(
             job_id=claimed.job_id,
             worker_id="w",
             now=clock.now(),
@@ -150,8 +141,7 @@ def test_failures_are_retried_then_failed_with_error(registry: Registry) -> None
         assert claimed is not None
         assert claimed.attempts == attempt
         statuses.append(
-            fail_job(
-                registry.engine,
+            registry.jobs.fail(
                 claimed=claimed,
                 error=f"boom {attempt}",
                 max_attempts=3,
@@ -170,7 +160,7 @@ def test_release_returns_job_without_counting(registry: Registry) -> None:
     room = registry.create_room(name="a", layout=small_layout())
     claimed = _claim(registry, "w")
     assert claimed is not None
-    assert release_job(registry.engine, claimed=claimed)
+    assert registry.jobs.release(claimed=claimed)
     job = registry.get_job(job_id=room.job_id or "")
     assert (job.status, job.attempts) == ("queued", 0)
 
@@ -237,7 +227,7 @@ def test_count_jobs_by_status(registry: Registry, clock: FakeClock) -> None:
         registry.create_room(name=name, layout=small_layout())
     claimed = _claim(registry, "w")
     assert claimed is not None
-    fail_job(registry.engine, claimed=claimed, error="x", max_attempts=1, now=clock.now())
+    registry.jobs.fail(claimed=claimed, error="x", max_attempts=1, now=clock.now())
     assert _claim(registry, "w") is not None
     assert registry.count_jobs_by_status() == {
         "queued": 1,

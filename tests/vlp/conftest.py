@@ -54,7 +54,7 @@ def mixed_fingerprint(mixed_room: Layout) -> Fingerprint:
 
 
 def direct_gain(layout: Layout, led_index: int, point: tuple[float, float]) -> float:
-    """``h_ij`` from the API.md formula with explicit angles (no dz/d shortcut)."""
+    """``h_ij`` from the Lambertian LoS formula with explicit angles (no dz/d shortcut)."""
     led = layout.leds[led_index]
     rx = layout.receiver
     dx, dy = point[0] - led.x, point[1] - led.y

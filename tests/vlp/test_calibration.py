@@ -9,7 +9,6 @@ import numpy as np
 import pytest
 from scipy.optimize import least_squares
 
-from app.vlp._typing import FloatArray
 from app.vlp.calibration import (
     CalibrationResult,
     Survey,
@@ -24,6 +23,7 @@ from app.vlp.channel import channel_gains, lambertian_order
 from app.vlp.errors import MeasurementError
 from app.vlp.fingerprints import build_fingerprint
 from app.vlp.layout import Grid, Layout, Led, Receiver, Room
+from app.vlp.typing import FloatArray
 
 DIMMED, DEAD = 3, 9
 NOISE_STD = 1e-7  # about 0.7 % of the strongest amplitude in the paper room
@@ -120,16 +120,20 @@ def test_calibrated_layout_reproduces_the_true_amplitudes(
     assert model.receiver.filter_gain == pytest.approx(result.receiver_gain)
 
 
-def test_fit_matches_an_independent_joint_least_squares(paper_room: Layout) -> None:
-    """Two LEDs fitted jointly by a plain 4-parameter solver agree with the per-LED fit."""
+@pytest.mark.parametrize("bound", [0.0, 0.3], ids=["positions-fixed", "positions-free"])
+def test_fit_matches_an_independent_joint_least_squares(paper_room: Layout, bound: float) -> None:
+    """Two LEDs fitted jointly by a plain solver (4 parameters, or 8 with the LEDs' x, y)
+    agree with the per-LED fit."""
     true, _, _ = _perturbed(paper_room, np.random.default_rng(11))
+    true = replace(true, leds=(replace(true.leds[0], x=0.62, y=0.41), *true.leds[1:]))
     survey = simulate_survey(
         true, _survey_points(paper_room, 10), 2e-7, rng=np.random.default_rng(12)
     )
     keep = survey.led_indices < 2
     sub = replace(paper_room, leds=paper_room.leds[:2])
     small = Survey(survey.points[keep], survey.led_indices[keep], survey.amplitudes[keep])
-    result = calibrate(sub, small, dimmed_below=0.0, dead_below=0.0)
+    result = calibrate(sub, small, dimmed_below=0.0, dead_below=0.0, led_position_bound_m=bound)
+    free = bound > 0
 
     def residuals(params: FloatArray) -> FloatArray:
         leds = tuple(
@@ -137,6 +141,8 @@ def test_fit_matches_an_independent_joint_least_squares(paper_room: Layout) -> N
                 led,
                 pilot_amplitude=float(params[k]),
                 half_power_angle_deg=float(half_power_angle_deg(params[2 + k])),
+                x=float(params[4 + k]) if free else led.x,
+                y=float(params[6 + k]) if free else led.y,
             )
             for k, led in enumerate(sub.leds)
         )
@@ -146,12 +152,22 @@ def test_fit_matches_an_independent_joint_least_squares(paper_room: Layout) -> N
             (gains[small.led_indices, np.arange(small.n_rows)] - small.amplitudes) * 1e5
         )
 
-    joint = least_squares(
-        residuals, np.array([1.0, 1.0, 1.0, 1.0]), bounds=([1e-6, 1e-6, 0.2, 0.2], [10, 10, 50, 50])
-    )
+    nominal_xy = sub.led_positions[:, :2]
+    start = [1.0, 1.0, 1.0, 1.0] + (list(nominal_xy[:, 0]) + list(nominal_xy[:, 1]) if free else [])
+    lower = [1e-6, 1e-6, 0.2, 0.2] + (list(nominal_xy.T.ravel() - bound) if free else [])
+    upper = [10, 10, 50, 50] + (list(nominal_xy.T.ravel() + bound) if free else [])
+    joint = least_squares(residuals, np.array(start), bounds=(lower, upper), xtol=1e-12)
     products = result.pilot_amplitudes * result.receiver_gain
     np.testing.assert_allclose(products, joint.x[:2], rtol=1e-4)
-    np.testing.assert_allclose(result.lambertian_orders, joint.x[2:], rtol=1e-3)
+    np.testing.assert_allclose(result.lambertian_orders, joint.x[2:4], rtol=1e-3)
+    if free:
+        np.testing.assert_allclose(result.led_positions, joint.x[4:].reshape(2, 2).T, atol=1e-4)
+        # ... and the displaced LED is found near where it is (0.12 m, 0.09 m off; the noise
+        # leaves a centimetre or two in this corner).
+        np.testing.assert_allclose(result.led_positions[0], (0.62, 0.41), atol=0.03)
+        np.testing.assert_allclose(result.led_shifts_m[0], (0.12, -0.09), atol=0.03)
+    else:
+        np.testing.assert_array_equal(result.led_shifts_m, 0.0)
 
 
 def test_uniformly_weaker_receiver_is_not_mistaken_for_dimmed_leds(paper_room: Layout) -> None:

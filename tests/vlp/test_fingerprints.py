@@ -1,4 +1,4 @@
-"""Fingerprints: H, J and Psi against a slow double loop over the API.md formulas."""
+"""Fingerprints: H, J and Psi against a slow double loop over the Lambertian formulas."""
 
 from __future__ import annotations
 

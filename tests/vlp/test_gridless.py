@@ -16,7 +16,7 @@ from app.vlp.measurements import Measurement, Model, measurement_from_amplitudes
 from app.vlp.simulation import noise_std_for_snr, noisy_amplitudes, random_positions
 from app.vlp.solvers import make_solver, solver_names
 from app.vlp.solvers._channel_kernel import ChannelKernel
-from app.vlp.solvers.gridless import GridlessSolver
+from app.vlp.solvers.gridless import GridlessOptions, GridlessSolver
 
 GRID_FLOOR_M = 0.0765  # mean quantisation error of the 0.2 m grid
 
@@ -80,6 +80,23 @@ def test_beats_the_grid_floor_between_grid_points(
     assert np.all(np.linalg.norm(sol.positions - centres, axis=1) > 1e-6)
     np.testing.assert_array_equal(sol.grid_indices, paper_room.nearest_cell(sol.positions))
     assert sol.n_targets == 2 and sol.converged
+
+
+def test_converged_reports_the_final_fit_not_the_last_candidate(
+    paper_room: Layout, paper_fingerprint: Fingerprint, paper_solver: GridlessSolver
+) -> None:
+    """The growth steps' short fits run out of iterations by design; the answer's
+    ``converged`` is the final refinement's: true with the default budget, false when the
+    final refinement is starved of iterations (one per round, one round)."""
+    starved = GridlessSolver(
+        paper_fingerprint, "correlation", GridlessOptions(final_iter=1, whiten_rounds=1)
+    )
+    for seed in range(4):
+        rng = np.random.default_rng(seed)
+        truth = random_positions(paper_room, 3, rng=rng)
+        meas = simulate(paper_room, paper_fingerprint, truth, 30.0, "correlation", rng)
+        assert paper_solver.solve(meas, 3).converged
+        assert not starved.solve(meas, 3).converged
 
 
 def test_mean_error_over_seeds_stays_below_the_grid_floor(

@@ -1,4 +1,4 @@
-"""The science core imports only the standard library, numpy, scipy and cvxpy."""
+"""The science core imports only the standard library, numpy, scipy, cvxpy and numba."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 PACKAGE = Path(__file__).resolve().parents[2] / "app" / "vlp"
-ALLOWED = {"numpy", "scipy", "cvxpy"}
+ALLOWED = {"numpy", "scipy", "cvxpy", "numba"}
 FILES = sorted(PACKAGE.rglob("*.py"))
 
 
@@ -44,7 +44,7 @@ def test_only_allowed_imports(path: Path) -> None:
         for module, level in _imports(path)
         if not _allowed(module, level) or level > depth + 1
     ]
-    assert not bad, f"{path}: imports outside stdlib/numpy/scipy/cvxpy/app.vlp: {bad}"
+    assert not bad, f"{path}: imports outside stdlib/numpy/scipy/cvxpy/numba/app.vlp: {bad}"
 
 
 def test_checker_rejects_web_imports() -> None:

@@ -14,7 +14,7 @@ import pytest
 from numpy.testing import assert_allclose, assert_array_equal
 
 import app.vlp.fingerprints as fingerprints
-from app.vlp.errors import MeasurementError, SolverError, UnknownSolverError
+from app.vlp.errors import MeasurementError, SolverError, SolverFailed, UnknownSolverError
 from app.vlp.fingerprints import Fingerprint, build_fingerprint
 from app.vlp.layout import Grid, Layout, Led, Room
 from app.vlp.measurements import (
@@ -247,7 +247,7 @@ def test_l1_reports_infeasible_problems(solvers: dict[tuple[str, str], Solver]) 
     dictionary = solver.dictionary
     assert dictionary.normalised is not None
     # nonnegative occupancies and noise can never produce a negative measurement
-    with pytest.raises(SolverError, match="did not converge") as info:
+    with pytest.raises(SolverFailed, match="did not converge") as info:
         solve_l1_fresh(dictionary.normalised, dictionary.noise_unit, -dictionary.noise_unit, 0.0)
     assert info.value.field == "solver"
 

@@ -10,8 +10,8 @@ from __future__ import annotations
 from alembic import context
 from sqlalchemy import Connection
 
-from app.registry._db import create_registry_engine
 from app.registry._schema import metadata
+from app.registry.db import create_registry_engine
 from app.settings import Settings
 
 

@@ -1,6 +1,7 @@
 """Simulated measurements: target placements and noisy per-terminal pilot amplitudes.
 
-SNR convention (``shared/API.md``, issue 2): the mean over LEDs and grid points of
+SNR convention (the one ``POST /v1/rooms/{room_id}/simulate`` documents, see
+:mod:`app.schemas.simulate`): the mean over LEDs and grid points of
 ``(h_ij x_i)^2`` divided by the noise variance of one amplitude. So at ``snr_db`` every
 amplitude ``a_ik = h_ik x_i + n_ik`` gets i.i.d. ``n_ik ~ N(0, sigma^2)`` with
 ``sigma^2 = mean(J) / 10^(snr_db / 10)``.
@@ -10,12 +11,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from .._random import RandomState, as_generator
-from .._typing import FloatArray
 from ..channel import channel_gains
 from ..errors import SolverError
 from ..fingerprints import Fingerprint
 from ..layout import Layout
+from ..rng import RandomState, as_generator
+from ..typing import FloatArray
 
 __all__ = [
     "mean_signal_power",

@@ -18,13 +18,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .._random import RandomState, as_generator
-from .._typing import FloatArray
 from ..channel import channel_gains, los_gains
 from ..errors import GeometryError
 from ..fingerprints import Fingerprint, build_fingerprint
 from ..layout import Layout, Led
 from ..reflections import diffuse_gains
+from ..rng import RandomState, as_generator
+from ..typing import FloatArray
 from ._ideal import noise_std_for_snr
 from .impairments import Impairments
 

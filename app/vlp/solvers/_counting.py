@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .._typing import FloatArray
+from ..typing import FloatArray
 from .base import MAX_TARGETS
 
 __all__ = ["estimate_target_count"]

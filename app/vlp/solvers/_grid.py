@@ -17,9 +17,9 @@ import numpy as np
 import scipy.optimize as sopt
 import scipy.sparse as sp
 
-from .._typing import FloatArray, IntArray
 from ..fingerprints import PSI_DENSE_LIMIT, Fingerprint
 from ..measurements import Model, noise_atom, unvech, vech, vech_length
+from ..typing import FloatArray, IntArray
 from .base import Solution
 
 __all__ = [

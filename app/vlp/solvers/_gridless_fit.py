@@ -29,9 +29,18 @@ import numpy as np
 import numpy.typing as npt
 from scipy.linalg import lapack
 
-from .._typing import FloatArray, IntArray
 from ..measurements import Model
+from ..typing import FloatArray, IntArray
+from ._channel_compiled import channel_constants
 from ._channel_kernel import ChannelKernel
+from ._fit_compiled import (
+    gram_kernel,
+    lm_kernel,
+    residual_kernel,
+    whiten_kernel,
+    whitening_kernel,
+)
+from ._kernels import kernel_mode
 
 # Relative floor on whitening eigenvalues (guards a noiseless fit against infinite weights).
 _EIG_FLOOR = 1e-9
@@ -42,8 +51,8 @@ _SIGMA2_REL_FLOOR = 1e-4
 # Damping increases tried per LM iteration before the point is taken as a local minimum.
 _MAX_REJECTIONS = 12
 # Marquardt damping factors after a rejected / accepted step (the start is the caller's).
-# Nielsen's adaptive update needs a third fewer evaluations but lands in worse local
-# minima on irregular rooms (docs/accuracy.md, "Design measurements").
+# Nielsen's adaptive update needs fewer evaluations but lands in worse local minima on
+# irregular rooms (measured in docs/accuracy.md, "Design measurements").
 _DAMPING_UP = 4.0
 _DAMPING_DOWN = 5.0
 
@@ -111,6 +120,9 @@ class FitState:
         Each target's log amplitude gain ``u_k``.
     log_scale : float
         The common log power scale ``v``.
+    converged : bool
+        Whether the Levenberg-Marquardt run that produced this state stopped by its
+        tolerance (or at a local minimum) rather than by running out of iterations.
     """
 
     positions: FloatArray
@@ -121,6 +133,7 @@ class FitState:
     log_scale: float = 0.0
     # (all on the receivers' plane, unit multipliers), filled by the objective on first use.
     facts: tuple[bool, bool] | None = field(default=None, compare=False, repr=False)
+    converged: bool = field(default=True, compare=False, repr=False)
 
     @classmethod
     def empty(cls, log_scale: float = 0.0) -> FitState:
@@ -164,6 +177,33 @@ class FitState:
 
 
 @functools.lru_cache(maxsize=64)
+def compiled_indices(model: Model, n_leds: int) -> tuple[IntArray, IntArray, FloatArray]:
+    """:func:`_vech_indices` as the compiled kernels take them (writable int64 copies)."""
+    upper, lower, is_diag = _vech_indices(model, n_leds)
+    return (
+        np.array(upper, dtype=np.int64),
+        np.array(lower, dtype=np.int64),
+        np.array(is_diag, dtype=np.float64),
+    )
+
+
+def fixed_tuple(kernel: ChannelKernel, state: FitState) -> tuple[Any, ...]:
+    """The compiled kernels' ``fixed`` tuple of a state (no parameters in theta)."""
+    heights = np.ascontiguousarray(state.heights, dtype=np.float64)
+    unit = (
+        state.log_scale == 0.0 and not state.log_gains.any() and bool((state.weights == 1.0).all())
+    )
+    return (
+        heights,
+        np.ascontiguousarray(state.weights, dtype=np.float64),
+        np.ascontiguousarray(state.log_gains, dtype=np.float64),
+        float(state.log_scale),
+        bool((heights == kernel.receiver_height).all()),
+        bool(unit),
+    )
+
+
+@functools.lru_cache(maxsize=64)
 def _vech_indices(model: Model, n_leds: int) -> tuple[IntArray, IntArray, FloatArray]:
     """Row and column of each measurement entry and its diagonal indicator (read-only)."""
     if model == "correlation":
@@ -199,6 +239,22 @@ class Whitening:
         self.weights = weights
         self.upper, self.lower, self.is_diag = _vech_indices(model, n_leds)
         self.weighted_diag = weights * self.is_diag
+        self._compiled: tuple[Any, ...] | None = None
+
+    def compiled(self) -> tuple[Any, ...]:
+        """This whitening as the compiled kernels take it (built once)."""
+        if self._compiled is None:
+            upper, lower, _ = compiled_indices(self.model, self.n_leds)
+            rotation = np.eye(self.n_leds) if self.rotation is None else self.rotation
+            self._compiled = (
+                self.rotation is not None,
+                np.ascontiguousarray(rotation, dtype=np.float64),
+                np.ascontiguousarray(self.weights, dtype=np.float64),
+                upper,
+                lower,
+                np.ascontiguousarray(self.weighted_diag, dtype=np.float64),
+            )
+        return self._compiled
 
     @classmethod
     def identity(cls, model: Model, n_leds: int) -> Whitening:
@@ -211,6 +267,28 @@ class Whitening:
         cls, model: Model, kernel: ChannelKernel, state: FitState, n_terminals: float
     ) -> Whitening:
         """Plug-in whitening from the current fit (sigma^2 = s / K)."""
+        constants = channel_constants(kernel) if kernel_mode() == "compiled" else None
+        if constants is not None and state.n_targets > 0:
+            upper, lower, is_diag = compiled_indices(model, kernel.n_leds)
+            rotation, weights = whitening_kernel(
+                *constants,
+                np.ascontiguousarray(state.positions, dtype=np.float64),
+                fixed_tuple(kernel, state),
+                float(state.noise),
+                float(n_terminals),
+                model == "correlation",
+                upper,
+                lower,
+                is_diag,
+            )
+            return cls(model, kernel.n_leds, rotation if model == "correlation" else None, weights)
+        return cls._from_state_reference(model, kernel, state, n_terminals)
+
+    @classmethod
+    def _from_state_reference(
+        cls, model: Model, kernel: ChannelKernel, state: FitState, n_terminals: float
+    ) -> Whitening:
+        """:meth:`from_state` in plain NumPy (the compiled kernel's reference)."""
         gains = target_gains(kernel, state)
         weights = state.effective_weights()
         # Floor sigma^2 at a fraction of the mean received power per LED and terminal: a
@@ -234,6 +312,10 @@ class Whitening:
 
     def data(self, values: FloatArray) -> FloatArray:
         """Whitened measurement."""
+        if kernel_mode() == "compiled":
+            return np.asarray(
+                whiten_kernel(self.compiled(), np.ascontiguousarray(values, dtype=np.float64))
+            )
         if self.rotation is None or self.rotation_t is None:
             return np.asarray(self.weights * values)
         full = np.zeros((self.n_leds, self.n_leds))
@@ -322,6 +404,55 @@ class Objective:
         self.free_weights = free_weights
         self.priors = priors or Priors()
         self._slots: dict[int, _Slots] = {}
+        self._problem: tuple[Any, ...] | bool | None = False
+
+    def compiled_problem(self) -> tuple[Any, ...] | None:
+        """``(channel, table, white, data)`` for the compiled kernels; None when the
+        reference kernels are in use (or the channel has no compiled form)."""
+        if kernel_mode() != "compiled":
+            return None
+        if self._problem is False:
+            constants = channel_constants(self.kernel)
+            self._problem = (
+                None
+                if constants is None
+                else (
+                    *constants,
+                    self.white.compiled(),
+                    np.ascontiguousarray(self.data, dtype=np.float64),
+                )
+            )
+        assert self._problem is not True
+        return self._problem
+
+    def compiled_state(self, fixed: FitState) -> tuple[tuple[Any, ...], ...]:
+        """``(fixed, layout, priors)`` tuples of the compiled kernels for ``fixed``."""
+        slots = self.slots(fixed.n_targets)
+        on_plane, unit = self._state_facts(fixed)
+        priors = self.priors
+        return (
+            (
+                np.ascontiguousarray(fixed.heights, dtype=np.float64),
+                np.ascontiguousarray(fixed.weights, dtype=np.float64),
+                np.ascontiguousarray(fixed.log_gains, dtype=np.float64),
+                float(fixed.log_scale),
+                on_plane,
+                unit,
+            ),
+            (
+                slots.n_axes,
+                -1 if slots.weights is None else int(slots.weights.start),
+                -1 if slots.gains is None else int(slots.gains.start),
+                -1 if slots.scale is None else int(slots.scale),
+                slots.n_prior,
+            ),
+            (
+                math.nan if priors.log_gain_sd is None else float(priors.log_gain_sd),
+                math.nan if priors.log_scale_sd is None else float(priors.log_scale_sd),
+                float(priors.height_sd),
+                float(priors.height_mean),
+            ),
+        )
 
     def slots(self, n_targets: int) -> _Slots:
         """The parameter layout for K targets."""
@@ -380,11 +511,11 @@ class Objective:
         (remembered on the state: LM evaluates many thetas against one)."""
         facts = fixed.facts
         if facts is None:
-            on_plane = bool(np.all(fixed.heights == self.kernel.receiver_height))
+            on_plane = bool((fixed.heights == self.kernel.receiver_height).all())
             unit = (
                 fixed.log_scale == 0.0
                 and not fixed.log_gains.any()
-                and bool(np.all(fixed.weights == 1.0))
+                and bool((fixed.weights == 1.0).all())
             )
             facts = fixed.facts = (on_plane, unit)
         return facts
@@ -421,6 +552,19 @@ class Objective:
         fixed : FitState
             Supplies what ``theta`` does not hold (fixed weights, gains, heights).
         """
+        problem = self.compiled_problem()
+        if problem is not None and fixed.n_targets > 0:
+            return np.asarray(
+                residual_kernel(
+                    *problem,
+                    np.ascontiguousarray(theta, dtype=np.float64),
+                    *self.compiled_state(fixed),
+                )
+            )
+        return self.residual_reference(theta, fixed)
+
+    def residual_reference(self, theta: FloatArray, fixed: FitState) -> FloatArray:
+        """:meth:`residual` in plain NumPy (the compiled kernel's reference)."""
         white = self.white
         slots = self.slots(fixed.n_targets)
         k = slots.n_targets
@@ -542,6 +686,20 @@ def levenberg_marquardt(
     n_targets = state.n_targets
     lower, upper = objective.bounds(n_targets)
     theta = objective.pack(state)
+    problem = objective.compiled_problem()
+    if problem is not None and n_targets > 0:
+        theta, cost, used = lm_kernel(
+            *problem,
+            theta,
+            *objective.compiled_state(state),
+            lower,
+            upper,
+            int(max_iter),
+            float(initial_damping),
+            float(tol),
+            float(step_tol_m),
+        )
+        return objective.unpack(theta, state), float(cost), int(used)
     normal, gradient, cost = gram(objective, theta, state)
     damping = initial_damping
     used = 0
@@ -580,6 +738,21 @@ def gram(
     objective: Objective, theta: FloatArray, fixed: FitState
 ) -> tuple[FloatArray, FloatArray, float]:
     """``J^T J``, ``J^T r`` and ``r^T r`` at ``theta`` (one BLAS call instead of three)."""
+    problem = objective.compiled_problem()
+    if problem is not None and fixed.n_targets > 0:
+        normal, gradient, cost = gram_kernel(
+            *problem,
+            np.ascontiguousarray(theta, dtype=np.float64),
+            *objective.compiled_state(fixed),
+        )
+        return normal, gradient, float(cost)
+    return gram_reference(objective, theta, fixed)
+
+
+def gram_reference(
+    objective: Objective, theta: FloatArray, fixed: FitState
+) -> tuple[FloatArray, FloatArray, float]:
+    """:func:`gram` in plain NumPy (the compiled kernel's reference)."""
     augmented = objective.augmented(theta, fixed)
     product = augmented @ augmented.T
     n_params = theta.shape[0]

@@ -68,9 +68,9 @@ class LevenbergMarquardtSettings:
     tol: float
 
 
-# Per model: correlation takes few damped iterations at a loose tolerance (as accurate, a
-# third of the evaluations); power has M values for 2K + 1 unknowns, a much flatter,
-# multimodal cost, and keeps the careful settings (docs/accuracy.md, "Design measurements").
+# Per model: correlation takes few damped iterations at a loose tolerance (as accurate, far
+# fewer evaluations); power has M values for 2K + 1 unknowns, a much flatter, multimodal
+# cost, and keeps the careful settings (measured in docs/accuracy.md, "Design measurements").
 LM_DEFAULTS: dict[Model, LevenbergMarquardtSettings] = {
     "correlation": LevenbergMarquardtSettings(inner_iter=2, initial_damping=1e-1, tol=1e-4),
     "power": LevenbergMarquardtSettings(inner_iter=4, initial_damping=1e-3, tol=1e-7),

@@ -21,9 +21,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .._typing import FloatArray
+from ..typing import FloatArray
+from ._channel_compiled import channel_constants, channel_rows
 from ._channel_kernel import ChannelKernel
 from ._gridless_fit import MAX_LOG_GAIN, Priors
+from ._kernels import kernel_mode
 
 __all__ = ["TerminalFit", "fit_terminal", "los_with_normal", "starting_cells"]
 
@@ -189,6 +191,10 @@ def _model(
     x, y = float(theta[0]), float(theta[1])
     z = float(theta[2]) if free_height else z0
     if normal is None and not free_tilt:
+        constants = channel_constants(kernel) if kernel_mode() == "compiled" else None
+        if constants is not None:
+            rows = channel_rows(*constants, np.array([x]), np.array([y]), np.array([z]), False)
+            return np.asarray(rows[0, 0]), np.asarray(rows[1:, 0].T)
         blocks = kernel.gradients_xyz(np.array([x]), np.array([y]), np.array([z]))
         return blocks[:, 3], blocks[:, :3]
     at = 3 if free_height else 2

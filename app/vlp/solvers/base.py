@@ -18,12 +18,12 @@ from typing import ClassVar
 
 import numpy as np
 
-from .._typing import FloatArray, IntArray
 from ..constants import MAX_TARGETS
 from ..errors import MeasurementError, SolverError, UnknownSolverError
 from ..fingerprints import Fingerprint
 from ..measurements import Measurement, Model
 from ..scale import check_measurement_scale
+from ..typing import FloatArray, IntArray
 from ..uncertainty import FitQuality
 
 __all__ = [

@@ -11,13 +11,14 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from .._typing import FloatArray
 from ..fingerprints import Fingerprint
 from ..measurements import Measurement, Model
 from ..scale import check_amplitude_scale
 from ..simulation import mean_signal_power
+from ..typing import FloatArray
 from ..uncertainty import FitQuality, assess_fit
 from ._channel_kernel import ChannelKernel
+from ._fit_compiled import correlation_scores_kernel
 from ._gridless_fit import (
     MAX_LOG_SCALE,
     FitState,
@@ -36,6 +37,8 @@ from ._gridless_options import (
     nuisance_priors,
     pick,
 )
+from ._kernels import kernel_mode
+from ._local import PowerScan, TerminalWindows
 from ._terminal_fit import fit_terminal, starting_cells
 from .base import MAX_TARGETS, Solution, Solver, register_solver
 
@@ -58,7 +61,6 @@ class _Run:
     values: FloatArray
     priors: Priors
     iterations: int = 0
-    converged: bool = True
 
 
 @register_solver
@@ -149,8 +151,8 @@ class GridlessSolver(Solver):
         self._kernel = ChannelKernel(layout, self._scale, diffuse_table(fingerprint))
         # The power model has M values for 2K + 1 unknowns and a poorly identified noise
         # level (its noise atom is nearly a signal direction): its whitened statistics cannot
-        # tell a freed nuisance from noise (an ideal room freed the scale in 20 % of K = 1
-        # solves and lost accuracy), so nuisances are fitted for correlation (and terminals).
+        # tell a freed nuisance from noise (an ideal room freed the scale in many K = 1 solves
+        # and lost accuracy), so nuisances are fitted for correlation (and terminals).
         self._priors = nuisance_priors(
             layout,
             self.options if model == "correlation" else replace(self.options, log_gain_sd=None),
@@ -167,6 +169,8 @@ class GridlessSolver(Solver):
         ]
         if len(self._stages) == 2 and self._stages[0] == self._stages[1]:
             self._stages.pop()
+        # Plain least squares (one object: the compiled kernels keep their view of it).
+        self._identity = Whitening.identity(model, fingerprint.n_leds)
         self._centres = layout.cell_centres()
         self._dense = fingerprint.is_dense
         # Restarts begin away from earlier first insertions, by half the mean LED height
@@ -189,18 +193,35 @@ class GridlessSolver(Solver):
         # Each target costs 2 coordinates and the noise power one more unknown.
         self._max_count = max(1, min(MAX_TARGETS, fingerprint.n_cells, (n_obs - 1) // 2))
         if self._dense:
-            self._gains = fingerprint.dense_scaled_gains() / self._scale
+            self._gains = np.ascontiguousarray(
+                fingerprint.dense_scaled_gains() / self._scale, dtype=np.float64
+            )
             self._gains_sq = self._gains**2
+            self._gains_fourth = self._gains_sq**2
             self._column_energy = np.maximum(self._gains_sq.sum(axis=0), 1e-300)
         else:
             self._gains_sparse = fingerprint.scaled_gains() / self._scale
-            self._gains_sq_sparse = self._gains_sparse.power(2)
+            if model == "power":  # the correlation model scans through the operator
+                self._gains_sq_sparse = self._gains_sparse.power(2)
             self._operator = fingerprint.correlation_operator()
             total = np.asarray(self._gains_sparse.power(2).sum(axis=0)).ravel()
             fourth = np.asarray(self._gains_sparse.power(4).sum(axis=0)).ravel()
             self._psi_norms = np.sqrt(0.5 * (total**2 + fourth))
+            self._fourth_sums = fourth
             self._column_energy = np.maximum(total, 1e-300)
         self._mean_column_energy = float(np.mean(self._column_energy))
+        # Large rooms: terminals are started near their own footprint (see ._local), as wide
+        # as on the floor (a terminal may send its own height, down to 0).
+        self._windows = None if self._dense else TerminalWindows.build(fingerprint, 0.0)
+        if self._windows is not None and not self._windows.is_useful():
+            self._windows = None
+        # Large rooms, power model: insertion scans score only the tiles that can hold the
+        # best point (see ._local.PowerScan; the same argmax as scoring all N).
+        self._power_scan = (
+            PowerScan.build(fingerprint, self._scale, self._fourth_sums)
+            if not self._dense and model == "power" and not self.options.free_weights
+            else None
+        )
         # The faintest (5th percentile: corners out of view aside) and brightest grid points.
         self._energy_band = (
             float(np.percentile(self._column_energy, 5.0)),
@@ -217,12 +238,21 @@ class GridlessSolver(Solver):
         if self.model == "power":
             if self._dense:
                 num = weighted @ self._gains_sq
-                norms = (white.weights**2) @ self._gains_sq**2
+                norms = (white.weights**2) @ self._gains_fourth
             else:
                 g2 = self._gains_sq_sparse
                 num = g2.T @ weighted
-                norms = g2.power(2).T @ white.weights**2
+                if white.rotation is None and np.all(white.weights == white.weights[0]):
+                    # Plain metric (large rooms score this way): sum_i g_ij^4, kept once.
+                    norms = white.weights[0] ** 2 * self._fourth_sums
+                else:
+                    norms = g2.power(2).T @ white.weights**2
             return np.asarray(num), np.asarray(norms)
+        if self._dense and kernel_mode() == "compiled":
+            num, norms = correlation_scores_kernel(
+                white.compiled(), np.ascontiguousarray(residual, dtype=np.float64), self._gains
+            )
+            return num, norms
         half = np.zeros((n_leds, n_leds))
         half[white.upper, white.lower] = weighted
         sym = 0.5 * (half + half.T)
@@ -259,7 +289,7 @@ class GridlessSolver(Solver):
     # -- main loop -----------------------------------------------------------------------
     def _whitening(self, state: FitState) -> Whitening:
         if not self.options.whiten or state.n_targets == 0:
-            return Whitening.identity(self.model, self.fingerprint.n_leds)
+            return self._identity
         return Whitening.from_state(self.model, self._kernel, state, float(state.n_targets))
 
     def _objective(self, run: _Run, white: Whitening, nuisance: bool = True) -> Objective:
@@ -277,7 +307,9 @@ class GridlessSolver(Solver):
             tol=self._lm.tol,
         )
         run.iterations += used
-        run.converged = used < max_iter
+        # Per state, not per call: the answer reports the run that produced the state it
+        # returns, not whichever candidate was fitted last.
+        state.converged = used < max_iter
         return state, cost
 
     def _refine(self, run: _Run, state: FitState, max_iter: int, rounds: int) -> FitState:
@@ -302,8 +334,14 @@ class GridlessSolver(Solver):
         if not self._dense:
             # Large rooms score with the plain residual: whitened atom norms would need the
             # rotated gains of every grid point.
-            white = Whitening.identity(self.model, self.fingerprint.n_leds)
+            white = self._identity
         residual = self._residual(run, white, state)
+        if self._power_scan is not None and (avoid is None or avoid.shape[0] == 0):
+            found = self._power_scan.best(
+                residual, math.exp(state.log_scale), float(white.weights[0]) ** 2
+            )
+            if found is not None:
+                return state.with_target(self._centres[found[0]], self._priors.height_mean)
         scores = self._scores(white, residual, math.exp(state.log_scale))
         if avoid is not None and avoid.shape[0] > 0:
             allowed = scores.copy()
@@ -332,18 +370,21 @@ class GridlessSolver(Solver):
         if dof <= 0 or float(residual @ residual) > self.options.misfit_ratio * dof:
             return True
         if not self._dense:
-            white = Whitening.identity(self.model, self.fingerprint.n_leds)
+            white = self._identity
             residual = self._residual(run, white, state)
-        num, norms_sq = self._correlations(white, residual)
         weight = math.exp(state.log_scale)
+        if self._power_scan is not None:
+            found = self._power_scan.best(residual, weight, float(white.weights[0]) ** 2)
+            if found is not None:
+                _, gain_best, norm_best = found
+                return bool(gain_best > self.options.count_threshold * weight**2 * norm_best)
+        num, norms_sq = self._correlations(white, residual)
         gain = 2.0 * weight * num - weight**2 * norms_sq
         best = int(np.argmax(gain))
         return bool(gain[best] > self.options.count_threshold * weight**2 * norms_sq[best])
 
     def _plain_cost(self, run: _Run, state: FitState) -> float:
-        residual = self._residual(
-            run, Whitening.identity(self.model, self.fingerprint.n_leds), state
-        )
+        residual = self._residual(run, self._identity, state)
         return float(residual @ residual)
 
     def _atom_energy(self, position: FloatArray, weight: float) -> float:
@@ -473,9 +514,7 @@ class GridlessSolver(Solver):
                 if other_cost < cost:
                     state, cost = other, other_cost
         state, fisher = self._with_nuisances(run, state)
-        residual = self._residual(
-            run, Whitening.identity(self.model, self.fingerprint.n_leds), state
-        )
+        residual = self._residual(run, self._identity, state)
         covariances, fit = self._uncertainty(run, state, fisher)
         if prescale != 1.0:
             state.log_scale += math.log(prescale)
@@ -491,7 +530,7 @@ class GridlessSolver(Solver):
             noise_power=state.noise * prescale * self._scale**2,
             residual_norm=float(np.linalg.norm(residual)) * prescale * self._scale**2,
             n_iter=run.iterations,
-            converged=run.converged,
+            converged=state.converged,
             covariances=covariances,
             gains=np.exp(0.5 * state.log_scale + state.log_gains),
             heights=state.heights.copy() if self._priors.fits_heights else None,
@@ -526,11 +565,13 @@ class GridlessSolver(Solver):
         check_amplitude_scale(self.fingerprint, np.asarray(amplitudes, dtype=np.float64))
         values = np.asarray(amplitudes, dtype=np.float64) / self._scale
         n_terminals, n_leds = values.shape
-        if self._dense:
-            correlations = values @ self._gains
-        else:
-            correlations = np.asarray((self._gains_sparse.T @ values.T).T)
-        scores = np.where(correlations > 0.0, correlations**2 / self._column_energy, 0.0)
+        windows = self._windows
+        if windows is None:
+            if self._dense:
+                correlations = values @ self._gains
+            else:
+                correlations = np.asarray((self._gains_sparse.T @ values.T).T)
+            scores = np.where(correlations > 0.0, correlations**2 / self._column_energy, 0.0)
         spacing = 2.0 * self.fingerprint.layout.grid.step
         own_heights = [
             None if heights is None or not np.isfinite(heights[k]) else float(heights[k])
@@ -539,19 +580,27 @@ class GridlessSolver(Solver):
         own_normals = [None if normals is None else normals[k] for k in range(n_terminals)]
         first = []
         for k in range(n_terminals):
-            cells = starting_cells(scores[k], self._centres, spacing)
-            first.append(
-                fit_terminal(
-                    self._kernel,
-                    values[k],
-                    self._centres[cells],
-                    priors=self._priors,
-                    sigma2=None,
-                    height=own_heights[k],
-                    normal=own_normals[k],
-                    tilt_sd=self.options.tilt_sd,
-                )
+            kernel, seen, unseen_energy = self._kernel, values[k], 0.0
+            if windows is None:
+                cells = starting_cells(scores[k], self._centres, spacing)
+            else:
+                # Large rooms: the first pass (starts and the noise estimate) fits the LEDs
+                # near the terminal; the second pass below fits all of them.
+                cells = windows.starting_cells(values[k], self._centres, spacing)
+                kernel, inside = windows.near_kernel(values[k], self._scale)
+                seen = values[k][inside]
+                unseen_energy = float(values[k] @ values[k] - seen @ seen)
+            fit = fit_terminal(
+                kernel,
+                seen,
+                self._centres[cells],
+                priors=self._priors,
+                sigma2=None,
+                height=own_heights[k],
+                normal=own_normals[k],
+                tilt_sd=self.options.tilt_sd,
             )
+            first.append(replace(fit, rss=fit.rss + unseen_energy))
         dof = np.array([max(n_leds - fit.n_params, 1) for fit in first])
         sigma2 = sum(fit.rss for fit in first) / float(dof.sum())
         fits = [

@@ -21,10 +21,10 @@ import numpy as np
 from cvxpy.atoms.affine.sum import sum as cvx_sum
 from cvxpy.atoms.norm import norm as cvx_norm
 
-from .._typing import FloatArray
-from ..errors import SolverError
+from ..errors import SolverError, SolverFailed
 from ..fingerprints import Fingerprint
 from ..measurements import Measurement, Model
+from ..typing import FloatArray
 from ._counting import estimate_target_count
 from ._grid import (
     GridDictionary,
@@ -121,7 +121,7 @@ def _run(
         )
         problem.solve(**_SOLVER_OPTIONS)  # type: ignore[no-untyped-call]
     if problem.status not in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE) or coefficients.value is None:
-        raise SolverError(
+        raise SolverFailed(
             f"l1 minimisation did not converge (status {problem.status!r})", field="solver"
         )
     return (

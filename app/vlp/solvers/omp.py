@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from .._typing import FloatArray, IntArray
 from ..fingerprints import Fingerprint
 from ..measurements import Measurement, Model
+from ..typing import FloatArray, IntArray
 from ._counting import estimate_target_count
 from ._grid import GridDictionary, fit_least_squares, grid_solution, nonnegative_fit
 from .base import MAX_TARGETS, Solution, Solver, register_solver

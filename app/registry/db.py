@@ -28,7 +28,6 @@ from .errors import RegistryUnavailable
 __all__ = [
     "alembic_config",
     "create_registry_engine",
-    "is_sqlite",
     "migrate",
     "migrations_current",
     "translate_errors",
@@ -45,11 +44,6 @@ def _normalise_url(database_url: str) -> URL:
     if url.drivername in ("postgresql", "postgres"):
         url = url.set(drivername="postgresql+psycopg")
     return url
-
-
-def is_sqlite(engine: Engine) -> bool:
-    """True for a SQLite engine."""
-    return engine.dialect.name == "sqlite"
 
 
 def create_registry_engine(database_url: str) -> Engine:

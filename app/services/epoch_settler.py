@@ -2,7 +2,8 @@
 
 :class:`EpochSettler` claims an epoch in the registry (a conditional update that only one
 process wins, see :mod:`app.registry.epochs`), sums its terminals' amplitudes, solves on the
-epoch's fingerprint version through the same path as localize (:func:`solve_and_label`),
+epoch's fingerprint version through the same path as localize
+(:func:`app.services.localization.localize_terminals`),
 labels every estimate with its terminal, and records the outcome under its claim.
 
 Windows close in three ways: an explicit ``solve``; a read of an open epoch whose window
@@ -23,23 +24,16 @@ from datetime import timedelta
 import numpy as np
 
 from app.clock import Clock
-from app.errors import NotFound, RegistryError, RegistryUnavailable, VLPError
+from app.errors import RecordNotFound, RegistryError, RegistryUnavailable, VLPError
 from app.registry import Registry
-from app.registry.epochs import (
-    EPOCH_FINAL_STATUSES,
-    ClaimedEpoch,
-    EpochRecord,
-    claim_epoch,
-    due_epochs,
-    finish_epoch,
-    purge_epochs,
-)
+from app.registry.records import ClaimedEpoch, EpochRecord
+from app.schemas.statuses import EPOCH_FINAL_STATUSES
 from app.settings import Settings
-from app.vlp import measurements as vlp_measurements
+from app.telemetry import Metrics
+from app.vlp.measurements import Model
 
-from .localize import TerminalSet, solve_and_label
-from .localizer import FingerprintCache
-from .metrics import Metrics
+from .fingerprint_cache import FingerprintCache
+from .localization import TerminalSet, localize_terminals
 
 __all__ = ["EpochSettler"]
 
@@ -80,13 +74,12 @@ class EpochSettler:
         ------
         EpochNotFound, RegistryUnavailable
         """
-        record = self._registry.get_epoch(room_id=room_id, epoch_id=epoch_id)
+        record = self._registry.epochs.get(room_id=room_id, epoch_id=epoch_id)
         now = self._clock.now()
         due = record.status == "solving" or (record.status == "open" and record.expires_at <= now)
         if record.status in EPOCH_FINAL_STATUSES or not (force or due):
             return record  # nothing to do: no write transaction for a plain read
-        claimed = claim_epoch(
-            self._registry.engine,
+        claimed = self._registry.epochs.claim(
             room_id=room_id,
             epoch_id=epoch_id,
             owner=self.owner,
@@ -97,24 +90,24 @@ class EpochSettler:
         )
         if claimed is not None:
             self._conclude(claimed)
-        return self._registry.get_epoch(room_id=room_id, epoch_id=epoch_id)
+        return self._registry.epochs.get(room_id=room_id, epoch_id=epoch_id)
 
     def sweep(self) -> int:
         """Settle the due epochs (and, once a minute, purge finished ones older than
         ``epoch_retention_seconds``); how many of the due epochs are closed afterwards."""
         settled = 0
-        for room_id, epoch_id in due_epochs(
-            self._registry.engine, now=self._clock.now(), limit=_SWEEP_BATCH
+        for room_id, epoch_id in self._registry.epochs.due(
+            now=self._clock.now(), limit=_SWEEP_BATCH
         ):
             try:
                 record = self.settle(room_id=room_id, epoch_id=epoch_id, force=False)
-            except NotFound:
+            except RecordNotFound:
                 continue  # its room was deleted meanwhile
             settled += record.status != "solving"
         if self._clock.monotonic() >= self._next_purge:
             self._next_purge = self._clock.monotonic() + _PURGE_INTERVAL_S
             retention = timedelta(seconds=self._settings.epoch_retention_seconds)
-            purge_epochs(self._registry.engine, finished_before=self._clock.now() - retention)
+            self._registry.epochs.purge(finished_before=self._clock.now() - retention)
         return settled
 
     def _conclude(self, claimed: ClaimedEpoch) -> None:
@@ -138,21 +131,20 @@ class EpochSettler:
 
     def _solve(self, claimed: ClaimedEpoch) -> dict[str, object]:
         settings = claimed.record.settings
-        amplitudes = np.array(claimed.amplitudes, dtype=np.float64)
-        model: vlp_measurements.Model = "power" if settings.model == "power" else "correlation"
-        measurement = vlp_measurements.measurement_from_amplitudes(amplitudes, model, settings.leds)
-        localization = solve_and_label(
+        model: Model = "power" if settings.model == "power" else "correlation"
+        localization = localize_terminals(
             self._cache,
             self._metrics,
-            fingerprint=self._cache.fingerprint(
-                claimed.record.room_id, settings.fingerprint_version
-            ),
             room_id=claimed.record.room_id,
             version=settings.fingerprint_version,
-            measurement=measurement,
+            model=model,
             solver=settings.solver,
-            targets=settings.targets or len(claimed.terminal_ids),
-            terminals=TerminalSet(ids=claimed.terminal_ids, amplitudes=amplitudes),
+            targets=settings.targets,
+            terminals=TerminalSet(
+                ids=claimed.terminal_ids,
+                amplitudes=np.array(claimed.amplitudes, dtype=np.float64),
+            ),
+            max_work=self._settings.max_localize_work,
         )
         return localization.model_dump(mode="json")
 
@@ -164,8 +156,7 @@ class EpochSettler:
         localization: dict[str, object] | None = None,
         error: str | None = None,
     ) -> None:
-        kept = finish_epoch(
-            self._registry.engine,
+        kept = self._registry.epochs.finish(
             claimed=claimed,
             status=status,
             now=self._clock.now(),

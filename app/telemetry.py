@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable, Mapping
 
-from prometheus_client import CollectorRegistry, Counter, Histogram
+from prometheus_client import CollectorRegistry, Counter, Histogram, Info
 
-from app.jobs.metrics import JOB_STATUSES, JobsCollector, register_process_collectors
+from app.jobs.telemetry import JOB_STATUSES, JobsCollector, register_process_collectors
 
 __all__ = ["JOB_STATUSES", "JobsCollector", "Metrics"]
 
@@ -19,6 +20,11 @@ class Metrics:
     def __init__(self) -> None:
         self.registry = CollectorRegistry(auto_describe=True)
         register_process_collectors(self.registry)
+        # Which process answered: `vlp serve --workers N` runs N of them on one port.
+        self.process = Info(
+            "vlp_api_process", "The API process that answered", registry=self.registry
+        )
+        self.process.info({"pid": str(os.getpid())})
         self.requests = Counter(
             "vlp_http_requests",
             "HTTP requests by route template",

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 from numpy.testing import assert_allclose
 
-from app.api.errors import InvalidInput
-from app.api.masking import drop_masked_leds
 from app.schemas import Measurement
+from app.services.masking import drop_masked_leds, fit_to_fingerprint
+from app.vlp.errors import MeasurementError
 from app.vlp.measurements import vech
 
 MASKED = (1, 4)
@@ -51,7 +51,24 @@ def test_full_matrix_power_and_terminals(amplitudes: np.ndarray) -> None:
 def test_fingerprint_sized_input_passes_and_other_sizes_are_refused() -> None:
     kept_sized = Measurement(power=[1.0] * (N_ROOM - len(MASKED)))
     assert drop_masked_leds(kept_sized, MASKED, N_ROOM - len(MASKED)) == kept_sized
-    with pytest.raises(InvalidInput):
+    with pytest.raises(MeasurementError) as refused:
         drop_masked_leds(Measurement(power=[1.0] * 5), MASKED, N_ROOM - len(MASKED))
+    assert refused.value.field == "power"
     unmasked = Measurement(power=[1.0] * N_ROOM)
     assert drop_masked_leds(unmasked, (), N_ROOM) is unmasked
+
+
+def test_fit_to_fingerprint_drops_masked_entries_and_names_the_field() -> None:
+    room_sized = [float(i) for i in range(N_ROOM)]
+    assert fit_to_fingerprint(room_sized, MASKED, N_ROOM - len(MASKED), field="amplitudes") == [
+        0.0,
+        2.0,
+        3.0,
+        5.0,
+    ]
+    assert fit_to_fingerprint([1.0, 2.0], (), 2, field="amplitudes") == [1.0, 2.0]
+    with pytest.raises(MeasurementError, match="expected 3 amplitudes") as refused:
+        fit_to_fingerprint([1.0, 2.0], (), 3, field="terminals[1].amplitudes")
+    assert refused.value.field == "terminals[1].amplitudes"
+    with pytest.raises(MeasurementError, match=f"{N_ROOM} entries .* or 4"):
+        fit_to_fingerprint([1.0] * 5, MASKED, N_ROOM - len(MASKED), field="power")

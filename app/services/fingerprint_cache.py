@@ -1,7 +1,10 @@
 """Per-process cache of loaded fingerprints and prepared solvers.
 
 Fingerprints are cached per (room, version) in an LRU of ``fingerprint_cache_size``; the
-solvers built from one are kept with it, per (model, solver name). A room's current version
+solvers built from one are kept with it, per (model, solver name). One lookup
+(:meth:`FingerprintCache.prepare`) answers a localize request with everything it needs: the
+fingerprint, the LEDs a calibration masked and the prepared solver; it counts one cache hit
+or miss. A room's current version
 is re-read from the registry at most every ``version_check_seconds`` of the cache's clock,
 so every API process switches to a newly built version within that time (a room with no
 ready version is re-read on every request).
@@ -16,19 +19,24 @@ from dataclasses import dataclass, field
 from app.clock import Clock
 from app.registry import Registry
 from app.registry.errors import FingerprintNotReady
+from app.telemetry import Metrics
 from app.vlp.fingerprints import Fingerprint
 from app.vlp.measurements import Model
 from app.vlp.solvers import Solver, make_solver
 
-from .metrics import Metrics
+from .matrices import rebuilding_if_corrupt
 
-__all__ = ["FingerprintCache", "PreparedSolver"]
+__all__ = ["FingerprintCache", "PreparedVersion"]
 
 
 @dataclass(frozen=True)
-class PreparedSolver:
-    """A solver ready for one (room, version, model); ``lock`` serialises its solves."""
+class PreparedVersion:
+    """One (room, version) ready to solve with one (model, solver): its fingerprint, the
+    room LED indices it leaves out (a calibration's mask) and the solver; ``lock``
+    serialises the solver's solves."""
 
+    fingerprint: Fingerprint
+    masked_leds: tuple[int, ...]
     solver: Solver
     lock: threading.Lock = field(default_factory=threading.Lock, compare=False)
 
@@ -37,7 +45,7 @@ class PreparedSolver:
 class _Entry:
     fingerprint: Fingerprint
     masked_leds: tuple[int, ...]
-    solvers: dict[tuple[Model, str], PreparedSolver] = field(default_factory=dict)
+    prepared: dict[tuple[Model, str], PreparedVersion] = field(default_factory=dict)
 
 
 class FingerprintCache:
@@ -90,29 +98,23 @@ class FingerprintCache:
         """The fingerprint of (room, version), loaded once and verified by the registry."""
         return self._entry(room_id, version).fingerprint
 
-    def fingerprint_and_mask(
-        self, room_id: str, version: int
-    ) -> tuple[Fingerprint, tuple[int, ...]]:
-        """:meth:`fingerprint` and the room LED indices it leaves out (a calibration's mask),
-        from one cache lookup."""
-        entry = self._entry(room_id, version)
-        return entry.fingerprint, entry.masked_leds
-
-    def solver(self, room_id: str, version: int, model: Model, name: str) -> PreparedSolver:
-        """The solver ``name`` for (room, version, model), built once."""
+    def prepare(self, room_id: str, version: int, model: Model, name: str) -> PreparedVersion:
+        """Fingerprint, mask and the solver ``name`` for (room, version, model), from one
+        cache lookup; the solver is built once."""
         entry = self._entry(room_id, version)
         key = (model, name)
         with self._lock:
-            prepared = entry.solvers.get(key)
+            prepared = entry.prepared.get(key)
         if prepared is not None:
             return prepared
         with self._key_lock(("solver", room_id, version, model, name)):
             with self._lock:
-                prepared = entry.solvers.get(key)
+                prepared = entry.prepared.get(key)
             if prepared is None:
-                prepared = PreparedSolver(make_solver(name, entry.fingerprint, model))
+                solver = make_solver(name, entry.fingerprint, model)
+                prepared = PreparedVersion(entry.fingerprint, entry.masked_leds, solver)
                 with self._lock:
-                    entry.solvers[key] = prepared
+                    entry.prepared[key] = prepared
         return prepared
 
     def forget(self, room_id: str) -> None:
@@ -136,11 +138,9 @@ class FingerprintCache:
                 entry = self._entries.get(key)
             if entry is None:
                 self._metrics.cache.labels(result="miss").inc()
-                record = self._registry.get_fingerprint(room_id=room_id, version=version)
-                entry = _Entry(
-                    self._registry.load_fingerprint(room_id=room_id, version=version),
-                    record.masked_leds,
-                )
+                with rebuilding_if_corrupt(self._registry, room_id=room_id):
+                    loaded = self._registry.load_version(room_id=room_id, version=version)
+                entry = _Entry(loaded.fingerprint, loaded.record.masked_leds)
                 with self._lock:
                     self._entries[key] = entry
                     while len(self._entries) > self._size:

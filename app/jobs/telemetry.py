@@ -21,6 +21,8 @@ from prometheus_client import (
 from prometheus_client.core import GaugeMetricFamily
 from prometheus_client.registry import Collector
 
+from app.schemas.statuses import JOB_STATUSES
+
 __all__ = [
     "JOB_STATUSES",
     "JobsCollector",
@@ -28,8 +30,6 @@ __all__ = [
     "register_process_collectors",
     "serve_worker_metrics",
 ]
-
-JOB_STATUSES = ("queued", "running", "succeeded", "failed")
 
 
 class JobsCollector(Collector):

@@ -7,14 +7,13 @@ from pathlib import Path
 
 import pytest
 
-from app.api.localizer import FingerprintCache
-from app.api.metrics import Metrics
 from app.clock import FakeClock
 from app.main import create_app
 from app.registry import Registry
 from app.registry.errors import FingerprintNotReady, RoomNotFound
-
-from .conftest import ADMIN, TestClient, make_settings, small_room, wait_for_room
+from app.services.fingerprint_cache import FingerprintCache
+from app.telemetry import Metrics
+from tests.api.conftest import ADMIN, TestClient, make_settings, small_room, wait_for_room
 
 
 @pytest.fixture
@@ -80,14 +79,16 @@ def test_lru_keeps_size_entries_and_solvers_with_them(
     fingerprint = cache.fingerprint(first, v_first)
     assert cache.fingerprint(first, v_first) is fingerprint
     assert _counts(metrics) == (1.0, 1.0)
-    solver = cache.solver(first, v_first, "correlation", "nnls")
-    assert cache.solver(first, v_first, "correlation", "nnls") is solver
-    assert cache.solver(first, v_first, "power", "nnls") is not solver
-    assert solver.solver.fingerprint is fingerprint
+    solver = cache.prepare(first, v_first, "correlation", "nnls")
+    assert _counts(metrics) == (2.0, 1.0)  # one lookup, one count
+    assert cache.prepare(first, v_first, "correlation", "nnls") is solver
+    assert cache.prepare(first, v_first, "power", "nnls") is not solver
+    assert solver.solver.fingerprint is fingerprint and solver.fingerprint is fingerprint
+    assert solver.masked_leds == ()
     # A second room evicts the first (size 1): it is loaded again, with a new solver.
     assert cache.fingerprint(second, v_second).n_leds == 2
     assert cache.fingerprint(first, v_first) is not fingerprint
-    assert cache.solver(first, v_first, "correlation", "nnls") is not solver
+    assert cache.prepare(first, v_first, "correlation", "nnls") is not solver
     cache.forget(first)
     hits, misses = _counts(metrics)
     assert cache.fingerprint(first, v_first) is not None

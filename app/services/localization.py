@@ -1,0 +1,335 @@
+"""Localization: one measurement against one room version, the targets' positions out.
+
+Entry points:
+
+- :func:`localize_measurement`: a localize request body (``app.schemas.Measurement``) against
+  the room's current or pinned version. ``POST /v1/rooms/{id}/localize`` calls it; so does any
+  other router that localizes a request body (one call per measurement).
+- :func:`localize_terminals`: terminals' amplitudes already held by the service (an epoch's
+  posts, fitted to its fingerprint) against one version.
+
+Both take one cache lookup (:meth:`FingerprintCache.prepare`: fingerprint, masked LEDs and
+prepared solver together) and solve through :func:`_solve_and_label`, so they answer the
+same way. Each input rule is checked once: the form and terminal ids and normals here, each
+terminal's amplitude count in :mod:`app.services.masking`, shapes, signs and finiteness in
+:mod:`app.vlp.measurements`, the target count in the solver.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from app.errors import InvalidFields
+from app.schemas import Estimate, Fit, Localization, Measurement, TerminalAmplitudes
+from app.telemetry import Metrics
+from app.vlp.assignment import assign_terminals
+from app.vlp.errors import MeasurementError, ProblemSizeError
+from app.vlp.measurements import Measurement as MeasurementVector
+from app.vlp.measurements import (
+    Model,
+    measurement_from_amplitudes,
+    measurement_from_correlation,
+    measurement_from_power,
+)
+from app.vlp.solvers import Solution
+from app.vlp.solvers.gridless import GridlessSolver
+from app.vlp.typing import FloatArray
+from app.vlp.uncertainty import confidence_radius
+from app.vlp.workload import localize_work
+
+from .fingerprint_cache import FingerprintCache, PreparedVersion
+from .masking import drop_masked_leds
+
+__all__ = [
+    "TerminalSet",
+    "check_work",
+    "input_form",
+    "localize_measurement",
+    "localize_terminals",
+]
+
+_FORMS = ("power", "correlation", "terminals")
+
+
+@dataclass(frozen=True)
+class TerminalSet:
+    """Terminals' own amplitudes: ``amplitudes[k]`` (M numbers) were sent by ``ids[k]``;
+    ``heights[k]`` (NaN: unknown) and ``normals[k]`` (unit vectors) when they sent them."""
+
+    ids: tuple[str, ...]
+    amplitudes: FloatArray
+    heights: FloatArray | None = None
+    normals: FloatArray | None = None
+
+
+def input_form(body: Measurement) -> tuple[str, Model]:
+    """Which of ``power``/``correlation``/``terminals`` was sent, and the model it implies.
+
+    Raises
+    ------
+    InvalidFields
+        Unless exactly one was sent, or when ``model`` contradicts it.
+    """
+    sent = [form for form in _FORMS if getattr(body, form) is not None]
+    if len(sent) != 1:
+        names = sent or list(_FORMS)
+        what = "none of them was" if not sent else f"{len(sent)} were"
+        raise InvalidFields(
+            [
+                (form, f"send exactly one of power, correlation, terminals; {what} sent")
+                for form in names
+            ]
+        )
+    form = sent[0]
+    if form == "terminals":
+        return form, body.model
+    implied: Model = "power" if form == "power" else "correlation"
+    if "model" in body.model_fields_set and body.model != implied:
+        raise InvalidFields(
+            [
+                (
+                    "model",
+                    f"model {body.model!r} does not fit `{form}`; "
+                    f"use model {implied!r} or leave it out",
+                )
+            ]
+        )
+    return form, implied
+
+
+def localize_measurement(
+    cache: FingerprintCache,
+    metrics: Metrics,
+    *,
+    room_id: str,
+    body: Measurement,
+    max_work: int | None = None,
+) -> Localization:
+    """Localize one request body against one version of the room (``body.fingerprint_version``,
+    else the current one); ``max_work`` bounds the solve (:func:`check_work`).
+
+    Raises
+    ------
+    InvalidFields, MeasurementError, SolverError
+        A body that does not fit the room (each names its field).
+    RoomNotFound, FingerprintNotReady, FingerprintNotFound, CorruptMatrix
+    """
+    form, model = input_form(body)
+    version = body.fingerprint_version or cache.current_version(room_id)
+    prepared = cache.prepare(room_id, version, model, body.solver)
+    n_leds = prepared.fingerprint.n_leds
+    body = drop_masked_leds(body, prepared.masked_leds, n_leds)
+    terminals = _terminal_set(body.terminals) if body.terminals else None
+    if body.power is not None:
+        measurement = measurement_from_power(body.power, n_leds)
+    elif body.correlation is not None:
+        measurement = measurement_from_correlation(body.correlation, n_leds)
+    else:
+        sent = np.zeros(0) if terminals is None else terminals.amplitudes  # shape error
+        try:
+            measurement = measurement_from_amplitudes(sent, model, n_leds)
+        except MeasurementError as exc:  # name the field the caller sent, not the aggregate
+            raise MeasurementError(exc.message, field="terminals") from exc
+    task = _Task(room_id, version, measurement, body.solver, body.targets, terminals, form)
+    if max_work is not None:
+        check_work(prepared, task, max_work)
+    return _solve_and_label(prepared, metrics, task)
+
+
+def localize_terminals(
+    cache: FingerprintCache,
+    metrics: Metrics,
+    *,
+    room_id: str,
+    version: int,
+    model: Model,
+    solver: str,
+    targets: int | None,
+    terminals: TerminalSet,
+    max_work: int | None = None,
+) -> Localization:
+    """Localize terminals' amplitudes (one per fingerprint LED) on (room, version), each
+    estimate labelled with its terminal; ``targets`` None means one per terminal;
+    ``max_work`` bounds the solve (:func:`check_work`)."""
+    prepared = cache.prepare(room_id, version, model, solver)
+    measurement = measurement_from_amplitudes(
+        terminals.amplitudes, model, prepared.fingerprint.n_leds
+    )
+    task = _Task(room_id, version, measurement, solver, targets, terminals, "terminals")
+    if max_work is not None:
+        check_work(prepared, task, max_work)
+    return _solve_and_label(prepared, metrics, task)
+
+
+def _terminal_set(sent: list[TerminalAmplitudes]) -> TerminalSet:
+    """The terminals' amplitudes (one array), heights and unit normals.
+
+    Raises
+    ------
+    InvalidFields
+        Naming a terminal id sent twice, or a normal that is not a direction above the
+        horizon.
+    """
+    ids = [terminal.id for terminal in sent]
+    errors = [
+        (f"terminals[{index}].id", f"terminal id {tid!r} appears more than once")
+        for index, tid in enumerate(ids)
+        if ids.index(tid) != index
+    ]
+    normals = []
+    for index, terminal in enumerate(sent):
+        vector = np.array(terminal.normal if terminal.normal is not None else (0.0, 0.0, 1.0))
+        length = float(np.linalg.norm(vector))
+        if not (np.isfinite(length) and length > 0.0 and vector[2] / length > 1e-6):
+            errors.append(
+                (
+                    f"terminals[{index}].normal",
+                    f"the photodiode's normal must point up (nz > 0), got {terminal.normal}",
+                )
+            )
+            continue
+        normals.append(vector / length)
+    if errors:
+        raise InvalidFields(errors)
+    heights = [np.nan if t.height is None else t.height for t in sent]
+    return TerminalSet(
+        ids=tuple(ids),
+        amplitudes=np.array([terminal.amplitudes for terminal in sent], dtype=np.float64),
+        heights=None if all(t.height is None for t in sent) else np.array(heights),
+        normals=None if all(t.normal is None for t in sent) else np.array(normals),
+    )
+
+
+@dataclass(frozen=True)
+class _Task:
+    """What to solve: a validated measurement on (room, version) with the named solver."""
+
+    room_id: str
+    version: int
+    measurement: MeasurementVector
+    solver: str
+    targets: int | None
+    terminals: TerminalSet | None
+    form: str  # the body's field that carried the measurement
+
+
+def _per_terminal(prepared: PreparedVersion, task: _Task) -> bool:
+    """Whether each terminal is fitted from its own amplitudes (labels known, not guessed)."""
+    terminals = task.terminals
+    return (
+        terminals is not None
+        and isinstance(prepared.solver, GridlessSolver)
+        and task.targets in (None, len(terminals.ids))
+    )
+
+
+def check_work(prepared: PreparedVersion, task: _Task, max_work: int) -> None:
+    """Refuse, before any of it is done, a solve that asks for more than ``max_work``
+    (:func:`app.vlp.workload.localize_work`; the service's ``VLP_MAX_LOCALIZE_WORK``).
+
+    Raises
+    ------
+    ProblemSizeError
+        Naming ``terminals`` when each terminal is fitted on its own, else ``targets``, or
+        the measurement's own field when even one target would be too much.
+    """
+    fingerprint = prepared.fingerprint
+    per_terminal = _per_terminal(prepared, task)
+    n_terminals = 0 if task.terminals is None else len(task.terminals.ids)
+    targets = task.targets if task.targets is not None or task.terminals is None else n_terminals
+    model = task.measurement.model
+    work = localize_work(
+        n_cells=fingerprint.n_cells,
+        n_leds=fingerprint.n_leds,
+        model=model,
+        targets=targets,
+        terminals=n_terminals if per_terminal else None,
+    )
+    if work.units <= max_work:
+        return
+    one = localize_work(
+        n_cells=fingerprint.n_cells, n_leds=fingerprint.n_leds, model=model, targets=1
+    )
+    if per_terminal:
+        field, advice = "terminals", "send fewer terminals per request"
+    elif one.units <= max_work:
+        field, advice = "targets", "send a smaller targets"
+    else:
+        field = task.form
+        advice = (
+            "send the power vector or the terminals' own amplitudes instead"
+            if model == "correlation"
+            else "this room is too large for this model and solver"
+        )
+    raise ProblemSizeError(
+        f"this request asks for {work.describe()} units of work, more than this server's "
+        f"limit {max_work} (VLP_MAX_LOCALIZE_WORK); {advice}",
+        field=field,
+    )
+
+
+def _solve_and_label(prepared: PreparedVersion, metrics: Metrics, task: _Task) -> Localization:
+    """Solve an aggregated measurement and, when the terminals' own amplitudes are known,
+    label each estimate with its terminal (per-terminal fit, else an assignment problem)."""
+    measurement, terminals, targets = task.measurement, task.terminals, task.targets
+    if terminals is not None and targets is None:
+        targets = len(terminals.ids)  # the contract: one target per terminal sent
+    gridless = prepared.solver if isinstance(prepared.solver, GridlessSolver) else None
+    per_terminal = _per_terminal(prepared, task)
+    with prepared.lock:
+        started = time.perf_counter()
+        if per_terminal and terminals is not None and gridless is not None:
+            solution = gridless.solve_terminals(
+                terminals.amplitudes, terminals.heights, terminals.normals
+            )
+        else:
+            solution = prepared.solver.solve(measurement, targets)
+        elapsed = time.perf_counter() - started
+    metrics.localize_latency.labels(solver=task.solver, model=measurement.model).observe(elapsed)
+    owners: list[str | None] = [None] * solution.n_targets
+    if per_terminal and terminals is not None:
+        owners = list(terminals.ids)
+    elif terminals is not None:
+        assigned = assign_terminals(
+            prepared.fingerprint.layout, solution.positions, terminals.amplitudes
+        )
+        owners = [terminals.ids[int(index)] if index >= 0 else None for index in assigned]
+    return Localization(
+        room_id=task.room_id,
+        fingerprint_version=task.version,
+        model=measurement.model,
+        solver=task.solver,
+        targets=solution.n_targets,
+        estimates=_estimates(solution, owners),
+        residual_norm=float(solution.residual_norm),
+        noise_power=float(solution.noise_power),
+        elapsed_ms=round(elapsed * 1e3, 3),
+        converged=bool(solution.converged),
+        fit=None if solution.fit is None else Fit(**dataclasses.asdict(solution.fit)),
+    )
+
+
+def _estimates(solution: Solution, owners: list[str | None]) -> list[Estimate]:
+    """The answer's estimates, with their uncertainty, gain and height when the solver
+    gives them."""
+    estimates = []
+    for k in range(solution.n_targets):
+        covariance = None if solution.covariances is None else solution.covariances[k]
+        estimates.append(
+            Estimate(
+                x=float(solution.positions[k, 0]),
+                y=float(solution.positions[k, 1]),
+                grid_index=int(solution.grid_indices[k]),
+                weight=float(solution.weights[k]),
+                terminal_id=owners[k],
+                accuracy_m=None if covariance is None else confidence_radius(covariance),
+                covariance=None if covariance is None else covariance.tolist(),
+                gain=None if solution.gains is None else float(solution.gains[k]),
+                z=None if solution.heights is None else float(solution.heights[k]),
+            )
+        )
+    return estimates

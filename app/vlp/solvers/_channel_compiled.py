@@ -1,0 +1,224 @@
+"""Compiled channel: line of sight plus interpolated diffuse reflections, with gradients.
+
+Stands in for :meth:`ChannelKernel.gradients_xy` / :meth:`ChannelKernel.gradients_xyz` and
+:meth:`app.vlp.ReflectionTable.evaluate` (their NumPy code is the reference; the formulas are
+documented there). Results come as rows, one per point: ``out[0]`` the gains ``g``,
+``out[1..3]`` their derivatives along x, y, z, each of shape (P, M). Private: callers validate.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from .._reflection_table import _UNIT_BASIS, ReflectionTable
+from ..typing import FloatArray
+from ._channel_kernel import ChannelKernel, DiffuseTable
+from ._kernels import compiled
+
+__all__ = ["ChannelConstants", "TableConstants", "channel_constants", "channel_rows"]
+
+# (led_x, led_y, led_z, dz2, factor, free_height_factor, orders, half_exponent, max_d2,
+#  pilot_over_scale, cos_fov2, receiver_height)
+ChannelConstants = tuple[Any, ...]
+# (n_axes (0: no reflections), nodes, scales, lows, highs, shifts, strides, offsets,
+#  coefficients (rows, M), receiver_height)
+TableConstants = tuple[Any, ...]
+
+_UNIT = np.ascontiguousarray(_UNIT_BASIS)
+
+
+def _floats(values: object) -> FloatArray:
+    return np.array(values, dtype=np.float64, order="C", copy=True).ravel()
+
+
+def _table_constants(table: DiffuseTable | None, n_leds: int) -> TableConstants | None:
+    """The table's interpolation plan as plain arrays; None when it is not a
+    :class:`ReflectionTable` (the caller then keeps the reference path)."""
+    if table is None:
+        empty = np.zeros(1)
+        return (
+            0,
+            empty,
+            np.zeros((1, 8)),
+            empty,
+            empty,
+            empty,
+            np.zeros(1, dtype=np.int64),
+            np.zeros(1, dtype=np.int64),
+            np.zeros((1, n_leds)),
+            0.0,
+        )
+    if not isinstance(table, ReflectionTable):
+        return None
+    plan = table._plan
+    return (
+        3 if table.has_heights else 2,
+        _floats(plan.nodes),
+        np.ascontiguousarray(plan.scales, dtype=np.float64),
+        _floats(plan.lows),
+        _floats(plan.highs),
+        _floats(plan.shifts),
+        np.array(plan.strides, dtype=np.int64).ravel(),
+        np.array(plan.offsets, dtype=np.int64).ravel(),
+        np.ascontiguousarray(table.coefficients.reshape(-1, table.n_leds), dtype=np.float64),
+        float(table.receiver_height),
+    )
+
+
+def channel_constants(kernel: ChannelKernel) -> tuple[ChannelConstants, TableConstants] | None:
+    """The kernel's constants for :func:`channel_rows` (built once, kept on the kernel);
+    None when its diffuse table has no compiled interpolation."""
+    cached: tuple[ChannelConstants, TableConstants] | None = getattr(kernel, "_compiled", None)
+    if cached is not None:
+        return cached
+    table = _table_constants(kernel.diffuse, kernel.n_leds)
+    if table is None:
+        return None
+    channel = (
+        _floats(kernel.led_xy[:, 0]),
+        _floats(kernel.led_xy[:, 1]),
+        _floats(kernel.led_z),
+        _floats(kernel.dz2),
+        _floats(kernel.factor),
+        _floats(kernel.free_height_factor),
+        _floats(kernel.orders),
+        _floats(kernel.half_exponent),
+        _floats(kernel.max_d2),
+        _floats(kernel.pilot_over_scale),
+        float(kernel.cos_fov2),
+        float(kernel.receiver_height),
+    )
+    kernel._compiled = (channel, table)  # type: ignore[attr-defined]
+    return channel, table
+
+
+@compiled
+def diffuse_rows(
+    table: TableConstants, xs: FloatArray, ys: FloatArray, zs: FloatArray, given_z: bool
+) -> FloatArray:
+    """Interpolated diffuse gains and their x, y, z derivatives, shape (4, P, M).
+
+    ``zs`` is used only when ``given_z`` (else the table's receiver height); a single-height
+    table has d/dz = 0. Zeros without a table.
+    """
+    n_axes, nodes, scales, lows, highs, shifts, strides, offsets, coefficients, height = table
+    n_points = xs.shape[0]
+    n_leds = coefficients.shape[1]
+    out = np.zeros((4, n_points, n_leds))
+    if n_axes == 0:
+        return out
+    basis = np.empty((n_axes, 2, 4))
+    cells = np.empty(n_axes, dtype=np.int64)
+    n_terms = 4**n_axes
+    for p in range(n_points):
+        for a in range(n_axes):
+            if a == 0:
+                coord = xs[p]
+            elif a == 1:
+                coord = ys[p]
+            else:
+                coord = zs[p] if given_z else height
+            coord = min(max(coord, lows[a]), highs[a]) + shifts[a]
+            cell = np.searchsorted(nodes, coord, side="right") - 1
+            low = nodes[cell]
+            t = (coord - low) / (nodes[cell + 1] - low)
+            t2 = t * t
+            t3 = t2 * t
+            for column in range(8):
+                value = (
+                    _UNIT[0, column]
+                    + t * _UNIT[1, column]
+                    + t2 * _UNIT[2, column]
+                    + t3 * _UNIT[3, column]
+                )
+                basis[a, column // 4, column % 4] = value * scales[cell, column]
+            cells[a] = cell
+        base = 0
+        for a in range(n_axes):
+            base += strides[a] * cells[a]
+        # Output 0: the value; output 1 + a: the derivative along axis a.
+        for output in range(n_axes + 1):
+            for j in range(n_terms):
+                weight = 1.0
+                rest = j
+                for a in range(n_axes - 1, -1, -1):
+                    digit = rest % 4
+                    rest //= 4
+                    weight *= basis[a, 1 if output == a + 1 else 0, digit]
+                row = base + offsets[j]
+                for m in range(n_leds):
+                    out[output, p, m] += weight * coefficients[row, m]
+    return out
+
+
+@compiled
+def channel_rows(
+    channel: ChannelConstants,
+    table: TableConstants,
+    xs: FloatArray,
+    ys: FloatArray,
+    zs: FloatArray,
+    on_plane: bool,
+) -> FloatArray:
+    """Gains and their x, y, z derivatives at the points, shape (4, P, M).
+
+    ``on_plane``: receivers at the layout's height (``zs`` ignored, d/dz not computed, as
+    :meth:`ChannelKernel.gradients_xy`); else at heights ``zs``
+    (:meth:`ChannelKernel.gradients_xyz`).
+    """
+    (
+        led_x,
+        led_y,
+        led_z,
+        dz2,
+        factor,
+        free_height_factor,
+        orders,
+        half_exponent,
+        max_d2,
+        pilot,
+        cos_fov2,
+        _,
+    ) = channel
+    n_points = xs.shape[0]
+    n_leds = led_x.shape[0]
+    out = np.zeros((4, n_points, n_leds))
+    for p in range(n_points):
+        for m in range(n_leds):
+            dx = xs[p] - led_x[m]
+            dy = ys[p] - led_y[m]
+            if on_plane:
+                d2 = dx * dx
+                d2 += dy * dy
+                d2 += dz2[m]
+                gain = math.pow(d2, -half_exponent[m]) * factor[m]
+                if not d2 <= max_d2[m]:
+                    gain = 0.0
+                slope = -2.0 * half_exponent[m] * gain / d2
+                out[0, p, m] = gain
+                out[1, p, m] = slope * dx
+                out[2, p, m] = slope * dy
+            else:
+                drop = max(led_z[m] - zs[p], 1e-9)
+                d2 = dx * dx + dy * dy + drop * drop
+                gain = math.pow(d2, -half_exponent[m])
+                gain *= math.pow(drop, orders[m] + 1.0)
+                gain *= free_height_factor[m]
+                if not drop * drop >= cos_fov2 * d2:
+                    gain = 0.0
+                slope = -(orders[m] + 3.0) * gain / d2
+                out[0, p, m] = gain
+                out[1, p, m] = slope * dx
+                out[2, p, m] = slope * dy
+                out[3, p, m] = gain * ((orders[m] + 3.0) * drop / d2 - (orders[m] + 1.0) / drop)
+    if table[0] != 0:
+        diffuse = diffuse_rows(table, xs, ys, zs, not on_plane)
+        last = 3 if on_plane else 4
+        for q in range(last):
+            for p in range(n_points):
+                for m in range(n_leds):
+                    out[q, p, m] += diffuse[q, p, m] * pilot[m]
+    return out

@@ -1,0 +1,478 @@
+"""Compiled evaluation and Levenberg-Marquardt loop of the ``gridless`` objective.
+
+Stand-ins for :meth:`Objective.augmented` / :func:`gram`, :meth:`Objective.residual`,
+:func:`levenberg_marquardt` and :meth:`Whitening.from_state` of :mod:`._gridless_fit` (their
+NumPy code is the reference and documents the model); a whole LM run is one call here.
+Private: callers validate.
+
+Arguments come as tuples of plain arrays and numbers (see :func:`problem_of`):
+
+- ``white``: ``(has_rotation, rotation (M, M), weights (L,), upper (L,), lower (L,),
+  weighted_diag (L,))``
+- ``fixed``: what theta does not hold: ``(heights, weights, log_gains (K,), log_scale,
+  on_plane, unit)``
+- ``layout``: ``(n_axes, weights_at, gains_at, scale_at, n_prior)``, -1 when absent
+- ``priors``: ``(log_gain_sd, log_scale_sd, height_sd, height_mean)``
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from ..typing import FloatArray, IntArray
+from ._channel_compiled import ChannelConstants, TableConstants, channel_rows
+from ._kernels import compiled, compiled_reassociating
+
+__all__ = [
+    "correlation_scores_kernel",
+    "gram_kernel",
+    "lm_kernel",
+    "residual_kernel",
+    "whiten_kernel",
+    "whitening_kernel",
+]
+
+Problem = tuple[Any, ...]
+
+# Same constants as the reference (_gridless_fit imports them from here would be circular).
+_MAX_REJECTIONS = 12
+_DAMPING_UP = 4.0
+_DAMPING_DOWN = 5.0
+_EIG_FLOOR = 1e-9
+_SIGMA2_FLOOR = 1e-12
+_SIGMA2_REL_FLOOR = 1e-4
+
+
+@compiled
+def _multipliers(theta: FloatArray, fixed: Problem, layout: Problem) -> tuple[bool, FloatArray]:
+    heights, weights, log_gains, log_scale, _, unit = fixed
+    _, weights_at, gains_at, scale_at, _ = layout
+    k = heights.shape[0]
+    if weights_at >= 0:
+        return True, theta[weights_at : weights_at + k].copy()
+    if gains_at < 0 and scale_at < 0 and unit:
+        return False, np.ones(k)
+    gains = theta[gains_at : gains_at + k] if gains_at >= 0 else log_gains
+    scale = theta[scale_at] if scale_at >= 0 else log_scale
+    out = np.empty(k)
+    for i in range(k):
+        out[i] = weights[i] * math.exp(scale + 2.0 * gains[i])
+    return True, out
+
+
+@compiled
+def _rows(
+    channel: ChannelConstants,
+    table: TableConstants,
+    white: Problem,
+    theta: FloatArray,
+    fixed: Problem,
+    layout: Problem,
+) -> FloatArray:
+    """Rotated gains and gradients ``U^T g`` as rows, shape (4, K, M)."""
+    heights, _, _, _, on_plane, _ = fixed
+    n_axes = layout[0]
+    k = heights.shape[0]
+    xs = theta[:k].copy()
+    ys = theta[k : 2 * k].copy()
+    rows: FloatArray
+    if n_axes == 3:
+        rows = channel_rows(channel, table, xs, ys, theta[2 * k : 3 * k].copy(), False)
+    elif on_plane:
+        rows = channel_rows(channel, table, xs, ys, heights, True)
+    else:
+        rows = channel_rows(channel, table, xs, ys, heights, False)
+    has_rotation, rotation = white[0], white[1]
+    if has_rotation:
+        n_leds = rotation.shape[0]
+        rotated = np.dot(rows.reshape(4 * k, n_leds), rotation)
+        return np.asarray(rotated.reshape(4, k, n_leds))
+    return rows
+
+
+@compiled
+def _prior_residuals(theta: FloatArray, layout: Problem, priors: Problem, k: int) -> FloatArray:
+    n_axes, _, gains_at, scale_at, n_prior = layout
+    log_gain_sd, log_scale_sd, height_sd, height_mean = priors
+    out = np.empty(n_prior)
+    at = 0
+    if gains_at >= 0:
+        for i in range(k):
+            out[at] = -theta[gains_at + i] / log_gain_sd
+            at += 1
+    if scale_at >= 0:
+        out[at] = -theta[scale_at] / log_scale_sd
+        at += 1
+    if n_axes == 3:
+        for i in range(k):
+            out[at] = -(theta[2 * k + i] - height_mean) / height_sd
+            at += 1
+    return out
+
+
+@compiled
+def residual_kernel(
+    channel: ChannelConstants,
+    table: TableConstants,
+    white: Problem,
+    data: FloatArray,
+    theta: FloatArray,
+    fixed: Problem,
+    layout: Problem,
+    priors: Problem,
+) -> FloatArray:
+    """:meth:`Objective.residual`: the whitened data residual, then the prior residuals."""
+    rows = _rows(channel, table, white, theta, fixed, layout)
+    _, _, weights, upper, lower, weighted_diag = white
+    k = fixed[0].shape[0]
+    scaled, multipliers = _multipliers(theta, fixed, layout)
+    n_data = data.shape[0]
+    n_prior = layout[4]
+    out = np.empty(n_data + n_prior)
+    noise = theta[theta.shape[0] - 1]
+    for col in range(n_data):
+        a, b = upper[col], lower[col]
+        model = 0.0
+        for i in range(k):
+            atom = rows[0, i, a] * rows[0, i, b]
+            model += multipliers[i] * atom if scaled else atom
+        out[col] = data[col] - model * weights[col] - noise * weighted_diag[col]
+    out[n_data:] = _prior_residuals(theta, layout, priors, k)
+    return out
+
+
+@compiled
+def _augmented(
+    channel: ChannelConstants,
+    table: TableConstants,
+    white: Problem,
+    data: FloatArray,
+    theta: FloatArray,
+    fixed: Problem,
+    layout: Problem,
+    priors: Problem,
+) -> FloatArray:
+    """:meth:`Objective.augmented`: ``[J | r]^T``, shape (len(theta) + 1, L + n_prior)."""
+    rows = _rows(channel, table, white, theta, fixed, layout)
+    _, _, weights, upper, lower, weighted_diag = white
+    n_axes, weights_at, gains_at, scale_at, n_prior = layout
+    log_gain_sd, log_scale_sd, height_sd, _ = priors
+    k = fixed[0].shape[0]
+    scaled, multipliers = _multipliers(theta, fixed, layout)
+    n_data = data.shape[0]
+    n_params = theta.shape[0]
+    noise = theta[n_params - 1]
+    out = np.zeros((n_params + 1, n_data + n_prior))
+    model = np.zeros(n_data)
+    # Target by target, so that every row of the result is written in order.
+    for i in range(k):
+        factor = multipliers[i] if scaled else 1.0
+        gains = rows[0, i]
+        for col in range(n_data):
+            a, b = upper[col], lower[col]
+            atom = gains[a] * gains[b]
+            model[col] += factor * atom if scaled else atom
+        for axis in range(n_axes):
+            slopes = rows[1 + axis, i]
+            row = out[axis * k + i]
+            for col in range(n_data):
+                a, b = upper[col], lower[col]
+                row[col] = (slopes[a] * gains[b] + gains[a] * slopes[b]) * factor * weights[col]
+        if weights_at >= 0:
+            row = out[weights_at + i]
+            for col in range(n_data):
+                row[col] = gains[upper[col]] * gains[lower[col]] * weights[col]
+        if gains_at >= 0:
+            row = out[gains_at + i]
+            for col in range(n_data):
+                atom = gains[upper[col]] * gains[lower[col]]
+                row[col] = atom * (2.0 * factor) * weights[col]
+    for col in range(n_data):
+        modelled = model[col] * weights[col]
+        if scale_at >= 0:
+            out[scale_at, col] = modelled
+        out[n_params - 1, col] = weighted_diag[col]
+        out[n_params, col] = data[col] - modelled - noise * weighted_diag[col]
+    if n_prior:
+        out[n_params, n_data:] = _prior_residuals(theta, layout, priors, k)
+        column = n_data
+        if gains_at >= 0:
+            for i in range(k):
+                out[gains_at + i, column + i] = 1.0 / log_gain_sd
+            column += k
+        if scale_at >= 0:
+            out[scale_at, column] = 1.0 / log_scale_sd
+            column += 1
+        if n_axes == 3:
+            for i in range(k):
+                out[2 * k + i, column + i] = 1.0 / height_sd
+    return out
+
+
+@compiled_reassociating
+def _symmetric_product(rows: FloatArray) -> FloatArray:
+    """``rows @ rows.T`` (both triangles), four outputs at a time: a few dozen short rows,
+    where a BLAS call costs more in overhead than the arithmetic."""
+    n, length = rows.shape
+    out = np.empty((n, n))
+    for i in range(n):
+        j = 0
+        while j + 3 <= i:
+            s0 = s1 = s2 = s3 = 0.0
+            for col in range(length):
+                x = rows[i, col]
+                s0 += x * rows[j, col]
+                s1 += x * rows[j + 1, col]
+                s2 += x * rows[j + 2, col]
+                s3 += x * rows[j + 3, col]
+            out[i, j], out[i, j + 1], out[i, j + 2], out[i, j + 3] = s0, s1, s2, s3
+            j += 4
+        while j <= i:
+            total = 0.0
+            for col in range(length):
+                total += rows[i, col] * rows[j, col]
+            out[i, j] = total
+            j += 1
+        for j in range(i):
+            out[j, i] = out[i, j]
+    return out
+
+
+@compiled
+def gram_kernel(
+    channel: ChannelConstants,
+    table: TableConstants,
+    white: Problem,
+    data: FloatArray,
+    theta: FloatArray,
+    fixed: Problem,
+    layout: Problem,
+    priors: Problem,
+) -> tuple[FloatArray, FloatArray, float]:
+    """:func:`gram`: ``J^T J``, ``J^T r`` and ``r^T r`` at ``theta``."""
+    augmented = _augmented(channel, table, white, data, theta, fixed, layout, priors)
+    product = _symmetric_product(augmented)
+    n = theta.shape[0]
+    return product[:n, :n].copy(), product[:n, n].copy(), float(product[n, n])
+
+
+@compiled
+def _cholesky_solve(matrix: FloatArray, rhs: FloatArray) -> tuple[FloatArray, bool]:
+    """Solve ``matrix x = rhs`` for a symmetric positive definite matrix (LAPACK's posv
+    fails, and so does this, when a pivot is not positive)."""
+    n = rhs.shape[0]
+    factor = np.zeros((n, n))
+    for j in range(n):
+        total = matrix[j, j]
+        for p in range(j):
+            total -= factor[j, p] * factor[j, p]
+        if not total > 0.0:
+            return rhs.copy(), False
+        pivot = math.sqrt(total)
+        factor[j, j] = pivot
+        for i in range(j + 1, n):
+            total = matrix[i, j]
+            for p in range(j):
+                total -= factor[i, p] * factor[j, p]
+            factor[i, j] = total / pivot
+    x = rhs.copy()
+    for i in range(n):
+        total = x[i]
+        for p in range(i):
+            total -= factor[i, p] * x[p]
+        x[i] = total / factor[i, i]
+    for i in range(n - 1, -1, -1):
+        total = x[i]
+        for p in range(i + 1, n):
+            total -= factor[p, i] * x[p]
+        x[i] = total / factor[i, i]
+    return x, True
+
+
+@compiled
+def lm_kernel(
+    channel: ChannelConstants,
+    table: TableConstants,
+    white: Problem,
+    data: FloatArray,
+    theta0: FloatArray,
+    fixed: Problem,
+    layout: Problem,
+    priors: Problem,
+    lower: FloatArray,
+    upper: FloatArray,
+    max_iter: int,
+    initial_damping: float,
+    tol: float,
+    step_tol: float,
+) -> tuple[FloatArray, float, int]:
+    """:func:`levenberg_marquardt`: refined theta, its cost and the iterations used."""
+    theta = theta0.copy()
+    normal, gradient, cost = gram_kernel(channel, table, white, data, theta, fixed, layout, priors)
+    n = theta.shape[0]
+    n_pos = 2 * fixed[0].shape[0]
+    damping = initial_damping
+    used = 0
+    converged = False
+    while used < max_iter and not converged:
+        used += 1
+        scaling = np.empty(n)
+        for i in range(n):
+            scaling[i] = max(normal[i, i], 1e-30)
+        found = False
+        for _ in range(_MAX_REJECTIONS):
+            damped = normal.copy()
+            for i in range(n):
+                damped[i, i] += damping * scaling[i]
+            step, ok = _cholesky_solve(damped, gradient)
+            if not ok:
+                damping *= 10.0
+                continue
+            predicted = 0.0
+            for i in range(n):
+                curvature = 0.0
+                for j in range(n):
+                    curvature += normal[i, j] * step[j]
+                predicted += step[i] * (2.0 * gradient[i] - curvature)
+            largest = 0.0
+            for i in range(n_pos):
+                largest = max(largest, abs(step[i]))
+            converged = (n_pos == 0 or largest < step_tol) or predicted < tol * cost
+            trial = np.minimum(np.maximum(theta + step, lower), upper)
+            trial_normal, trial_gradient, trial_cost = gram_kernel(
+                channel, table, white, data, trial, fixed, layout, priors
+            )
+            if trial_cost < cost:
+                converged = converged or (cost - trial_cost) < tol * cost
+                theta, normal, gradient, cost = trial, trial_normal, trial_gradient, trial_cost
+                damping = max(damping / _DAMPING_DOWN, 1e-9)
+                found = True
+                break
+            if converged:
+                found = True
+                break
+            damping *= _DAMPING_UP
+        if not found:
+            converged = True  # no decrease found along any damping: a local minimum
+    return theta, cost, used
+
+
+@compiled
+def whitening_kernel(
+    channel: ChannelConstants,
+    table: TableConstants,
+    positions_xy: FloatArray,
+    fixed: Problem,
+    noise: float,
+    n_terminals: float,
+    correlation: bool,
+    upper: IntArray,
+    lower: IntArray,
+    is_diag: FloatArray,
+) -> tuple[FloatArray, FloatArray]:
+    """:meth:`Whitening.from_state`: the rotation (identity for power) and the weights."""
+    heights, _, _, _, on_plane, _ = fixed
+    k = heights.shape[0]
+    theta = np.empty(2 * k)
+    theta[:k] = positions_xy[:, 0]
+    theta[k:] = positions_xy[:, 1]
+    rows = channel_rows(channel, table, theta[:k].copy(), theta[k:].copy(), heights, on_plane)
+    gains = rows[0]  # (K, M)
+    _, multipliers = _multipliers(theta, fixed, (2, -1, -1, -1, 0))
+    n_leds = gains.shape[1]
+    count = max(n_terminals, 1.0)
+    total = 0.0
+    for i in range(k):
+        for m in range(n_leds):
+            total += gains[i, m] * gains[i, m] * multipliers[i]
+    power = total / (n_leds * count)
+    sigma2 = max(noise / count, _SIGMA2_REL_FLOOR * power, _SIGMA2_FLOOR)
+    half_noise = 0.5 * count * sigma2
+    if not correlation:
+        weights = np.empty(n_leds)
+        for m in range(n_leds):
+            received = 0.0
+            for i in range(k):
+                received += gains[i, m] * gains[i, m] * multipliers[i]
+            weights[m] = 1.0 / math.sqrt(4.0 * sigma2 * (received + half_noise))
+        return np.eye(n_leds), weights
+    signal = np.zeros((n_leds, n_leds))
+    for a in range(n_leds):
+        for b in range(n_leds):
+            total = 0.0
+            for i in range(k):
+                total += gains[i, a] * multipliers[i] * gains[i, b]
+            signal[a, b] = total
+        signal[a, a] += half_noise
+    lam, rotation = np.linalg.eigh(signal)
+    floor = _EIG_FLOOR * max(lam[n_leds - 1], _SIGMA2_FLOOR)
+    for m in range(n_leds):
+        lam[m] = max(lam[m], floor)
+    weights = np.empty(upper.shape[0])
+    for col in range(upper.shape[0]):
+        var = 2.0 * sigma2 * (lam[upper[col]] + lam[lower[col]]) * (1.0 + is_diag[col])
+        weights[col] = math.sqrt((2.0 - is_diag[col]) / var)
+    return np.ascontiguousarray(rotation), weights
+
+
+@compiled
+def whiten_kernel(white: Problem, values: FloatArray) -> FloatArray:
+    """:meth:`Whitening.data`: ``c * vech(U^T V U)`` of the measurement ``vech(V)``."""
+    has_rotation, rotation, weights, upper, lower, _ = white
+    length = values.shape[0]
+    out = np.empty(length)
+    if not has_rotation:
+        for col in range(length):
+            out[col] = weights[col] * values[col]
+        return out
+    n_leds = rotation.shape[0]
+    full = np.zeros((n_leds, n_leds))
+    for col in range(length):
+        full[upper[col], lower[col]] = values[col]
+        full[lower[col], upper[col]] = values[col]
+    rotated = np.dot(rotation.T.copy(), np.dot(full, rotation))
+    for col in range(length):
+        out[col] = weights[col] * rotated[upper[col], lower[col]]
+    return out
+
+
+@compiled
+def correlation_scores_kernel(
+    white: Problem, residual: FloatArray, gains: FloatArray
+) -> tuple[FloatArray, FloatArray]:
+    """``<c psi_j, r>`` and ``||c psi_j||^2`` of every grid point (dense correlation model,
+    gains (M, N)), the reference being ``GridlessSolver._correlations``.
+
+    With ``rot = U^T G``: ``<c psi_j, r> = rot_j^T Q rot_j`` for ``Q`` the symmetrised
+    weighted residual in the rotated basis, and ``||c psi_j||^2 = sq_j^T C sq_j`` for
+    ``sq = rot o rot`` and ``C`` the symmetrised squared weights.
+    """
+    has_rotation, rotation, weights, upper, lower, _ = white
+    n_leds = gains.shape[0]
+    quadratic = np.zeros((n_leds, n_leds))
+    squared = np.zeros((n_leds, n_leds))
+    for col in range(upper.shape[0]):
+        a, b = upper[col], lower[col]
+        w = weights[col]
+        if a == b:
+            quadratic[a, a] = w * residual[col]
+            # 1.5: as the reference builds it, 0.5 (C + C^T) + 0.5 diag(C)
+            squared[a, a] = 1.5 * w * w
+        else:
+            quadratic[a, b] = quadratic[b, a] = 0.5 * w * residual[col]
+            squared[a, b] = squared[b, a] = 0.5 * w * w
+    rotated = np.dot(rotation.T.copy(), gains) if has_rotation else gains
+    squares = rotated * rotated
+    left = np.dot(quadratic, rotated)
+    right = np.dot(squared, squares)
+    n_points = gains.shape[1]
+    num = np.zeros(n_points)
+    norms = np.zeros(n_points)
+    for a in range(n_leds):
+        for j in range(n_points):
+            num[j] += rotated[a, j] * left[a, j]
+            norms[j] += squares[a, j] * right[a, j]
+    return num, norms

@@ -1,0 +1,47 @@
+"""Run every compiled kernel once on a small problem, so that later calls find them compiled.
+
+The calls go through the same code as a solve (the :mod:`._gridless_fit` entry points), so
+they compile exactly the argument types a solve uses. Private: see :func:`._kernels.warm_up`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..presets import paper_layout
+from ._channel_compiled import channel_constants, channel_rows
+from ._channel_kernel import ChannelKernel
+from ._fit_compiled import correlation_scores_kernel
+from ._gridless_fit import FitState, Objective, Priors, Whitening, gram, levenberg_marquardt
+
+__all__ = ["exercise"]
+
+
+def exercise() -> None:
+    """Evaluate, whiten and fit a two-target state of the paper's room, both models."""
+    layout = paper_layout()
+    kernel = ChannelKernel(layout, 1.0)
+    height = layout.grid.receiver_height
+    state = FitState(
+        np.array([[1.0, 1.2], [2.5, 3.0]]),
+        np.ones(2),
+        1e-3,
+        np.full(2, height),
+        np.zeros(2),
+    )
+    priors = Priors(0.1, 0.5, 0.05, height, (height - 0.2, height + 0.2))
+    for model in ("correlation", "power"):
+        white = Whitening.from_state(model, kernel, state, 2.0)
+        values = np.ones(white.weights.shape[0])
+        objective = Objective(kernel, white, values, False, priors)
+        theta = objective.pack(state)
+        gram(objective, theta, state)
+        objective.residual(theta, state)
+        levenberg_marquardt(objective, state, max_iter=1, initial_damping=1e-3, tol=1e-6)
+        if model == "correlation":
+            correlation_scores_kernel(white.compiled(), values, np.ones((kernel.n_leds, 3)))
+    # a terminal's own fit evaluates the channel at one point
+    constants = channel_constants(kernel)
+    assert constants is not None  # a line-of-sight kernel always has its compiled form
+    point = np.array([1.0])
+    channel_rows(*constants, point, point.copy(), np.array([height]), False)

@@ -1,0 +1,46 @@
+"""Smoke tests of bench.real_rooms' bound and calibration modes (tiny, paper room)."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from app.vlp.crlb import aggregated_crlb
+from bench import real_rooms
+from bench._real_rooms_extra import BOUND_CASES, CALIBRATIONS, run_bounds, run_calibrated, tilt_sd
+
+
+def test_bounds_mode_rows_and_the_ideal_case_is_the_aggregated_bound() -> None:
+    rows = run_bounds(["paper"], 1, (4,), real_rooms._placements, real_rooms._noise_std)
+    assert len(rows) == len(BOUND_CASES) * 2
+    assert all(math.isfinite(r[5]) and r[5] > 0 for r in rows)
+    ideal = next(r for r in rows if r[1] == BOUND_CASES[0].name and r[4] == "correlation")
+    pts = real_rooms._placements("paper", 4, 0)
+    layout = real_rooms._layout("paper", None)
+    expected = aggregated_crlb(layout, pts, real_rooms._noise_std("paper")).mean
+    assert ideal[5] == pytest.approx(expected, rel=1e-9)
+    # Every case with nuisances costs at least what the known model does (same placement).
+    known = {r[4]: r[5] for r in rows if r[1] == BOUND_CASES[0].name}
+    for case in BOUND_CASES[2:4]:
+        for mode in ("correlation", "terminals"):
+            value = next(r[5] for r in rows if r[1] == case.name and r[4] == mode)
+            assert value >= known[mode]
+
+
+def test_tilt_sd_of_a_uniform_polar_angle() -> None:
+    # Small angles: tan(theta) ~ theta, E[theta^2] = max^2 / 3, half of it on each axis.
+    assert tilt_sd(1.0) == pytest.approx(math.radians(1.0) / math.sqrt(6), rel=1e-3)
+
+
+def test_calibrated_mode_runs_every_calibration() -> None:
+    rows = run_calibrated(
+        ["paper"],
+        1,
+        real_rooms.MIX,
+        "realistic mix, reflectance in layout",
+        real_rooms._generator,
+        count=2,
+    )
+    assert [r[1] for r in rows[::2]] == [c.name for c in CALIBRATIONS]
+    assert all(math.isfinite(r[5]) and 0 <= r[5] < 4.0 for r in rows)

@@ -1,0 +1,194 @@
+"""``vlp serve --workers 2`` for real: two API processes on one port, one SQLite registry.
+
+Both processes answer (each request on a new connection names its process in ``/metrics``),
+a room posted through the port is built exactly once (the build workers run in API process
+0 only), a crashed API process is started again, and neither SIGTERM nor ``kill -9`` of the
+supervisor leaves an API process behind.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import re
+import signal
+import subprocess
+from collections.abc import Callable
+from pathlib import Path
+from socket import IPPROTO_TCP, TCP_NODELAY
+
+import httpx
+import pytest
+import uvicorn
+
+from app.cli import main
+from app.cli._workers import bind_listening_socket
+from app.vlp.presets import paper_layout
+from bench._server import VLP, serve_args, server_env
+from tests.processes import TERMINAL, VlpProcess, child_pids, pid_alive, process_fleet
+from tests.waiting import SAFETY_TIMEOUT_S, wait_for
+
+from .steps import create_room, wait_succeeded
+
+pytestmark = pytest.mark.slow
+
+_PID = re.compile(r'^vlp_api_process_info\{pid="(\d+)"\} 1\.0$', re.MULTILINE)
+
+
+def answering_pid(url: str) -> int:
+    """The pid of the API process that answered a request on a fresh connection."""
+    response = httpx.get(f"{url}/metrics", timeout=30.0)
+    assert response.status_code == 200
+    match = _PID.search(response.text)
+    assert match is not None, "no vlp_api_process_info in /metrics"
+    return int(match.group(1))
+
+
+def api_processes(supervisor: VlpProcess) -> set[int]:
+    """The supervisor's API processes (its children, without multiprocessing's tracker)."""
+    return {
+        pid
+        for pid in child_pids(supervisor.pid)
+        if "resource_tracker" not in Path(f"/proc/{pid}/cmdline").read_text(errors="replace")
+    }
+
+
+def wait_answering(url: str, expected: set[int]) -> None:
+    """Each of ``expected`` answers some request (the kernel picks the process per
+    connection, so ask until all were seen)."""
+    seen: set[int] = set()
+
+    def all_seen() -> bool:
+        seen.add(answering_pid(url))
+        assert seen <= expected, f"answered by {seen - expected}, not an API process"
+        return seen == expected
+
+    wait_for(all_seen, f"processes {expected} to answer")
+
+
+def ready_pids(server: VlpProcess) -> set[int]:
+    """The API processes that logged their start-up as complete."""
+    return {
+        int(entry["pid"])
+        for entry in server.log()
+        if str(entry.get("message", "")).startswith("API process") and "ready" in entry["message"]
+    }
+
+
+def built_jobs(server: VlpProcess) -> list[str]:
+    """Ids of the jobs some process of the service started building (one shared log)."""
+    return [
+        entry["job_id"]
+        for entry in server.log()
+        if entry.get("message", "").startswith("job ") and "building" in entry["message"]
+    ]
+
+
+def test_two_api_processes_share_the_port_and_build_once(tmp_path: Path) -> None:
+    with process_fleet(tmp_path / "data") as fleet:
+        server = fleet.serve({"VLP_WORKERS": "2"})
+        wait_for(lambda: len(api_processes(server)) == 2, "two API processes")
+        pids = api_processes(server)
+        assert server.pid not in pids
+        wait_answering(server.url, pids)
+
+        room = create_room(server, {**paper_layout().to_mapping(), "name": "two workers"})
+        job_id = room["fingerprint"]["job_id"]
+        wait_succeeded(server, job_id)
+        with server.client() as client:
+            body = client.post(
+                f"/v1/rooms/{room['id']}/simulate", json={"targets": 2, "seed": 3}
+            ).json()["measurement"]
+        for _ in range(4):  # fresh connections: whichever process answers knows the room
+            response = httpx.post(
+                f"{server.url}/v1/rooms/{room['id']}/localize",
+                json=body,
+                headers=TERMINAL,
+                timeout=60.0,
+            )
+            assert response.status_code == 200, response.text
+        assert built_jobs(server).count(job_id) == 1
+        started = [e for e in server.log() if e.get("message", "").startswith("service started")]
+        assert sorted(e["embedded_workers"] for e in started) == [0, 1]
+
+
+def test_a_crashed_api_process_is_replaced_and_sigterm_stops_all(tmp_path: Path) -> None:
+    with process_fleet(tmp_path / "data") as fleet:
+        server = fleet.serve({"VLP_WORKERS": "2", "VLP_DEMO": "false"})
+        wait_for(lambda: len(api_processes(server)) == 2, "two API processes")
+        first = api_processes(server)
+        # Killed before its start-up completed, a process is a failed start (the service
+        # stops, exit 3): kill one only once both said they are ready.
+        wait_for(lambda: ready_pids(server) >= first, "both API processes to be ready")
+        victim = min(first)
+        os.kill(victim, signal.SIGKILL)
+        wait_for(
+            lambda: len(api_processes(server)) == 2 and victim not in api_processes(server),
+            "the killed API process to be replaced",
+        )
+        replaced = api_processes(server)
+        wait_answering(server.url, replaced)
+
+        server.process.send_signal(signal.SIGTERM)  # the supervisor only, not its group
+        assert server.process.wait(timeout=60) == 0
+        wait_for(lambda: not any(pid_alive(pid) for pid in replaced), "API processes to exit")
+
+
+def test_kill_9_of_the_supervisor_leaves_no_api_process(tmp_path: Path) -> None:
+    with process_fleet(tmp_path / "data") as fleet:
+        server = fleet.serve({"VLP_WORKERS": "2", "VLP_DEMO": "false"})
+        wait_for(lambda: len(api_processes(server)) == 2, "two API processes")
+        pids = api_processes(server)
+        server.kill9()
+        wait_for(lambda: not any(pid_alive(pid) for pid in pids), "orphaned API processes to exit")
+
+
+def test_a_failed_start_up_ends_the_service_with_exit_code_3(tmp_path: Path) -> None:
+    """With the registry unreachable no API process starts: exit 3, as a single process."""
+    unreachable = "postgresql+psycopg://vlp:vlp@127.0.0.1:1/vlp?connect_timeout=2"
+    port_file = tmp_path / "serve.port"
+    process = subprocess.run(
+        [str(VLP), "serve", "--workers", "2", *serve_args(port_file)],
+        env=server_env(tmp_path / "data", VLP_DATABASE_URL=unreachable),
+        capture_output=True,
+        timeout=SAFETY_TIMEOUT_S,
+        check=False,
+    )
+    assert process.returncode == 3, process.stderr.decode(errors="replace")[-2000:]
+    assert port_file.exists()
+
+
+def test_workers_must_be_a_positive_count(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exited:
+        main(["serve", "--workers", "0"])
+    assert exited.value.code == 2
+    assert "--workers: must be from 1 to 64, got 0" in capsys.readouterr().err
+
+
+def test_the_served_connections_send_without_delay() -> None:
+    """Connections accepted on `vlp serve`'s socket have TCP_NODELAY (asyncio sets it only for
+    an IPPROTO_TCP socket): a response's header and body writes never wait for an ACK."""
+    config = uvicorn.Config("app.main:create_app", host="127.0.0.1", port=0)
+    sock = bind_listening_socket(config)
+    nodelay: list[int] = []
+
+    async def serve_one() -> None:
+        async def accepted(_reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+            nodelay.append(writer.get_extra_info("socket").getsockopt(IPPROTO_TCP, TCP_NODELAY))
+            writer.close()
+
+        server = await asyncio.start_server(accepted, sock=sock)
+        port = server.sockets[0].getsockname()[1]
+        _, writer = await asyncio.open_connection("127.0.0.1", port)
+        await asyncio.wait_for(asyncio.shield(_until(lambda: bool(nodelay))), SAFETY_TIMEOUT_S)
+        writer.close()
+        server.close()
+        await server.wait_closed()
+
+    asyncio.run(serve_one())
+    assert nodelay and nodelay[0] != 0
+
+
+async def _until(condition: Callable[[], bool]) -> None:
+    while not condition():
+        await asyncio.sleep(0.01)

@@ -1,0 +1,136 @@
+"""Locality in large rooms (solvers/_local.py): terminals started near their own footprint."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from app.vlp.channel import los_gains
+from app.vlp.fingerprints import Fingerprint, build_fingerprint
+from app.vlp.layout import Grid, Layout, Led, Receiver, Reflectance, Room
+from app.vlp.measurements import measurement_from_amplitudes
+from app.vlp.simulation import noise_std_for_snr, noisy_amplitudes, random_positions
+from app.vlp.solvers._gridless_fit import Whitening
+from app.vlp.solvers._local import TerminalWindows
+from app.vlp.solvers._terminal_fit import starting_cells
+from app.vlp.solvers.gridless import GridlessSolver
+
+
+def _hall(side: float = 40.0, pitch: float = 3.2, fov_deg: float = 70.0) -> Layout:
+    """A square hall (0.1 m grid) with LEDs on a square pitch at 3 m: large enough that H is
+    kept sparse and a footprint is a small part of the floor."""
+    count = round(side / pitch)
+    leds = tuple(
+        Led(x=pitch * (i + 0.5), y=pitch * (j + 0.5), z=3.0)
+        for i in range(count)
+        for j in range(count)
+    )
+    return Layout(
+        Room(side, side, 3.0), Grid(0.1, 0.85), leds, Receiver(fov_deg=fov_deg), name="hall"
+    )
+
+
+@pytest.fixture(scope="module")
+def hall() -> Fingerprint:
+    return build_fingerprint(_hall())
+
+
+def test_windows_pick_the_starting_cells_of_the_whole_grid(hall: Fingerprint) -> None:
+    """The local candidates hold the cells that scoring every grid point picks, computed here
+    from the dense gains directly."""
+    windows = TerminalWindows.build(hall, lowest_height=0.85)
+    assert windows is not None and windows.is_useful() and not hall.is_dense
+    layout = hall.layout
+    rng = np.random.default_rng(7)
+    truth = random_positions(layout, 12, rng=rng)
+    amplitudes = noisy_amplitudes(layout, truth, noise_std_for_snr(hall, 30.0), rng=rng)
+    gains = hall.gains.toarray() * layout.pilot_amplitudes[:, None]  # G, (M, N)
+    energy = np.maximum((gains**2).sum(axis=0), 1e-300)
+    centres = layout.cell_centres()
+    for terminal in amplitudes:
+        correlation = terminal @ gains
+        scores = np.where(correlation > 0, correlation**2 / energy, 0.0)
+        expected = starting_cells(scores, centres, 0.2)
+        assert windows.starting_cells(terminal, centres, 0.2) == expected
+
+
+def test_large_room_terminals_are_found_as_with_the_whole_grid(hall: Fingerprint) -> None:
+    """Same answers as the whole-grid start (the solver with its windows switched off), and
+    within a few centimetres of the truth at 30 dB."""
+    solver = GridlessSolver(hall, "correlation")
+    assert solver._windows is not None
+    rng = np.random.default_rng(3)
+    truth = random_positions(hall.layout, 20, rng=rng)
+    amplitudes = noisy_amplitudes(hall.layout, truth, noise_std_for_snr(hall, 30.0), rng=rng)
+    local = solver.solve_terminals(amplitudes)
+    solver._windows = None
+    whole = solver.solve_terminals(amplitudes)
+    np.testing.assert_allclose(local.positions, whole.positions, rtol=0, atol=1e-9)
+    assert np.max(np.linalg.norm(local.positions - truth, axis=1)) < 0.1
+
+
+def test_no_windows_where_a_receiver_sees_everything() -> None:
+    """A 90-degree field of view or diffuse reflections reach every point: no locality."""
+    wide = build_fingerprint(_hall(side=12.0, fov_deg=90.0))
+    assert TerminalWindows.build(wide, lowest_height=0.85) is None
+    layout = _hall(side=12.0)
+    room = Room(12.0, 12.0, 3.0, reflectance=Reflectance(0.7, 0.2, 0.8))
+    reflecting = Layout(room, layout.grid, layout.leds, layout.receiver)
+    fingerprint = Fingerprint(reflecting, build_fingerprint(layout).gains)
+    assert TerminalWindows.build(fingerprint, lowest_height=0.85) is None
+
+
+def test_terminals_low_above_the_floor_that_send_their_height(hall: Fingerprint) -> None:
+    """A terminal at 0.2 m (below the grid's 0.85 m) sees LEDs farther away than the grid
+    does; sending its height, it is still found where the whole-room fit finds it."""
+    layout = hall.layout
+    rng = np.random.default_rng(11)
+    truth = random_positions(layout, 8, rng=rng)
+    xyz = np.column_stack((truth, np.full(truth.shape[0], 0.2)))
+    clean = (los_gains(layout, xyz) * layout.pilot_amplitudes[:, None]).T
+    amplitudes = clean + noise_std_for_snr(hall, 30.0) * rng.standard_normal(clean.shape)
+    heights = np.full(truth.shape[0], 0.2)
+    solver = GridlessSolver(hall, "correlation")
+    local = solver.solve_terminals(amplitudes, heights)
+    solver._windows = None
+    whole = solver.solve_terminals(amplitudes, heights)
+    np.testing.assert_allclose(local.positions, whole.positions, rtol=0, atol=1e-9)
+    assert np.max(np.linalg.norm(local.positions - truth, axis=1)) < 0.1
+
+
+def test_power_scan_finds_the_whole_grid_argmax(hall: Fingerprint) -> None:
+    """The tiled scan returns the index, score and norm that scoring every grid point gives
+    (the solver's own whole-grid scores), for measured and random residuals."""
+    solver = GridlessSolver(hall, "power")
+    scan = solver._power_scan
+    assert scan is not None
+    layout = hall.layout
+    rng = np.random.default_rng(5)
+    white = Whitening.identity("power", layout.n_leds)
+    truth = random_positions(layout, 6, rng=rng)
+    amplitudes = noisy_amplitudes(layout, truth, noise_std_for_snr(hall, 30.0), rng=rng)
+    measured = (amplitudes**2).sum(axis=0) / solver._scale**2
+    residuals = [measured, measured - rng.random(layout.n_leds) * measured.max()]
+    residuals += [rng.standard_normal(layout.n_leds) * measured.max() for _ in range(3)]
+    for residual in residuals:
+        for weight in (1.0, 0.3):
+            num, norms = solver._correlations(white, residual)
+            scores = 2.0 * weight * num - weight**2 * norms
+            expected = int(np.argmax(scores))
+            found = scan.best(residual, weight, 1.0)
+            assert found is not None
+            assert found == (expected, float(scores[expected]), float(norms[expected]))
+
+
+def test_power_solves_in_large_rooms_are_those_of_the_whole_grid_scan(hall: Fingerprint) -> None:
+    layout = hall.layout
+    rng = np.random.default_rng(9)
+    truth = random_positions(layout, 6, rng=rng)
+    amplitudes = noisy_amplitudes(layout, truth, noise_std_for_snr(hall, 30.0), rng=rng)
+    measurement = measurement_from_amplitudes(amplitudes, "power", layout.n_leds)
+    solver = GridlessSolver(hall, "power")
+    tiled = solver.solve(measurement, 6)
+    solver._power_scan = None
+    whole = solver.solve(measurement, 6)
+    np.testing.assert_array_equal(tiled.positions, whole.positions)
+    assert tiled.residual_norm == whole.residual_norm
