@@ -9,6 +9,8 @@ What must run once per deployment runs in API process 0 only: the embedded build
 the epoch sweeper and the demo-room seeding (whose "no rooms yet?" check is not atomic).
 The other processes run with ``embedded_workers=0``, ``epoch_sweep_seconds=0`` (epochs are
 still settled lazily, on reads and solve requests, in every process) and ``demo=False``.
+Process 0 starts first and the others only once its lifespan has run, so whichever process
+answers a client's first request, the demo room is already there.
 
 A process that exits after it had started (a crash, ``kill -9``, the OOM killer) is started
 again with the same index, so process 0's duties come back with it. One that fails during
@@ -106,15 +108,16 @@ def _run_api_process(
         async def startup(self, sockets: list[socket.socket] | None = None) -> None:
             await super().startup(sockets=sockets)
             if not self.should_exit:
-                # The lifespan has run: from now on an exit is a crash to recover from,
-                # not a failed start-up.
-                started.value = 1
                 _log.info(
                     "API process %d ready (pid %d)",
                     index,
                     os.getpid(),
                     extra={"worker_index": index, "pid": os.getpid()},
                 )
+                # The lifespan has run: from now on an exit is a crash to recover from,
+                # not a failed start-up. Set after the log line, which then precedes
+                # every later process's.
+                started.value = 1
 
     server = _Server(config)
     _log.info(
@@ -164,9 +167,13 @@ class _Supervisor:
     def run(self) -> int:
         for signum in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP):
             signal.signal(signum, self._on_signal)
-        self._processes = [self._start(index) for index in range(self._count)]
-        code = 0
-        while not self._stop.wait(_POLL_S):
+        # Process 0 first, alone: once any process answers, the once-per-service duties
+        # (demo seeding above all) have run, so a client that sees /readyz also sees the rooms.
+        self._processes = [self._start(0)]
+        code = self._await_first_start()
+        if code == 0 and not self._stop.is_set():
+            self._processes += [self._start(index) for index in range(1, self._count)]
+        while code == 0 and not self._stop.wait(_POLL_S):
             for slot, api in enumerate(self._processes):
                 if api.process.is_alive():
                     continue
@@ -188,6 +195,21 @@ class _Supervisor:
                 self._processes[slot] = self._start(api.index)
         self._stop_all()
         return code
+
+    def _await_first_start(self) -> int:
+        """Wait until API process 0 has run its lifespan; EXIT_STARTUP_FAILURE if it
+        exits before that, 0 otherwise (also when a stop signal came first)."""
+        first = self._processes[0]
+        while not first.started.value:
+            if not first.process.is_alive():
+                _log.error(
+                    "API process 0 failed to start (exit code %s): stopping",
+                    first.process.exitcode,
+                )
+                return EXIT_STARTUP_FAILURE
+            if self._stop.wait(_POLL_S):
+                break
+        return 0
 
     def _stop_all(self) -> None:
         for api in self._processes:

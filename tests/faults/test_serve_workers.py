@@ -1,9 +1,10 @@
 """``vlp serve --workers 2`` for real: two API processes on one port, one SQLite registry.
 
 Both processes answer (each request on a new connection names its process in ``/metrics``),
-a room posted through the port is built exactly once (the build workers run in API process
-0 only), a crashed API process is started again, and neither SIGTERM nor ``kill -9`` of the
-supervisor leaves an API process behind.
+process 1 starts only once process 0 (which seeds the demo room) is ready, a room posted
+through the port is built exactly once (the build workers run in API process 0 only), a
+crashed API process is started again, and neither SIGTERM nor ``kill -9`` of the supervisor
+leaves an API process behind.
 """
 
 from __future__ import annotations
@@ -110,6 +111,11 @@ def test_two_api_processes_share_the_port_and_build_once(tmp_path: Path) -> None
         assert built_jobs(server).count(job_id) == 1
         started = [e for e in server.log() if e.get("message", "").startswith("service started")]
         assert sorted(e["embedded_workers"] for e in started) == [0, 1]
+        # Process 0 (the demo seeding's) was ready before process 1 began its start-up.
+        order = [str(e.get("message", "")) for e in server.log()]
+        ready_0 = next(i for i, m in enumerate(order) if m.startswith("API process 0 ready"))
+        start_1 = next(i for i, m in enumerate(order) if m.startswith("API process 1 starting"))
+        assert ready_0 < start_1, order
 
 
 def test_a_crashed_api_process_is_replaced_and_sigterm_stops_all(tmp_path: Path) -> None:
