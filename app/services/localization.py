@@ -38,7 +38,7 @@ from app.vlp.measurements import (
 from app.vlp.solvers import Solution
 from app.vlp.solvers.gridless import GridlessSolver
 from app.vlp.typing import FloatArray
-from app.vlp.uncertainty import confidence_radius
+from app.vlp.uncertainty import confidence_radii
 from app.vlp.workload import localize_work
 
 from .fingerprint_cache import FingerprintCache, PreparedVersion
@@ -317,6 +317,7 @@ def _estimates(solution: Solution, owners: list[str | None]) -> list[Estimate]:
     """The answer's estimates, with their uncertainty, gain and height when the solver
     gives them."""
     estimates = []
+    radii = None if solution.covariances is None else confidence_radii(solution.covariances)
     for k in range(solution.n_targets):
         covariance = None if solution.covariances is None else solution.covariances[k]
         estimates.append(
@@ -326,7 +327,7 @@ def _estimates(solution: Solution, owners: list[str | None]) -> list[Estimate]:
                 grid_index=int(solution.grid_indices[k]),
                 weight=float(solution.weights[k]),
                 terminal_id=owners[k],
-                accuracy_m=None if covariance is None else confidence_radius(covariance),
+                accuracy_m=None if radii is None else float(radii[k]),
                 covariance=None if covariance is None else covariance.tolist(),
                 gain=None if solution.gains is None else float(solution.gains[k]),
                 z=None if solution.heights is None else float(solution.heights[k]),

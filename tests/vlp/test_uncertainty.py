@@ -6,11 +6,13 @@ import math
 
 import numpy as np
 import pytest
+from scipy import integrate, special
 
 from app.vlp.uncertainty import (
     POOR_FIT_CHI2,
     SCALE_MISMATCH_FACTOR,
     assess_fit,
+    confidence_radii,
     confidence_radius,
 )
 
@@ -45,6 +47,51 @@ def test_radius_is_invariant_under_rotation() -> None:
     rotation = np.array([[math.cos(angle), -math.sin(angle)], [math.sin(angle), math.cos(angle)]])
     rotated = rotation @ covariance @ rotation.T
     assert confidence_radius(rotated) == pytest.approx(confidence_radius(covariance), rel=1e-9)
+
+
+def _coverage(covariance: np.ndarray, radius: float) -> float:
+    """P(|e| <= radius) by adaptive quadrature over the major axis, independent of the
+    solver's Gauss-Legendre rule and Newton steps."""
+    minor, major = np.linalg.eigvalsh(covariance)
+    reach = radius / math.sqrt(major)
+
+    def slice_probability(x: float) -> float:
+        left = max(radius**2 - major * x**2, 0.0)
+        inner = 2.0 * special.ndtr(math.sqrt(left / minor)) - 1.0
+        return float(math.exp(-0.5 * x * x) / math.sqrt(2.0 * math.pi) * inner)
+
+    value, _ = integrate.quad(slice_probability, -reach, reach, epsabs=1e-13, limit=400)
+    return float(value)
+
+
+@pytest.mark.parametrize("ratio", [1.0, 0.5, 0.1, 1e-2, 1e-3, 1e-5, 1e-8])
+@pytest.mark.parametrize("level", [0.5, 0.95])
+def test_radii_hold_their_level_for_any_elongation(ratio: float, level: float) -> None:
+    angle = 0.4
+    rotation = np.array([[math.cos(angle), -math.sin(angle)], [math.sin(angle), math.cos(angle)]])
+    covariance = rotation @ np.diag([0.02, 0.02 * ratio]) @ rotation.T
+    radius = confidence_radius(covariance, level)
+    # The 96-point rule resolves the probability to ~1e-5 at the worst elongations
+    # (rho ~ 1e-4, where the inner term turns from 0 to 1 within a few nodes); that moves a
+    # radius by ~1e-4 of itself, far below any estimate's uncertainty.
+    assert _coverage(covariance, radius) == pytest.approx(level, abs=5e-5)
+
+
+def test_radii_of_many_estimates_equal_each_alone() -> None:
+    rng = np.random.default_rng(11)
+    factors = rng.normal(size=(40, 2, 2))
+    covariances = factors @ factors.transpose(0, 2, 1) * 10.0 ** rng.uniform(-6, 0, (40, 1, 1))
+    covariances[3] = 0.0
+    covariances[5, 0, 0] = np.nan
+    covariances[7] = np.diag([0.01, 0.0])  # a degenerate ellipse: the 1-D quantile
+    radii = confidence_radii(covariances)
+    alone = [confidence_radius(covariance) for covariance in covariances]
+    np.testing.assert_allclose(radii, alone, rtol=1e-12)
+    assert radii[3] == 0.0 and math.isinf(radii[5])
+    assert radii[7] == pytest.approx(1.959964 * 0.1, rel=1e-6)
+    assert confidence_radii(np.zeros((0, 2, 2))).shape == (0,)
+    with pytest.raises(ValueError, match="shape"):
+        confidence_radii(np.eye(2))
 
 
 def test_fit_quality_classes() -> None:
