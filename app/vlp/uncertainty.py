@@ -13,18 +13,23 @@ from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
-from scipy import special
+from scipy import optimize, special, stats
 
-from .typing import FloatArray
+from .typing import FloatArray, IntArray
 
 __all__ = [
     "POOR_FIT_CHI2",
     "SCALE_MISMATCH_FACTOR",
     "FitQuality",
+    "Misfit",
+    "MisfitDesign",
     "Quality",
     "assess_fit",
     "confidence_radii",
     "confidence_radius",
+    "fit_misfit",
+    "misfit_design",
+    "predictive_covariances",
 ]
 
 Quality = Literal["ok", "poor", "scale_mismatch"]
@@ -46,6 +51,8 @@ _ROOT_TWO_PI = math.sqrt(2.0 * math.pi)
 # ~1e-13 relative); the bracket bounds the steps whatever happens.
 _RADIUS_TOLERANCE = 1e-14
 _MAX_RADIUS_STEPS = 60
+# Rounds of reweighting in :func:`fit_misfit` (the weights settle within a few).
+_MISFIT_REWEIGHTS = 4
 
 
 @dataclass(frozen=True)
@@ -206,3 +213,204 @@ def confidence_radii(covariances: FloatArray, level: float = 0.95) -> FloatArray
         reach = np.where(inside, step, 0.5 * (low + high))
     radii[solve] = np.sqrt(major) * reach
     return radii
+
+
+@dataclass(frozen=True)
+class MisfitDesign:
+    """What one whitened least-squares fit needs to weigh model errors against its noise.
+
+    The fit's whitened data ``y = f(theta) + e`` (L values, P parameters, Gaussian priors as
+    extra pseudo-residuals) has the error ``e = n + sum_c F_c d_c``: noise ``n ~ N(0, a I)``
+    and C components of model error ``d_c ~ N(0, b_c I)`` along the columns of ``F_c`` (for
+    instance each LED's amplitude off by a relative ``d``: ``F`` holds the signal's
+    derivative with respect to it). At the optimum the residual is ``r = Q e`` with
+    ``Q = I - J A J^T``, ``A`` the inverse normal matrix, so
+    ``E[r_i^2] = a (Q Q^T)_ii + sum_c b_c (Q F_c F_c^T Q^T)_ii``: the part of a model error
+    that the fitted parameters absorbed does not show in the residual, and is not counted
+    as seen; the covariance then carries all of it (:meth:`covariance`).
+
+    Attributes
+    ----------
+    inverse : ndarray of shape (P, P)
+        ``A``, the inverse (pseudo-inverse) of the fit's normal matrix, priors included.
+    data_normal : ndarray of shape (P, P)
+        ``J^T J`` of the data alone.
+    prior_normal : ndarray of shape (P, P)
+        The priors' information (the normal matrix minus ``J^T J``).
+    error_normals : ndarray of shape (C, P, P)
+        ``(J^T F_c)(J^T F_c)^T``: each model error's information seen by the parameters.
+    noise_leverage : ndarray of shape (L,)
+        ``(Q Q^T)_ii``: each residual's expected square per unit of noise variance.
+    error_leverages : ndarray of shape (L, C)
+        ``(Q F_c F_c^T Q^T)_ii``: each residual's expected square per unit of ``b_c``.
+    """
+
+    inverse: FloatArray
+    data_normal: FloatArray
+    prior_normal: FloatArray
+    error_normals: FloatArray
+    noise_leverage: FloatArray
+    error_leverages: FloatArray
+
+    def covariance(self, noise: float, model_errors: FloatArray) -> FloatArray:
+        """Sandwich covariance of the parameters, shape (P, P), for noise variance ``a`` and
+        model-error variances ``b`` (C,): ``A (a J^T J + sum_c b_c J^T F_c F_c^T J + N_prior) A``.
+        """
+        middle = (
+            noise * self.data_normal
+            + np.einsum("c,cpq->pq", np.asarray(model_errors, dtype=np.float64), self.error_normals)
+            + self.prior_normal
+        )
+        return np.asarray(self.inverse @ middle @ self.inverse)
+
+
+def misfit_design(
+    jacobian: FloatArray, normal: FloatArray, error_columns: list[FloatArray]
+) -> MisfitDesign:
+    """The :class:`MisfitDesign` of one fit.
+
+    Parameters
+    ----------
+    jacobian : ndarray of shape (L, P)
+        Whitened Jacobian of the data part of the fit at its optimum.
+    normal : ndarray of shape (P, P)
+        The fit's normal matrix, priors included (``J^T J`` plus the priors' information).
+    error_columns : list of C ndarrays of shape (L, Q_c)
+        ``F_c``: the whitened model's derivative along each unit of each model error.
+    """
+    inverse = np.linalg.pinv(normal, hermitian=True)
+    data_normal = jacobian.T @ jacobian
+    projected = jacobian @ inverse  # (L, P): the rows of H = J A J^T are projected @ J^T
+    hat_diagonal = np.einsum("lp,lp->l", projected, jacobian)
+    hat_square = np.einsum("lp,lp->l", projected @ data_normal, projected)
+    n_params = normal.shape[0]
+    error_normals = np.zeros((len(error_columns), n_params, n_params))
+    error_leverages = np.zeros((jacobian.shape[0], len(error_columns)))
+    for component, columns in enumerate(error_columns):
+        seen = jacobian.T @ columns  # (P, Q_c)
+        absorbed = columns - projected @ seen
+        error_normals[component] = seen @ seen.T
+        error_leverages[:, component] = np.einsum("lq,lq->l", absorbed, absorbed)
+    return MisfitDesign(
+        inverse=inverse,
+        data_normal=data_normal,
+        prior_normal=normal - data_normal,
+        error_normals=error_normals,
+        noise_leverage=np.maximum(1.0 - 2.0 * hat_diagonal + hat_square, 0.0),
+        error_leverages=error_leverages,
+    )
+
+
+@dataclass(frozen=True)
+class Misfit:
+    """Fitted variances of the noise and of the model errors (:func:`fit_misfit`).
+
+    Attributes
+    ----------
+    noise : float
+        ``a``, the whitened noise variance (1 when the noise level is known).
+    model_errors : ndarray of shape (C,)
+        ``b_c``, each model error's variance (0 when the residuals show none).
+    covariance : ndarray of shape (C + 1, C + 1)
+        Sampling covariance of ``(a, b_1, ..., b_C)`` (zero rows for a known noise and for
+        the components fitted at 0).
+    """
+
+    noise: float
+    model_errors: FloatArray
+    covariance: FloatArray
+
+
+def fit_misfit(
+    residuals: FloatArray,
+    noise_leverage: FloatArray,
+    error_leverages: FloatArray,
+    noise: float | None = None,
+) -> Misfit:
+    """Noise and model-error variances ``(a, b)`` from the residuals' squares (moments).
+
+    Non-negative least squares of ``r_i^2`` on ``a (Q Q^T)_ii + sum_c b_c (Q F_c F_c^T Q^T)_ii``
+    (see :class:`MisfitDesign`); with ``noise`` given, ``a`` is that and only ``b`` is fitted.
+    A normal residual's square scatters by ``2 E^2`` around its expectation ``E``: the fit
+    is reweighted by that (a few rounds from the unweighted one), which also gives the
+    estimates' sampling covariance ``2 (X^T W X)^-1`` over the components it keeps.
+
+    Parameters
+    ----------
+    residuals : ndarray of shape (L,)
+        Whitened residuals at the optimum (of one fit, or of several stacked).
+    noise_leverage : ndarray of shape (L,)
+    error_leverages : ndarray of shape (L, C)
+    noise : float or None
+    """
+    squares = np.asarray(residuals, dtype=np.float64) ** 2
+    n_lev = np.asarray(noise_leverage, dtype=np.float64)
+    e_lev = np.asarray(error_leverages, dtype=np.float64)
+    n_components = e_lev.shape[1]
+    if noise is not None:
+        design, target, offset = e_lev, squares - noise * n_lev, noise * n_lev
+    else:
+        design, target, offset = np.column_stack((n_lev, e_lev)), squares, np.zeros_like(n_lev)
+    covariance = np.zeros((n_components + 1, n_components + 1))
+    if design.shape[1] == 0 or not np.any(design):
+        return Misfit(1.0 if noise is None else float(noise), np.zeros(n_components), covariance)
+    weights = np.ones_like(squares)
+    solution = np.zeros(design.shape[1])
+    for _ in range(_MISFIT_REWEIGHTS):
+        solution, _ = optimize.nnls(design * weights[:, np.newaxis], target * weights)
+        expected = offset + design @ solution
+        floor = 1e-3 * max(float(np.mean(expected)), 1e-300)
+        weights = 1.0 / np.maximum(expected, floor)
+    active = solution > 0.0
+    weighted = design[:, active] * weights[:, np.newaxis]
+    sampling = 2.0 * np.linalg.pinv(weighted.T @ weighted, hermitian=True)
+    at = np.flatnonzero(active) + (1 if noise is not None else 0)
+    covariance[np.ix_(at, at)] = sampling
+    if noise is not None:
+        return Misfit(float(noise), np.asarray(solution), covariance)
+    return Misfit(float(solution[0]), np.asarray(solution[1:]), covariance)
+
+
+def predictive_covariances(
+    design: MisfitDesign, misfit: Misfit, blocks: IntArray, level: float = 0.95
+) -> FloatArray:
+    """Covariances of some pairs of parameters (the positions), widened for the estimated
+    variances behind them.
+
+    ``V = a V_a + sum_c b_c V_c + V_prior`` (:meth:`MisfitDesign.covariance`) uses estimated
+    ``a, b``. Its trace has a Satterthwaite number of degrees of freedom
+    ``nu = 2 tr(V)^2 / Var(tr V)`` (the variances' sampling covariance from
+    :class:`Misfit`); with a covariance estimated from ``nu`` degrees of freedom, the error's
+    Mahalanobis square over 2 is F(2, nu) rather than chi-square(2) / 2 distributed, so ``V``
+    is scaled by ``2 F^-1(level; 2, nu) / chi2^-1(level; 2)`` (1 when nothing is estimated):
+    the circle of ``level`` then holds the truth as often as it says.
+
+    Parameters
+    ----------
+    design : MisfitDesign
+    misfit : Misfit
+    blocks : ndarray of shape (K, 2), int
+        Each pair's indices among the parameters.
+    level : float, default=0.95
+
+    Returns
+    -------
+    ndarray of shape (K, 2, 2)
+    """
+    inverse = design.inverse
+    parts = [inverse @ design.data_normal @ inverse]
+    parts += [inverse @ normal @ inverse for normal in design.error_normals]
+    prior = inverse @ design.prior_normal @ inverse
+    variances = np.r_[misfit.noise, misfit.model_errors]
+    rows, cols = blocks[:, :, np.newaxis], blocks[:, np.newaxis, :]
+    pieces = np.array([part[rows, cols] for part in parts])  # (C + 1, K, 2, 2)
+    covariances = np.einsum("c,ckij->kij", variances, pieces) + prior[rows, cols]
+    traces = np.einsum("ckii->ck", pieces)  # (C + 1, K)
+    spread = np.einsum("ck,cd,dk->k", traces, misfit.covariance, traces)
+    total = np.einsum("kii->k", covariances)
+    widen = np.ones(blocks.shape[0])
+    estimated = spread > 0.0
+    if np.any(estimated):
+        dof = 2.0 * total[estimated] ** 2 / spread[estimated]
+        widen[estimated] = 2.0 * stats.f.ppf(level, 2, dof) / stats.chi2.ppf(level, 2)
+    return np.asarray(covariances * widen[:, np.newaxis, np.newaxis])

@@ -16,7 +16,13 @@ from ..measurements import Measurement, Model
 from ..scale import check_amplitude_scale
 from ..simulation import mean_signal_power
 from ..typing import FloatArray
-from ..uncertainty import FitQuality, assess_fit
+from ..uncertainty import (
+    FitQuality,
+    assess_fit,
+    fit_misfit,
+    misfit_design,
+    predictive_covariances,
+)
 from ._channel_kernel import ChannelKernel
 from ._fit_compiled import correlation_scores_kernel
 from ._gridless_fit import (
@@ -28,6 +34,7 @@ from ._gridless_fit import (
     _Slots,
     gram,
     levenberg_marquardt,
+    target_gains,
 )
 from ._gridless_options import (
     LM_DEFAULTS,
@@ -39,19 +46,14 @@ from ._gridless_options import (
 )
 from ._kernels import kernel_mode
 from ._local import PowerScan, TerminalWindows
-from ._terminal_fit import fit_terminal, starting_cells
+from ._terminal_fit import TerminalFit, fit_terminal, starting_cells, terminal_model
 from .base import MAX_TARGETS, Solution, Solver, register_solver
 
 __all__ = ["LM_DEFAULTS", "GridlessOptions", "GridlessSolver"]
 
-
-@dataclass(frozen=True)
-class _Fisher:
-    """Normal matrix of a whitened fit, its data chi-square and number of observations."""
-
-    normal: FloatArray
-    chi2: float
-    n_observations: int
+# Largest model-error design (observations x targets x LEDs) held for the covariance; a
+# larger room falls back to the reduced chi-square's inflation.
+_MAX_MISFIT_ENTRIES = 4_000_000
 
 
 @dataclass
@@ -513,9 +515,9 @@ class GridlessSolver(Solver):
                 other_cost = self._plain_cost(run, other)
                 if other_cost < cost:
                     state, cost = other, other_cost
-        state, fisher = self._with_nuisances(run, state)
+        state = self._with_nuisances(run, state)
         residual = self._residual(run, self._identity, state)
-        covariances, fit = self._uncertainty(run, state, fisher)
+        covariances, fit = self._uncertainty(run, state)
         if prescale != 1.0:
             state.log_scale += math.log(prescale)
             state.facts = None
@@ -617,11 +619,17 @@ class GridlessSolver(Solver):
             for k in range(n_terminals)
         ]
         chi2 = np.array([fit.rss for fit in fits]) / max(sigma2, 1e-300)
+        designs = [
+            misfit_design(fit.jacobian, fit.normal, self._terminal_misfit_columns(fit))
+            for fit in fits
+        ]
+        misfit = fit_misfit(
+            np.concatenate([fit.residual for fit in fits]),
+            np.concatenate([design.noise_leverage for design in designs]),
+            np.concatenate([design.error_leverages for design in designs]),
+        )
         covariances = np.array(
-            [
-                np.linalg.pinv(fit.normal, hermitian=True)[:2, :2] * max(1.0, c / d)
-                for fit, c, d in zip(fits, chi2, dof, strict=True)
-            ]
+            [predictive_covariances(design, misfit, np.array([[0, 1]]))[0] for design in designs]
         )
         log_gains = np.array([fit.log_gain for fit in fits])
         positions = np.array([fit.position for fit in fits])
@@ -644,7 +652,28 @@ class GridlessSolver(Solver):
             fit=fit_quality,
         )
 
-    def _with_nuisances(self, run: _Run, fixed: FitState) -> tuple[FitState, _Fisher | None]:
+    def _terminal_misfit_columns(self, fit: TerminalFit) -> list[FloatArray]:
+        """Whitened derivatives of a terminal's amplitudes along the errors its fit does not
+        fit, as :meth:`_misfit_columns`: each LED's relative error, (M, M), then (when not
+        fitted) the photodiode's tilt, (M, 2), and its height, (M, 1)."""
+        columns = [np.diag(fit.jacobian[:, -1])]  # the log gain's column: whitened amplitudes
+        x, y = fit.position
+        _, gradient = terminal_model(
+            self._kernel,
+            np.array([x, y, 0.0, 0.0, fit.log_gain]),
+            False,
+            fit.height,
+            None,
+            free_tilt=True,
+        )
+        scale = fit.data_weight * math.exp(fit.log_gain)
+        # Fitted ones are in the normal matrix already: no columns (every terminal keeps the
+        # same components, pooled in :meth:`solve_terminals`).
+        columns.append(scale * gradient[:, 3:5] if not fit.free_tilt else gradient[:, :0])
+        columns.append(scale * gradient[:, 2:3] if not fit.free_height else gradient[:, :0])
+        return columns
+
+    def _with_nuisances(self, run: _Run, fixed: FitState) -> FitState:
         """Free the common scale and the heights, then the targets' gains; keep each stage
         only when it explains the data significantly better than the one before.
 
@@ -654,15 +683,11 @@ class GridlessSolver(Solver):
         parameters' chi-square would by chance (mean plus three standard deviations). A score
         test comes first (one evaluation: the decrease the Gauss-Newton step of the freer
         model promises at the current fit); only a promising stage is fitted.
-
-        Returns the kept fit and, when it is still ``fixed``, its Fisher information (read
-        off the score test's normal matrix, which holds it as a sub-block).
         """
         best, kept = fixed, run.priors
         k = fixed.n_targets
         free_weights = self.options.free_weights
         white = self._whitening(best)
-        fisher: _Fisher | None = None
         # The freest stage is tested first: when even it promises nothing, neither does any
         # stage in between (one evaluation in the common case of a room as modelled).
         for index, priors in enumerate([self._stages[-1], *self._stages] if self._stages else []):
@@ -673,11 +698,6 @@ class GridlessSolver(Solver):
             objective = self._objective(run, white)
             theta = objective.pack(best)
             normal, gradient, before = gram(objective, theta, best)
-            if best is fixed:
-                prior = objective.prior_residuals(theta, slots)
-                chi2 = before - float(prior @ prior)
-                shared = np.r_[np.arange(2 * k), slots.size - 1]
-                fisher = _Fisher(normal[np.ix_(shared, shared)], chi2, objective.data.shape[0])
             try:
                 promised = float(gradient @ np.linalg.solve(normal, gradient))
             except np.linalg.LinAlgError:
@@ -692,25 +712,112 @@ class GridlessSolver(Solver):
             if before - objective.cost(freed)[0] > significant:
                 best, kept = freed, priors
                 white = self._whitening(best)
-                fisher = None
         run.priors = kept
-        return best, fisher
+        return best
 
-    def _uncertainty(
-        self, run: _Run, state: FitState, fisher: _Fisher | None
-    ) -> tuple[FloatArray, FitQuality]:
-        """Position covariances from the Fisher information of the final whitened fit,
-        inflated by the reduced chi-square when it is above 1, and the fit's quality."""
-        if fisher is None:
-            objective = self._objective(run, self._whitening(state))
-            theta = objective.pack(state)
-            normal, _, cost = gram(objective, theta, state)
-            prior = objective.prior_residuals(theta, objective.slots(state.n_targets))
-            fisher = _Fisher(normal, cost - float(prior @ prior), objective.data.shape[0])
-        dof = fisher.n_observations - fisher.normal.shape[0]
-        fit = assess_fit(fisher.chi2, dof, math.exp(0.5 * state.log_scale))
-        inverse = np.linalg.pinv(fisher.normal, hermitian=True) * max(1.0, fit.chi2_per_dof)
+    def _uncertainty(self, run: _Run, state: FitState) -> tuple[FloatArray, FitQuality]:
+        """Position covariances of the final whitened fit and the fit's quality.
+
+        The inverse Fisher information alone counts only the noise; a room that differs
+        from its model moves the estimates further. The covariance is the sandwich
+        ``A (J^T J + sum_c b_c J^T F_c F_c^T J + N_prior) A`` over the model errors the fit
+        does not fit (:meth:`_misfit_columns`), each variance ``b_c`` estimated from the
+        residuals at the optimum net of what the fitted parameters absorbed
+        (:func:`app.vlp.uncertainty.fit_misfit`), then widened for those estimates' few
+        degrees of freedom (:func:`app.vlp.uncertainty.predictive_covariances`). The noise
+        level is fitted (the noise atom), so the whitened noise variance is 1. A room too
+        large to hold the model-error design falls back to inflating the inverse Fisher
+        information by the reduced chi-square when above 1.
+        """
+        objective = self._objective(run, self._whitening(state))
+        theta = objective.pack(state)
         k = state.n_targets
         index = np.column_stack((np.arange(k), np.arange(k) + k))
-        covariances = inverse[index[:, :, None], index[:, None, :]]
-        return np.asarray(covariances), fit
+        n_params, n_data = theta.shape[0], objective.data.shape[0]
+        scale = math.exp(0.5 * state.log_scale)
+        columns = self._misfit_columns(objective, theta, state)
+        if columns is None:
+            normal, _, cost = gram(objective, theta, state)
+            prior = objective.prior_residuals(theta, objective.slots(k))
+            fit = assess_fit(cost - float(prior @ prior), n_data - n_params, scale)
+            inverse = np.linalg.pinv(normal, hermitian=True) * max(1.0, fit.chi2_per_dof)
+            return np.asarray(inverse[index[:, :, None], index[:, None, :]]), fit
+        augmented = objective.augmented(theta, state)
+        rows = augmented[:n_params]
+        residual = augmented[n_params, :n_data]
+        fit = assess_fit(float(residual @ residual), n_data - n_params, scale)
+        design = misfit_design(rows[:, :n_data].T, rows @ rows.T, columns)
+        misfit = fit_misfit(residual, design.noise_leverage, design.error_leverages, noise=1.0)
+        return predictive_covariances(design, misfit, index), fit
+
+    def _misfit_columns(
+        self, objective: Objective, theta: FloatArray, state: FitState
+    ) -> list[FloatArray] | None:
+        """Whitened derivatives of the model along the errors it does not fit: each target's
+        relative amplitude error on each LED, shape (L, K M), and each target's photodiode
+        tilt, shape (L, 2 K); None when too large to hold (then the reduced chi-square
+        inflates the inverse Fisher information instead).
+
+        The room's residual model error (LEDs' power and beam tolerances, heights,
+        reflections) scales with the signal: target k's amplitude from LED m is
+        ``g_km (1 + d_km)``. A tilted photodiode moves its gains along their tilt
+        derivatives, which the aggregated model does not fit. Each kind's variance is
+        estimated from the residuals (:func:`app.vlp.uncertainty.fit_misfit`).
+        """
+        k, n_leds = state.n_targets, self.fingerprint.n_leds
+        n_data = objective.data.shape[0]
+        if n_data * k * n_leds > _MAX_MISFIT_ENTRIES:
+            return None
+        gains = target_gains(self._kernel, state)  # (M, K)
+        relative = np.einsum("mk,mn->kmn", gains, np.eye(n_leds))  # diag(g_k) per target
+        errors = self._perturbation_columns(objective, theta, state, gains, relative)
+        tilts = np.empty((k, n_leds, 3))
+        for target in range(k):
+            x, y = state.positions[target]
+            _, gradient = terminal_model(
+                self._kernel,
+                np.array([x, y, 0.0, 0.0, 0.0]),
+                False,
+                float(state.heights[target]),
+                None,
+                free_tilt=True,
+            )
+            tilts[target] = gradient[:, 2:5]
+        out = [errors, self._perturbation_columns(objective, theta, state, gains, tilts[:, :, 1:])]
+        if objective.slots(k).n_axes != 3:  # heights held fixed
+            out.append(self._perturbation_columns(objective, theta, state, gains, tilts[:, :, :1]))
+        return out
+
+    def _perturbation_columns(
+        self,
+        objective: Objective,
+        theta: FloatArray,
+        state: FitState,
+        gains: FloatArray,
+        directions: FloatArray,
+    ) -> FloatArray:
+        """Whitened change of the model per unit of each target's gain perturbations.
+
+        ``directions`` of shape (K, M, n): target k's gains move by ``directions[k] @ t``;
+        in the aggregated correlation ``R`` moves by ``w_k (dg g_k^T + g_k dg^T)``.
+        Returns shape (L, K n).
+        """
+        k, n_leds, n_dirs = directions.shape
+        white = objective.white
+        multipliers = objective._multipliers(theta, objective.slots(k), state)
+        if multipliers is None:
+            multipliers = np.ones(k)
+        rotation = white.rotation if white.rotation is not None else np.eye(n_leds)
+        rotated = rotation.T @ gains  # (M', K)
+        columns = np.empty((white.weights.shape[0], k, n_dirs))
+        for target in range(k):
+            moved = rotation.T @ directions[target]  # (M', n)
+            if self.model == "power":
+                block = 2.0 * moved * rotated[:, target][:, np.newaxis]
+            else:
+                block = (
+                    moved[white.upper] * rotated[white.lower, target][:, np.newaxis]
+                    + rotated[white.upper, target][:, np.newaxis] * moved[white.lower]
+                )
+            columns[:, target, :] = multipliers[target] * white.weights[:, np.newaxis] * block
+        return columns.reshape(-1, k * n_dirs)
