@@ -221,13 +221,13 @@ class MisfitDesign:
 
     The fit's whitened data ``y = f(theta) + e`` (L values, P parameters, Gaussian priors as
     extra pseudo-residuals) has the error ``e = n + sum_c F_c d_c``: noise ``n ~ N(0, a I)``
-    and C components of model error ``d_c ~ N(0, b_c I)`` along the columns of ``F_c`` (for
+    and C kinds of model error ``d_c ~ N(0, b_c I)`` along the columns of ``F_c`` (for
     instance each LED's amplitude off by a relative ``d``: ``F`` holds the signal's
     derivative with respect to it). At the optimum the residual is ``r = Q e`` with
     ``Q = I - J A J^T``, ``A`` the inverse normal matrix, so
     ``E[r_i^2] = a (Q Q^T)_ii + sum_c b_c (Q F_c F_c^T Q^T)_ii``: the part of a model error
-    that the fitted parameters absorbed does not show in the residual, and is not counted
-    as seen; the covariance then carries all of it (:meth:`covariance`).
+    that the fitted parameters absorbed does not show in the residual (it is not counted as
+    seen), while the covariance carries all of it (:meth:`covariance`).
 
     Attributes
     ----------
@@ -243,6 +243,9 @@ class MisfitDesign:
         ``(Q Q^T)_ii``: each residual's expected square per unit of noise variance.
     error_leverages : ndarray of shape (L, C)
         ``(Q F_c F_c^T Q^T)_ii``: each residual's expected square per unit of ``b_c``.
+    error_spread : ndarray of shape (C,)
+        ``tr((Q F_c F_c^T Q^T)^2)``: with ``tr(Q F_c F_c^T Q^T)`` (the column sums of
+        ``error_leverages``), the degrees of freedom the residuals hold about ``b_c``.
     """
 
     inverse: FloatArray
@@ -251,6 +254,7 @@ class MisfitDesign:
     error_normals: FloatArray
     noise_leverage: FloatArray
     error_leverages: FloatArray
+    error_spread: FloatArray
 
     def covariance(self, noise: float, model_errors: FloatArray) -> FloatArray:
         """Sandwich covariance of the parameters, shape (P, P), for noise variance ``a`` and
@@ -283,14 +287,17 @@ def misfit_design(
     projected = jacobian @ inverse  # (L, P): the rows of H = J A J^T are projected @ J^T
     hat_diagonal = np.einsum("lp,lp->l", projected, jacobian)
     hat_square = np.einsum("lp,lp->l", projected @ data_normal, projected)
-    n_params = normal.shape[0]
-    error_normals = np.zeros((len(error_columns), n_params, n_params))
-    error_leverages = np.zeros((jacobian.shape[0], len(error_columns)))
+    n_params, n_components = normal.shape[0], len(error_columns)
+    error_normals = np.zeros((n_components, n_params, n_params))
+    error_leverages = np.zeros((jacobian.shape[0], n_components))
+    error_spread = np.zeros(n_components)
     for component, columns in enumerate(error_columns):
         seen = jacobian.T @ columns  # (P, Q_c)
-        absorbed = columns - projected @ seen
+        absorbed = columns - projected @ seen  # Q F_c
         error_normals[component] = seen @ seen.T
         error_leverages[:, component] = np.einsum("lq,lq->l", absorbed, absorbed)
+        gram_matrix = absorbed.T @ absorbed  # same nonzero spectrum as Q F F^T Q^T
+        error_spread[component] = float(np.sum(gram_matrix * gram_matrix))
     return MisfitDesign(
         inverse=inverse,
         data_normal=data_normal,
@@ -298,6 +305,7 @@ def misfit_design(
         error_normals=error_normals,
         noise_leverage=np.maximum(1.0 - 2.0 * hat_diagonal + hat_square, 0.0),
         error_leverages=error_leverages,
+        error_spread=error_spread,
     )
 
 
@@ -311,49 +319,50 @@ class Misfit:
         ``a``, the whitened noise variance (1 when the noise level is known).
     model_errors : ndarray of shape (C,)
         ``b_c``, each model error's variance (0 when the residuals show none).
-    covariance : ndarray of shape (C + 1, C + 1)
-        Sampling covariance of ``(a, b_1, ..., b_C)`` (zero rows for a known noise and for
-        the components fitted at 0).
+    dofs : ndarray of shape (C + 1,)
+        Degrees of freedom behind ``a`` (inf when known) and each ``b_c``: an estimate
+        ``b`` scatters like ``b chi2(nu) / nu``.
     """
 
     noise: float
     model_errors: FloatArray
-    covariance: FloatArray
+    dofs: FloatArray
 
 
 def fit_misfit(
-    residuals: FloatArray,
-    noise_leverage: FloatArray,
-    error_leverages: FloatArray,
-    noise: float | None = None,
+    designs: list[MisfitDesign], residuals: list[FloatArray], noise: float | None = None
 ) -> Misfit:
-    """Noise and model-error variances ``(a, b)`` from the residuals' squares (moments).
+    """Noise and model-error variances ``(a, b)`` from the residuals' squares (moments),
+    pooled over one or more fits that share them.
 
     Non-negative least squares of ``r_i^2`` on ``a (Q Q^T)_ii + sum_c b_c (Q F_c F_c^T Q^T)_ii``
     (see :class:`MisfitDesign`); with ``noise`` given, ``a`` is that and only ``b`` is fitted.
-    A normal residual's square scatters by ``2 E^2`` around its expectation ``E``: the fit
-    is reweighted by that (a few rounds from the unweighted one), which also gives the
-    estimates' sampling covariance ``2 (X^T W X)^-1`` over the components it keeps.
+    A normal residual's square scatters by ``2 E^2`` around its expectation ``E``: the fit is
+    reweighted by that, a few rounds from the unweighted one. The degrees of freedom of each
+    variance are those of its quadratic form, ``tr(M)^2 / tr(M^2)`` with
+    ``M = Q F_c F_c^T Q^T`` (Satterthwaite), and ``tr(Q Q^T)`` for the noise.
 
     Parameters
     ----------
-    residuals : ndarray of shape (L,)
-        Whitened residuals at the optimum (of one fit, or of several stacked).
-    noise_leverage : ndarray of shape (L,)
-    error_leverages : ndarray of shape (L, C)
+    designs : list of MisfitDesign
+    residuals : list of ndarrays of shape (L_j,)
+        Each fit's whitened data residuals at its optimum.
     noise : float or None
     """
-    squares = np.asarray(residuals, dtype=np.float64) ** 2
-    n_lev = np.asarray(noise_leverage, dtype=np.float64)
-    e_lev = np.asarray(error_leverages, dtype=np.float64)
-    n_components = e_lev.shape[1]
+    squares = np.concatenate([np.asarray(r, dtype=np.float64) for r in residuals]) ** 2
+    n_lev = np.concatenate([design.noise_leverage for design in designs])
+    e_lev = np.concatenate([design.error_leverages for design in designs])
+    spread = np.sum([design.error_spread for design in designs], axis=0)
+    traces = e_lev.sum(axis=0)
+    error_dofs = np.where(spread > 0.0, traces**2 / np.maximum(spread, 1e-300), 0.0)
+    noise_dof = math.inf if noise is not None else float(n_lev.sum())
+    dofs = np.r_[noise_dof, error_dofs]
     if noise is not None:
         design, target, offset = e_lev, squares - noise * n_lev, noise * n_lev
     else:
         design, target, offset = np.column_stack((n_lev, e_lev)), squares, np.zeros_like(n_lev)
-    covariance = np.zeros((n_components + 1, n_components + 1))
     if design.shape[1] == 0 or not np.any(design):
-        return Misfit(1.0 if noise is None else float(noise), np.zeros(n_components), covariance)
+        return Misfit(1.0 if noise is None else float(noise), np.zeros(e_lev.shape[1]), dofs)
     weights = np.ones_like(squares)
     solution = np.zeros(design.shape[1])
     for _ in range(_MISFIT_REWEIGHTS):
@@ -361,14 +370,9 @@ def fit_misfit(
         expected = offset + design @ solution
         floor = 1e-3 * max(float(np.mean(expected)), 1e-300)
         weights = 1.0 / np.maximum(expected, floor)
-    active = solution > 0.0
-    weighted = design[:, active] * weights[:, np.newaxis]
-    sampling = 2.0 * np.linalg.pinv(weighted.T @ weighted, hermitian=True)
-    at = np.flatnonzero(active) + (1 if noise is not None else 0)
-    covariance[np.ix_(at, at)] = sampling
     if noise is not None:
-        return Misfit(float(noise), np.asarray(solution), covariance)
-    return Misfit(float(solution[0]), np.asarray(solution[1:]), covariance)
+        return Misfit(float(noise), np.asarray(solution), dofs)
+    return Misfit(float(solution[0]), np.asarray(solution[1:]), dofs)
 
 
 def predictive_covariances(
@@ -378,12 +382,12 @@ def predictive_covariances(
     variances behind them.
 
     ``V = a V_a + sum_c b_c V_c + V_prior`` (:meth:`MisfitDesign.covariance`) uses estimated
-    ``a, b``. Its trace has a Satterthwaite number of degrees of freedom
-    ``nu = 2 tr(V)^2 / Var(tr V)`` (the variances' sampling covariance from
-    :class:`Misfit`); with a covariance estimated from ``nu`` degrees of freedom, the error's
-    Mahalanobis square over 2 is F(2, nu) rather than chi-square(2) / 2 distributed, so ``V``
-    is scaled by ``2 F^-1(level; 2, nu) / chi2^-1(level; 2)`` (1 when nothing is estimated):
-    the circle of ``level`` then holds the truth as often as it says.
+    ``a, b``, each with ``nu_c`` degrees of freedom (:class:`Misfit`). Its trace has
+    ``nu = tr(V)^2 / sum_c (b_c tr(V_c))^2 / nu_c`` (Satterthwaite); with a covariance
+    estimated from ``nu`` degrees of freedom, the error's Mahalanobis square over 2 is
+    F(2, nu) rather than chi-square(2) / 2 distributed, so ``V`` is scaled by
+    ``2 F^-1(level; 2, nu) / chi2^-1(level; 2)`` (1 when nothing is estimated): the circle of
+    ``level`` then holds the truth as often as it says.
 
     Parameters
     ----------
@@ -405,12 +409,16 @@ def predictive_covariances(
     rows, cols = blocks[:, :, np.newaxis], blocks[:, np.newaxis, :]
     pieces = np.array([part[rows, cols] for part in parts])  # (C + 1, K, 2, 2)
     covariances = np.einsum("c,ckij->kij", variances, pieces) + prior[rows, cols]
-    traces = np.einsum("ckii->ck", pieces)  # (C + 1, K)
-    spread = np.einsum("ck,cd,dk->k", traces, misfit.covariance, traces)
+    shares = variances[:, np.newaxis] * np.einsum("ckii->ck", pieces)  # (C + 1, K)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        per_dof = np.where(
+            shares > 0.0, shares**2 / np.maximum(misfit.dofs, 1e-300)[:, np.newaxis], 0.0
+        )
+    spread = per_dof.sum(axis=0)
     total = np.einsum("kii->k", covariances)
     widen = np.ones(blocks.shape[0])
     estimated = spread > 0.0
     if np.any(estimated):
-        dof = 2.0 * total[estimated] ** 2 / spread[estimated]
+        dof = total[estimated] ** 2 / spread[estimated]
         widen[estimated] = 2.0 * stats.f.ppf(level, 2, dof) / stats.chi2.ppf(level, 2)
     return np.asarray(covariances * widen[:, np.newaxis, np.newaxis])

@@ -623,11 +623,7 @@ class GridlessSolver(Solver):
             misfit_design(fit.jacobian, fit.normal, self._terminal_misfit_columns(fit))
             for fit in fits
         ]
-        misfit = fit_misfit(
-            np.concatenate([fit.residual for fit in fits]),
-            np.concatenate([design.noise_leverage for design in designs]),
-            np.concatenate([design.error_leverages for design in designs]),
-        )
+        misfit = fit_misfit(designs, [fit.residual for fit in fits])
         covariances = np.array(
             [predictive_covariances(design, misfit, np.array([[0, 1]]))[0] for design in designs]
         )
@@ -747,7 +743,7 @@ class GridlessSolver(Solver):
         residual = augmented[n_params, :n_data]
         fit = assess_fit(float(residual @ residual), n_data - n_params, scale)
         design = misfit_design(rows[:, :n_data].T, rows @ rows.T, columns)
-        misfit = fit_misfit(residual, design.noise_leverage, design.error_leverages, noise=1.0)
+        misfit = fit_misfit([design], [residual], noise=1.0)
         return predictive_covariances(design, misfit, index), fit
 
     def _misfit_columns(
