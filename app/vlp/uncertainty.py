@@ -1,9 +1,15 @@
 """How much to trust an answer: confidence radii and the goodness of a fit.
 
-A fit's covariance comes from its Fisher information (the Gauss-Newton normal matrix of
-the whitened residuals and priors at the optimum), inflated by the misfit when the model
-explains the data worse than the noise would (a reduced chi-square above 1: the room differs
-from its model, so the noise alone understates the error).
+A fit's covariance starts from its Fisher information (the Gauss-Newton normal matrix of the
+whitened residuals and priors at the optimum), which counts the noise only. A real room
+differs from its model (LEDs off their data sheet, tilted or higher receivers, reflections),
+and that error scales with the signal, lies partly along what the fit can absorb (a tilt
+looks like a shift) and does not show in a reduced chi-square: the nuisance parameters and
+the fitted noise level soak it up. So the model errors the fit does not fit are written as
+columns ``F_c`` (the model's derivative along each), their variances are estimated from the
+residuals' squares net of what the fit absorbed (:class:`MisfitDesign`, :func:`fit_misfit`),
+the covariance is the sandwich that carries all of each error, and it is widened for the few
+degrees of freedom behind those variances (:func:`predictive_covariances`).
 """
 
 from __future__ import annotations
@@ -330,13 +336,17 @@ class Misfit:
 
 
 def fit_misfit(
-    designs: list[MisfitDesign], residuals: list[FloatArray], noise: float | None = None
+    designs: list[MisfitDesign],
+    residuals: list[FloatArray],
+    noise: float | None = None,
+    max_noise: float | None = None,
 ) -> Misfit:
     """Noise and model-error variances ``(a, b)`` from the residuals' squares (moments),
     pooled over one or more fits that share them.
 
     Non-negative least squares of ``r_i^2`` on ``a (Q Q^T)_ii + sum_c b_c (Q F_c F_c^T Q^T)_ii``
-    (see :class:`MisfitDesign`); with ``noise`` given, ``a`` is that and only ``b`` is fitted.
+    (see :class:`MisfitDesign`); with ``noise`` given, ``a`` is that and only ``b`` is fitted,
+    else ``a`` is fitted too, at most ``max_noise`` when given.
     A normal residual's square scatters by ``2 E^2`` around its expectation ``E``: the fit is
     reweighted by that, a few rounds from the unweighted one. The degrees of freedom of each
     variance are those of its quadratic form, ``tr(M)^2 / tr(M^2)`` with
@@ -348,6 +358,7 @@ def fit_misfit(
     residuals : list of ndarrays of shape (L_j,)
         Each fit's whitened data residuals at its optimum.
     noise : float or None
+    max_noise : float or None
     """
     squares = np.concatenate([np.asarray(r, dtype=np.float64) for r in residuals]) ** 2
     n_lev = np.concatenate([design.noise_leverage for design in designs])
@@ -363,10 +374,15 @@ def fit_misfit(
         design, target, offset = np.column_stack((n_lev, e_lev)), squares, np.zeros_like(n_lev)
     if design.shape[1] == 0 or not np.any(design):
         return Misfit(1.0 if noise is None else float(noise), np.zeros(e_lev.shape[1]), dofs)
+    upper = np.full(design.shape[1], np.inf)
+    if noise is None and max_noise is not None:
+        upper[0] = max_noise
     weights = np.ones_like(squares)
     solution = np.zeros(design.shape[1])
     for _ in range(_MISFIT_REWEIGHTS):
-        solution, _ = optimize.nnls(design * weights[:, np.newaxis], target * weights)
+        solution = optimize.lsq_linear(
+            design * weights[:, np.newaxis], target * weights, bounds=(0.0, upper), method="bvls"
+        ).x
         expected = offset + design @ solution
         floor = 1e-3 * max(float(np.mean(expected)), 1e-300)
         weights = 1.0 / np.maximum(expected, floor)

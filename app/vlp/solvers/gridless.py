@@ -103,9 +103,12 @@ class GridlessSolver(Solver):
        Gaussian prior (:class:`GridlessOptions`), kept only when a score test and then the
        fit show a decrease beyond the chance level of their extra parameters. Free
        weights instead of priors let a close pair merge into one target of weight 2.
-    6. Uncertainty (:meth:`_uncertainty`): the inverse Fisher information of the final
-       whitened fit, inflated by the reduced chi-square when above 1, and the fit's
-       quality (:func:`app.vlp.uncertainty.assess_fit`).
+    6. Uncertainty (:meth:`_uncertainty`): the sandwich covariance of the final whitened
+       fit with the noise and the model errors it does not fit (each target's relative
+       amplitude error per LED, its photodiode's tilt, its height when not fitted), whose
+       variances are estimated from the residuals net of what the fit absorbed and widened
+       for their degrees of freedom (:mod:`app.vlp.uncertainty`); and the fit's quality
+       (:func:`app.vlp.uncertainty.assess_fit`).
 
     With K known the measurement is first divided by a guessed common scale when its power
     per target is more than 1.5x off the room's mean (:meth:`_prescale`). Unknown K: targets
@@ -561,8 +564,11 @@ class GridlessSolver(Solver):
         See :mod:`._terminal_fit`. Two passes: without priors, to estimate the amplitude
         noise variance pooled over the terminals (its residual sum of squares over its
         degrees of freedom), then with the gain and height priors weighted by it. The
-        covariance of each position is the inverse of its whitened normal matrix, inflated
-        by that terminal's reduced chi-square when above 1.
+        covariance of each position is the sandwich of its whitened fit with the noise and
+        the model errors the fit does not fit (:meth:`_terminal_misfit_columns`), their
+        variances estimated from all terminals' residuals together (the first pass's noise
+        level holds part of the misfit, so the noise variance is re-estimated with them)
+        and widened for their degrees of freedom (:mod:`app.vlp.uncertainty`).
         """
         check_amplitude_scale(self.fingerprint, np.asarray(amplitudes, dtype=np.float64))
         values = np.asarray(amplitudes, dtype=np.float64) / self._scale
@@ -720,10 +726,12 @@ class GridlessSolver(Solver):
         does not fit (:meth:`_misfit_columns`), each variance ``b_c`` estimated from the
         residuals at the optimum net of what the fitted parameters absorbed
         (:func:`app.vlp.uncertainty.fit_misfit`), then widened for those estimates' few
-        degrees of freedom (:func:`app.vlp.uncertainty.predictive_covariances`). The noise
-        level is fitted (the noise atom), so the whitened noise variance is 1. A room too
-        large to hold the model-error design falls back to inflating the inverse Fisher
-        information by the reduced chi-square when above 1.
+        degrees of freedom (:func:`app.vlp.uncertainty.predictive_covariances`). The whitened
+        noise variance is fitted with them, at most 1: the whitening's noise level comes
+        from the fitted noise atom, which absorbs misfit on the diagonal of ``R`` (so a room
+        off its model shows a reduced chi-square below 1, not above), never less than the
+        noise. A room too large to hold the model-error design falls back to inflating the
+        inverse Fisher information by the reduced chi-square when above 1.
         """
         objective = self._objective(run, self._whitening(state))
         theta = objective.pack(state)
@@ -743,7 +751,7 @@ class GridlessSolver(Solver):
         residual = augmented[n_params, :n_data]
         fit = assess_fit(float(residual @ residual), n_data - n_params, scale)
         design = misfit_design(rows[:, :n_data].T, rows @ rows.T, columns)
-        misfit = fit_misfit([design], [residual], noise=1.0)
+        misfit = fit_misfit([design], [residual], max_noise=1.0)
         return predictive_covariances(design, misfit, index), fit
 
     def _misfit_columns(
