@@ -374,15 +374,17 @@ def fit_misfit(
         design, target, offset = np.column_stack((n_lev, e_lev)), squares, np.zeros_like(n_lev)
     if design.shape[1] == 0 or not np.any(design):
         return Misfit(1.0 if noise is None else float(noise), np.zeros(e_lev.shape[1]), dofs)
-    upper = np.full(design.shape[1], np.inf)
-    if noise is None and max_noise is not None:
-        upper[0] = max_noise
     weights = np.ones_like(squares)
     solution = np.zeros(design.shape[1])
     for _ in range(_MISFIT_REWEIGHTS):
-        solution = optimize.lsq_linear(
-            design * weights[:, np.newaxis], target * weights, bounds=(0.0, upper), method="bvls"
-        ).x
+        solution, _ = optimize.nnls(design * weights[:, np.newaxis], target * weights)
+        if noise is None and max_noise is not None and solution[0] > max_noise:
+            # The noise at its bound, the model errors fitted to what is left.
+            solution[0] = max_noise
+            solution[1:], _ = optimize.nnls(
+                design[:, 1:] * weights[:, np.newaxis],
+                (target - max_noise * design[:, 0]) * weights,
+            )
         expected = offset + design @ solution
         floor = 1e-3 * max(float(np.mean(expected)), 1e-300)
         weights = 1.0 / np.maximum(expected, floor)

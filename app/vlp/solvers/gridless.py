@@ -46,7 +46,7 @@ from ._gridless_options import (
 )
 from ._kernels import kernel_mode
 from ._local import PowerScan, TerminalWindows
-from ._terminal_fit import TerminalFit, fit_terminal, starting_cells, terminal_model
+from ._terminal_fit import TerminalFit, fit_terminal, starting_cells
 from .base import MAX_TARGETS, Solution, Solver, register_solver
 
 __all__ = ["LM_DEFAULTS", "GridlessOptions", "GridlessSolver"]
@@ -626,8 +626,14 @@ class GridlessSolver(Solver):
         ]
         chi2 = np.array([fit.rss for fit in fits]) / max(sigma2, 1e-300)
         designs = [
-            misfit_design(fit.jacobian, fit.normal, self._terminal_misfit_columns(fit))
-            for fit in fits
+            misfit_design(
+                fit.jacobian,
+                fit.normal,
+                self._terminal_misfit_columns(
+                    fit, own_heights[k] is not None, own_normals[k] is not None
+                ),
+            )
+            for k, fit in enumerate(fits)
         ]
         misfit = fit_misfit(designs, [fit.residual for fit in fits])
         covariances = np.array(
@@ -654,25 +660,20 @@ class GridlessSolver(Solver):
             fit=fit_quality,
         )
 
-    def _terminal_misfit_columns(self, fit: TerminalFit) -> list[FloatArray]:
+    def _terminal_misfit_columns(
+        self, fit: TerminalFit, height_known: bool, normal_known: bool
+    ) -> list[FloatArray]:
         """Whitened derivatives of a terminal's amplitudes along the errors its fit does not
-        fit, as :meth:`_misfit_columns`: each LED's relative error, (M, M), then (when not
-        fitted) the photodiode's tilt, (M, 2), and its height, (M, 1)."""
+        fit, as :meth:`_misfit_columns`: each LED's relative error, (M, M), then the
+        photodiode's tilt, (M, 2), and its height, (M, 1), unless fitted or sent by the
+        terminal (then (M, 0): every terminal keeps the same components)."""
         columns = [np.diag(fit.jacobian[:, -1])]  # the log gain's column: whitened amplitudes
-        x, y = fit.position
-        _, gradient = terminal_model(
-            self._kernel,
-            np.array([x, y, 0.0, 0.0, fit.log_gain]),
-            False,
-            fit.height,
-            None,
-            free_tilt=True,
-        )
+        gradient = self._shape_gradients(fit.position[np.newaxis, :], np.array([fit.height]))[0]
         scale = fit.data_weight * math.exp(fit.log_gain)
-        # Fitted ones are in the normal matrix already: no columns (every terminal keeps the
-        # same components, pooled in :meth:`solve_terminals`).
-        columns.append(scale * gradient[:, 3:5] if not fit.free_tilt else gradient[:, :0])
-        columns.append(scale * gradient[:, 2:3] if not fit.free_height else gradient[:, :0])
+        unknown_tilt = not (fit.free_tilt or normal_known)
+        unknown_height = not (fit.free_height or height_known)
+        columns.append(scale * gradient[:, 1:3] if unknown_tilt else gradient[:, :0])
+        columns.append(scale * gradient[:, 0:1] if unknown_height else gradient[:, :0])
         return columns
 
     def _with_nuisances(self, run: _Run, fixed: FitState) -> FitState:
@@ -775,21 +776,36 @@ class GridlessSolver(Solver):
         gains = target_gains(self._kernel, state)  # (M, K)
         relative = np.einsum("mk,mn->kmn", gains, np.eye(n_leds))  # diag(g_k) per target
         errors = self._perturbation_columns(objective, theta, state, gains, relative)
-        tilts = np.empty((k, n_leds, 3))
-        for target in range(k):
-            x, y = state.positions[target]
-            _, gradient = terminal_model(
-                self._kernel,
-                np.array([x, y, 0.0, 0.0, 0.0]),
-                False,
-                float(state.heights[target]),
-                None,
-                free_tilt=True,
-            )
-            tilts[target] = gradient[:, 2:5]
+        tilts = self._shape_gradients(state.positions, state.heights)
         out = [errors, self._perturbation_columns(objective, theta, state, gains, tilts[:, :, 1:])]
         if objective.slots(k).n_axes != 3:  # heights held fixed
             out.append(self._perturbation_columns(objective, theta, state, gains, tilts[:, :, :1]))
+        return out
+
+    def _shape_gradients(self, positions: FloatArray, heights: FloatArray) -> FloatArray:
+        """Derivatives of each point's gains with respect to its height and its photodiode's
+        tilt (tangent components, at level), shape (K, M, 3): ``[dg/dz, dg/dtx, dg/dty]``.
+
+        Tilting the normal ``n`` moves the line of sight ``h ∝ n . v`` by
+        ``h / v_z (v_x, v_y)`` per unit of tilt (``v`` = LED minus receiver); the diffuse
+        part is modelled for a level photodiode (as in :func:`._terminal_fit.terminal_model`).
+        """
+        kernel = self._kernel
+        k = positions.shape[0]
+        blocks = kernel.gradients_xyz(positions[:, 0], positions[:, 1], heights)
+        offsets = kernel.led_xyz[:, np.newaxis, :] - np.column_stack((positions, heights))
+        drop = np.maximum(offsets[:, :, 2], 1e-9)  # (M, K)
+        dist2 = np.einsum("mkc,mkc->mk", offsets, offsets)
+        orders = kernel.orders[:, np.newaxis]
+        los = (
+            kernel.free_height_factor[:, np.newaxis]
+            * drop ** (orders + 1.0)
+            * dist2 ** (-(orders + 3.0) / 2.0)
+            * (drop * drop >= kernel.cos_fov2 * dist2)
+        )
+        out = np.empty((k, kernel.n_leds, 3))
+        out[:, :, 0] = blocks[:, 2 * k : 3 * k].T
+        out[:, :, 1:] = ((los / drop)[:, :, np.newaxis] * offsets[:, :, :2]).transpose(1, 0, 2)
         return out
 
     def _perturbation_columns(
@@ -812,16 +828,12 @@ class GridlessSolver(Solver):
         if multipliers is None:
             multipliers = np.ones(k)
         rotation = white.rotation if white.rotation is not None else np.eye(n_leds)
-        rotated = rotation.T @ gains  # (M', K)
-        columns = np.empty((white.weights.shape[0], k, n_dirs))
-        for target in range(k):
-            moved = rotation.T @ directions[target]  # (M', n)
-            if self.model == "power":
-                block = 2.0 * moved * rotated[:, target][:, np.newaxis]
-            else:
-                block = (
-                    moved[white.upper] * rotated[white.lower, target][:, np.newaxis]
-                    + rotated[white.upper, target][:, np.newaxis] * moved[white.lower]
-                )
-            columns[:, target, :] = multipliers[target] * white.weights[:, np.newaxis] * block
-        return columns.reshape(-1, k * n_dirs)
+        rotated = (rotation.T @ gains)[:, :, np.newaxis]  # (M', K, 1)
+        moved = np.einsum("ba,kbn->akn", rotation, directions)  # (M', K, n)
+        if self.model == "power":
+            block = 2.0 * moved * rotated
+        else:
+            upper, lower = white.upper, white.lower
+            block = moved[upper] * rotated[lower] + rotated[upper] * moved[lower]
+        block *= multipliers[np.newaxis, :, np.newaxis] * white.weights[:, np.newaxis, np.newaxis]
+        return np.asarray(block.reshape(-1, k * n_dirs))
