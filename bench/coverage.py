@@ -1,14 +1,17 @@
 """How often the truth falls inside the answers' 95 % radius (``accuracy_m``).
 
-The default solver reports, per estimate, the radius of the 95 % confidence circle from its
-fit's Fisher information (widened by the reduced chi-square when the fit is poor). This
-counts, over fixed-seed placements at 30 dB, the fraction of true positions inside that
-radius around their (Hungarian-matched) estimate, for the aggregated correlation and the
-``terminals`` form, on the ideal model and under the realistic mix (reflectance in the
-layout), in the paper room and the irregular room of ``bench/rooms.py``.
+The default solver reports, per estimate, the radius of the 95 % confidence circle of its
+fit's covariance (noise and the model errors its residuals show, see
+:mod:`app.vlp.uncertainty`). This counts, over fixed-seed placements (30 dB unless
+``--snr``), the fraction of true positions inside that radius around their
+(Hungarian-matched) estimate, with the median radius next to the median error (a radius
+must not cover by being huge), for the aggregated correlation and the ``terminals`` form,
+on the ideal model and under the realistic mix (reflectance in the layout), in the paper
+room and the irregular room of ``bench/rooms.py``.
 
     python -m bench.coverage             # writes the coverage section of docs/accuracy.md
     python -m bench.coverage --trials 10 --out bench/out/quick
+    python -m bench.coverage --snr 20 --rooms hall --out bench/out/hall20
 """
 
 from __future__ import annotations

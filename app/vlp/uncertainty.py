@@ -288,7 +288,7 @@ def misfit_design(
     error_columns : list of C ndarrays of shape (L, Q_c)
         ``F_c``: the whitened model's derivative along each unit of each model error.
     """
-    inverse = np.linalg.pinv(normal, hermitian=True)
+    inverse = np.asarray(np.linalg.pinv(normal, hermitian=True), dtype=np.float64)
     data_normal = jacobian.T @ jacobian
     projected = jacobian @ inverse  # (L, P): the rows of H = J A J^T are projected @ J^T
     hat_diagonal = np.einsum("lp,lp->l", projected, jacobian)
