@@ -302,7 +302,9 @@ def misfit_design(
         absorbed = columns - projected @ seen  # Q F_c
         error_normals[component] = seen @ seen.T
         error_leverages[:, component] = np.einsum("lq,lq->l", absorbed, absorbed)
-        gram_matrix = absorbed.T @ absorbed  # same nonzero spectrum as Q F F^T Q^T
+        # Q F F^T Q^T and F^T Q^T Q F share their nonzero spectrum: the smaller one.
+        small = absorbed.T @ absorbed if absorbed.shape[1] <= absorbed.shape[0] else None
+        gram_matrix = small if small is not None else absorbed @ absorbed.T
         error_spread[component] = float(np.sum(gram_matrix * gram_matrix))
     return MisfitDesign(
         inverse=inverse,
