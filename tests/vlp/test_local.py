@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -12,7 +14,8 @@ from app.vlp.measurements import Measurement, measurement_from_amplitudes
 from app.vlp.metrics import matched_errors
 from app.vlp.simulation import noise_std_for_snr, noisy_amplitudes, random_positions
 from app.vlp.solvers._gridless_fit import FitState, Whitening
-from app.vlp.solvers._local import TerminalWindows
+from app.vlp.solvers._kernels import KERNELS, use_kernels
+from app.vlp.solvers._local import TerminalWindows, _best_of_tiles
 from app.vlp.solvers._terminal_fit import starting_cells
 from app.vlp.solvers.gridless import GridlessSolver, _Run
 from app.vlp.typing import FloatArray
@@ -119,9 +122,51 @@ def test_power_scan_finds_the_whole_grid_argmax(hall: Fingerprint) -> None:
             num, norms = solver._correlations(white, residual)
             scores = 2.0 * weight * num - weight**2 * norms
             expected = int(np.argmax(scores))
-            found = scan.best(residual, weight, 1.0)
-            assert found is not None
-            assert found == (expected, float(scores[expected]), float(norms[expected]))
+            for kernels in KERNELS:
+                with use_kernels(kernels):
+                    found = scan.best(residual, weight, 1.0)
+                assert found is not None
+                assert found == (expected, float(scores[expected]), float(norms[expected]))
+
+
+def test_compiled_tile_scores_are_the_numpy_ones(hall: Fingerprint) -> None:
+    """The compiled best point of a batch of tiles is the NumPy reference's, bit for bit
+    (random tiles, residuals of both signs, ties broken to the lowest index)."""
+    scan = GridlessSolver(hall, "power")._power_scan
+    assert scan is not None
+    rng = np.random.default_rng(21)
+    n_tiles = int(scan.bounds.shape[0])
+    by_cell = scan.gains_by_cell
+    for _ in range(20):
+        tiles = rng.choice(n_tiles, size=int(rng.integers(1, 40)), replace=False)
+        residual = rng.standard_normal(hall.n_leds) * rng.choice([1e-3, 1.0, 1e3])
+        weight, norm_scale = float(rng.uniform(0.2, 3.0)), float(rng.uniform(0.5, 2.0))
+        expected = scan._best_of_tiles_reference(tiles, residual, weight, norm_scale)
+        got = _best_of_tiles(
+            tiles.astype(np.int64),
+            (scan.n_x, scan.n_y, scan.tile),
+            (by_cell.indptr, by_cell.indices, by_cell.data),
+            scan.inverse_scale,
+            residual,
+            scan.fourth_sums,
+            (2.0 * weight, weight**2, norm_scale),
+        )
+        assert got == expected
+    # All scores equal (a zero residual, equal norms): the lowest grid index wins.
+    flat = replace(scan, fourth_sums=np.ones_like(scan.fourth_sums))
+    tiles = np.array([5, 2, 9], dtype=np.int64)
+    expected = flat._best_of_tiles_reference(tiles, np.zeros(hall.n_leds), 1.0, 1.0)
+    assert expected[0] == int(np.min(flat._cells(tiles)))
+    got = _best_of_tiles(
+        tiles,
+        (flat.n_x, flat.n_y, flat.tile),
+        (by_cell.indptr, by_cell.indices, by_cell.data),
+        flat.inverse_scale,
+        np.zeros(hall.n_leds),
+        flat.fourth_sums,
+        (2.0, 1.0, 1.0),
+    )
+    assert got == expected
 
 
 def test_power_solves_in_large_rooms_are_those_of_the_whole_grid_scan(hall: Fingerprint) -> None:

@@ -7,8 +7,8 @@ Private: callers validate.
 
 Arguments come as tuples of plain arrays and numbers (see :func:`problem_of`):
 
-- ``white``: ``(has_rotation, rotation (M, M), weights (L,), upper (L,), lower (L,),
-  weighted_diag (L,))``
+- ``white``: ``(has_rotation, rotation (M, M), or (0, 0) when has_rotation is False,
+  weights (L,), upper (L,), lower (L,), weighted_diag (L,))``
 - ``fixed``: what theta does not hold: ``(heights, weights, log_gains (K,), log_scale,
   on_plane, unit)``
 - ``layout``: ``(n_axes, weights_at, gains_at, scale_at, n_prior)``, -1 when absent
@@ -373,7 +373,7 @@ def whitening_kernel(
     lower: IntArray,
     is_diag: FloatArray,
 ) -> tuple[FloatArray, FloatArray]:
-    """:meth:`Whitening.from_state`: the rotation (identity for power) and the weights."""
+    """:meth:`Whitening.from_state`: the rotation (empty for power) and the weights."""
     heights, _, _, _, on_plane, _ = fixed
     k = heights.shape[0]
     theta = np.empty(2 * k)
@@ -398,7 +398,8 @@ def whitening_kernel(
             for i in range(k):
                 received += gains[i, m] * gains[i, m] * multipliers[i]
             weights[m] = 1.0 / math.sqrt(4.0 * sigma2 * (received + half_noise))
-        return np.eye(n_leds), weights
+        # No rotation (the caller drops it): an empty one, not an M x M identity to fill.
+        return np.zeros((0, 0)), weights
     signal = np.zeros((n_leds, n_leds))
     for a in range(n_leds):
         for b in range(n_leds):
