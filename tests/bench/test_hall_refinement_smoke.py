@@ -6,8 +6,8 @@ from bench.hall_refinement import run
 
 
 def test_local_and_full_refinements_are_both_reported() -> None:
-    """Two seeds, three targets in the 40 m room: both ways report every figure, and these
-    well separated targets are found either way (30 dB)."""
+    """Two seeds, three targets in the 40 m room at 30 dB: both ways report every figure
+    and find every target (these seeds' targets are found by either)."""
     report = run("medium", 3, range(1, 3), 30.0)
     assert report["seeds"] == "1-2"
     for way in ("local", "full"):
