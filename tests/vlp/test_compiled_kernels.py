@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import importlib
 import os
 import subprocess
 import sys
@@ -36,7 +37,7 @@ from app.vlp.solvers._gridless_fit import (
     gram_reference,
     levenberg_marquardt,
 )
-from app.vlp.solvers._kernels import kernel_mode, use_kernels, warm_up
+from app.vlp.solvers._kernels import kernel_cache_dir, kernel_mode, use_kernels, warm_up
 from app.vlp.solvers.gridless import GridlessSolver
 from app.vlp.typing import FloatArray
 
@@ -439,6 +440,32 @@ def test_works_without_a_writable_cache(tmp_path: Path) -> None:
     assert done.returncode == 0, done.stderr[-3000:]
     assert done.stdout.strip().endswith("ok")
     assert not (blocker / "cache").exists()
+
+
+def test_the_disk_cache_is_keyed_by_every_science_source(tmp_path: Path) -> None:
+    """numba keys a cached kernel by its own file; a change in a file it calls must still
+    compile it afresh: the cache folder is named after all of app/vlp's sources."""
+    sources = tmp_path / "vlp"
+    (sources / "solvers").mkdir(parents=True)
+    (sources / "channel.py").write_text("A = 1\n")
+    (sources / "solvers" / "kernel.py").write_text("B = 2\n")
+    base = tmp_path / "cache"
+    first = kernel_cache_dir(base, sources)
+    assert first.parent == base and first.name.startswith("vlp-")
+    assert kernel_cache_dir(base, sources) == first  # same sources, same folder
+    (sources / "channel.py").write_text("A = 3\n")  # only the callee's file changes
+    changed = kernel_cache_dir(base, sources)
+    assert changed != first
+    (sources / "channel.py").write_text("A = 1\n")
+    assert kernel_cache_dir(base, sources) == first
+    (sources / "solvers" / "kernel.py").rename(sources / "solvers" / "moved.py")
+    assert kernel_cache_dir(base, sources) != first  # a renamed file counts too
+    # In this process, the kernels' cache lives in the folder of the real sources.
+    science = Path(__file__).resolve().parents[2] / "app" / "vlp"
+    folder = Path(importlib.import_module("numba.core.config").CACHE_DIR)
+    assert folder == kernel_cache_dir(folder.parent, science)
+    cache_path = Path(channel_rows._cache._cache_path)  # type: ignore[attr-defined]
+    assert folder in cache_path.parents
 
 
 def test_warm_up_is_idempotent() -> None:
