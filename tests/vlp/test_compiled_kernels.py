@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import importlib
 import os
 import subprocess
 import sys
@@ -26,7 +27,7 @@ from app.vlp.measurements import Model
 from app.vlp.presets import paper_layout
 from app.vlp.solvers._channel_compiled import channel_constants, channel_rows, diffuse_rows
 from app.vlp.solvers._channel_kernel import ChannelKernel
-from app.vlp.solvers._fit_compiled import correlation_scores_kernel
+from app.vlp.solvers._fit_compiled import _sparse_symmetric_product, correlation_scores_kernel
 from app.vlp.solvers._gridless_fit import (
     FitState,
     Objective,
@@ -36,7 +37,7 @@ from app.vlp.solvers._gridless_fit import (
     gram_reference,
     levenberg_marquardt,
 )
-from app.vlp.solvers._kernels import kernel_mode, use_kernels, warm_up
+from app.vlp.solvers._kernels import kernel_cache_dir, kernel_mode, use_kernels, warm_up
 from app.vlp.solvers.gridless import GridlessSolver
 from app.vlp.typing import FloatArray
 
@@ -441,6 +442,79 @@ def test_works_without_a_writable_cache(tmp_path: Path) -> None:
     assert not (blocker / "cache").exists()
 
 
+def test_the_disk_cache_is_keyed_by_every_science_source(tmp_path: Path) -> None:
+    """numba keys a cached kernel by its own file; a change in a file it calls must still
+    compile it afresh: the cache folder is named after all of app/vlp's sources."""
+    sources = tmp_path / "vlp"
+    (sources / "solvers").mkdir(parents=True)
+    (sources / "channel.py").write_text("A = 1\n")
+    (sources / "solvers" / "kernel.py").write_text("B = 2\n")
+    base = tmp_path / "cache"
+    first = kernel_cache_dir(base, sources)
+    assert first.parent == base and first.name.startswith("vlp-")
+    assert kernel_cache_dir(base, sources) == first  # same sources, same folder
+    (sources / "channel.py").write_text("A = 3\n")  # only the callee's file changes
+    changed = kernel_cache_dir(base, sources)
+    assert changed != first
+    (sources / "channel.py").write_text("A = 1\n")
+    assert kernel_cache_dir(base, sources) == first
+    (sources / "solvers" / "kernel.py").rename(sources / "solvers" / "moved.py")
+    assert kernel_cache_dir(base, sources) != first  # a renamed file counts too
+    # In this process, the kernels' cache lives in the folder of the real sources.
+    science = Path(__file__).resolve().parents[2] / "app" / "vlp"
+    folder = Path(importlib.import_module("numba.core.config").CACHE_DIR)
+    assert folder == kernel_cache_dir(folder.parent, science)
+    cache_path = Path(channel_rows._cache._cache_path)  # type: ignore[attr-defined]
+    assert folder in cache_path.parents
+
+
 def test_warm_up_is_idempotent() -> None:
     warm_up()
     warm_up()
+
+
+def test_sparse_products_are_the_dense_ones() -> None:
+    """Long, mostly zero rows (a large room's Jacobian) take the sparse product, which
+    equals ``rows @ rows.T`` to round-off; short or dense rows are left to the dense one."""
+    rng = np.random.default_rng(17)
+    rows = np.zeros((40, 600))
+    for i in range(38):  # a few nonzeros each, in a band (a target's nearby LEDs)
+        start = int(rng.integers(0, 580))
+        rows[i, start : start + 12] = rng.standard_normal(12) * (rng.random(12) < 0.7)
+    rows[38] = rng.standard_normal(600)  # the noise coefficient's and residual's rows: dense
+    rows[39] = rng.standard_normal(600)
+    rows[5] = 0.0  # an all-zero row (a target out of every LED's view)
+    product, sparse = _sparse_symmetric_product(rows)
+    assert sparse
+    np.testing.assert_allclose(product, rows @ rows.T, rtol=1e-12, atol=1e-12)
+    assert not _sparse_symmetric_product(rows[:, :100])[1]  # short rows
+    assert not _sparse_symmetric_product(rng.standard_normal((6, 600)))[1]  # dense rows
+
+
+def test_large_room_grams_match_the_reference() -> None:
+    """``J^T J``, ``J^T r`` and the cost of a 40 m hall's power fit (144 LEDs, each target
+    sees about a tenth of them: the sparse product), plain and whitened."""
+    leds = tuple(
+        Led(x=3.2 * (i + 0.5), y=3.2 * (j + 0.5), z=3.0) for i in range(12) for j in range(12)
+    )
+    layout = Layout(Room(40.0, 40.0, 3.0), Grid(0.1, 0.85), leds, Receiver(fov_deg=70.0))
+    rng = np.random.default_rng(23)
+    k = 12
+    positions = rng.uniform(1.0, 39.0, (k, 2))
+    # Normalised as the solver does: gains of order one where a target sees an LED.
+    raw = ChannelKernel(layout, 1.0).gains_xy(positions[:, 0], positions[:, 1])
+    kernel = ChannelKernel(layout, float(np.sqrt(np.mean(raw[raw > 0] ** 2))))
+    state = FitState(positions, np.ones(k), 1e-3, np.full(k, 0.85), np.zeros(k))
+    for white in (
+        Whitening.identity("power", kernel.n_leds),
+        Whitening._from_state_reference("power", kernel, state, float(k)),
+    ):
+        values = normal(rng, kernel.n_leds)
+        objective = Objective(kernel, white, values, False, Priors())
+        theta = objective.pack(state)
+        with use_kernels("reference"):
+            want = gram_reference(objective, theta, state)
+            assert _sparse_symmetric_product(objective.augmented(theta, state))[1]
+        fresh = Objective(kernel, white, values, False, Priors())
+        for got_part, want_part in zip(gram(fresh, theta, state), want, strict=True):
+            assert_same(got_part, want_part)

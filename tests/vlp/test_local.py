@@ -2,18 +2,23 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
 from app.vlp.channel import los_gains
 from app.vlp.fingerprints import Fingerprint, build_fingerprint
 from app.vlp.layout import Grid, Layout, Led, Receiver, Reflectance, Room
-from app.vlp.measurements import measurement_from_amplitudes
+from app.vlp.measurements import Measurement, measurement_from_amplitudes
+from app.vlp.metrics import matched_errors
 from app.vlp.simulation import noise_std_for_snr, noisy_amplitudes, random_positions
-from app.vlp.solvers._gridless_fit import Whitening
-from app.vlp.solvers._local import TerminalWindows
+from app.vlp.solvers._gridless_fit import FitState, Whitening
+from app.vlp.solvers._kernels import KERNELS, use_kernels
+from app.vlp.solvers._local import TerminalWindows, _best_of_tiles
 from app.vlp.solvers._terminal_fit import starting_cells
-from app.vlp.solvers.gridless import GridlessSolver
+from app.vlp.solvers.gridless import GridlessSolver, _Run
+from app.vlp.typing import FloatArray
 
 
 def _hall(side: float = 40.0, pitch: float = 3.2, fov_deg: float = 70.0) -> Layout:
@@ -117,9 +122,51 @@ def test_power_scan_finds_the_whole_grid_argmax(hall: Fingerprint) -> None:
             num, norms = solver._correlations(white, residual)
             scores = 2.0 * weight * num - weight**2 * norms
             expected = int(np.argmax(scores))
-            found = scan.best(residual, weight, 1.0)
-            assert found is not None
-            assert found == (expected, float(scores[expected]), float(norms[expected]))
+            for kernels in KERNELS:
+                with use_kernels(kernels):
+                    found = scan.best(residual, weight, 1.0)
+                assert found is not None
+                assert found == (expected, float(scores[expected]), float(norms[expected]))
+
+
+def test_compiled_tile_scores_are_the_numpy_ones(hall: Fingerprint) -> None:
+    """The compiled best point of a batch of tiles is the NumPy reference's, bit for bit
+    (random tiles, residuals of both signs, ties broken to the lowest index)."""
+    scan = GridlessSolver(hall, "power")._power_scan
+    assert scan is not None
+    rng = np.random.default_rng(21)
+    n_tiles = int(scan.bounds.shape[0])
+    by_cell = scan.gains_by_cell
+    for _ in range(20):
+        tiles = rng.choice(n_tiles, size=int(rng.integers(1, 40)), replace=False)
+        residual = rng.standard_normal(hall.n_leds) * rng.choice([1e-3, 1.0, 1e3])
+        weight, norm_scale = float(rng.uniform(0.2, 3.0)), float(rng.uniform(0.5, 2.0))
+        expected = scan._best_of_tiles_reference(tiles, residual, weight, norm_scale)
+        got = _best_of_tiles(
+            tiles.astype(np.int64),
+            (scan.n_x, scan.n_y, scan.tile),
+            (by_cell.indptr, by_cell.indices, by_cell.data),
+            scan.inverse_scale,
+            residual,
+            scan.fourth_sums,
+            (2.0 * weight, weight**2, norm_scale),
+        )
+        assert got == expected
+    # All scores equal (a zero residual, equal norms): the lowest grid index wins.
+    flat = replace(scan, fourth_sums=np.ones_like(scan.fourth_sums))
+    tiles = np.array([5, 2, 9], dtype=np.int64)
+    expected = flat._best_of_tiles_reference(tiles, np.zeros(hall.n_leds), 1.0, 1.0)
+    assert expected[0] == int(np.min(flat._cells(tiles)))
+    got = _best_of_tiles(
+        tiles,
+        (flat.n_x, flat.n_y, flat.tile),
+        (by_cell.indptr, by_cell.indices, by_cell.data),
+        flat.inverse_scale,
+        np.zeros(hall.n_leds),
+        flat.fourth_sums,
+        (2.0, 1.0, 1.0),
+    )
+    assert got == expected
 
 
 def test_power_solves_in_large_rooms_are_those_of_the_whole_grid_scan(hall: Fingerprint) -> None:
@@ -134,3 +181,75 @@ def test_power_solves_in_large_rooms_are_those_of_the_whole_grid_scan(hall: Fing
     whole = solver.solve(measurement, 6)
     np.testing.assert_array_equal(tiled.positions, whole.positions)
     assert tiled.residual_norm == whole.residual_norm
+
+
+def _power_problem(
+    hall: Fingerprint, n_targets: int, seed: int
+) -> tuple[GridlessSolver, FloatArray, Measurement, _Run]:
+    """The power solver of the hall, K true positions, their measurement (30 dB) and a run
+    on it."""
+    layout = hall.layout
+    rng = np.random.default_rng(seed)
+    truth = random_positions(layout, n_targets, rng=rng)
+    amplitudes = noisy_amplitudes(layout, truth, noise_std_for_snr(hall, 30.0), rng=rng)
+    measurement = measurement_from_amplitudes(amplitudes, "power", layout.n_leds)
+    solver = GridlessSolver(hall, "power")
+    run = _Run(values=measurement.values / solver._scale**2, priors=solver._growth_priors)
+    return solver, truth, measurement, run
+
+
+def _state_at(solver: GridlessSolver, positions: FloatArray) -> FitState:
+    state = FitState.empty()
+    for position in positions:
+        state = state.with_target(position, solver._priors.height_mean)
+    return state
+
+
+def test_local_refinement_minimises_the_whole_rooms_cost(hall: Fingerprint) -> None:
+    """A refinement around one target reports the whole-room cost of the state it returns,
+    moves only the targets within reach and lowers the cost."""
+    solver, truth, _, run = _power_problem(hall, 10, seed=4)
+    assert solver._near_reach is not None
+    # Every target 5 cm off in x: all can improve, only the near ones may move.
+    state = _state_at(solver, truth + np.array([0.05, 0.0]))
+    white = solver._whitening(state)
+    around = state.positions[:1]
+    before = solver._objective(run, white).cost(state)[0]
+    fitted, cost = solver._fit(run, white, state, 50, around=around)
+    assert cost < before
+    assert cost == pytest.approx(solver._objective(run, white).cost(fitted)[0], rel=1e-12)
+    near = np.linalg.norm(state.positions - around, axis=1) <= solver._near_reach
+    assert 1 <= int(near.sum()) < state.n_targets
+    np.testing.assert_array_equal(fitted.positions[~near], state.positions[~near])
+    assert np.linalg.norm(fitted.positions[0] - truth[0]) < 0.02
+
+
+def test_local_refinement_after_a_move_matches_the_full_one(hall: Fingerprint) -> None:
+    """Move one target of a converged fit by 30 cm (as an insertion or a relocation puts it
+    on a grid point): refining only the targets near it finds the optimum that refining all
+    of them finds, whichever target moved."""
+    solver, truth, _, run = _power_problem(hall, 10, seed=5)
+    plain, _ = solver._fit(run, solver._identity, _state_at(solver, truth), 100)
+    white = solver._whitening(plain)
+    converged, converged_cost = solver._fit(run, white, plain, 100)
+    assert np.max(np.linalg.norm(converged.positions - truth, axis=1)) < 0.05
+    for index in (0, 9):
+        moved = converged.subset(np.arange(10))
+        moved.positions[index] += np.array([0.24, -0.18])
+        around = moved.positions[index : index + 1]
+        local, local_cost = solver._fit(run, white, moved, 100, around=around)
+        full, full_cost = solver._fit(run, white, moved, 100)
+        assert local_cost == pytest.approx(full_cost, rel=1e-6)
+        assert local_cost == pytest.approx(converged_cost, rel=1e-6)
+        np.testing.assert_allclose(local.positions, full.positions, rtol=0, atol=1e-5)
+
+
+def test_power_solves_with_local_refinements_match_full_ones(hall: Fingerprint) -> None:
+    """Whole solves, local refinements against full ones (the room's locality switched off):
+    the same targets found, a fraction of a centimetre apart."""
+    solver, truth, measurement, _ = _power_problem(hall, 6, seed=2)
+    local = solver.solve(measurement, 6)
+    solver._near_reach = None
+    full = solver.solve(measurement, 6)
+    assert np.max(matched_errors(local.positions, full.positions)) < 0.005
+    assert np.max(matched_errors(local.positions, truth)) < 0.05

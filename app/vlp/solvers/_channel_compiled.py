@@ -194,6 +194,8 @@ def channel_rows(
                 d2 = dx * dx
                 d2 += dy * dy
                 d2 += dz2[m]
+                if d2 > max_d2[m]:
+                    continue  # out of view: zeros (most LEDs of a large room)
                 gain = math.pow(d2, -half_exponent[m]) * factor[m]
                 if not d2 <= max_d2[m]:
                     gain = 0.0
@@ -204,6 +206,8 @@ def channel_rows(
             else:
                 drop = max(led_z[m] - zs[p], 1e-9)
                 d2 = dx * dx + dy * dy + drop * drop
+                if drop * drop < cos_fov2 * d2:
+                    continue  # out of view: zeros
                 gain = math.pow(d2, -half_exponent[m])
                 gain *= math.pow(drop, orders[m] + 1.0)
                 gain *= free_height_factor[m]

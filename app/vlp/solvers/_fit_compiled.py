@@ -7,8 +7,8 @@ Private: callers validate.
 
 Arguments come as tuples of plain arrays and numbers (see :func:`problem_of`):
 
-- ``white``: ``(has_rotation, rotation (M, M), weights (L,), upper (L,), lower (L,),
-  weighted_diag (L,))``
+- ``white``: ``(has_rotation, rotation (M, M), or (0, 0) when has_rotation is False,
+  weights (L,), upper (L,), lower (L,), weighted_diag (L,))``
 - ``fixed``: what theta does not hold: ``(heights, weights, log_gains (K,), log_scale,
   on_plane, unit)``
 - ``layout``: ``(n_axes, weights_at, gains_at, scale_at, n_prior)``, -1 when absent
@@ -241,6 +241,61 @@ def _symmetric_product(rows: FloatArray) -> FloatArray:
     return out
 
 
+# Sparse products: for rows at least this long whose mean fraction of nonzeros is below
+# _SPARSE_DENSITY (a large room: a target's rows reach the few LEDs it sees).
+_SPARSE_MIN_LENGTH = 128
+_SPARSE_DENSITY = 0.25
+
+
+@compiled
+def _sparse_symmetric_product(rows: FloatArray) -> tuple[FloatArray, bool]:
+    """``rows @ rows.T`` over each pair's shorter list of nonzeros, and True; or an empty
+    array and False when the rows are too short or too dense for that to pay.
+
+    A large room's Jacobian rows are mostly zeros; skipping them changes a sum only in its
+    round-off (the order of the remaining terms), within the tests' 1e-10.
+    """
+    n, length = rows.shape
+    if length < _SPARSE_MIN_LENGTH:
+        return np.empty((0, 0)), False
+    counts = np.zeros(n, dtype=np.int64)
+    for i in range(n):
+        for col in range(length):
+            if rows[i, col] != 0.0:
+                counts[i] += 1
+    if counts.sum() >= _SPARSE_DENSITY * n * length:
+        return np.empty((0, 0)), False
+    starts = np.zeros(n + 1, dtype=np.int64)
+    for i in range(n):
+        starts[i + 1] = starts[i] + counts[i]
+    columns = np.empty(starts[n], dtype=np.int64)
+    for i in range(n):
+        at = starts[i]
+        for col in range(length):
+            if rows[i, col] != 0.0:
+                columns[at] = col
+                at += 1
+    out = np.zeros((n, n))
+    for i in range(n):
+        for j in range(i + 1):
+            # Walk the shorter support; skip pairs whose column ranges do not meet.
+            short, other = (i, j) if counts[i] <= counts[j] else (j, i)
+            if counts[short] == 0:
+                continue
+            if counts[other] > 0 and (
+                columns[starts[short + 1] - 1] < columns[starts[other]]
+                or columns[starts[other + 1] - 1] < columns[starts[short]]
+            ):
+                continue
+            total = 0.0
+            for at in range(starts[short], starts[short + 1]):
+                col = columns[at]
+                total += rows[short, col] * rows[other, col]
+            out[i, j] = total
+            out[j, i] = total
+    return out, True
+
+
 @compiled
 def gram_kernel(
     channel: ChannelConstants,
@@ -254,7 +309,9 @@ def gram_kernel(
 ) -> tuple[FloatArray, FloatArray, float]:
     """:func:`gram`: ``J^T J``, ``J^T r`` and ``r^T r`` at ``theta``."""
     augmented = _augmented(channel, table, white, data, theta, fixed, layout, priors)
-    product = _symmetric_product(augmented)
+    product, sparse = _sparse_symmetric_product(augmented)
+    if not sparse:
+        product = _symmetric_product(augmented)
     n = theta.shape[0]
     return product[:n, :n].copy(), product[:n, n].copy(), float(product[n, n])
 
@@ -373,7 +430,7 @@ def whitening_kernel(
     lower: IntArray,
     is_diag: FloatArray,
 ) -> tuple[FloatArray, FloatArray]:
-    """:meth:`Whitening.from_state`: the rotation (identity for power) and the weights."""
+    """:meth:`Whitening.from_state`: the rotation (empty for power) and the weights."""
     heights, _, _, _, on_plane, _ = fixed
     k = heights.shape[0]
     theta = np.empty(2 * k)
@@ -398,7 +455,8 @@ def whitening_kernel(
             for i in range(k):
                 received += gains[i, m] * gains[i, m] * multipliers[i]
             weights[m] = 1.0 / math.sqrt(4.0 * sigma2 * (received + half_noise))
-        return np.eye(n_leds), weights
+        # No rotation (the caller drops it): an empty one, not an M x M identity to fill.
+        return np.zeros((0, 0)), weights
     signal = np.zeros((n_leds, n_leds))
     for a in range(n_leds):
         for b in range(n_leds):

@@ -245,7 +245,8 @@ class Whitening:
         """This whitening as the compiled kernels take it (built once)."""
         if self._compiled is None:
             upper, lower, _ = compiled_indices(self.model, self.n_leds)
-            rotation = np.eye(self.n_leds) if self.rotation is None else self.rotation
+            # Without a rotation the kernels never read it: empty, not an M x M identity.
+            rotation = np.zeros((0, 0)) if self.rotation is None else self.rotation
             self._compiled = (
                 self.rotation is not None,
                 np.ascontiguousarray(rotation, dtype=np.float64),

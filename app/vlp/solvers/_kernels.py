@@ -7,18 +7,24 @@ by its arithmetic. The environment variable ``VLP_KERNELS`` picks the default
 (``compiled``, or ``reference``); :func:`use_kernels` switches within a process (the
 benchmarks time both side by side).
 
-Compiled functions are cached on disk (``NUMBA_CACHE_DIR``, else next to the sources, else
-the user's cache folder); with no writable place they are compiled in memory at every start
-(slower to start, same results). :func:`warm_up` compiles (or loads) every kernel, so that no
-request pays for it.
+Compiled functions are cached on disk, in a folder named after a digest of every source file
+of :mod:`app.vlp` (:func:`kernel_cache_dir`) inside ``NUMBA_CACHE_DIR``, else next to the
+sources, else the user's cache folder; with no writable place they are compiled in memory at
+every start (slower to start, same results). The digest is there because numba keys a cached
+function by its own file only: a kernel that calls one in another file would keep the old
+callee's machine code after that file changed (an upgrade in place, a checkout). :func:`warm_up`
+compiles (or loads) every kernel, so that no request pays for it.
 """
 
 from __future__ import annotations
 
+import hashlib
+import importlib
 import os
 import threading
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from pathlib import Path
 from typing import Any, Literal
 
 import numba
@@ -28,6 +34,7 @@ __all__ = [
     "KernelMode",
     "compiled",
     "compiled_reassociating",
+    "kernel_cache_dir",
     "kernel_mode",
     "use_kernels",
     "warm_up",
@@ -46,6 +53,50 @@ def _mode_from_env() -> KernelMode:
 
 
 _mode: KernelMode = _mode_from_env()
+# The science package, whose sources key the compiled kernels' disk cache.
+_SCIENCE_ROOT = Path(__file__).resolve().parents[1]
+# numba's settings (``CACHE_DIR`` is read when a kernel is decorated) and its cache folder
+# helper; untyped modules.
+_NUMBA_CONFIG: Any = importlib.import_module("numba.core.config")
+_APPDIRS: Any = importlib.import_module("numba.misc.appdirs")
+
+
+def kernel_cache_dir(base: Path, sources: Path) -> Path:
+    """The folder under ``base`` for kernels compiled from the ``*.py`` files below
+    ``sources``: ``base / "vlp-<digest>"``, the digest of their relative paths and contents."""
+    digest = hashlib.sha256()
+    for path in sorted(sources.rglob("*.py")):
+        digest.update(path.relative_to(sources).as_posix().encode())
+        digest.update(b"\0")
+        digest.update(path.read_bytes())
+        digest.update(b"\0")
+    return base / f"vlp-{digest.hexdigest()[:16]}"
+
+
+def _use_keyed_cache() -> None:
+    """Point numba's cache at :func:`kernel_cache_dir` of the first writable base: the
+    operator's ``NUMBA_CACHE_DIR`` (only that one, when set), else the package's
+    ``__pycache__``, else the user's cache folder. Runs before any kernel is decorated
+    (numba picks a function's cache folder then)."""
+    if _NUMBA_CONFIG.CACHE_DIR:
+        bases = [Path(_NUMBA_CONFIG.CACHE_DIR)]
+    else:
+        user_cache = Path(_APPDIRS.AppDirs(appname="numba", appauthor=False).user_cache_dir)
+        bases = [Path(__file__).resolve().parent / "__pycache__", user_cache]
+    for base in bases:
+        folder = kernel_cache_dir(base, _SCIENCE_ROOT)
+        try:
+            folder.mkdir(parents=True, exist_ok=True)
+        except OSError:
+            continue
+        if os.access(folder, os.W_OK):
+            _NUMBA_CONFIG.CACHE_DIR = str(folder)
+            return
+    # Nowhere writable: numba's own locators find none either, and _jit compiles in memory.
+    _NUMBA_CONFIG.CACHE_DIR = str(kernel_cache_dir(bases[0], _SCIENCE_ROOT))
+
+
+_use_keyed_cache()
 _lock = threading.Lock()
 _warm = False
 

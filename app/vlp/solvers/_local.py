@@ -22,6 +22,7 @@ from ..fingerprints import Fingerprint
 from ..layout import Layout
 from ..typing import FloatArray, IntArray
 from ._channel_kernel import ChannelKernel
+from ._kernels import compiled, kernel_mode
 from ._terminal_fit import starting_cells
 
 __all__ = ["PowerScan", "TerminalWindows"]
@@ -294,24 +295,44 @@ class PowerScan:
             tiles = order[done : done + batch]
             done += tiles.shape[0]
             batch *= 2
-            cells = self._cells(tiles)
-            rows = self.gains_by_cell[cells]
-            # The same operations as H^2 = (G / scale)^2 in the solver, row by row.
-            squared = sp.csr_array(
-                ((rows.data * self.inverse_scale) ** 2, rows.indices, rows.indptr),
-                shape=rows.shape,
-            )
-            num = np.asarray(squared @ residual)
-            norms = norm_scale * self.fourth_sums[cells]
-            scores = 2.0 * weight * num - weight**2 * norms
-            score = float(np.max(scores))
-            if score >= best_score:
-                tied = scores == score
-                cell = int(np.min(cells[tied]))
-                if score > best_score or cell < best_cell:
-                    best_cell, best_score = cell, score
-                    best_norm = float(norms[tied][np.argmin(cells[tied])])
+            if kernel_mode() == "compiled":
+                by_cell = self.gains_by_cell
+                cell, score, norm = _best_of_tiles(
+                    np.ascontiguousarray(tiles, dtype=np.int64),
+                    (self.n_x, self.n_y, self.tile),
+                    (by_cell.indptr, by_cell.indices, by_cell.data),
+                    self.inverse_scale,
+                    np.ascontiguousarray(residual, dtype=np.float64),
+                    self.fourth_sums,
+                    (2.0 * weight, weight**2, norm_scale),
+                )
+            else:
+                cell, score, norm = self._best_of_tiles_reference(
+                    tiles, residual, weight, norm_scale
+                )
+            if score > best_score or (score == best_score and cell < best_cell):
+                best_cell, best_score, best_norm = cell, score, norm
         return best_cell, best_score, best_norm
+
+    def _best_of_tiles_reference(
+        self, tiles: IntArray, residual: FloatArray, weight: float, norm_scale: float
+    ) -> tuple[int, float, float]:
+        """``(j, score_j, norm_j)`` of the best grid point of ``tiles`` (ties to the lowest
+        j), in NumPy (the reference of :func:`_best_of_tiles`)."""
+        cells = self._cells(tiles)
+        rows = self.gains_by_cell[cells]
+        # The same operations as H^2 = (G / scale)^2 in the solver, row by row.
+        squared = sp.csr_array(
+            ((rows.data * self.inverse_scale) ** 2, rows.indices, rows.indptr),
+            shape=rows.shape,
+        )
+        num = np.asarray(squared @ residual)
+        norms = norm_scale * self.fourth_sums[cells]
+        scores = 2.0 * weight * num - weight**2 * norms
+        score = float(np.max(scores))
+        tied = scores == score
+        cell = int(np.min(cells[tied]))
+        return cell, score, float(norms[cells == cell][0])
 
     def _cells(self, tiles: IntArray) -> IntArray:
         """Grid indices of the cells of ``tiles`` (tile ``t = tx * n_ty + ty``)."""
@@ -323,3 +344,41 @@ class PowerScan:
         inside = (xs < self.n_x) & (ys < self.n_y)
         xs, ys = np.broadcast_arrays(xs, ys)
         return np.asarray((xs * self.n_y + ys)[inside])
+
+
+@compiled
+def _best_of_tiles(
+    tiles: IntArray,
+    grid: tuple[int, int, int],
+    by_cell: tuple[IntArray, IntArray, FloatArray],
+    inverse_scale: float,
+    residual: FloatArray,
+    fourth_sums: FloatArray,
+    factors: tuple[float, float, float],
+) -> tuple[int, float, float]:
+    """:meth:`PowerScan._best_of_tiles_reference` without the sparse row copies: the same
+    operations per grid point (its row's entries in stored order, as ``csr_matvec`` sums
+    them), so the same numbers.
+
+    ``grid``: ``(n_x, n_y, tile)``; ``by_cell``: ``G^T``'s ``(indptr, indices, data)``;
+    ``factors``: ``(2 w, w^2, norm_scale)``.
+    """
+    n_x, n_y, tile = grid
+    indptr, indices, data = by_cell
+    twice_weight, weight_sq, norm_scale = factors
+    n_ty = -(-n_y // tile)
+    best_cell, best_score, best_norm = -1, -math.inf, 0.0
+    for t in tiles:
+        tx, ty = divmod(t, n_ty)
+        for ix in range(tx * tile, min((tx + 1) * tile, n_x)):
+            for iy in range(ty * tile, min((ty + 1) * tile, n_y)):
+                cell = ix * n_y + iy
+                num = 0.0
+                for at in range(indptr[cell], indptr[cell + 1]):
+                    scaled = data[at] * inverse_scale
+                    num += scaled * scaled * residual[indices[at]]
+                norm = norm_scale * fourth_sums[cell]
+                score = twice_weight * num - weight_sq * norm
+                if score > best_score or (score == best_score and cell < best_cell):
+                    best_cell, best_score, best_norm = cell, score, norm
+    return best_cell, best_score, best_norm

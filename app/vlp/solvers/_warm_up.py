@@ -7,18 +7,21 @@ they compile exactly the argument types a solve uses. Private: see :func:`._kern
 from __future__ import annotations
 
 import numpy as np
+import scipy.sparse as sp
 
 from ..presets import paper_layout
 from ._channel_compiled import channel_constants, channel_rows
 from ._channel_kernel import ChannelKernel
 from ._fit_compiled import correlation_scores_kernel
 from ._gridless_fit import FitState, Objective, Priors, Whitening, gram, levenberg_marquardt
+from ._local import _best_of_tiles
 
 __all__ = ["exercise"]
 
 
 def exercise() -> None:
-    """Evaluate, whiten and fit a two-target state of the paper's room, both models."""
+    """Evaluate, whiten and fit a two-target state of the paper's room, both models; score
+    a large room's power-scan tile (four grid points in one 2 x 2 tile)."""
     layout = paper_layout()
     kernel = ChannelKernel(layout, 1.0)
     height = layout.grid.receiver_height
@@ -45,3 +48,14 @@ def exercise() -> None:
     assert constants is not None  # a line-of-sight kernel always has its compiled form
     point = np.array([1.0])
     channel_rows(*constants, point, point.copy(), np.array([height]), False)
+    # a large room's power scan scores tiles of grid points (G^T with int32 indices)
+    by_cell = sp.csr_array(np.ones((4, kernel.n_leds)))
+    _best_of_tiles(
+        np.zeros(1, dtype=np.int64),
+        (2, 2, 2),
+        (by_cell.indptr, by_cell.indices, by_cell.data),
+        1.0,
+        np.ones(kernel.n_leds),
+        np.ones(4),
+        (2.0, 1.0, 1.0),
+    )

@@ -54,6 +54,8 @@ __all__ = ["LM_DEFAULTS", "GridlessOptions", "GridlessSolver"]
 # Largest model-error design (observations x targets x LEDs) held for the covariance; a
 # larger room falls back to the reduced chi-square's inflation.
 _MAX_MISFIT_ENTRIES = 4_000_000
+# Grid steps added to the reach of a local refinement (targets move a little while fitted).
+_NEAR_MARGIN_STEPS = 4.0
 
 
 @dataclass
@@ -220,6 +222,15 @@ class GridlessSolver(Solver):
         self._windows = None if self._dense else TerminalWindows.build(fingerprint, 0.0)
         if self._windows is not None and not self._windows.is_useful():
             self._windows = None
+        # Large rooms (the terminals' rule: windows much smaller than the room), power model:
+        # a refinement after an insertion or a relocation moves only the targets that can
+        # share an LED with the changed ones (see :meth:`_fit_near`). Two receivers on the
+        # plane share an LED only within twice the footprint radius of each other.
+        self._near_reach: float | None = None
+        if self._windows is not None and model == "power":
+            drop = float(layout.led_positions[:, 2].max()) - layout.grid.receiver_height
+            radius = drop * math.tan(math.radians(layout.receiver.fov_deg))
+            self._near_reach = 2.0 * radius + _NEAR_MARGIN_STEPS * layout.grid.step
         # Large rooms, power model: insertion scans score only the tiles that can hold the
         # best point (see ._local.PowerScan; the same argmax as scoring all N).
         self._power_scan = (
@@ -302,8 +313,20 @@ class GridlessSolver(Solver):
         return Objective(self._kernel, white, run.values, self.options.free_weights, priors)
 
     def _fit(
-        self, run: _Run, white: Whitening, state: FitState, max_iter: int, nuisance: bool = True
+        self,
+        run: _Run,
+        white: Whitening,
+        state: FitState,
+        max_iter: int,
+        nuisance: bool = True,
+        around: FloatArray | None = None,
     ) -> tuple[FitState, float]:
+        """LM refinement of all targets, or, with ``around`` (points, shape (n, 2), metres)
+        in a large room, of the targets near those points only (:meth:`_fit_near`)."""
+        if around is not None:
+            near = self._fit_near(run, white, state, max_iter, nuisance, around)
+            if near is not None:
+                return near
         state, cost, used = levenberg_marquardt(
             self._objective(run, white, nuisance),
             state,
@@ -316,6 +339,67 @@ class GridlessSolver(Solver):
         # returns, not whichever candidate was fitted last.
         state.converged = used < max_iter
         return state, cost
+
+    def _fit_near(
+        self,
+        run: _Run,
+        white: Whitening,
+        state: FitState,
+        max_iter: int,
+        nuisance: bool,
+        around: FloatArray,
+    ) -> tuple[FitState, float] | None:
+        """LM over the positions of the targets within reach of ``around`` and the noise
+        coefficient, the other targets held where they are; None when that is not the
+        whole-room fit's cost with fewer parameters (a small room, nuisance parameters, a
+        target off the receivers' plane) or when every target is near.
+
+        The cost is the whole room's: the held targets' atoms are subtracted from the
+        measurement, exactly. In a large room they share no LED with the changed targets,
+        so their part of the gradient did not change; the final joint polish refines all.
+        """
+        reach = self._near_reach
+        k = state.n_targets
+        priors = run.priors if nuisance else self._growth_priors
+        if (
+            reach is None
+            or k < 2
+            or _Slots.make(k, priors, self.options.free_weights).size != 2 * k + 1
+            or not bool(np.all(state.heights == self._kernel.receiver_height))
+        ):
+            return None
+        offsets = state.positions[:, None, :] - np.asarray(around)[None, :, :]
+        active = np.min(np.sum(offsets**2, axis=2), axis=1) <= reach**2
+        if bool(active.all()):
+            return None
+        held = state.subset(~active)
+        held.noise = 0.0
+        # values - sum over the held targets of w_k phi(g(p_k)), plain units (s = 0).
+        plain = Objective(
+            self._kernel, self._identity, run.values, self.options.free_weights, Priors()
+        )
+        rest = plain.residual(plain.pack(held), held)
+        objective = Objective(self._kernel, white, rest, self.options.free_weights, priors)
+        fitted, cost, used = levenberg_marquardt(
+            objective,
+            state.subset(active),
+            max_iter=max_iter,
+            initial_damping=self._lm.initial_damping,
+            tol=self._lm.tol,
+        )
+        run.iterations += used
+        positions = state.positions.copy()
+        positions[active] = fitted.positions
+        merged = FitState(
+            positions,
+            state.weights,
+            fitted.noise,
+            state.heights,
+            state.log_gains,
+            state.log_scale,
+        )
+        merged.converged = used < max_iter
+        return merged, cost
 
     def _refine(self, run: _Run, state: FitState, max_iter: int, rounds: int) -> FitState:
         """LM rounds, each whitened by the covariance plugged in from the previous one."""
@@ -408,7 +492,9 @@ class GridlessSolver(Solver):
         if inner_iter > 0:
             # Gains, scale and heights stay put while targets are being inserted: free, the
             # first targets would take the energy of those not yet inserted.
-            grown, _ = self._fit(run, white, grown, inner_iter, nuisance=False)
+            grown, _ = self._fit(
+                run, white, grown, inner_iter, nuisance=False, around=grown.positions[-1:]
+            )
         return grown
 
     def _count_and_fit(self, run: _Run) -> FitState:
@@ -455,7 +541,11 @@ class GridlessSolver(Solver):
             candidate = self._insert(run, others, white)
             if np.linalg.norm(candidate.positions[-1] - state.positions[k]) <= 1.5 * step:
                 continue
-            candidate, candidate_cost = self._fit(run, white, candidate, self.options.final_iter)
+            # The moved target's old and new neighbourhoods (large rooms; all targets else).
+            changed = np.vstack((candidate.positions[-1:], state.positions[k : k + 1]))
+            candidate, candidate_cost = self._fit(
+                run, white, candidate, self.options.final_iter, around=changed
+            )
             if candidate_cost < cost:
                 # Keep the original order: the moved target takes slot k.
                 order = np.insert(np.arange(n_targets - 1), k, n_targets - 1)
