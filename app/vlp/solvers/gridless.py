@@ -757,7 +757,9 @@ class GridlessSolver(Solver):
         fit, as :meth:`_misfit_columns`: each LED's relative error, (M, M), then the
         photodiode's tilt, (M, 2), and its height, (M, 1), unless fitted or sent by the
         terminal (then (M, 0): every terminal keeps the same components)."""
-        columns = [np.diag(fit.jacobian[:, -1])]  # the log gain's column: whitened amplitudes
+        whitened = fit.jacobian[:, -1]  # the log gain's column: the whitened amplitudes
+        # LEDs out of view give zero columns: left out (a large room has hundreds).
+        columns = [np.diag(whitened)[:, whitened != 0.0]]
         gradient = self._shape_gradients(fit.position[np.newaxis, :], np.array([fit.height]))[0]
         scale = fit.data_weight * math.exp(fit.log_gain)
         unknown_tilt = not (fit.free_tilt or normal_known)
