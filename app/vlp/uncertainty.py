@@ -383,10 +383,11 @@ def fit_misfit(
         if noise is None and max_noise is not None and solution[0] > max_noise:
             # The noise at its bound, the model errors fitted to what is left.
             solution[0] = max_noise
-            solution[1:], _ = optimize.nnls(
-                design[:, 1:] * weights[:, np.newaxis],
-                (target - max_noise * design[:, 0]) * weights,
-            )
+            if design.shape[1] > 1:
+                solution[1:], _ = optimize.nnls(
+                    design[:, 1:] * weights[:, np.newaxis],
+                    (target - max_noise * design[:, 0]) * weights,
+                )
         expected = offset + design @ solution
         floor = 1e-3 * max(float(np.mean(expected)), 1e-300)
         weights = 1.0 / np.maximum(expected, floor)
