@@ -1,14 +1,17 @@
 """How often the truth falls inside the answers' 95 % radius (``accuracy_m``).
 
-The default solver reports, per estimate, the radius of the 95 % confidence circle from its
-fit's Fisher information (widened by the reduced chi-square when the fit is poor). This
-counts, over fixed-seed placements at 30 dB, the fraction of true positions inside that
-radius around their (Hungarian-matched) estimate, for the aggregated correlation and the
-``terminals`` form, on the ideal model and under the realistic mix (reflectance in the
-layout), in the paper room and the irregular room of ``bench/rooms.py``.
+The default solver reports, per estimate, the radius of the 95 % confidence circle of its
+fit's covariance (noise and the model errors its residuals show, see
+:mod:`app.vlp.uncertainty`). This counts, over fixed-seed placements (30 dB unless
+``--snr``), the fraction of true positions inside that radius around their
+(Hungarian-matched) estimate, with the median radius next to the median error (a radius
+must not cover by being huge), for the aggregated correlation and the ``terminals`` form,
+on the ideal model and under the realistic mix (reflectance in the layout), in the paper
+room and the irregular room of ``bench/rooms.py``.
 
     python -m bench.coverage             # writes the coverage section of docs/accuracy.md
     python -m bench.coverage --trials 10 --out bench/out/quick
+    python -m bench.coverage --snr 20 --rooms hall --out bench/out/hall20
 """
 
 from __future__ import annotations
@@ -17,6 +20,7 @@ import argparse
 import sys
 import time
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -31,27 +35,39 @@ from app.vlp.uncertainty import confidence_radius
 from ._common import REPO_ROOT, machine_markdown, machine_record, replace_section
 from .real_rooms import MIX, _fingerprint, _generator, _layout
 
-__all__ = ["coverage", "main"]
+__all__ = ["Cell", "coverage", "main"]
 
 KS = (1, 4, 8)
 SNR_DB = 30.0
 
 
-def coverage(room: str, mix: bool, count: int, trials: int) -> tuple[float, float]:
-    """Fractions of truths inside the 95 % radius: (aggregated correlation, terminals)."""
+@dataclass(frozen=True)
+class Cell:
+    """One cell of the table, per form: the fraction of truths inside the 95 % radius, the
+    median radius and the median error (metres)."""
+
+    inside: dict[str, float]
+    radius: dict[str, float]
+    error: dict[str, float]
+
+
+def coverage(room: str, mix: bool, count: int, trials: int, snr_db: float = SNR_DB) -> Cell:
+    """Coverage of the 95 % radius for the aggregated correlation and the terminals."""
     reflectance = MIX.reflectance if mix else None
     layout = _layout(room, reflectance)
     fingerprint = _fingerprint(room, reflectance)
     solver = GridlessSolver(fingerprint, "correlation")
     impairments = MIX if mix else Impairments.ideal()
     inside: dict[str, list[bool]] = {"correlation": [], "terminals": []}
+    radii: dict[str, list[float]] = {"correlation": [], "terminals": []}
+    errors: dict[str, list[float]] = {"correlation": [], "terminals": []}
     for trial in range(trials):
         truth = random_positions(layout, count, rng=_generator("coverage", room, count, trial))
         simulated = simulate_terminals(
             layout,
             truth,
             impairments,
-            snr_db=SNR_DB,
+            snr_db=snr_db,
             rng=_generator("coverage", room, mix, count, trial),
         )
         amplitudes = simulated.amplitudes
@@ -66,7 +82,13 @@ def coverage(room: str, mix: bool, count: int, trials: int) -> tuple[float, floa
             for row, col in zip(rows, cols, strict=True):
                 radius = confidence_radius(solution.covariances[col])
                 inside[mode].append(bool(distance[row, col] <= radius))
-    return float(np.mean(inside["correlation"])), float(np.mean(inside["terminals"]))
+                radii[mode].append(radius)
+                errors[mode].append(float(distance[row, col]))
+    return Cell(
+        {mode: float(np.mean(values)) for mode, values in inside.items()},
+        {mode: float(np.median(values)) for mode, values in radii.items()},
+        {mode: float(np.median(values)) for mode, values in errors.items()},
+    )
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -74,21 +96,28 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m bench.coverage", description=__doc__)
     parser.add_argument("--trials", type=int, default=40, help="placements per cell")
     parser.add_argument("--out", type=Path, default=REPO_ROOT / "docs")
+    parser.add_argument("--snr", type=float, default=SNR_DB, help="SNR in dB")
+    parser.add_argument("--rooms", default="paper,hall", help="comma-separated rooms")
     args = parser.parse_args(argv)
+    rooms = [room.strip() for room in args.rooms.split(",") if room.strip()]
     started = time.perf_counter()
     lines = [
-        "| room | model | K | aggregated correlation | `terminals` |",
-        "|---|---|---|---|---|",
+        "| room | model | K | aggregated correlation: coverage | median radius / error (cm) "
+        "| `terminals`: coverage | median radius / error (cm) |",
+        "|---|---|---|---|---|---|---|",
     ]
     with threadpool_limits(limits=1):
-        for room in ("paper", "hall"):
+        for room in rooms:
             for mix in (False, True):
                 for count in KS:
-                    aggregated, terminals = coverage(room, mix, count, args.trials)
+                    cell = coverage(room, mix, count, args.trials, args.snr)
                     name = "realistic mix, reflectance in layout" if mix else "ideal"
-                    lines.append(
-                        f"| {room} | {name} | {count} | {aggregated:.3f} | {terminals:.3f} |"
-                    )
+                    parts = [
+                        f"{cell.inside[mode]:.3f} | {100 * cell.radius[mode]:.1f} / "
+                        f"{100 * cell.error[mode]:.1f}"
+                        for mode in ("correlation", "terminals")
+                    ]
+                    lines.append(f"| {room} | {name} | {count} | {parts[0]} | {parts[1]} |")
                     print(lines[-1], file=sys.stderr, flush=True)
     elapsed = time.perf_counter() - started
     command = "python -m bench.coverage " + " ".join(argv if argv is not None else sys.argv[1:])
@@ -96,7 +125,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         [
             "## Coverage of the 95 % radius (`bench/coverage.py`)",
             "",
-            f"Command: `{command.strip()}` ({elapsed:.0f} s), 30 dB, {args.trials} placements "
+            f"Command: `{command.strip()}` ({elapsed:.0f} s), {args.snr:g} dB, {args.trials} "
+            "placements "
             "per cell: the fraction of true positions inside `accuracy_m` of their estimate "
             "(target 0.90-0.98 on the ideal model).",
             "",

@@ -327,15 +327,15 @@ def test_insertion_scores_match_reference(layout_name: str) -> None:
 @pytest.mark.parametrize("table", TABLES)
 def test_terminal_model_matches_reference(table: str) -> None:
     """A terminal looking straight up: gains and gradient at one point, free height."""
-    from app.vlp.solvers._terminal_fit import _model
+    from app.vlp.solvers._terminal_fit import terminal_model
 
     kernel = make_kernel("paper", table, seed=2)
     rng = np.random.default_rng(6)
     for _ in range(3):
         theta = np.array([rng.uniform(0, 4), rng.uniform(0, 4), 0.85 + rng.uniform(-0.2, 0.2), 0])
         with use_kernels("reference"):
-            want = _model(kernel, theta, True, 0.85, None)
-        got = _model(kernel, theta, True, 0.85, None)
+            want = terminal_model(kernel, theta, True, 0.85, None)
+        got = terminal_model(kernel, theta, True, 0.85, None)
         for got_part, want_part in zip(got, want, strict=True):
             assert_same(got_part, want_part)
 

@@ -10,9 +10,15 @@ from app.vlp.errors import MeasurementError
 from app.vlp.fingerprints import Fingerprint
 from app.vlp.layout import Layout
 from app.vlp.measurements import measurement_from_amplitudes
-from app.vlp.simulation import noise_std_for_snr, random_positions, true_amplitudes
+from app.vlp.simulation import (
+    Impairments,
+    noise_std_for_snr,
+    random_positions,
+    simulate_terminals,
+    true_amplitudes,
+)
 from app.vlp.solvers.gridless import GridlessOptions, GridlessSolver
-from app.vlp.uncertainty import confidence_radius
+from app.vlp.uncertainty import confidence_radii, confidence_radius
 
 
 def _matched(truth: np.ndarray, estimate: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -118,3 +124,40 @@ def test_95_percent_radii_cover_the_truth_about_95_percent_of_the_time(
         inside += list(distances <= np.array(radii))
     # 160 estimates: a 95 % coverage lies in [0.88, 1] with overwhelming probability.
     assert 0.88 <= float(np.mean(inside)) <= 1.0
+
+
+def test_95_percent_radii_stay_honest_when_the_room_differs_from_its_model(
+    paper_room: Layout, solver: GridlessSolver
+) -> None:
+    # Tilted photodiodes (0-10 deg), heights off by 5 cm and LEDs off their data sheet
+    # (5 % power, 3 deg beam), none of them in the layout: the fit's residuals show part
+    # of it, the fitted parameters absorb the rest. The inverse Fisher information inflated
+    # by the reduced chi-square covered 0.64 (aggregated) and 0.53 (terminals) of these
+    # 400 truths; the model-error covariance covers 0.80 and 0.86.
+    impairments = Impairments(
+        height_sd_m=0.05, tilt_max_deg=10.0, led_amplitude_sd=0.05, led_half_power_sd_deg=3.0
+    )
+    rng = np.random.default_rng(2027)
+    inside: dict[str, list[bool]] = {"correlation": [], "terminals": []}
+    ratios: dict[str, list[float]] = {"correlation": [], "terminals": []}
+    for _ in range(100):
+        truth = random_positions(paper_room, 4, rng=rng)
+        simulated = simulate_terminals(paper_room, truth, impairments, snr_db=30.0, rng=rng)
+        measurement = measurement_from_amplitudes(simulated.amplitudes, "correlation", 16)
+        for mode, solution in (
+            ("correlation", solver.solve(measurement, 4)),
+            ("terminals", solver.solve_terminals(simulated.amplitudes)),
+        ):
+            assert solution.covariances is not None
+            order, distances = _matched(truth, solution.positions)
+            radii = confidence_radii(solution.covariances[order])
+            inside[mode] += list(distances <= radii)
+            ratios[mode] += list(radii / np.maximum(distances, 1e-9))
+    for mode in inside:
+        # 400 estimates: at a coverage of 0.80 the binomial standard error is 0.02, so 0.72
+        # is 3.9 of them below what the method gives (chance 1e-4 for another seed); the old
+        # 0.64 / 0.53 would fail it.
+        assert float(np.mean(inside[mode])) >= 0.72, mode
+        # Not bought by a huge radius: a calibrated 2-D Gaussian's 95 % radius is about 2.1x
+        # its median error; the median ratio stays below 3.
+        assert float(np.median(ratios[mode])) < 3.0, mode

@@ -17,7 +17,7 @@ callers validate.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -27,7 +27,7 @@ from ._channel_kernel import ChannelKernel
 from ._gridless_fit import MAX_LOG_GAIN, Priors
 from ._kernels import kernel_mode
 
-__all__ = ["TerminalFit", "fit_terminal", "los_with_normal", "starting_cells"]
+__all__ = ["TerminalFit", "fit_terminal", "los_with_normal", "starting_cells", "terminal_model"]
 
 # Candidate starts per terminal (the best grid points of its own correlation, kept apart).
 _STARTS = 3
@@ -43,7 +43,10 @@ _TILT_SIGNIFICANCE = 8.0
 @dataclass(frozen=True)
 class TerminalFit:
     """One terminal's fit: position (2,) m, height m, log gain, residual sum of squares,
-    the normal matrix of the whitened fit (for its covariance) and the parameter count."""
+    the normal matrix of the whitened fit (for its covariance) and the parameter count;
+    the whitened data Jacobian (M, P) and data residual (M,) at the optimum (the log gain's
+    column, last, is the whitened fitted amplitudes), the data's whitening weight and
+    whether the height and the tilt were fitted."""
 
     position: FloatArray
     height: float
@@ -52,6 +55,11 @@ class TerminalFit:
     normal: FloatArray
     n_params: int
     cost: float = 0.0
+    jacobian: FloatArray = field(default_factory=lambda: np.zeros((0, 0)))
+    residual: FloatArray = field(default_factory=lambda: np.zeros(0))
+    data_weight: float = 1.0
+    free_height: bool = False
+    free_tilt: bool = False
 
 
 def los_with_normal(
@@ -178,7 +186,7 @@ def _tilted_normal(tilt: FloatArray) -> tuple[FloatArray, FloatArray]:
     return normal, derivative
 
 
-def _model(
+def terminal_model(
     kernel: ChannelKernel,
     theta: FloatArray,
     free_height: bool,
@@ -239,7 +247,7 @@ def _levenberg_marquardt(
     free_tilt = normal is None and tilt_sd is not None
     axes = (3 if free_height else 2) + (2 if free_tilt else 0)
     gradient_columns = [0, 1, *([2] if free_height else []), *([3, 4] if free_tilt else [])]
-    gains0, _ = _model(kernel, np.array([start[0], start[1], z0]), free_height, z0, normal)
+    gains0, _ = terminal_model(kernel, np.array([start[0], start[1], z0]), free_height, z0, normal)
     norm = float(gains0 @ gains0)
     u0 = math.log(max(float(gains0 @ amplitudes) / norm, 1e-6)) if norm > 0 else 0.0
     theta = np.array(
@@ -268,7 +276,7 @@ def _levenberg_marquardt(
     tilt_at = 3 if free_height else 2
 
     def evaluate(params: FloatArray) -> tuple[FloatArray, FloatArray, float]:
-        gains, gradient = _model(kernel, params, free_height, z0, normal, free_tilt)
+        gains, gradient = terminal_model(kernel, params, free_height, z0, normal, free_tilt)
         amp = math.exp(float(params[-1]))
         residual = data_weight * (amplitudes - amp * gains)
         jacobian = np.empty((amplitudes.shape[0], params.shape[0]))
@@ -331,4 +339,9 @@ def _levenberg_marquardt(
         cost=cost,
         normal=jacobian.T @ jacobian,
         n_params=theta.shape[0],
+        jacobian=jacobian[:n_data].copy(),
+        residual=residual[:n_data].copy(),
+        data_weight=data_weight,
+        free_height=free_height,
+        free_tilt=free_tilt,
     )

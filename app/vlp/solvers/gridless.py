@@ -16,7 +16,13 @@ from ..measurements import Measurement, Model
 from ..scale import check_amplitude_scale
 from ..simulation import mean_signal_power
 from ..typing import FloatArray
-from ..uncertainty import FitQuality, assess_fit
+from ..uncertainty import (
+    FitQuality,
+    assess_fit,
+    fit_misfit,
+    misfit_design,
+    predictive_covariances,
+)
 from ._channel_kernel import ChannelKernel
 from ._fit_compiled import correlation_scores_kernel
 from ._gridless_fit import (
@@ -28,6 +34,7 @@ from ._gridless_fit import (
     _Slots,
     gram,
     levenberg_marquardt,
+    target_gains,
 )
 from ._gridless_options import (
     LM_DEFAULTS,
@@ -39,22 +46,16 @@ from ._gridless_options import (
 )
 from ._kernels import kernel_mode
 from ._local import PowerScan, TerminalWindows
-from ._terminal_fit import fit_terminal, starting_cells
+from ._terminal_fit import TerminalFit, fit_terminal, starting_cells
 from .base import MAX_TARGETS, Solution, Solver, register_solver
 
 __all__ = ["LM_DEFAULTS", "GridlessOptions", "GridlessSolver"]
 
+# Largest model-error design (observations x targets x LEDs) held for the covariance; a
+# larger room falls back to the reduced chi-square's inflation.
+_MAX_MISFIT_ENTRIES = 4_000_000
 # Grid steps added to the reach of a local refinement (targets move a little while fitted).
 _NEAR_MARGIN_STEPS = 4.0
-
-
-@dataclass(frozen=True)
-class _Fisher:
-    """Normal matrix of a whitened fit, its data chi-square and number of observations."""
-
-    normal: FloatArray
-    chi2: float
-    n_observations: int
 
 
 @dataclass
@@ -104,9 +105,12 @@ class GridlessSolver(Solver):
        Gaussian prior (:class:`GridlessOptions`), kept only when a score test and then the
        fit show a decrease beyond the chance level of their extra parameters. Free
        weights instead of priors let a close pair merge into one target of weight 2.
-    6. Uncertainty (:meth:`_uncertainty`): the inverse Fisher information of the final
-       whitened fit, inflated by the reduced chi-square when above 1, and the fit's
-       quality (:func:`app.vlp.uncertainty.assess_fit`).
+    6. Uncertainty (:meth:`_uncertainty`): the sandwich covariance of the final whitened
+       fit with the noise and the model errors it does not fit (each target's relative
+       amplitude error per LED, its photodiode's tilt, its height when not fitted), whose
+       variances are estimated from the residuals net of what the fit absorbed and widened
+       for their degrees of freedom (:mod:`app.vlp.uncertainty`); and the fit's quality
+       (:func:`app.vlp.uncertainty.assess_fit`).
 
     With K known the measurement is first divided by a guessed common scale when its power
     per target is more than 1.5x off the room's mean (:meth:`_prescale`). Unknown K: targets
@@ -604,9 +608,9 @@ class GridlessSolver(Solver):
                 other_cost = self._plain_cost(run, other)
                 if other_cost < cost:
                     state, cost = other, other_cost
-        state, fisher = self._with_nuisances(run, state)
+        state = self._with_nuisances(run, state)
         residual = self._residual(run, self._identity, state)
-        covariances, fit = self._uncertainty(run, state, fisher)
+        covariances, fit = self._uncertainty(run, state)
         if prescale != 1.0:
             state.log_scale += math.log(prescale)
             state.facts = None
@@ -650,8 +654,11 @@ class GridlessSolver(Solver):
         See :mod:`._terminal_fit`. Two passes: without priors, to estimate the amplitude
         noise variance pooled over the terminals (its residual sum of squares over its
         degrees of freedom), then with the gain and height priors weighted by it. The
-        covariance of each position is the inverse of its whitened normal matrix, inflated
-        by that terminal's reduced chi-square when above 1.
+        covariance of each position is the sandwich of its whitened fit with the noise and
+        the model errors the fit does not fit (:meth:`_terminal_misfit_columns`), their
+        variances estimated from all terminals' residuals together (the first pass's noise
+        level holds part of the misfit, so the noise variance is re-estimated with them)
+        and widened for their degrees of freedom (:mod:`app.vlp.uncertainty`).
         """
         check_amplitude_scale(self.fingerprint, np.asarray(amplitudes, dtype=np.float64))
         values = np.asarray(amplitudes, dtype=np.float64) / self._scale
@@ -708,11 +715,19 @@ class GridlessSolver(Solver):
             for k in range(n_terminals)
         ]
         chi2 = np.array([fit.rss for fit in fits]) / max(sigma2, 1e-300)
+        designs = [
+            misfit_design(
+                fit.jacobian,
+                fit.normal,
+                self._terminal_misfit_columns(
+                    fit, own_heights[k] is not None, own_normals[k] is not None
+                ),
+            )
+            for k, fit in enumerate(fits)
+        ]
+        misfit = fit_misfit(designs, [fit.residual for fit in fits])
         covariances = np.array(
-            [
-                np.linalg.pinv(fit.normal, hermitian=True)[:2, :2] * max(1.0, c / d)
-                for fit, c, d in zip(fits, chi2, dof, strict=True)
-            ]
+            [predictive_covariances(design, misfit, np.array([[0, 1]]))[0] for design in designs]
         )
         log_gains = np.array([fit.log_gain for fit in fits])
         positions = np.array([fit.position for fit in fits])
@@ -735,7 +750,25 @@ class GridlessSolver(Solver):
             fit=fit_quality,
         )
 
-    def _with_nuisances(self, run: _Run, fixed: FitState) -> tuple[FitState, _Fisher | None]:
+    def _terminal_misfit_columns(
+        self, fit: TerminalFit, height_known: bool, normal_known: bool
+    ) -> list[FloatArray]:
+        """Whitened derivatives of a terminal's amplitudes along the errors its fit does not
+        fit, as :meth:`_misfit_columns`: each LED's relative error, (M, M), then the
+        photodiode's tilt, (M, 2), and its height, (M, 1), unless fitted or sent by the
+        terminal (then (M, 0): every terminal keeps the same components)."""
+        whitened = fit.jacobian[:, -1]  # the log gain's column: the whitened amplitudes
+        # LEDs out of view give zero columns: left out (a large room has hundreds).
+        columns = [np.diag(whitened)[:, whitened != 0.0]]
+        gradient = self._shape_gradients(fit.position[np.newaxis, :], np.array([fit.height]))[0]
+        scale = fit.data_weight * math.exp(fit.log_gain)
+        unknown_tilt = not (fit.free_tilt or normal_known)
+        unknown_height = not (fit.free_height or height_known)
+        columns.append(scale * gradient[:, 1:3] if unknown_tilt else gradient[:, :0])
+        columns.append(scale * gradient[:, 0:1] if unknown_height else gradient[:, :0])
+        return columns
+
+    def _with_nuisances(self, run: _Run, fixed: FitState) -> FitState:
         """Free the common scale and the heights, then the targets' gains; keep each stage
         only when it explains the data significantly better than the one before.
 
@@ -745,15 +778,11 @@ class GridlessSolver(Solver):
         parameters' chi-square would by chance (mean plus three standard deviations). A score
         test comes first (one evaluation: the decrease the Gauss-Newton step of the freer
         model promises at the current fit); only a promising stage is fitted.
-
-        Returns the kept fit and, when it is still ``fixed``, its Fisher information (read
-        off the score test's normal matrix, which holds it as a sub-block).
         """
         best, kept = fixed, run.priors
         k = fixed.n_targets
         free_weights = self.options.free_weights
         white = self._whitening(best)
-        fisher: _Fisher | None = None
         # The freest stage is tested first: when even it promises nothing, neither does any
         # stage in between (one evaluation in the common case of a room as modelled).
         for index, priors in enumerate([self._stages[-1], *self._stages] if self._stages else []):
@@ -764,11 +793,6 @@ class GridlessSolver(Solver):
             objective = self._objective(run, white)
             theta = objective.pack(best)
             normal, gradient, before = gram(objective, theta, best)
-            if best is fixed:
-                prior = objective.prior_residuals(theta, slots)
-                chi2 = before - float(prior @ prior)
-                shared = np.r_[np.arange(2 * k), slots.size - 1]
-                fisher = _Fisher(normal[np.ix_(shared, shared)], chi2, objective.data.shape[0])
             try:
                 promised = float(gradient @ np.linalg.solve(normal, gradient))
             except np.linalg.LinAlgError:
@@ -783,25 +807,125 @@ class GridlessSolver(Solver):
             if before - objective.cost(freed)[0] > significant:
                 best, kept = freed, priors
                 white = self._whitening(best)
-                fisher = None
         run.priors = kept
-        return best, fisher
+        return best
 
-    def _uncertainty(
-        self, run: _Run, state: FitState, fisher: _Fisher | None
-    ) -> tuple[FloatArray, FitQuality]:
-        """Position covariances from the Fisher information of the final whitened fit,
-        inflated by the reduced chi-square when it is above 1, and the fit's quality."""
-        if fisher is None:
-            objective = self._objective(run, self._whitening(state))
-            theta = objective.pack(state)
-            normal, _, cost = gram(objective, theta, state)
-            prior = objective.prior_residuals(theta, objective.slots(state.n_targets))
-            fisher = _Fisher(normal, cost - float(prior @ prior), objective.data.shape[0])
-        dof = fisher.n_observations - fisher.normal.shape[0]
-        fit = assess_fit(fisher.chi2, dof, math.exp(0.5 * state.log_scale))
-        inverse = np.linalg.pinv(fisher.normal, hermitian=True) * max(1.0, fit.chi2_per_dof)
+    def _uncertainty(self, run: _Run, state: FitState) -> tuple[FloatArray, FitQuality]:
+        """Position covariances of the final whitened fit and the fit's quality.
+
+        The inverse Fisher information alone counts only the noise; a room that differs
+        from its model moves the estimates further. The covariance is the sandwich
+        ``A (J^T J + sum_c b_c J^T F_c F_c^T J + N_prior) A`` over the model errors the fit
+        does not fit (:meth:`_misfit_columns`), each variance ``b_c`` estimated from the
+        residuals at the optimum net of what the fitted parameters absorbed
+        (:func:`app.vlp.uncertainty.fit_misfit`), then widened for those estimates' few
+        degrees of freedom (:func:`app.vlp.uncertainty.predictive_covariances`). The whitened
+        noise variance is fitted with them, at most 1: the whitening's noise level comes
+        from the fitted noise atom, which absorbs misfit on the diagonal of ``R`` (so a room
+        off its model shows a reduced chi-square below 1, not above), never less than the
+        noise. A room too large to hold the model-error design falls back to inflating the
+        inverse Fisher information by the reduced chi-square when above 1.
+        """
+        objective = self._objective(run, self._whitening(state))
+        theta = objective.pack(state)
         k = state.n_targets
         index = np.column_stack((np.arange(k), np.arange(k) + k))
-        covariances = inverse[index[:, :, None], index[:, None, :]]
-        return np.asarray(covariances), fit
+        n_params, n_data = theta.shape[0], objective.data.shape[0]
+        scale = math.exp(0.5 * state.log_scale)
+        columns = self._misfit_columns(objective, theta, state)
+        if columns is None:
+            normal, _, cost = gram(objective, theta, state)
+            prior = objective.prior_residuals(theta, objective.slots(k))
+            fit = assess_fit(cost - float(prior @ prior), n_data - n_params, scale)
+            inverse = np.linalg.pinv(normal, hermitian=True) * max(1.0, fit.chi2_per_dof)
+            return np.asarray(inverse[index[:, :, None], index[:, None, :]]), fit
+        augmented = objective.augmented(theta, state)
+        rows = augmented[:n_params]
+        residual = augmented[n_params, :n_data]
+        fit = assess_fit(float(residual @ residual), n_data - n_params, scale)
+        design = misfit_design(rows[:, :n_data].T, rows @ rows.T, columns)
+        misfit = fit_misfit([design], [residual], max_noise=1.0)
+        return predictive_covariances(design, misfit, index), fit
+
+    def _misfit_columns(
+        self, objective: Objective, theta: FloatArray, state: FitState
+    ) -> list[FloatArray] | None:
+        """Whitened derivatives of the model along the errors it does not fit: each target's
+        relative amplitude error on each LED, shape (L, K M), and each target's photodiode
+        tilt, shape (L, 2 K); None when too large to hold (then the reduced chi-square
+        inflates the inverse Fisher information instead).
+
+        The room's residual model error (LEDs' power and beam tolerances, heights,
+        reflections) scales with the signal: target k's amplitude from LED m is
+        ``g_km (1 + d_km)``. A tilted photodiode moves its gains along their tilt
+        derivatives, which the aggregated model does not fit. Each kind's variance is
+        estimated from the residuals (:func:`app.vlp.uncertainty.fit_misfit`).
+        """
+        k, n_leds = state.n_targets, self.fingerprint.n_leds
+        n_data = objective.data.shape[0]
+        if n_data * k * n_leds > _MAX_MISFIT_ENTRIES:
+            return None
+        gains = target_gains(self._kernel, state)  # (M, K)
+        relative = np.einsum("mk,mn->kmn", gains, np.eye(n_leds))  # diag(g_k) per target
+        errors = self._perturbation_columns(objective, theta, state, gains, relative)
+        tilts = self._shape_gradients(state.positions, state.heights)
+        out = [errors, self._perturbation_columns(objective, theta, state, gains, tilts[:, :, 1:])]
+        if objective.slots(k).n_axes != 3:  # heights held fixed
+            out.append(self._perturbation_columns(objective, theta, state, gains, tilts[:, :, :1]))
+        return out
+
+    def _shape_gradients(self, positions: FloatArray, heights: FloatArray) -> FloatArray:
+        """Derivatives of each point's gains with respect to its height and its photodiode's
+        tilt (tangent components, at level), shape (K, M, 3): ``[dg/dz, dg/dtx, dg/dty]``.
+
+        Tilting the normal ``n`` moves the line of sight ``h ∝ n . v`` by
+        ``h / v_z (v_x, v_y)`` per unit of tilt (``v`` = LED minus receiver); the diffuse
+        part is modelled for a level photodiode (as in :func:`._terminal_fit.terminal_model`).
+        """
+        kernel = self._kernel
+        k = positions.shape[0]
+        blocks = kernel.gradients_xyz(positions[:, 0], positions[:, 1], heights)
+        offsets = kernel.led_xyz[:, np.newaxis, :] - np.column_stack((positions, heights))
+        drop = np.maximum(offsets[:, :, 2], 1e-9)  # (M, K)
+        dist2 = np.einsum("mkc,mkc->mk", offsets, offsets)
+        orders = kernel.orders[:, np.newaxis]
+        los = (
+            kernel.free_height_factor[:, np.newaxis]
+            * drop ** (orders + 1.0)
+            * dist2 ** (-(orders + 3.0) / 2.0)
+            * (drop * drop >= kernel.cos_fov2 * dist2)
+        )
+        out = np.empty((k, kernel.n_leds, 3))
+        out[:, :, 0] = blocks[:, 2 * k : 3 * k].T
+        out[:, :, 1:] = ((los / drop)[:, :, np.newaxis] * offsets[:, :, :2]).transpose(1, 0, 2)
+        return out
+
+    def _perturbation_columns(
+        self,
+        objective: Objective,
+        theta: FloatArray,
+        state: FitState,
+        gains: FloatArray,
+        directions: FloatArray,
+    ) -> FloatArray:
+        """Whitened change of the model per unit of each target's gain perturbations.
+
+        ``directions`` of shape (K, M, n): target k's gains move by ``directions[k] @ t``;
+        in the aggregated correlation ``R`` moves by ``w_k (dg g_k^T + g_k dg^T)``.
+        Returns shape (L, K n).
+        """
+        k, n_leds, n_dirs = directions.shape
+        white = objective.white
+        multipliers = objective._multipliers(theta, objective.slots(k), state)
+        if multipliers is None:
+            multipliers = np.ones(k)
+        rotation = white.rotation if white.rotation is not None else np.eye(n_leds)
+        rotated = (rotation.T @ gains)[:, :, np.newaxis]  # (M', K, 1)
+        moved = np.einsum("ba,kbn->akn", rotation, directions)  # (M', K, n)
+        if self.model == "power":
+            block = 2.0 * moved * rotated
+        else:
+            upper, lower = white.upper, white.lower
+            block = moved[upper] * rotated[lower] + rotated[upper] * moved[lower]
+        block *= multipliers[np.newaxis, :, np.newaxis] * white.weights[:, np.newaxis, np.newaxis]
+        return np.asarray(block.reshape(-1, k * n_dirs))
