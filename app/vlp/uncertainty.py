@@ -19,7 +19,7 @@ from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
-from scipy import optimize, special, stats
+from scipy import optimize, special
 
 from .typing import FloatArray, IntArray
 
@@ -33,6 +33,7 @@ __all__ = [
     "assess_fit",
     "confidence_radii",
     "confidence_radius",
+    "f2_widening",
     "fit_misfit",
     "misfit_design",
     "predictive_covariances",
@@ -396,6 +397,29 @@ def fit_misfit(
     return Misfit(float(solution[0]), np.asarray(solution[1:]), dofs)
 
 
+def f2_widening(dof: FloatArray, level: float = 0.95) -> FloatArray:
+    """``2 F^-1(level; 2, nu) / chi2^-1(level; 2)``: how much wider a 2-D region of ``level``
+    is when its covariance rests on ``nu`` degrees of freedom (1 as ``nu`` -> inf).
+
+    F(2, nu) has the closed-form CDF ``1 - (1 + 2 x / nu)^(-nu / 2)``, and the chi-square(2)
+    quantile is ``-2 ln(1 - level)``, so the ratio is ``nu expm1(q / nu) / q`` with
+    ``q = -2 ln(1 - level)`` (no distribution objects: this runs for every answer).
+
+    Parameters
+    ----------
+    dof : ndarray of shape (K,)
+        ``nu`` > 0.
+    level : float, default=0.95
+
+    Returns
+    -------
+    ndarray of shape (K,), >= 1
+    """
+    nu = np.asarray(dof, dtype=np.float64)
+    q = -2.0 * math.log1p(-level)
+    return np.asarray(nu * np.expm1(q / nu) / q)
+
+
 def predictive_covariances(
     design: MisfitDesign, misfit: Misfit, blocks: IntArray, level: float = 0.95
 ) -> FloatArray:
@@ -441,5 +465,5 @@ def predictive_covariances(
     estimated = spread > 0.0
     if np.any(estimated):
         dof = total[estimated] ** 2 / spread[estimated]
-        widen[estimated] = 2.0 * stats.f.ppf(level, 2, dof) / stats.chi2.ppf(level, 2)
+        widen[estimated] = f2_widening(dof, level)
     return np.asarray(covariances * widen[:, np.newaxis, np.newaxis])

@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 import pytest
-from scipy import integrate, special
+from scipy import integrate, special, stats
 
 from app.vlp.uncertainty import (
     POOR_FIT_CHI2,
@@ -14,6 +14,7 @@ from app.vlp.uncertainty import (
     assess_fit,
     confidence_radii,
     confidence_radius,
+    f2_widening,
     fit_misfit,
     misfit_design,
     predictive_covariances,
@@ -175,3 +176,11 @@ def test_fitted_misfit_gives_honest_95_percent_regions(model_error: float) -> No
     assert 0.92 <= float(np.mean(inside)) <= 0.98
     if model_error > 0.0:
         assert float(np.mean(fitted)) == pytest.approx(model_error, rel=0.25)
+
+
+def test_f2_widening_is_the_f_over_chi_square_quantile_ratio() -> None:
+    dof = np.array([0.5, 1.0, 2.0, 3.7, 10.0, 100.0, 1e4, 1e9])
+    for level in (0.5, 0.95, 0.99):
+        expected = 2.0 * stats.f.ppf(level, 2, dof) / stats.chi2.ppf(level, 2)
+        np.testing.assert_allclose(f2_widening(dof, level), expected, rtol=1e-9)
+    assert f2_widening(np.array([1e15]))[0] == pytest.approx(1.0, abs=1e-9)
