@@ -165,7 +165,8 @@ class Estimate(ResponseModel):
     accuracy_m: float | None = Field(
         default=None,
         description="radius of the 95 % confidence circle around (x, y), metres (solver "
-        "`gridless`; from the fit's Fisher information, widened when the fit is poor)",
+        "`gridless`; from the fit's noise and the model errors its residuals show: per-LED "
+        "gain errors, tilts, heights not sent; docs/accuracy.md measures how often it holds)",
     )
     covariance: list[list[float]] | None = Field(
         default=None, description="[[sxx, sxy], [sxy, syy]] of (x, y), m^2 (solver `gridless`)"
