@@ -14,7 +14,7 @@ from pydantic_settings import BaseSettings, SettingsConfigDict
 
 __all__ = ["MIN_KEY_LENGTH", "Settings", "get_settings"]
 
-# Keys from the environment must be at least this long (generated ones have 43 characters).
+# Keys from the environment must be at least this long (generated ones have 47 characters).
 MIN_KEY_LENGTH = 24
 
 

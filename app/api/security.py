@@ -36,6 +36,7 @@ from app.settings import MIN_KEY_LENGTH, Settings
 __all__ = [
     "CREDENTIALS_FILE",
     "KEY_CACHE_TTL_S",
+    "KEY_PREFIX",
     "LAST_USED_INTERVAL_S",
     "MIN_KEY_LENGTH",
     "ROLES",
@@ -53,6 +54,8 @@ CREDENTIALS_FILE = "credentials"
 # "Keys"): 1 s of cache.
 KEY_CACHE_TTL_S = 1.0
 LAST_USED_INTERVAL_S = 60.0
+# What every key the service generates starts with.
+KEY_PREFIX = "vlp_"
 _MAX_CACHED_KEYS = 4096
 
 _log = logging.getLogger("app.security")
@@ -64,8 +67,13 @@ def hash_key(key: str) -> str:
 
 
 def generate_key() -> str:
-    """A new random key: 32 bytes, URL-safe base64 (43 characters)."""
-    return secrets.token_urlsafe(32)
+    """A new random key: ``vlp_`` and 32 random bytes in URL-safe base64 (47 characters).
+
+    The prefix makes a leaked key recognisable, and keeps a key from starting with ``-``
+    (one in 64 bare base64 keys did), which a command line such as ``vlp --key KEY`` would
+    read as an option.
+    """
+    return KEY_PREFIX + secrets.token_urlsafe(32)
 
 
 @dataclass

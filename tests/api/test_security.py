@@ -10,7 +10,7 @@ from typing import Any
 
 import pytest
 
-from app.api.security import CREDENTIALS_FILE, hash_key
+from app.api.security import CREDENTIALS_FILE, KEY_PREFIX, MIN_KEY_LENGTH, generate_key, hash_key
 from app.main import create_app
 
 from .conftest import ADMIN, TERMINAL, TestClient, assert_problem, make_settings, small_room
@@ -241,3 +241,12 @@ def test_configured_keys_are_stored_as_hashes(tmp_path: Path) -> None:
             )
         assert client.get("/v1/rooms", headers={"X-API-Key": t_key}).status_code == 200
         assert not (tmp_path / CREDENTIALS_FILE).exists()
+
+
+def test_generated_keys_are_prefixed_and_never_read_as_a_command_line_option() -> None:
+    # Bare URL-safe base64 starts with "-" one time in 64, which `vlp ... --key KEY` reads
+    # as an option: every generated key starts with the prefix instead.
+    keys = [generate_key() for _ in range(2000)]
+    assert all(key.startswith(KEY_PREFIX) and len(key) >= MIN_KEY_LENGTH for key in keys)
+    assert len(set(keys)) == len(keys)
+    assert {len(key) for key in keys} == {len(KEY_PREFIX) + 43}

@@ -31,7 +31,8 @@ def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LiveServer]:
 def _run(
     capsys: pytest.CaptureFixture[str], server: LiveServer, *argv: str, key: str = ADMIN_KEY
 ) -> tuple[int, str, str]:
-    code = main([*argv, "--url", server.url, "--key", key])
+    # --key=VALUE: an operator's key may start with "-", which "--key VALUE" reads as an option.
+    code = main([*argv, "--url", server.url, f"--key={key}"])
     captured = capsys.readouterr()
     return code, captured.out, captured.err
 
