@@ -54,6 +54,18 @@ class GridlessOptions:
     # Prior sd of each component (tangent) of a terminal's unknown photodiode tilt, fitted
     # when terminals send their own amplitudes but not their normal (hand-held phones tilt).
     tilt_sd: float | None = 0.15
+    # The room's tolerances, fitted with the aggregated correlation as a last stage
+    # (._room_tolerance_fit; None: never): each LED's pilot amplitude (log sd) and half-power
+    # angle (degrees), as LED data sheets give them, and optionally each target's photodiode
+    # tilt (tangent sd, about radians; 0: not fitted, which measured better, see
+    # docs/real-rooms.md). Tried only when the fit's whitened cost per degree of freedom is
+    # above ``tolerance_misfit_ratio``, kept only when it lowers that cost by more than its
+    # extra parameters' chi-square mean plus ``tolerance_significance`` standard deviations.
+    led_log_amplitude_sd: float | None = 0.05
+    led_half_power_sd_deg: float = 3.0
+    room_tilt_sd: float = 0.0
+    tolerance_misfit_ratio: float = 1.1
+    tolerance_significance: float = 8.0
     # A stage of nuisances is kept when it lowers the whitened cost by more than its extra
     # parameters' chi-square mean plus this many standard deviations.
     stage_significance: float = 3.0

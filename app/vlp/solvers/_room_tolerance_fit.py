@@ -1,0 +1,412 @@
+"""Joint fit of the aggregated correlation with the room's tolerances as nuisance parameters.
+
+The ``gridless`` fit models every LED exactly as its layout says and every photodiode level.
+Real LEDs differ from their data sheet (pilot amplitude, beam width) and hand-held
+photodiodes tilt; in the aggregated correlation those errors bias every position. This
+module fits them jointly with the positions, each with a Gaussian prior (a MAP fit):
+
+.. math::
+
+    g_{mk} = e^{a_m}\\Big(h^{los}_{mk}\\,\\frac{m_m + 1 + \\delta_m}{m_m + 1}
+             \\cos^{\\delta_m}\\phi_{mk} + \\frac{h^{los}_{mk}}{D_{mk}}\\,(t_k \\cdot v_{mk})
+             + h^{dif}_{mk}\\Big)
+
+with ``a_m`` LED m's log amplitude, ``delta_m`` the change of its Lambertian order,
+``phi_mk`` the irradiance angle, ``t_k`` target k's photodiode tilt (tangent components,
+first order: ``n . v`` grows by ``t . v_xy``, ``D`` = the LED's height above the target),
+and the model ``R = sum_k e^(v + 2 u_k) g_k g_k^T + s I`` as in :mod:`._gridless_fit`. The
+metric is the plug-in whitening of *this* model's gains: a whitening computed from the
+nominal gains puts part of the real signal into the noise-only subspace, whose weights
+are the largest, and wastes most of what the fit gains.
+
+Private: callers validate. Used by :class:`~app.vlp.solvers.gridless.GridlessSolver` as a
+last nuisance stage, kept only when it explains the data significantly better.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..typing import FloatArray
+from ._channel_kernel import ChannelKernel
+from ._gridless_fit import (
+    _EIG_FLOOR,
+    _SIGMA2_FLOOR,
+    _SIGMA2_REL_FLOOR,
+    MAX_LOG_GAIN,
+    MAX_LOG_SCALE,
+    FitState,
+    Whitening,
+    _vech_indices,
+)
+
+__all__ = ["RoomTolerances", "ToleranceFit", "fit_room_tolerances"]
+
+_LN2 = math.log(2.0)
+# LM for the joint fit (NumPy; it runs only on measurements that show a misfit).
+_MAX_ITER = 40
+_MAX_REJECTIONS = 10
+_REL_TOL = 1e-6
+# Re-whitening rounds: each refit uses the metric of the previous one's gains.
+_ROUNDS = 3
+
+
+@dataclass(frozen=True)
+class RoomTolerances:
+    """Prior standard deviations of the room's tolerances.
+
+    Attributes
+    ----------
+    led_log_amplitude_sd : float
+        Each LED's log pilot amplitude (0.05: 5 %).
+    led_half_power_sd_deg : float
+        Each LED's half-power angle, degrees.
+    tilt_sd : float
+        Each tangent component of each photodiode's normal (about radians of tilt); 0: the
+        photodiodes are taken as level (no tilt parameters).
+    """
+
+    led_log_amplitude_sd: float
+    led_half_power_sd_deg: float
+    tilt_sd: float
+
+
+@dataclass(frozen=True)
+class ToleranceFit:
+    """Result of :func:`fit_room_tolerances`.
+
+    Attributes
+    ----------
+    state : FitState
+        Positions, gains, scale and noise of the joint fit (heights as given).
+    led_log_amplitudes : ndarray of shape (M,)
+    led_order_changes : ndarray of shape (M,)
+        ``delta_m``, the change of each LED's Lambertian order.
+    tilts : ndarray of shape (K, 2)
+    cost : float
+        Whitened cost (data and priors) in the final metric.
+    base_cost : float
+        The starting state's cost in its own metric (every tolerance at 0), which the
+        first round's decrease is measured from.
+    n_extra : int
+        Parameters the tolerances add (2 M, plus 2 K with tilts).
+    """
+
+    state: FitState
+    led_log_amplitudes: FloatArray
+    led_order_changes: FloatArray
+    tilts: FloatArray
+    cost: float
+    base_cost: float
+    n_extra: int
+
+
+class _JointModel:
+    """Residual and Jacobian of the joint fit. ``theta = [x (K), y (K), u (K), v, a (M),
+    delta (M), t_x (K), t_y (K), s]``."""
+
+    def __init__(
+        self,
+        kernel: ChannelKernel,
+        heights: FloatArray,
+        priors: tuple[float, float],
+        tolerances: RoomTolerances,
+    ) -> None:
+        self.kernel = kernel
+        self.heights = heights
+        self.n_targets = heights.shape[0]
+        self.n_leds = kernel.n_leds
+        orders = kernel.orders
+        # Half-power angle phi: order m = -ln 2 / ln cos(phi), so dm/dphi = ln 2 tan(phi) /
+        # ln^2 cos(phi) (in magnitude): the order's prior sd for the angle's.
+        cos_half = np.exp(-_LN2 / orders)
+        half = np.arccos(np.clip(cos_half, -1.0, 1.0))
+        spread = math.radians(tolerances.led_half_power_sd_deg)
+        order_sd = _LN2 * np.tan(half) / np.log(cos_half) ** 2 * spread
+        gain_sd, scale_sd = priors
+        k, m = self.n_targets, self.n_leds
+        self.n_tilts = 2 * k if tolerances.tilt_sd > 0 else 0
+        self.prior_inverse_sd = np.concatenate(
+            (
+                np.full(k, 1.0 / gain_sd),
+                [1.0 / scale_sd],
+                np.full(m, 1.0 / tolerances.led_log_amplitude_sd),
+                1.0 / np.maximum(order_sd, 1e-12),
+                np.full(self.n_tilts, 1.0 / max(tolerances.tilt_sd, 1e-300)),
+            )
+        )
+        self.upper, self.lower, self.is_diag = _vech_indices("correlation", m)
+
+    def size(self) -> int:
+        return int(3 * self.n_targets + 2 * self.n_leds + self.n_tilts + 2)
+
+    def pack(self, state: FitState) -> FloatArray:
+        m = self.n_leds
+        return np.concatenate(
+            (
+                state.positions[:, 0],
+                state.positions[:, 1],
+                state.log_gains,
+                [state.log_scale],
+                np.zeros(2 * m + self.n_tilts),
+                [state.noise],
+            )
+        )
+
+    def split(
+        self, theta: FloatArray
+    ) -> tuple[FloatArray, FloatArray, float, FloatArray, FloatArray, FloatArray, float]:
+        k, m = self.n_targets, self.n_leds
+        positions = np.column_stack((theta[:k], theta[k : 2 * k]))
+        at = 3 * k + 1
+        return (
+            positions,
+            theta[2 * k : 3 * k],
+            float(theta[3 * k]),
+            theta[at : at + m],
+            theta[at + m : at + 2 * m],
+            (
+                theta[at + 2 * m : at + 2 * m + 2 * k].reshape(2, k)
+                if self.n_tilts
+                else np.zeros((2, k))
+            ),
+            float(theta[-1]),
+        )
+
+    def bounds(self) -> tuple[FloatArray, FloatArray]:
+        k = self.n_targets
+        lower = np.full(self.size(), -np.inf)
+        upper = np.full(self.size(), np.inf)
+        length, width = self.kernel.bounds
+        lower[: 2 * k] = 0.0
+        upper[:k], upper[k : 2 * k] = length, width
+        lower[2 * k : 3 * k], upper[2 * k : 3 * k] = -MAX_LOG_GAIN, MAX_LOG_GAIN
+        lower[3 * k], upper[3 * k] = -MAX_LOG_SCALE, MAX_LOG_SCALE
+        lower[-1] = 0.0
+        return lower, upper
+
+    def gains(self, theta: FloatArray) -> tuple[FloatArray, FloatArray, dict[str, FloatArray]]:
+        """``g`` of every target, shape (M, K), the multipliers ``e^(v + 2 u)`` and the
+        pieces the Jacobian needs."""
+        positions, log_gains, log_scale, amps, order_changes, tilts, _ = self.split(theta)
+        kernel = self.kernel
+        k = self.n_targets
+        blocks = kernel.gradients_xyz(positions[:, 0], positions[:, 1], self.heights)
+        total = blocks[:, 3 * k : 4 * k]
+        offsets = kernel.led_xyz[:, np.newaxis, :] - np.column_stack((positions, self.heights))
+        drop = np.maximum(offsets[:, :, 2], 1e-9)
+        dist2 = np.einsum("mkc,mkc->mk", offsets, offsets)
+        orders = kernel.orders[:, np.newaxis]
+        in_view = drop * drop >= kernel.cos_fov2 * dist2
+        los = (
+            kernel.free_height_factor[:, np.newaxis]
+            * drop ** (orders + 1.0)
+            * dist2 ** (-(orders + 3.0) / 2.0)
+            * in_view
+        )
+        log_cos = 0.5 * np.log(drop * drop / dist2)
+        beam = (
+            (orders + 1.0 + order_changes[:, np.newaxis])
+            / (orders + 1.0)
+            * np.exp(order_changes[:, np.newaxis] * log_cos)
+        )
+        per_tilt = los / drop
+        tilt_gain = per_tilt * (offsets[:, :, 0] * tilts[0] + offsets[:, :, 1] * tilts[1])
+        amplitude = np.exp(amps)[:, np.newaxis]
+        gains = amplitude * (los * beam + tilt_gain + (total - los))
+        multipliers = np.exp(log_scale + 2.0 * log_gains)
+        # d g / d x: the line of sight's own slope changes with the beam (cos^delta) and the
+        # tilt term; both are small corrections of the nominal slope, kept exactly here.
+        dx_nominal = blocks[:, :k]
+        dy_nominal = blocks[:, k : 2 * k]
+        # d log cos(phi) / dx = (x_led - x) / d^2 (cos phi = D / d, d^2 grows with dx^2).
+        along = offsets[:, :, :2] / dist2[:, :, np.newaxis]
+        beam_slope = order_changes[:, np.newaxis, np.newaxis] * along  # d log beam / d(x, y)
+        # d los / dx = los (m + 3) (x_led - x) / d^2 (the kernel's formula; the nominal slope
+        # below already holds it once, and the diffuse part's).
+        los_slope = los[:, :, np.newaxis] * (orders + 3.0)[:, :, np.newaxis] * along
+        # tilt term t . v_xy * los / D: d/dx = -t_x los / D + (t . v_xy) dlos/dx / D.
+        tilt_dot = offsets[:, :, 0] * tilts[0] + offsets[:, :, 1] * tilts[1]
+        extra = np.empty((self.n_leds, k, 2))
+        for axis in range(2):
+            extra[:, :, axis] = (
+                los_slope[:, :, axis] * (beam - 1.0)
+                + los * beam * beam_slope[:, :, axis]
+                - tilts[axis] / drop * los
+                + tilt_dot / drop * los_slope[:, :, axis]
+            )
+        slopes = amplitude[:, :, np.newaxis] * (np.stack((dx_nominal, dy_nominal), axis=2) + extra)
+        pieces = {
+            "slopes": slopes,
+            "amplitude_part": gains,
+            "order_part": amplitude
+            * los
+            * beam
+            * (1.0 / (orders + 1.0 + order_changes[:, np.newaxis]) + log_cos),
+            "tilt_x": amplitude * per_tilt * offsets[:, :, 0],
+            "tilt_y": amplitude * per_tilt * offsets[:, :, 1],
+        }
+        return gains, multipliers, pieces
+
+    def whitening(self, theta: FloatArray, noise: float) -> Whitening:
+        """The plug-in whitening of this model's gains at ``theta`` with the noise
+        coefficient ``noise`` (as ``Whitening.from_state``)."""
+        gains, multipliers, _ = self.gains(theta)
+        k, m = self.n_targets, self.n_leds
+        power = float(np.sum(gains**2 * multipliers)) / (m * k)
+        sigma2 = max(noise / k, _SIGMA2_REL_FLOOR * power, _SIGMA2_FLOOR)
+        signal = (gains * multipliers) @ gains.T
+        signal.flat[:: m + 1] += 0.5 * k * sigma2
+        lam, rotation = np.linalg.eigh(signal)
+        lam = np.maximum(lam, _EIG_FLOOR * max(float(lam[-1]), _SIGMA2_FLOOR))
+        var = 2.0 * sigma2 * (lam[self.upper] + lam[self.lower]) * (1.0 + self.is_diag)
+        return Whitening("correlation", m, rotation, np.sqrt((2.0 - self.is_diag) / var))
+
+    def residual_and_jacobian(
+        self, theta: FloatArray, white: Whitening, data: FloatArray
+    ) -> tuple[FloatArray, FloatArray]:
+        """Residual ``[data - c mu; -theta_nuisance / sd]`` and ``J = d(c mu)/d theta``
+        (with the priors' rows), shapes (L + n_prior,) and (L + n_prior, P)."""
+        k = self.n_targets
+        gains, multipliers, pieces = self.gains(theta)
+        rotation = white.rotation
+        assert rotation is not None
+        upper, lower, weights = white.upper, white.lower, white.weights
+        rotated = rotation.T @ gains  # (M', K)
+        atoms = rotated[upper] * rotated[lower]  # (L, K)
+        model = atoms @ multipliers + float(theta[-1]) * self.is_diag
+        residual = data - weights * model
+
+        def per_target(directions: FloatArray) -> FloatArray:
+            moved = rotation.T @ directions
+            block = moved[upper] * rotated[lower] + rotated[upper] * moved[lower]
+            return np.asarray(weights[:, np.newaxis] * block * multipliers[np.newaxis, :])
+
+        def per_led(directions: FloatArray) -> FloatArray:
+            # LED i's parameter moves row i of g: moved[a, k] = U[i, a] directions[i, k].
+            # Column i: w (U[i, up] Q[i, lo] + U[i, lo] Q[i, up]), Q = (D c) @ rotated^T.
+            q = (directions * multipliers) @ rotated.T  # (M, M')
+            block = rotation[:, upper] * q[:, lower] + rotation[:, lower] * q[:, upper]
+            return np.asarray((weights[np.newaxis, :] * block).T)
+
+        slopes = pieces["slopes"]
+        columns = [
+            per_target(slopes[:, :, 0]),
+            per_target(slopes[:, :, 1]),
+            2.0 * weights[:, np.newaxis] * atoms * multipliers[np.newaxis, :],
+            (weights * (atoms @ multipliers))[:, np.newaxis],
+            per_led(pieces["amplitude_part"]),
+            per_led(pieces["order_part"]),
+            *((per_target(pieces["tilt_x"]), per_target(pieces["tilt_y"])) if self.n_tilts else ()),
+            (weights * self.is_diag)[:, np.newaxis],
+        ]
+        jacobian = np.concatenate(columns, axis=1)
+        nuisance = theta[2 * k : 2 * k + self.prior_inverse_sd.shape[0]]
+        prior_residual = -nuisance * self.prior_inverse_sd
+        prior_rows = np.zeros((prior_residual.shape[0], theta.shape[0]))
+        prior_rows[:, 2 * k : 2 * k + prior_residual.shape[0]] = np.diag(self.prior_inverse_sd)
+        return np.concatenate((residual, prior_residual)), np.vstack((jacobian, prior_rows))
+
+
+def _levenberg_marquardt(
+    model: _JointModel, theta: FloatArray, white: Whitening, data: FloatArray
+) -> tuple[FloatArray, float]:
+    lower, upper = model.bounds()
+    residual, jacobian = model.residual_and_jacobian(theta, white, data)
+    cost = float(residual @ residual)
+    damping = 1e-2
+    for _ in range(_MAX_ITER):
+        normal = jacobian.T @ jacobian
+        gradient = jacobian.T @ residual
+        scaling = np.maximum(normal.diagonal(), 1e-30)
+        improved = finished = False
+        for _ in range(_MAX_REJECTIONS):
+            try:
+                step = np.linalg.solve(normal + np.diag(damping * scaling), gradient)
+            except np.linalg.LinAlgError:
+                damping *= 10.0
+                continue
+            trial = np.clip(theta + step, lower, upper)
+            trial_residual, trial_jacobian = model.residual_and_jacobian(trial, white, data)
+            trial_cost = float(trial_residual @ trial_residual)
+            if trial_cost < cost:
+                finished = cost - trial_cost < _REL_TOL * cost
+                theta, residual, jacobian, cost = trial, trial_residual, trial_jacobian, trial_cost
+                damping = max(damping / 5.0, 1e-9)
+                improved = True
+                break
+            damping *= 4.0
+        if not improved or finished:
+            break
+    return theta, cost
+
+
+def fit_room_tolerances(
+    kernel: ChannelKernel,
+    values: FloatArray,
+    state: FitState,
+    priors: tuple[float, float],
+    tolerances: RoomTolerances,
+    required_decrease: float = 0.0,
+) -> ToleranceFit | None:
+    """MAP fit of positions, gains, scale, noise and the room's tolerances (module doc).
+
+    The first round runs in the starting state's own metric, where the fit without tolerances
+    is at its optimum; when it lowers the cost by no more than ``required_decrease`` the
+    tolerances explain nothing the noise would not, and None is returned. Otherwise more
+    rounds follow, each in the metric of the previous one's gains.
+
+    Parameters
+    ----------
+    kernel : ChannelKernel
+    values : ndarray of shape (M (M + 1) / 2,)
+        ``vech(R)`` in the kernel's normalised units.
+    state : FitState
+        The fit without tolerances (its unit weights, heights kept).
+    priors : (float, float)
+        Prior sds of each target's log gain and of the common log scale.
+    tolerances : RoomTolerances
+    required_decrease : float, default=0
+
+    Returns
+    -------
+    ToleranceFit or None
+    """
+    model = _JointModel(kernel, np.asarray(state.heights, dtype=np.float64), priors, tolerances)
+    start = model.pack(state)
+    # The noise level of the metric stays the fit's without tolerances: refitted with 2 M
+    # more parameters, s shrinks with what they absorb, and a metric whitened by the
+    # smaller s would weight the next round's residuals up (in trials of an ideal room,
+    # each round's cost grew tenfold and the positions drifted by decimetres).
+    noise = float(state.noise)
+    white = model.whitening(start, noise)
+    data = white.data(values)
+    base_residual, _ = model.residual_and_jacobian(start, white, data)
+    base_cost = float(base_residual @ base_residual)
+    theta, cost = _levenberg_marquardt(model, start, white, data)
+    if not base_cost - cost > required_decrease:
+        return None
+    for _ in range(_ROUNDS - 1):
+        white = model.whitening(theta, noise)
+        theta, cost = _levenberg_marquardt(model, theta, white, white.data(values))
+    positions, log_gains, log_scale, amps, order_changes, tilts, noise = model.split(theta)
+    fitted = FitState(
+        positions.copy(),
+        state.weights.copy(),
+        noise,
+        state.heights.copy(),
+        log_gains.copy(),
+        log_scale,
+    )
+    return ToleranceFit(
+        fitted,
+        amps.copy(),
+        order_changes.copy(),
+        tilts.T.copy(),
+        cost,
+        base_cost,
+        2 * model.n_leds + model.n_tilts,
+    )
