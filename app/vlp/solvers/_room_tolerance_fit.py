@@ -47,11 +47,12 @@ __all__ = ["RoomTolerances", "ToleranceFit", "fit_room_tolerances"]
 
 _LN2 = math.log(2.0)
 # LM for the joint fit (NumPy; it runs only on measurements that show a misfit).
-_MAX_ITER = 40
+_MAX_ITER = 30
 _MAX_REJECTIONS = 10
-_REL_TOL = 1e-6
+# Stop at this relative decrease (the aggregated LM's tolerance, LM_DEFAULTS).
+_REL_TOL = 1e-4
 # Re-whitening rounds: each refit uses the metric of the previous one's gains.
-_ROUNDS = 3
+_ROUNDS = 2
 
 
 @dataclass(frozen=True)
@@ -351,6 +352,7 @@ def fit_room_tolerances(
     priors: tuple[float, float],
     tolerances: RoomTolerances,
     required_decrease: float = 0.0,
+    required_promise: float = 0.0,
 ) -> ToleranceFit | None:
     """MAP fit of positions, gains, scale, noise and the room's tolerances (module doc).
 
@@ -370,6 +372,7 @@ def fit_room_tolerances(
         Prior sds of each target's log gain and of the common log scale.
     tolerances : RoomTolerances
     required_decrease : float, default=0
+    required_promise : float, default=0
 
     Returns
     -------
@@ -384,8 +387,17 @@ def fit_room_tolerances(
     noise = float(state.noise)
     white = model.whitening(start, noise)
     data = white.data(values)
-    base_residual, _ = model.residual_and_jacobian(start, white, data)
+    base_residual, jacobian = model.residual_and_jacobian(start, white, data)
     base_cost = float(base_residual @ base_residual)
+    # Score test first (one evaluation): the decrease the Gauss-Newton step promises. A
+    # room as modelled rarely promises enough, and then no LM runs.
+    gradient = jacobian.T @ base_residual
+    try:
+        promised = float(gradient @ np.linalg.solve(jacobian.T @ jacobian, gradient))
+    except np.linalg.LinAlgError:
+        promised = math.inf
+    if not promised > required_promise:
+        return None
     theta, cost = _levenberg_marquardt(model, start, white, data)
     if not base_cost - cost > required_decrease:
         return None

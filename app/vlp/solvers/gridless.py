@@ -820,7 +820,9 @@ class GridlessSolver(Solver):
         ``tolerance_misfit_ratio``) and kept only when its first round, in the fit's own
         metric, lowers the cost by more than its extra parameters (counting the gains and
         the scale, freed here even when no earlier stage kept them) would by chance, by
-        ``tolerance_significance`` standard deviations. Fitted always, the tolerances fit
+        ``tolerance_significance`` standard deviations; a score test (the first
+        Gauss-Newton step must promise more than the extra parameters' count) skips the fit
+        where it cannot pass. Fitted always, the tolerances fit
         the noise of a room exactly as modelled and cost it accuracy (paper room, K = 4:
         3.2 -> 5.3 cm); the gate and its defaults were chosen on two rooms and six
         conditions (docs/real-rooms.md, "Room tolerances in the aggregated fit").
@@ -861,6 +863,9 @@ class GridlessSolver(Solver):
             (gain_sd, scale_sd),
             tolerances,
             required_decrease=extra + opts.tolerance_significance * math.sqrt(2.0 * extra),
+            # The first step's promise in a room as modelled: about half the chance level
+            # (the priors shrink the step); rooms with LED errors promise more than it.
+            required_promise=float(extra),
         )
         return state if fit is None else fit.state
 
