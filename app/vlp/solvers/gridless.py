@@ -47,6 +47,7 @@ from ._gridless_options import (
 from ._kernels import kernel_mode
 from ._local import PowerScan, TerminalWindows
 from ._terminal_fit import TerminalFit, fit_terminal, starting_cells
+from ._uncertainty_compiled import uncertainty_kernel
 from .base import MAX_TARGETS, Solution, Solver, register_solver
 
 __all__ = ["LM_DEFAULTS", "GridlessOptions", "GridlessSolver"]
@@ -826,12 +827,24 @@ class GridlessSolver(Solver):
         noise. A room too large to hold the model-error design falls back to inflating the
         inverse Fisher information by the reduced chi-square when above 1.
         """
-        objective = self._objective(run, self._whitening(state))
+        return self._covariances(self._objective(run, self._whitening(state)), state)
+
+    def _covariances(self, objective: Objective, state: FitState) -> tuple[FloatArray, FitQuality]:
+        """:meth:`_uncertainty` in the metric of ``objective``: compiled
+        (:mod:`._uncertainty_compiled`) or, with the reference kernels, in NumPy."""
         theta = objective.pack(state)
         k = state.n_targets
         index = np.column_stack((np.arange(k), np.arange(k) + k))
         n_params, n_data = theta.shape[0], objective.data.shape[0]
         scale = math.exp(0.5 * state.log_scale)
+        problem = objective.compiled_problem()
+        small = n_data * k * self.fingerprint.n_leds <= _MAX_MISFIT_ENTRIES
+        if problem is not None and k > 0 and small:
+            # The same sandwich in one compiled call (._uncertainty_compiled).
+            covariances, cost = uncertainty_kernel(
+                *problem, theta, *objective.compiled_state(state), 1.0
+            )
+            return covariances, assess_fit(float(cost), n_data - n_params, scale)
         columns = self._misfit_columns(objective, theta, state)
         if columns is None:
             normal, _, cost = gram(objective, theta, state)
