@@ -240,6 +240,7 @@ class Whitening:
         self.upper, self.lower, self.is_diag = _vech_indices(model, n_leds)
         self.weighted_diag = weights * self.is_diag
         self._compiled: tuple[Any, ...] | None = None
+        self._data: tuple[FloatArray, str, FloatArray] | None = None
 
     def compiled(self) -> tuple[Any, ...]:
         """This whitening as the compiled kernels take it (built once)."""
@@ -312,7 +313,17 @@ class Whitening:
         return cls(model, kernel.n_leds, rot, weights)
 
     def data(self, values: FloatArray) -> FloatArray:
-        """Whitened measurement."""
+        """Whitened measurement. The last one is kept (a solve whitens its measurement in
+        one metric many times): callers must not write into it (nor into ``values``). Not
+        flagged read-only: the compiled kernels take writable arrays."""
+        last = self._data
+        if last is not None and last[0] is values and last[1] == kernel_mode():
+            return last[2]
+        whitened = self._data_of(values)
+        self._data = (values, kernel_mode(), whitened)
+        return whitened
+
+    def _data_of(self, values: FloatArray) -> FloatArray:
         if kernel_mode() == "compiled":
             return np.asarray(
                 whiten_kernel(self.compiled(), np.ascontiguousarray(values, dtype=np.float64))

@@ -48,6 +48,7 @@ from ._kernels import kernel_mode
 from ._local import PowerScan, TerminalWindows
 from ._terminal_fit import TerminalFit, fit_terminal, starting_cells
 from ._uncertainty_compiled import uncertainty_kernel
+from ._whitening_memo import WhiteningMemo
 from .base import MAX_TARGETS, Solution, Solver, register_solver
 
 __all__ = ["LM_DEFAULTS", "GridlessOptions", "GridlessSolver"]
@@ -177,6 +178,8 @@ class GridlessSolver(Solver):
         ]
         if len(self._stages) == 2 and self._stages[0] == self._stages[1]:
             self._stages.pop()
+        # Whitenings already computed, by state values (._whitening_memo).
+        self._whitenings = WhiteningMemo()
         # Plain least squares (one object: the compiled kernels keep their view of it).
         self._identity = Whitening.identity(model, fingerprint.n_leds)
         self._centres = layout.cell_centres()
@@ -307,6 +310,9 @@ class GridlessSolver(Solver):
     def _whitening(self, state: FitState) -> Whitening:
         if not self.options.whiten or state.n_targets == 0:
             return self._identity
+        return self._whitenings.get(state, self._plug_in)
+
+    def _plug_in(self, state: FitState) -> Whitening:
         return Whitening.from_state(self.model, self._kernel, state, float(state.n_targets))
 
     def _objective(self, run: _Run, white: Whitening, nuisance: bool = True) -> Objective:
