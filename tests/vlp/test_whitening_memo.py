@@ -28,19 +28,22 @@ def test_a_whitening_is_reused_only_for_the_same_values() -> None:
     state = _state()
     first = solver._whitening(state)
     # Another object with the same values: the same whitening, which is the one computed.
-    assert solver._whitening(dataclasses.replace(state)) is first
+    # (``facts`` describe the values they were computed from: a changed copy starts without.)
+    assert solver._whitening(dataclasses.replace(state, facts=None)) is first
     fresh = solver._plug_in(state)
     np.testing.assert_array_equal(first.weights, fresh.weights)
     assert first.rotation is not None and fresh.rotation is not None
     np.testing.assert_array_equal(first.rotation, fresh.rotation)
     # Any value changed: computed afresh.
     for changed in (
-        dataclasses.replace(state, noise=2e-3),
-        dataclasses.replace(state, positions=state.positions + np.array([[1e-9, 0.0], [0, 0]])),
-        dataclasses.replace(state, log_gains=np.array([0.0, 0.1])),
-        dataclasses.replace(state, log_scale=0.1),
-        dataclasses.replace(state, heights=np.array([0.85, 0.9])),
-        dataclasses.replace(state, weights=np.array([1.0, 2.0])),
+        dataclasses.replace(state, noise=2e-3, facts=None),
+        dataclasses.replace(
+            state, positions=state.positions + np.array([[1e-9, 0.0], [0, 0]]), facts=None
+        ),
+        dataclasses.replace(state, log_gains=np.array([0.0, 0.1]), facts=None),
+        dataclasses.replace(state, log_scale=0.1, facts=None),
+        dataclasses.replace(state, heights=np.array([0.85, 0.9]), facts=None),
+        dataclasses.replace(state, weights=np.array([1.0, 2.0]), facts=None),
     ):
         assert solver._whitening(changed) is not first
     # The kernels in use are part of the key (their eigenbases may differ).

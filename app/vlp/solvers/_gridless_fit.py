@@ -163,11 +163,11 @@ class FitState:
     def with_target(self, position: FloatArray, height: float) -> FitState:
         """This state plus one unit-gain target at ``position`` and ``height``."""
         return FitState(
-            np.vstack([self.positions, position]),
-            np.append(self.weights, 1.0),
+            np.concatenate((self.positions, np.reshape(position, (1, 2)))),
+            np.concatenate((self.weights, (1.0,))),
             self.noise,
-            np.append(self.heights, height),
-            np.append(self.log_gains, 0.0),
+            np.concatenate((self.heights, (height,))),
+            np.concatenate((self.log_gains, (0.0,))),
             self.log_scale,
         )
 
@@ -190,16 +190,21 @@ def compiled_indices(model: Model, n_leds: int) -> tuple[IntArray, IntArray, Flo
 def fixed_tuple(kernel: ChannelKernel, state: FitState) -> tuple[Any, ...]:
     """The compiled kernels' ``fixed`` tuple of a state (no parameters in theta)."""
     heights = np.ascontiguousarray(state.heights, dtype=np.float64)
-    unit = (
-        state.log_scale == 0.0 and not state.log_gains.any() and bool((state.weights == 1.0).all())
-    )
+    facts = state.facts  # as Objective._state_facts: the same kernel's plane
+    if facts is None:
+        unit = (
+            state.log_scale == 0.0
+            and not state.log_gains.any()
+            and bool((state.weights == 1.0).all())
+        )
+        facts = state.facts = (bool((heights == kernel.receiver_height).all()), bool(unit))
     return (
         heights,
         np.ascontiguousarray(state.weights, dtype=np.float64),
         np.ascontiguousarray(state.log_gains, dtype=np.float64),
         float(state.log_scale),
-        bool((heights == kernel.receiver_height).all()),
-        bool(unit),
+        facts[0],
+        facts[1],
     )
 
 
@@ -364,6 +369,7 @@ class _Slots:
     n_prior: int
 
     @classmethod
+    @functools.lru_cache(maxsize=256)  # frozen, and asked for by every new Objective
     def make(cls, n_targets: int, priors: Priors, free_weights: bool) -> _Slots:
         k = n_targets
         n_axes = 3 if priors.fits_heights else 2
@@ -416,6 +422,7 @@ class Objective:
         self.free_weights = free_weights
         self.priors = priors or Priors()
         self._slots: dict[int, _Slots] = {}
+        self._bounds: dict[int, tuple[FloatArray, FloatArray]] = {}
         self._problem: tuple[Any, ...] | bool | None = False
 
     def compiled_problem(self) -> tuple[Any, ...] | None:
@@ -491,7 +498,10 @@ class Objective:
     def bounds(self, n_targets: int) -> tuple[FloatArray, FloatArray]:
         """Lower and upper bounds of ``theta`` (positions in the room, heights within the
         prior's bounds, gains and scale within :data:`MAX_LOG_GAIN` / :data:`MAX_LOG_SCALE`,
-        weights and noise nonnegative)."""
+        weights and noise nonnegative; kept per K: callers must not write into them)."""
+        known = self._bounds.get(n_targets)
+        if known is not None:
+            return known
         slots = self.slots(n_targets)
         k = n_targets
         length, width = self.kernel.bounds
@@ -505,13 +515,14 @@ class Objective:
             lower[slots.gains], upper[slots.gains] = -MAX_LOG_GAIN, MAX_LOG_GAIN
         if slots.scale is not None:
             lower[slots.scale], upper[slots.scale] = -MAX_LOG_SCALE, MAX_LOG_SCALE
+        self._bounds[n_targets] = (lower, upper)
         return lower, upper
 
     def unpack(self, theta: FloatArray, state: FitState) -> FitState:
         """State of ``theta`` (what is not fitted is taken from ``state``)."""
         slots = self.slots(state.n_targets)
         k = state.n_targets
-        positions = np.column_stack((theta[:k], theta[k : 2 * k]))
+        positions = theta[: 2 * k].reshape(2, k).T.copy()
         heights = theta[2 * k : 3 * k].copy() if slots.n_axes == 3 else state.heights
         weights = theta[slots.weights].copy() if slots.weights is not None else state.weights
         log_gains = theta[slots.gains].copy() if slots.gains is not None else state.log_gains
