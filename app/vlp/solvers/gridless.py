@@ -7,7 +7,7 @@ sparse inverse problems", SIAM J. Optim. 2017) applied to the aggregated VLP mod
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -67,6 +67,10 @@ class _Run:
     values: FloatArray
     priors: Priors
     iterations: int = 0
+    # Objectives built for this run, by (whitening, priors) (see GridlessSolver._objective).
+    objectives: dict[tuple[int, int], tuple[Whitening, Priors, Objective]] = field(
+        default_factory=dict, repr=False
+    )
 
 
 @register_solver
@@ -316,8 +320,18 @@ class GridlessSolver(Solver):
         return Whitening.from_state(self.model, self._kernel, state, float(state.n_targets))
 
     def _objective(self, run: _Run, white: Whitening, nuisance: bool = True) -> Objective:
+        """The run's objective in ``white``'s metric (one per whitening and priors: a solve
+        asks for the same one many times, and an Objective keeps its compiled form)."""
         priors = run.priors if nuisance else self._growth_priors
-        return Objective(self._kernel, white, run.values, self.options.free_weights, priors)
+        key = (id(white), id(priors))
+        known = run.objectives.get(key)
+        if known is not None and known[0] is white and known[1] is priors:
+            return known[2]
+        objective = Objective(self._kernel, white, run.values, self.options.free_weights, priors)
+        if len(run.objectives) >= 256:
+            run.objectives.clear()
+        run.objectives[key] = (white, priors, objective)
+        return objective
 
     def _fit(
         self,
