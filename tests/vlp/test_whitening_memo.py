@@ -13,7 +13,7 @@ from app.vlp.presets import paper_layout
 from app.vlp.simulation import noise_std_for_snr, noisy_amplitudes, random_positions
 from app.vlp.solvers._gridless_fit import FitState, Whitening
 from app.vlp.solvers._kernels import use_kernels
-from app.vlp.solvers._whitening_memo import WhiteningMemo
+from app.vlp.solvers._whitening_memo import MAX_KEPT_VALUES, WhiteningMemo
 from app.vlp.solvers.gridless import GridlessSolver
 
 
@@ -69,6 +69,19 @@ def test_the_memo_is_bounded() -> None:
         memo.get(dataclasses.replace(_state(), noise=float(i)), compute)
     assert len(calls) == 200
     assert len(memo._local.known) <= 64
+
+
+def test_large_whitenings_are_not_kept() -> None:
+    """A large room's whitening (an M x M rotation, M(M+1)/2 weights) is computed afresh
+    rather than held by every thread."""
+    memo = WhiteningMemo()
+    big = [Whitening.identity("power", MAX_KEPT_VALUES + 1) for _ in range(2)]
+    calls = iter(big)
+    state = _state()
+    assert memo.get(state, lambda _: next(calls)) is big[0]
+    assert memo.get(state, lambda _: next(calls)) is big[1]
+    values = np.ones(MAX_KEPT_VALUES + 1)
+    assert big[0].data(values) is not big[0].data(values)
 
 
 def test_whitened_data_is_kept_for_the_same_array() -> None:

@@ -48,6 +48,8 @@ _EIG_FLOOR = 1e-9
 # to the mean received power (1e-4: an SNR of 40 dB).
 _SIGMA2_FLOOR = 1e-12
 _SIGMA2_REL_FLOOR = 1e-4
+# Whitened measurements of at most this many values are kept by their Whitening.
+_KEPT_DATA_MAX = 4096
 # Damping increases tried per LM iteration before the point is taken as a local minimum.
 _MAX_REJECTIONS = 12
 # Marquardt damping factors after a rejected / accepted step (the start is the caller's).
@@ -325,7 +327,8 @@ class Whitening:
         if last is not None and last[0] is values and last[1] == kernel_mode():
             return last[2]
         whitened = self._data_of(values)
-        self._data = (values, kernel_mode(), whitened)
+        if whitened.shape[0] <= _KEPT_DATA_MAX:  # a large room's whitening keeps none
+            self._data = (values, kernel_mode(), whitened)
         return whitened
 
     def _data_of(self, values: FloatArray) -> FloatArray:

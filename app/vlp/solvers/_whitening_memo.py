@@ -6,7 +6,7 @@ and each whitening costs an eigendecomposition (about a fifth of a K = 1 solve).
 whitening is a function of the state's values alone (positions, heights, weights, gains,
 scale, noise) and of the kernels in use, so a whitening found under the same values is the
 one that would be computed: the answers do not change. Per thread (a solver serves many),
-bounded. Private.
+bounded in count and kept only for rooms of a few dozen LEDs. Private.
 """
 
 from __future__ import annotations
@@ -19,10 +19,13 @@ import numpy as np
 from ._gridless_fit import FitState, Whitening
 from ._kernels import kernel_mode
 
-__all__ = ["WhiteningMemo"]
+__all__ = ["MAX_KEPT_VALUES", "WhiteningMemo"]
 
 # Whitenings kept per thread; a solve needs a few dozen at most (K = 8 with restarts).
 _CAPACITY = 64
+# Only whitenings of at most this many values are kept (a 16-LED correlation has 136; a
+# 1024-LED one would hold an 8 MB rotation and 4 MB of weights each: computed, not kept).
+MAX_KEPT_VALUES = 4096
 
 
 class WhiteningMemo:
@@ -50,9 +53,11 @@ class WhiteningMemo:
             known = self._local.known = {}
         found = known.get(key)
         if found is None:
-            if len(known) >= _CAPACITY:
-                known.clear()
-            found = known[key] = compute(state)
+            found = compute(state)
+            if found.weights.shape[0] <= MAX_KEPT_VALUES:
+                if len(known) >= _CAPACITY:
+                    known.clear()
+                known[key] = found
         return found
 
     def __reduce__(self) -> tuple[type[WhiteningMemo], tuple[()]]:

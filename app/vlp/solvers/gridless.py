@@ -48,7 +48,7 @@ from ._kernels import kernel_mode
 from ._local import PowerScan, TerminalWindows
 from ._terminal_fit import TerminalFit, fit_terminal, starting_cells
 from ._uncertainty_compiled import uncertainty_kernel
-from ._whitening_memo import WhiteningMemo
+from ._whitening_memo import MAX_KEPT_VALUES, WhiteningMemo
 from .base import MAX_TARGETS, Solution, Solver, register_solver
 
 __all__ = ["LM_DEFAULTS", "GridlessOptions", "GridlessSolver"]
@@ -328,9 +328,10 @@ class GridlessSolver(Solver):
         if known is not None and known[0] is white and known[1] is priors:
             return known[2]
         objective = Objective(self._kernel, white, run.values, self.options.free_weights, priors)
-        if len(run.objectives) >= 256:
-            run.objectives.clear()
-        run.objectives[key] = (white, priors, objective)
+        if white.weights.shape[0] <= MAX_KEPT_VALUES:  # a large room's are computed afresh
+            if len(run.objectives) >= 256:
+                run.objectives.clear()
+            run.objectives[key] = (white, priors, objective)
         return objective
 
     def _fit(
