@@ -10,12 +10,14 @@ scale (see :mod:`app.vlp.uncertainty`).
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 from .errors import MeasurementError
 from .fingerprints import Fingerprint
 from .measurements import Measurement
-from .typing import FloatArray
+from .typing import FloatArray, IntArray
 
 __all__ = ["MAX_SCALE_FACTOR", "check_amplitude_scale", "check_measurement_scale"]
 
@@ -31,6 +33,15 @@ def brightest_energy(fingerprint: Fingerprint) -> float:
         return float(np.max(np.asarray(power.sum(axis=0)).ravel()))
 
     return fingerprint._cached("brightest_energy", make)
+
+
+@functools.lru_cache(maxsize=64)
+def _diagonal(n_leds: int) -> IntArray:
+    """Where the diagonal of an M x M matrix sits in its upper-triangle vector (read-only)."""
+    upper, lower = np.triu_indices(n_leds)
+    found = np.flatnonzero(upper == lower)
+    found.setflags(write=False)
+    return found
 
 
 def check_measurement_scale(
@@ -55,8 +66,7 @@ def check_measurement_scale(
     if measurement.model == "power":
         total = float(np.sum(values))
     else:
-        upper, lower = np.triu_indices(measurement.n_leds)
-        total = float(np.sum(values[upper == lower]))
+        total = float(np.sum(values[_diagonal(measurement.n_leds)]))
     factor = total / max(n_targets or 1, 1) / max(brightest_energy(fingerprint), 1e-300)
     if factor >= MAX_SCALE_FACTOR:
         raise MeasurementError(

@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from scipy import optimize
 
 from app.vlp._reflection_table import ReflectionTable
 from app.vlp.fingerprints import build_fingerprint
@@ -38,8 +39,14 @@ from app.vlp.solvers._gridless_fit import (
     levenberg_marquardt,
 )
 from app.vlp.solvers._kernels import kernel_cache_dir, kernel_mode, use_kernels, warm_up
+from app.vlp.solvers._uncertainty_compiled import (
+    fit_misfit_kernel,
+    misfit_design_kernel,
+    nnls_kernel,
+)
 from app.vlp.solvers.gridless import GridlessSolver
 from app.vlp.typing import FloatArray
+from app.vlp.uncertainty import MisfitDesign, fit_misfit, misfit_design
 
 RTOL = 1e-10
 REPO = Path(__file__).resolve().parents[2]
@@ -69,9 +76,11 @@ def one_led_layout() -> Layout:
     )
 
 
-def synthetic_table(layout: Layout, heights: bool, seed: int) -> ReflectionTable:
+def synthetic_table(
+    layout: Layout, heights: bool, seed: int, magnitude: float = 1.0
+) -> ReflectionTable:
     """A reflection table with random node values (the interpolation does not care what
-    they mean), on 2 or 3 axes."""
+    they mean) up to ``magnitude``, on 2 or 3 axes."""
     rng = np.random.default_rng(seed)
     x_nodes = np.unique(np.r_[np.linspace(0.0, layout.room.length, 7), 0.05])
     y_nodes = np.linspace(0.0, layout.room.width, 5)
@@ -79,7 +88,7 @@ def synthetic_table(layout: Layout, heights: bool, seed: int) -> ReflectionTable
     z_nodes = np.linspace(z - 0.3, z + 0.3, 4) if heights else np.array([z])
     terms = 8 if heights else 4
     coefficients = rng.uniform(-1.0, 1.0, (x_nodes.size * y_nodes.size * z_nodes.size, terms, 1))
-    coefficients = coefficients * rng.uniform(0.5, 2.0, (1, 1, layout.n_leds))
+    coefficients = coefficients * rng.uniform(0.5, 2.0, (1, 1, layout.n_leds)) * magnitude
     return ReflectionTable(x_nodes, y_nodes, z_nodes, coefficients, z)
 
 
@@ -392,10 +401,12 @@ _NO_CACHE_SCRIPT = textwrap.dedent(
     from app.vlp.solvers.gridless import GridlessSolver
 
     from app.vlp.solvers._channel_compiled import channel_rows
+    from app.vlp.solvers._uncertainty_compiled import uncertainty_kernel
     from app.vlp.simulation import noisy_amplitudes
 
     kernels = [fit.lm_kernel, fit.gram_kernel, fit.residual_kernel, fit.whitening_kernel,
-               fit.whiten_kernel, fit.correlation_scores_kernel, channel_rows]
+               fit.whiten_kernel, fit.correlation_scores_kernel, channel_rows,
+               uncertainty_kernel]
     # the fallback: compiled without a disk cache
     assert all(type(k._cache).__name__ == "NullCache" for k in kernels)
     warm_up()
@@ -518,3 +529,123 @@ def test_large_room_grams_match_the_reference() -> None:
         fresh = Objective(kernel, white, values, False, Priors())
         for got_part, want_part in zip(gram(fresh, theta, state), want, strict=True):
             assert_same(got_part, want_part)
+
+
+# As _LM_CASES, on and off the receivers' plane, with free weights too; power with free
+# multipliers at K > 1 (gains and scale, or weights: each nearly the noise atom's direction,
+# the normal matrix ill-conditioned) would compare round-off (seen: 7e-10), not kernels.
+_UNCERTAINTY_CASES = [
+    (model, k, priors_name, on_plane)
+    for model in ("correlation", "power")
+    for k in (1, 3)
+    for priors_name in PRIORS
+    for on_plane in (True, False)
+    if not (model == "power" and priors_name in ("gains_scale", "free_weights") and k > 1)
+]
+
+
+@pytest.mark.parametrize(("model", "k", "priors_name", "on_plane"), _UNCERTAINTY_CASES)
+def test_uncertainty_matches_reference(
+    model: Model, k: int, priors_name: str, on_plane: bool
+) -> None:
+    """The compiled model-error sandwich (``_uncertainty_compiled``) gives the NumPy path's
+    covariances and fit quality, whitened or not, with a reflection table."""
+    layout = paper_layout()
+    solver = GridlessSolver(build_fingerprint(layout), model)
+    # The solver's normalisation (gains of order one), diffuse gains a tenth of the direct.
+    scale = solver._scale
+    magnitude = 0.1 * scale / layout.leds[0].pilot_amplitude
+    table = synthetic_table(layout, True, seed=k, magnitude=magnitude)
+    kernel = solver._kernel = ChannelKernel(layout, scale, table)
+    priors, free_weights = PRIORS[priors_name]
+    if priors.fits_heights:
+        priors = dataclasses.replace(priors, height_mean=kernel.receiver_height)
+    rng = np.random.default_rng(100 + 10 * k + len(priors_name))
+    state = random_state(kernel, k, rng, on_plane)
+    if free_weights:
+        state = dataclasses.replace(state, log_gains=np.zeros(k), log_scale=0.0)
+    for white in (
+        Whitening.identity(model, kernel.n_leds),
+        Whitening._from_state_reference(model, kernel, state, float(k)),
+    ):
+        values = normal(rng, white.weights.shape[0])
+        objective = Objective(kernel, white, values, free_weights, priors)
+        assert objective.compiled_problem() is not None
+        with use_kernels("reference"):
+            want, want_fit = solver._covariances(objective, state)
+        got, got_fit = solver._covariances(objective, state)
+        assert got.shape == (k, 2, 2)
+        assert_same(got, want)
+        assert got_fit.chi2_per_dof == pytest.approx(want_fit.chi2_per_dof, rel=1e-10)
+        assert (got_fit.dof, got_fit.quality) == (want_fit.dof, want_fit.quality)
+
+
+def test_misfit_design_matches_reference() -> None:
+    """Random Jacobians and error columns, a kind wider than the data (the other Gram
+    matrix of its spread) and a singular normal matrix (the pseudo-inverse's cut-off)."""
+    rng = np.random.default_rng(31)
+    for n_data, n_params, widths in ((40, 6, (5, 50, 1)), (12, 4, (3,)), (9, 9, (2, 20))):
+        jacobian = rng.standard_normal((n_data, n_params))
+        jacobian[:, -1] = jacobian[:, 0] if n_data == 9 else jacobian[:, -1]  # rank-deficient
+        prior = np.diag(rng.uniform(0.0, 1.0, n_params)) * (n_data != 9)
+        normal_matrix = jacobian.T @ jacobian + prior
+        columns = [rng.standard_normal((n_data, width)) for width in widths]
+        want = misfit_design(jacobian, normal_matrix, columns)
+        got = misfit_design_kernel(
+            jacobian, normal_matrix, np.hstack(columns), np.array(widths, dtype=np.int64)
+        )
+        # The priors' information is a difference of normal matrices: round-off of theirs.
+        assert_same(got[2] + normal_matrix, want.prior_normal + normal_matrix)
+        for got_part, want_part in zip(
+            got[:2] + got[3:],
+            (
+                want.inverse,
+                want.data_normal,
+                want.error_normals,
+                want.noise_leverage,
+                want.error_leverages,
+                want.error_spread,
+            ),
+            strict=True,
+        ):
+            assert_same(got_part, want_part)
+
+
+def test_nnls_matches_scipy() -> None:
+    """Lawson-Hanson: the solution of ``scipy.optimize.nnls`` on random problems (some
+    with every variable, some with none, at the bound)."""
+    rng = np.random.default_rng(37)
+    for trial in range(200):
+        n_rows, n = int(rng.integers(1, 30)), int(rng.integers(1, 6))
+        matrix = rng.standard_normal((n_rows, n)) * rng.uniform(0.1, 10.0, n)
+        target = rng.standard_normal(n_rows) + (trial % 3) * matrix @ rng.uniform(0.0, 1.0, n)
+        want, _ = optimize.nnls(matrix, target)
+        assert_same(nnls_kernel(matrix, target), want)
+
+
+@pytest.mark.parametrize("max_noise", [1.0, 1e-3])
+def test_fit_misfit_matches_reference(max_noise: float) -> None:
+    """Noise and model-error variances and their degrees of freedom (a zero kind too; the
+    noise at its bound with the small ``max_noise``)."""
+    rng = np.random.default_rng(41)
+    n_data = 50
+    noise_leverage = rng.uniform(0.5, 1.0, n_data)
+    error_leverages = rng.uniform(0.0, 2.0, (n_data, 3)) * np.array([1.0, 0.1, 0.0])
+    spread = np.array([30.0, 2.0, 0.0])
+    residual = rng.standard_normal(n_data) * np.sqrt(noise_leverage + 0.3 * error_leverages[:, 0])
+    design = MisfitDesign(
+        np.eye(2),
+        np.eye(2),
+        np.zeros((2, 2)),
+        np.zeros((3, 2, 2)),
+        noise_leverage,
+        error_leverages,
+        spread,
+    )
+    want = fit_misfit([design], [residual], max_noise=max_noise)
+    noise, model_errors, dofs = fit_misfit_kernel(
+        residual, noise_leverage, error_leverages, spread, max_noise
+    )
+    assert noise == pytest.approx(want.noise, rel=1e-10)
+    assert_same(model_errors, want.model_errors)
+    assert_same(dofs, want.dofs)

@@ -48,6 +48,8 @@ _EIG_FLOOR = 1e-9
 # to the mean received power (1e-4: an SNR of 40 dB).
 _SIGMA2_FLOOR = 1e-12
 _SIGMA2_REL_FLOOR = 1e-4
+# Whitened measurements of at most this many values are kept by their Whitening.
+_KEPT_DATA_MAX = 4096
 # Damping increases tried per LM iteration before the point is taken as a local minimum.
 _MAX_REJECTIONS = 12
 # Marquardt damping factors after a rejected / accepted step (the start is the caller's).
@@ -163,11 +165,11 @@ class FitState:
     def with_target(self, position: FloatArray, height: float) -> FitState:
         """This state plus one unit-gain target at ``position`` and ``height``."""
         return FitState(
-            np.vstack([self.positions, position]),
-            np.append(self.weights, 1.0),
+            np.concatenate((self.positions, np.reshape(position, (1, 2)))),
+            np.concatenate((self.weights, (1.0,))),
             self.noise,
-            np.append(self.heights, height),
-            np.append(self.log_gains, 0.0),
+            np.concatenate((self.heights, (height,))),
+            np.concatenate((self.log_gains, (0.0,))),
             self.log_scale,
         )
 
@@ -190,16 +192,21 @@ def compiled_indices(model: Model, n_leds: int) -> tuple[IntArray, IntArray, Flo
 def fixed_tuple(kernel: ChannelKernel, state: FitState) -> tuple[Any, ...]:
     """The compiled kernels' ``fixed`` tuple of a state (no parameters in theta)."""
     heights = np.ascontiguousarray(state.heights, dtype=np.float64)
-    unit = (
-        state.log_scale == 0.0 and not state.log_gains.any() and bool((state.weights == 1.0).all())
-    )
+    facts = state.facts  # as Objective._state_facts: the same kernel's plane
+    if facts is None:
+        unit = (
+            state.log_scale == 0.0
+            and not state.log_gains.any()
+            and bool((state.weights == 1.0).all())
+        )
+        facts = state.facts = (bool((heights == kernel.receiver_height).all()), bool(unit))
     return (
         heights,
         np.ascontiguousarray(state.weights, dtype=np.float64),
         np.ascontiguousarray(state.log_gains, dtype=np.float64),
         float(state.log_scale),
-        bool((heights == kernel.receiver_height).all()),
-        bool(unit),
+        facts[0],
+        facts[1],
     )
 
 
@@ -240,6 +247,7 @@ class Whitening:
         self.upper, self.lower, self.is_diag = _vech_indices(model, n_leds)
         self.weighted_diag = weights * self.is_diag
         self._compiled: tuple[Any, ...] | None = None
+        self._data: tuple[FloatArray, str, FloatArray] | None = None
 
     def compiled(self) -> tuple[Any, ...]:
         """This whitening as the compiled kernels take it (built once)."""
@@ -312,7 +320,18 @@ class Whitening:
         return cls(model, kernel.n_leds, rot, weights)
 
     def data(self, values: FloatArray) -> FloatArray:
-        """Whitened measurement."""
+        """Whitened measurement. The last one is kept (a solve whitens its measurement in
+        one metric many times): callers must not write into it (nor into ``values``). Not
+        flagged read-only: the compiled kernels take writable arrays."""
+        last = self._data
+        if last is not None and last[0] is values and last[1] == kernel_mode():
+            return last[2]
+        whitened = self._data_of(values)
+        if whitened.shape[0] <= _KEPT_DATA_MAX:  # a large room's whitening keeps none
+            self._data = (values, kernel_mode(), whitened)
+        return whitened
+
+    def _data_of(self, values: FloatArray) -> FloatArray:
         if kernel_mode() == "compiled":
             return np.asarray(
                 whiten_kernel(self.compiled(), np.ascontiguousarray(values, dtype=np.float64))
@@ -353,6 +372,7 @@ class _Slots:
     n_prior: int
 
     @classmethod
+    @functools.lru_cache(maxsize=256)  # frozen, and asked for by every new Objective
     def make(cls, n_targets: int, priors: Priors, free_weights: bool) -> _Slots:
         k = n_targets
         n_axes = 3 if priors.fits_heights else 2
@@ -405,6 +425,7 @@ class Objective:
         self.free_weights = free_weights
         self.priors = priors or Priors()
         self._slots: dict[int, _Slots] = {}
+        self._bounds: dict[int, tuple[FloatArray, FloatArray]] = {}
         self._problem: tuple[Any, ...] | bool | None = False
 
     def compiled_problem(self) -> tuple[Any, ...] | None:
@@ -480,7 +501,10 @@ class Objective:
     def bounds(self, n_targets: int) -> tuple[FloatArray, FloatArray]:
         """Lower and upper bounds of ``theta`` (positions in the room, heights within the
         prior's bounds, gains and scale within :data:`MAX_LOG_GAIN` / :data:`MAX_LOG_SCALE`,
-        weights and noise nonnegative)."""
+        weights and noise nonnegative; kept per K: callers must not write into them)."""
+        known = self._bounds.get(n_targets)
+        if known is not None:
+            return known
         slots = self.slots(n_targets)
         k = n_targets
         length, width = self.kernel.bounds
@@ -494,13 +518,14 @@ class Objective:
             lower[slots.gains], upper[slots.gains] = -MAX_LOG_GAIN, MAX_LOG_GAIN
         if slots.scale is not None:
             lower[slots.scale], upper[slots.scale] = -MAX_LOG_SCALE, MAX_LOG_SCALE
+        self._bounds[n_targets] = (lower, upper)
         return lower, upper
 
     def unpack(self, theta: FloatArray, state: FitState) -> FitState:
         """State of ``theta`` (what is not fitted is taken from ``state``)."""
         slots = self.slots(state.n_targets)
         k = state.n_targets
-        positions = np.column_stack((theta[:k], theta[k : 2 * k]))
+        positions = theta[: 2 * k].reshape(2, k).T.copy()
         heights = theta[2 * k : 3 * k].copy() if slots.n_axes == 3 else state.heights
         weights = theta[slots.weights].copy() if slots.weights is not None else state.weights
         log_gains = theta[slots.gains].copy() if slots.gains is not None else state.log_gains

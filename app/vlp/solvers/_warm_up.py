@@ -15,13 +15,15 @@ from ._channel_kernel import ChannelKernel
 from ._fit_compiled import correlation_scores_kernel
 from ._gridless_fit import FitState, Objective, Priors, Whitening, gram, levenberg_marquardt
 from ._local import _best_of_tiles
+from ._uncertainty_compiled import uncertainty_kernel
 
 __all__ = ["exercise"]
 
 
 def exercise() -> None:
-    """Evaluate, whiten and fit a two-target state of the paper's room, both models; score
-    a large room's power-scan tile (four grid points in one 2 x 2 tile)."""
+    """Evaluate, whiten, fit and take the covariances of a two-target state of the paper's
+    room, both models; score a large room's power-scan tile (four grid points in one 2 x 2
+    tile)."""
     layout = paper_layout()
     kernel = ChannelKernel(layout, 1.0)
     height = layout.grid.receiver_height
@@ -41,6 +43,10 @@ def exercise() -> None:
         gram(objective, theta, state)
         objective.residual(theta, state)
         levenberg_marquardt(objective, state, max_iter=1, initial_damping=1e-3, tol=1e-6)
+        # an answer's covariances (GridlessSolver._covariances)
+        problem = objective.compiled_problem()
+        assert problem is not None
+        uncertainty_kernel(*problem, theta, *objective.compiled_state(state), 1.0)
         if model == "correlation":
             correlation_scores_kernel(white.compiled(), values, np.ones((kernel.n_leds, 3)))
     # a terminal's own fit evaluates the channel at one point

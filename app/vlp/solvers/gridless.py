@@ -7,7 +7,7 @@ sparse inverse problems", SIAM J. Optim. 2017) applied to the aggregated VLP mod
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -48,6 +48,8 @@ from ._kernels import kernel_mode
 from ._local import PowerScan, TerminalWindows
 from ._room_tolerance_fit import RoomTolerances, fit_room_tolerances
 from ._terminal_fit import TerminalFit, fit_terminal, starting_cells
+from ._uncertainty_compiled import uncertainty_kernel
+from ._whitening_memo import MAX_KEPT_VALUES, WhiteningMemo
 from .base import MAX_TARGETS, Solution, Solver, register_solver
 
 __all__ = ["LM_DEFAULTS", "GridlessOptions", "GridlessSolver"]
@@ -66,6 +68,10 @@ class _Run:
     values: FloatArray
     priors: Priors
     iterations: int = 0
+    # Objectives built for this run, by (whitening, priors) (see GridlessSolver._objective).
+    objectives: dict[tuple[int, int], tuple[Whitening, Priors, Objective]] = field(
+        default_factory=dict, repr=False
+    )
 
 
 @register_solver
@@ -177,6 +183,8 @@ class GridlessSolver(Solver):
         ]
         if len(self._stages) == 2 and self._stages[0] == self._stages[1]:
             self._stages.pop()
+        # Whitenings already computed, by state values (._whitening_memo).
+        self._whitenings = WhiteningMemo()
         # Plain least squares (one object: the compiled kernels keep their view of it).
         self._identity = Whitening.identity(model, fingerprint.n_leds)
         self._centres = layout.cell_centres()
@@ -307,11 +315,25 @@ class GridlessSolver(Solver):
     def _whitening(self, state: FitState) -> Whitening:
         if not self.options.whiten or state.n_targets == 0:
             return self._identity
+        return self._whitenings.get(state, self._plug_in)
+
+    def _plug_in(self, state: FitState) -> Whitening:
         return Whitening.from_state(self.model, self._kernel, state, float(state.n_targets))
 
     def _objective(self, run: _Run, white: Whitening, nuisance: bool = True) -> Objective:
+        """The run's objective in ``white``'s metric (one per whitening and priors: a solve
+        asks for the same one many times, and an Objective keeps its compiled form)."""
         priors = run.priors if nuisance else self._growth_priors
-        return Objective(self._kernel, white, run.values, self.options.free_weights, priors)
+        key = (id(white), id(priors))
+        known = run.objectives.get(key)
+        if known is not None and known[0] is white and known[1] is priors:
+            return known[2]
+        objective = Objective(self._kernel, white, run.values, self.options.free_weights, priors)
+        if white.weights.shape[0] <= MAX_KEPT_VALUES:  # a large room's are computed afresh
+            if len(run.objectives) >= 256:
+                run.objectives.clear()
+            run.objectives[key] = (white, priors, objective)
+        return objective
 
     def _fit(
         self,
@@ -885,12 +907,24 @@ class GridlessSolver(Solver):
         noise. A room too large to hold the model-error design falls back to inflating the
         inverse Fisher information by the reduced chi-square when above 1.
         """
-        objective = self._objective(run, self._whitening(state))
+        return self._covariances(self._objective(run, self._whitening(state)), state)
+
+    def _covariances(self, objective: Objective, state: FitState) -> tuple[FloatArray, FitQuality]:
+        """:meth:`_uncertainty` in the metric of ``objective``: compiled
+        (:mod:`._uncertainty_compiled`) or, with the reference kernels, in NumPy."""
         theta = objective.pack(state)
         k = state.n_targets
         index = np.column_stack((np.arange(k), np.arange(k) + k))
         n_params, n_data = theta.shape[0], objective.data.shape[0]
         scale = math.exp(0.5 * state.log_scale)
+        problem = objective.compiled_problem()
+        small = n_data * k * self.fingerprint.n_leds <= _MAX_MISFIT_ENTRIES
+        if problem is not None and k > 0 and small:
+            # The same sandwich in one compiled call (._uncertainty_compiled).
+            covariances, cost = uncertainty_kernel(
+                *problem, theta, *objective.compiled_state(state), 1.0
+            )
+            return covariances, assess_fit(float(cost), n_data - n_params, scale)
         columns = self._misfit_columns(objective, theta, state)
         if columns is None:
             normal, _, cost = gram(objective, theta, state)
