@@ -6,6 +6,7 @@ import dataclasses
 
 import numpy as np
 import pytest
+from scipy.optimize import linear_sum_assignment
 
 from app.vlp.fingerprints import Fingerprint, build_fingerprint
 from app.vlp.layout import Layout, Reflectance
@@ -15,6 +16,7 @@ from app.vlp.simulation import Impairments, random_positions, simulate_terminals
 from app.vlp.solvers._gridless_fit import FitState, Whitening, target_gains
 from app.vlp.solvers._room_tolerance_fit import RoomTolerances, _JointModel
 from app.vlp.solvers.gridless import GridlessOptions, GridlessSolver
+from app.vlp.uncertainty import confidence_radii
 
 _TOLERANCES = RoomTolerances(led_log_amplitude_sd=0.05, led_half_power_sd_deg=3.0, tilt_sd=0.07)
 
@@ -113,6 +115,33 @@ def test_led_tolerances_are_fitted_out(paper_fingerprint: Fingerprint) -> None:
     with_stage = _errors(paper_fingerprint, impairments, True, range(6), 8)
     assert np.mean(with_stage) < 0.75 * np.mean(without)
     assert np.median(with_stage) < 0.15
+
+
+def test_radii_of_the_joint_fit_hold_the_truth(paper_fingerprint: Fingerprint) -> None:
+    # The joint fit's covariance carries the tolerances' uncertainty: its 95 % circles
+    # hold the truth about as often as they say, and are not absurdly wide.
+    solver = GridlessSolver(paper_fingerprint, "correlation")
+    layout = paper_fingerprint.layout
+    inside, radii, errors = [], [], []
+    for seed in range(6):
+        truth = random_positions(layout, 8, rng=np.random.default_rng(1000 + seed))
+        simulated = simulate_terminals(
+            layout, truth, Impairments.led_tolerances(0.05, 3.0), snr_db=30.0, rng=seed
+        )
+        solution = solver.solve(
+            measurement_from_amplitudes(simulated.amplitudes, "correlation", 16), 8
+        )
+        assert solution.covariances is not None
+        radius = confidence_radii(solution.covariances)
+        rows, cols = linear_sum_assignment(
+            np.linalg.norm(truth[:, None, :] - solution.positions[None, :, :], axis=2)
+        )
+        error = np.linalg.norm(truth[rows] - solution.positions[cols], axis=1)
+        inside += list(error <= radius[cols])
+        radii += list(radius[cols])
+        errors += list(error)
+    assert np.mean(inside) >= 0.8
+    assert np.median(radii) <= 6.0 * np.median(errors)
 
 
 def test_an_ideal_room_keeps_the_fit_without_tolerances(paper_fingerprint: Fingerprint) -> None:

@@ -87,6 +87,14 @@ class ToleranceFit:
     led_order_changes : ndarray of shape (M,)
         ``delta_m``, the change of each LED's Lambertian order.
     tilts : ndarray of shape (K, 2)
+    covariances : ndarray of shape (K, 2, 2), m^2
+        Each position's block of the inverse of the joint fit's normal matrix (data and
+        priors: the tolerances' uncertainty included), times the reduced chi-square of the
+        data when above 1.
+    chi2 : float
+        The whitened data cost at the optimum.
+    dof : int
+        Its degrees of freedom: values minus positions, gains, scale and noise.
     cost : float
         Whitened cost (data and priors) in the final metric.
     base_cost : float
@@ -100,6 +108,9 @@ class ToleranceFit:
     led_log_amplitudes: FloatArray
     led_order_changes: FloatArray
     tilts: FloatArray
+    covariances: FloatArray
+    chi2: float
+    dof: int
     cost: float
     base_cost: float
     n_extra: int
@@ -404,6 +415,13 @@ def fit_room_tolerances(
     for _ in range(_ROUNDS - 1):
         white = model.whitening(theta, noise)
         theta, cost = _levenberg_marquardt(model, theta, white, white.data(values))
+    residual, jacobian = model.residual_and_jacobian(theta, white, white.data(values))
+    n_data, k = white.weights.shape[0], model.n_targets
+    chi2 = float(residual[:n_data] @ residual[:n_data])
+    dof = max(n_data - 3 * k - 2, 1)
+    inverse = np.linalg.pinv(jacobian.T @ jacobian, hermitian=True) * max(1.0, chi2 / dof)
+    index = np.column_stack((np.arange(k), np.arange(k) + k))
+    covariances = inverse[index[:, :, np.newaxis], index[:, np.newaxis, :]]
     positions, log_gains, log_scale, amps, order_changes, tilts, noise = model.split(theta)
     fitted = FitState(
         positions.copy(),
@@ -418,6 +436,9 @@ def fit_room_tolerances(
         amps.copy(),
         order_changes.copy(),
         tilts.T.copy(),
+        np.asarray(covariances),
+        chi2,
+        dof,
         cost,
         base_cost,
         2 * model.n_leds + model.n_tilts,

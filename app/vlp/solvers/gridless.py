@@ -46,7 +46,7 @@ from ._gridless_options import (
 )
 from ._kernels import kernel_mode
 from ._local import PowerScan, TerminalWindows
-from ._room_tolerance_fit import RoomTolerances, fit_room_tolerances
+from ._room_tolerance_fit import RoomTolerances, ToleranceFit, fit_room_tolerances
 from ._terminal_fit import TerminalFit, fit_terminal, starting_cells
 from ._uncertainty_compiled import uncertainty_kernel
 from ._whitening_memo import MAX_KEPT_VALUES, WhiteningMemo
@@ -632,9 +632,16 @@ class GridlessSolver(Solver):
                 if other_cost < cost:
                     state, cost = other, other_cost
         state = self._with_nuisances(run, state)
-        state = self._with_room_tolerances(run, state)
+        tolerances = self._with_room_tolerances(run, state)
+        if tolerances is not None:
+            state = tolerances.state
         residual = self._residual(run, self._identity, state)
-        covariances, fit = self._uncertainty(run, state)
+        if tolerances is None:
+            covariances, fit = self._uncertainty(run, state)
+        else:
+            # The joint fit's own information: its model holds what the nominal one misses.
+            covariances = tolerances.covariances
+            fit = assess_fit(tolerances.chi2, tolerances.dof, math.exp(0.5 * state.log_scale))
         if prescale != 1.0:
             state.log_scale += math.log(prescale)
             state.facts = None
@@ -834,9 +841,10 @@ class GridlessSolver(Solver):
         run.priors = kept
         return best
 
-    def _with_room_tolerances(self, run: _Run, state: FitState) -> FitState:
+    def _with_room_tolerances(self, run: _Run, state: FitState) -> ToleranceFit | None:
         """The fit with the room's tolerances (LED amplitudes and beams, optionally the
-        photodiodes' tilts) as nuisance parameters (:mod:`._room_tolerance_fit`).
+        photodiodes' tilts) as nuisance parameters (:mod:`._room_tolerance_fit`); None where
+        it is not tried or not kept.
 
         Tried only when the fit shows a misfit (whitened cost per degree of freedom above
         ``tolerance_misfit_ratio``) and kept only when its first round, in the fit's own
@@ -866,12 +874,12 @@ class GridlessSolver(Solver):
             or not self._dense
             or run.values.shape[0] * (5 * k + 2 * n_leds + 2) > _MAX_MISFIT_ENTRIES
         ):
-            return state
+            return None
         white = self._whitening(state)
         data_cost = self._objective(run, white).data_cost(state)[0]
         dof = white.weights.shape[0] - 3 * k - 2
         if dof <= 0 or data_cost <= opts.tolerance_misfit_ratio * dof:
-            return state  # the fit leaves only noise: nothing for the tolerances to explain
+            return None  # the fit leaves only noise: nothing for the tolerances to explain
         tolerances = RoomTolerances(
             opts.led_log_amplitude_sd, opts.led_half_power_sd_deg, opts.room_tilt_sd
         )
@@ -889,7 +897,7 @@ class GridlessSolver(Solver):
             # (the priors shrink the step); rooms with LED errors promise more than it.
             required_promise=float(extra),
         )
-        return state if fit is None else fit.state
+        return fit
 
     def _uncertainty(self, run: _Run, state: FitState) -> tuple[FloatArray, FitQuality]:
         """Position covariances of the final whitened fit and the fit's quality.
