@@ -117,6 +117,29 @@ def test_led_tolerances_are_fitted_out(paper_fingerprint: Fingerprint) -> None:
     assert np.median(with_stage) < 0.15
 
 
+def test_an_answer_says_when_the_tolerances_were_fitted(paper_fingerprint: Fingerprint) -> None:
+    layout = paper_fingerprint.layout
+    solver = GridlessSolver(paper_fingerprint, "correlation")
+    details = []
+    for seed in range(4):
+        truth = random_positions(layout, 8, rng=np.random.default_rng(1000 + seed))
+        simulated = simulate_terminals(
+            layout, truth, Impairments.led_tolerances(0.05, 3.0), snr_db=30.0, rng=seed
+        )
+        measurement = measurement_from_amplitudes(simulated.amplitudes, "correlation", 16)
+        solution = solver.solve(measurement, 8)
+        assert solution.fit is not None
+        details.append(solution.fit.detail)
+    said = [detail for detail in details if "tolerances were fitted" in detail]
+    assert len(said) >= 2
+    # The fitted spread is of the drawn tolerances' size (5 %, 3 degrees), not wild.
+    for detail in said:
+        amplitude = float(detail.split("amplitudes ")[1].split(" %")[0])
+        angle = float(detail.split("half-power angles ")[1].split(" deg")[0])
+        assert 1.0 < amplitude < 12.0
+        assert 0.5 < angle < 8.0
+
+
 def test_radii_of_the_joint_fit_hold_the_truth(paper_fingerprint: Fingerprint) -> None:
     # The joint fit's covariance carries the tolerances' uncertainty: its 95 % circles
     # hold the truth about as often as they say, and are not absurdly wide.

@@ -65,7 +65,7 @@ class GridlessOptions:
     led_half_power_sd_deg: float = 3.0
     room_tilt_sd: float = 0.0
     tolerance_misfit_ratio: float = 1.1
-    tolerance_significance: float = 8.0
+    tolerance_significance: float = 3.0
     # A stage of nuisances is kept when it lowers the whitened cost by more than its extra
     # parameters' chi-square mean plus this many standard deviations.
     stage_significance: float = 3.0

@@ -86,6 +86,8 @@ class ToleranceFit:
     led_log_amplitudes : ndarray of shape (M,)
     led_order_changes : ndarray of shape (M,)
         ``delta_m``, the change of each LED's Lambertian order.
+    led_half_power_changes_deg : ndarray of shape (M,)
+        The same as a change of each LED's half-power angle, degrees (to first order).
     tilts : ndarray of shape (K, 2)
     covariances : ndarray of shape (K, 2, 2), m^2
         Each position's block of the inverse of the joint fit's normal matrix (data and
@@ -107,6 +109,7 @@ class ToleranceFit:
     state: FitState
     led_log_amplitudes: FloatArray
     led_order_changes: FloatArray
+    led_half_power_changes_deg: FloatArray
     tilts: FloatArray
     covariances: FloatArray
     chi2: float
@@ -137,7 +140,9 @@ class _JointModel:
         cos_half = np.exp(-_LN2 / orders)
         half = np.arccos(np.clip(cos_half, -1.0, 1.0))
         spread = math.radians(tolerances.led_half_power_sd_deg)
-        order_sd = _LN2 * np.tan(half) / np.log(cos_half) ** 2 * spread
+        # |dm / dphi| per radian: a wider beam has a smaller order.
+        self.order_per_radian = _LN2 * np.tan(half) / np.log(cos_half) ** 2
+        order_sd = self.order_per_radian * spread
         gain_sd, scale_sd = priors
         k, m = self.n_targets, self.n_leds
         self.n_tilts = 2 * k if tolerances.tilt_sd > 0 else 0
@@ -435,6 +440,7 @@ def fit_room_tolerances(
         fitted,
         amps.copy(),
         order_changes.copy(),
+        -np.degrees(order_changes / np.maximum(model.order_per_radian, 1e-12)),
         tilts.T.copy(),
         np.asarray(covariances),
         chi2,
