@@ -59,8 +59,9 @@ class GridlessOptions:
     # angle (degrees), as LED data sheets give them, and optionally each target's photodiode
     # tilt (tangent sd, about radians; 0: not fitted, which measured better, see
     # docs/real-rooms.md). Tried only when the fit's whitened cost per degree of freedom is
-    # above ``tolerance_misfit_ratio``, kept only when it lowers that cost by more than its
-    # extra parameters' chi-square mean plus ``tolerance_significance`` standard deviations.
+    # above ``tolerance_misfit_ratio`` and a score test promises enough; kept only when it
+    # lowers that cost by more than its extra parameters' chi-square mean plus
+    # ``tolerance_significance`` standard deviations (GridlessSolver._with_room_tolerances).
     led_log_amplitude_sd: float | None = 0.05
     led_half_power_sd_deg: float = 3.0
     room_tilt_sd: float = 0.0

@@ -112,6 +112,9 @@ class GridlessSolver(Solver):
        Gaussian prior (:class:`GridlessOptions`), kept only when a score test and then the
        fit show a decrease beyond the chance level of their extra parameters. Free
        weights instead of priors let a close pair merge into one target of weight 2.
+       Then, for the correlation model at K >= 2, the LEDs' tolerances (each LED's
+       amplitude and beam width, with data-sheet priors) in a joint fit, kept on the same
+       kind of test when the fit shows a misfit (:meth:`_with_room_tolerances`).
     6. Uncertainty (:meth:`_uncertainty`): the sandwich covariance of the final whitened
        fit with the noise and the model errors it does not fit (each target's relative
        amplitude error per LED, its photodiode's tilt, its height when not fitted), whose
@@ -642,6 +645,13 @@ class GridlessSolver(Solver):
             # The joint fit's own information: its model holds what the nominal one misses.
             covariances = tolerances.covariances
             fit = assess_fit(tolerances.chi2, tolerances.dof, math.exp(0.5 * state.log_scale))
+        if prescale != 1.0:
+            state.log_scale += math.log(prescale)
+            state.facts = None
+            fit = assess_fit(
+                fit.chi2_per_dof * max(fit.dof, 1), fit.dof, math.exp(0.5 * state.log_scale)
+            )
+        if tolerances is not None:
             amplitude_rms = float(np.sqrt(np.mean(np.expm1(tolerances.led_log_amplitudes) ** 2)))
             angle_rms = float(np.sqrt(np.mean(tolerances.led_half_power_changes_deg**2)))
             fit = replace(
@@ -649,12 +659,6 @@ class GridlessSolver(Solver):
                 detail=f"{fit.detail}; the LEDs' tolerances were fitted (amplitudes "
                 f"{100 * amplitude_rms:.1f} % and half-power angles {angle_rms:.1f} deg rms "
                 "from the layout): a survey calibration would measure them once",
-            )
-        if prescale != 1.0:
-            state.log_scale += math.log(prescale)
-            state.facts = None
-            fit = assess_fit(
-                fit.chi2_per_dof * max(fit.dof, 1), fit.dof, math.exp(0.5 * state.log_scale)
             )
         positions = state.positions
         return Solution(
