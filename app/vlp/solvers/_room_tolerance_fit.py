@@ -373,9 +373,11 @@ def fit_room_tolerances(
     """MAP fit of positions, gains, scale, noise and the room's tolerances (module doc).
 
     The first round runs in the starting state's own metric, where the fit without tolerances
-    is at its optimum; when it lowers the cost by no more than ``required_decrease`` the
-    tolerances explain nothing the noise would not, and None is returned. Otherwise more
-    rounds follow, each in the metric of the previous one's gains.
+    is at its optimum. Before it, a score test: when the first Gauss-Newton step promises a
+    decrease of no more than ``required_promise``, None is returned without a fit. When the
+    round lowers the cost by no more than ``required_decrease``, the tolerances explain
+    nothing the noise would not, and None is returned. Otherwise more rounds follow, each in
+    the metric of the previous one's gains.
 
     Parameters
     ----------
