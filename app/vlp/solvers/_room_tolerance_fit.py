@@ -42,13 +42,13 @@ from ._gridless_fit import (
     Whitening,
     _vech_indices,
 )
+from ._projected_lm import projected_levenberg_marquardt
 
 __all__ = ["RoomTolerances", "ToleranceFit", "fit_room_tolerances"]
 
 _LN2 = math.log(2.0)
 # LM for the joint fit (NumPy; it runs only on measurements that show a misfit).
 _MAX_ITER = 30
-_MAX_REJECTIONS = 10
 # Stop at this relative decrease (the aggregated LM's tolerance, LM_DEFAULTS).
 _REL_TOL = 1e-4
 # Re-whitening rounds: each refit uses the metric of the previous one's gains.
@@ -332,32 +332,15 @@ def _levenberg_marquardt(
     model: _JointModel, theta: FloatArray, white: Whitening, data: FloatArray
 ) -> tuple[FloatArray, float]:
     lower, upper = model.bounds()
-    residual, jacobian = model.residual_and_jacobian(theta, white, data)
-    cost = float(residual @ residual)
-    damping = 1e-2
-    for _ in range(_MAX_ITER):
-        normal = jacobian.T @ jacobian
-        gradient = jacobian.T @ residual
-        scaling = np.maximum(normal.diagonal(), 1e-30)
-        improved = finished = False
-        for _ in range(_MAX_REJECTIONS):
-            try:
-                step = np.linalg.solve(normal + np.diag(damping * scaling), gradient)
-            except np.linalg.LinAlgError:
-                damping *= 10.0
-                continue
-            trial = np.clip(theta + step, lower, upper)
-            trial_residual, trial_jacobian = model.residual_and_jacobian(trial, white, data)
-            trial_cost = float(trial_residual @ trial_residual)
-            if trial_cost < cost:
-                finished = cost - trial_cost < _REL_TOL * cost
-                theta, residual, jacobian, cost = trial, trial_residual, trial_jacobian, trial_cost
-                damping = max(damping / 5.0, 1e-9)
-                improved = True
-                break
-            damping *= 4.0
-        if not improved or finished:
-            break
+    theta, _, _, cost = projected_levenberg_marquardt(
+        lambda params: model.residual_and_jacobian(params, white, data),
+        theta,
+        lower,
+        upper,
+        max_iter=_MAX_ITER,
+        damping=1e-2,
+        stop=lambda _step, cost, trial_cost: cost - trial_cost < _REL_TOL * cost,
+    )
     return theta, cost
 
 

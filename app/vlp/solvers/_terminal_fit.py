@@ -26,6 +26,7 @@ from ._channel_compiled import channel_constants, channel_rows
 from ._channel_kernel import ChannelKernel
 from ._gridless_fit import MAX_LOG_GAIN, Priors
 from ._kernels import kernel_mode
+from ._projected_lm import projected_levenberg_marquardt
 
 __all__ = ["TerminalFit", "fit_terminal", "los_with_normal", "starting_cells", "terminal_model"]
 
@@ -275,7 +276,7 @@ def _levenberg_marquardt(
     data_weight = weight if weight is not None else 1.0
     tilt_at = 3 if free_height else 2
 
-    def evaluate(params: FloatArray) -> tuple[FloatArray, FloatArray, float]:
+    def evaluate(params: FloatArray) -> tuple[FloatArray, FloatArray]:
         gains, gradient = terminal_model(kernel, params, free_height, z0, normal, free_tilt)
         amp = math.exp(float(params[-1]))
         residual = data_weight * (amplitudes - amp * gains)
@@ -303,32 +304,19 @@ def _levenberg_marquardt(
         if rows_r:
             residual = np.concatenate((residual, rows_r))
             jacobian = np.vstack((jacobian, np.array(rows_j)))
-        return residual, jacobian, float(residual @ residual)
+        return residual, jacobian
 
-    residual, jacobian, cost = evaluate(theta)
-    damping = 1e-3
-    for _ in range(_MAX_ITER):
-        normal_matrix = jacobian.T @ jacobian
-        gradient = jacobian.T @ residual
-        improved = False
-        for _ in range(10):
-            scaled = normal_matrix + damping * np.diag(np.maximum(normal_matrix.diagonal(), 1e-30))
-            try:
-                step = np.linalg.solve(scaled, gradient)
-            except np.linalg.LinAlgError:
-                damping *= 10.0
-                continue
-            trial = np.clip(theta + step, lower, upper)
-            trial_residual, trial_jacobian, trial_cost = evaluate(trial)
-            if trial_cost < cost:
-                done = cost - trial_cost < 1e-10 * cost or float(np.abs(step[:2]).max()) < 1e-6
-                theta, residual, jacobian, cost = trial, trial_residual, trial_jacobian, trial_cost
-                damping = max(damping / 5.0, 1e-9)
-                improved = True
-                break
-            damping *= 4.0
-        if not improved or done:
-            break
+    theta, residual, jacobian, cost = projected_levenberg_marquardt(
+        evaluate,
+        theta,
+        lower,
+        upper,
+        max_iter=_MAX_ITER,
+        damping=1e-3,
+        stop=lambda step, cost, trial_cost: (
+            cost - trial_cost < 1e-10 * cost or float(np.abs(step[:2]).max()) < 1e-6
+        ),
+    )
     n_data = amplitudes.shape[0]
     data_residual = residual[:n_data] / data_weight
     return TerminalFit(
