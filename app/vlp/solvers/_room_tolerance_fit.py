@@ -84,11 +84,9 @@ class ToleranceFit:
     state : FitState
         Positions, gains, scale and noise of the joint fit (heights as given).
     led_log_amplitudes : ndarray of shape (M,)
-    led_order_changes : ndarray of shape (M,)
-        ``delta_m``, the change of each LED's Lambertian order.
     led_half_power_changes_deg : ndarray of shape (M,)
-        The same as a change of each LED's half-power angle, degrees (to first order).
-    tilts : ndarray of shape (K, 2)
+        Each LED's fitted change of Lambertian order as a change of its half-power angle,
+        degrees (to first order).
     covariances : ndarray of shape (K, 2, 2), m^2
         Each position's block of the inverse of the joint fit's normal matrix (data and
         priors: the tolerances' uncertainty included), times the reduced chi-square of the
@@ -97,26 +95,14 @@ class ToleranceFit:
         The whitened data cost at the optimum.
     dof : int
         Its degrees of freedom: values minus positions, gains, scale and noise.
-    cost : float
-        Whitened cost (data and priors) in the final metric.
-    base_cost : float
-        The starting state's cost in its own metric (every tolerance at 0), which the
-        first round's decrease is measured from.
-    n_extra : int
-        Parameters the tolerances add (2 M, plus 2 K with tilts).
     """
 
     state: FitState
     led_log_amplitudes: FloatArray
-    led_order_changes: FloatArray
     led_half_power_changes_deg: FloatArray
-    tilts: FloatArray
     covariances: FloatArray
     chi2: float
     dof: int
-    cost: float
-    base_cost: float
-    n_extra: int
 
 
 class _JointModel:
@@ -350,17 +336,22 @@ def fit_room_tolerances(
     state: FitState,
     priors: tuple[float, float],
     tolerances: RoomTolerances,
-    required_decrease: float = 0.0,
-    required_promise: float = 0.0,
+    significance: float,
 ) -> ToleranceFit | None:
     """MAP fit of positions, gains, scale, noise and the room's tolerances (module doc).
 
-    The first round runs in the starting state's own metric, where the fit without tolerances
-    is at its optimum. Before it, a score test: when the first Gauss-Newton step promises a
-    decrease of no more than ``required_promise``, None is returned without a fit. When the
-    round lowers the cost by no more than ``required_decrease``, the tolerances explain
-    nothing the noise would not, and None is returned. Otherwise more rounds follow, each in
-    the metric of the previous one's gains.
+    Gated, because fitted always the extra parameters ``n`` (each LED's amplitude and beam,
+    the tilts when fitted, the gains and the scale, freed here even when the fit without
+    tolerances held them) fit the noise of a room exactly as modelled:
+
+    - a score test first: the first Gauss-Newton step must promise a decrease above ``n``
+      (in a room as modelled it promises about half of it: the priors shrink the step);
+      else None, with no fit;
+    - the first round runs in the starting state's own metric, where the fit without
+      tolerances is at its optimum, and must lower the cost by more than
+      ``n + significance sqrt(2 n)``, the chi-square of ``n`` parameters by chance; else None.
+
+    Then more rounds follow, each in the metric of the previous one's gains.
 
     Parameters
     ----------
@@ -372,8 +363,8 @@ def fit_room_tolerances(
     priors : (float, float)
         Prior sds of each target's log gain and of the common log scale.
     tolerances : RoomTolerances
-    required_decrease : float, default=0
-    required_promise : float, default=0
+    significance : float
+        Standard deviations of the chance decrease the first round must beat.
 
     Returns
     -------
@@ -381,6 +372,7 @@ def fit_room_tolerances(
     """
     model = _JointModel(kernel, np.asarray(state.heights, dtype=np.float64), priors, tolerances)
     start = model.pack(state)
+    extra = model.size() - 2 * model.n_targets - 1  # all but the positions and the noise
     # The noise level of the metric stays the fit's without tolerances: refitted with 2 M
     # more parameters, s shrinks with what they absorb, and a metric whitened by the
     # smaller s would weight the next round's residuals up (in trials of an ideal room,
@@ -397,14 +389,14 @@ def fit_room_tolerances(
         promised = float(gradient @ np.linalg.solve(jacobian.T @ jacobian, gradient))
     except np.linalg.LinAlgError:
         promised = math.inf
-    if not promised > required_promise:
+    if not promised > extra:
         return None
     theta, cost = _levenberg_marquardt(model, start, white, data)
-    if not base_cost - cost > required_decrease:
+    if not base_cost - cost > extra + significance * math.sqrt(2.0 * extra):
         return None
     for _ in range(_ROUNDS - 1):
         white = model.whitening(theta, noise)
-        theta, cost = _levenberg_marquardt(model, theta, white, white.data(values))
+        theta, _ = _levenberg_marquardt(model, theta, white, white.data(values))
     residual, jacobian = model.residual_and_jacobian(theta, white, white.data(values))
     n_data, k = white.weights.shape[0], model.n_targets
     chi2 = float(residual[:n_data] @ residual[:n_data])
@@ -412,7 +404,7 @@ def fit_room_tolerances(
     inverse = np.linalg.pinv(jacobian.T @ jacobian, hermitian=True) * max(1.0, chi2 / dof)
     index = np.column_stack((np.arange(k), np.arange(k) + k))
     covariances = inverse[index[:, :, np.newaxis], index[:, np.newaxis, :]]
-    positions, log_gains, log_scale, amps, order_changes, tilts, noise = model.split(theta)
+    positions, log_gains, log_scale, amps, order_changes, _, noise = model.split(theta)
     fitted = FitState(
         positions.copy(),
         state.weights.copy(),
@@ -424,13 +416,8 @@ def fit_room_tolerances(
     return ToleranceFit(
         fitted,
         amps.copy(),
-        order_changes.copy(),
         -np.degrees(order_changes / np.maximum(model.order_per_radian, 1e-12)),
-        tilts.T.copy(),
         np.asarray(covariances),
         chi2,
         dof,
-        cost,
-        base_cost,
-        2 * model.n_leds + model.n_tilts,
     )

@@ -859,15 +859,12 @@ class GridlessSolver(Solver):
         it is not tried or not kept.
 
         Tried only when the fit shows a misfit (whitened cost per degree of freedom above
-        ``tolerance_misfit_ratio``), then only when the first Gauss-Newton step promises a
-        decrease above the extra parameters' count (a score test, one evaluation; counting
-        the gains and the scale, freed here even when no earlier stage kept them), and kept
-        only when the first round, in the fit's own metric, lowers the cost by more than that
-        count plus ``tolerance_significance`` standard deviations of its chi-square (3, as
-        the other stages). Fitted always, the tolerances fit the noise of a room exactly as
-        modelled and cost it accuracy (paper room, K = 4: 3.2 -> 5.3 cm); the gate was chosen
-        on three rooms and seven conditions (docs/real-rooms.md, "Room tolerances in the
-        aggregated fit").
+        ``tolerance_misfit_ratio``), then gated by :func:`._room_tolerance_fit.fit_room_tolerances`
+        (a score test, and a decrease beyond ``tolerance_significance`` standard deviations
+        of chance, 3 as the other stages). Fitted always, the tolerances fit the noise of a
+        room exactly as modelled and cost it accuracy (paper room, K = 4: 3.2 -> 5.3 cm); the
+        gate was chosen on three rooms and seven conditions (docs/real-rooms.md, "Room
+        tolerances in the aggregated fit").
 
         Correlation model, K >= 2 (one target's LED errors cannot be told from its
         position), fixed unit weights and rooms whose Jacobian stays small (dense rooms).
@@ -895,21 +892,14 @@ class GridlessSolver(Solver):
         tolerances = RoomTolerances(
             opts.led_log_amplitude_sd, opts.led_half_power_sd_deg, opts.room_tilt_sd
         )
-        # LEDs' amplitudes and beams, tilts when fitted, and the gains and scale (freed here
-        # even when no earlier stage kept them).
-        extra = 2 * n_leds + (2 * k if opts.room_tilt_sd > 0 else 0) + k + 1
-        fit = fit_room_tolerances(
+        return fit_room_tolerances(
             self._kernel,
             run.values,
             state,
             (gain_sd, scale_sd),
             tolerances,
-            required_decrease=extra + opts.tolerance_significance * math.sqrt(2.0 * extra),
-            # The first step's promise in a room as modelled: about half the chance level
-            # (the priors shrink the step); rooms with LED errors promise more than it.
-            required_promise=float(extra),
+            opts.tolerance_significance,
         )
-        return fit
 
     def _uncertainty(self, run: _Run, state: FitState) -> tuple[FloatArray, FitQuality]:
         """Position covariances of the final whitened fit and the fit's quality.
