@@ -31,6 +31,7 @@ __all__ = [
     "MisfitDesign",
     "Quality",
     "assess_fit",
+    "bounded_covariances",
     "confidence_radii",
     "confidence_radius",
     "f2_widening",
@@ -220,6 +221,53 @@ def confidence_radii(covariances: FloatArray, level: float = 0.95) -> FloatArray
         reach = np.where(inside, step, 0.5 * (low + high))
     radii[solve] = np.sqrt(major) * reach
     return radii
+
+
+def bounded_covariances(
+    covariances: FloatArray, max_radius: float, level: float = 0.95
+) -> FloatArray:
+    """Covariances scaled down, each as a whole, so that no ``level`` radius exceeds
+    ``max_radius``.
+
+    An estimate and its target both lie on the room's floor, so a confidence circle wider
+    than the floor's diagonal says no more than the diagonal itself: it holds the truth in
+    any case. Fits that the data barely determine (the power model's ``M`` values for ``K``
+    targets with ``2 K + 1 > M`` unknowns) have a singular information and so covariances of
+    round-off size (10^20 m^2); bounded, they say "anywhere in the room" in numbers a client
+    can use. A covariance times ``c`` has its radius times ``sqrt(c)``, so the shape is kept.
+
+    Parameters
+    ----------
+    covariances : ndarray of shape (K, 2, 2), m^2
+    max_radius : float, metres, positive
+    level : float, default=0.95
+
+    Returns
+    -------
+    bounded : ndarray of shape (K, 2, 2), m^2 (a non-finite covariance becomes the circle of
+        radius ``max_radius``)
+
+    Examples
+    --------
+    >>> bounded = bounded_covariances(np.eye(2)[np.newaxis] * 1e20, 5.0)
+    >>> round(float(confidence_radii(bounded)[0]), 6)
+    5.0
+    """
+    if not (math.isfinite(max_radius) and max_radius > 0.0):
+        raise ValueError(f"max_radius must be positive and finite, got {max_radius}")
+    bounded = np.array(covariances, dtype=np.float64)
+    # The circle of radius r holds 1 - exp(-r^2 / (2 s)) of N(0, s I), and a covariance
+    # below s I has a smaller radius: only those with a trace above s can be too wide.
+    circle = max_radius**2 / (-2.0 * math.log1p(-level))
+    finite = np.all(np.isfinite(bounded), axis=(1, 2))
+    trace = np.where(finite, bounded[:, 0, 0] + bounded[:, 1, 1], 0.0)
+    check = finite & (trace > circle)
+    if np.any(check):
+        radii = confidence_radii(bounded[check], level)
+        factors = np.minimum(1.0, max_radius / radii) ** 2
+        bounded[check] *= factors[:, np.newaxis, np.newaxis]
+    bounded[~finite] = circle * np.eye(2)
+    return bounded
 
 
 @dataclass(frozen=True)

@@ -161,3 +161,40 @@ def test_95_percent_radii_stay_honest_when_the_room_differs_from_its_model(
         # Not bought by a huge radius: a calibrated 2-D Gaussian's 95 % radius is about 2.1x
         # its median error; the median ratio stays below 3.
         assert float(np.median(ratios[mode])) < 3.0, mode
+
+
+@pytest.mark.parametrize("seed", [3, 4])
+def test_power_beyond_its_equations_answers_with_the_room_as_its_radius(
+    paper_room: Layout, paper_fingerprint: Fingerprint, seed: int
+) -> None:
+    # 16 powers for 8 targets: 17 unknowns with the noise, so the information is singular
+    # and unbounded covariances would say 10^11 m. The answer says "anywhere in the room".
+    sigma = noise_std_for_snr(paper_fingerprint, 30.0)
+    rng = np.random.default_rng(seed)
+    truth = random_positions(paper_room, 8, distinct_cells=True, rng=rng)
+    amplitudes = true_amplitudes(paper_room, truth) + sigma * rng.standard_normal((8, 16))
+    solver = GridlessSolver(paper_fingerprint, "power")
+    solution = solver.solve(measurement_from_amplitudes(amplitudes, "power", 16), 8)
+    assert solution.covariances is not None and solution.fit is not None
+    diagonal = float(np.hypot(paper_room.room.length, paper_room.room.width))
+    radii = confidence_radii(solution.covariances)
+    assert np.all(np.isfinite(solution.covariances))
+    assert np.all(radii <= diagonal * (1 + 1e-9))
+    assert np.any(radii > 0.5 * diagonal)  # bounded, not made small
+    assert solution.fit.quality == "poor"
+    assert "16 values cannot determine 8 targets" in solution.fit.detail
+
+
+def test_power_within_its_equations_keeps_its_own_radii(
+    paper_room: Layout, paper_fingerprint: Fingerprint
+) -> None:
+    sigma = noise_std_for_snr(paper_fingerprint, 30.0)
+    rng = np.random.default_rng(5)
+    truth = random_positions(paper_room, 2, distinct_cells=True, rng=rng)
+    amplitudes = true_amplitudes(paper_room, truth) + sigma * rng.standard_normal((2, 16))
+    solution = GridlessSolver(paper_fingerprint, "power").solve(
+        measurement_from_amplitudes(amplitudes, "power", 16), 2
+    )
+    assert solution.covariances is not None and solution.fit is not None
+    assert np.all(confidence_radii(solution.covariances) < 0.5)
+    assert "cannot determine" not in solution.fit.detail

@@ -12,6 +12,7 @@ from app.vlp.uncertainty import (
     POOR_FIT_CHI2,
     SCALE_MISMATCH_FACTOR,
     assess_fit,
+    bounded_covariances,
     confidence_radii,
     confidence_radius,
     f2_widening,
@@ -184,3 +185,23 @@ def test_f2_widening_is_the_f_over_chi_square_quantile_ratio() -> None:
         expected = 2.0 * stats.f.ppf(level, 2, dof) / stats.chi2.ppf(level, 2)
         np.testing.assert_allclose(f2_widening(dof, level), expected, rtol=1e-9)
     assert f2_widening(np.array([1e15]))[0] == pytest.approx(1.0, abs=1e-9)
+
+
+def test_bounded_covariances_cap_the_radius_and_keep_the_shape() -> None:
+    rotation = np.array([[math.cos(0.4), -math.sin(0.4)], [math.sin(0.4), math.cos(0.4)]])
+    wide = rotation @ np.diag([9.0, 1.0]) @ rotation.T  # a 95 % radius of several metres
+    small = np.eye(2) * 1e-4
+    singular = np.full((2, 2), np.inf)
+    bounded = bounded_covariances(np.array([wide, small, singular]), 2.0)
+    radii = confidence_radii(bounded)
+    assert radii[0] == pytest.approx(2.0, rel=1e-9)
+    # Scaled as a whole: the same eigenvectors and the same 9:1 elongation.
+    values, vectors = np.linalg.eigh(bounded[0])
+    assert values[1] / values[0] == pytest.approx(9.0, rel=1e-9)
+    assert abs(vectors[:, 1] @ rotation[:, 0]) == pytest.approx(1.0, rel=1e-9)
+    np.testing.assert_array_equal(bounded[1], small)
+    # Non-finite: the isotropic circle of that radius, 2 = s sqrt(-2 ln 0.05).
+    s = 2.0 / math.sqrt(-2.0 * math.log(0.05))
+    np.testing.assert_allclose(bounded[2], s**2 * np.eye(2), rtol=1e-12)
+    with pytest.raises(ValueError, match="max_radius"):
+        bounded_covariances(np.array([small]), 0.0)

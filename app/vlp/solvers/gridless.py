@@ -19,6 +19,7 @@ from ..typing import FloatArray
 from ..uncertainty import (
     FitQuality,
     assess_fit,
+    bounded_covariances,
     fit_misfit,
     misfit_design,
     predictive_covariances,
@@ -482,6 +483,9 @@ class GridlessSolver(Solver):
         white = self._whitening(state)
         residual = self._residual(run, white, state)
         dof = residual.shape[0] - 2 * state.n_targets - 1
+        # With no degree of freedom left (power model, 2K + 1 >= M) no cost tells a local
+        # minimum from the truth: always escaping doubles the time there but is worth about
+        # 8 % of the error (docs/accuracy.md, "Power model beyond its equations").
         if dof <= 0 or float(residual @ residual) > self.options.misfit_ratio * dof:
             return True
         if not self._dense:
@@ -660,6 +664,15 @@ class GridlessSolver(Solver):
                 f"{100 * amplitude_rms:.1f} % and half-power angles {angle_rms:.1f} deg rms "
                 "from the layout): a survey calibration would measure them once",
             )
+        unknowns = 2 * state.n_targets + 1
+        if residual.shape[0] < unknowns and fit.quality != "scale_mismatch":
+            fit = replace(
+                fit,
+                quality="poor",
+                detail=f"{residual.shape[0]} values cannot determine {state.n_targets} targets "
+                f"and the noise ({unknowns} unknowns): other placements fit them as well; "
+                "send the correlation matrix or each terminal's amplitudes",
+            )
         positions = state.positions
         return Solution(
             positions=positions,
@@ -669,7 +682,7 @@ class GridlessSolver(Solver):
             residual_norm=float(np.linalg.norm(residual)) * prescale * self._scale**2,
             n_iter=run.iterations,
             converged=state.converged,
-            covariances=covariances,
+            covariances=self._bounded(covariances),
             gains=np.exp(0.5 * state.log_scale + state.log_gains),
             heights=state.heights.copy() if self._priors.fits_heights else None,
             fit=fit,
@@ -785,7 +798,7 @@ class GridlessSolver(Solver):
             residual_norm=math.sqrt(sum(fit.rss for fit in fits)) * self._scale,
             n_iter=len(fits),
             converged=True,
-            covariances=covariances,
+            covariances=self._bounded(covariances),
             gains=np.exp(log_gains),
             heights=np.array([fit.height for fit in fits])
             if self._priors.fits_heights or heights is not None
@@ -918,6 +931,12 @@ class GridlessSolver(Solver):
         inverse Fisher information by the reduced chi-square when above 1.
         """
         return self._covariances(self._objective(run, self._whitening(state)), state)
+
+    def _bounded(self, covariances: FloatArray) -> FloatArray:
+        """``covariances`` (K, 2, 2) with no 95 % radius beyond the floor's diagonal
+        (:func:`app.vlp.uncertainty.bounded_covariances`)."""
+        room = self.fingerprint.layout.room
+        return bounded_covariances(covariances, math.hypot(room.length, room.width))
 
     def _covariances(self, objective: Objective, state: FitState) -> tuple[FloatArray, FitQuality]:
         """:meth:`_uncertainty` in the metric of ``objective``: compiled
