@@ -259,6 +259,9 @@ def bounded_covariances(
     # The circle of radius r holds 1 - exp(-r^2 / (2 s)) of N(0, s I), and a covariance
     # below s I has a smaller radius: only those with a trace above s can be too wide.
     circle = max_radius**2 / (-2.0 * math.log1p(-level))
+    trace = bounded[:, 0, 0] + bounded[:, 1, 1]
+    if np.isfinite(bounded).all() and float(trace.max(initial=0.0)) <= circle:
+        return bounded  # the common case, once per answer: nothing to bound
     finite = np.all(np.isfinite(bounded), axis=(1, 2))
     trace = np.where(finite, bounded[:, 0, 0] + bounded[:, 1, 1], 0.0)
     check = finite & (trace > circle)
