@@ -67,7 +67,9 @@ def projected_levenberg_marquardt(
                 continue
             trial = np.clip(theta + step, lower, upper)
             trial_residual, trial_jacobian = evaluate(trial)
-            trial_cost = float(trial_residual @ trial_residual)
+            # A wild trial may overflow: its cost is then inf (or nan) and it is rejected.
+            with np.errstate(over="ignore", invalid="ignore"):
+                trial_cost = float(trial_residual @ trial_residual)
             if trial_cost < cost:
                 finished = stop(step, cost, trial_cost)
                 theta, residual, jacobian, cost = trial, trial_residual, trial_jacobian, trial_cost

@@ -1,0 +1,137 @@
+"""Counting with K unknown (``targets`` left out) when every amplitude is off by one factor.
+
+A survey from another day, a receiver whose gain drifted, pilots driven a little harder: the
+measurement is the fingerprint's times a common amplitude scale ``s`` (``R`` times ``s^2``).
+With K given, the default solver fits that scale; with K unknown it must also count. This
+draws, per scale and K, fixed-seed placements of the ideal model at 30 dB with
+``Impairments(common_scale=s)`` and reports how often the default solver's count is right,
+which counts it gave, and the mean matched error of the right counts.
+
+    python -m bench.counting                               # paper room, K = 4, 20 placements
+    python -m bench.counting --rooms paper,hall --ks 2,4 --trials 30
+    python -m bench.counting --out docs        # writes its section of docs/real-rooms.md
+
+Prints a markdown table; with ``--out DIR`` also writes it between the ``counting`` markers
+of ``DIR/real-rooms.md``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from collections import Counter
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from threadpoolctl import threadpool_limits
+
+from app.vlp.measurements import measurement_from_amplitudes
+from app.vlp.metrics import mean_position_error
+from app.vlp.simulation import Impairments, random_positions, simulate_terminals
+from app.vlp.solvers.gridless import GridlessSolver
+
+from ._common import machine_markdown, machine_record, replace_section
+from .real_rooms import _fingerprint, _generator, _layout
+
+__all__ = ["CountCell", "count_cell", "main"]
+
+SCALES = (0.83, 0.9, 0.95, 1.0, 1.05, 1.1, 1.17)
+SNR_DB = 30.0
+
+
+@dataclass(frozen=True)
+class CountCell:
+    """One cell: the fraction of right counts, the counts given (count -> placements) and
+    the mean matched error of the right counts (metres; NaN when none was right)."""
+
+    right: float
+    counts: dict[int, int]
+    error: float
+
+
+def count_cell(room: str, count: int, scale: float, trials: int) -> CountCell:
+    """Count ``count`` targets ``trials`` times under a common amplitude ``scale``."""
+    layout = _layout(room, None)
+    solver = GridlessSolver(_fingerprint(room, None), "correlation")
+    impairments = Impairments(common_scale=scale)
+    given: list[int] = []
+    errors: list[float] = []
+    for trial in range(trials):
+        # The placements and the noise do not depend on the scale: the rows are paired.
+        truth = random_positions(layout, count, rng=_generator("counting", room, count, trial))
+        simulated = simulate_terminals(
+            layout,
+            truth,
+            impairments,
+            snr_db=SNR_DB,
+            rng=_generator("counting-noise", room, count, trial),
+        )
+        measurement = measurement_from_amplitudes(
+            simulated.amplitudes, "correlation", layout.n_leds
+        )
+        solution = solver.solve(measurement, None)
+        given.append(solution.n_targets)
+        if solution.n_targets == count:
+            errors.append(mean_position_error(solution.positions, truth))
+    right = sum(1 for value in given if value == count) / trials
+    error = float(np.mean(errors)) if errors else float("nan")
+    return CountCell(right, dict(sorted(Counter(given).items())), error)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of ``python -m bench.counting``."""
+    parser = argparse.ArgumentParser(prog="python -m bench.counting", description=__doc__)
+    parser.add_argument("--rooms", default="paper", help="comma-separated rooms")
+    parser.add_argument("--ks", default="4", help="comma-separated target counts")
+    parser.add_argument("--scales", default=",".join(map(str, SCALES)), help="amplitude scales")
+    parser.add_argument("--trials", type=int, default=20, help="placements per cell")
+    parser.add_argument("--out", type=Path, default=None, help="write DIR/real-rooms.md's section")
+    args = parser.parse_args(argv)
+    rooms = [room.strip() for room in args.rooms.split(",") if room.strip()]
+    counts = [int(k) for k in args.ks.split(",")]
+    scales = [float(s) for s in args.scales.split(",")]
+    started = time.perf_counter()
+    lines = [
+        "| room | K | amplitude scale | right count | counts given (count: placements) "
+        "| mean error of the right counts (cm) |",
+        "|---|---|---|---|---|---|",
+    ]
+    with threadpool_limits(limits=1):
+        for room in rooms:
+            for count in counts:
+                for scale in scales:
+                    cell = count_cell(room, count, scale, args.trials)
+                    given = ", ".join(f"{k}: {n}" for k, n in cell.counts.items())
+                    error = "-" if np.isnan(cell.error) else f"{100 * cell.error:.1f}"
+                    lines.append(
+                        f"| {room} | {count} | {scale:g} | {cell.right:.2f} | {given} | {error} |"
+                    )
+                    print(lines[-1], flush=True)
+    elapsed = time.perf_counter() - started
+    if args.out is not None:
+        command = "python -m bench.counting " + " ".join(argv if argv is not None else sys.argv[1:])
+        body = "\n".join(
+            [
+                "## Counting under a common amplitude scale (`bench/counting.py`)",
+                "",
+                f"Command: `{command.strip()}` ({elapsed:.0f} s), {SNR_DB:g} dB, ideal model "
+                f"times one amplitude scale, {args.trials} placements per cell, `targets` "
+                "left out, default solver.",
+                "",
+                *lines,
+                "",
+                "Machine:",
+                "",
+                machine_markdown(machine_record()),
+                "",
+            ]
+        )
+        replace_section(args.out / "real-rooms.md", "counting", body, preamble="# Real rooms\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
