@@ -3,12 +3,13 @@
 A survey from another day, a receiver whose gain drifted, pilots driven a little harder: the
 measurement is the fingerprint's times a common amplitude scale ``s`` (``R`` times ``s^2``).
 With K given, the default solver fits that scale; with K unknown it must also count. This
-draws, per scale and K, fixed-seed placements of the ideal model at 30 dB with
-``Impairments(common_scale=s)`` and reports how often the default solver's count is right,
-which counts it gave, and the mean matched error of the right counts.
+draws, per condition, scale and K, fixed-seed placements at 30 dB (the ideal model, the
+realistic mix with the reflectance in the layout, or terminal gains with sd 10 %) times
+``common_scale=s`` and reports how often the default solver's count is right, which counts it
+gave, and the mean matched error of the right counts.
 
     python -m bench.counting                               # paper room, K = 4, 20 placements
-    python -m bench.counting --rooms paper,hall --ks 2,4 --trials 30
+    python -m bench.counting --rooms paper,hall --ks 2,4 --trials 30 --conditions ideal,mix
     python -m bench.counting --out docs        # writes its section of docs/real-rooms.md
 
 Prints a markdown table; with ``--out DIR`` also writes it between the ``counting`` markers
@@ -18,6 +19,8 @@ of ``DIR/real-rooms.md``.
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import itertools
 import sys
 import time
 from collections import Counter
@@ -34,7 +37,7 @@ from app.vlp.simulation import Impairments, random_positions, simulate_terminals
 from app.vlp.solvers.gridless import GridlessSolver
 
 from ._common import machine_markdown, machine_record, replace_section
-from .real_rooms import _fingerprint, _generator, _layout
+from .real_rooms import MIX, _fingerprint, _generator, _layout
 
 __all__ = ["CountCell", "count_cell", "main"]
 
@@ -52,11 +55,22 @@ class CountCell:
     error: float
 
 
-def count_cell(room: str, count: int, scale: float, trials: int) -> CountCell:
-    """Count ``count`` targets ``trials`` times under a common amplitude ``scale``."""
-    layout = _layout(room, None)
-    solver = GridlessSolver(_fingerprint(room, None), "correlation")
-    impairments = Impairments(common_scale=scale)
+CONDITIONS = {
+    "ideal": Impairments.ideal(),
+    "mix": MIX,
+    "gains": Impairments.gain_spread(0.10),
+}
+
+
+def count_cell(
+    room: str, count: int, scale: float, trials: int, condition: str = "ideal"
+) -> CountCell:
+    """Count ``count`` targets ``trials`` times under a common amplitude ``scale`` and one
+    of :data:`CONDITIONS` (``mix``: the realistic mix, reflectance in the layout)."""
+    reflectance = MIX.reflectance if condition == "mix" else None
+    layout = _layout(room, reflectance)
+    solver = GridlessSolver(_fingerprint(room, reflectance), "correlation")
+    impairments = dataclasses.replace(CONDITIONS[condition], common_scale=scale)
     given: list[int] = []
     errors: list[float] = []
     for trial in range(trials):
@@ -67,7 +81,7 @@ def count_cell(room: str, count: int, scale: float, trials: int) -> CountCell:
             truth,
             impairments,
             snr_db=SNR_DB,
-            rng=_generator("counting-noise", room, count, trial),
+            rng=_generator("counting-noise", room, condition, count, trial),
         )
         measurement = measurement_from_amplitudes(
             simulated.amplitudes, "correlation", layout.n_leds
@@ -88,28 +102,34 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--ks", default="4", help="comma-separated target counts")
     parser.add_argument("--scales", default=",".join(map(str, SCALES)), help="amplitude scales")
     parser.add_argument("--trials", type=int, default=20, help="placements per cell")
+    parser.add_argument(
+        "--conditions", default="ideal", help=f"comma-separated, of {', '.join(CONDITIONS)}"
+    )
     parser.add_argument("--out", type=Path, default=None, help="write DIR/real-rooms.md's section")
     args = parser.parse_args(argv)
     rooms = [room.strip() for room in args.rooms.split(",") if room.strip()]
     counts = [int(k) for k in args.ks.split(",")]
     scales = [float(s) for s in args.scales.split(",")]
+    conditions = [c.strip() for c in args.conditions.split(",") if c.strip()]
+    unknown = sorted(set(conditions) - set(CONDITIONS))
+    if unknown:
+        parser.error(f"unknown conditions {unknown}; choose from {sorted(CONDITIONS)}")
     started = time.perf_counter()
     lines = [
-        "| room | K | amplitude scale | right count | counts given (count: placements) "
+        "| room | condition | K | amplitude scale | right count | counts given (count: placements) "
         "| mean error of the right counts (cm) |",
-        "|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|",
     ]
     with threadpool_limits(limits=1):
-        for room in rooms:
-            for count in counts:
-                for scale in scales:
-                    cell = count_cell(room, count, scale, args.trials)
-                    given = ", ".join(f"{k}: {n}" for k, n in cell.counts.items())
-                    error = "-" if np.isnan(cell.error) else f"{100 * cell.error:.1f}"
-                    lines.append(
-                        f"| {room} | {count} | {scale:g} | {cell.right:.2f} | {given} | {error} |"
-                    )
-                    print(lines[-1], flush=True)
+        for room, condition, count, scale in itertools.product(rooms, conditions, counts, scales):
+            cell = count_cell(room, count, scale, args.trials, condition)
+            given = ", ".join(f"{k}: {n}" for k, n in cell.counts.items())
+            error = "-" if np.isnan(cell.error) else f"{100 * cell.error:.1f}"
+            lines.append(
+                f"| {room} | {condition} | {count} | {scale:g} | {cell.right:.2f} | {given} "
+                f"| {error} |"
+            )
+            print(lines[-1], flush=True)
     elapsed = time.perf_counter() - started
     if args.out is not None:
         command = "python -m bench.counting " + " ".join(argv if argv is not None else sys.argv[1:])
@@ -117,9 +137,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             [
                 "## Counting under a common amplitude scale (`bench/counting.py`)",
                 "",
-                f"Command: `{command.strip()}` ({elapsed:.0f} s), {SNR_DB:g} dB, ideal model "
-                f"times one amplitude scale, {args.trials} placements per cell, `targets` "
-                "left out, default solver.",
+                f"Command: `{command.strip()}` ({elapsed:.0f} s), {SNR_DB:g} dB, the "
+                f"condition times one amplitude scale, {args.trials} placements per cell, "
+                "`targets` left out, default solver (`mix`: the realistic mix with the "
+                "reflectance in the layout; `gains`: terminal gains sd 10 %).",
                 "",
                 *lines,
                 "",

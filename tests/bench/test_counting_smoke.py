@@ -23,4 +23,4 @@ def test_counting_writes_its_section(tmp_path: Path) -> None:
     text = (tmp_path / "real-rooms.md").read_text()
     assert "old" not in text and text.startswith("# Real rooms\n\nbefore\n")
     assert text.rstrip().endswith("after")
-    assert "| paper | 1 | 1 | 1.00 | 1: 2 |" in text
+    assert "| paper | ideal | 1 | 1 | 1.00 | 1: 2 |" in text
