@@ -12,6 +12,7 @@ room and the irregular room of ``bench/rooms.py``.
     python -m bench.coverage             # writes the coverage section of docs/accuracy.md
     python -m bench.coverage --trials 10 --out bench/out/quick
     python -m bench.coverage --snr 20 --rooms hall --out bench/out/hall20
+    python -m bench.coverage --model power    # the aggregated power vector (CSM-VLP) instead
 """
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 from threadpoolctl import threadpool_limits
 
-from app.vlp.measurements import measurement_from_amplitudes
+from app.vlp.measurements import Model, measurement_from_amplitudes
 from app.vlp.simulation import Impairments, random_positions, simulate_terminals
 from app.vlp.solvers.gridless import GridlessSolver
 from app.vlp.uncertainty import confidence_radius
@@ -51,16 +52,25 @@ class Cell:
     error: dict[str, float]
 
 
-def coverage(room: str, mix: bool, count: int, trials: int, snr_db: float = SNR_DB) -> Cell:
-    """Coverage of the 95 % radius for the aggregated correlation and the terminals."""
+def coverage(
+    room: str,
+    mix: bool,
+    count: int,
+    trials: int,
+    snr_db: float = SNR_DB,
+    model: Model = "correlation",
+) -> Cell:
+    """Coverage of the 95 % radius for the aggregated ``model`` (key ``"aggregated"``) and
+    the terminals (key ``"terminals"``)."""
     reflectance = MIX.reflectance if mix else None
     layout = _layout(room, reflectance)
     fingerprint = _fingerprint(room, reflectance)
     solver = GridlessSolver(fingerprint, "correlation")
+    aggregated = solver if model == "correlation" else GridlessSolver(fingerprint, model)
     impairments = MIX if mix else Impairments.ideal()
-    inside: dict[str, list[bool]] = {"correlation": [], "terminals": []}
-    radii: dict[str, list[float]] = {"correlation": [], "terminals": []}
-    errors: dict[str, list[float]] = {"correlation": [], "terminals": []}
+    inside: dict[str, list[bool]] = {"aggregated": [], "terminals": []}
+    radii: dict[str, list[float]] = {"aggregated": [], "terminals": []}
+    errors: dict[str, list[float]] = {"aggregated": [], "terminals": []}
     for trial in range(trials):
         truth = random_positions(layout, count, rng=_generator("coverage", room, count, trial))
         simulated = simulate_terminals(
@@ -71,9 +81,9 @@ def coverage(room: str, mix: bool, count: int, trials: int, snr_db: float = SNR_
             rng=_generator("coverage", room, mix, count, trial),
         )
         amplitudes = simulated.amplitudes
-        measurement = measurement_from_amplitudes(amplitudes, "correlation", layout.n_leds)
+        measurement = measurement_from_amplitudes(amplitudes, model, layout.n_leds)
         for mode, solution in (
-            ("correlation", solver.solve(measurement, count)),
+            ("aggregated", aggregated.solve(measurement, count)),
             ("terminals", solver.solve_terminals(amplitudes)),
         ):
             assert solution.covariances is not None
@@ -98,11 +108,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=REPO_ROOT / "docs")
     parser.add_argument("--snr", type=float, default=SNR_DB, help="SNR in dB")
     parser.add_argument("--rooms", default="paper,hall", help="comma-separated rooms")
+    parser.add_argument(
+        "--model",
+        choices=("correlation", "power"),
+        default="correlation",
+        help="the aggregated form (power: its own section, coverage-power)",
+    )
     args = parser.parse_args(argv)
     rooms = [room.strip() for room in args.rooms.split(",") if room.strip()]
     started = time.perf_counter()
     lines = [
-        "| room | model | K | aggregated correlation: coverage | median radius / error (cm) "
+        f"| room | model | K | aggregated {args.model}: coverage | median radius / error (cm) "
         "| `terminals`: coverage | median radius / error (cm) |",
         "|---|---|---|---|---|---|---|",
     ]
@@ -110,12 +126,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         for room in rooms:
             for mix in (False, True):
                 for count in KS:
-                    cell = coverage(room, mix, count, args.trials, args.snr)
+                    cell = coverage(room, mix, count, args.trials, args.snr, args.model)
                     name = "realistic mix, reflectance in layout" if mix else "ideal"
                     parts = [
                         f"{cell.inside[mode]:.3f} | {100 * cell.radius[mode]:.1f} / "
                         f"{100 * cell.error[mode]:.1f}"
-                        for mode in ("correlation", "terminals")
+                        for mode in ("aggregated", "terminals")
                     ]
                     lines.append(f"| {room} | {name} | {count} | {parts[0]} | {parts[1]} |")
                     print(lines[-1], file=sys.stderr, flush=True)
@@ -123,7 +139,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     command = "python -m bench.coverage " + " ".join(argv if argv is not None else sys.argv[1:])
     body = "\n".join(
         [
-            "## Coverage of the 95 % radius (`bench/coverage.py`)",
+            "## Coverage of the 95 % radius (`bench/coverage.py`)"
+            if args.model == "correlation"
+            else f"## Coverage of the 95 % radius, {args.model} model (`bench/coverage.py`)",
             "",
             f"Command: `{command.strip()}` ({elapsed:.0f} s), {args.snr:g} dB, {args.trials} "
             "placements "
@@ -139,7 +157,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         ]
     )
     path = args.out / "accuracy.md"
-    replace_section(path, "coverage", body, preamble="# Accuracy\n")
+    tag = "coverage" if args.model == "correlation" else f"coverage-{args.model}"
+    replace_section(path, tag, body, preamble="# Accuracy\n")
     print(f"wrote {path}")
     return 0
 

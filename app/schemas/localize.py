@@ -185,12 +185,14 @@ class Fit(ResponseModel):
     """How well the model explains the measurement (solver `gridless`)."""
 
     quality: Literal["ok", "poor", "scale_mismatch"] = Field(
-        description="`ok`; `poor`: the room differs from its layout (calibrate it); "
+        description="`ok`; `poor`: the room differs from its layout (calibrate it), or a "
+        "`power` vector has fewer values than the targets need (2K + 1 unknowns); "
         "`scale_mismatch`: the measurement is not in the fingerprint's scale (units, pilots)"
     )
     chi2_per_dof: float = Field(
         description="whitened residual sum of squares per degree of freedom (about 1: the "
-        "model explains the measurement down to its noise)"
+        "model explains the measurement down to its noise; no test for the `power` model, "
+        "whose noise level cannot be told from its signal: see `detail`)"
     )
     scale: float = Field(
         description="fitted common amplitude scale of the measurement relative to the "

@@ -75,6 +75,13 @@ class _Run:
     )
 
 
+_NO_FIT_TEST = (
+    "the power model cannot tell its noise from its signal, so its chi-square is no test of "
+    "the model (the 95 % radii use the scatter of its residuals); send the correlation "
+    "matrix or each terminal's amplitudes for one"
+)
+
+
 @register_solver
 class GridlessSolver(Solver):
     """Off-grid localization: insert a target at the best grid point, refine all, repeat.
@@ -176,6 +183,13 @@ class GridlessSolver(Solver):
             self.options if model == "correlation" else replace(self.options, log_gain_sd=None),
         )
         self._growth_priors = Priors(height_mean=self._priors.height_mean)
+        # The covariance's noise variance, whitened: at most the whitening's own (1) where
+        # the noise atom measures the noise (correlation: the diagonal of R); free for the
+        # power model, whose noise atom (ones) is nearly a signal direction, so its fitted
+        # noise level says nothing (0 in a third of ideal-room fits, several times the
+        # truth in others) and only the residuals' scatter measures the noise.
+        self._noise_identified = model == "correlation"
+        self._max_noise = 1.0 if self._noise_identified else math.inf
         # Nuisances are freed in stages: the common scale and the heights, then the gains.
         full = self._priors
         scale_and_heights = replace(full, log_gain_sd=None)
@@ -485,7 +499,7 @@ class GridlessSolver(Solver):
         dof = residual.shape[0] - 2 * state.n_targets - 1
         # With no degree of freedom left (power model, 2K + 1 >= M) no cost tells a local
         # minimum from the truth: always escaping doubles the time there but is worth about
-        # 8 % of the error (docs/accuracy.md, "Power model beyond its equations").
+        # 8 % of the error (docs/accuracy.md, "The power model's uncertainty").
         if dof <= 0 or float(residual @ residual) > self.options.misfit_ratio * dof:
             return True
         if not self._dense:
@@ -664,6 +678,9 @@ class GridlessSolver(Solver):
                 f"{100 * amplitude_rms:.1f} % and half-power angles {angle_rms:.1f} deg rms "
                 "from the layout): a survey calibration would measure them once",
             )
+        if not self._noise_identified and fit.quality != "scale_mismatch":
+            # No noise level to hold the residuals against: no goodness-of-fit test.
+            fit = replace(fit, quality="ok", detail=_NO_FIT_TEST)
         unknowns = 2 * state.n_targets + 1
         if residual.shape[0] < unknowns and fit.quality != "scale_mismatch":
             fit = replace(
@@ -951,7 +968,7 @@ class GridlessSolver(Solver):
         if problem is not None and k > 0 and small:
             # The same sandwich in one compiled call (._uncertainty_compiled).
             covariances, cost = uncertainty_kernel(
-                *problem, theta, *objective.compiled_state(state), 1.0
+                *problem, theta, *objective.compiled_state(state), self._max_noise
             )
             return covariances, assess_fit(float(cost), n_data - n_params, scale)
         columns = self._misfit_columns(objective, theta, state)
@@ -966,7 +983,7 @@ class GridlessSolver(Solver):
         residual = augmented[n_params, :n_data]
         fit = assess_fit(float(residual @ residual), n_data - n_params, scale)
         design = misfit_design(rows[:, :n_data].T, rows @ rows.T, columns)
-        misfit = fit_misfit([design], [residual], max_noise=1.0)
+        misfit = fit_misfit([design], [residual], max_noise=self._max_noise)
         return predictive_covariances(design, misfit, index), fit
 
     def _misfit_columns(
