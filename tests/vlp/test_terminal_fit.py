@@ -155,3 +155,24 @@ def test_an_unknown_tilt_is_fitted_when_it_matters(
         fitted += list(np.linalg.norm(solver.solve_terminals(amplitudes).positions - truth, axis=1))
         ignored += list(np.linalg.norm(level.solve_terminals(amplitudes).positions - truth, axis=1))
     assert np.mean(fitted) < 0.8 * np.mean(ignored)
+
+
+def test_a_gain_as_modelled_is_held_and_a_different_one_is_fitted(
+    paper_room: Layout, paper_fingerprint: Fingerprint, solver: GridlessSolver
+) -> None:
+    # A free gain trades against the distance to the brightest LEDs: held at 1 where the data
+    # do not ask for more, fitted where they do.
+    rng = np.random.default_rng(31)
+    sigma = noise_std_for_snr(paper_fingerprint, 30.0)
+    truth = random_positions(paper_room, 8, distinct_cells=True, rng=rng)
+    true_gains = np.ones(8)
+    true_gains[[2, 5]] = [0.8, 1.25]
+    amplitudes = true_gains[:, None] * true_amplitudes(paper_room, truth)
+    amplitudes = amplitudes + sigma * rng.standard_normal(amplitudes.shape)
+    solution = solver.solve_terminals(amplitudes)
+    assert solution.gains is not None
+    np.testing.assert_allclose(solution.gains[[2, 5]], [0.8, 1.25], rtol=0.03)
+    held = np.abs(solution.gains[true_gains == 1.0] - 1.0) < 1e-4
+    assert int(held.sum()) >= 4  # by chance a test at 2 frees about 1 gain in 6
+    errors = np.linalg.norm(solution.positions - truth, axis=1)
+    assert errors.max() < 0.1

@@ -17,7 +17,7 @@ callers validate.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -39,6 +39,14 @@ _SIGMA2_REL_FLOOR = 1e-4
 _MAX_TILT = 1.0
 # Cost decrease a fitted tilt must bring to be kept: 2 + 3 sqrt(2 * 2).
 _TILT_SIGNIFICANCE = 8.0
+# ... and a free gain, over the gain held at 1: 2 per parameter (Akaike). Every phone's
+# gain differs a little, so the test leans to freeing it: at 3 standard deviations (5.2)
+# the gains held at 1 biased a 10 % gain spread (docs/real-rooms.md, "Terminal gains held
+# unless the data ask").
+_GAIN_SIGNIFICANCE = 2.0
+# Prior sd of a log gain held at 0: its information dwarfs the data's, so the normal matrix
+# (and the covariance from it) is that of a fit without the gain, in the same layout.
+_HELD_LOG_GAIN_SD = 1e-6
 
 
 @dataclass(frozen=True)
@@ -118,7 +126,8 @@ def fit_terminal(
     normal: FloatArray | None,
     tilt_sd: float | None = None,
 ) -> TerminalFit:
-    """Fit one terminal from each start, keep the lowest cost.
+    """Fit one terminal from each start, keep the lowest cost; with priors, hold its gain at
+1 and its photodiode level unless freeing them lowers the cost significantly.
 
     Parameters
     ----------
@@ -128,7 +137,7 @@ def fit_terminal(
     starts : ndarray of shape (S, 2)
         Starting positions, metres.
     priors : Priors
-        ``log_gain_sd`` (None: gain fixed at 1) and the heights' prior.
+        ``log_gain_sd`` (None: the gain free without a prior) and the heights' prior.
     sigma2 : float or None
         Noise variance (normalised units) weighting the data against the priors; None fits
         without priors (a first pass that estimates the noise).
@@ -160,6 +169,16 @@ def fit_terminal(
         if best is None or fit.rss < best.rss:
             best = fit
     assert best is not None
+    if sigma2 is not None and priors.log_gain_sd is not None:
+        # The gain is kept free only when the data ask for it, as the tilt below: free, it
+        # trades against the distance to the brightest LEDs and costs a terminal exactly as
+        # modelled accuracy (docs/real-rooms.md, "Terminal gains held unless the data ask").
+        held_priors = replace(priors, log_gain_sd=_HELD_LOG_GAIN_SD)
+        held = _levenberg_marquardt(
+            kernel, amplitudes, best.position, z0, free_height, held_priors, weight, normal, None
+        )
+        if held.cost - best.cost <= _GAIN_SIGNIFICANCE:
+            best, priors = held, held_priors
     if normal is not None or tilt_sd is None:
         return best
     if sigma2 is None:
