@@ -126,8 +126,10 @@ def fit_terminal(
     normal: FloatArray | None,
     tilt_sd: float | None = None,
 ) -> TerminalFit:
-    """Fit one terminal from each start, keep the lowest cost; with priors, hold its gain at
-1 and its photodiode level unless freeing them lowers the cost significantly.
+    """Fit one terminal from each start, keep the lowest cost.
+
+    With priors (``sigma2`` given), the gain is held at 1 and an unknown photodiode kept
+    level unless freeing them lowers the cost by more than chance would.
 
     Parameters
     ----------
