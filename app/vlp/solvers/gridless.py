@@ -726,8 +726,10 @@ class GridlessSolver(Solver):
         -----
         See :mod:`._terminal_fit`. Two passes: without priors, to estimate the amplitude
         noise variance pooled over the terminals (its residual sum of squares over its
-        degrees of freedom), then with the gain and height priors weighted by it. The
-        covariance of each position is the sandwich of its whitened fit with the noise and
+        degrees of freedom), then with the gain and height priors weighted by it (each
+        terminal's gain held at 1 and its photodiode level unless freeing them lowers the
+        cost significantly: :func:`._terminal_fit.fit_terminal`). The covariance of each
+        position is the sandwich of its whitened fit with the noise and
         the model errors the fit does not fit (:meth:`_terminal_misfit_columns`), their
         variances estimated from all terminals' residuals together (the first pass's noise
         level holds part of the misfit, so the noise variance is re-estimated with them)
