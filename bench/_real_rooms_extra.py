@@ -27,6 +27,7 @@ from app.vlp.metrics import mean_position_error
 from app.vlp.simulation import (
     TRUE_ELEMENT_SIZE_M,
     Impairments,
+    SimulatedTerminals,
     random_positions,
     simulate_terminals,
 )
@@ -34,7 +35,14 @@ from app.vlp.solvers import make_solver
 from app.vlp.solvers.gridless import GridlessOptions, GridlessSolver
 from app.vlp.typing import FloatArray
 
-__all__ = ["BOUND_CASES", "CALIBRATIONS", "BoundCase", "run_bounds", "run_calibrated"]
+__all__ = [
+    "BOUND_CASES",
+    "CALIBRATIONS",
+    "BoundCase",
+    "draw_terminals",
+    "run_bounds",
+    "run_calibrated",
+]
 
 _BOUND_MODES: tuple[Literal["correlation", "terminals"], ...] = ("correlation", "terminals")
 # The solver's priors (GridlessOptions defaults): what a service that does not know the
@@ -161,6 +169,24 @@ def _survey_points(layout: Layout) -> FloatArray:
     return np.array([(x, y) for x in xs for y in ys])
 
 
+def draw_terminals(
+    layout: Layout,
+    count: int,
+    impairments: Impairments,
+    *,
+    snr_db: float,
+    placement_rng: np.random.Generator,
+    noise_rng: np.random.Generator,
+) -> tuple[FloatArray, SimulatedTerminals]:
+    """``count`` terminals placed uniformly in ``layout``'s room (no two in one grid cell)
+    with ``placement_rng``, and what they measure under ``impairments`` at ``snr_db`` with
+    ``noise_rng``: positions (K, 2) m and the simulation. Placements depend on the room's
+    geometry only, so benchmarks key them apart from the condition to pair their rows."""
+    positions = random_positions(layout, count, rng=placement_rng)
+    simulated = simulate_terminals(layout, positions, impairments, snr_db=snr_db, rng=noise_rng)
+    return positions, simulated
+
+
 def run_calibrated(
     rooms: Sequence[str],
     trials: int,
@@ -182,13 +208,13 @@ def run_calibrated(
         plain = build_fingerprint(layout)
         points = _survey_points(layout)
         for trial in range(first_trial, first_trial + trials):
-            positions = random_positions(nominal, count, rng=generator(room, count, trial))
-            simulated = simulate_terminals(
+            positions, simulated = draw_terminals(
                 layout,
-                positions,
+                count,
                 impairments,
                 snr_db=30.0,
-                rng=generator(room, condition_name, count, trial),
+                placement_rng=generator(room, count, trial),
+                noise_rng=generator(room, condition_name, count, trial),
             )
             survey = simulate_survey(
                 simulated.true_layout,

@@ -33,10 +33,11 @@ from threadpoolctl import threadpool_limits
 
 from app.vlp.measurements import measurement_from_amplitudes
 from app.vlp.metrics import mean_position_error
-from app.vlp.simulation import Impairments, random_positions, simulate_terminals
+from app.vlp.simulation import Impairments
 from app.vlp.solvers.gridless import GridlessSolver
 
 from ._common import machine_markdown, machine_record, replace_section
+from ._real_rooms_extra import draw_terminals
 from .real_rooms import MIX, _fingerprint, _generator, _layout
 
 __all__ = ["CountCell", "count_cell", "main"]
@@ -75,13 +76,13 @@ def count_cell(
     errors: list[float] = []
     for trial in range(trials):
         # The placements and the noise do not depend on the scale: the rows are paired.
-        truth = random_positions(layout, count, rng=_generator("counting", room, count, trial))
-        simulated = simulate_terminals(
+        truth, simulated = draw_terminals(
             layout,
-            truth,
+            count,
             impairments,
             snr_db=SNR_DB,
-            rng=_generator("counting-noise", room, condition, count, trial),
+            placement_rng=_generator("counting", room, count, trial),
+            noise_rng=_generator("counting-noise", room, condition, count, trial),
         )
         measurement = measurement_from_amplitudes(
             simulated.amplitudes, "correlation", layout.n_leds

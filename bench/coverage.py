@@ -29,11 +29,12 @@ from scipy.optimize import linear_sum_assignment
 from threadpoolctl import threadpool_limits
 
 from app.vlp.measurements import Model, measurement_from_amplitudes
-from app.vlp.simulation import Impairments, random_positions, simulate_terminals
+from app.vlp.simulation import Impairments
 from app.vlp.solvers.gridless import GridlessSolver
 from app.vlp.uncertainty import confidence_radius
 
 from ._common import REPO_ROOT, machine_markdown, machine_record, replace_section
+from ._real_rooms_extra import draw_terminals
 from .real_rooms import MIX, _fingerprint, _generator, _layout
 
 __all__ = ["Cell", "coverage", "main"]
@@ -72,13 +73,13 @@ def coverage(
     radii: dict[str, list[float]] = {"aggregated": [], "terminals": []}
     errors: dict[str, list[float]] = {"aggregated": [], "terminals": []}
     for trial in range(trials):
-        truth = random_positions(layout, count, rng=_generator("coverage", room, count, trial))
-        simulated = simulate_terminals(
+        truth, simulated = draw_terminals(
             layout,
-            truth,
+            count,
             impairments,
             snr_db=snr_db,
-            rng=_generator("coverage", room, mix, count, trial),
+            placement_rng=_generator("coverage", room, count, trial),
+            noise_rng=_generator("coverage", room, mix, count, trial),
         )
         amplitudes = simulated.amplitudes
         measurement = measurement_from_amplitudes(amplitudes, model, layout.n_leds)

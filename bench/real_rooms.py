@@ -49,7 +49,6 @@ from app.vlp.simulation import (
     Impairments,
     noise_std_for_snr,
     random_positions,
-    simulate_terminals,
 )
 from app.vlp.solvers import Solver, make_solver
 from app.vlp.solvers.gridless import GridlessSolver
@@ -63,7 +62,13 @@ from ._common import (
     replace_section,
     write_csv,
 )
-from ._real_rooms_extra import BOUND_CASES, CALIBRATIONS, run_bounds, run_calibrated
+from ._real_rooms_extra import (
+    BOUND_CASES,
+    CALIBRATIONS,
+    draw_terminals,
+    run_bounds,
+    run_calibrated,
+)
 from .rooms import make_room
 
 __all__ = ["CONDITIONS", "Condition", "Localizer", "gridless_localizer", "main", "run"]
@@ -150,15 +155,14 @@ def run_trial(
     room: str, condition: Condition, count: int, trial: int, localize: Localizer
 ) -> dict[str, float]:
     """Mean matched error (metres) of each mode in one trial; NaN where the solve failed."""
-    truth_layout = _layout(room, None)
-    positions = random_positions(truth_layout, count, rng=_generator(room, count, trial))
     layout = _layout(room, condition.reflectance_in_layout, condition.height_sd_in_layout)
-    simulated = simulate_terminals(
+    positions, simulated = draw_terminals(
         layout,
-        positions,
+        count,
         condition.impairments,
         snr_db=SNR_DB,
-        rng=_generator(room, condition.name, count, trial),
+        placement_rng=_generator(room, count, trial),
+        noise_rng=_generator(room, condition.name, count, trial),
     )
     fingerprint = _fingerprint(room, condition.reflectance_in_layout, condition.height_sd_in_layout)
     amplitudes = simulated.amplitudes
