@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -14,7 +15,8 @@ from app.vlp.layout import Layout
 from app.vlp.measurements import measurement_from_amplitudes
 from app.vlp.simulation import noise_std_for_snr, random_positions, true_amplitudes
 from app.vlp.solvers._channel_kernel import ChannelKernel
-from app.vlp.solvers._terminal_fit import los_with_normal
+from app.vlp.solvers._gridless_options import nuisance_priors
+from app.vlp.solvers._terminal_fit import _HELD_LOG_GAIN_SD, fit_terminal, los_with_normal
 from app.vlp.solvers.gridless import GridlessOptions, GridlessSolver
 from tests.vlp.test_gridless_nuisances import _matched
 
@@ -176,3 +178,38 @@ def test_a_gain_as_modelled_is_held_and_a_different_one_is_fitted(
     assert int(held.sum()) >= 4  # by chance a test at 2 frees about 1 gain in 6
     errors = np.linalg.norm(solution.positions - truth, axis=1)
     assert errors.max() < 0.1
+
+
+def test_a_held_gain_keeps_the_gain_uncertainty_in_the_covariance(paper_room: Layout) -> None:
+    # Held at 1, the gain still may be off by what its test cannot see: the position's
+    # covariance is that of the gain with its own prior, not of a gain known exactly.
+    kernel = ChannelKernel(paper_room, scale=1.0)
+    priors = nuisance_priors(paper_room, GridlessOptions())
+    assert priors.log_gain_sd is not None
+    point = np.array([[0.3, 0.3]])  # near a corner the gain and the distance trade off most
+    clean = true_amplitudes(paper_room, point)[0]
+    sigma = 0.01 * float(np.sqrt(np.mean(clean**2)))
+    amplitudes = clean + sigma * np.random.default_rng(4).standard_normal(clean.shape)
+    fit = fit_terminal(
+        kernel, amplitudes, point, priors=priors, sigma2=sigma**2, height=None, normal=None
+    )
+    assert abs(fit.log_gain) < 1e-5  # held
+    # The same fit with the gain free (no hold possible: its prior is wide).
+    free = fit_terminal(
+        kernel,
+        amplitudes,
+        point,
+        priors=replace(priors, log_gain_sd=None),
+        sigma2=sigma**2,
+        height=None,
+        normal=None,
+    )
+    held_cov = np.linalg.inv(fit.normal)[:2, :2]
+    free_normal = free.normal.copy()
+    free_normal[-1, -1] += 1.0 / priors.log_gain_sd**2  # the free fit with the prior's information
+    free_cov = np.linalg.inv(free_normal)[:2, :2]
+    np.testing.assert_allclose(np.trace(held_cov), np.trace(free_cov), rtol=0.05)
+    # What the holding prior itself would give: about half (a gain known exactly).
+    holding = fit.normal.copy()
+    holding[-1, -1] += 1.0 / _HELD_LOG_GAIN_SD**2 - 1.0 / priors.log_gain_sd**2
+    assert np.trace(held_cov) > 1.5 * np.trace(np.linalg.inv(holding)[:2, :2])

@@ -152,6 +152,7 @@ def fit_terminal(
         (tangent units; with priors only); None keeps an unknown normal straight up.
     """
     best: TerminalFit | None = None
+    held_gain_sd: float | None = None  # the gain's prior sd when it is held at 1
     floor = _SIGMA2_REL_FLOOR * float(amplitudes @ amplitudes) / amplitudes.shape[0]
     weight = 1.0 / math.sqrt(max(sigma2, floor, 1e-300)) if sigma2 is not None else 1.0
     free_height = height is None and priors.fits_heights
@@ -180,9 +181,9 @@ def fit_terminal(
             kernel, amplitudes, best.position, z0, free_height, held_priors, weight, normal, None
         )
         if held.cost - best.cost <= _GAIN_SIGNIFICANCE:
-            best, priors = held, held_priors
+            best, priors, held_gain_sd = held, held_priors, priors.log_gain_sd
     if normal is not None or tilt_sd is None:
-        return best
+        return _with_gain_prior(best, held_gain_sd)
     if sigma2 is None:
         # The noise estimate comes from a fit that may tilt (no prior): a tilted room's
         # residuals would otherwise count its tilts as noise.
@@ -196,7 +197,20 @@ def fit_terminal(
     tilted = _levenberg_marquardt(
         kernel, amplitudes, best.position, z0, free_height, priors, weight, None, tilt_sd
     )
-    return tilted if best.cost - tilted.cost > _TILT_SIGNIFICANCE else best
+    chosen = tilted if best.cost - tilted.cost > _TILT_SIGNIFICANCE else best
+    return _with_gain_prior(chosen, held_gain_sd)
+
+
+def _with_gain_prior(fit: TerminalFit, gain_sd: float | None) -> TerminalFit:
+    """``fit`` (its gain held at 1) with the information of the gain's own prior ``gain_sd``
+    in its normal matrix instead of the holding one, so that its covariance still carries
+    what a gain error too small for the test would do to the position (held, the radii
+    were too narrow in a realistic room: docs/real-rooms.md); unchanged when None."""
+    if gain_sd is None:
+        return fit
+    normal = fit.normal.copy()
+    normal[-1, -1] += 1.0 / gain_sd**2 - 1.0 / _HELD_LOG_GAIN_SD**2
+    return replace(fit, normal=normal)
 
 
 def _tilted_normal(tilt: FloatArray) -> tuple[FloatArray, FloatArray]:
