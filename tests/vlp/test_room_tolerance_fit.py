@@ -14,8 +14,13 @@ from app.vlp.measurements import measurement_from_amplitudes
 from app.vlp.metrics import mean_position_error
 from app.vlp.simulation import Impairments, random_positions, simulate_terminals
 from app.vlp.solvers._gridless_fit import FitState, Whitening, target_gains
-from app.vlp.solvers._room_tolerance_fit import RoomTolerances, _JointModel
-from app.vlp.solvers.gridless import GridlessOptions, GridlessSolver
+from app.vlp.solvers._room_tolerance_fit import (
+    GridMoves,
+    RoomTolerances,
+    _JointModel,
+    fit_room_tolerances,
+)
+from app.vlp.solvers.gridless import GridlessOptions, GridlessSolver, _Run
 from app.vlp.uncertainty import confidence_radii
 
 _TOLERANCES = RoomTolerances(led_log_amplitude_sd=0.05, led_half_power_sd_deg=3.0, tilt_sd=0.07)
@@ -175,3 +180,77 @@ def test_an_ideal_room_keeps_the_fit_without_tolerances(paper_fingerprint: Finge
     same = sum(a == b for a, b in zip(without, with_stage, strict=True))
     assert same >= 7
     assert np.mean(with_stage) <= np.mean(without) + 0.005
+
+
+def _stuck_fit(
+    fingerprint: Fingerprint, seed: int, jumps: bool
+) -> tuple[GridlessSolver, _Run, FitState, np.ndarray]:
+    """Six terminals under LED tolerances, and the nominal fit refined (no escapes) from a
+    start that puts the first estimate next to the terminal farthest from the first's."""
+    layout = fingerprint.layout
+    truth = random_positions(layout, 6, rng=np.random.default_rng(50 + seed))
+    simulated = simulate_terminals(
+        layout, truth, Impairments.led_tolerances(0.05, 3.0), snr_db=30.0, rng=seed
+    )
+    measurement = measurement_from_amplitudes(simulated.amplitudes, "correlation", 16)
+    solver = GridlessSolver(fingerprint, "correlation", GridlessOptions(tolerance_jumps=jumps))
+    run = _Run(values=measurement.values / solver._scale**2, priors=solver._growth_priors)
+    farthest = int(np.argmax(np.linalg.norm(truth - truth[0], axis=1)))
+    start = truth.copy()
+    start[0] = truth[farthest] + np.array([0.15 if truth[farthest, 0] < 3.5 else -0.15, 0.0])
+    heights = np.full(6, layout.grid.receiver_height)
+    state = FitState(start, np.ones(6), 0.0, heights, np.zeros(6), 0.0)
+    return solver, run, solver._refine(run, state, 50, 3), truth
+
+
+def _matched_errors(estimates: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    distances = np.linalg.norm(estimates[:, None, :] - truth[None, :, :], axis=2)
+    rows, cols = linear_sum_assignment(distances)
+    return np.asarray(distances[rows, cols])
+
+
+def test_a_target_on_another_s_terminal_jumps_to_the_one_left_without(
+    paper_fingerprint: Fingerprint,
+) -> None:
+    # Two estimates on one terminal and none on another is a local optimum that the joint
+    # fit's own refinement does not leave; its long moves do. Where the refinement alone
+    # already finds every terminal, the moves change nothing for the worse.
+    stuck = 0
+    for seed in range(6):
+        worst = {}
+        for jumps in (False, True):
+            solver, run, state, truth = _stuck_fit(paper_fingerprint, seed, jumps)
+            fitted = solver._with_room_tolerances(run, state)
+            assert fitted is not None  # the wrong optimum shows a misfit
+            worst[jumps] = float(_matched_errors(fitted.state.positions, truth).max())
+        if worst[False] > 1.0:
+            stuck += 1
+            assert worst[True] < 0.25
+        else:
+            assert worst[True] <= worst[False] + 0.02
+    assert stuck >= 1
+
+
+def test_the_joint_fit_takes_another_placement_only_when_it_fits_better(
+    paper_fingerprint: Fingerprint,
+) -> None:
+    solver, run, state, truth = _stuck_fit(paper_fingerprint, 3, jumps=False)
+    kernel, opts = solver._kernel, solver.options
+    tolerances = RoomTolerances(opts.led_log_amplitude_sd or 0.0, opts.led_half_power_sd_deg, 0.0)
+    priors = (opts.log_gain_sd or 0.0, opts.log_scale_sd or 0.0)
+
+    def fit(start: FitState, alternatives: tuple[np.ndarray, ...]) -> np.ndarray:
+        # No long moves of single targets (nothing is that far): only the placements.
+        moves = GridMoves(solver._gains, solver._centres, np.inf, alternatives)
+        fitted = fit_room_tolerances(kernel, run.values, start, priors, tolerances, 3.0, moves)
+        assert fitted is not None
+        return fitted.state.positions
+
+    wrong = fit(state, ())
+    assert _matched_errors(wrong, truth).max() > 1.0
+    right = fit(state, (truth,))
+    assert _matched_errors(right, truth).max() < 0.25
+    # From the right optimum, the wrong placement is tried and left.
+    good_start = solver._refine(run, dataclasses.replace(state, positions=truth.copy()), 50, 3)
+    from_good = fit(good_start, ())
+    np.testing.assert_array_equal(fit(good_start, (state.positions,)), from_good)

@@ -67,6 +67,10 @@ class GridlessOptions:
     room_tilt_sd: float = 0.0
     tolerance_misfit_ratio: float = 1.1
     tolerance_significance: float = 3.0
+    # Where the tolerances are fitted, each target is also moved far (to the best grid point
+    # at least half the LEDs' mean height away) and the joint fit keeps what lowers its cost,
+    # as it does with the restarts' placements (._room_tolerance_fit.GridMoves).
+    tolerance_jumps: bool = True
     # A stage of nuisances is kept when it lowers the whitened cost by more than its extra
     # parameters' chi-square mean plus this many standard deviations.
     stage_significance: float = 3.0

@@ -29,6 +29,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.optimize import linear_sum_assignment
 
 from ..typing import FloatArray
 from ._channel_kernel import ChannelKernel
@@ -44,7 +45,7 @@ from ._gridless_fit import (
 )
 from ._projected_lm import projected_levenberg_marquardt
 
-__all__ = ["RoomTolerances", "ToleranceFit", "fit_room_tolerances"]
+__all__ = ["GridMoves", "RoomTolerances", "ToleranceFit", "fit_room_tolerances"]
 
 _LN2 = math.log(2.0)
 # LM for the joint fit (NumPy; it runs only on measurements that show a misfit).
@@ -53,6 +54,8 @@ _MAX_ITER = 30
 _REL_TOL = 1e-4
 # Re-whitening rounds: each refit uses the metric of the previous one's gains.
 _ROUNDS = 2
+# Iterations before a jumped fit is checked for having walked back.
+_JUMP_PROBE_ITER = 2
 
 
 @dataclass(frozen=True)
@@ -73,6 +76,29 @@ class RoomTolerances:
     led_log_amplitude_sd: float
     led_half_power_sd_deg: float
     tilt_sd: float
+
+
+@dataclass(frozen=True)
+class GridMoves:
+    """Where the joint fit may move a target to (long jumps between its local optima).
+
+    Attributes
+    ----------
+    gains : ndarray of shape (M, N)
+        Each grid point's nominal channel gains, in the kernel's normalised units.
+    centres : ndarray of shape (N, 2), metres
+        The grid points.
+    min_jump : float, metres
+        A moved target starts at least this far from where it was.
+    alternatives : tuple of ndarrays of shape (K, 2), metres
+        Whole placements to try as well (other local optima of the nominal fit, such as its
+        restarts'), each with the fitted tolerances, gains reset.
+    """
+
+    gains: FloatArray
+    centres: FloatArray
+    min_jump: float
+    alternatives: tuple[FloatArray, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -314,8 +340,127 @@ class _JointModel:
         return np.concatenate((residual, prior_residual)), np.vstack((jacobian, prior_rows))
 
 
+def _jumps(
+    model: _JointModel,
+    theta: FloatArray,
+    noise: float,
+    values: FloatArray,
+    white: Whitening,
+    moves: GridMoves,
+) -> tuple[FloatArray, Whitening]:
+    """Move each target in turn far (at least ``moves.min_jump``) to where the residual left
+    by the others asks for one, or else to where the whole residual does, refit everything,
+    keep the move when it lowers the cost; then try ``moves.alternatives`` the same way.
+
+    Under the room's tolerances the aggregated fit has optima in which two estimates share
+    one terminal and another terminal has none. The nominal model cannot tell them from the
+    right one (their costs agree within its misfit); the joint fit can. ADCG's relocation in
+    the nominal fit moves a target to the best point of the residual, which is next to where
+    it was; here the best point at least ``min_jump`` away, or the point where a terminal is
+    missing. Most moved targets walk back (or another target takes their place) within a few
+    iterations: such moves stop there.
+    """
+    k, m = model.n_targets, model.n_leds
+    # The metric the fit was refined in last (``theta`` is its optimum): moves are compared
+    # in it.
+    data = white.data(values)
+    residual, _ = model.residual_and_jacobian(theta, white, data)
+    cost = start_cost = float(residual @ residual)
+    measured = np.zeros((m, m))
+    measured[model.upper, model.lower] = values
+    measured[model.lower, model.upper] = values
+    rotation = white.rotation
+    assert rotation is not None
+    # The whitened cost sums each entry (a <= b) of U^T E U once, weighted c^2: as a full
+    # symmetric sum, off-diagonal entries count half.
+    entry_weights = np.zeros((m, m))
+    entry_weights[white.upper, white.lower] = white.weights**2
+    entry_weights[white.lower, white.upper] = white.weights**2
+    entry_weights *= np.where(np.eye(m, dtype=bool), 1.0, 0.5)
+
+    def scan(theta: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, float]:
+        """The targets' gains, multipliers and positions, the grid's gains (with the fitted
+        LED amplitudes, in the metric's basis) and their whitened energies, the unit."""
+        gains, multipliers, _ = model.gains(theta)
+        positions, _, log_scale, amps, *_ = model.split(theta)
+        grid = rotation.T @ (np.exp(amps)[:, np.newaxis] * moves.gains)
+        grid_energy = np.sum(grid**2 * (entry_weights @ grid**2), axis=0)
+        return gains * np.sqrt(multipliers), positions, grid, grid_energy, math.exp(log_scale)
+
+    scaled, positions, grid, grid_energy, unit = scan(theta)
+
+    def scores(others: FloatArray) -> FloatArray:
+        signal = scaled[:, others] @ scaled[:, others].T
+        left = rotation.T @ (measured - signal - theta[-1] * np.eye(m)) @ rotation
+        # Each grid point's decrease of the cost with a target of unit gain there.
+        score = 2.0 * unit * np.sum(grid * ((left * entry_weights) @ grid), axis=0)
+        return np.asarray(score - unit**2 * grid_energy)
+
+    for target in range(k):
+        far = np.linalg.norm(moves.centres - positions[target], axis=1) > moves.min_jump
+        # Two places to try: the best far point of the residual the others leave, then the
+        # best point of the whole residual (where a terminal is missing) if far enough.
+        own = int(np.argmax(np.where(far, scores(np.arange(k) != target), -np.inf)))
+        missing = int(np.argmax(scores(np.ones(k, dtype=bool))))
+        for best in [own] if missing == own or not far[missing] else [own, missing]:
+            if not far[best]:
+                continue
+            moved = theta.copy()
+            moved[target], moved[k + target] = moves.centres[best]
+            moved[2 * k + target] = 0.0
+            tried = _try_move(model, cost, moved, white, data, positions)
+            if tried is not None:
+                theta, cost = tried
+                scaled, positions, grid, grid_energy, unit = scan(theta)
+                break
+    for placement in moves.alternatives:
+        moved = theta.copy()
+        moved[:k], moved[k : 2 * k] = placement[:, 0], placement[:, 1]
+        moved[2 * k : 3 * k] = 0.0
+        tried = _try_move(model, cost, moved, white, data, positions)
+        if tried is not None:
+            theta, cost = tried
+            positions = model.split(theta)[0]
+    if cost < start_cost:  # moved: one more round in the new fit's metric
+        white = model.whitening(theta, noise)
+        theta, _ = _levenberg_marquardt(model, theta, white, white.data(values))
+    return theta, white
+
+
+def _try_move(
+    model: _JointModel,
+    cost: float,
+    moved: FloatArray,
+    white: Whitening,
+    data: FloatArray,
+    positions: FloatArray,
+) -> tuple[FloatArray, float] | None:
+    """The fit from ``moved`` and its cost when it lowers ``cost``, the current fit's (its
+    targets at ``positions``), else None. After a few iterations a fit that has come back
+    closer to the current placement than to where it started is dropped: most moves walk
+    back into the basin already fitted."""
+    start = model.split(moved)[0]
+    moved, _ = _levenberg_marquardt(model, moved, white, data, _JUMP_PROBE_ITER)
+    probe = model.split(moved)[0]
+    if _placement_distance(probe, positions) < _placement_distance(probe, start):
+        return None
+    moved, moved_cost = _levenberg_marquardt(model, moved, white, data)
+    return (moved, moved_cost) if moved_cost < cost else None
+
+
+def _placement_distance(first: FloatArray, second: FloatArray) -> float:
+    """The largest distance between matched targets of two placements (K, 2), metres."""
+    distances = np.linalg.norm(first[:, np.newaxis] - second, axis=2)
+    rows, cols = linear_sum_assignment(distances)
+    return float(distances[rows, cols].max())
+
+
 def _levenberg_marquardt(
-    model: _JointModel, theta: FloatArray, white: Whitening, data: FloatArray
+    model: _JointModel,
+    theta: FloatArray,
+    white: Whitening,
+    data: FloatArray,
+    max_iter: int = _MAX_ITER,
 ) -> tuple[FloatArray, float]:
     lower, upper = model.bounds()
     theta, _, _, cost = projected_levenberg_marquardt(
@@ -323,7 +468,7 @@ def _levenberg_marquardt(
         theta,
         lower,
         upper,
-        max_iter=_MAX_ITER,
+        max_iter=max_iter,
         damping=1e-2,
         stop=lambda _step, cost, trial_cost: cost - trial_cost < _REL_TOL * cost,
     )
@@ -337,6 +482,7 @@ def fit_room_tolerances(
     priors: tuple[float, float],
     tolerances: RoomTolerances,
     significance: float,
+    moves: GridMoves | None = None,
 ) -> ToleranceFit | None:
     """MAP fit of positions, gains, scale, noise and the room's tolerances (module doc).
 
@@ -397,6 +543,8 @@ def fit_room_tolerances(
     for _ in range(_ROUNDS - 1):
         white = model.whitening(theta, noise)
         theta, _ = _levenberg_marquardt(model, theta, white, white.data(values))
+    if moves is not None:
+        theta, white = _jumps(model, theta, noise, values, white, moves)
     residual, jacobian = model.residual_and_jacobian(theta, white, white.data(values))
     n_data, k = white.weights.shape[0], model.n_targets
     chi2 = float(residual[:n_data] @ residual[:n_data])

@@ -47,7 +47,7 @@ from ._gridless_options import (
 )
 from ._kernels import kernel_mode
 from ._local import PowerScan, TerminalWindows
-from ._room_tolerance_fit import RoomTolerances, ToleranceFit, fit_room_tolerances
+from ._room_tolerance_fit import GridMoves, RoomTolerances, ToleranceFit, fit_room_tolerances
 from ._terminal_fit import TerminalFit, fit_terminal, starting_cells
 from ._uncertainty_compiled import uncertainty_kernel
 from ._whitening_memo import MAX_KEPT_VALUES, WhiteningMemo
@@ -122,7 +122,9 @@ class GridlessSolver(Solver):
        weights instead of priors let a close pair merge into one target of weight 2.
        Then, for the correlation model at K >= 2, the LEDs' tolerances (each LED's
        amplitude and beam width, with data-sheet priors) in a joint fit, kept on the same
-       kind of test when the fit shows a misfit (:meth:`_with_room_tolerances`).
+       kind of test when the fit shows a misfit (:meth:`_with_room_tolerances`). The joint
+       fit then tries long moves of each target and the restarts' placements, and keeps
+       those that lower its cost: it tells apart optima the nominal model cannot.
     6. Uncertainty (:meth:`_uncertainty`): the sandwich covariance of the final whitened
        fit with the noise and the model errors it does not fit (each target's relative
        amplitude error per LED, its photodiode's tilt, its height when not fitted), whose
@@ -638,6 +640,9 @@ class GridlessSolver(Solver):
         prescale = self._prescale(values, n_targets)
         # The whole search runs on the measurement divided by the guessed scale.
         run = _Run(values=values / prescale, priors=self._growth_priors)
+        # Local optima the search found but did not pick: the joint fit with the room's
+        # tolerances, which can tell them apart better, tries them again.
+        others: list[FloatArray] = []
         if n_targets is None:
             state = self._polish(run, self._count_and_fit(run))
         else:
@@ -651,9 +656,10 @@ class GridlessSolver(Solver):
                 firsts.append(other.positions[0])
                 other_cost = self._plain_cost(run, other)
                 if other_cost < cost:
-                    state, cost = other, other_cost
+                    state, cost, other = other, other_cost, state
+                others.append(other.positions)
         state = self._with_nuisances(run, state)
-        tolerances = self._with_room_tolerances(run, state)
+        tolerances = self._with_room_tolerances(run, state, tuple(others))
         if tolerances is not None:
             state = tolerances.state
         residual = self._residual(run, self._identity, state)
@@ -885,7 +891,9 @@ class GridlessSolver(Solver):
         run.priors = kept
         return best
 
-    def _with_room_tolerances(self, run: _Run, state: FitState) -> ToleranceFit | None:
+    def _with_room_tolerances(
+        self, run: _Run, state: FitState, others: tuple[FloatArray, ...] = ()
+    ) -> ToleranceFit | None:
         """The fit with the room's tolerances (LED amplitudes and beams, optionally the
         photodiodes' tilts) as nuisance parameters (:mod:`._room_tolerance_fit`); None where
         it is not tried or not kept.
@@ -894,9 +902,10 @@ class GridlessSolver(Solver):
         ``tolerance_misfit_ratio``), then gated by :func:`._room_tolerance_fit.fit_room_tolerances`
         (a score test, and a decrease beyond ``tolerance_significance`` standard deviations
         of chance, 3 as the other stages). Fitted always, the tolerances fit the noise of a
-        room exactly as modelled and cost it accuracy (paper room, K = 4: 3.2 -> 5.3 cm); the
-        gate was chosen on three rooms and seven conditions (docs/real-rooms.md, "Room
-        tolerances in the aggregated fit").
+        room exactly as modelled and cost it accuracy; the gate was chosen on three rooms and
+        seven conditions (docs/real-rooms.md, "Room tolerances in the aggregated fit"). The
+        joint fit then tries long moves of each target and the placements ``others`` (the
+        restarts' optima not picked), kept when they lower its cost (``tolerance_jumps``).
 
         Correlation model, K >= 2 (one target's LED errors cannot be told from its
         position), fixed unit weights and rooms whose Jacobian stays small (dense rooms).
@@ -931,6 +940,9 @@ class GridlessSolver(Solver):
             (gain_sd, scale_sd),
             tolerances,
             opts.tolerance_significance,
+            GridMoves(self._gains, self._centres, self._avoid_radius, others)
+            if opts.tolerance_jumps
+            else None,
         )
 
     def _uncertainty(self, run: _Run, state: FitState) -> tuple[FloatArray, FitQuality]:
