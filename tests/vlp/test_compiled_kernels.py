@@ -1,6 +1,7 @@
 """The compiled kernels of the gridless solver against their NumPy references.
 
-Each compiled kernel (``app/vlp/solvers/_channel_compiled.py``, ``_fit_compiled.py``) must
+Each compiled kernel (``app/vlp/solvers/_channel_compiled.py``, ``_fit_compiled.py``,
+``_tolerance_compiled.py``) must
 give the numbers of the plain NumPy code it stands in for, to 1e-10 relative (normwise: a
 difference is measured against the largest magnitude of the reference array), on random
 inputs of several shapes, including one target (K = 1), one LED (M = 1) and one point.
@@ -23,7 +24,7 @@ from scipy import optimize
 
 from app.vlp._reflection_table import ReflectionTable
 from app.vlp.fingerprints import build_fingerprint
-from app.vlp.layout import Grid, Layout, Led, Receiver, Room
+from app.vlp.layout import Grid, Layout, Led, Receiver, Reflectance, Room
 from app.vlp.measurements import Model
 from app.vlp.presets import paper_layout
 from app.vlp.solvers._channel_compiled import channel_constants, channel_rows, diffuse_rows
@@ -39,6 +40,7 @@ from app.vlp.solvers._gridless_fit import (
     levenberg_marquardt,
 )
 from app.vlp.solvers._kernels import kernel_cache_dir, kernel_mode, use_kernels, warm_up
+from app.vlp.solvers._room_tolerance_fit import RoomTolerances, _JointModel
 from app.vlp.solvers._uncertainty_compiled import (
     fit_misfit_kernel,
     misfit_design_kernel,
@@ -277,6 +279,64 @@ def _unwhiten(white: Whitening, whitened: FloatArray) -> FloatArray:
     return np.asarray(back[white.upper, white.lower])
 
 
+@pytest.fixture(scope="module")
+def joint_kernels() -> dict[bool, ChannelKernel]:
+    """The paper room's solver kernels, without and with reflections in the layout (an
+    interpolated diffuse table)."""
+    layout = paper_layout()
+    room = dataclasses.replace(
+        layout.room, reflectance=Reflectance(walls=0.7, floor=0.2, ceiling=0.8)
+    )
+    return {
+        reflecting: GridlessSolver(
+            build_fingerprint(dataclasses.replace(layout, room=room) if reflecting else layout),
+            "correlation",
+        )._kernel
+        for reflecting in (False, True)
+    }
+
+
+@pytest.mark.parametrize("reflecting", [False, True])
+@pytest.mark.parametrize("tilt_sd", [0.07, 0.0])
+@pytest.mark.parametrize("k", [2, 8])
+def test_joint_tolerance_model_matches_reference(
+    joint_kernels: dict[bool, ChannelKernel], reflecting: bool, tilt_sd: float, k: int
+) -> None:
+    """The joint fit's gains (and the pieces of its Jacobian), residual and Jacobian under
+    the room's tolerances (``_tolerance_compiled``), on the plane and off it, at random
+    tolerances in a random metric; every Jacobian column against its own magnitude."""
+    kernel = joint_kernels[reflecting]
+    assert (kernel.diffuse is not None) == reflecting
+    rng = np.random.default_rng(100 * k + 10 * reflecting + (tilt_sd > 0))
+    for on_plane in (True, False, False):
+        state = random_state(kernel, k, rng, on_plane)
+        model = _JointModel(kernel, state.heights, (0.1, 0.5), RoomTolerances(0.05, 3.0, tilt_sd))
+        assert model._compiled() is not None
+        theta = model.pack(state)
+        m = kernel.n_leds
+        at = 3 * k + 1
+        theta[at : at + m] = rng.normal(0.0, 0.05, m)  # log amplitudes
+        theta[at + m : at + 2 * m] = rng.normal(0.0, 0.3, m)  # order changes
+        theta[at + 2 * m : -1] = rng.normal(0.0, 0.07, model.n_tilts)
+        with use_kernels("reference"):
+            white = model.whitening(theta + rng.normal(0.0, 0.01, theta.shape), state.noise)
+            data = white.data(normal(rng, white.weights.shape[0]))
+            want_gains, want_multipliers, want_pieces = model.gains(theta)
+            want_residual, want_jacobian = model.residual_and_jacobian(theta, white, data)
+        got_gains, got_multipliers, got_pieces = model.gains(theta)
+        assert_same(got_gains, want_gains)
+        assert_same(got_multipliers, want_multipliers)
+        assert got_pieces.keys() == want_pieces.keys()
+        for name, piece in want_pieces.items():
+            assert_same(got_pieces[name], piece)
+        got_residual, got_jacobian = model.residual_and_jacobian(theta, white, data)
+        n_rows = data.shape[0] + model.prior_inverse_sd.shape[0]
+        assert got_jacobian.shape == want_jacobian.shape == (n_rows, model.size())
+        assert_same(got_residual, want_residual)
+        for column in range(want_jacobian.shape[1]):
+            assert_same(got_jacobian[:, column], want_jacobian[:, column])
+
+
 @pytest.mark.parametrize("model", ["correlation", "power"])
 @pytest.mark.parametrize("layout_name", list(LAYOUTS))
 @pytest.mark.parametrize("k", [1, 3, 20])
@@ -402,11 +462,12 @@ _NO_CACHE_SCRIPT = textwrap.dedent(
 
     from app.vlp.solvers._channel_compiled import channel_rows
     from app.vlp.solvers._uncertainty_compiled import uncertainty_kernel
+    from app.vlp.solvers import _tolerance_compiled as joint
     from app.vlp.simulation import noisy_amplitudes
 
     kernels = [fit.lm_kernel, fit.gram_kernel, fit.residual_kernel, fit.whitening_kernel,
                fit.whiten_kernel, fit.correlation_scores_kernel, channel_rows,
-               uncertainty_kernel]
+               uncertainty_kernel, joint.joint_gains_kernel, joint.joint_residual_kernel]
     # the fallback: compiled without a disk cache
     assert all(type(k._cache).__name__ == "NullCache" for k in kernels)
     warm_up()

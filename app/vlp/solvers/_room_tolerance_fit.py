@@ -32,6 +32,7 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from ..typing import FloatArray
+from ._channel_compiled import ChannelConstants, TableConstants, channel_constants
 from ._channel_kernel import ChannelKernel
 from ._gridless_fit import (
     _EIG_FLOOR,
@@ -43,7 +44,18 @@ from ._gridless_fit import (
     Whitening,
     _vech_indices,
 )
+from ._kernels import kernel_mode
 from ._projected_lm import projected_levenberg_marquardt
+from ._tolerance_compiled import (
+    GAINS,
+    ORDER,
+    SLOPE_X,
+    SLOPE_Y,
+    TILT_X,
+    TILT_Y,
+    joint_gains_kernel,
+    joint_residual_kernel,
+)
 
 __all__ = ["GridMoves", "RoomTolerances", "ToleranceFit", "fit_room_tolerances"]
 
@@ -168,6 +180,17 @@ class _JointModel:
             )
         )
         self.upper, self.lower, self.is_diag = _vech_indices("correlation", m)
+        # The compiled kernels' constants (None: the kernel's diffuse table has no compiled
+        # form, and the NumPy reference runs).
+        self._constants = channel_constants(kernel)
+        # Writable contiguous copies: the kernels' argument types (read-only arrays would
+        # compile another signature, at a request's expense).
+        self._heights = np.array(heights, dtype=np.float64, order="C", copy=True)
+        self._prior_inverse_sd = np.array(self.prior_inverse_sd, dtype=np.float64, copy=True)
+
+    def _compiled(self) -> tuple[ChannelConstants, TableConstants] | None:
+        """The channel's compiled constants when the compiled kernels are in use, else None."""
+        return self._constants if kernel_mode() == "compiled" else None
 
     def size(self) -> int:
         return int(3 * self.n_targets + 2 * self.n_leds + self.n_tilts + 2)
@@ -220,6 +243,31 @@ class _JointModel:
     def gains(self, theta: FloatArray) -> tuple[FloatArray, FloatArray, dict[str, FloatArray]]:
         """``g`` of every target, shape (M, K), the multipliers ``e^(v + 2 u)`` and the
         pieces the Jacobian needs."""
+        constants = self._compiled()
+        if constants is None:
+            return self._gains_reference(theta)
+        pieces, multipliers = joint_gains_kernel(
+            *constants,
+            np.ascontiguousarray(theta, dtype=np.float64),
+            self._heights,
+            self.n_tilts > 0,
+        )
+        return (
+            pieces[GAINS],
+            multipliers,
+            {
+                "slopes": np.stack((pieces[SLOPE_X], pieces[SLOPE_Y]), axis=2),
+                "amplitude_part": pieces[GAINS],
+                "order_part": pieces[ORDER],
+                "tilt_x": pieces[TILT_X],
+                "tilt_y": pieces[TILT_Y],
+            },
+        )
+
+    def _gains_reference(
+        self, theta: FloatArray
+    ) -> tuple[FloatArray, FloatArray, dict[str, FloatArray]]:
+        """:meth:`gains` in plain NumPy (the compiled kernel's reference)."""
         positions, log_gains, log_scale, amps, order_changes, tilts, _ = self.split(theta)
         kernel = self.kernel
         k = self.n_targets
@@ -299,8 +347,26 @@ class _JointModel:
     ) -> tuple[FloatArray, FloatArray]:
         """Residual ``[data - c mu; -theta_nuisance / sd]`` and ``J = d(c mu)/d theta``
         (with the priors' rows), shapes (L + n_prior,) and (L + n_prior, P)."""
+        constants = self._compiled()
+        if constants is None:
+            return self._residual_and_jacobian_reference(theta, white, data)
+        residual, jacobian = joint_residual_kernel(
+            *constants,
+            white.compiled(),
+            np.ascontiguousarray(data, dtype=np.float64),
+            np.ascontiguousarray(theta, dtype=np.float64),
+            self._heights,
+            self.n_tilts > 0,
+            self._prior_inverse_sd,
+        )
+        return residual, jacobian
+
+    def _residual_and_jacobian_reference(
+        self, theta: FloatArray, white: Whitening, data: FloatArray
+    ) -> tuple[FloatArray, FloatArray]:
+        """:meth:`residual_and_jacobian` in plain NumPy (the compiled kernel's reference)."""
         k = self.n_targets
-        gains, multipliers, pieces = self.gains(theta)
+        gains, multipliers, pieces = self._gains_reference(theta)
         rotation = white.rotation
         assert rotation is not None
         upper, lower, weights = white.upper, white.lower, white.weights

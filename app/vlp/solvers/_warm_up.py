@@ -15,6 +15,7 @@ from ._channel_kernel import ChannelKernel
 from ._fit_compiled import correlation_scores_kernel
 from ._gridless_fit import FitState, Objective, Priors, Whitening, gram, levenberg_marquardt
 from ._local import _best_of_tiles
+from ._room_tolerance_fit import RoomTolerances, _JointModel
 from ._uncertainty_compiled import uncertainty_kernel
 
 __all__ = ["exercise"]
@@ -22,8 +23,8 @@ __all__ = ["exercise"]
 
 def exercise() -> None:
     """Evaluate, whiten, fit and take the covariances of a two-target state of the paper's
-    room, both models; score a large room's power-scan tile (four grid points in one 2 x 2
-    tile)."""
+    room, both models; evaluate the joint fit under the room's tolerances there; score a
+    large room's power-scan tile (four grid points in one 2 x 2 tile)."""
     layout = paper_layout()
     kernel = ChannelKernel(layout, 1.0)
     height = layout.grid.receiver_height
@@ -49,6 +50,12 @@ def exercise() -> None:
         uncertainty_kernel(*problem, theta, *objective.compiled_state(state), 1.0)
         if model == "correlation":
             correlation_scores_kernel(white.compiled(), values, np.ones((kernel.n_leds, 3)))
+    # the joint fit under the room's tolerances (GridlessSolver._with_room_tolerances): its
+    # metric evaluates the gains, its LM the residual and Jacobian
+    joint = _JointModel(kernel, state.heights, (0.1, 0.5), RoomTolerances(0.05, 3.0, 0.07))
+    theta = joint.pack(state)
+    white = joint.whitening(theta, state.noise)
+    joint.residual_and_jacobian(theta, white, white.data(np.ones(white.weights.shape[0])))
     # a terminal's own fit evaluates the channel at one point
     constants = channel_constants(kernel)
     assert constants is not None  # a line-of-sight kernel always has its compiled form
