@@ -40,7 +40,12 @@ from app.vlp.solvers._gridless_fit import (
     levenberg_marquardt,
 )
 from app.vlp.solvers._kernels import kernel_cache_dir, kernel_mode, use_kernels, warm_up
-from app.vlp.solvers._room_tolerance_fit import RoomTolerances, _JointModel
+from app.vlp.solvers._room_tolerance_fit import (
+    RoomTolerances,
+    _JointModel,
+    _levenberg_marquardt,
+)
+from app.vlp.solvers._tolerance_compiled import _damped_solve
 from app.vlp.solvers._uncertainty_compiled import (
     fit_misfit_kernel,
     misfit_design_kernel,
@@ -337,6 +342,57 @@ def test_joint_tolerance_model_matches_reference(
             assert_same(got_jacobian[:, column], want_jacobian[:, column])
 
 
+@pytest.mark.parametrize("reflecting", [False, True])
+@pytest.mark.parametrize("tilt_sd", [0.07, 0.0])
+@pytest.mark.parametrize("k", [2, 8])
+def test_joint_levenberg_marquardt_matches_reference(
+    joint_kernels: dict[bool, ChannelKernel], reflecting: bool, tilt_sd: float, k: int
+) -> None:
+    """A whole compiled joint LM run (``joint_lm_kernel``) ends where the NumPy one
+    (``projected_levenberg_marquardt``) does: noisy data of tolerances the priors do not
+    expect, from a start a few decimetres off, run to its stop and for two iterations."""
+    kernel = joint_kernels[reflecting]
+    rng = np.random.default_rng(200 * k + 10 * reflecting + (tilt_sd > 0))
+    state = random_state(kernel, k, rng, on_plane=True)
+    model = _JointModel(kernel, state.heights, (0.1, 0.5), RoomTolerances(0.05, 3.0, tilt_sd))
+    truth = model.pack(state)
+    m, at = kernel.n_leds, 3 * k + 1
+    truth[at : at + m] = rng.normal(0.0, 0.05, m)
+    truth[at + m : at + 2 * m] = rng.normal(0.0, 0.3, m)
+    truth[at + 2 * m : -1] = rng.normal(0.0, 0.07, model.n_tilts)
+    with use_kernels("reference"):
+        white = model.whitening(truth, state.noise)
+        n_data = white.weights.shape[0]
+        # the whitened model of the truth (the residual of zero data is minus it), plus noise
+        clean = -model.residual_and_jacobian(truth, white, np.zeros(n_data))[0][:n_data]
+    data = clean + normal(rng, n_data)
+    start = truth.copy()
+    start[: 2 * k] += rng.uniform(-0.3, 0.3, 2 * k)
+    start[at:-1] = 0.0
+    for max_iter in (30, 2):
+        with use_kernels("reference"):
+            want, want_cost = _levenberg_marquardt(model, start, white, data, max_iter)
+        assert model.compiled_fit(start, white, data, max_iter, 1e-2, 1e-4) is not None
+        got, got_cost = _levenberg_marquardt(model, start, white, data, max_iter)
+        assert_same(got[: 2 * k], want[: 2 * k])
+        assert_same(got, want)  # every parameter, normwise
+        assert got_cost == pytest.approx(want_cost, rel=1e-10)
+
+
+def test_joint_lm_solves_as_the_reference() -> None:
+    """The joint LM's step: Cholesky for a positive definite matrix, LU (the reference's
+    ``np.linalg.solve``) for one that is not, and a failure, as LinAlgError there, for a
+    singular one."""
+    rng = np.random.default_rng(43)
+    square = rng.standard_normal((7, 7))
+    rhs = normal(rng, 7)
+    for matrix in (square @ square.T + 0.1 * np.eye(7), square + square.T):
+        step, solved = _damped_solve(matrix, rhs)
+        assert solved
+        assert_same(step, np.linalg.solve(matrix, rhs))
+    assert not _damped_solve(np.zeros((7, 7)), rhs)[1]
+
+
 @pytest.mark.parametrize("model", ["correlation", "power"])
 @pytest.mark.parametrize("layout_name", list(LAYOUTS))
 @pytest.mark.parametrize("k", [1, 3, 20])
@@ -467,7 +523,8 @@ _NO_CACHE_SCRIPT = textwrap.dedent(
 
     kernels = [fit.lm_kernel, fit.gram_kernel, fit.residual_kernel, fit.whitening_kernel,
                fit.whiten_kernel, fit.correlation_scores_kernel, channel_rows,
-               uncertainty_kernel, joint.joint_gains_kernel, joint.joint_residual_kernel]
+               uncertainty_kernel, joint.joint_gains_kernel, joint.joint_residual_kernel,
+               joint.joint_lm_kernel]
     # the fallback: compiled without a disk cache
     assert all(type(k._cache).__name__ == "NullCache" for k in kernels)
     warm_up()

@@ -54,13 +54,15 @@ from ._tolerance_compiled import (
     TILT_X,
     TILT_Y,
     joint_gains_kernel,
+    joint_lm_kernel,
     joint_residual_kernel,
 )
 
 __all__ = ["GridMoves", "RoomTolerances", "ToleranceFit", "fit_room_tolerances"]
 
 _LN2 = math.log(2.0)
-# LM for the joint fit (NumPy; it runs only on measurements that show a misfit).
+# LM for the joint fit (one compiled call, _tolerance_compiled.joint_lm_kernel; the NumPy
+# reference is _projected_lm). It runs only on measurements that show a misfit.
 _MAX_ITER = 30
 # Stop at this relative decrease (the aggregated LM's tolerance, LM_DEFAULTS).
 _REL_TOL = 1e-4
@@ -361,6 +363,37 @@ class _JointModel:
         )
         return residual, jacobian
 
+    def compiled_fit(
+        self,
+        theta: FloatArray,
+        white: Whitening,
+        data: FloatArray,
+        max_iter: int,
+        damping: float,
+        rel_tol: float,
+    ) -> tuple[FloatArray, float] | None:
+        """The compiled :func:`_levenberg_marquardt` (its fitted theta and cost), or None
+        when the compiled kernels are not in use."""
+        constants = self._compiled()
+        if constants is None:
+            return None
+        lower, upper = self.bounds()
+        theta, cost, _ = joint_lm_kernel(
+            *constants,
+            white.compiled(),
+            np.ascontiguousarray(data, dtype=np.float64),
+            np.array(theta, dtype=np.float64, order="C", copy=True),
+            self._heights,
+            self.n_tilts > 0,
+            self._prior_inverse_sd,
+            lower,
+            upper,
+            int(max_iter),
+            float(damping),
+            float(rel_tol),
+        )
+        return theta, float(cost)
+
     def _residual_and_jacobian_reference(
         self, theta: FloatArray, white: Whitening, data: FloatArray
     ) -> tuple[FloatArray, FloatArray]:
@@ -528,6 +561,10 @@ def _levenberg_marquardt(
     data: FloatArray,
     max_iter: int = _MAX_ITER,
 ) -> tuple[FloatArray, float]:
+    damping = 1e-2
+    fitted = model.compiled_fit(theta, white, data, max_iter, damping, _REL_TOL)
+    if fitted is not None:
+        return fitted
     lower, upper = model.bounds()
     theta, _, _, cost = projected_levenberg_marquardt(
         lambda params: model.residual_and_jacobian(params, white, data),
@@ -535,7 +572,7 @@ def _levenberg_marquardt(
         lower,
         upper,
         max_iter=max_iter,
-        damping=1e-2,
+        damping=damping,
         stop=lambda _step, cost, trial_cost: cost - trial_cost < _REL_TOL * cost,
     )
     return theta, cost

@@ -1,9 +1,12 @@
-"""Compiled gains, residual and Jacobian of the joint fit under the room's tolerances.
+"""Compiled gains, residual and Jacobian, and LM loop of the joint fit under the room's
+tolerances.
 
-Stand-ins for :meth:`._room_tolerance_fit._JointModel.gains` and
-:meth:`~._room_tolerance_fit._JointModel.residual_and_jacobian` (their NumPy code is the
-reference and documents the model); a 16-LED, 8-target evaluation is a few hundred small
-NumPy operations there, bound by their overhead. Private: callers validate.
+Stand-ins for :meth:`._room_tolerance_fit._JointModel.gains`,
+:meth:`~._room_tolerance_fit._JointModel.residual_and_jacobian` and the joint fit's
+``_levenberg_marquardt`` (:func:`._projected_lm.projected_levenberg_marquardt`); their NumPy
+code is the reference and documents the model. A 16-LED, 8-target evaluation is a few
+hundred small NumPy operations there, bound by their overhead; a whole LM run is one call
+here. Private: callers validate.
 
 Arguments come as plain arrays and numbers:
 
@@ -26,8 +29,19 @@ import numpy as np
 from ..typing import FloatArray
 from ._channel_compiled import ChannelConstants, TableConstants, diffuse_rows
 from ._kernels import compiled
+from ._projected_lm import _MAX_REJECTIONS
 
-__all__ = ["GAINS", "ORDER", "SLOPE_X", "SLOPE_Y", "TILT_X", "TILT_Y", "joint_gains_kernel"]
+__all__ = [
+    "GAINS",
+    "ORDER",
+    "SLOPE_X",
+    "SLOPE_Y",
+    "TILT_X",
+    "TILT_Y",
+    "joint_gains_kernel",
+    "joint_lm_kernel",
+    "joint_residual_kernel",
+]
 
 Problem = tuple[Any, ...]
 
@@ -199,3 +213,109 @@ def joint_residual_kernel(
         residual[n_data + j] = -theta[2 * k + j] * prior_inverse_sd[j]
         jacobian[n_data + j, 2 * k + j] = prior_inverse_sd[j]
     return residual, jacobian
+
+
+@compiled
+def _damped_solve(normal: FloatArray, gradient: FloatArray) -> tuple[FloatArray, bool]:
+    """Solve ``normal x = gradient`` (symmetric, positive definite once damped): Cholesky,
+    else LU as the reference's ``np.linalg.solve``; False when both fail."""
+    n = gradient.shape[0]
+    try:
+        factor = np.linalg.cholesky(normal)
+    except Exception:  # not positive definite in round-off: LU, as the reference
+        try:
+            return np.linalg.solve(normal, gradient).astype(np.float64), True
+        except Exception:  # singular
+            return gradient.copy(), False
+    x = gradient.copy()
+    for i in range(n):
+        total = x[i]
+        for p in range(i):
+            total -= factor[i, p] * x[p]
+        x[i] = total / factor[i, i]
+    for i in range(n - 1, -1, -1):
+        total = x[i]
+        for p in range(i + 1, n):
+            total -= factor[p, i] * x[p]
+        x[i] = total / factor[i, i]
+    return x, True
+
+
+@compiled
+def _normal_equations(
+    residual: FloatArray,
+    jacobian: FloatArray,
+    n_data: int,
+    prior_at: int,
+    prior_inverse_sd: FloatArray,
+) -> tuple[FloatArray, FloatArray]:
+    """``J^T J`` and ``J^T r``: the data rows by BLAS, the priors' one-hot rows added to
+    the diagonal."""
+    rows = jacobian[:n_data]
+    transposed = np.ascontiguousarray(rows.T)
+    normal = np.dot(transposed, rows)
+    gradient = np.dot(transposed, residual[:n_data].copy())
+    for j in range(prior_inverse_sd.shape[0]):
+        weight = prior_inverse_sd[j]
+        normal[prior_at + j, prior_at + j] += weight * weight
+        gradient[prior_at + j] += weight * residual[n_data + j]
+    return normal, gradient
+
+
+@compiled
+def joint_lm_kernel(
+    channel: ChannelConstants,
+    table: TableConstants,
+    white: Problem,
+    data: FloatArray,
+    theta0: FloatArray,
+    heights: FloatArray,
+    has_tilts: bool,
+    prior_inverse_sd: FloatArray,
+    lower: FloatArray,
+    upper: FloatArray,
+    max_iter: int,
+    damping: float,
+    rel_tol: float,
+) -> tuple[FloatArray, float, int]:
+    """``_levenberg_marquardt`` of :mod:`._room_tolerance_fit`, i.e.
+    :func:`._projected_lm.projected_levenberg_marquardt` on :func:`joint_residual_kernel`
+    stopped at a relative decrease below ``rel_tol``: the fitted theta, its cost and the
+    iterations used."""
+    n_data = data.shape[0]
+    prior_at = 2 * heights.shape[0]
+    theta = theta0.copy()
+    residual, jacobian = joint_residual_kernel(
+        channel, table, white, data, theta, heights, has_tilts, prior_inverse_sd
+    )
+    cost = np.dot(residual, residual)
+    used = 0
+    for _ in range(max_iter):
+        used += 1
+        normal, gradient = _normal_equations(residual, jacobian, n_data, prior_at, prior_inverse_sd)
+        n = gradient.shape[0]
+        improved = finished = False
+        for _ in range(_MAX_REJECTIONS):
+            scaled = normal.copy()
+            for i in range(n):
+                scaled[i, i] += damping * max(normal[i, i], 1e-30)
+            step, ok = _damped_solve(scaled, gradient)
+            if not ok:
+                damping *= 10.0
+                continue
+            trial = np.minimum(np.maximum(theta + step, lower), upper)
+            trial_residual, trial_jacobian = joint_residual_kernel(
+                channel, table, white, data, trial, heights, has_tilts, prior_inverse_sd
+            )
+            # A wild trial may overflow: its cost is then inf (or nan) and it is rejected.
+            trial_cost = np.dot(trial_residual, trial_residual)
+            if trial_cost < cost:
+                finished = cost - trial_cost < rel_tol * cost
+                theta, residual, jacobian, cost = trial, trial_residual, trial_jacobian, trial_cost
+                damping = max(damping / 5.0, 1e-9)
+                improved = True
+                break
+            damping *= 4.0
+        if not improved or finished:
+            break
+    return theta, float(cost), used

@@ -15,7 +15,7 @@ from ._channel_kernel import ChannelKernel
 from ._fit_compiled import correlation_scores_kernel
 from ._gridless_fit import FitState, Objective, Priors, Whitening, gram, levenberg_marquardt
 from ._local import _best_of_tiles
-from ._room_tolerance_fit import RoomTolerances, _JointModel
+from ._room_tolerance_fit import RoomTolerances, _JointModel, _levenberg_marquardt
 from ._uncertainty_compiled import uncertainty_kernel
 
 __all__ = ["exercise"]
@@ -51,11 +51,13 @@ def exercise() -> None:
         if model == "correlation":
             correlation_scores_kernel(white.compiled(), values, np.ones((kernel.n_leds, 3)))
     # the joint fit under the room's tolerances (GridlessSolver._with_room_tolerances): its
-    # metric evaluates the gains, its LM the residual and Jacobian
+    # metric evaluates the gains; its score test the residual and Jacobian; then its LM
     joint = _JointModel(kernel, state.heights, (0.1, 0.5), RoomTolerances(0.05, 3.0, 0.07))
     theta = joint.pack(state)
     white = joint.whitening(theta, state.noise)
-    joint.residual_and_jacobian(theta, white, white.data(np.ones(white.weights.shape[0])))
+    data = white.data(np.ones(white.weights.shape[0]))
+    joint.residual_and_jacobian(theta, white, data)
+    _levenberg_marquardt(joint, theta, white, data, 1)
     # a terminal's own fit evaluates the channel at one point
     constants = channel_constants(kernel)
     assert constants is not None  # a line-of-sight kernel always has its compiled form
