@@ -241,7 +241,8 @@ def test_the_joint_fit_takes_another_placement_only_when_it_fits_better(
 
     def fit(start: FitState, alternatives: tuple[np.ndarray, ...]) -> np.ndarray:
         # No long moves of single targets (nothing is that far): only the placements.
-        moves = GridMoves(solver._gains, solver._centres, np.inf, alternatives)
+        height = solver._priors.height_mean
+        moves = GridMoves(solver._gains, solver._centres, np.inf, height, alternatives)
         fitted = fit_room_tolerances(kernel, run.values, start, priors, tolerances, 3.0, moves)
         assert fitted is not None
         return fitted.state.positions

@@ -104,6 +104,8 @@ class GridMoves:
         The grid points.
     min_jump : float, metres
         A moved target starts at least this far from where it was.
+    height : float, metres
+        A moved target's height (its own was fitted where it was): the receivers' mean.
     alternatives : tuple of ndarrays of shape (K, 2), metres
         Whole placements to try as well (other local optima of the nominal fit, such as its
         restarts'), each with the fitted tolerances, gains reset.
@@ -112,6 +114,7 @@ class GridMoves:
     gains: FloatArray
     centres: FloatArray
     min_jump: float
+    height: float
     alternatives: tuple[FloatArray, ...] = ()
 
 
@@ -122,7 +125,8 @@ class ToleranceFit:
     Attributes
     ----------
     state : FitState
-        Positions, gains, scale and noise of the joint fit (heights as given).
+        Positions, gains, scale and noise of the joint fit; heights as given, except a
+        target moved far (``GridMoves.height``).
     led_log_amplitudes : ndarray of shape (M,)
     led_half_power_changes_deg : ndarray of shape (M,)
         Each LED's fitted change of Lambertian order as a change of its half-power angle,
@@ -158,6 +162,7 @@ class _JointModel:
     ) -> None:
         self.kernel = kernel
         self.heights = heights
+        self._settings = (priors, tolerances)
         self.n_targets = heights.shape[0]
         self.n_leds = kernel.n_leds
         orders = kernel.orders
@@ -189,6 +194,10 @@ class _JointModel:
         # compile another signature, at a request's expense).
         self._heights = np.array(heights, dtype=np.float64, order="C", copy=True)
         self._prior_inverse_sd = np.array(self.prior_inverse_sd, dtype=np.float64, copy=True)
+
+    def with_heights(self, heights: FloatArray) -> _JointModel:
+        """This model with the targets at ``heights`` (K,), metres."""
+        return _JointModel(self.kernel, heights, *self._settings)
 
     def _compiled(self) -> tuple[ChannelConstants, TableConstants] | None:
         """The channel's compiled constants when the compiled kernels are in use, else None."""
@@ -446,7 +455,7 @@ def _jumps(
     values: FloatArray,
     white: Whitening,
     moves: GridMoves,
-) -> tuple[FloatArray, Whitening]:
+) -> tuple[FloatArray, Whitening, _JointModel]:
     """Move each target in turn far (at least ``moves.min_jump``) to where the residual left
     by the others asks for one, or else to where the whole residual does, refit everything,
     keep the move when it lowers the cost; then try ``moves.alternatives`` the same way.
@@ -457,7 +466,8 @@ def _jumps(
     the nominal fit moves a target to the best point of the residual, which is next to where
     it was; here the best point at least ``min_jump`` away, or the point where a terminal is
     missing. Most moved targets walk back (or another target takes their place) within a few
-    iterations: such moves stop there.
+    iterations: such moves stop there. A moved target starts at ``moves.height``; the model
+    returned holds the heights of the fit returned.
     """
     k, m = model.n_targets, model.n_leds
     # The metric the fit was refined in last (``theta`` is its optimum): moves are compared
@@ -501,29 +511,33 @@ def _jumps(
         # best point of the whole residual (where a terminal is missing) if far enough.
         own = int(np.argmax(np.where(far, scores(np.arange(k) != target), -np.inf)))
         missing = int(np.argmax(scores(np.ones(k, dtype=bool))))
+        heights = model.heights.copy()
+        heights[target] = moves.height
+        candidate = model.with_heights(heights)
         for best in [own] if missing == own or not far[missing] else [own, missing]:
             if not far[best]:
                 continue
             moved = theta.copy()
             moved[target], moved[k + target] = moves.centres[best]
             moved[2 * k + target] = 0.0
-            tried = _try_move(model, cost, moved, white, data, positions)
+            tried = _try_move(candidate, cost, moved, white, data, positions)
             if tried is not None:
-                theta, cost = tried
+                (theta, cost), model = tried, candidate
                 scaled, positions, grid, grid_energy, unit = scan(theta)
                 break
     for placement in moves.alternatives:
+        candidate = model.with_heights(np.full(k, moves.height))
         moved = theta.copy()
         moved[:k], moved[k : 2 * k] = placement[:, 0], placement[:, 1]
         moved[2 * k : 3 * k] = 0.0
-        tried = _try_move(model, cost, moved, white, data, positions)
+        tried = _try_move(candidate, cost, moved, white, data, positions)
         if tried is not None:
-            theta, cost = tried
+            (theta, cost), model = tried, candidate
             positions = model.split(theta)[0]
     if cost < start_cost:  # moved: one more round in the new fit's metric
         white = model.whitening(theta, noise)
         theta, _ = _levenberg_marquardt(model, theta, white, white.data(values))
-    return theta, white
+    return theta, white, model
 
 
 def _try_move(
@@ -647,7 +661,7 @@ def fit_room_tolerances(
         white = model.whitening(theta, noise)
         theta, _ = _levenberg_marquardt(model, theta, white, white.data(values))
     if moves is not None:
-        theta, white = _jumps(model, theta, noise, values, white, moves)
+        theta, white, model = _jumps(model, theta, noise, values, white, moves)
     residual, jacobian = model.residual_and_jacobian(theta, white, white.data(values))
     n_data, k = white.weights.shape[0], model.n_targets
     chi2 = float(residual[:n_data] @ residual[:n_data])
@@ -660,7 +674,7 @@ def fit_room_tolerances(
         positions.copy(),
         state.weights.copy(),
         noise,
-        state.heights.copy(),
+        np.array(model.heights, dtype=np.float64),
         log_gains.copy(),
         log_scale,
     )

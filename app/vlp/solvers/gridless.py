@@ -940,7 +940,9 @@ class GridlessSolver(Solver):
             (gain_sd, scale_sd),
             tolerances,
             opts.tolerance_significance,
-            GridMoves(self._gains, self._centres, self._avoid_radius, others)
+            GridMoves(
+                self._gains, self._centres, self._avoid_radius, self._priors.height_mean, others
+            )
             if opts.tolerance_jumps
             else None,
         )
