@@ -6,6 +6,8 @@ Run from the repository root::
     python -m bench.real_rooms --quick         # 3 trials, paper room, under bench/out/quick/
     python -m bench.real_rooms --bounds        # Cramer-Rao bounds with nuisances, same placements
     python -m bench.real_rooms --calibrated    # realistic mix, K = 8, before / after a survey
+    python -m bench.real_rooms --rooms office,corridor --option tolerance_jumps=False --snr 40
+                                               # other rooms, a solver option, another SNR
 
 For each room (the paper's and the irregular ``hall`` of :mod:`bench.rooms`), condition
 (:data:`CONDITIONS`), K in {1, 4, 8} and trial, K terminals are placed uniformly in the room
@@ -27,6 +29,7 @@ so its fingerprint includes the reflections; the others give it the line-of-sigh
 from __future__ import annotations
 
 import argparse
+import ast
 import csv
 import dataclasses
 import math
@@ -51,7 +54,7 @@ from app.vlp.simulation import (
     random_positions,
 )
 from app.vlp.solvers import Solver, make_solver
-from app.vlp.solvers.gridless import GridlessSolver
+from app.vlp.solvers.gridless import GridlessOptions, GridlessSolver
 from app.vlp.typing import FloatArray
 
 from ._common import (
@@ -122,13 +125,31 @@ def gridless_localizer(
 
 
 _SOLVERS: dict[tuple[int, Model], Solver] = {}
+# GridlessOptions fields the default solver is built with (``--option``; empty: defaults).
+_OPTIONS: dict[str, object] = {}
 
 
 def _solver(fingerprint: Fingerprint, model: Model) -> Solver:
     key = (id(fingerprint), model)
     if key not in _SOLVERS:
-        _SOLVERS[key] = make_solver("gridless", fingerprint, model)
+        _SOLVERS[key] = (
+            GridlessSolver(fingerprint, model, GridlessOptions(**_OPTIONS))  # type: ignore[arg-type]
+            if _OPTIONS
+            else make_solver("gridless", fingerprint, model)
+        )
     return _SOLVERS[key]
+
+
+def _parse_option(text: str) -> tuple[str, object]:
+    """``NAME=VALUE`` of ``--option``: a GridlessOptions field and a Python literal."""
+    name, _, value = text.partition("=")
+    fields = {field.name for field in dataclasses.fields(GridlessOptions)}
+    if name not in fields:
+        raise argparse.ArgumentTypeError(f"{name!r} is not a GridlessOptions field")
+    try:
+        return name, ast.literal_eval(value)
+    except (ValueError, SyntaxError):
+        raise argparse.ArgumentTypeError(f"{value!r} is not a Python literal") from None
 
 
 @cache
@@ -152,7 +173,12 @@ def _generator(*key: object) -> np.random.Generator:
 
 
 def run_trial(
-    room: str, condition: Condition, count: int, trial: int, localize: Localizer
+    room: str,
+    condition: Condition,
+    count: int,
+    trial: int,
+    localize: Localizer,
+    snr_db: float = SNR_DB,
 ) -> dict[str, float]:
     """Mean matched error (metres) of each mode in one trial; NaN where the solve failed."""
     layout = _layout(room, condition.reflectance_in_layout, condition.height_sd_in_layout)
@@ -160,7 +186,7 @@ def run_trial(
         layout,
         count,
         condition.impairments,
-        snr_db=SNR_DB,
+        snr_db=snr_db,
         placement_rng=_generator(room, count, trial),
         noise_rng=_generator(room, condition.name, count, trial),
     )
@@ -193,6 +219,7 @@ def run(
     localize: Localizer = gridless_localizer,
     *,
     progress: bool = True,
+    snr_db: float = SNR_DB,
 ) -> list[tuple[str, str, int, int, str, float]]:
     """Every (room, condition, K, trial, mode) error in metres."""
     rows: list[tuple[str, str, int, int, str, float]] = []
@@ -200,7 +227,7 @@ def run(
     cells = [(r, c, k) for r in rooms for c in conditions for k in KS]
     for done, (room, condition, count) in enumerate(cells, start=1):
         for trial in range(trials):
-            errors = run_trial(room, condition, count, trial, localize)
+            errors = run_trial(room, condition, count, trial, localize, snr_db)
             rows += [(room, condition.name, count, trial, m, errors[m]) for m in MODES]
         if progress:
             elapsed = time.perf_counter() - started
@@ -246,6 +273,17 @@ def _parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
         type=Path,
         default=None,
         help="--bounds: the main table's CSV to compare with (default docs/data/real_rooms.csv)",
+    )
+    parser.add_argument(
+        "--option",
+        type=_parse_option,
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="main table: build the default solver with this GridlessOptions field (repeatable)",
+    )
+    parser.add_argument(
+        "--snr", type=float, default=SNR_DB, help=f"main table: SNR in dB (default {SNR_DB:g})"
     )
     parser.add_argument(
         "--first-trial",
@@ -408,8 +446,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         conditions = tuple(c for c in CONDITIONS if c.name in wanted)
         if len(conditions) != len(wanted):
             raise SystemExit(f"unknown condition in {wanted}")
+    _OPTIONS.update(dict(args.option))
     with threadpool_limits(limits=1):
-        rows = run(rooms, conditions, trials)
+        rows = run(rooms, conditions, trials, snr_db=args.snr)
     elapsed = time.perf_counter() - started
     write_csv(
         out / "data" / "real_rooms.csv",
@@ -420,7 +459,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         "## Measured (`bench/real_rooms.py`)",
         "",
         f"Command: `{command.strip()}` ({elapsed:.0f} s). Default solver (`gridless`), "
-        f"{SNR_DB:.0f} dB, columns K = 1 / 4 / 8 aggregated correlation, then each of the "
+        f"{args.snr:g} dB, columns K = 1 / 4 / 8 aggregated correlation, then each of the "
         "K = 8 terminals sent as `terminals` (each fitted from its own amplitudes).",
         "",
     ]

@@ -1,14 +1,19 @@
-"""Smoke tests of bench.real_rooms' bound and calibration modes (tiny, paper room)."""
+"""Smoke tests of bench.real_rooms: its bound and calibration modes, solver options, rooms."""
 
 from __future__ import annotations
 
+import argparse
 import math
+from pathlib import Path
 
 import pytest
 
 from app.vlp.crlb import aggregated_crlb
+from app.vlp.fingerprints import build_fingerprint
+from app.vlp.solvers.gridless import GridlessSolver
 from bench import real_rooms
 from bench._real_rooms_extra import BOUND_CASES, CALIBRATIONS, run_bounds, run_calibrated, tilt_sd
+from bench.rooms import make_room
 
 
 def test_bounds_mode_rows_and_the_ideal_case_is_the_aggregated_bound() -> None:
@@ -44,3 +49,41 @@ def test_calibrated_mode_runs_every_calibration() -> None:
     )
     assert [r[1] for r in rows[::2]] == [c.name for c in CALIBRATIONS]
     assert all(math.isfinite(r[5]) and 0 <= r[5] < 4.0 for r in rows)
+
+
+def test_an_option_builds_the_default_solver_with_it(tmp_path: Path) -> None:
+    assert real_rooms._parse_option("tolerance_jumps=False") == ("tolerance_jumps", False)
+    with pytest.raises(argparse.ArgumentTypeError, match="not a GridlessOptions field"):
+        real_rooms._parse_option("jumps=False")
+    with pytest.raises(argparse.ArgumentTypeError, match="not a Python literal"):
+        real_rooms._parse_option("tolerance_jumps=maybe")
+    try:
+        real_rooms.main(
+            [
+                "--rooms",
+                "office",
+                "--conditions",
+                "ideal",
+                "--trials",
+                "1",
+                "--option",
+                "tolerance_jumps=False",
+                "--snr",
+                "40",
+                "--out",
+                str(tmp_path),
+            ]
+        )
+        built = [s for s in real_rooms._SOLVERS.values() if isinstance(s, GridlessSolver)]
+        assert built and all(not s.options.tolerance_jumps for s in built)
+        assert "40 dB" in (tmp_path / "real-rooms.md").read_text()
+    finally:
+        real_rooms._OPTIONS.clear()
+        real_rooms._SOLVERS.clear()
+
+
+@pytest.mark.parametrize("name", ["office", "corridor"])
+def test_the_check_rooms_are_valid_layouts(name: str) -> None:
+    layout = make_room(name)
+    assert layout.grid.receiver_height < min(led.z for led in layout.leds)
+    assert build_fingerprint(layout).n_cells == layout.n_cells
