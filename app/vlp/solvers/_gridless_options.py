@@ -44,6 +44,11 @@ class GridlessOptions:
     count_threshold: float = 0.2
     count_lookahead: int = 2
     relocate_passes: int = 1
+    # Relocation also tries moving a target whose own spot is still its best point to the
+    # best point of the whole residual (where a target is missing). None: in rooms too large
+    # for the dense dictionary, where greedy growth leaves targets out while two estimates
+    # share one (docs/performance.md, "Relocation to where a target is missing").
+    relocate_to_missing: bool | None = None
     restarts: int = 1
     misfit_ratio: float = 1.5
     # Priors of the nuisance parameters (log units; None: not fitted). Each target's

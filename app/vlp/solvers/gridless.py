@@ -209,6 +209,11 @@ class GridlessSolver(Solver):
         self._identity = Whitening.identity(model, fingerprint.n_leds)
         self._centres = layout.cell_centres()
         self._dense = fingerprint.is_dense
+        self._relocate_to_missing = (
+            not self._dense
+            if self.options.relocate_to_missing is None
+            else self.options.relocate_to_missing
+        )
         # Restarts begin away from earlier first insertions, by half the mean LED height
         # above the receivers (about the size of one LED's bright spot).
         heights = layout.led_positions[:, 2] - layout.grid.receiver_height
@@ -575,18 +580,30 @@ class GridlessSolver(Solver):
 
     def _relocate(self, run: _Run, state: FitState) -> tuple[FitState, bool]:
         """ADCG's non-convex escape: move one target at a time to the best grid point of the
-        residual left by the others, keep the move when the refined cost is lower."""
+        residual left by the others, keep the move when the refined cost is lower.
+
+        That point is usually the target's own spot. With ``relocate_to_missing`` such a
+        target is tried at the best point of the whole residual instead (where a target is
+        missing): the escape from two estimates sharing one target while another has none.
+        """
         moved = False
         step = self.fingerprint.layout.grid.step
         n_targets = state.n_targets
         white = self._whitening(state)
         cost = self._objective(run, white).cost(state)[0]
+        missing: FloatArray | None = None
         for k in range(n_targets):
             keep = np.arange(n_targets) != k
             others = state.subset(keep)
             candidate = self._insert(run, others, white)
             if np.linalg.norm(candidate.positions[-1] - state.positions[k]) <= 1.5 * step:
-                continue
+                if not self._relocate_to_missing:
+                    continue
+                if missing is None:
+                    missing = self._insert(run, state, white).positions[-1]
+                if np.linalg.norm(missing - state.positions[k]) <= 1.5 * step:
+                    continue
+                candidate = others.with_target(missing, self._priors.height_mean)
             # The moved target's old and new neighbourhoods (large rooms; all targets else).
             changed = np.vstack((candidate.positions[-1:], state.positions[k : k + 1]))
             candidate, candidate_cost = self._fit(
@@ -597,6 +614,7 @@ class GridlessSolver(Solver):
                 order = np.insert(np.arange(n_targets - 1), k, n_targets - 1)
                 state = candidate.reordered(order)
                 cost, moved = candidate_cost, True
+                missing = None
         return state, moved
 
     def _polish(self, run: _Run, state: FitState) -> FitState:
