@@ -152,6 +152,9 @@ class Calibration:
     survey: bool
     fit_reflectance: bool = False
     led_position_bound_m: float = 0.3
+    # The calibrated layout also says how much the receivers' heights spread (the
+    # condition's own sd, as an admin who knows how the phones are held would set it).
+    height_sd_in_layout: bool = False
 
 
 CALIBRATIONS: tuple[Calibration, ...] = (
@@ -159,6 +162,7 @@ CALIBRATIONS: tuple[Calibration, ...] = (
     Calibration("survey, LED x/y fixed", survey=True, led_position_bound_m=0.0),
     Calibration("survey (default: LED x/y within 0.3 m)", survey=True),
     Calibration("survey, reflectance fitted too", survey=True, fit_reflectance=True),
+    Calibration("survey (default), receivers' height sd in layout", True, height_sd_in_layout=True),
 )
 SURVEY_STEP_M = 0.5
 
@@ -223,15 +227,25 @@ def run_calibrated(
                 rng=generator(room, "survey", trial),
                 element_size_m=TRUE_ELEMENT_SIZE_M,
             )
+            calibrated: dict[tuple[float, bool], Layout] = {}
             for calibration in CALIBRATIONS:
                 if calibration.survey:
-                    result = calibrate(
-                        layout,
-                        survey,
-                        led_position_bound_m=calibration.led_position_bound_m,
-                        fit_reflectance=calibration.fit_reflectance,
-                    )
-                    fingerprint = build_fingerprint(calibrated_layout(layout, result))
+                    key = (calibration.led_position_bound_m, calibration.fit_reflectance)
+                    if key not in calibrated:  # one calibration per survey and settings
+                        result = calibrate(
+                            layout,
+                            survey,
+                            led_position_bound_m=key[0],
+                            fit_reflectance=key[1],
+                        )
+                        calibrated[key] = calibrated_layout(layout, result)
+                    fitted = calibrated[key]
+                    if calibration.height_sd_in_layout:
+                        grid = dataclasses.replace(
+                            fitted.grid, receiver_height_sd=impairments.height_sd_m
+                        )
+                        fitted = dataclasses.replace(fitted, grid=grid)
+                    fingerprint = build_fingerprint(fitted)
                 else:
                     fingerprint = plain
                 solver = make_solver("gridless", fingerprint, "correlation")
