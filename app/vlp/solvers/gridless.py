@@ -113,8 +113,9 @@ class GridlessSolver(Solver):
        noise (``Cov <A, R> = 4 sigma^2 tr(A M0 A)``, ``M0 = S + K sigma^2 / 2 I``,
        ``sigma^2 = s / K``; exact and O(M^3) in the eigenbasis of ``M0``).
     4. Escapes, only when the fit looks stuck (:meth:`_needs_escape`): one pass of
-       *relocation* moves, then, with K known and K > 1, ``restarts`` more runs whose first
-       insertion avoids the earlier ones'; the lowest plain cost wins.
+       *relocation* moves (in large rooms also to where a target is missing), then, with
+       K known and K > 1, ``restarts`` more runs whose first insertion avoids the earlier
+       ones'; the lowest plain cost wins.
     5. Nuisances in stages (:meth:`_with_nuisances`): the common scale and the heights
        (when ``grid.receiver_height_sd`` > 0), then each target's gain, each with a
        Gaussian prior (:class:`GridlessOptions`), kept only when a score test and then the
