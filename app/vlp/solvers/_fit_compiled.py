@@ -335,6 +335,14 @@ def _cholesky_solve(matrix: FloatArray, rhs: FloatArray) -> tuple[FloatArray, bo
             for p in range(j):
                 total -= factor[i, p] * factor[j, p]
             factor[i, j] = total / pivot
+    return cholesky_substitution(factor, rhs), True
+
+
+@compiled
+def cholesky_substitution(factor: FloatArray, rhs: FloatArray) -> FloatArray:
+    """``x`` with ``L L^T x = rhs`` for the lower Cholesky factor ``L`` (forward, then back
+    substitution)."""
+    n = rhs.shape[0]
     x = rhs.copy()
     for i in range(n):
         total = x[i]
@@ -346,7 +354,7 @@ def _cholesky_solve(matrix: FloatArray, rhs: FloatArray) -> tuple[FloatArray, bo
         for p in range(i + 1, n):
             total -= factor[p, i] * x[p]
         x[i] = total / factor[i, i]
-    return x, True
+    return x
 
 
 @compiled

@@ -28,6 +28,7 @@ import numpy as np
 
 from ..typing import FloatArray
 from ._channel_compiled import ChannelConstants, TableConstants, diffuse_rows
+from ._fit_compiled import cholesky_substitution
 from ._kernels import compiled
 from ._projected_lm import _MAX_REJECTIONS
 
@@ -219,7 +220,6 @@ def joint_residual_kernel(
 def _damped_solve(normal: FloatArray, gradient: FloatArray) -> tuple[FloatArray, bool]:
     """Solve ``normal x = gradient`` (symmetric, positive definite once damped): Cholesky,
     else LU as the reference's ``np.linalg.solve``; False when both fail."""
-    n = gradient.shape[0]
     try:
         factor = np.linalg.cholesky(normal)
     except Exception:  # not positive definite in round-off: LU, as the reference
@@ -227,18 +227,7 @@ def _damped_solve(normal: FloatArray, gradient: FloatArray) -> tuple[FloatArray,
             return np.linalg.solve(normal, gradient).astype(np.float64), True
         except Exception:  # singular
             return gradient.copy(), False
-    x = gradient.copy()
-    for i in range(n):
-        total = x[i]
-        for p in range(i):
-            total -= factor[i, p] * x[p]
-        x[i] = total / factor[i, i]
-    for i in range(n - 1, -1, -1):
-        total = x[i]
-        for p in range(i + 1, n):
-            total -= factor[p, i] * x[p]
-        x[i] = total / factor[i, i]
-    return x, True
+    return cholesky_substitution(factor, gradient), True
 
 
 @compiled
