@@ -29,8 +29,8 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import linear_sum_assignment
 
+from ..metrics import matched_errors
 from ..typing import FloatArray
 from ._channel_compiled import ChannelConstants, TableConstants, channel_constants
 from ._channel_kernel import ChannelKernel
@@ -496,8 +496,6 @@ def _jumps(
         grid_energy = np.sum(grid**2 * (entry_weights @ grid**2), axis=0)
         return gains * np.sqrt(multipliers), positions, grid, grid_energy, math.exp(log_scale)
 
-    scaled, positions, grid, grid_energy, unit = scan(theta)
-
     def scores(others: FloatArray) -> FloatArray:
         signal = scaled[:, others] @ scaled[:, others].T
         left = rotation.T @ (measured - signal - theta[-1] * np.eye(m)) @ rotation
@@ -505,15 +503,19 @@ def _jumps(
         score = 2.0 * unit * np.sum(grid * ((left * entry_weights) @ grid), axis=0)
         return np.asarray(score - unit**2 * grid_energy)
 
+    scaled, positions, grid, grid_energy, unit = scan(theta)
+    # The best point of the whole residual: where a terminal is missing.
+    missing = int(np.argmax(scores(np.ones(k, dtype=bool))))
     for target in range(k):
         far = np.linalg.norm(moves.centres - positions[target], axis=1) > moves.min_jump
         # Two places to try: the best far point of the residual the others leave, then the
-        # best point of the whole residual (where a terminal is missing) if far enough.
+        # missing terminal's point if far enough.
         own = int(np.argmax(np.where(far, scores(np.arange(k) != target), -np.inf)))
-        missing = int(np.argmax(scores(np.ones(k, dtype=bool))))
-        heights = model.heights.copy()
-        heights[target] = moves.height
-        candidate = model.with_heights(heights)
+        candidate = model
+        if model.heights[target] != moves.height:
+            heights = model.heights.copy()
+            heights[target] = moves.height
+            candidate = model.with_heights(heights)
         for best in [own] if missing == own or not far[missing] else [own, missing]:
             if not far[best]:
                 continue
@@ -524,9 +526,11 @@ def _jumps(
             if tried is not None:
                 (theta, cost), model = tried, candidate
                 scaled, positions, grid, grid_energy, unit = scan(theta)
+                missing = int(np.argmax(scores(np.ones(k, dtype=bool))))
                 break
     for placement in moves.alternatives:
-        candidate = model.with_heights(np.full(k, moves.height))
+        level = np.all(model.heights == moves.height)
+        candidate = model if level else model.with_heights(np.full(k, moves.height))
         moved = theta.copy()
         moved[:k], moved[k : 2 * k] = placement[:, 0], placement[:, 1]
         moved[2 * k : 3 * k] = 0.0
@@ -555,17 +559,10 @@ def _try_move(
     start = model.split(moved)[0]
     moved, _ = _levenberg_marquardt(model, moved, white, data, _JUMP_PROBE_ITER)
     probe = model.split(moved)[0]
-    if _placement_distance(probe, positions) < _placement_distance(probe, start):
+    if matched_errors(probe, positions).max() < matched_errors(probe, start).max():
         return None
     moved, moved_cost = _levenberg_marquardt(model, moved, white, data)
     return (moved, moved_cost) if moved_cost < cost else None
-
-
-def _placement_distance(first: FloatArray, second: FloatArray) -> float:
-    """The largest distance between matched targets of two placements (K, 2), metres."""
-    distances = np.linalg.norm(first[:, np.newaxis] - second, axis=2)
-    rows, cols = linear_sum_assignment(distances)
-    return float(distances[rows, cols].max())
 
 
 def _levenberg_marquardt(
