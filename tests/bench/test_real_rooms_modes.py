@@ -82,8 +82,13 @@ def test_an_option_builds_the_default_solver_with_it(tmp_path: Path) -> None:
         real_rooms._SOLVERS.clear()
 
 
-@pytest.mark.parametrize("name", ["office", "corridor"])
-def test_the_check_rooms_are_valid_layouts(name: str) -> None:
+@pytest.mark.parametrize(
+    ("name", "n_leds", "n_cells"), [("office", 12, 630), ("corridor", 16, 480)]
+)
+def test_the_check_rooms_are_the_ones_their_docstrings_describe(
+    name: str, n_leds: int, n_cells: int
+) -> None:
     layout = make_room(name)
-    assert layout.grid.receiver_height < min(led.z for led in layout.leds)
-    assert build_fingerprint(layout).n_cells == layout.n_cells
+    assert (layout.n_leds, layout.n_cells) == (n_leds, n_cells)
+    # Small rooms: the solver's dense path, where the joint fit and its moves run.
+    assert build_fingerprint(layout).is_dense
