@@ -409,6 +409,8 @@ class Objective:
     free_weights : bool
     priors : Priors, default=None
         No nuisance parameters when None.
+    noise_ceiling : float, default=inf
+        Upper bound of the noise coefficient ``s``.
     """
 
     def __init__(
@@ -418,10 +420,12 @@ class Objective:
         values: FloatArray,
         free_weights: bool,
         priors: Priors | None = None,
+        noise_ceiling: float = math.inf,
     ) -> None:
         self.kernel = kernel
         self.white = white
         self.data = white.data(values)
+        self.noise_ceiling = noise_ceiling
         self.free_weights = free_weights
         self.priors = priors or Priors()
         self._slots: dict[int, _Slots] = {}
@@ -501,7 +505,8 @@ class Objective:
     def bounds(self, n_targets: int) -> tuple[FloatArray, FloatArray]:
         """Lower and upper bounds of ``theta`` (positions in the room, heights within the
         prior's bounds, gains and scale within :data:`MAX_LOG_GAIN` / :data:`MAX_LOG_SCALE`,
-        weights and noise nonnegative; kept per K: callers must not write into them)."""
+        weights nonnegative, noise within [0, ``noise_ceiling``]; kept per K: callers must not
+        write into them)."""
         known = self._bounds.get(n_targets)
         if known is not None:
             return known
@@ -518,6 +523,7 @@ class Objective:
             lower[slots.gains], upper[slots.gains] = -MAX_LOG_GAIN, MAX_LOG_GAIN
         if slots.scale is not None:
             lower[slots.scale], upper[slots.scale] = -MAX_LOG_SCALE, MAX_LOG_SCALE
+        upper[-1] = self.noise_ceiling
         self._bounds[n_targets] = (lower, upper)
         return lower, upper
 
@@ -711,7 +717,9 @@ def levenberg_marquardt(
     """
     n_targets = state.n_targets
     lower, upper = objective.bounds(n_targets)
-    theta = objective.pack(state)
+    # Within the bounds from the start (a power fit's noise may be above this objective's
+    # ceiling).
+    theta = np.clip(objective.pack(state), lower, upper)
     problem = objective.compiled_problem()
     if problem is not None and n_targets > 0:
         theta, cost, used = lm_kernel(

@@ -49,7 +49,23 @@ class GridlessOptions:
     # for the dense dictionary, where greedy growth leaves targets out while two estimates
     # share one (docs/performance.md, "Relocation to where a target is missing").
     relocate_to_missing: bool | None = None
-    restarts: int = 1
+    # Far relocation: such a target is first tried at the best point of the residual the
+    # others leave at least the restarts' radius away from its spot, then where a target is
+    # missing; and at K >= 2 the escape is always taken, since the test of a stuck fit
+    # cannot see one (a power fit's noise level absorbs its misfit). None: the power model
+    # in rooms with the dense dictionary (docs/accuracy.md, "Far relocation in the power
+    # model").
+    relocate_far: bool | None = None
+    # The noise coefficient held at 0 while targets are inserted (freed in the refinements
+    # after): the power model's noise atom (ones, nearly a signal direction) otherwise takes
+    # the signal of the targets not yet inserted, and later insertions find no room for them
+    # (the targets then run to the room's corners). None: the power model in rooms with the
+    # dense dictionary (measured worse in large rooms; docs/accuracy.md, "Far relocation in
+    # the power model").
+    grow_without_noise: bool | None = None
+    # Restarts when the fit looks stuck, K known and K > 1. None: 0 with far relocation
+    # (which finds what they find, at half their cost), else 1.
+    restarts: int | None = None
     misfit_ratio: float = 1.5
     # Priors of the nuisance parameters (log units; None: not fitted). Each target's
     # amplitude gain (phones differ, are held differently) and the common power scale of the

@@ -69,8 +69,9 @@ class _Run:
     values: FloatArray
     priors: Priors
     iterations: int = 0
-    # Objectives built for this run, by (whitening, priors) (see GridlessSolver._objective).
-    objectives: dict[tuple[int, int], tuple[Whitening, Priors, Objective]] = field(
+    # Objectives built for this run, by (whitening, priors, ceiling) (see
+    # GridlessSolver._objective).
+    objectives: dict[tuple[int, int, float], tuple[Whitening, Priors, Objective]] = field(
         default_factory=dict, repr=False
     )
 
@@ -108,14 +109,18 @@ class GridlessSolver(Solver):
     2. *Refine* all positions and ``s`` jointly with projected Levenberg-Marquardt on the
        continuous channel model (analytic gradients; positions clipped to the room), for
        ``inner_iter`` iterations (:data:`LM_DEFAULTS`; ``count_inner_iter`` when K is
-       being counted). Gains, scale and heights stay fixed while targets are inserted.
+       being counted). Gains, scale and heights stay fixed while targets are inserted, and
+       so does the power model's noise coefficient, at 0 (``grow_without_noise``: its atom
+       of ones would take the signal of the targets not yet inserted).
     3. After K insertions: LM rounds whitened by the plug-in covariance of the aggregated
        noise (``Cov <A, R> = 4 sigma^2 tr(A M0 A)``, ``M0 = S + K sigma^2 / 2 I``,
        ``sigma^2 = s / K``; exact and O(M^3) in the eigenbasis of ``M0``).
     4. Escapes, only when the fit looks stuck (:meth:`_needs_escape`): one pass of
        *relocation* moves (in large rooms also to where a target is missing), then, with
        K known and K > 1, ``restarts`` more runs whose first insertion avoids the earlier
-       ones'; the lowest plain cost wins.
+       ones'; the lowest plain cost wins. The power model in small rooms relocates far
+       instead, always from K = 2 (``relocate_far``: its fitted noise level hides a stuck
+       fit), with no restarts.
     5. Nuisances in stages (:meth:`_with_nuisances`): the common scale and the heights
        (when ``grid.receiver_height_sd`` > 0), then each target's gain, each with a
        Gaussian prior (:class:`GridlessOptions`), kept only when a score test and then the
@@ -215,6 +220,17 @@ class GridlessSolver(Solver):
             if self.options.relocate_to_missing is None
             else self.options.relocate_to_missing
         )
+        self._relocate_far = (
+            model == "power" and self._dense
+            if self.options.relocate_far is None
+            else self.options.relocate_far
+        )
+        self._grow_without_noise = (
+            model == "power" and self._dense
+            if self.options.grow_without_noise is None
+            else self.options.grow_without_noise
+        )
+        self._restarts = pick(self.options.restarts, 0 if self._relocate_far else 1)
         # Restarts begin away from earlier first insertions, by half the mean LED height
         # above the receivers (about the size of one LED's bright spot).
         heights = layout.led_positions[:, 2] - layout.grid.receiver_height
@@ -346,15 +362,20 @@ class GridlessSolver(Solver):
     def _plug_in(self, state: FitState) -> Whitening:
         return Whitening.from_state(self.model, self._kernel, state, float(state.n_targets))
 
-    def _objective(self, run: _Run, white: Whitening, nuisance: bool = True) -> Objective:
-        """The run's objective in ``white``'s metric (one per whitening and priors: a solve
-        asks for the same one many times, and an Objective keeps its compiled form)."""
+    def _objective(
+        self, run: _Run, white: Whitening, nuisance: bool = True, ceiling: float = math.inf
+    ) -> Objective:
+        """The run's objective in ``white``'s metric, its noise coefficient at most
+        ``ceiling`` (one per whitening, priors and ceiling: a solve asks for the same one many
+        times, and an Objective keeps its compiled form)."""
         priors = run.priors if nuisance else self._growth_priors
-        key = (id(white), id(priors))
+        key = (id(white), id(priors), ceiling)
         known = run.objectives.get(key)
         if known is not None and known[0] is white and known[1] is priors:
             return known[2]
-        objective = Objective(self._kernel, white, run.values, self.options.free_weights, priors)
+        objective = Objective(
+            self._kernel, white, run.values, self.options.free_weights, priors, ceiling
+        )
         if white.weights.shape[0] <= MAX_KEPT_VALUES:  # a large room's are computed afresh
             if len(run.objectives) >= 256:
                 run.objectives.clear()
@@ -369,15 +390,17 @@ class GridlessSolver(Solver):
         max_iter: int,
         nuisance: bool = True,
         around: FloatArray | None = None,
+        ceiling: float = math.inf,
     ) -> tuple[FitState, float]:
         """LM refinement of all targets, or, with ``around`` (points, shape (n, 2), metres)
-        in a large room, of the targets near those points only (:meth:`_fit_near`)."""
+        in a large room, of the targets near those points only (:meth:`_fit_near`); the
+        noise coefficient at most ``ceiling``."""
         if around is not None:
-            near = self._fit_near(run, white, state, max_iter, nuisance, around)
+            near = self._fit_near(run, white, state, max_iter, nuisance, around, ceiling)
             if near is not None:
                 return near
         state, cost, used = levenberg_marquardt(
-            self._objective(run, white, nuisance),
+            self._objective(run, white, nuisance, ceiling),
             state,
             max_iter=max_iter,
             initial_damping=self._lm.initial_damping,
@@ -397,6 +420,7 @@ class GridlessSolver(Solver):
         max_iter: int,
         nuisance: bool,
         around: FloatArray,
+        ceiling: float = math.inf,
     ) -> tuple[FitState, float] | None:
         """LM over the positions of the targets within reach of ``around`` and the noise
         coefficient, the other targets held where they are; None when that is not the
@@ -428,7 +452,14 @@ class GridlessSolver(Solver):
             self._kernel, self._identity, run.values, self.options.free_weights, Priors()
         )
         rest = plain.residual(plain.pack(held), held)
-        objective = Objective(self._kernel, white, rest, self.options.free_weights, priors)
+        objective = Objective(
+            self._kernel,
+            white,
+            rest,
+            self.options.free_weights,
+            priors,
+            ceiling,
+        )
         fitted, cost, used = levenberg_marquardt(
             objective,
             state.subset(active),
@@ -501,7 +532,14 @@ class GridlessSolver(Solver):
         fit has not found (two estimates sharing one terminal, another left out). The
         threshold separates good fits from gross failures (bench/tune_gridless.py,
         docs/accuracy.md, "Design measurements").
+
+        With far relocation (the power model's default) always, from K = 2: the power
+        model's noise atom (ones) is nearly a signal direction, so a fit stuck far from the
+        truth raises its fitted noise level instead of its whitened cost, and neither sign
+        shows (docs/accuracy.md, "Far relocation in the power model").
         """
+        if self._relocate_far and state.n_targets >= 2:
+            return True
         white = self._whitening(state)
         residual = self._residual(run, white, state)
         dof = residual.shape[0] - 2 * state.n_targets - 1
@@ -538,14 +576,21 @@ class GridlessSolver(Solver):
         self, run: _Run, state: FitState, inner_iter: int, avoid: FloatArray | None = None
     ) -> FitState:
         """One ADCG step: insert at the best grid point, then refine everything (briefly,
-        in the metric of the state before the insertion)."""
+        in the metric of the state before the insertion), with ``grow_without_noise`` the
+        noise coefficient held at 0."""
         white = self._whitening(state)
         grown = self._insert(run, state, white, avoid)
         if inner_iter > 0:
             # Gains, scale and heights stay put while targets are being inserted: free, the
             # first targets would take the energy of those not yet inserted.
             grown, _ = self._fit(
-                run, white, grown, inner_iter, nuisance=False, around=grown.positions[-1:]
+                run,
+                white,
+                grown,
+                inner_iter,
+                nuisance=False,
+                around=grown.positions[-1:],
+                ceiling=0.0 if self._grow_without_noise else math.inf,
             )
         return grown
 
@@ -583,9 +628,11 @@ class GridlessSolver(Solver):
         """ADCG's non-convex escape: move one target at a time to the best grid point of the
         residual left by the others, keep the move when the refined cost is lower.
 
-        That point is usually the target's own spot. With ``relocate_to_missing`` such a
-        target is tried at the best point of the whole residual instead (where a target is
-        missing): the escape from two estimates sharing one target while another has none.
+        That point is usually the target's own spot. With ``relocate_far`` such a target is
+        tried at the best point of that residual at least the restarts' radius from its spot;
+        with ``relocate_to_missing`` or ``relocate_far`` then at the best point of the whole
+        residual (where a target is missing): the escapes from two estimates sharing one
+        target while another has none. The first move that lowers the cost is kept.
         """
         moved = False
         step = self.fingerprint.layout.grid.step
@@ -596,26 +643,35 @@ class GridlessSolver(Solver):
         for k in range(n_targets):
             keep = np.arange(n_targets) != k
             others = state.subset(keep)
+            own = state.positions[k]
             candidate = self._insert(run, others, white)
-            if np.linalg.norm(candidate.positions[-1] - state.positions[k]) <= 1.5 * step:
-                if not self._relocate_to_missing:
-                    continue
-                if missing is None:
-                    missing = self._insert(run, state, white).positions[-1]
-                if np.linalg.norm(missing - state.positions[k]) <= 1.5 * step:
-                    continue
-                candidate = others.with_target(missing, self._priors.height_mean)
-            # The moved target's old and new neighbourhoods (large rooms; all targets else).
-            changed = np.vstack((candidate.positions[-1:], state.positions[k : k + 1]))
-            candidate, candidate_cost = self._fit(
-                run, white, candidate, self.options.final_iter, around=changed
-            )
-            if candidate_cost < cost:
-                # Keep the original order: the moved target takes slot k.
-                order = np.insert(np.arange(n_targets - 1), k, n_targets - 1)
-                state = candidate.reordered(order)
-                cost, moved = candidate_cost, True
-                missing = None
+            tries = [candidate]
+            if np.linalg.norm(candidate.positions[-1] - own) <= 1.5 * step:
+                tries = []
+                if self._relocate_far:
+                    tries.append(self._insert(run, others, white, avoid=own[np.newaxis]))
+                if self._relocate_to_missing or self._relocate_far:
+                    if missing is None:
+                        missing = self._insert(run, state, white).positions[-1]
+                    if all(
+                        np.linalg.norm(missing - point) > 1.5 * step
+                        for point in [own, *(tried.positions[-1] for tried in tries)]
+                    ):
+                        tries.append(others.with_target(missing, self._priors.height_mean))
+            for candidate in tries:
+                # The moved target's old and new neighbourhoods (large rooms; all targets
+                # else).
+                changed = np.vstack((candidate.positions[-1:], state.positions[k : k + 1]))
+                candidate, candidate_cost = self._fit(
+                    run, white, candidate, self.options.final_iter, around=changed
+                )
+                if candidate_cost < cost:
+                    # Keep the original order: the moved target takes slot k.
+                    order = np.insert(np.arange(n_targets - 1), k, n_targets - 1)
+                    state = candidate.reordered(order)
+                    cost, moved = candidate_cost, True
+                    missing = None
+                    break
         return state, moved
 
     def _polish(self, run: _Run, state: FitState) -> FitState:
@@ -668,7 +724,7 @@ class GridlessSolver(Solver):
             state = self._fit_known(run, n_targets, np.zeros((0, 2)))
             cost = self._plain_cost(run, state)
             firsts = [state.positions[0]]
-            for _ in range(self.options.restarts if n_targets > 1 else 0):
+            for _ in range(self._restarts if n_targets > 1 else 0):
                 if not self._needs_escape(run, state):
                     break
                 other = self._fit_known(run, n_targets, np.array(firsts))
