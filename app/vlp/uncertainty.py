@@ -58,6 +58,9 @@ _ROOT_TWO_PI = math.sqrt(2.0 * math.pi)
 # Newton on the radial probability: stop when it is this close to the level (a radius to
 # ~1e-13 relative); the bracket bounds the steps whatever happens.
 _RADIUS_TOLERANCE = 1e-14
+# A 2 x 2 covariance is taken as positive semi-definite while its determinant is above
+# -tolerance times the product of its variances (round-off of a nearly singular one).
+_PSD_TOLERANCE = 1e-9
 _MAX_RADIUS_STEPS = 60
 # Rounds of reweighting in :func:`fit_misfit` (the weights settle within a few).
 _MISFIT_REWEIGHTS = 4
@@ -233,8 +236,9 @@ def bounded_covariances(
     than the floor's diagonal says no more than the diagonal itself: it holds the truth in
     any case. Fits that the data barely determine (the power model's ``M`` values for ``K``
     targets with ``2 K + 1 > M`` unknowns) have a singular information and so covariances of
-    round-off size (10^20 m^2); bounded, they say "anywhere in the room" in numbers a client
-    can use. A covariance times ``c`` has its radius times ``sqrt(c)``, so the shape is kept.
+    round-off size, and sometimes, computed in that round-off, no covariance at all (a
+    negative variance); bounded, they say "anywhere in the room" in numbers a client can
+    use. A covariance times ``c`` has its radius times ``sqrt(c)``, so the shape is kept.
 
     Parameters
     ----------
@@ -244,8 +248,8 @@ def bounded_covariances(
 
     Returns
     -------
-    bounded : ndarray of shape (K, 2, 2), m^2 (a non-finite covariance becomes the circle of
-        radius ``max_radius``)
+    bounded : ndarray of shape (K, 2, 2), m^2 (what is no covariance, non-finite or not
+        positive semi-definite beyond round-off, becomes the circle of radius ``max_radius``)
 
     Examples
     --------
@@ -259,17 +263,25 @@ def bounded_covariances(
     # The circle of radius r holds 1 - exp(-r^2 / (2 s)) of N(0, s I), and a covariance
     # below s I has a smaller radius: only those with a trace above s can be too wide.
     circle = max_radius**2 / (-2.0 * math.log1p(-level))
-    trace = bounded[:, 0, 0] + bounded[:, 1, 1]
-    if np.isfinite(bounded).all() and float(trace.max(initial=0.0)) <= circle:
+    with np.errstate(invalid="ignore", over="ignore"):
+        first, second = bounded[:, 0, 0], bounded[:, 1, 1]
+        cross = 0.5 * (bounded[:, 0, 1] + bounded[:, 1, 0])
+        product = first * second
+        valid = (
+            np.all(np.isfinite(bounded), axis=(1, 2))
+            & (first >= 0.0)
+            & (second >= 0.0)
+            & (product - cross**2 >= -_PSD_TOLERANCE * product)
+        )
+        trace = np.where(valid, first + second, 0.0)
+    if valid.all() and float(trace.max(initial=0.0)) <= circle:
         return bounded  # the common case, once per answer: nothing to bound
-    finite = np.all(np.isfinite(bounded), axis=(1, 2))
-    trace = np.where(finite, bounded[:, 0, 0] + bounded[:, 1, 1], 0.0)
-    check = finite & (trace > circle)
+    check = valid & (trace > circle)
     if np.any(check):
         radii = confidence_radii(bounded[check], level)
         factors = np.minimum(1.0, max_radius / radii) ** 2
         bounded[check] *= factors[:, np.newaxis, np.newaxis]
-    bounded[~finite] = circle * np.eye(2)
+    bounded[~valid] = circle * np.eye(2)
     return bounded
 
 

@@ -205,3 +205,24 @@ def test_bounded_covariances_cap_the_radius_and_keep_the_shape() -> None:
     np.testing.assert_allclose(bounded[2], s**2 * np.eye(2), rtol=1e-12)
     with pytest.raises(ValueError, match="max_radius"):
         bounded_covariances(np.array([small]), 0.0)
+
+
+def test_bounded_covariances_replace_what_is_no_covariance() -> None:
+    """Computed in round-off (a singular information), a "covariance" can have a negative
+    variance or opposite infinities: it says nothing, so it becomes the circle of the
+    largest radius, with no numpy warning (the suite turns warnings into errors)."""
+    negative = np.array([[-6.5e37, -3.0e37], [-2.9e37, 3.7e37]])
+    opposite = np.array([[-np.inf, -np.inf], [-np.inf, np.inf]])
+    indefinite = np.array([[1.0, 2.0], [2.0, 1.0]])  # variances fine, determinant -3
+    nearly_singular = np.array([[1.0, 1.0], [1.0, 1.0 + 1e-14]])  # a valid, thin ellipse
+    small = np.eye(2) * 1e-4
+    bounded = bounded_covariances(
+        np.array([negative, opposite, indefinite, nearly_singular, small]), 2.0
+    )
+    s = 2.0 / math.sqrt(-2.0 * math.log(0.05))
+    for index in range(3):
+        np.testing.assert_allclose(bounded[index], s**2 * np.eye(2), rtol=1e-12)
+    np.testing.assert_array_equal(bounded[4], small)
+    # The thin ellipse is kept, only scaled down to the radius.
+    assert confidence_radii(bounded[3:4])[0] == pytest.approx(2.0, rel=1e-9)
+    np.testing.assert_allclose(bounded[3] / bounded[3, 0, 0], nearly_singular, rtol=1e-12)
