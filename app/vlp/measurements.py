@@ -32,6 +32,7 @@ __all__ = [
     "measurement_from_power",
     "noise_atom",
     "power_from_amplitudes",
+    "summed_terminals",
     "unvech",
     "vech",
     "vech_length",
@@ -47,6 +48,13 @@ MAX_MAGNITUDE = 1e100
 MIN_MAGNITUDE = 1e-100
 # Amplitudes are squared and summed over up to a few thousand terminals.
 MAX_AMPLITUDE = 1e48
+# R = sum_k a_k a_k^T over K < M terminals has rank K: eigenvalues above _RANK_SIGNAL of the
+# largest count, and the rank is read only when all the others are below _RANK_NULL of it
+# (round-off of float64 sums is ~1e-15; three decades between the two thresholds).
+_RANK_SIGNAL = 1e-9
+_RANK_NULL = 1e-12
+# Beyond this many LEDs the eigenvalues cost more than a solve (1024 LEDs: ~0.2 s).
+_RANK_MAX_LEDS = 256
 
 
 @dataclass(frozen=True)
@@ -178,6 +186,51 @@ def measurement_from_correlation(correlation: object, n_leds: int) -> Measuremen
             "correlation is all zero on its diagonal: no pilot was received", field="correlation"
         )
     return Measurement(model="correlation", values=values, n_leds=n_leds)
+
+
+def summed_terminals(measurement: Measurement) -> int | None:
+    """How many terminals a correlation measurement sums, read off its rank.
+
+    ``R = sum_k a_k a_k^T`` over K terminals (the contract's aggregation) has rank K
+    whenever K < M, whatever the noise (it is in the amplitudes ``a_k``, not added to
+    ``R``), the terminals' gains or a common scale. So its spectrum counts the terminals
+    exactly where a rule on the signal's energy depends on the fingerprint's scale. Two
+    terminals a few centimetres apart still count as two.
+
+    Parameters
+    ----------
+    measurement : Measurement
+
+    Returns
+    -------
+    int or None
+        K; None where the spectrum does not say: the power model, K >= M, a matrix that
+        is not such a sum (averaged over noisy samples, rounded in transit, not positive
+        semi-definite), or more than a few hundred LEDs.
+
+    Examples
+    --------
+    >>> rng = np.random.default_rng(0)
+    >>> amplitudes = rng.uniform(0.1, 1.0, size=(3, 16))  # 3 terminals, 16 LEDs
+    >>> summed_terminals(measurement_from_amplitudes(amplitudes, "correlation", 16))
+    3
+    >>> summed_terminals(measurement_from_amplitudes(amplitudes, "power", 16)) is None
+    True
+    """
+    n_leds = measurement.n_leds
+    if measurement.model != "correlation" or n_leds > _RANK_MAX_LEDS:
+        return None
+    eigenvalues = np.linalg.eigvalsh(unvech(measurement.values, n_leds))
+    largest = float(np.max(np.abs(eigenvalues)))
+    if not largest > 0.0:
+        return None
+    relative = eigenvalues / largest
+    signal = int(np.sum(relative > _RANK_SIGNAL))
+    # Anything between the thresholds, or a negative eigenvalue beyond round-off: no sum of
+    # K outer products.
+    if signal >= n_leds or np.any(np.abs(relative[relative <= _RANK_SIGNAL]) > _RANK_NULL):
+        return None
+    return signal
 
 
 def measurement_from_amplitudes(amplitudes: object, model: Model, n_leds: int) -> Measurement:

@@ -14,6 +14,7 @@ from app.vlp.measurements import (
     measurement_from_power,
     noise_atom,
     power_from_amplitudes,
+    summed_terminals,
     unvech,
     vech,
     vech_length,
@@ -121,3 +122,37 @@ def test_validation_errors(call: object, field: str, message: str) -> None:
     with pytest.raises(MeasurementError, match=message) as info:
         call()  # type: ignore[operator]
     assert info.value.field == field
+
+
+@pytest.mark.parametrize("n_terminals", [1, 2, 7, 15])
+def test_summed_terminals_is_the_rank_of_a_sum_of_outer_products(
+    n_terminals: int, rng: np.random.Generator
+) -> None:
+    # Amplitudes of any scale and spread: the rank does not care.
+    amplitudes = rng.lognormal(-3.0, 1.0, size=(n_terminals, 16))
+    measurement = measurement_from_amplitudes(amplitudes, "correlation", 16)
+    assert summed_terminals(measurement) == n_terminals
+    # An independent count: numpy's own matrix rank of the same matrix.
+    assert np.linalg.matrix_rank(measurement.correlation()) == n_terminals
+
+
+def test_summed_terminals_says_nothing_where_the_spectrum_does_not(
+    rng: np.random.Generator,
+) -> None:
+    amplitudes = rng.uniform(0.1, 1.0, size=(4, 16))
+    correlation = correlation_from_amplitudes(amplitudes)
+    # As many terminals as LEDs: full rank.
+    full = measurement_from_amplitudes(rng.uniform(0.1, 1.0, size=(16, 16)), "correlation", 16)
+    # Averaged over noisy samples: the noise fills the spectrum.
+    averaged = measurement_from_correlation(correlation + 1e-4 * np.eye(16), 16)
+    # Rounded in transit to 6 significant digits: the null space is no longer round-off.
+    rounded = measurement_from_correlation(
+        np.vectorize(lambda value: float(f"{value:.6g}"))(correlation), 16
+    )
+    # Not positive semi-definite (a symmetric off-diagonal change): no sum of outer products.
+    swap = np.zeros((16, 16))
+    swap[0, 1] = swap[1, 0] = 1e-3
+    indefinite = measurement_from_correlation(correlation + swap, 16)
+    power = measurement_from_amplitudes(amplitudes, "power", 16)
+    for measurement in (full, averaged, rounded, indefinite, power):
+        assert summed_terminals(measurement) is None

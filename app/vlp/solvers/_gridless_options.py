@@ -41,6 +41,13 @@ class GridlessOptions:
     count_inner_iter: int = 4
     final_iter: int = 50
     whiten_rounds: int = 3
+    # K read off the rank of R: a search whose fit shows a common scale more than this far
+    # (relative) from the one it ran at is repeated at that scale
+    # (GridlessSolver._search_at_scale; None: never).
+    rescale_search: float | None = 0.05
+    # K unknown: read it off the correlation matrix's rank where its spectrum says
+    # (app.vlp.measurements.summed_terminals), else count by energy (count_threshold).
+    count_by_rank: bool = True
     count_threshold: float = 0.2
     count_lookahead: int = 2
     relocate_passes: int = 1

@@ -12,7 +12,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from ..fingerprints import Fingerprint
-from ..measurements import Measurement, Model
+from ..measurements import Measurement, Model, noise_atom, summed_terminals
 from ..scale import check_amplitude_scale
 from ..simulation import mean_signal_power
 from ..typing import FloatArray
@@ -58,6 +58,9 @@ __all__ = ["LM_DEFAULTS", "GridlessOptions", "GridlessSolver"]
 # Largest model-error design (observations x targets x LEDs) held for the covariance; a
 # larger room falls back to the reduced chi-square's inflation.
 _MAX_MISFIT_ENTRIES = 4_000_000
+# A count read off the rank of R replaces a smaller count by energy only when its fit's
+# variance ratio against that one is above this (GridlessSolver._explains_more).
+_COUNT_F_RATIO = 10.0
 # Grid steps added to the reach of a local refinement (targets move a little while fitted).
 _NEAR_MARGIN_STEPS = 4.0
 
@@ -139,10 +142,14 @@ class GridlessSolver(Solver):
        (:func:`app.vlp.uncertainty.assess_fit`).
 
     With K known the measurement is first divided by a guessed common scale when its power
-    per target is more than 1.5x off the room's mean (:meth:`_prescale`). Unknown K: targets
-    are added one at a time; a state with more targets is kept when its plain cost is below
-    the best so far by ``count_threshold`` times the energy ``||phi(p)||^2`` of the targets
-    it adds, trying up to ``count_lookahead`` more before stopping. Terminals that send
+    per target is more than 1.5x off the room's mean (:meth:`_prescale`). Unknown K: first
+    read off the correlation matrix's rank (``count_by_rank``,
+    :func:`app.vlp.measurements.summed_terminals`): ``R = sum_k a_k a_k^T`` over K < M
+    terminals has rank K exactly. Where the spectrum does not say (the power model, a matrix
+    that is no such sum), targets are added one at a time; a state with more targets is
+    kept when its plain cost is below the best so far by ``count_threshold`` times the
+    energy ``||phi(p)||^2`` of the targets it adds, trying up to ``count_lookahead`` more
+    before stopping. Terminals that send
     their own amplitudes are fitted one by one (:meth:`solve_terminals`).
 
     Accuracy, counting and speed are measured by ``bench/accuracy.py``,
@@ -710,29 +717,105 @@ class GridlessSolver(Solver):
         ratio = max(per_target, 1e-300) / self._mean_column_energy
         return float(np.clip(ratio, math.exp(-MAX_LOG_SCALE), math.exp(MAX_LOG_SCALE)))
 
-    def _solve(self, measurement: Measurement, n_targets: int | None) -> Solution:
-        values = measurement.values / self._scale**2
-        prescale = self._prescale(values, n_targets)
+    def _search(
+        self, values: FloatArray, n_targets: int | None, prescale: float | None = None
+    ) -> tuple[_Run, FitState, list[FloatArray], float]:
+        """The nominal fit of ``values`` (normalised units) with K counted or given: the run,
+        its state, the restarts' optima not picked and the common scale the search ran at
+        (``prescale``, else guessed by :meth:`_prescale`)."""
+        if prescale is None:
+            prescale = self._prescale(values, n_targets)
         # The whole search runs on the measurement divided by the guessed scale.
         run = _Run(values=values / prescale, priors=self._growth_priors)
         # Local optima the search found but did not pick: the joint fit with the room's
         # tolerances, which can tell them apart better, tries them again.
         others: list[FloatArray] = []
         if n_targets is None:
-            state = self._polish(run, self._count_and_fit(run))
-        else:
-            state = self._fit_known(run, n_targets, np.zeros((0, 2)))
-            cost = self._plain_cost(run, state)
-            firsts = [state.positions[0]]
-            for _ in range(self._restarts if n_targets > 1 else 0):
-                if not self._needs_escape(run, state):
-                    break
-                other = self._fit_known(run, n_targets, np.array(firsts))
-                firsts.append(other.positions[0])
-                other_cost = self._plain_cost(run, other)
-                if other_cost < cost:
-                    state, cost, other = other, other_cost, state
-                others.append(other.positions)
+            return run, self._polish(run, self._count_and_fit(run)), others, prescale
+        state = self._fit_known(run, n_targets, np.zeros((0, 2)))
+        cost = self._plain_cost(run, state)
+        firsts = [state.positions[0]]
+        for _ in range(self._restarts if n_targets > 1 else 0):
+            if not self._needs_escape(run, state):
+                break
+            other = self._fit_known(run, n_targets, np.array(firsts))
+            firsts.append(other.positions[0])
+            other_cost = self._plain_cost(run, other)
+            if other_cost < cost:
+                state, cost, other = other, other_cost, state
+            others.append(other.positions)
+        return run, state, others, prescale
+
+    def _scale_free_fit(
+        self, values: FloatArray, run: _Run, state: FitState, prescale: float
+    ) -> tuple[float, float]:
+        """The plain cost of a search's fit of ``values`` with its targets' atoms under
+        their least-squares common scale (the noise term as fitted), and that scale: what
+        the fit leaves whatever the measurement's scale, so fits run at different guessed
+        scales compare."""
+        atom = self._identity.data(noise_atom(self.model, self.fingerprint.n_leds))
+        noise = state.noise * atom
+        signal = run.values - self._residual(run, self._identity, state) - noise
+        data = values - prescale * noise
+        energy = float(signal @ signal)
+        scale = float(data @ signal) / energy if energy > 0.0 else 0.0
+        rest = data - scale * signal
+        return float(rest @ rest), scale
+
+    def _search_at_scale(
+        self, values: FloatArray, n_targets: int
+    ) -> tuple[_Run, FitState, list[FloatArray], float]:
+        """:meth:`_search` with K given (read off the rank); when its fit shows a common
+        scale more than ``rescale_search`` off the one it ran at, searched again at that
+        scale, and the fit that leaves less at its own least-squares scale is kept. Unit-weight
+        atoms under a scale error of 10-20 % misplace targets (the insertions and the first
+        refinements run before the scale is fitted), and such a fit may not show that the
+        count by energy left targets out; the data show the scale once positions are roughly
+        right. (With K given by the client it was measured mixed, so it is not used there:
+        docs/real-rooms.md, "Counting by the rank of R".)"""
+        first = self._search(values, n_targets)
+        tolerance = self.options.rescale_search
+        if tolerance is None:
+            return first
+        cost, scale = self._scale_free_fit(values, first[0], first[1], first[3])
+        if not (scale > 0.0 and abs(math.log(scale / first[3])) > math.log1p(tolerance)):
+            return first
+        second = self._search(values, n_targets, scale)
+        second_cost, _ = self._scale_free_fit(values, second[0], second[1], second[3])
+        return second if second_cost < cost else first
+
+    @staticmethod
+    def _explains_more(n_values: int, cost: float, more_cost: float, extra: int) -> bool:
+        """Whether a fit with ``extra`` more targets leaves ``more_cost`` where the other
+        leaves ``cost``, by far more than fitting noise with their 2 ``extra`` coordinates
+        does: the variance ratio (F statistic) of the two fits above
+        :data:`_COUNT_F_RATIO`. A target the smaller count left out leaves its whole signal
+        (ratios of hundreds at 30 dB); spare targets on noise about 1."""
+        dof = max(n_values - 2 * extra - 2, 1)
+        decrease = (cost - more_cost) / (2 * extra)
+        return bool(decrease > _COUNT_F_RATIO * max(more_cost, 0.0) / dof)
+
+    def _solve(self, measurement: Measurement, n_targets: int | None) -> Solution:
+        values = measurement.values / self._scale**2
+        run, state, others, prescale = self._search(values, n_targets)
+        if n_targets is None and self.options.count_by_rank:
+            # A sum of K terminals' outer products has rank K, whatever the scale. A count
+            # above it is wrong; one below it is either a low scale (the energy rule counts
+            # in units of the fingerprint's) or terminals that saw no LED (noise only): the
+            # rank's fit is taken when it leaves less, at the scale the data show.
+            summed = summed_terminals(measurement)
+            if summed is not None and summed <= self._max_count and summed != state.n_targets:
+                known_run, known, known_others, known_prescale = self._search_at_scale(
+                    values, summed
+                )
+                if summed < state.n_targets or self._explains_more(
+                    values.shape[0],
+                    self._scale_free_fit(values, run, state, prescale)[0],
+                    self._scale_free_fit(values, known_run, known, known_prescale)[0],
+                    summed - state.n_targets,
+                ):
+                    run, state, others = known_run, known, known_others
+                    prescale = known_prescale
         state = self._with_nuisances(run, state)
         tolerances = self._with_room_tolerances(run, state, tuple(others))
         if tolerances is not None:
