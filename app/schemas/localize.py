@@ -142,7 +142,11 @@ class Measurement(RequestModel):
     )
     terminals: list[TerminalAmplitudes] | None = Field(default=None, min_length=1, max_length=4096)
     targets: RequestInt | None = Field(
-        default=None, ge=1, le=MAX_TARGETS, description="K; estimated by the service when left out"
+        default=None,
+        ge=1,
+        le=MAX_TARGETS,
+        description="K; estimated by the service when left out (the number of `terminals`; "
+        "for a `correlation` summed from the terminals' amplitudes, also read off its rank)",
     )
     solver: SolverName = Field(
         default="gridless",
