@@ -124,13 +124,14 @@ def gridless_localizer(
     return _solver(fingerprint, measurement.model).solve(measurement, count).positions
 
 
-_SOLVERS: dict[tuple[int, Model], Solver] = {}
+_SOLVERS: dict[tuple[int, Model, tuple[tuple[str, object], ...]], Solver] = {}
 # GridlessOptions fields the default solver is built with (``--option``; empty: defaults).
 _OPTIONS: dict[str, object] = {}
 
 
 def _solver(fingerprint: Fingerprint, model: Model) -> Solver:
-    key = (id(fingerprint), model)
+    # The options are part of the key: a run that changes them gets new solvers.
+    key = (id(fingerprint), model, tuple(sorted(_OPTIONS.items())))
     if key not in _SOLVERS:
         _SOLVERS[key] = (
             GridlessSolver(fingerprint, model, GridlessOptions(**_OPTIONS))  # type: ignore[arg-type]
