@@ -790,7 +790,9 @@ class GridlessSolver(Solver):
         leaves ``cost``, by far more than fitting noise with their 2 ``extra`` coordinates
         does: the variance ratio (F statistic) of the two fits above
         :data:`_COUNT_F_RATIO`. A target the smaller count left out leaves its whole signal
-        (ratios of hundreds at 30 dB); spare targets on noise about 1."""
+        in that fit's residual; spare targets on noise take out about their share of it
+        (a ratio near 1), and a spare unit-weight target where nothing is adds to it
+        (measured in docs/real-rooms.md, "Counting by the rank of R")."""
         dof = max(n_values - 2 * extra - 2, 1)
         decrease = (cost - more_cost) / (2 * extra)
         return bool(decrease > _COUNT_F_RATIO * max(more_cost, 0.0) / dof)
