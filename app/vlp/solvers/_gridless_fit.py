@@ -717,9 +717,10 @@ def levenberg_marquardt(
     """
     n_targets = state.n_targets
     lower, upper = objective.bounds(n_targets)
-    # Within the bounds from the start (a power fit's noise may be above this objective's
-    # ceiling).
-    theta = np.clip(objective.pack(state), lower, upper)
+    theta = objective.pack(state)
+    if objective.noise_ceiling < math.inf:
+        # The state's noise may be above this objective's ceiling: start within the bounds.
+        theta = np.clip(theta, lower, upper)
     problem = objective.compiled_problem()
     if problem is not None and n_targets > 0:
         theta, cost, used = lm_kernel(

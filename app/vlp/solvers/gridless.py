@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
+from typing import NamedTuple
 
 import numpy as np
 
@@ -63,6 +64,16 @@ _MAX_MISFIT_ENTRIES = 4_000_000
 _COUNT_F_RATIO = 10.0
 # Grid steps added to the reach of a local refinement (targets move a little while fitted).
 _NEAR_MARGIN_STEPS = 4.0
+
+
+class _Search(NamedTuple):
+    """One nominal search (GridlessSolver._search): its run, its fit, the restarts' optima
+    it did not pick and the common scale it ran at."""
+
+    run: _Run
+    state: FitState
+    others: list[FloatArray]
+    prescale: float
 
 
 @dataclass
@@ -719,10 +730,9 @@ class GridlessSolver(Solver):
 
     def _search(
         self, values: FloatArray, n_targets: int | None, prescale: float | None = None
-    ) -> tuple[_Run, FitState, list[FloatArray], float]:
-        """The nominal fit of ``values`` (normalised units) with K counted or given: the run,
-        its state, the restarts' optima not picked and the common scale the search ran at
-        (``prescale``, else guessed by :meth:`_prescale`)."""
+    ) -> _Search:
+        """The nominal fit of ``values`` (normalised units) with K counted or given, run at
+        the common scale ``prescale`` (else guessed by :meth:`_prescale`)."""
         if prescale is None:
             prescale = self._prescale(values, n_targets)
         # The whole search runs on the measurement divided by the guessed scale.
@@ -731,7 +741,7 @@ class GridlessSolver(Solver):
         # tolerances, which can tell them apart better, tries them again.
         others: list[FloatArray] = []
         if n_targets is None:
-            return run, self._polish(run, self._count_and_fit(run)), others, prescale
+            return _Search(run, self._polish(run, self._count_and_fit(run)), others, prescale)
         state = self._fit_known(run, n_targets, np.zeros((0, 2)))
         cost = self._plain_cost(run, state)
         firsts = [state.positions[0]]
@@ -744,45 +754,43 @@ class GridlessSolver(Solver):
             if other_cost < cost:
                 state, cost, other = other, other_cost, state
             others.append(other.positions)
-        return run, state, others, prescale
+        return _Search(run, state, others, prescale)
 
-    def _scale_free_fit(
-        self, values: FloatArray, run: _Run, state: FitState, prescale: float
-    ) -> tuple[float, float]:
+    def _scale_free_fit(self, values: FloatArray, search: _Search) -> tuple[float, float]:
         """The plain cost of a search's fit of ``values`` with its targets' atoms under
         their least-squares common scale (the noise term as fitted), and that scale: what
         the fit leaves whatever the measurement's scale, so fits run at different guessed
         scales compare."""
+        run, state = search.run, search.state
         atom = self._identity.data(noise_atom(self.model, self.fingerprint.n_leds))
         noise = state.noise * atom
         signal = run.values - self._residual(run, self._identity, state) - noise
-        data = values - prescale * noise
+        data = values - search.prescale * noise
         energy = float(signal @ signal)
         scale = float(data @ signal) / energy if energy > 0.0 else 0.0
         rest = data - scale * signal
         return float(rest @ rest), scale
 
-    def _search_at_scale(
-        self, values: FloatArray, n_targets: int
-    ) -> tuple[_Run, FitState, list[FloatArray], float]:
-        """:meth:`_search` with K given (read off the rank); when its fit shows a common
-        scale more than ``rescale_search`` off the one it ran at, searched again at that
-        scale, and the fit that leaves less at its own least-squares scale is kept. Unit-weight
-        atoms under a scale error of 10-20 % misplace targets (the insertions and the first
-        refinements run before the scale is fitted), and such a fit may not show that the
-        count by energy left targets out; the data show the scale once positions are roughly
-        right. (With K given by the client it was measured mixed, so it is not used there:
-        docs/real-rooms.md, "Counting by the rank of R".)"""
+    def _search_at_scale(self, values: FloatArray, n_targets: int) -> tuple[_Search, float]:
+        """:meth:`_search` with K given (read off the rank) and its fit's cost at its
+        least-squares scale (:meth:`_scale_free_fit`). When that scale is more than
+        ``rescale_search`` off the one the search ran at, searched again at it, and the fit
+        that leaves less is kept. Unit-weight atoms under a scale error of 10-20 % misplace
+        targets (the insertions and the first refinements run before the scale is fitted),
+        and such a fit may not show that the count by energy left targets out; the data
+        show the scale once positions are roughly right. (With K given by the client it was
+        measured mixed, so it is not used there: docs/real-rooms.md, "Counting by the rank
+        of R".)"""
         first = self._search(values, n_targets)
+        cost, scale = self._scale_free_fit(values, first)
         tolerance = self.options.rescale_search
-        if tolerance is None:
-            return first
-        cost, scale = self._scale_free_fit(values, first[0], first[1], first[3])
-        if not (scale > 0.0 and abs(math.log(scale / first[3])) > math.log1p(tolerance)):
-            return first
+        if tolerance is None or not (
+            scale > 0.0 and abs(math.log(scale / first.prescale)) > math.log1p(tolerance)
+        ):
+            return first, cost
         second = self._search(values, n_targets, scale)
-        second_cost, _ = self._scale_free_fit(values, second[0], second[1], second[3])
-        return second if second_cost < cost else first
+        second_cost, _ = self._scale_free_fit(values, second)
+        return (second, second_cost) if second_cost < cost else (first, cost)
 
     @staticmethod
     def _explains_more(n_values: int, cost: float, more_cost: float, extra: int) -> bool:
@@ -799,25 +807,24 @@ class GridlessSolver(Solver):
 
     def _solve(self, measurement: Measurement, n_targets: int | None) -> Solution:
         values = measurement.values / self._scale**2
-        run, state, others, prescale = self._search(values, n_targets)
+        search = self._search(values, n_targets)
         if n_targets is None and self.options.count_by_rank:
             # A sum of K terminals' outer products has rank K, whatever the scale. A count
             # above it is wrong; one below it is either a low scale (the energy rule counts
             # in units of the fingerprint's) or terminals that saw no LED (noise only): the
-            # rank's fit is taken when it leaves less, at the scale the data show.
+            # rank's fit is taken when it leaves far less, at the scale the data show.
+            counted = search.state.n_targets
             summed = summed_terminals(measurement)
-            if summed is not None and summed <= self._max_count and summed != state.n_targets:
-                known_run, known, known_others, known_prescale = self._search_at_scale(
-                    values, summed
-                )
-                if summed < state.n_targets or self._explains_more(
+            if summed is not None and summed <= self._max_count and summed != counted:
+                known, known_cost = self._search_at_scale(values, summed)
+                if summed < counted or self._explains_more(
                     values.shape[0],
-                    self._scale_free_fit(values, run, state, prescale)[0],
-                    self._scale_free_fit(values, known_run, known, known_prescale)[0],
-                    summed - state.n_targets,
+                    self._scale_free_fit(values, search)[0],
+                    known_cost,
+                    summed - counted,
                 ):
-                    run, state, others = known_run, known, known_others
-                    prescale = known_prescale
+                    search = known
+        run, state, others, prescale = search
         state = self._with_nuisances(run, state)
         tolerances = self._with_room_tolerances(run, state, tuple(others))
         if tolerances is not None:
