@@ -182,6 +182,10 @@ def test_an_ideal_room_keeps_the_fit_without_tolerances(paper_fingerprint: Finge
     assert np.mean(with_stage) <= np.mean(without) + 0.005
 
 
+# Placements tried for a refinement that stays stuck (each a fraction of a second).
+STUCK_SEEDS = 20
+
+
 def _stuck_fit(
     fingerprint: Fingerprint, seed: int, jumps: bool
 ) -> tuple[GridlessSolver, _Run, FitState, np.ndarray]:
@@ -214,9 +218,11 @@ def test_a_target_on_another_s_terminal_jumps_to_the_one_left_without(
 ) -> None:
     # Two estimates on one terminal and none on another is a local optimum that the joint
     # fit's own refinement does not leave; its long moves do. Where the refinement alone
-    # already finds every terminal, the moves change nothing for the worse.
+    # already finds every terminal, the moves change nothing for the worse. (Which seeds
+    # stay stuck depends on round-off, so on the machine's SIMD: 20 seeds, of which 2 of
+    # the first 6 stayed stuck on one machine and 8 of 20, none of the first 6, on another.)
     stuck = 0
-    for seed in range(6):
+    for seed in range(STUCK_SEEDS):
         worst = {}
         for jumps in (False, True):
             solver, run, state, truth = _stuck_fit(paper_fingerprint, seed, jumps)
@@ -228,27 +234,34 @@ def test_a_target_on_another_s_terminal_jumps_to_the_one_left_without(
             assert worst[True] < 0.25
         else:
             assert worst[True] <= worst[False] + 0.02
-    assert stuck >= 1
+    assert stuck >= 2
 
 
 def test_the_joint_fit_takes_another_placement_only_when_it_fits_better(
     paper_fingerprint: Fingerprint,
 ) -> None:
-    solver, run, state, truth = _stuck_fit(paper_fingerprint, 3, jumps=False)
-    kernel, opts = solver._kernel, solver.options
-    tolerances = RoomTolerances(opts.led_log_amplitude_sd or 0.0, opts.led_half_power_sd_deg, 0.0)
-    priors = (opts.log_gain_sd or 0.0, opts.log_scale_sd or 0.0)
-
     def fit(start: FitState, alternatives: tuple[np.ndarray, ...]) -> np.ndarray:
         # No long moves of single targets (nothing is that far): only the placements.
+        kernel, opts = solver._kernel, solver.options
+        tolerances = RoomTolerances(
+            opts.led_log_amplitude_sd or 0.0, opts.led_half_power_sd_deg, 0.0
+        )
+        priors = (opts.log_gain_sd or 0.0, opts.log_scale_sd or 0.0)
         height = solver._priors.height_mean
         moves = GridMoves(solver._gains, solver._centres, np.inf, height, alternatives)
         fitted = fit_room_tolerances(kernel, run.values, start, priors, tolerances, 3.0, moves)
         assert fitted is not None
         return fitted.state.positions
 
-    wrong = fit(state, ())
-    assert _matched_errors(wrong, truth).max() > 1.0
+    # The first seed whose joint fit stays stuck (round-off decides which: see above).
+    stuck = False
+    for seed in range(STUCK_SEEDS):
+        solver, run, state, truth = _stuck_fit(paper_fingerprint, seed, jumps=False)
+        wrong = fit(state, ())
+        stuck = bool(_matched_errors(wrong, truth).max() > 1.0)
+        if stuck:
+            break
+    assert stuck
     right = fit(state, (truth,))
     assert _matched_errors(right, truth).max() < 0.25
     # From the right optimum, the wrong placement is tried and left.
