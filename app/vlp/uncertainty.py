@@ -58,9 +58,11 @@ _ROOT_TWO_PI = math.sqrt(2.0 * math.pi)
 # Newton on the radial probability: stop when it is this close to the level (a radius to
 # ~1e-13 relative); the bracket bounds the steps whatever happens.
 _RADIUS_TOLERANCE = 1e-14
-# A 2 x 2 covariance is taken as positive semi-definite while its determinant is above
-# -tolerance times the product of its variances (round-off of a nearly singular one).
-_PSD_TOLERANCE = 1e-9
+# A 2 x 2 covariance is taken as one while its determinant is above this times its trace
+# squared (about the ratio of its eigenvalues: standard deviations 1e6 apart). Below it
+# a direction had no information: a pseudo-inverse gives it 0, not infinity (a receiver
+# that sees one LED lies on a ring around it, and the ring's tangent came out "exact").
+_MIN_EIGENVALUE_RATIO = 1e-12
 _MAX_RADIUS_STEPS = 60
 # Rounds of reweighting in :func:`fit_misfit` (the weights settle within a few).
 _MISFIT_REWEIGHTS = 4
@@ -239,6 +241,9 @@ def bounded_covariances(
     round-off size, and sometimes, computed in that round-off, no covariance at all (a
     negative variance); bounded, they say "anywhere in the room" in numbers a client can
     use. A covariance times ``c`` has its radius times ``sqrt(c)``, so the shape is kept.
+    A singular one (smaller eigenvalue below 1e-12 of the larger, zero included) says
+    nothing either: the direction it calls exact is the one the fit had no information on,
+    which a pseudo-inverse sets to 0.
 
     Parameters
     ----------
@@ -248,8 +253,8 @@ def bounded_covariances(
 
     Returns
     -------
-    bounded : ndarray of shape (K, 2, 2), m^2 (what is no covariance, non-finite or not
-        positive semi-definite beyond round-off, becomes the circle of radius ``max_radius``)
+    bounded : ndarray of shape (K, 2, 2), m^2 (what is no covariance, non-finite, singular
+        or indefinite, becomes the circle of radius ``max_radius``)
 
     Examples
     --------
@@ -271,7 +276,7 @@ def bounded_covariances(
             np.all(np.isfinite(bounded), axis=(1, 2))
             & (first >= 0.0)
             & (second >= 0.0)
-            & (product - cross**2 >= -_PSD_TOLERANCE * product)
+            & (product - cross**2 > _MIN_EIGENVALUE_RATIO * (first + second) ** 2)
         )
         trace = np.where(valid, first + second, 0.0)
     if valid.all() and float(trace.max(initial=0.0)) <= circle:
@@ -476,11 +481,13 @@ def f2_widening(dof: FloatArray, level: float = 0.95) -> FloatArray:
 
     Returns
     -------
-    ndarray of shape (K,), >= 1
+    ndarray of shape (K,), >= 1 (inf where ``nu`` is too small for a float: a variance
+    resting on next to nothing)
     """
     nu = np.asarray(dof, dtype=np.float64)
     q = -2.0 * math.log1p(-level)
-    return np.asarray(nu * np.expm1(q / nu) / q)
+    with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
+        return np.asarray(np.where(nu > 0.0, nu * np.expm1(q / nu) / q, np.inf))
 
 
 def predictive_covariances(
@@ -529,4 +536,7 @@ def predictive_covariances(
     if np.any(estimated):
         dof = total[estimated] ** 2 / spread[estimated]
         widen[estimated] = f2_widening(dof, level)
-    return np.asarray(covariances * widen[:, np.newaxis, np.newaxis])
+    # An infinite widening makes a covariance non-finite: "anywhere" once bounded
+    # (bounded_covariances).
+    with np.errstate(invalid="ignore"):
+        return np.asarray(covariances * widen[:, np.newaxis, np.newaxis])

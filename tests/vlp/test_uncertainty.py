@@ -185,6 +185,10 @@ def test_f2_widening_is_the_f_over_chi_square_quantile_ratio() -> None:
         expected = 2.0 * stats.f.ppf(level, 2, dof) / stats.chi2.ppf(level, 2)
         np.testing.assert_allclose(f2_widening(dof, level), expected, rtol=1e-9)
     assert f2_widening(np.array([1e15]))[0] == pytest.approx(1.0, abs=1e-9)
+    # Next to no degrees of freedom: infinitely wide, without an overflow warning (a random
+    # room's answer raised one; the suite turns warnings into errors).
+    assert f2_widening(np.array([1e-3]))[0] == np.inf
+    assert f2_widening(np.array([0.0]))[0] == np.inf
 
 
 def test_bounded_covariances_cap_the_radius_and_keep_the_shape() -> None:
@@ -209,20 +213,24 @@ def test_bounded_covariances_cap_the_radius_and_keep_the_shape() -> None:
 
 def test_bounded_covariances_replace_what_is_no_covariance() -> None:
     """Computed in round-off (a singular information), a "covariance" can have a negative
-    variance or opposite infinities: it says nothing, so it becomes the circle of the
-    largest radius, with no numpy warning (the suite turns warnings into errors)."""
+    variance or opposite infinities; from a pseudo-inverse, a direction with no information
+    at all gets 0 (a receiver that sees one LED: the ring's tangent "exact", found by a scan
+    of random rooms). Neither says anything, so each becomes the circle of the largest
+    radius, with no numpy warning (the suite turns warnings into errors)."""
     negative = np.array([[-6.5e37, -3.0e37], [-2.9e37, 3.7e37]])
     opposite = np.array([[-np.inf, -np.inf], [-np.inf, np.inf]])
     indefinite = np.array([[1.0, 2.0], [2.0, 1.0]])  # variances fine, determinant -3
-    nearly_singular = np.array([[1.0, 1.0], [1.0, 1.0 + 1e-14]])  # a valid, thin ellipse
+    ring = np.array([[0.003, -0.003], [-0.003, 0.003]])  # rank 1: the tangent dropped
+    zero = np.zeros((2, 2))  # a target where no LED is seen
+    nearly_singular = np.array([[1.0, 1.0], [1.0, 1.0 + 1e-14]])  # sds 1e7 apart
+    thin = np.array([[1.0, 1.0], [1.0, 1.0 + 1e-6]])  # sds 2000 apart: a valid thin ellipse
     small = np.eye(2) * 1e-4
-    bounded = bounded_covariances(
-        np.array([negative, opposite, indefinite, nearly_singular, small]), 2.0
-    )
+    covariances = np.array([negative, opposite, indefinite, ring, zero, nearly_singular])
+    bounded = bounded_covariances(np.concatenate((covariances, [thin, small])), 2.0)
     s = 2.0 / math.sqrt(-2.0 * math.log(0.05))
-    for index in range(3):
+    for index in range(len(covariances)):
         np.testing.assert_allclose(bounded[index], s**2 * np.eye(2), rtol=1e-12)
-    np.testing.assert_array_equal(bounded[4], small)
+    np.testing.assert_array_equal(bounded[-1], small)
     # The thin ellipse is kept, only scaled down to the radius.
-    assert confidence_radii(bounded[3:4])[0] == pytest.approx(2.0, rel=1e-9)
-    np.testing.assert_allclose(bounded[3] / bounded[3, 0, 0], nearly_singular, rtol=1e-12)
+    assert confidence_radii(bounded[-2:-1])[0] == pytest.approx(2.0, rel=1e-9)
+    np.testing.assert_allclose(bounded[-2] / bounded[-2, 0, 0], thin, rtol=1e-12)
