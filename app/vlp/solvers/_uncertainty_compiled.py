@@ -457,7 +457,8 @@ def predictive_covariances_kernel(
         if spread > 0.0:
             total = out[i, 0, 0] + out[i, 1, 1]
             dof = total * total / spread
-            widen = dof * math.expm1(quantile / dof) / quantile
+            # No degrees of freedom left in a float: infinitely wide ("anywhere", bounded).
+            widen = dof * math.expm1(quantile / dof) / quantile if dof > 0.0 else math.inf
             for a in range(2):
                 for b in range(2):
                     out[i, a, b] *= widen
