@@ -12,6 +12,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from ..ambiguity import covering_twins, mirror_twins
 from ..fingerprints import Fingerprint
 from ..measurements import Measurement, Model, noise_atom, summed_terminals
 from ..scale import check_amplitude_scale
@@ -232,6 +233,7 @@ class GridlessSolver(Solver):
         # Plain least squares (one object: the compiled kernels keep their view of it).
         self._identity = Whitening.identity(model, fingerprint.n_leds)
         self._centres = layout.cell_centres()
+        self._led_xy = np.array([(led.x, led.y) for led in layout.leds], dtype=np.float64)
         self._dense = fingerprint.is_dense
         self._relocate_to_missing = (
             not self._dense
@@ -864,6 +866,7 @@ class GridlessSolver(Solver):
                 "send the correlation matrix or each terminal's amplitudes",
             )
         positions = state.positions
+        covariances, fit = self._reported(positions, covariances, fit)
         return Solution(
             positions=positions,
             grid_indices=self.fingerprint.layout.nearest_cell(positions),
@@ -872,7 +875,7 @@ class GridlessSolver(Solver):
             residual_norm=float(np.linalg.norm(residual)) * prescale * self._scale**2,
             n_iter=run.iterations,
             converged=state.converged,
-            covariances=self._bounded(covariances),
+            covariances=covariances,
             gains=np.exp(0.5 * state.log_scale + state.log_gains),
             heights=state.heights.copy() if self._priors.fits_heights else None,
             fit=fit,
@@ -982,6 +985,7 @@ class GridlessSolver(Solver):
         fit_quality = assess_fit(
             float(chi2.sum()), int(dof.sum()), math.exp(float(np.median(log_gains)))
         )
+        covariances, fit_quality = self._reported(positions, covariances, fit_quality)
         return Solution(
             positions=positions,
             grid_indices=self.fingerprint.layout.nearest_cell(positions),
@@ -990,7 +994,7 @@ class GridlessSolver(Solver):
             residual_norm=math.sqrt(sum(fit.rss for fit in fits)) * self._scale,
             n_iter=len(fits),
             converged=True,
-            covariances=self._bounded(covariances),
+            covariances=covariances,
             gains=np.exp(log_gains),
             heights=np.array([fit.height for fit in fits])
             if self._priors.fits_heights or heights is not None
@@ -1132,11 +1136,31 @@ class GridlessSolver(Solver):
         """
         return self._covariances(self._objective(run, self._whitening(state)), state)
 
-    def _bounded(self, covariances: FloatArray) -> FloatArray:
-        """``covariances`` (K, 2, 2) with no 95 % radius beyond the floor's diagonal
+    def _reported(
+        self, positions: FloatArray, covariances: FloatArray, fit: FitQuality
+    ) -> tuple[FloatArray, FitQuality]:
+        """The covariances (K, 2, 2) and fit quality an answer reports: each estimate's
+        region widened to hold its mirror twin where it has one
+        (:mod:`app.vlp.ambiguity`: LEDs on one line give the same gains on both sides),
+        the fit's detail saying so, and no 95 % radius beyond the floor's diagonal
         (:func:`app.vlp.uncertainty.bounded_covariances`)."""
         room = self.fingerprint.layout.room
-        return bounded_covariances(covariances, math.hypot(room.length, room.width))
+        twins = mirror_twins(
+            positions,
+            self._led_xy,
+            lambda points: self._kernel.gains_xy(points[:, 0], points[:, 1]),
+            (room.length, room.width),
+        )
+        mirrored = int(np.isfinite(twins[:, 0]).sum())
+        if mirrored:
+            covariances = covering_twins(covariances, positions, twins)
+            fit = replace(
+                fit,
+                detail=f"{fit.detail}; {mirrored} of the estimates see LEDs on one line and "
+                "have a mirror image across it that receives the same signals: their radii "
+                "hold both (LEDs off that line would tell them apart)",
+            )
+        return bounded_covariances(covariances, math.hypot(room.length, room.width)), fit
 
     def _covariances(self, objective: Objective, state: FitState) -> tuple[FloatArray, FitQuality]:
         """:meth:`_uncertainty` in the metric of ``objective``: compiled

@@ -1,0 +1,103 @@
+"""Mirror twins (app/vlp/ambiguity.py) and the answers that carry them."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from app.vlp.ambiguity import covering_twins, mirror_twins
+from app.vlp.channel import channel_gains
+from app.vlp.fingerprints import Fingerprint, build_fingerprint
+from app.vlp.layout import Grid, Layout, Led, Room
+from app.vlp.simulation import Impairments, random_positions, simulate_terminals
+from app.vlp.solvers import make_solver
+from app.vlp.uncertainty import confidence_radii
+
+
+def corridor(row_y: float = 1.0) -> Layout:
+    """A 6 x 2.5 m corridor lit by one row of four LEDs at ``y = row_y``."""
+    return Layout(
+        room=Room(6.0, 2.5, 3.0),
+        grid=Grid(0.1, 0.85),
+        leds=tuple(Led(x=0.75 + 1.5 * i, y=row_y, z=3.0) for i in range(4)),
+    )
+
+
+def gains_of(layout: Layout):  # type: ignore[no-untyped-def]
+    """The paper's channel at the receivers' plane: an independent evaluation."""
+    return lambda points: channel_gains(layout, points)
+
+
+def led_xy(layout: Layout) -> np.ndarray:
+    return np.array([(led.x, led.y) for led in layout.leds])
+
+
+def test_a_single_row_of_leds_gives_every_point_its_mirror_image() -> None:
+    layout = corridor()
+    points = np.array([[1.2, 0.3], [4.0, 1.6], [2.9, 0.95]])
+    twins = mirror_twins(points, led_xy(layout), gains_of(layout), (6.0, 2.5))
+    np.testing.assert_allclose(twins, [[1.2, 1.7], [4.0, 0.4], [2.9, 1.05]], atol=1e-12)
+    # The same line-of-sight gains on both sides (distances and angles are mirrored).
+    np.testing.assert_allclose(
+        channel_gains(layout, twins), channel_gains(layout, points), rtol=1e-12
+    )
+
+
+def test_no_twin_outside_the_room_or_among_leds_off_one_line(
+    paper_fingerprint: Fingerprint,
+) -> None:
+    layout = corridor(row_y=0.8)
+    # 0.3 m below the row is 0.5 m; its mirror at 2.3 m is inside, 0.2 m is outside.
+    twins = mirror_twins(
+        np.array([[3.0, 0.5], [3.0, 2.4]]), led_xy(layout), gains_of(layout), (6.0, 2.5)
+    )
+    np.testing.assert_allclose(twins[0], [3.0, 1.1], atol=1e-12)
+    assert np.isnan(twins[1]).all()
+    # The paper room's 4 x 4 array: the mirror image across any line receives other gains.
+    paper = paper_fingerprint.layout
+    points = random_positions(paper, 200, rng=np.random.default_rng(3))
+    twins = mirror_twins(points, led_xy(paper), gains_of(paper), (4.0, 4.0))
+    assert np.isnan(twins).all()
+
+
+def test_the_widened_region_holds_the_twin() -> None:
+    positions = np.array([[1.0, 0.5], [2.0, 2.0], [3.0, 1.0]])
+    twins = np.array([[1.0, 1.5], [np.nan, np.nan], [3.0, 1.2]])
+    tight = np.repeat(np.eye(2)[np.newaxis] * 1e-4, 3, axis=0)  # 2.4 cm radii
+    widened = covering_twins(tight, positions, twins)
+    radii = confidence_radii(widened)
+    distance = np.linalg.norm(twins - positions, axis=1)
+    assert radii[0] > 1.3 * distance[0] and radii[2] > 1.3 * distance[2]
+    np.testing.assert_array_equal(widened[1], tight[1])
+    # Widened along the step only: across it the variance is the same.
+    assert widened[0, 0, 0] == pytest.approx(1e-4) and widened[0, 0, 1] == 0.0
+
+
+def test_answers_in_a_single_row_corridor_hold_the_mirror_image() -> None:
+    """Terminals in a corridor with one row of LEDs, their own amplitudes (ideal model,
+    40 dB): the fit lands on either side of the row, and every 95 % circle holds the truth
+    (before: radii of a few centimetres, truth on the other side, quality `ok`)."""
+    layout = corridor()
+    fingerprint = build_fingerprint(layout)
+    solver = make_solver("gridless", fingerprint, "correlation")
+    rng = np.random.default_rng(11)
+    truth = np.column_stack((rng.uniform(0.3, 5.7, 12), rng.uniform(0.1, 2.4, 12)))
+    simulated = simulate_terminals(layout, truth, Impairments.ideal(), snr_db=40.0, rng=rng)
+    solution = solver.solve_terminals(simulated.amplitudes)
+    assert solution.covariances is not None and solution.fit is not None
+    errors = np.linalg.norm(solution.positions - truth, axis=1)
+    radii = confidence_radii(solution.covariances)
+    assert np.all(errors <= radii)
+    assert "mirror image" in solution.fit.detail
+    # Some land on the wrong side, which only the widening covers (each twin is exact).
+    mirrored = np.abs((2.0 * 1.0 - solution.positions[:, 1]) - truth[:, 1]) < 0.05
+    assert np.any(mirrored & (errors > 0.3))
+
+
+def test_the_paper_room_has_no_twins(paper_fingerprint: Fingerprint) -> None:
+    solver = make_solver("gridless", paper_fingerprint, "correlation")
+    layout = paper_fingerprint.layout
+    truth = random_positions(layout, 6, rng=np.random.default_rng(5))
+    simulated = simulate_terminals(layout, truth, Impairments.ideal(), snr_db=30.0, rng=5)
+    solution = solver.solve_terminals(simulated.amplitudes)
+    assert solution.fit is not None and "mirror" not in solution.fit.detail
