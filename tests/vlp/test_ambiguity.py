@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 import pytest
 
@@ -10,7 +12,8 @@ from app.vlp.channel import channel_gains
 from app.vlp.fingerprints import Fingerprint, build_fingerprint
 from app.vlp.layout import Grid, Layout, Led, Room
 from app.vlp.simulation import Impairments, random_positions, simulate_terminals
-from app.vlp.solvers import make_solver
+from app.vlp.solvers.gridless import GridlessSolver
+from app.vlp.typing import FloatArray
 from app.vlp.uncertainty import confidence_radii
 
 
@@ -23,12 +26,12 @@ def corridor(row_y: float = 1.0) -> Layout:
     )
 
 
-def gains_of(layout: Layout):  # type: ignore[no-untyped-def]
+def gains_of(layout: Layout) -> Callable[[FloatArray], FloatArray]:
     """The paper's channel at the receivers' plane: an independent evaluation."""
     return lambda points: channel_gains(layout, points)
 
 
-def led_xy(layout: Layout) -> np.ndarray:
+def led_xy(layout: Layout) -> FloatArray:
     return np.array([(led.x, led.y) for led in layout.leds])
 
 
@@ -79,7 +82,7 @@ def test_answers_in_a_single_row_corridor_hold_the_mirror_image() -> None:
     (before: radii of a few centimetres, truth on the other side, quality `ok`)."""
     layout = corridor()
     fingerprint = build_fingerprint(layout)
-    solver = make_solver("gridless", fingerprint, "correlation")
+    solver = GridlessSolver(fingerprint, "correlation")
     rng = np.random.default_rng(11)
     truth = np.column_stack((rng.uniform(0.3, 5.7, 12), rng.uniform(0.1, 2.4, 12)))
     simulated = simulate_terminals(layout, truth, Impairments.ideal(), snr_db=40.0, rng=rng)
@@ -95,7 +98,7 @@ def test_answers_in_a_single_row_corridor_hold_the_mirror_image() -> None:
 
 
 def test_the_paper_room_has_no_twins(paper_fingerprint: Fingerprint) -> None:
-    solver = make_solver("gridless", paper_fingerprint, "correlation")
+    solver = GridlessSolver(paper_fingerprint, "correlation")
     layout = paper_fingerprint.layout
     truth = random_positions(layout, 6, rng=np.random.default_rng(5))
     simulated = simulate_terminals(layout, truth, Impairments.ideal(), snr_db=30.0, rng=5)
