@@ -1,0 +1,44 @@
+"""bench/random_rooms.py: its rooms are valid layouts, and a short run through a real server
+answers every request."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from bench.random_rooms import FORMS, Outcome, main, random_layout, summary
+
+
+def test_random_layouts_are_valid_and_bounded() -> None:
+    kinds = set()
+    for seed in range(200):
+        layout = random_layout(np.random.default_rng([7, seed]))  # validated on construction
+        assert layout.n_cells <= 6000
+        xs = {round(led.x, 9) for led in layout.leds}
+        ys = {round(led.y, 9) for led in layout.leds}
+        kinds.add("row" if len(ys) == 1 and len(xs) > 1 else "other")
+    assert kinds == {"row", "other"}  # single rows of LEDs are among them
+
+
+def test_summary_counts_per_form() -> None:
+    outcomes = [
+        Outcome(0, 4, "power", 1, True, 30.0, False, 200, 1, 0.1, 1.0, "ok"),
+        Outcome(0, 4, "power", 2, True, 30.0, False, 200, 2, 2.0, 0.5, "ok", True, True),
+        Outcome(0, 4, "terminals", 1, False, 10.0, True, 500),
+    ]
+    table = summary(outcomes)
+    assert "| power | 2 | 0 | 0 | 0 | 105 | 105 | 0.750 | 1 |" in table
+    assert "| terminals | 1 | - |" in table
+    assert "| all | 3 | 1 | 0 | 0 | 105 | 105 | 0.750 | 1 |" in table
+
+
+def test_a_short_run_answers_every_request(tmp_path: Path) -> None:
+    (tmp_path / "real-rooms.md").write_text("# Real rooms\n\nhand-written\n")
+    assert main(["--rooms", "2", "--trials", "3", "--out", str(tmp_path)]) == 0
+    text = (tmp_path / "real-rooms.md").read_text()
+    assert text.startswith("# Real rooms\n\nhand-written\n")
+    rows = (tmp_path / "data" / "random_rooms.csv").read_text().splitlines()
+    assert len(rows) == 1 + 2 * 3
+    assert all(",200," in row for row in rows[1:])  # no 4xx, no 5xx
+    assert f"| {FORMS[0]} |" in text and "| all | 6 | 0 | 0 | 0 |" in text
