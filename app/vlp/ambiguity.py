@@ -21,7 +21,13 @@ import numpy as np
 
 from .typing import FloatArray
 
-__all__ = ["TWIN_MAX_CHANGE", "covering_twins", "mirror_twins"]
+__all__ = [
+    "OFF_LINE_FRACTION",
+    "TWIN_MAX_CHANGE",
+    "covering_twins",
+    "mirror_twins",
+    "twins_possible",
+]
 
 # Gains within this relative change are taken as the same: the LEDs' own tolerances (5 % in
 # amplitude, the solver's prior) make a real room differ from its model by as much.
@@ -31,7 +37,10 @@ TWIN_MAX_CHANGE = 0.05
 _SEEN_FRACTION = 0.01
 # LEDs count as on one line while their rms distance from it is at most this fraction of
 # the estimate's (a square array's LEDs are not, near its axes of symmetry or anywhere).
-_OFF_LINE_FRACTION = 0.25
+OFF_LINE_FRACTION = 0.25
+# twins_possible: a room where no grid point has a twin under these looser limits has none
+# between grid points either (the limits change slowly over a cell).
+_LOOSER = 2.0
 
 
 def mirror_twins(
@@ -40,6 +49,7 @@ def mirror_twins(
     gains: Callable[[FloatArray], FloatArray],
     room_size: tuple[float, float],
     max_change: float = TWIN_MAX_CHANGE,
+    off_line_fraction: float = OFF_LINE_FRACTION,
 ) -> FloatArray:
     """Each estimate's mirror twin, or NaN where it has none.
 
@@ -56,6 +66,9 @@ def mirror_twins(
         A twin must lie in ``[0, length] x [0, width]``.
     max_change : float, default=TWIN_MAX_CHANGE
         Largest ``||g(twin) - g(p)|| / ||g(p)||`` of a twin.
+    off_line_fraction : float, default=OFF_LINE_FRACTION
+        Largest rms distance of the seen LEDs from their line, as a fraction of the
+        estimate's distance from it.
 
     Returns
     -------
@@ -68,31 +81,39 @@ def mirror_twins(
     twins = np.full_like(points, np.nan)
     if points.shape[0] == 0:
         return twins
-    own = np.asarray(gains(points), dtype=np.float64)
-    candidates = np.full_like(points, np.nan)
-    for k, point in enumerate(points):
-        column = own[:, k]
-        strongest = float(column.max(initial=0.0))
-        if not strongest > 0.0:
-            continue
-        seen = leds[column >= _SEEN_FRACTION * strongest]
-        if seen.shape[0] < 2:
-            continue  # one LED: a ring, which the covariance already leaves open
-        centre = seen.mean(axis=0)
-        # The line that fits the seen LEDs best (their principal axis), if they lie near it
-        # compared with the estimate's distance from it; whether near enough, the gains at
-        # the mirror image decide.
-        _, spreads, axes = np.linalg.svd(seen - centre, full_matrices=False)
-        direction = axes[0]
-        offset = point - centre
-        across = abs(offset @ axes[1]) if axes.shape[0] > 1 else 0.0
-        rms_off_line = spreads[1] / np.sqrt(seen.shape[0]) if spreads.shape[0] > 1 else 0.0
-        if rms_off_line > _OFF_LINE_FRACTION * across:
-            continue
-        mirrored = centre + 2.0 * (offset @ direction) * direction - offset
-        length, width = room_size
-        if 0.0 <= mirrored[0] <= length and 0.0 <= mirrored[1] <= width:
-            candidates[k] = mirrored
+    own = np.asarray(gains(points), dtype=np.float64)  # (M, K)
+    strongest = own.max(axis=0, initial=0.0)
+    seen = (own >= _SEEN_FRACTION * strongest) & (strongest > 0.0)  # (M, K)
+    count = seen.sum(axis=0).astype(np.float64)
+    # Each estimate's seen LEDs: their centre and 2 x 2 scatter, all estimates at once.
+    share = seen / np.maximum(count, 1.0)
+    centre = share.T @ leds  # (K, 2)
+    xx = share.T @ (leds[:, 0] ** 2) - centre[:, 0] ** 2
+    yy = share.T @ (leds[:, 1] ** 2) - centre[:, 1] ** 2
+    xy = share.T @ (leds[:, 0] * leds[:, 1]) - centre[:, 0] * centre[:, 1]
+    # The principal axis (the line that fits them best) and the mean square off it.
+    half_gap = np.hypot(0.5 * (xx - yy), xy)
+    off_line = np.maximum(0.5 * (xx + yy) - half_gap, 0.0)
+    angle = 0.5 * np.arctan2(2.0 * xy, xx - yy)
+    direction = np.column_stack((np.cos(angle), np.sin(angle)))
+    offset = points - centre
+    along = np.sum(offset * direction, axis=1)
+    across = np.abs(offset[:, 0] * direction[:, 1] - offset[:, 1] * direction[:, 0])
+    mirrored = centre + 2.0 * along[:, np.newaxis] * direction - offset
+    length, width = room_size
+    # Two or more LEDs seen (one gives a ring, which the covariance already leaves open),
+    # near one line compared with the estimate's distance from it, and the image in the
+    # room; whether near enough, the gains at the image decide.
+    candidate = (
+        (count >= 2)
+        & (across > 0.0)
+        & (np.sqrt(off_line) <= off_line_fraction * across)
+        & (mirrored[:, 0] >= 0.0)
+        & (mirrored[:, 0] <= length)
+        & (mirrored[:, 1] >= 0.0)
+        & (mirrored[:, 1] <= width)
+    )
+    candidates = np.where(candidate[:, np.newaxis], mirrored, np.nan)
     found = np.flatnonzero(np.isfinite(candidates[:, 0]))
     if found.size == 0:
         return twins
@@ -102,6 +123,26 @@ def mirror_twins(
     same = change <= max_change * size
     twins[found[same]] = candidates[found[same]]
     return twins
+
+
+def twins_possible(
+    grid_points: FloatArray,
+    led_xy: FloatArray,
+    gains: Callable[[FloatArray], FloatArray],
+    room_size: tuple[float, float],
+) -> bool:
+    """Whether any of ``grid_points`` (N, 2) has a mirror twin under limits twice as loose
+    as :func:`mirror_twins`'s: where none has, no estimate needs the check (a 4 x 4 array of
+    wide beams: every receiver sees LEDs off any one line). Parameters as there."""
+    twins = mirror_twins(
+        grid_points,
+        led_xy,
+        gains,
+        room_size,
+        max_change=_LOOSER * TWIN_MAX_CHANGE,
+        off_line_fraction=_LOOSER * OFF_LINE_FRACTION,
+    )
+    return bool(np.isfinite(twins[:, 0]).any())
 
 
 def covering_twins(covariances: FloatArray, positions: FloatArray, twins: FloatArray) -> FloatArray:

@@ -7,7 +7,7 @@ from collections.abc import Callable
 import numpy as np
 import pytest
 
-from app.vlp.ambiguity import covering_twins, mirror_twins
+from app.vlp.ambiguity import covering_twins, mirror_twins, twins_possible
 from app.vlp.channel import channel_gains
 from app.vlp.fingerprints import Fingerprint, build_fingerprint
 from app.vlp.layout import Grid, Layout, Led, Room
@@ -104,3 +104,13 @@ def test_the_paper_room_has_no_twins(paper_fingerprint: Fingerprint) -> None:
     simulated = simulate_terminals(layout, truth, Impairments.ideal(), snr_db=30.0, rng=5)
     solution = solver.solve_terminals(simulated.amplitudes)
     assert solution.fit is not None and "mirror" not in solution.fit.detail
+
+
+def test_rooms_without_twins_anywhere_skip_the_check(paper_fingerprint: Fingerprint) -> None:
+    """The check is skipped only where no grid point has a twin even under looser limits."""
+    paper = paper_fingerprint.layout
+    assert not twins_possible(paper.cell_centres(), led_xy(paper), gains_of(paper), (4.0, 4.0))
+    assert not GridlessSolver(paper_fingerprint, "correlation")._twins_possible
+    row = corridor()
+    assert twins_possible(row.cell_centres(), led_xy(row), gains_of(row), (6.0, 2.5))
+    assert GridlessSolver(build_fingerprint(row), "correlation")._twins_possible

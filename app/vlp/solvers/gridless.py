@@ -12,7 +12,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from ..ambiguity import covering_twins, mirror_twins
+from ..ambiguity import covering_twins, mirror_twins, twins_possible
 from ..fingerprints import Fingerprint
 from ..measurements import Measurement, Model, noise_atom, summed_terminals
 from ..scale import check_amplitude_scale
@@ -235,6 +235,12 @@ class GridlessSolver(Solver):
         self._centres = layout.cell_centres()
         self._led_xy = np.array([(led.x, led.y) for led in layout.leds], dtype=np.float64)
         self._dense = fingerprint.is_dense
+        # Most rooms have no mirror twins anywhere: their answers skip the check (decided
+        # here, once, in dense rooms; large ones check every answer).
+        floor = layout.room
+        self._twins_possible = not self._dense or twins_possible(
+            self._centres, self._led_xy, self._gains_at, (floor.length, floor.width)
+        )
         self._relocate_to_missing = (
             not self._dense
             if self.options.relocate_to_missing is None
@@ -1136,6 +1142,10 @@ class GridlessSolver(Solver):
         """
         return self._covariances(self._objective(run, self._whitening(state)), state)
 
+    def _gains_at(self, points: FloatArray) -> FloatArray:
+        """The channel gains (M, P) at ``points`` (P, 2) on the receivers' plane."""
+        return self._kernel.gains_xy(points[:, 0], points[:, 1])
+
     def _reported(
         self, positions: FloatArray, covariances: FloatArray, fit: FitQuality
     ) -> tuple[FloatArray, FitQuality]:
@@ -1145,11 +1155,11 @@ class GridlessSolver(Solver):
         the fit's detail saying so, and no 95 % radius beyond the floor's diagonal
         (:func:`app.vlp.uncertainty.bounded_covariances`)."""
         room = self.fingerprint.layout.room
-        twins = mirror_twins(
-            positions,
-            self._led_xy,
-            lambda points: self._kernel.gains_xy(points[:, 0], points[:, 1]),
-            (room.length, room.width),
+        size = (room.length, room.width)
+        twins = (
+            mirror_twins(positions, self._led_xy, self._gains_at, size)
+            if self._twins_possible
+            else np.full_like(positions, np.nan)
         )
         mirrored = int(np.isfinite(twins[:, 0]).sum())
         if mirrored:
