@@ -48,7 +48,7 @@ from app.vlp.simulation import Impairments, simulate_terminals
 from ._common import machine_markdown, machine_record, replace_section, write_csv
 from ._server import ADMIN_KEY, TERMINAL_KEY, live_server
 
-__all__ = ["FORMS", "Outcome", "main", "random_layout", "run"]
+__all__ = ["FORMS", "Outcome", "draw_request", "main", "random_layout", "run"]
 
 FORMS = ("correlation", "power", "terminals")
 MIX_REFLECTANCE = Reflectance(walls=0.7, floor=0.2, ceiling=0.8)
@@ -134,7 +134,7 @@ def random_layout(rng: np.random.Generator) -> Layout:
     )
 
 
-def _request(
+def draw_request(
     rng: np.random.Generator, layout: Layout, room: int
 ) -> tuple[dict[str, Any], np.ndarray, Outcome]:
     """One localize body, the truth (K, 2) and the outcome's fixed fields."""
@@ -222,7 +222,7 @@ def run(rooms: int, trials: int, seed: int) -> list[Outcome]:
             room_id = created.json()["id"]
             _wait_ready(client, room_id, admin)
             for _ in range(trials):
-                body, truth, outcome = _request(rng, layout, room)
+                body, truth, outcome = draw_request(rng, layout, room)
                 response = client.post(f"/v1/rooms/{room_id}/localize", json=body, headers=terminal)
                 outcome = dataclasses.replace(outcome, status=response.status_code)
                 if response.status_code == 200:
