@@ -103,6 +103,14 @@ def machine_markdown(record: Mapping[str, str]) -> str:
     return "\n".join(f"- {key}: `{value}`" for key, value in record.items())
 
 
+def measured_section(heading: str, lead: str, table: str) -> str:
+    """A generated docs section: ``heading``, the paragraph ``lead`` (the command and what
+    it measured), ``table``, and the machine it ran on (:func:`machine_record`)."""
+    return "\n".join(
+        [heading, "", lead, "", table, "", "Machine:", "", machine_markdown(machine_record()), ""]
+    )
+
+
 def write_csv(path: Path, header: Sequence[str], rows: Iterable[Sequence[object]]) -> None:
     """Write ``rows`` under ``header`` to ``path`` (parents created)."""
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -36,7 +36,7 @@ from app.vlp.metrics import mean_position_error
 from app.vlp.simulation import Impairments
 from app.vlp.solvers.gridless import GridlessSolver
 
-from ._common import machine_markdown, machine_record, replace_section
+from ._common import measured_section, replace_section
 from ._real_rooms_extra import draw_terminals
 from .real_rooms import MIX, _fingerprint, _generator, _layout
 
@@ -134,22 +134,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     elapsed = time.perf_counter() - started
     if args.out is not None:
         command = "python -m bench.counting " + " ".join(argv if argv is not None else sys.argv[1:])
-        body = "\n".join(
-            [
-                "## Counting under a common amplitude scale (`bench/counting.py`)",
-                "",
-                f"Command: `{command.strip()}` ({elapsed:.0f} s), {SNR_DB:g} dB, the "
-                f"condition times one amplitude scale, {args.trials} placements per cell, "
-                "`targets` left out, default solver (`mix`: the realistic mix with the "
-                "reflectance in the layout; `gains`: terminal gains sd 10 %).",
-                "",
-                *lines,
-                "",
-                "Machine:",
-                "",
-                machine_markdown(machine_record()),
-                "",
-            ]
+        body = measured_section(
+            "## Counting under a common amplitude scale (`bench/counting.py`)",
+            f"Command: `{command.strip()}` ({elapsed:.0f} s), {SNR_DB:g} dB, the "
+            f"condition times one amplitude scale, {args.trials} placements per cell, "
+            "`targets` left out, default solver (`mix`: the realistic mix with the "
+            "reflectance in the layout; `gains`: terminal gains sd 10 %).",
+            "\n".join(lines),
         )
         replace_section(args.out / "real-rooms.md", "counting", body, preamble="# Real rooms\n")
     return 0

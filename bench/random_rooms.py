@@ -45,7 +45,7 @@ from app.vlp.layout import Grid, Layout, Led, Receiver, Reflectance, Room
 from app.vlp.metrics import match_positions
 from app.vlp.simulation import Impairments, simulate_terminals
 
-from ._common import machine_markdown, machine_record, replace_section, write_csv
+from ._common import measured_section, replace_section, write_csv
 from ._server import ADMIN_KEY, TERMINAL_KEY, live_server
 
 __all__ = ["FORMS", "Outcome", "draw_request", "main", "random_layout", "run"]
@@ -278,20 +278,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         command = "python -m bench.random_rooms " + " ".join(
             argv if argv is not None else sys.argv[1:]
         )
-        body = "\n".join(
-            [
-                "### Measured (`bench/random_rooms.py`)",
-                "",
-                f"Command: `{command.strip()}` ({elapsed:.0f} s); every request in "
-                "`docs/data/random_rooms.csv`.",
-                "",
-                table,
-                "",
-                "Machine:",
-                "",
-                machine_markdown(machine_record()),
-                "",
-            ]
+        body = measured_section(
+            "### Measured (`bench/random_rooms.py`)",
+            f"Command: `{command.strip()}` ({elapsed:.0f} s); every request in "
+            "`docs/data/random_rooms.csv`.",
+            table,
         )
         replace_section(args.out / "real-rooms.md", "random-rooms", body, preamble="# Real rooms\n")
     return 0
