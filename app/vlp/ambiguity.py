@@ -15,6 +15,7 @@ hold both. Both are plain NumPy: a few channel evaluations per answer.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 
 import numpy as np
@@ -25,6 +26,7 @@ __all__ = [
     "OFF_LINE_FRACTION",
     "TWIN_MAX_CHANGE",
     "covering_twins",
+    "far_optima",
     "mirror_twins",
     "twins_possible",
 ]
@@ -38,6 +40,10 @@ _SEEN_FRACTION = 0.01
 # LEDs count as on one line while their rms distance from it is at most this fraction of
 # the estimate's (a square array's LEDs are not, near its axes of symmetry or anywhere).
 OFF_LINE_FRACTION = 0.25
+# The 95 % quantile of chi-square with 2 degrees of freedom: far_optima's region, and the
+# 95 % circle of an isotropic unit Gaussian, sqrt of it.
+_REGION_CHI2 = 5.991464547107979
+_CIRCLE_95 = math.sqrt(_REGION_CHI2)
 # twins_possible: a room where no grid point has a twin under these looser limits has none
 # between grid points either (the limits change slowly over a cell).
 _LOOSER = 2.0
@@ -143,6 +149,74 @@ def twins_possible(
         off_line_fraction=_LOOSER * OFF_LINE_FRACTION,
     )
     return bool(np.isfinite(twins[:, 0]).any())
+
+
+def far_optima(
+    amplitudes: FloatArray,
+    gains: FloatArray,
+    grid_points: FloatArray,
+    positions: FloatArray,
+    covariances: FloatArray,
+    noise_variance: float,
+    spacing: float,
+    column_energy: FloatArray | None = None,
+) -> FloatArray:
+    """For terminals fitted from their own amplitudes: the farthest grid point that explains
+    a terminal's amplitudes about as well as its estimate, where it lies beyond the
+    estimate's 95 % circle (another optimum the covariance does not know of); NaN where none.
+
+    The profile over the grid of each terminal's cost with its gain free (least squares,
+    non-negative), ``c_j = ||y||^2 - max(g_j . y, 0)^2 / ||g_j||^2`` in units of the noise
+    variance, and its region ``c_j - min c <= 5.99`` (the 95 % quantile of chi-square with
+    2 degrees of freedom): the grid's version of a likelihood-ratio confidence region. Points
+    of it within the circle plus 1.5 grid steps are the estimate's own neighbourhood. The
+    circle is bounded from above by that of the covariance's larger axis in every direction
+    (``2.45 sqrt(lambda_max)``): no exact radius needed, and no point within the true circle
+    counts as far.
+
+    Parameters
+    ----------
+    amplitudes : ndarray of shape (K, M)
+        Each terminal's amplitudes, in the units of ``gains``.
+    gains : ndarray of shape (M, N)
+        The channel gains at every grid point.
+    grid_points : ndarray of shape (N, 2), metres
+    positions : ndarray of shape (K, 2), metres
+    covariances : ndarray of shape (K, 2, 2), m^2
+        Each estimate's covariance so far (non-finite: nothing is far).
+    noise_variance : float
+        Variance of one amplitude's noise, in the units of ``gains`` squared.
+    spacing : float, metres
+        The grid step.
+    column_energy : ndarray of shape (N,) or None
+        ``||g_j||^2`` of every grid point, when already known (else computed).
+
+    Returns
+    -------
+    far : ndarray of shape (K, 2), metres; NaN rows where the region stays near the estimate
+    """
+    values = np.asarray(amplitudes, dtype=np.float64)
+    far = np.full((values.shape[0], 2), np.nan)
+    if not noise_variance > 0.0:
+        return far
+    if column_energy is None:
+        column_energy = np.einsum("mn,mn->n", gains, gains)
+    norms = np.maximum(column_energy, 1e-300)
+    cov = np.asarray(covariances, dtype=np.float64)
+    with np.errstate(invalid="ignore", over="ignore"):
+        larger = 0.5 * (cov[:, 0, 0] + cov[:, 1, 1]) + np.hypot(
+            0.5 * (cov[:, 0, 0] - cov[:, 1, 1]), 0.5 * (cov[:, 0, 1] + cov[:, 1, 0])
+        )
+        radii = np.where(np.isfinite(larger), _CIRCLE_95 * np.sqrt(np.abs(larger)), np.inf)
+    explained = np.maximum(values @ gains, 0.0) ** 2 / norms  # (K, N)
+    for k in range(values.shape[0]):
+        # c_j - min c = (max explained - explained_j) / sigma^2
+        region = explained[k] >= explained[k].max() - _REGION_CHI2 * noise_variance
+        distance = np.linalg.norm(grid_points[region] - positions[k], axis=1)
+        farthest = int(np.argmax(distance))
+        if distance[farthest] > radii[k] + 1.5 * spacing:
+            far[k] = grid_points[region][farthest]
+    return far
 
 
 def covering_twins(covariances: FloatArray, positions: FloatArray, twins: FloatArray) -> FloatArray:

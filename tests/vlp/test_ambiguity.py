@@ -7,7 +7,7 @@ from collections.abc import Callable
 import numpy as np
 import pytest
 
-from app.vlp.ambiguity import covering_twins, mirror_twins, twins_possible
+from app.vlp.ambiguity import covering_twins, far_optima, mirror_twins, twins_possible
 from app.vlp.channel import channel_gains
 from app.vlp.fingerprints import Fingerprint, build_fingerprint
 from app.vlp.layout import Grid, Layout, Led, Room
@@ -114,3 +114,57 @@ def test_rooms_without_twins_anywhere_skip_the_check(paper_fingerprint: Fingerpr
     row = corridor()
     assert twins_possible(row.cell_centres(), led_xy(row), gains_of(row), (6.0, 2.5))
     assert GridlessSolver(build_fingerprint(row), "correlation")._twins_possible
+
+
+def test_far_optima_finds_the_other_side_of_a_row() -> None:
+    """A terminal's own amplitudes, gain free: on one side of a row of LEDs, the grid points
+    on the other side explain them as well (a far optimum); in the paper room's array, the
+    region stays around the estimate."""
+    layout = corridor()
+    points = layout.cell_centres()
+    gains = channel_gains(layout, points)
+    truth = np.array([[2.2, 0.4]])
+    amplitudes = channel_gains(layout, truth).T * 0.8  # any gain
+    tight = np.eye(2)[np.newaxis] * 1e-4
+    noise = 1e-3 * float(amplitudes.max())
+    far = far_optima(amplitudes, gains, points, truth, tight, noise**2, 0.1)
+    assert np.linalg.norm(far[0] - [2.2, 1.6]) < 0.15  # the mirror image across y = 1
+    # With a covariance whose circle already reaches there (1.47 m), nothing is far.
+    wide = np.eye(2)[np.newaxis] * 0.6**2
+    assert np.isnan(far_optima(amplitudes, gains, points, truth, wide, noise**2, 0.1)).all()
+
+
+def test_far_optima_leave_a_well_lit_terminal_alone(paper_fingerprint: Fingerprint) -> None:
+    layout = paper_fingerprint.layout
+    points = layout.cell_centres()
+    gains = channel_gains(layout, points)
+    truth = random_positions(layout, 20, rng=np.random.default_rng(2))
+    amplitudes = channel_gains(layout, truth).T
+    noise = 1e-3 * float(amplitudes.max())  # 30 dB
+    covariances = np.repeat(np.eye(2)[np.newaxis] * 0.02**2, 20, axis=0)
+    far = far_optima(amplitudes, gains, points, truth, covariances, noise**2, 0.2)
+    assert np.isnan(far).all()
+
+
+def test_terminals_in_the_dark_get_radii_that_hold_them() -> None:
+    """Narrow beams far apart: a terminal between them receives noise only, and any dark
+    spot explains that as well. Before, such answers came with radii of a metre or two at
+    the wrong end of the room (random rooms, 2026-11-24)."""
+    layout = Layout(
+        room=Room(6.0, 5.0, 3.5),
+        grid=Grid(0.25, 0.5),
+        leds=tuple(
+            Led(x=x, y=y, z=3.5, half_power_angle_deg=15.0)
+            for x in (1.5, 4.5)
+            for y in (1.25, 3.75)
+        ),
+    )
+    solver = GridlessSolver(build_fingerprint(layout), "correlation")
+    rng = np.random.default_rng(4)
+    dark = np.array([[3.0, 2.5], [0.3, 2.5], [5.7, 0.2], [3.0, 4.8], [0.2, 4.8]])
+    simulated = simulate_terminals(layout, dark, Impairments.ideal(), snr_db=30.0, rng=rng)
+    solution = solver.solve_terminals(simulated.amplitudes)
+    assert solution.covariances is not None and solution.fit is not None
+    errors = np.linalg.norm(solution.positions - dark, axis=1)
+    assert np.all(errors <= confidence_radii(solution.covariances))
+    assert "another place" in solution.fit.detail

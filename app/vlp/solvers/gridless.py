@@ -12,7 +12,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from ..ambiguity import covering_twins, mirror_twins, twins_possible
+from ..ambiguity import covering_twins, far_optima, mirror_twins, twins_possible
 from ..fingerprints import Fingerprint
 from ..measurements import Measurement, Model, noise_atom, summed_terminals
 from ..scale import check_amplitude_scale
@@ -63,6 +63,9 @@ _MAX_MISFIT_ENTRIES = 4_000_000
 # A count read off the rank of R replaces a smaller count by energy only when its fit's
 # variance ratio against that one is above this (GridlessSolver._explains_more).
 _COUNT_F_RATIO = 10.0
+# Largest gains matrix (M x N entries) whose grid the terminals' far-optimum scan reads per
+# answer (GridlessSolver._with_far_optima; K x M x N per answer).
+_MAX_PROFILE_ENTRIES = 1_000_000
 # Grid steps added to the reach of a local refinement (targets move a little while fitted).
 _NEAR_MARGIN_STEPS = 4.0
 
@@ -991,6 +994,9 @@ class GridlessSolver(Solver):
         fit_quality = assess_fit(
             float(chi2.sum()), int(dof.sum()), math.exp(float(np.median(log_gains)))
         )
+        covariances, fit_quality = self._with_far_optima(
+            values, positions, covariances, sigma2, fit_quality
+        )
         covariances, fit_quality = self._reported(positions, covariances, fit_quality)
         return Solution(
             positions=positions,
@@ -1141,6 +1147,40 @@ class GridlessSolver(Solver):
         inverse Fisher information by the reduced chi-square when above 1.
         """
         return self._covariances(self._objective(run, self._whitening(state)), state)
+
+    def _with_far_optima(
+        self,
+        values: FloatArray,
+        positions: FloatArray,
+        covariances: FloatArray,
+        sigma2: float,
+        fit: FitQuality,
+    ) -> tuple[FloatArray, FitQuality]:
+        """Terminals' covariances widened to hold another optimum of their own amplitudes
+        that lies beyond their radius (:func:`app.vlp.ambiguity.far_optima`: a grid point
+        that explains them as well, e.g. a receiver in a dark corner, or on either side of
+        a row of LEDs), the fit's detail saying so. Dense rooms whose gains are small
+        enough to scan per answer."""
+        if not self._dense or self._gains.size > _MAX_PROFILE_ENTRIES:
+            return covariances, fit
+        far = far_optima(
+            values,
+            self._gains,
+            self._centres,
+            positions,
+            covariances,
+            sigma2,
+            self.fingerprint.layout.grid.step,
+            self._column_energy,
+        )
+        count = int(np.isfinite(far[:, 0]).sum())
+        if not count:
+            return covariances, fit
+        detail = (
+            f"{fit.detail}; {count} of the terminals' amplitudes fit another place beyond "
+            "their radius about as well: their radii hold it"
+        )
+        return covering_twins(covariances, positions, far), replace(fit, detail=detail)
 
     def _gains_at(self, points: FloatArray) -> FloatArray:
         """The channel gains (M, P) at ``points`` (P, 2) on the receivers' plane."""
