@@ -1,4 +1,4 @@
-"""Mirror twins: positions that another position mimics, and confidence regions that say so.
+"""Other optima: positions that another position mimics, and confidence regions that hold them.
 
 A receiver that sees LEDs lying on one line (a corridor with a single row of lights, a room
 with two LEDs, or the two or three LEDs of a row that a receiver near a wall sees) gets the
@@ -11,6 +11,10 @@ both.
 sees, and keeps it where its gains are within ``max_change`` of the estimate's (the same
 LEDs seen, reflections and beams aside); :func:`covering_twins` widens each covariance to
 hold both. Both are plain NumPy: a few channel evaluations per answer.
+
+:func:`far_optima` looks for any other optimum of one terminal's own amplitudes over the
+grid (a receiver in the dark receives noise, which every dark spot explains as well), for
+the same widening.
 """
 
 from __future__ import annotations
