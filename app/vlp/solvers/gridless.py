@@ -236,7 +236,7 @@ class GridlessSolver(Solver):
         # Plain least squares (one object: the compiled kernels keep their view of it).
         self._identity = Whitening.identity(model, fingerprint.n_leds)
         self._centres = layout.cell_centres()
-        self._led_xy = np.array([(led.x, led.y) for led in layout.leds], dtype=np.float64)
+        self._led_xy = np.ascontiguousarray(layout.led_positions[:, :2])
         self._dense = fingerprint.is_dense
         # Most rooms have no mirror twins anywhere: their answers skip the check (decided
         # here, once, in dense rooms; large ones check every answer).
@@ -994,10 +994,8 @@ class GridlessSolver(Solver):
         fit_quality = assess_fit(
             float(chi2.sum()), int(dof.sum()), math.exp(float(np.median(log_gains)))
         )
-        covariances, fit_quality = self._with_far_optima(
-            values, positions, covariances, sigma2, fit_quality
-        )
-        covariances, fit_quality = self._reported(positions, covariances, fit_quality)
+        far = self._far_optima(values, positions, covariances, sigma2)
+        covariances, fit_quality = self._reported(positions, covariances, fit_quality, far)
         return Solution(
             positions=positions,
             grid_indices=self.fingerprint.layout.nearest_cell(positions),
@@ -1148,22 +1146,17 @@ class GridlessSolver(Solver):
         """
         return self._covariances(self._objective(run, self._whitening(state)), state)
 
-    def _with_far_optima(
-        self,
-        values: FloatArray,
-        positions: FloatArray,
-        covariances: FloatArray,
-        sigma2: float,
-        fit: FitQuality,
-    ) -> tuple[FloatArray, FitQuality]:
-        """Terminals' covariances widened to hold another optimum of their own amplitudes
-        that lies beyond their radius (:func:`app.vlp.ambiguity.far_optima`: a grid point
-        that explains them as well, e.g. a receiver in a dark corner, or on either side of
-        a row of LEDs), the fit's detail saying so. Dense rooms whose gains are small
-        enough to scan per answer."""
+    def _far_optima(
+        self, values: FloatArray, positions: FloatArray, covariances: FloatArray, sigma2: float
+    ) -> FloatArray:
+        """Each terminal's farthest other optimum of its own amplitudes beyond its radius
+        (:func:`app.vlp.ambiguity.far_optima`: a grid point that explains them as well, e.g.
+        a receiver in a dark corner, or on either side of a row of LEDs), shape (K, 2), NaN
+        where none. Dense rooms whose gains are small enough to scan per answer (else all
+        NaN)."""
         if not self._dense or self._gains.size > _MAX_PROFILE_ENTRIES:
-            return covariances, fit
-        far = far_optima(
+            return np.full_like(positions, np.nan)
+        return far_optima(
             values,
             self._gains,
             self._centres,
@@ -1173,43 +1166,56 @@ class GridlessSolver(Solver):
             self.fingerprint.layout.grid.step,
             self._column_energy,
         )
-        count = int(np.isfinite(far[:, 0]).sum())
-        if not count:
-            return covariances, fit
-        detail = (
-            f"{fit.detail}; {count} of the terminals' amplitudes fit another place beyond "
-            "their radius about as well: their radii hold it"
-        )
-        return covering_twins(covariances, positions, far), replace(fit, detail=detail)
 
     def _gains_at(self, points: FloatArray) -> FloatArray:
         """The channel gains (M, P) at ``points`` (P, 2) on the receivers' plane."""
         return self._kernel.gains_xy(points[:, 0], points[:, 1])
 
     def _reported(
-        self, positions: FloatArray, covariances: FloatArray, fit: FitQuality
+        self,
+        positions: FloatArray,
+        covariances: FloatArray,
+        fit: FitQuality,
+        far: FloatArray | None = None,
     ) -> tuple[FloatArray, FitQuality]:
         """The covariances (K, 2, 2) and fit quality an answer reports: each estimate's
-        region widened to hold its mirror twin where it has one
-        (:mod:`app.vlp.ambiguity`: LEDs on one line give the same gains on both sides),
-        the fit's detail saying so, and no 95 % radius beyond the floor's diagonal
+        region widened to hold its mirror twin (:mod:`app.vlp.ambiguity`: LEDs on one line
+        give the same gains on both sides) or its ``far`` optimum (shape (K, 2), NaN where
+        none; :meth:`_far_optima`), the farther of the two, the fit's detail saying so, and
+        no 95 % radius beyond the floor's diagonal
         (:func:`app.vlp.uncertainty.bounded_covariances`)."""
         room = self.fingerprint.layout.room
-        size = (room.length, room.width)
         twins = (
-            mirror_twins(positions, self._led_xy, self._gains_at, size)
+            mirror_twins(positions, self._led_xy, self._gains_at, (room.length, room.width))
             if self._twins_possible
             else np.full_like(positions, np.nan)
         )
-        mirrored = int(np.isfinite(twins[:, 0]).sum())
-        if mirrored:
+        has_twin = np.isfinite(twins[:, 0])
+        has_far = np.zeros_like(has_twin) if far is None else np.isfinite(far[:, 0])
+        if far is not None and has_far.any():
+            # One widening per estimate, to the farther point: the far optimum when the
+            # twin is nearer or none.
+            to_twin = np.linalg.norm(twins - positions, axis=1)
+            to_far = np.linalg.norm(far - positions, axis=1)
+            has_far &= ~(has_twin & (to_twin > to_far))
+            has_twin &= ~has_far
+            twins = np.where(has_far[:, np.newaxis], far, twins)
+        if has_twin.any() or has_far.any():
             covariances = covering_twins(covariances, positions, twins)
-            fit = replace(
-                fit,
-                detail=f"{fit.detail}; {mirrored} of the estimates see LEDs on one line and "
-                "have a mirror image across it that receives the same signals: their radii "
-                "hold both (LEDs off that line would tell them apart)",
+        detail = fit.detail
+        if has_far.any():
+            detail += (
+                f"; {int(has_far.sum())} of the terminals' amplitudes fit another place "
+                "beyond their radius about as well: their radii hold it"
             )
+        if has_twin.any():
+            detail += (
+                f"; {int(has_twin.sum())} of the estimates see LEDs on one line and have a "
+                "mirror image across it that receives the same signals: their radii hold both "
+                "(LEDs off that line would tell them apart)"
+            )
+        if detail != fit.detail:
+            fit = replace(fit, detail=detail)
         return bounded_covariances(covariances, math.hypot(room.length, room.width)), fit
 
     def _covariances(self, objective: Objective, state: FitState) -> tuple[FloatArray, FitQuality]:
