@@ -53,7 +53,7 @@ MAX_AMPLITUDE = 1e48
 # (round-off of float64 sums is ~1e-15; three decades between the two thresholds).
 _RANK_SIGNAL = 1e-9
 _RANK_NULL = 1e-12
-# Beyond this many LEDs the eigenvalues cost more than a solve (1024 LEDs: ~0.2 s).
+# The eigenvalues cost O(M^3): beyond this many LEDs more than the solve they would save.
 _RANK_MAX_LEDS = 256
 
 
