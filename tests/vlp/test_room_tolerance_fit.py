@@ -218,10 +218,15 @@ def test_a_target_on_another_s_terminal_jumps_to_the_one_left_without(
 ) -> None:
     # Two estimates on one terminal and none on another is a local optimum that the joint
     # fit's own refinement does not leave; its long moves do. Where the refinement alone
-    # already finds every terminal, the moves change nothing for the worse. (Which seeds
-    # stay stuck depends on round-off, so on the machine's SIMD: 20 seeds, of which 2 of
-    # the first 6 stayed stuck on one machine and 8 of 20, none of the first 6, on another.)
+    # already finds every terminal, the moves change nothing for the worse: no estimate
+    # leaves its terminal, and the worst errors stay the same on average. A move is kept
+    # when it lowers the cost, which at 30 dB can shift an estimate by a noise-sized step
+    # either way (up to 2.1 cm on one machine), so a single placement is held to the noise
+    # (5 cm, about the bound at K = 8), not to zero. (Which seeds stay stuck, and which
+    # moves are kept, depend on round-off, so on the machine's SIMD: 20 seeds, of which 2
+    # of the first 6 stayed stuck on one machine and 5-8 of 20 on others.)
     stuck = 0
+    changes = []
     for seed in range(STUCK_SEEDS):
         worst = {}
         for jumps in (False, True):
@@ -233,8 +238,10 @@ def test_a_target_on_another_s_terminal_jumps_to_the_one_left_without(
             stuck += 1
             assert worst[True] < 0.25
         else:
-            assert worst[True] <= worst[False] + 0.02
+            assert worst[True] <= worst[False] + 0.05
+            changes.append(worst[True] - worst[False])
     assert stuck >= 2
+    assert np.mean(changes) <= 0.01
 
 
 def test_the_joint_fit_takes_another_placement_only_when_it_fits_better(
