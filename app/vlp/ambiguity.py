@@ -14,7 +14,9 @@ hold both. Both are plain NumPy: a few channel evaluations per answer.
 
 :func:`far_optima` looks for any other optimum of one terminal's own amplitudes over the
 grid (a receiver in the dark receives noise, which every dark spot explains as well), for
-the same widening.
+the same widening; :func:`farthest_in_region` is its region, shared with the aggregated
+forms' scan (each estimate moved over the grid with the others held,
+``GridlessSolver._aggregated_far_optima``).
 """
 
 from __future__ import annotations
@@ -31,6 +33,7 @@ __all__ = [
     "TWIN_MAX_CHANGE",
     "covering_twins",
     "far_optima",
+    "farthest_in_region",
     "mirror_twins",
     "twins_possible",
 ]
@@ -172,11 +175,9 @@ def far_optima(
     The profile over the grid of each terminal's cost with its gain free (least squares,
     non-negative), ``c_j = ||y||^2 - max(g_j . y, 0)^2 / ||g_j||^2`` in units of the noise
     variance, and its region ``c_j - min c <= 5.99`` (the 95 % quantile of chi-square with
-    2 degrees of freedom): the grid's version of a likelihood-ratio confidence region. Points
-    of it within the circle plus 1.5 grid steps are the estimate's own neighbourhood. The
-    circle is bounded from above by that of the covariance's larger axis in every direction
-    (``2.45 sqrt(lambda_max)``): no exact radius needed, and no point within the true circle
-    counts as far.
+    2 degrees of freedom): the grid's version of a likelihood-ratio confidence region
+    (:func:`farthest_in_region`). Points of it within the circle plus 1.5 grid steps are the
+    estimate's own neighbourhood.
 
     Parameters
     ----------
@@ -200,26 +201,67 @@ def far_optima(
     far : ndarray of shape (K, 2), metres; NaN rows where the region stays near the estimate
     """
     values = np.asarray(amplitudes, dtype=np.float64)
-    far = np.full((values.shape[0], 2), np.nan)
     if not noise_variance > 0.0:
-        return far
+        return np.full((values.shape[0], 2), np.nan)
     if column_energy is None:
         column_energy = np.einsum("mn,mn->n", gains, gains)
     norms = np.maximum(column_energy, 1e-300)
+    # c_j - min c = (max explained - explained_j) / sigma^2
+    explained = np.maximum(values @ gains, 0.0) ** 2 / norms / noise_variance  # (K, N)
+    return farthest_in_region(
+        explained, explained.max(axis=1), grid_points, positions, covariances, spacing
+    )
+
+
+def farthest_in_region(
+    explained: FloatArray,
+    best: FloatArray,
+    grid_points: FloatArray,
+    positions: FloatArray,
+    covariances: FloatArray,
+    spacing: float,
+) -> FloatArray:
+    """Per estimate, the farthest grid point of its profile's 95 % region where it lies
+    beyond the estimate's 95 % circle plus 1.5 grid steps; NaN where none.
+
+    The region is the grid's likelihood-ratio region: the points where the estimate's cost,
+    minimised over its gain with everything else held, is within the 95 % quantile of
+    chi-square with 2 degrees of freedom (5.99) of its minimum. The circle is bounded from
+    above by that of the covariance's larger axis (``2.45 sqrt(lambda_max)``): no exact
+    radius needed, and no point within the true circle counts as far.
+
+    Parameters
+    ----------
+    explained : ndarray of shape (K, N)
+        How much of its cost each estimate would explain at each grid point, in units of
+        the noise variance (the cost's decrease there).
+    best : ndarray of shape (K,)
+        The most any placement explains (at least ``explained.max(axis=1)``).
+    grid_points : ndarray of shape (N, 2), metres
+    positions : ndarray of shape (K, 2), metres
+    covariances : ndarray of shape (K, 2, 2), m^2
+        Each estimate's covariance so far (non-finite: nothing is far).
+    spacing : float, metres
+        The grid step.
+
+    Returns
+    -------
+    far : ndarray of shape (K, 2), metres; NaN rows where the region stays near the estimate
+    """
+    far = np.full((explained.shape[0], 2), np.nan)
     cov = np.asarray(covariances, dtype=np.float64)
     with np.errstate(invalid="ignore", over="ignore"):
         larger = 0.5 * (cov[:, 0, 0] + cov[:, 1, 1]) + np.hypot(
             0.5 * (cov[:, 0, 0] - cov[:, 1, 1]), 0.5 * (cov[:, 0, 1] + cov[:, 1, 0])
         )
         radii = np.where(np.isfinite(larger), _CIRCLE_95 * np.sqrt(np.abs(larger)), np.inf)
-    explained = np.maximum(values @ gains, 0.0) ** 2 / norms  # (K, N)
-    for k in range(values.shape[0]):
-        # c_j - min c = (max explained - explained_j) / sigma^2
-        region = explained[k] >= explained[k].max() - _REGION_CHI2 * noise_variance
-        distance = np.linalg.norm(grid_points[region] - positions[k], axis=1)
-        farthest = int(np.argmax(distance))
-        if distance[farthest] > radii[k] + 1.5 * spacing:
-            far[k] = grid_points[region][farthest]
+    region = explained >= np.asarray(best)[:, np.newaxis] - _REGION_CHI2  # (K, N)
+    offsets = grid_points[np.newaxis, :, :] - np.asarray(positions)[:, np.newaxis, :]
+    distance = np.where(region, np.hypot(offsets[:, :, 0], offsets[:, :, 1]), -np.inf)
+    farthest = np.argmax(distance, axis=1)
+    reach = distance[np.arange(distance.shape[0]), farthest]
+    is_far = reach > radii + 1.5 * spacing
+    far[is_far] = grid_points[farthest[is_far]]
     return far
 
 
