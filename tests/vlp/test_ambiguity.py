@@ -7,7 +7,13 @@ from collections.abc import Callable
 import numpy as np
 import pytest
 
-from app.vlp.ambiguity import covering_twins, far_optima, mirror_twins, twins_possible
+from app.vlp.ambiguity import (
+    covering_twins,
+    far_optima,
+    farthest_in_region,
+    mirror_twins,
+    twins_possible,
+)
 from app.vlp.channel import channel_gains
 from app.vlp.fingerprints import Fingerprint, build_fingerprint
 from app.vlp.layout import Grid, Layout, Led, Room
@@ -146,11 +152,9 @@ def test_far_optima_leave_a_well_lit_terminal_alone(paper_fingerprint: Fingerpri
     assert np.isnan(far).all()
 
 
-def test_terminals_in_the_dark_get_radii_that_hold_them() -> None:
-    """Narrow beams far apart: a terminal between them receives noise only, and any dark
-    spot explains that as well. Before, such answers came with radii of a metre or two at
-    the wrong end of the room (random rooms, 2026-11-24)."""
-    layout = Layout(
+def narrow_beams() -> Layout:
+    """Four narrow beams far apart: between them a receiver gets noise only."""
+    return Layout(
         room=Room(6.0, 5.0, 3.5),
         grid=Grid(0.25, 0.5),
         leds=tuple(
@@ -159,6 +163,34 @@ def test_terminals_in_the_dark_get_radii_that_hold_them() -> None:
             for y in (1.25, 3.75)
         ),
     )
+
+
+def test_the_farthest_point_of_a_profile_region_beyond_the_circle() -> None:
+    points = np.array([[0.0, 0.0], [0.1, 0.0], [2.0, 0.0], [3.0, 0.0]])
+    positions = np.array([[0.0, 0.0], [0.0, 0.0], [0.0, 0.0]])
+    tight = np.repeat(np.eye(2)[np.newaxis] * 1e-4, 3, axis=0)
+    explained = np.array(
+        [
+            [10.0, 9.0, 5.0, 0.0],  # (2, 0) is within 5.99 of the best, (3, 0) is not
+            [10.0, 9.0, 3.0, 0.0],  # only the neighbourhood
+            [10.0, 9.0, 5.0, 0.0],  # the same, but the estimate itself explains 20
+        ]
+    )
+    far = farthest_in_region(explained, np.array([10.0, 10.0, 20.0]), points, positions, tight, 0.1)
+    assert np.array_equal(far[0], [2.0, 0.0])
+    assert np.isnan(far[1:]).all()
+    # A circle that already reaches past (2, 0) (radius 2.45 sqrt(0.81) = 2.2 m): not far.
+    wide = np.eye(2)[np.newaxis] * 0.81
+    assert np.isnan(
+        farthest_in_region(explained[:1], np.array([10.0]), points, positions[:1], wide, 0.1)
+    ).all()
+
+
+def test_terminals_in_the_dark_get_radii_that_hold_them() -> None:
+    """Narrow beams far apart: a terminal between them receives noise only, and any dark
+    spot explains that as well. Before, such answers came with radii of a metre or two at
+    the wrong end of the room (random rooms, 2026-11-24)."""
+    layout = narrow_beams()
     solver = GridlessSolver(build_fingerprint(layout), "correlation")
     rng = np.random.default_rng(4)
     dark = np.array([[3.0, 2.5], [0.3, 2.5], [5.7, 0.2], [3.0, 4.8], [0.2, 4.8]])

@@ -12,7 +12,13 @@ from typing import NamedTuple
 
 import numpy as np
 
-from ..ambiguity import covering_twins, far_optima, mirror_twins, twins_possible
+from ..ambiguity import (
+    covering_twins,
+    far_optima,
+    farthest_in_region,
+    mirror_twins,
+    twins_possible,
+)
 from ..fingerprints import Fingerprint
 from ..measurements import Measurement, Model, noise_atom, summed_terminals
 from ..scale import check_amplitude_scale
@@ -63,8 +69,9 @@ _MAX_MISFIT_ENTRIES = 4_000_000
 # A count read off the rank of R replaces a smaller count by energy only when its fit's
 # variance ratio against that one is above this (GridlessSolver._explains_more).
 _COUNT_F_RATIO = 10.0
-# Largest gains matrix (M x N entries) whose grid the terminals' far-optimum scan reads per
-# answer (GridlessSolver._with_far_optima; K x M x N per answer).
+# Largest gains matrix (M x N entries) whose grid the far-optimum scans read per answer
+# (GridlessSolver._far_optima and _aggregated_far_optima; K x M x N per answer, M^2 N per
+# target for the correlation).
 _MAX_PROFILE_ENTRIES = 1_000_000
 # Grid steps added to the reach of a local refinement (targets move a little while fitted).
 _NEAR_MARGIN_STEPS = 4.0
@@ -847,6 +854,7 @@ class GridlessSolver(Solver):
             # The joint fit's own information: its model holds what the nominal one misses.
             covariances = tolerances.covariances
             fit = assess_fit(tolerances.chi2, tolerances.dof, math.exp(0.5 * state.log_scale))
+        far = self._aggregated_far_optima(run, state, covariances)
         if prescale != 1.0:
             state.log_scale += math.log(prescale)
             state.facts = None
@@ -875,7 +883,7 @@ class GridlessSolver(Solver):
                 "send the correlation matrix or each terminal's amplitudes",
             )
         positions = state.positions
-        covariances, fit = self._reported(positions, covariances, fit)
+        covariances, fit = self._reported(positions, covariances, fit, far)
         return Solution(
             positions=positions,
             grid_indices=self.fingerprint.layout.nearest_cell(positions),
@@ -1167,6 +1175,82 @@ class GridlessSolver(Solver):
             self._column_energy,
         )
 
+    def _aggregated_far_optima(
+        self, run: _Run, state: FitState, covariances: FloatArray
+    ) -> FloatArray:
+        """Each estimate's farthest other optimum of the aggregated measurement beyond its
+        radius, shape (K, 2), NaN where none: the estimate moved over the grid with the
+        others held, its gain free (:meth:`_profiles`), and the region where that profile
+        is within chi-square(2)'s 95 % of its best
+        (:func:`app.vlp.ambiguity.farthest_in_region`). It finds what the covariance, a
+        curvature at one optimum, cannot: a receiver in the dark, the other side of a row of
+        LEDs, a spot that another target's light also explains. Dense rooms whose gains are
+        small enough to scan per answer (else all NaN)."""
+        k = state.n_targets
+        if not self._dense or k == 0 or self._gains.size > _MAX_PROFILE_ENTRIES:
+            return np.full((k, 2), np.nan)
+        explained, best = self._profiles(run, state)
+        return farthest_in_region(
+            explained,
+            best,
+            self._centres,
+            state.positions,
+            covariances,
+            self.fingerprint.layout.grid.step,
+        )
+
+    def _profiles(self, run: _Run, state: FitState) -> tuple[FloatArray, FloatArray]:
+        """How much of the whitened cost each estimate would explain at every grid point,
+        the others held and its gain free, shape (K, N), and how much it explains where it
+        is, shape (K,) (dense rooms, the final whitened metric).
+
+        Without estimate k the whitened residual is ``r_k = r + w_k a_k`` (``a_k`` its
+        whitened atom, ``w_k`` its effective weight); a unit atom ``a_j`` at grid point j
+        with its gain free explains ``max(<a_j, r_k>, 0)^2 / ||a_j||^2``, and the estimate
+        itself ``||r_k||^2 - ||r||^2``. In the rotated basis (``rho = U^T g``) every inner
+        product of atoms is a quadratic form in ``rho_j o rho_k`` with the squared weights,
+        so all K profiles cost one pass over the grid each, without forming any ``r_k``.
+        """
+        white = self._whitening(state)
+        residual = self._residual(run, white, state)
+        weights = white.weights
+        n_leds = self.fingerprint.n_leds
+        targets = target_gains(self._kernel, state)  # (M, K)
+        multipliers = state.effective_weights()
+        if self.model == "power":
+            squared = weights**2
+            grid_sq, target_sq = self._gains_sq, targets**2
+            num = (weights * residual) @ grid_sq
+            norms = squared @ self._gains_fourth
+            cross = (target_sq * squared[:, np.newaxis]).T @ grid_sq  # (K, N)
+            without = num[np.newaxis, :] + multipliers[:, np.newaxis] * cross
+            own_num = (weights * residual) @ target_sq
+            own_norm = squared @ target_sq**2
+        else:
+            # Symmetric M x M forms of the whitened entries (each off-diagonal entry split
+            # over its two places): r's, and the squared weights'.
+            quadratic = np.zeros((n_leds, n_leds))
+            quadratic[white.upper, white.lower] = 0.5 * weights * residual
+            quadratic = quadratic + quadratic.T
+            squared = np.zeros((n_leds, n_leds))
+            squared[white.upper, white.lower] = 0.5 * weights**2
+            squared = squared + squared.T
+            grid = white.rotate(self._gains)  # (M, N)
+            rotated = white.rotate(targets)  # (M, K)
+            # r_k's form: r's plus w_k times the squared weights on rho_k rho_k^T.
+            forms = quadratic + multipliers[:, np.newaxis, np.newaxis] * squared * (
+                rotated.T[:, :, np.newaxis] * rotated.T[:, np.newaxis, :]
+            )
+            without = np.sum(np.matmul(forms, grid) * grid, axis=1)  # (K, N)
+            grid_sq = grid * grid
+            norms = np.sum((squared @ grid_sq) * grid_sq, axis=0)
+            own_num = np.sum((quadratic @ rotated) * rotated, axis=0)
+            rotated_sq = rotated * rotated
+            own_norm = np.sum((squared @ rotated_sq) * rotated_sq, axis=0)
+        explained = np.maximum(without, 0.0) ** 2 / np.maximum(norms, 1e-300)
+        own = 2.0 * multipliers * own_num + multipliers**2 * own_norm
+        return explained, np.maximum(explained.max(axis=1), own)
+
     def _gains_at(self, points: FloatArray) -> FloatArray:
         """The channel gains (M, P) at ``points`` (P, 2) on the receivers' plane."""
         return self._kernel.gains_xy(points[:, 0], points[:, 1])
@@ -1181,8 +1265,8 @@ class GridlessSolver(Solver):
         """The covariances (K, 2, 2) and fit quality an answer reports: each estimate's
         region widened to hold its mirror twin (:mod:`app.vlp.ambiguity`: LEDs on one line
         give the same gains on both sides) or its ``far`` optimum (shape (K, 2), NaN where
-        none; :meth:`_far_optima`), the farther of the two, the fit's detail saying so, and
-        no 95 % radius beyond the floor's diagonal
+        none; :meth:`_far_optima`, :meth:`_aggregated_far_optima`), the farther of the two,
+        the fit's detail saying so, and no 95 % radius beyond the floor's diagonal
         (:func:`app.vlp.uncertainty.bounded_covariances`)."""
         room = self.fingerprint.layout.room
         twins = (
@@ -1205,8 +1289,8 @@ class GridlessSolver(Solver):
         detail = fit.detail
         if has_far.any():
             detail += (
-                f"; {int(has_far.sum())} of the terminals' amplitudes fit another place "
-                "beyond their radius about as well: their radii hold it"
+                f"; {int(has_far.sum())} of the estimates would fit the measurement about "
+                "as well at another place beyond their radius: their radii hold it"
             )
         if has_twin.any():
             detail += (

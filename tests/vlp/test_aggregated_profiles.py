@@ -1,0 +1,54 @@
+"""The aggregated forms' profiles (GridlessSolver._profiles) against residuals formed
+one estimate at a time, and what they do to an answer's radii."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from app.vlp.fingerprints import Fingerprint
+from app.vlp.measurements import Model, measurement_from_amplitudes
+from app.vlp.simulation import Impairments, random_positions, simulate_terminals
+from app.vlp.solvers._gridless_fit import FitState
+from app.vlp.solvers.gridless import GridlessSolver, _Run
+
+
+@pytest.mark.parametrize("model", ["correlation", "power"])
+def test_profiles_equal_the_insertion_fit_of_each_estimate_s_own_residual(
+    paper_fingerprint: Fingerprint, model: Model
+) -> None:
+    layout = paper_fingerprint.layout
+    rng = np.random.default_rng(7)
+    truth = random_positions(layout, 4, rng=rng)
+    simulated = simulate_terminals(layout, truth, Impairments.ideal(), snr_db=30.0, rng=rng)
+    measurement = measurement_from_amplitudes(simulated.amplitudes, model, layout.n_leds)
+    solver = GridlessSolver(paper_fingerprint, model)
+    run = _Run(values=measurement.values / solver._scale**2, priors=solver._priors)
+    # Off the truth, other heights, gains and scale: every term of the model in play.
+    state = FitState(
+        truth + rng.normal(0.0, 0.05, truth.shape),
+        np.ones(4),
+        0.02,
+        layout.grid.receiver_height + rng.normal(0.0, 0.05, 4),
+        rng.normal(0.0, 0.1, 4),
+        0.05,
+    )
+    explained, best = solver._profiles(run, state)
+
+    white = solver._whitening(state)
+    full = solver._residual(run, white, state)
+    gains = solver._gains
+    if model == "correlation":
+        upper, lower = np.triu_indices(layout.n_leds)
+        atoms = np.array(
+            [white.data(gains[upper, j] * gains[lower, j]) for j in range(gains.shape[1])]
+        )
+    else:
+        atoms = np.array([white.data(gains[:, j] ** 2) for j in range(gains.shape[1])])
+    norms = np.einsum("jl,jl->j", atoms, atoms)
+    for k in range(4):
+        others = solver._residual(run, white, state.subset(np.arange(4) != k))
+        expected = np.maximum(atoms @ others, 0.0) ** 2 / norms
+        np.testing.assert_allclose(explained[k], expected, rtol=1e-9, atol=1e-9 * expected.max())
+        own = float(others @ others - full @ full)
+        assert best[k] == pytest.approx(max(expected.max(), own), rel=1e-9)
