@@ -173,8 +173,8 @@ class Estimate(ResponseModel):
         "gain errors, tilts, heights not sent; docs/accuracy.md measures how often it holds). "
         "The floor's diagonal where the data leave the position open (a receiver that sees "
         "one LED or none); wide enough to hold the mirror image where the LEDs a receiver "
-        "sees lie on one line and, for `terminals`, any other place that fits a terminal's "
-        "amplitudes as well (`fit.detail` says so)",
+        "sees lie on one line, and any other place where the target would fit the "
+        "measurement about as well, the others held (`fit.detail` says so)",
     )
     covariance: list[list[float]] | None = Field(
         default=None, description="[[sxx, sxy], [sxy, syy]] of (x, y), m^2 (solver `gridless`)"
