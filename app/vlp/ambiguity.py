@@ -255,13 +255,15 @@ def farthest_in_region(
             0.5 * (cov[:, 0, 0] - cov[:, 1, 1]), 0.5 * (cov[:, 0, 1] + cov[:, 1, 0])
         )
         radii = np.where(np.isfinite(larger), _CIRCLE_95 * np.sqrt(np.abs(larger)), np.inf)
-    region = explained >= np.asarray(best)[:, np.newaxis] - _REGION_CHI2  # (K, N)
-    offsets = grid_points[np.newaxis, :, :] - np.asarray(positions)[:, np.newaxis, :]
-    distance = np.where(region, np.hypot(offsets[:, :, 0], offsets[:, :, 1]), -np.inf)
-    farthest = np.argmax(distance, axis=1)
-    reach = distance[np.arange(distance.shape[0]), farthest]
-    is_far = reach > radii + 1.5 * spacing
-    far[is_far] = grid_points[farthest[is_far]]
+    # The region is a few grid points per estimate: distances to those only.
+    rows, cols = np.nonzero(explained >= np.asarray(best)[:, np.newaxis] - _REGION_CHI2)
+    points = np.asarray(positions)[rows]
+    distance = np.hypot(grid_points[cols, 0] - points[:, 0], grid_points[cols, 1] - points[:, 1])
+    reach = np.full(explained.shape[0], -np.inf)
+    np.maximum.at(reach, rows, distance)
+    for k in np.flatnonzero(reach > radii + 1.5 * spacing):
+        mine = rows == k
+        far[k] = grid_points[cols[mine][np.argmax(distance[mine])]]
     return far
 
 
