@@ -51,7 +51,7 @@ from app.vlp.solvers._uncertainty_compiled import (
     misfit_design_kernel,
     nnls_kernel,
 )
-from app.vlp.solvers.gridless import GridlessSolver
+from app.vlp.solvers.gridless import GridlessSolver, _Run
 from app.vlp.typing import FloatArray
 from app.vlp.uncertainty import MisfitDesign, fit_misfit, misfit_design
 
@@ -794,3 +794,23 @@ def test_fit_misfit_matches_reference(max_noise: float) -> None:
     assert noise == pytest.approx(want.noise, rel=1e-10)
     assert_same(model_errors, want.model_errors)
     assert_same(dofs, want.dofs)
+
+
+@pytest.mark.parametrize("layout_name", list(LAYOUTS))
+def test_aggregated_profiles_match_reference(layout_name: str) -> None:
+    """An answer's far-place profiles (GridlessSolver._profiles, correlation model)."""
+    layout = LAYOUTS[layout_name]()
+    solver = GridlessSolver(build_fingerprint(layout), "correlation")
+    rng = np.random.default_rng(12)
+    state = random_state(solver._kernel, 3, rng, on_plane=False)
+    values = normal(rng, layout.n_leds * (layout.n_leds + 1) // 2)
+    run = _Run(values=values, priors=solver._priors)
+    # One metric for both: the eigenbasis of a degenerate eigenvalue is round-off's choice,
+    # and the weighted metric is not invariant to it.
+    white = Whitening._from_state_reference("correlation", solver._kernel, state, 3.0)
+    solver._whitening = lambda _state: white  # type: ignore[method-assign, assignment]
+    with use_kernels("reference"):
+        want = solver._profiles(run, state)
+    got = solver._profiles(run, state)
+    for got_part, want_part in zip(got, want, strict=True):
+        assert_same(got_part, want_part)

@@ -27,6 +27,7 @@ from ._channel_compiled import ChannelConstants, TableConstants, channel_rows
 from ._kernels import compiled, compiled_reassociating
 
 __all__ = [
+    "correlation_profiles_kernel",
     "correlation_scores_kernel",
     "gram_kernel",
     "lm_kernel",
@@ -542,3 +543,70 @@ def correlation_scores_kernel(
             num[j] += rotated[a, j] * left[a, j]
             norms[j] += squares[a, j] * right[a, j]
     return num, norms
+
+
+@compiled
+def correlation_profiles_kernel(
+    white: Problem,
+    residual: FloatArray,
+    gains: FloatArray,
+    targets: FloatArray,
+    multipliers: FloatArray,
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """The inner products behind ``GridlessSolver._profiles`` (dense correlation model), its
+    NumPy code being the reference: with ``a_j`` the whitened unit atom of grid point j
+    (gains (M, N)) and ``a_k`` that of estimate k (its gains ``targets[:, k]``, (M, K), and
+    effective weight ``multipliers[k]``), returns ``<a_j, r + w_k a_k>`` (K, N),
+    ``||a_j||^2`` (N,), ``<a_k, r>`` and ``||a_k||^2`` (K,).
+
+    In the rotated basis (``rho = U^T g``) ``<a_j, r> = rho_j^T Q rho_j`` with ``Q`` the
+    symmetric form of the weighted residual, and ``<a_j, a_k> = (rho_j o rho_k)^T S
+    (rho_j o rho_k)`` with ``S`` that of the squared weights (each off-diagonal entry split
+    over its two places).
+    """
+    has_rotation, rotation, weights, upper, lower, _ = white
+    n_leds, n_points = gains.shape
+    n_targets = targets.shape[1]
+    quadratic = np.zeros((n_leds, n_leds))
+    squared = np.zeros((n_leds, n_leds))
+    for col in range(upper.shape[0]):
+        a, b = upper[col], lower[col]
+        half_value = 0.5 * weights[col] * residual[col]
+        half_square = 0.5 * weights[col] * weights[col]
+        quadratic[a, b] += half_value
+        quadratic[b, a] += half_value
+        squared[a, b] += half_square
+        squared[b, a] += half_square
+    if has_rotation:
+        rotation_t = rotation.T.copy()
+        grid = np.dot(rotation_t, gains)
+        rotated = np.dot(rotation_t, targets)
+    else:
+        grid = gains.copy()
+        rotated = targets.copy()
+    grid_sq = grid * grid
+    left = np.dot(quadratic, grid)
+    right = np.dot(squared, grid_sq)
+    num = np.zeros(n_points)
+    norms = np.zeros(n_points)
+    for a in range(n_leds):
+        for j in range(n_points):
+            num[j] += grid[a, j] * left[a, j]
+            norms[j] += grid_sq[a, j] * right[a, j]
+    without = np.empty((n_targets, n_points))
+    own_num = np.zeros(n_targets)
+    own_norm = np.zeros(n_targets)
+    weighted = np.empty((n_leds, n_leds))
+    for k in range(n_targets):
+        for a in range(n_leds):
+            for b in range(n_leds):
+                weighted[a, b] = squared[a, b] * rotated[a, k] * rotated[b, k]
+                own_num[k] += rotated[a, k] * quadratic[a, b] * rotated[b, k]
+                own_norm[k] += weighted[a, b] * rotated[a, k] * rotated[b, k]
+        cross = np.dot(weighted, grid)
+        for j in range(n_points):
+            without[k, j] = num[j]
+        for a in range(n_leds):
+            for j in range(n_points):
+                without[k, j] += multipliers[k] * grid[a, j] * cross[a, j]
+    return without, norms, own_num, own_norm

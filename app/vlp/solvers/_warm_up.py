@@ -12,7 +12,7 @@ import scipy.sparse as sp
 from ..presets import paper_layout
 from ._channel_compiled import channel_constants, channel_rows
 from ._channel_kernel import ChannelKernel
-from ._fit_compiled import correlation_scores_kernel
+from ._fit_compiled import correlation_profiles_kernel, correlation_scores_kernel
 from ._gridless_fit import FitState, Objective, Priors, Whitening, gram, levenberg_marquardt
 from ._local import _best_of_tiles
 from ._room_tolerance_fit import RoomTolerances, _JointModel, _levenberg_marquardt
@@ -50,6 +50,14 @@ def exercise() -> None:
         uncertainty_kernel(*problem, theta, *objective.compiled_state(state), 1.0)
         if model == "correlation":
             correlation_scores_kernel(white.compiled(), values, np.ones((kernel.n_leds, 3)))
+            # an answer's far places (GridlessSolver._profiles)
+            correlation_profiles_kernel(
+                white.compiled(),
+                values,
+                np.ones((kernel.n_leds, 3)),
+                np.ones((kernel.n_leds, 2)),
+                np.ones(2),
+            )
     # the joint fit under the room's tolerances (GridlessSolver._with_room_tolerances): its
     # metric evaluates the gains; its score test the residual and Jacobian; then its LM
     joint = _JointModel(kernel, state.heights, (0.1, 0.5), RoomTolerances(0.05, 3.0, 0.07))

@@ -33,7 +33,7 @@ from ..uncertainty import (
     predictive_covariances,
 )
 from ._channel_kernel import ChannelKernel
-from ._fit_compiled import correlation_scores_kernel
+from ._fit_compiled import correlation_profiles_kernel, correlation_scores_kernel
 from ._gridless_fit import (
     MAX_LOG_SCALE,
     FitState,
@@ -1209,7 +1209,9 @@ class GridlessSolver(Solver):
         with its gain free explains ``max(<a_j, r_k>, 0)^2 / ||a_j||^2``, and the estimate
         itself ``||r_k||^2 - ||r||^2``. In the rotated basis (``rho = U^T g``) every inner
         product of atoms is a quadratic form in ``rho_j o rho_k`` with the squared weights,
-        so all K profiles cost one pass over the grid each, without forming any ``r_k``.
+        so all K profiles cost one pass over the grid each, without forming any ``r_k``
+        (compiled: :func:`._fit_compiled.correlation_profiles_kernel`, this NumPy code its
+        reference).
         """
         white = self._whitening(state)
         residual = self._residual(run, white, state)
@@ -1226,6 +1228,14 @@ class GridlessSolver(Solver):
             without = num[np.newaxis, :] + multipliers[:, np.newaxis] * cross
             own_num = (weights * residual) @ target_sq
             own_norm = squared @ target_sq**2
+        elif kernel_mode() == "compiled":
+            without, norms, own_num, own_norm = correlation_profiles_kernel(
+                white.compiled(),
+                np.ascontiguousarray(residual, dtype=np.float64),
+                self._gains,
+                np.ascontiguousarray(targets, dtype=np.float64),
+                np.ascontiguousarray(multipliers, dtype=np.float64),
+            )
         else:
             # Symmetric M x M forms of the whitened entries (each off-diagonal entry split
             # over its two places): r's, and the squared weights'.
