@@ -249,19 +249,20 @@ def farthest_in_region(
     far : ndarray of shape (K, 2), metres; NaN rows where the region stays near the estimate
     """
     far = np.full((explained.shape[0], 2), np.nan)
-    cov = np.asarray(covariances, dtype=np.float64)
-    with np.errstate(invalid="ignore", over="ignore"):
-        larger = 0.5 * (cov[:, 0, 0] + cov[:, 1, 1]) + np.hypot(
-            0.5 * (cov[:, 0, 0] - cov[:, 1, 1]), 0.5 * (cov[:, 0, 1] + cov[:, 1, 0])
-        )
-        radii = np.where(np.isfinite(larger), _CIRCLE_95 * np.sqrt(np.abs(larger)), np.inf)
-    # The region is a few grid points per estimate: distances to those only.
+    # The region is a few grid points per estimate: distances to those only, and the
+    # circles only of the estimates whose region reaches beyond their neighbourhood.
     rows, cols = np.nonzero(explained >= np.asarray(best)[:, np.newaxis] - _REGION_CHI2)
     points = np.asarray(positions)[rows]
     distance = np.hypot(grid_points[cols, 0] - points[:, 0], grid_points[cols, 1] - points[:, 1])
     reach = np.full(explained.shape[0], -np.inf)
     np.maximum.at(reach, rows, distance)
-    for k in np.flatnonzero(reach > radii + 1.5 * spacing):
+    for k in np.flatnonzero(reach > 1.5 * spacing):
+        # Python floats: a non-finite covariance gives nan or inf here without a warning.
+        xx, xy, yx, yy = (float(v) for v in np.ravel(covariances[k]))
+        larger = 0.5 * (xx + yy) + math.hypot(0.5 * (xx - yy), 0.5 * (xy + yx))
+        radius = _CIRCLE_95 * math.sqrt(abs(larger)) if math.isfinite(larger) else math.inf
+        if reach[k] <= radius + 1.5 * spacing:
+            continue
         mine = rows == k
         far[k] = grid_points[cols[mine][np.argmax(distance[mine])]]
     return far
