@@ -532,15 +532,25 @@ def correlation_scores_kernel(
             quadratic[a, b] = quadratic[b, a] = 0.5 * w * residual[col]
             squared[a, b] = squared[b, a] = 0.5 * w * w
     rotated = np.dot(rotation.T.copy(), gains) if has_rotation else gains
-    squares = rotated * rotated
-    left = np.dot(quadratic, rotated)
+    num, norms = _quadratic_forms(rotated, quadratic, squared)
+    return num, norms
+
+
+@compiled
+def _quadratic_forms(
+    points: FloatArray, quadratic: FloatArray, squared: FloatArray
+) -> tuple[FloatArray, FloatArray]:
+    """Per column ``rho`` of ``points`` (M, N): ``rho^T Q rho`` and ``(rho o rho)^T S
+    (rho o rho)``, shapes (N,)."""
+    n_leds, n_points = points.shape
+    squares = points * points
+    left = np.dot(quadratic, points)
     right = np.dot(squared, squares)
-    n_points = gains.shape[1]
     num = np.zeros(n_points)
     norms = np.zeros(n_points)
     for a in range(n_leds):
         for j in range(n_points):
-            num[j] += rotated[a, j] * left[a, j]
+            num[j] += points[a, j] * left[a, j]
             norms[j] += squares[a, j] * right[a, j]
     return num, norms
 
@@ -584,15 +594,7 @@ def correlation_profiles_kernel(
     else:
         grid = gains.copy()
         rotated = targets.copy()
-    grid_sq = grid * grid
-    left = np.dot(quadratic, grid)
-    right = np.dot(squared, grid_sq)
-    num = np.zeros(n_points)
-    norms = np.zeros(n_points)
-    for a in range(n_leds):
-        for j in range(n_points):
-            num[j] += grid[a, j] * left[a, j]
-            norms[j] += grid_sq[a, j] * right[a, j]
+    num, norms = _quadratic_forms(grid, quadratic, squared)
     without = np.empty((n_targets, n_points))
     own_num = np.zeros(n_targets)
     own_norm = np.zeros(n_targets)
