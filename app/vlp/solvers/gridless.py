@@ -161,7 +161,10 @@ class GridlessSolver(Solver):
        amplitude error per LED, its photodiode's tilt, its height when not fitted), whose
        variances are estimated from the residuals net of what the fit absorbed and widened
        for their degrees of freedom (:mod:`app.vlp.uncertainty`); and the fit's quality
-       (:func:`app.vlp.uncertainty.assess_fit`).
+       (:func:`app.vlp.uncertainty.assess_fit`). Each radius also holds what a curvature
+       cannot see: another place where the estimate, the others held, fits about as well
+       (:meth:`_aggregated_far_optima`), or its mirror image across a line of LEDs
+       (:meth:`_reported`).
 
     With K known the measurement is first divided by a guessed common scale when its power
     per target is more than 1.5x off the room's mean (:meth:`_prescale`). Unknown K: first
