@@ -397,6 +397,8 @@ def test_the_sweeper_closes_passed_windows_without_any_request(
             "the sweeper to close the passed window",
         )
         assert registry.epochs.get(**ids).status == "solved"
+        # The sweeper counts an outcome after storing it: the count may come a moment later.
+        wait_for(lambda: settled(swept, "solved") >= 1, "the sweeper to count its outcome")
         assert settled(swept, "solved") == 1
         assert_labelled_near_truth(read(swept, epoch), ["t1", "t2", "t3"])
     finally:
