@@ -289,6 +289,10 @@ class GridlessSolver(Solver):
         )
         # Each target costs 2 coordinates and the noise power one more unknown.
         self._max_count = max(1, min(MAX_TARGETS, fingerprint.n_cells, (n_obs - 1) // 2))
+        # The far-place scans read every grid point per answer: dense rooms small enough.
+        self._scans_profiles = (
+            self._dense and fingerprint.n_leds * fingerprint.n_cells <= _MAX_PROFILE_ENTRIES
+        )
         if self._dense:
             self._gains = np.ascontiguousarray(
                 fingerprint.dense_scaled_gains() / self._scale, dtype=np.float64
@@ -1165,7 +1169,7 @@ class GridlessSolver(Solver):
         a receiver in a dark corner, or on either side of a row of LEDs), shape (K, 2), NaN
         where none. Dense rooms whose gains are small enough to scan per answer (else all
         NaN)."""
-        if not self._dense or self._gains.size > _MAX_PROFILE_ENTRIES:
+        if not self._scans_profiles:
             return np.full_like(positions, np.nan)
         return far_optima(
             values,
@@ -1190,7 +1194,7 @@ class GridlessSolver(Solver):
         LEDs, a spot that another target's light also explains. Dense rooms whose gains are
         small enough to scan per answer (else all NaN)."""
         k = state.n_targets
-        if not self._dense or k == 0 or self._gains.size > _MAX_PROFILE_ENTRIES:
+        if not self._scans_profiles or k == 0:
             return np.full((k, 2), np.nan)
         explained, best = self._profiles(run, state)
         return farthest_in_region(
@@ -1223,11 +1227,11 @@ class GridlessSolver(Solver):
         targets = target_gains(self._kernel, state)  # (M, K)
         multipliers = state.effective_weights()
         if self.model == "power":
+            # The insertion scores' inner products (exact for power), and the cross terms.
+            num, norms = self._correlations(white, residual)
             squared = weights**2
-            grid_sq, target_sq = self._gains_sq, targets**2
-            num = (weights * residual) @ grid_sq
-            norms = squared @ self._gains_fourth
-            cross = (target_sq * squared[:, np.newaxis]).T @ grid_sq  # (K, N)
+            target_sq = targets**2
+            cross = (target_sq * squared[:, np.newaxis]).T @ self._gains_sq  # (K, N)
             without = num[np.newaxis, :] + multipliers[:, np.newaxis] * cross
             own_num = (weights * residual) @ target_sq
             own_norm = squared @ target_sq**2
@@ -1273,7 +1277,7 @@ class GridlessSolver(Solver):
         positions: FloatArray,
         covariances: FloatArray,
         fit: FitQuality,
-        far: FloatArray | None = None,
+        far: FloatArray,
     ) -> tuple[FloatArray, FitQuality]:
         """The covariances (K, 2, 2) and fit quality an answer reports: each estimate's
         region widened to hold its mirror twin (:mod:`app.vlp.ambiguity`: LEDs on one line
@@ -1288,8 +1292,8 @@ class GridlessSolver(Solver):
             else np.full_like(positions, np.nan)
         )
         has_twin = np.isfinite(twins[:, 0])
-        has_far = np.zeros_like(has_twin) if far is None else np.isfinite(far[:, 0])
-        if far is not None and has_far.any():
+        has_far = np.isfinite(far[:, 0])
+        if has_far.any():
             # One widening per estimate, to the farther point: the far optimum when the
             # twin is nearer or none.
             to_twin = np.linalg.norm(twins - positions, axis=1)
