@@ -152,19 +152,6 @@ def test_far_optima_leave_a_well_lit_terminal_alone(paper_fingerprint: Fingerpri
     assert np.isnan(far).all()
 
 
-def narrow_beams() -> Layout:
-    """Four narrow beams far apart: between them a receiver gets noise only."""
-    return Layout(
-        room=Room(6.0, 5.0, 3.5),
-        grid=Grid(0.25, 0.5),
-        leds=tuple(
-            Led(x=x, y=y, z=3.5, half_power_angle_deg=15.0)
-            for x in (1.5, 4.5)
-            for y in (1.25, 3.75)
-        ),
-    )
-
-
 def test_the_farthest_point_of_a_profile_region_beyond_the_circle() -> None:
     points = np.array([[0.0, 0.0], [0.1, 0.0], [2.0, 0.0], [3.0, 0.0]])
     positions = np.array([[0.0, 0.0], [0.0, 0.0], [0.0, 0.0]])
@@ -190,7 +177,15 @@ def test_terminals_in_the_dark_get_radii_that_hold_them() -> None:
     """Narrow beams far apart: a terminal between them receives noise only, and any dark
     spot explains that as well. Before, such answers came with radii of a metre or two at
     the wrong end of the room (random rooms, 2026-11-24)."""
-    layout = narrow_beams()
+    layout = Layout(
+        room=Room(6.0, 5.0, 3.5),
+        grid=Grid(0.25, 0.5),
+        leds=tuple(
+            Led(x=x, y=y, z=3.5, half_power_angle_deg=15.0)
+            for x in (1.5, 4.5)
+            for y in (1.25, 3.75)
+        ),
+    )
     solver = GridlessSolver(build_fingerprint(layout), "correlation")
     rng = np.random.default_rng(4)
     dark = np.array([[3.0, 2.5], [0.3, 2.5], [5.7, 0.2], [3.0, 4.8], [0.2, 4.8]])
