@@ -10,6 +10,7 @@ from app.vlp.fingerprints import Fingerprint
 from app.vlp.measurements import Model, measurement_from_amplitudes
 from app.vlp.simulation import Impairments, random_positions, simulate_terminals
 from app.vlp.solvers._gridless_fit import FitState
+from app.vlp.solvers._kernels import use_kernels
 from app.vlp.solvers.gridless import GridlessSolver, _Run
 
 
@@ -52,3 +53,36 @@ def test_profiles_equal_the_insertion_fit_of_each_estimate_s_own_residual(
         np.testing.assert_allclose(explained[k], expected, rtol=1e-9, atol=1e-9 * expected.max())
         own = float(others @ others - full @ full)
         assert best[k] == pytest.approx(max(expected.max(), own), rel=1e-9)
+
+
+@pytest.mark.parametrize("mode", ["reference", "compiled"])
+@pytest.mark.parametrize("model", ["correlation", "power"])
+def test_insertion_scores_are_the_inner_products_of_atoms_whitened_one_by_one(
+    paper_fingerprint: Fingerprint, model: Model, mode: str
+) -> None:
+    """``<c psi_j, r>`` and ``||c psi_j||^2`` of the grid scan against each grid point's
+    atom whitened on its own (the whitened diagonal counts once, as in the fit's cost)."""
+    layout = paper_fingerprint.layout
+    rng = np.random.default_rng(12)
+    truth = random_positions(layout, 3, rng=rng)
+    simulated = simulate_terminals(layout, truth, Impairments.ideal(), snr_db=30.0, rng=rng)
+    measurement = measurement_from_amplitudes(simulated.amplitudes, model, layout.n_leds)
+    solver = GridlessSolver(paper_fingerprint, model)
+    run = _Run(values=measurement.values / solver._scale**2, priors=solver._priors)
+    state = FitState(
+        truth[:2], np.ones(2), 0.02, np.full(2, layout.grid.receiver_height), np.zeros(2), 0.0
+    )
+    white = solver._whitening(state)
+    residual = solver._residual(run, white, state)
+    gains = solver._gains
+    if model == "correlation":
+        upper, lower = np.triu_indices(layout.n_leds)
+        unwhitened = gains[upper] * gains[lower]
+    else:
+        unwhitened = gains**2
+    with use_kernels("reference"):
+        atoms = np.array([white.data(unwhitened[:, j].copy()) for j in range(gains.shape[1])])
+    with use_kernels(mode):
+        num, norms = solver._correlations(white, residual)
+    np.testing.assert_allclose(num, atoms @ residual, rtol=1e-9, atol=1e-12 * np.abs(num).max())
+    np.testing.assert_allclose(norms, np.einsum("jl,jl->j", atoms, atoms), rtol=1e-9)

@@ -411,7 +411,7 @@ def test_whitening_matches_reference(model: Model, layout_name: str, k: int) -> 
         assert got.rotation is None and want.rotation is None
         return
     assert got.rotation is not None and want.rotation is not None
-    diagonal = want.upper == want.lower  # weight^-2 there is 8 sigma^2 lam
+    diagonal = want.upper == want.lower  # weight^-2 there is 4 sigma^2 lam
     metrics = [
         (white.rotation * white.weights[diagonal] ** -2.0) @ white.rotation.T
         for white in (got, want)

@@ -480,8 +480,8 @@ def whitening_kernel(
         lam[m] = max(lam[m], floor)
     weights = np.empty(upper.shape[0])
     for col in range(upper.shape[0]):
-        var = 2.0 * sigma2 * (lam[upper[col]] + lam[lower[col]]) * (1.0 + is_diag[col])
-        weights[col] = math.sqrt((2.0 - is_diag[col]) / var)
+        var = sigma2 * (lam[upper[col]] + lam[lower[col]]) * (1.0 + is_diag[col])
+        weights[col] = 1.0 / math.sqrt(var)
     return np.ascontiguousarray(rotation), weights
 
 
@@ -526,8 +526,7 @@ def correlation_scores_kernel(
         w = weights[col]
         if a == b:
             quadratic[a, a] = w * residual[col]
-            # 1.5: as the reference builds it, 0.5 (C + C^T) + 0.5 diag(C)
-            squared[a, a] = 1.5 * w * w
+            squared[a, a] = w * w
         else:
             quadratic[a, b] = quadratic[b, a] = 0.5 * w * residual[col]
             squared[a, b] = squared[b, a] = 0.5 * w * w

@@ -223,6 +223,19 @@ def _vech_indices(model: Model, n_leds: int) -> tuple[IntArray, IntArray, FloatA
     return upper, lower, is_diag
 
 
+def entry_variances(
+    sigma2: float, lam: FloatArray, upper: IntArray, lower: IntArray, is_diag: FloatArray
+) -> FloatArray:
+    """Noise variance of each entry of ``vech(U^T E U)``: ``sigma^2 (lam_a + lam_b)`` off the
+    diagonal, ``4 sigma^2 lam_a`` on it (see :class:`Whitening`), shape (L,).
+
+    Weighting each entry by ``1 / sqrt`` of it is the Gaussian (generalised least-squares)
+    metric, and within a block of equal eigenvalues it is that block's Frobenius norm, so
+    the metric does not depend on which eigenbasis the eigen-solver returns there.
+    """
+    return np.asarray(sigma2 * (lam[upper] + lam[lower]) * (1.0 + is_diag))
+
+
 class Whitening:
     """Fixed linear whitening ``r -> c * vech(U^T E U)`` (correlation) or ``c * e`` (power).
 
@@ -230,8 +243,9 @@ class Whitening:
     ``n ~ N(0, sigma^2 I)`` has, for any symmetric test matrix ``A``,
     ``Var <A, R> = 4 sigma^2 tr(A M0 A)`` with ``M0 = S + K sigma^2 / 2 I`` and
     ``S = sum_k g_k g_k^T``. In the eigenbasis ``M0 = U diag(lam) U^T`` the entries of
-    ``U^T E U`` are uncorrelated with variance ``2 sigma^2 (lam_a + lam_b)``
-    (``4 sigma^2 lam_a`` on the diagonal), which gives the weights ``c``. For power the
+    ``U^T E U`` are uncorrelated with variance ``sigma^2 (lam_a + lam_b)`` (``A`` the
+    symmetrised unit pair) and ``4 sigma^2 lam_a`` on the diagonal (:func:`entry_variances`),
+    and ``c`` is one over their square roots. For power the
     entries are independent with variance ``4 sigma^2 (S_ii + K sigma^2 / 2)``. The noise
     atom ``vech(I)`` is unchanged by the rotation (``U^T I U = I``).
     """
@@ -313,10 +327,7 @@ class Whitening:
         lam, rot = np.linalg.eigh(signal)
         lam = np.maximum(lam, _EIG_FLOOR * max(float(lam[-1]), _SIGMA2_FLOOR))
         upper, lower, is_diag = _vech_indices(model, kernel.n_leds)
-        # Variance 2 sigma^2 (lam_a + lam_b), doubled on the diagonal; off-diagonal entries
-        # count twice in the Frobenius norm, hence the factor 2 - is_diag.
-        var = 2.0 * sigma2 * (lam[upper] + lam[lower]) * (1.0 + is_diag)
-        weights = np.sqrt((2.0 - is_diag) / var)
+        weights = 1.0 / np.sqrt(entry_variances(sigma2, lam, upper, lower, is_diag))
         return cls(model, kernel.n_leds, rot, weights)
 
     def data(self, values: FloatArray) -> FloatArray:

@@ -43,6 +43,7 @@ from ._gridless_fit import (
     FitState,
     Whitening,
     _vech_indices,
+    entry_variances,
 )
 from ._kernels import kernel_mode
 from ._projected_lm import projected_levenberg_marquardt
@@ -350,8 +351,8 @@ class _JointModel:
         signal.flat[:: m + 1] += 0.5 * k * sigma2
         lam, rotation = np.linalg.eigh(signal)
         lam = np.maximum(lam, _EIG_FLOOR * max(float(lam[-1]), _SIGMA2_FLOOR))
-        var = 2.0 * sigma2 * (lam[self.upper] + lam[self.lower]) * (1.0 + self.is_diag)
-        return Whitening("correlation", m, rotation, np.sqrt((2.0 - self.is_diag) / var))
+        var = entry_variances(sigma2, lam, self.upper, self.lower, self.is_diag)
+        return Whitening("correlation", m, rotation, 1.0 / np.sqrt(var))
 
     def residual_and_jacobian(
         self, theta: FloatArray, white: Whitening, data: FloatArray

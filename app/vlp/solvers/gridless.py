@@ -374,7 +374,7 @@ class GridlessSolver(Solver):
             rot = white.rotate(gains)
             c2 = np.zeros((n_leds, n_leds))
             c2[white.upper, white.lower] = white.weights**2
-            c2 = 0.5 * (c2 + c2.T) + 0.5 * np.diag(np.diag(c2))
+            c2 = 0.5 * (c2 + c2.T)
             sq = rot**2
             norms = np.einsum("mj,mj->j", sq, c2 @ sq)
         else:
