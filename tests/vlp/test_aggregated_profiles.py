@@ -10,7 +10,7 @@ from app.vlp.fingerprints import Fingerprint
 from app.vlp.measurements import Model, measurement_from_amplitudes
 from app.vlp.simulation import Impairments, random_positions, simulate_terminals
 from app.vlp.solvers._gridless_fit import FitState
-from app.vlp.solvers._kernels import use_kernels
+from app.vlp.solvers._kernels import KernelMode, use_kernels
 from app.vlp.solvers.gridless import GridlessSolver, _Run
 
 
@@ -58,7 +58,7 @@ def test_profiles_equal_the_insertion_fit_of_each_estimate_s_own_residual(
 @pytest.mark.parametrize("mode", ["reference", "compiled"])
 @pytest.mark.parametrize("model", ["correlation", "power"])
 def test_insertion_scores_are_the_inner_products_of_atoms_whitened_one_by_one(
-    paper_fingerprint: Fingerprint, model: Model, mode: str
+    paper_fingerprint: Fingerprint, model: Model, mode: KernelMode
 ) -> None:
     """``<c psi_j, r>`` and ``||c psi_j||^2`` of the grid scan against each grid point's
     atom whitened on its own (the whitened diagonal counts once, as in the fit's cost)."""

@@ -12,7 +12,7 @@ from app.vlp.presets import paper_layout
 from app.vlp.simulation import mean_signal_power
 from app.vlp.solvers._channel_kernel import ChannelKernel
 from app.vlp.solvers._gridless_fit import FitState, Whitening, target_gains
-from app.vlp.solvers._kernels import use_kernels
+from app.vlp.solvers._kernels import KernelMode, use_kernels
 
 N_DRAWS = 4000
 
@@ -32,7 +32,7 @@ def _kernel() -> ChannelKernel:
 
 
 @pytest.mark.parametrize("mode", ["reference", "compiled"])
-def test_whitened_noise_has_unit_variance_on_and_off_the_diagonal(mode: str) -> None:
+def test_whitened_noise_has_unit_variance_on_and_off_the_diagonal(mode: KernelMode) -> None:
     kernel = _kernel()
     probe = _state(kernel, 0.0)
     gains = target_gains(kernel, probe).T  # (K, M)
