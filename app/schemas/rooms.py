@@ -15,6 +15,7 @@ from app.vlp.constants import (
     DEFAULT_RECEIVER_AREA_M2,
     DEFAULT_REFRACTIVE_INDEX,
 )
+from app.vlp.layout import MAX_RECEIVER_TILT_SD_DEG
 
 from .common import FiniteFloat, RequestModel, ResponseModel
 from .statuses import FingerprintStatus
@@ -104,6 +105,14 @@ class GridSpec(RequestModel):
         le=_MAX_EXTENT_M,
         description="spread (standard deviation) of the terminals' heights around "
         "receiver_height, m; the default solver then fits each target's height",
+    )
+    receiver_tilt_sd: FiniteFloat = Field(
+        default=0.0,
+        ge=0.0,
+        le=MAX_RECEIVER_TILT_SD_DEG,
+        description="spread (standard deviation) of each of the two tilt components of the "
+        "terminals' photodiodes, degrees (e.g. hand-held phones); the default solver's "
+        "accuracy_m then holds what such tilts move an estimate by. 0: level photodiodes",
     )
 
 

@@ -45,6 +45,9 @@ __all__ = [
 
 # length / step must be a whole number within this relative tolerance.
 GRID_RELATIVE_TOLERANCE = 1e-9
+# Largest spread of the photodiodes' tilt components, degrees: beyond it the tilt is no
+# small perturbation of a level photodiode (the radii's linearisation).
+MAX_RECEIVER_TILT_SD_DEG = 30.0
 
 
 def _check_positive(value: float, name: str) -> None:
@@ -109,11 +112,15 @@ class Grid:
 
     ``receiver_height_sd`` is the standard deviation of the terminals' heights around
     ``receiver_height`` (0: all terminals at that height, the paper's model).
+    ``receiver_tilt_sd`` is the standard deviation, in degrees, of each of the two tilt
+    components of the terminals' photodiodes (hand-held phones; 0: level photodiodes, the
+    paper's model): the answers' radii then hold what such tilts move an estimate by.
     """
 
     step: float
     receiver_height: float
     receiver_height_sd: float = 0.0
+    receiver_tilt_sd: float = 0.0
 
     def __post_init__(self) -> None:
         _check_positive(self.step, "grid.step")
@@ -127,6 +134,13 @@ class Grid:
                 "grid.receiver_height_sd must be a finite number >= 0, "
                 f"got {self.receiver_height_sd!r}",
                 field="grid.receiver_height_sd",
+            )
+        tilt = self.receiver_tilt_sd
+        if not math.isfinite(tilt) or not 0 <= tilt <= MAX_RECEIVER_TILT_SD_DEG:
+            raise GeometryError(
+                f"grid.receiver_tilt_sd must be a number of degrees in [0, "
+                f"{MAX_RECEIVER_TILT_SD_DEG:g}], got {tilt!r}",
+                field="grid.receiver_tilt_sd",
             )
 
 
@@ -302,8 +316,9 @@ class Layout:
     def to_mapping(self) -> dict[str, Any]:
         """The layout as the JSON-like mapping of the public ``RoomLayout`` body.
 
-        ``room.reflectance`` and ``grid.receiver_height_sd`` appear only when set (not None,
-        not 0), so a layout without them maps exactly as before they existed.
+        ``room.reflectance``, ``grid.receiver_height_sd`` and ``grid.receiver_tilt_sd`` appear
+        only when set (not None, not 0), so a layout without them maps exactly as before they
+        existed.
         """
         room: dict[str, Any] = {
             "length": self.room.length,
@@ -318,6 +333,8 @@ class Layout:
         }
         if self.grid.receiver_height_sd > 0:
             grid["receiver_height_sd"] = self.grid.receiver_height_sd
+        if self.grid.receiver_tilt_sd > 0:
+            grid["receiver_tilt_sd"] = self.grid.receiver_tilt_sd
         return {
             "name": self.name,
             "room": room,
@@ -359,6 +376,9 @@ def layout_from_mapping(data: Mapping[str, Any]) -> Layout:
             receiver_height=float(data["grid"]["receiver_height"]),
             receiver_height_sd=_float_field(
                 data["grid"].get("receiver_height_sd", 0.0), "grid.receiver_height_sd"
+            ),
+            receiver_tilt_sd=_float_field(
+                data["grid"].get("receiver_tilt_sd", 0.0), "grid.receiver_tilt_sd"
             ),
         )
         receiver = Receiver(**{k: float(v) for k, v in dict(data.get("receiver") or {}).items()})

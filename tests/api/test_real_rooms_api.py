@@ -96,8 +96,12 @@ def test_impaired_simulations_localize_with_their_heights_and_quality(
             {"grid": REFLECTIVE["grid"] | {"receiver_height_sd": -0.1}},
             ["body.grid.receiver_height_sd"],
         ),
+        (
+            {"grid": REFLECTIVE["grid"] | {"receiver_tilt_sd": 45.0}},
+            ["body.grid.receiver_tilt_sd"],
+        ),
     ],
-    ids=["reflectance-1", "reflectance-incomplete", "negative-height-sd"],
+    ids=["reflectance-1", "reflectance-incomplete", "negative-height-sd", "tilt-sd-45"],
 )
 def test_bad_real_room_fields_are_refused_naming_them(
     client: TestClient, change: dict[str, Any], fields: list[str]
@@ -113,3 +117,33 @@ def test_impairments_want_the_noise_as_an_snr(
     body = {"targets": 2, "noise_std": 1e-7, "impairments": {"gain_sd": 0.1}}
     response = client.post(f"/v1/rooms/{room['id']}/simulate", json=body, headers=TERMINAL)
     assert_problem(response, 422, ["body.noise_std"])
+
+
+def test_a_tilt_spread_in_the_layout_widens_the_radii_not_the_positions(
+    worker_app: TestClient,
+) -> None:
+    """The same measurement in the paper room with and without `grid.receiver_tilt_sd`:
+    the same estimates, each radius wider (tests/vlp/test_tilt_spread.py checks the added
+    covariance against refits)."""
+    answers = []
+    for grid in (PAPER_ROOM["grid"], PAPER_ROOM["grid"] | {"receiver_tilt_sd": 5.0}):
+        created = worker_app.post("/v1/rooms", json=PAPER_ROOM | {"grid": grid}, headers=ADMIN)
+        assert created.status_code == 201, created.text
+        room = wait_for_room(worker_app, created.json()["id"])
+        assert room["layout"]["grid"]["receiver_tilt_sd"] == grid.get("receiver_tilt_sd", 0.0)
+        body = {"targets": 3, "snr_db": 30, "seed": 5, "form": "upper"}
+        simulated = worker_app.post(f"/v1/rooms/{room['id']}/simulate", json=body, headers=TERMINAL)
+        assert simulated.status_code == 200, simulated.text
+        located = worker_app.post(
+            f"/v1/rooms/{room['id']}/localize",
+            json=simulated.json()["measurement"],
+            headers=TERMINAL,
+        )
+        assert located.status_code == 200, located.text
+        answers.append(located.json()["estimates"])
+    level, tilted = answers
+    assert [(e["x"], e["y"]) for e in tilted] == [(e["x"], e["y"]) for e in level]
+    # Tilts of 5 degrees per component move an estimate by about 6 cm per axis here: added
+    # in quadrature, at least 10 cm of 95 % radius.
+    for e, t in zip(level, tilted, strict=True):
+        assert t["accuracy_m"] ** 2 - e["accuracy_m"] ** 2 > 0.10**2

@@ -114,12 +114,15 @@ def test_reflectance_and_height_spread_round_trip() -> None:
     mapping = _mapping()
     mapping["room"]["reflectance"] = {"walls": 0.7, "floor": 0.2, "ceiling": 0.8}
     mapping["grid"]["receiver_height_sd"] = 0.05
+    mapping["grid"]["receiver_tilt_sd"] = 4.0
     layout = layout_from_mapping(mapping)
     assert layout.room.reflectance == Reflectance(walls=0.7, floor=0.2, ceiling=0.8)
     assert layout.grid.receiver_height_sd == 0.05
+    assert layout.grid.receiver_tilt_sd == 4.0
     out = layout.to_mapping()
     assert out["room"]["reflectance"] == {"walls": 0.7, "floor": 0.2, "ceiling": 0.8}
     assert out["grid"]["receiver_height_sd"] == 0.05
+    assert out["grid"]["receiver_tilt_sd"] == 4.0
     assert layout_from_mapping(out) == layout
 
 
@@ -127,6 +130,7 @@ def test_absent_reflectance_and_spread_map_exactly_as_before() -> None:
     mapping = _mapping()
     mapping["room"]["reflectance"] = None
     mapping["grid"]["receiver_height_sd"] = 0.0
+    mapping["grid"]["receiver_tilt_sd"] = 0.0
     layout = layout_from_mapping(mapping)
     assert layout.room.reflectance is None and layout.grid.receiver_height_sd == 0.0
     out = layout.to_mapping()
@@ -176,3 +180,12 @@ def test_reflectance_dataclass_checks_its_own_range() -> None:
     with pytest.raises(GeometryError) as info:
         Grid(step=0.5, receiver_height=0.8, receiver_height_sd=-1.0)
     assert info.value.field == "grid.receiver_height_sd"
+
+
+@pytest.mark.parametrize("tilt_sd", [-1.0, 30.5, float("nan"), float("inf")])
+def test_tilt_spread_validation_names_the_field(tilt_sd: float) -> None:
+    mapping = _mapping()
+    mapping["grid"]["receiver_tilt_sd"] = tilt_sd
+    with pytest.raises(GeometryError) as info:
+        layout_from_mapping(mapping)
+    assert info.value.field == "grid.receiver_tilt_sd"

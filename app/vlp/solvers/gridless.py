@@ -861,6 +861,9 @@ class GridlessSolver(Solver):
             # The joint fit's own information: its model holds what the nominal one misses.
             covariances = tolerances.covariances
             fit = assess_fit(tolerances.chi2, tolerances.dof, math.exp(0.5 * state.log_scale))
+        tilted = self._tilt_covariances(run, state)
+        if tilted is not None:
+            covariances = covariances + tilted
         far = self._aggregated_far_optima(run, state, covariances)
         if prescale != 1.0:
             state.log_scale += math.log(prescale)
@@ -1004,6 +1007,11 @@ class GridlessSolver(Solver):
         covariances = np.array(
             [predictive_covariances(design, misfit, np.array([[0, 1]]))[0] for design in designs]
         )
+        tilt_sd = math.radians(self.fingerprint.layout.grid.receiver_tilt_sd)
+        if tilt_sd > 0:
+            for k, fit in enumerate(fits):
+                if not (fit.free_tilt or own_normals[k] is not None):
+                    covariances[k] += self._terminal_tilt_covariance(fit, tilt_sd)
         log_gains = np.array([fit.log_gain for fit in fits])
         positions = np.array([fit.position for fit in fits])
         fit_quality = assess_fit(
@@ -1026,6 +1034,15 @@ class GridlessSolver(Solver):
             else None,
             fit=fit_quality,
         )
+
+    def _terminal_tilt_covariance(self, fit: TerminalFit, tilt_sd: float) -> FloatArray:
+        """A terminal's position covariance from a photodiode tilt of the layout's spread
+        that its fit holds level, shape (2, 2): as :meth:`_tilt_covariances`, with the
+        terminal's own whitened Jacobian (position first)."""
+        gradient = self._shape_gradients(fit.position[np.newaxis, :], np.array([fit.height]))[0]
+        columns = fit.data_weight * math.exp(fit.log_gain) * gradient[:, 1:3]  # (M, 2)
+        moved = np.linalg.pinv(fit.normal, hermitian=True) @ (fit.jacobian.T @ columns)
+        return np.asarray(tilt_sd**2 * moved[:2] @ moved[:2].T)
 
     def _terminal_misfit_columns(
         self, fit: TerminalFit, height_known: bool, normal_known: bool
@@ -1160,6 +1177,37 @@ class GridlessSolver(Solver):
         inverse Fisher information by the reduced chi-square when above 1.
         """
         return self._covariances(self._objective(run, self._whitening(state)), state)
+
+    def _tilt_covariances(self, run: _Run, state: FitState) -> FloatArray | None:
+        """Position covariances from unknown photodiode tilts of the layout's spread
+        (``grid.receiver_tilt_sd``), shape (K, 2, 2); None without one.
+
+        A tilt is nearly a shift of the position, so the residuals cannot show it (the
+        model-error variances of :meth:`_misfit_columns` stay near 0), only the layout can.
+
+        Each target's two tilt components (radians, independent, sd ``tilt_sd``) move its
+        gains along their tilt derivatives (:meth:`_shape_gradients`), so the whitened model
+        by ``F t`` (:meth:`_perturbation_columns`, (L, 2 K)); the fit then moves its
+        parameters by ``G t`` with ``G = (J^T J)^+ J^T F`` (a small-perturbation, Gauss-Newton
+        step), and the positions' covariance is ``tilt_sd^2 G_pos G_pos^T``. Rooms too large
+        to hold the model-error design (as :meth:`_misfit_columns`) get None.
+        """
+        tilt_sd = math.radians(self.fingerprint.layout.grid.receiver_tilt_sd)
+        k = state.n_targets
+        n_data = run.values.shape[0]
+        if tilt_sd == 0 or k == 0 or n_data * k * self.fingerprint.n_leds > _MAX_MISFIT_ENTRIES:
+            return None
+        objective = self._objective(run, self._whitening(state))
+        theta = objective.pack(state)
+        normal, _, _ = gram(objective, theta, state)
+        rows = objective.augmented(theta, state)[: theta.shape[0], :n_data]
+        gains = target_gains(self._kernel, state)
+        tilts = self._shape_gradients(state.positions, state.heights)[:, :, 1:]
+        columns = self._perturbation_columns(objective, theta, state, gains, tilts)
+        moved = np.linalg.pinv(normal, hermitian=True) @ (rows @ columns)  # (P, 2 K)
+        index = np.column_stack((np.arange(k), np.arange(k) + k))
+        positions = moved[index]  # (K, 2, 2 K)
+        return np.asarray(tilt_sd**2 * positions @ positions.transpose(0, 2, 1))
 
     def _far_optima(
         self, values: FloatArray, positions: FloatArray, covariances: FloatArray, sigma2: float
