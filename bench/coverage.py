@@ -6,8 +6,9 @@ fit's covariance (noise and the model errors its residuals show, see
 ``--snr``), the fraction of true positions inside that radius around their
 (Hungarian-matched) estimate, with the median radius next to the median error (a radius
 must not cover by being huge), for the aggregated correlation and the ``terminals`` form,
-on the ideal model and under the realistic mix (reflectance in the layout), in the paper
-room and the irregular room of ``bench/rooms.py``.
+on the ideal model and under the realistic mix (reflectance in the layout; then also with
+the mix's tilt spread in the layout, ``grid.receiver_tilt_sd``), in the paper room and the
+irregular room of ``bench/rooms.py``.
 
     python -m bench.coverage             # writes the coverage section of docs/accuracy.md
     python -m bench.coverage --trials 10 --out bench/out/quick
@@ -18,6 +19,8 @@ room and the irregular room of ``bench/rooms.py``.
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import math
 import sys
 import time
 from collections.abc import Sequence
@@ -28,6 +31,7 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 from threadpoolctl import threadpool_limits
 
+from app.vlp.fingerprints import build_fingerprint
 from app.vlp.measurements import Model, measurement_from_amplitudes
 from app.vlp.simulation import Impairments
 from app.vlp.solvers.gridless import GridlessSolver
@@ -41,6 +45,15 @@ __all__ = ["Cell", "coverage", "main"]
 
 KS = (1, 4, 8)
 SNR_DB = 30.0
+# The mix's tilts (polar angle uniform in [0, max], azimuth uniform) as the layout's spread:
+# the standard deviation of each tilt component, sqrt(E[polar^2] / 2) = max / sqrt(6).
+MIX_TILT_SD_DEG = MIX.tilt_max_deg / math.sqrt(6.0)
+# (mix, tilt spread in the layout) and the table's name for each condition.
+CONDITIONS = (
+    (False, False, "ideal"),
+    (True, False, "realistic mix, reflectance in layout"),
+    (True, True, "realistic mix, reflectance and tilt spread in layout"),
+)
 
 
 @dataclass(frozen=True)
@@ -60,12 +73,18 @@ def coverage(
     trials: int,
     snr_db: float = SNR_DB,
     model: Model = "correlation",
+    tilt_spread: bool = False,
 ) -> Cell:
     """Coverage of the 95 % radius for the aggregated ``model`` (key ``"aggregated"``) and
-    the terminals (key ``"terminals"``)."""
+    the terminals (key ``"terminals"``); ``tilt_spread`` puts the mix's tilt spread in the
+    layout (the same placements and draws as without)."""
     reflectance = MIX.reflectance if mix else None
     layout = _layout(room, reflectance)
     fingerprint = _fingerprint(room, reflectance)
+    if tilt_spread:
+        grid = dataclasses.replace(layout.grid, receiver_tilt_sd=MIX_TILT_SD_DEG)
+        layout = dataclasses.replace(layout, grid=grid)
+        fingerprint = build_fingerprint(layout)
     solver = GridlessSolver(fingerprint, "correlation")
     aggregated = solver if model == "correlation" else GridlessSolver(fingerprint, model)
     impairments = MIX if mix else Impairments.ideal()
@@ -125,10 +144,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     ]
     with threadpool_limits(limits=1):
         for room in rooms:
-            for mix in (False, True):
+            for mix, tilt_spread, name in CONDITIONS:
                 for count in KS:
-                    cell = coverage(room, mix, count, args.trials, args.snr, args.model)
-                    name = "realistic mix, reflectance in layout" if mix else "ideal"
+                    cell = coverage(
+                        room, mix, count, args.trials, args.snr, args.model, tilt_spread
+                    )
                     parts = [
                         f"{cell.inside[mode]:.3f} | {100 * cell.radius[mode]:.1f} / "
                         f"{100 * cell.error[mode]:.1f}"
