@@ -9,7 +9,7 @@ import pytest
 from app.vlp.fingerprints import Fingerprint
 from app.vlp.measurements import Model, measurement_from_amplitudes
 from app.vlp.simulation import Impairments, random_positions, simulate_terminals
-from app.vlp.solvers._gridless_fit import FitState
+from app.vlp.solvers._gridless_fit import FitState, Whitening
 from app.vlp.solvers._kernels import KernelMode, use_kernels
 from app.vlp.solvers.gridless import GridlessSolver, _Run
 
@@ -20,11 +20,7 @@ def test_profiles_equal_the_insertion_fit_of_each_estimate_s_own_residual(
 ) -> None:
     layout = paper_fingerprint.layout
     rng = np.random.default_rng(7)
-    truth = random_positions(layout, 4, rng=rng)
-    simulated = simulate_terminals(layout, truth, Impairments.ideal(), snr_db=30.0, rng=rng)
-    measurement = measurement_from_amplitudes(simulated.amplitudes, model, layout.n_leds)
-    solver = GridlessSolver(paper_fingerprint, model)
-    run = _Run(values=measurement.values / solver._scale**2, priors=solver._priors)
+    solver, run, truth = _simulated_run(paper_fingerprint, model, 4, rng)
     # Off the truth, other heights, gains and scale: every term of the model in play.
     state = FitState(
         truth + rng.normal(0.0, 0.05, truth.shape),
@@ -38,14 +34,7 @@ def test_profiles_equal_the_insertion_fit_of_each_estimate_s_own_residual(
 
     white = solver._whitening(state)
     full = solver._residual(run, white, state)
-    gains = solver._gains
-    if model == "correlation":
-        upper, lower = np.triu_indices(layout.n_leds)
-        atoms = np.array(
-            [white.data(gains[upper, j] * gains[lower, j]) for j in range(gains.shape[1])]
-        )
-    else:
-        atoms = np.array([white.data(gains[:, j] ** 2) for j in range(gains.shape[1])])
+    atoms = _whitened_atoms(solver, white)
     norms = np.einsum("jl,jl->j", atoms, atoms)
     for k in range(4):
         others = solver._residual(run, white, state.subset(np.arange(4) != k))
@@ -63,26 +52,38 @@ def test_insertion_scores_are_the_inner_products_of_atoms_whitened_one_by_one(
     """``<c psi_j, r>`` and ``||c psi_j||^2`` of the grid scan against each grid point's
     atom whitened on its own (the whitened diagonal counts once, as in the fit's cost)."""
     layout = paper_fingerprint.layout
-    rng = np.random.default_rng(12)
-    truth = random_positions(layout, 3, rng=rng)
-    simulated = simulate_terminals(layout, truth, Impairments.ideal(), snr_db=30.0, rng=rng)
-    measurement = measurement_from_amplitudes(simulated.amplitudes, model, layout.n_leds)
-    solver = GridlessSolver(paper_fingerprint, model)
-    run = _Run(values=measurement.values / solver._scale**2, priors=solver._priors)
+    solver, run, truth = _simulated_run(paper_fingerprint, model, 3, np.random.default_rng(12))
     state = FitState(
         truth[:2], np.ones(2), 0.02, np.full(2, layout.grid.receiver_height), np.zeros(2), 0.0
     )
     white = solver._whitening(state)
     residual = solver._residual(run, white, state)
-    gains = solver._gains
-    if model == "correlation":
-        upper, lower = np.triu_indices(layout.n_leds)
-        unwhitened = gains[upper] * gains[lower]
-    else:
-        unwhitened = gains**2
     with use_kernels("reference"):
-        atoms = np.array([white.data(unwhitened[:, j].copy()) for j in range(gains.shape[1])])
+        atoms = _whitened_atoms(solver, white)
     with use_kernels(mode):
         num, norms = solver._correlations(white, residual)
     np.testing.assert_allclose(num, atoms @ residual, rtol=1e-9, atol=1e-12 * np.abs(num).max())
     np.testing.assert_allclose(norms, np.einsum("jl,jl->j", atoms, atoms), rtol=1e-9)
+
+
+def _simulated_run(
+    fingerprint: Fingerprint, model: Model, k: int, rng: np.random.Generator
+) -> tuple[GridlessSolver, _Run, np.ndarray]:
+    """A solver, the run of an ideal 30 dB measurement of ``k`` random targets, the truth."""
+    layout = fingerprint.layout
+    truth = random_positions(layout, k, rng=rng)
+    simulated = simulate_terminals(layout, truth, Impairments.ideal(), snr_db=30.0, rng=rng)
+    measurement = measurement_from_amplitudes(simulated.amplitudes, model, layout.n_leds)
+    solver = GridlessSolver(fingerprint, model)
+    return solver, _Run(values=measurement.values / solver._scale**2, priors=solver._priors), truth
+
+
+def _whitened_atoms(solver: GridlessSolver, white: Whitening) -> np.ndarray:
+    """Every grid point's atom (``vech(g g^T)`` or ``g o g``) whitened on its own, (N, L)."""
+    gains = solver._gains
+    if solver.model == "correlation":
+        upper, lower = np.triu_indices(gains.shape[0])
+        unwhitened = gains[upper] * gains[lower]
+    else:
+        unwhitened = gains**2
+    return np.array([white.data(unwhitened[:, j].copy()) for j in range(gains.shape[1])])
