@@ -14,8 +14,8 @@ from app.vlp.constants import (
     DEFAULT_PILOT_AMPLITUDE,
     DEFAULT_RECEIVER_AREA_M2,
     DEFAULT_REFRACTIVE_INDEX,
+    MAX_RECEIVER_TILT_SD_DEG,
 )
-from app.vlp.layout import MAX_RECEIVER_TILT_SD_DEG
 
 from .common import FiniteFloat, RequestModel, ResponseModel
 from .statuses import FingerprintStatus

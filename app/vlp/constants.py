@@ -23,6 +23,9 @@ DEFAULT_FILTER_GAIN = 1.0
 DEFAULT_REFRACTIVE_INDEX = 1.5
 DEFAULT_HALF_POWER_ANGLE_DEG = 60.0
 DEFAULT_PILOT_AMPLITUDE = 1.0
+# Largest spread of the photodiodes' tilt components (``grid.receiver_tilt_sd``), degrees:
+# beyond it a tilt is no small perturbation of a level photodiode (the radii's linearisation).
+MAX_RECEIVER_TILT_SD_DEG = 30.0
 
 # Upper bound on K accepted by any solver (and on the estimated count when K is unknown).
 MAX_TARGETS = 64

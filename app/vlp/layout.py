@@ -22,6 +22,7 @@ from .constants import (
     DEFAULT_PILOT_AMPLITUDE,
     DEFAULT_RECEIVER_AREA_M2,
     DEFAULT_REFRACTIVE_INDEX,
+    MAX_RECEIVER_TILT_SD_DEG,
 )
 from .errors import GeometryError
 from .typing import FloatArray, IntArray
@@ -45,9 +46,6 @@ __all__ = [
 
 # length / step must be a whole number within this relative tolerance.
 GRID_RELATIVE_TOLERANCE = 1e-9
-# Largest spread of the photodiodes' tilt components, degrees: beyond it the tilt is no
-# small perturbation of a level photodiode (the radii's linearisation).
-MAX_RECEIVER_TILT_SD_DEG = 30.0
 
 
 def _check_positive(value: float, name: str) -> None:
