@@ -23,7 +23,7 @@ from ..fingerprints import Fingerprint
 from ..measurements import Measurement, Model, noise_atom, summed_terminals
 from ..scale import check_amplitude_scale
 from ..simulation import mean_signal_power
-from ..typing import FloatArray
+from ..typing import FloatArray, IntArray
 from ..uncertainty import (
     FitQuality,
     assess_fit,
@@ -106,6 +106,22 @@ _NO_FIT_TEST = (
     "the model (the 95 % radii use the scatter of its residuals); send the correlation "
     "matrix or each terminal's amplitudes for one"
 )
+
+
+def _response_covariances(
+    normal: FloatArray,
+    rows: FloatArray,
+    columns: FloatArray,
+    index: IntArray,
+    sd: float,
+) -> FloatArray:
+    """Covariances (K, 2, 2) of the positions a Gauss-Newton fit moves when its whitened
+    model moves by ``columns @ t`` (L, n) with ``t`` i.i.d. of standard deviation ``sd``:
+    ``sd^2 G G^T`` over the rows ``index`` (K, 2) of ``G = normal^+ rows columns`` (``rows``
+    the Jacobian's transpose, (P, L))."""
+    moved = np.linalg.pinv(normal, hermitian=True) @ (rows @ columns)  # (P, n)
+    positions = moved[index]  # (K, 2, n)
+    return np.asarray(sd**2 * positions @ positions.transpose(0, 2, 1))
 
 
 @register_solver
@@ -1041,8 +1057,9 @@ class GridlessSolver(Solver):
         terminal's own whitened Jacobian (position first)."""
         gradient = self._shape_gradients(fit.position[np.newaxis, :], np.array([fit.height]))[0]
         columns = fit.data_weight * math.exp(fit.log_gain) * gradient[:, 1:3]  # (M, 2)
-        moved = np.linalg.pinv(fit.normal, hermitian=True) @ (fit.jacobian.T @ columns)
-        return np.asarray(tilt_sd**2 * moved[:2] @ moved[:2].T)
+        position = np.array([[0, 1]])
+        covariances = _response_covariances(fit.normal, fit.jacobian.T, columns, position, tilt_sd)
+        return np.asarray(covariances[0])
 
     def _terminal_misfit_columns(
         self, fit: TerminalFit, height_known: bool, normal_known: bool
@@ -1199,15 +1216,14 @@ class GridlessSolver(Solver):
             return None
         objective = self._objective(run, self._whitening(state))
         theta = objective.pack(state)
-        normal, _, _ = gram(objective, theta, state)
-        rows = objective.augmented(theta, state)[: theta.shape[0], :n_data]
+        jacobian = objective.augmented(theta, state)[: theta.shape[0]]  # (P, L + n_prior)
         gains = target_gains(self._kernel, state)
         tilts = self._shape_gradients(state.positions, state.heights)[:, :, 1:]
         columns = self._perturbation_columns(objective, theta, state, gains, tilts)
-        moved = np.linalg.pinv(normal, hermitian=True) @ (rows @ columns)  # (P, 2 K)
         index = np.column_stack((np.arange(k), np.arange(k) + k))
-        positions = moved[index]  # (K, 2, 2 K)
-        return np.asarray(tilt_sd**2 * positions @ positions.transpose(0, 2, 1))
+        return _response_covariances(
+            jacobian @ jacobian.T, jacobian[:, :n_data], columns, index, tilt_sd
+        )
 
     def _far_optima(
         self, values: FloatArray, positions: FloatArray, covariances: FloatArray, sigma2: float
