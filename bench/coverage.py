@@ -25,13 +25,15 @@ import sys
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import cache
 from pathlib import Path
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 from threadpoolctl import threadpool_limits
 
-from app.vlp.fingerprints import build_fingerprint
+from app.vlp.fingerprints import Fingerprint, build_fingerprint
+from app.vlp.layout import Reflectance
 from app.vlp.measurements import Model, measurement_from_amplitudes
 from app.vlp.simulation import Impairments
 from app.vlp.solvers.gridless import GridlessSolver
@@ -79,12 +81,12 @@ def coverage(
     the terminals (key ``"terminals"``); ``tilt_spread`` puts the mix's tilt spread in the
     layout (the same placements and draws as without)."""
     reflectance = MIX.reflectance if mix else None
-    layout = _layout(room, reflectance)
-    fingerprint = _fingerprint(room, reflectance)
     if tilt_spread:
-        grid = dataclasses.replace(layout.grid, receiver_tilt_sd=MIX_TILT_SD_DEG)
-        layout = dataclasses.replace(layout, grid=grid)
-        fingerprint = build_fingerprint(layout)
+        fingerprint = _tilted_fingerprint(room, reflectance)
+        layout = fingerprint.layout
+    else:
+        layout = _layout(room, reflectance)
+        fingerprint = _fingerprint(room, reflectance)
     solver = GridlessSolver(fingerprint, "correlation")
     aggregated = solver if model == "correlation" else GridlessSolver(fingerprint, model)
     impairments = MIX if mix else Impairments.ideal()
@@ -119,6 +121,14 @@ def coverage(
         {mode: float(np.median(values)) for mode, values in radii.items()},
         {mode: float(np.median(values)) for mode, values in errors.items()},
     )
+
+
+@cache
+def _tilted_fingerprint(room: str, reflectance: Reflectance | None) -> Fingerprint:
+    """The room's fingerprint with the mix's tilt spread in its layout (built once)."""
+    layout = _layout(room, reflectance)
+    grid = dataclasses.replace(layout.grid, receiver_tilt_sd=MIX_TILT_SD_DEG)
+    return build_fingerprint(dataclasses.replace(layout, grid=grid))
 
 
 def main(argv: Sequence[str] | None = None) -> int:
