@@ -15,8 +15,6 @@ from bench.random_rooms import WRONG_M, draw_request, random_layout
 
 from .conftest import ADMIN, TERMINAL, TestClient, wait_for_room
 
-FAR_OFF_M = 1.0  # an estimate this far from its truth sat at another place that fits
-
 
 @pytest.mark.parametrize(
     ("seed", "room", "trial"),
@@ -62,11 +60,11 @@ def test_once_confidently_wrong_now_a_radius_that_holds_the_truth(
     rows, cols = match_positions(estimates, truth)
     distances = np.linalg.norm(estimates[rows] - truth[cols], axis=1)
     assert np.all((distances <= radii[rows]) | (distances <= WRONG_M))
-    # Which of the two places the fit lands at is round-off's choice (on one machine the
-    # K = 1 case landed 0.83 m off with a 6.9 m radius and no far place beyond it): an
-    # estimate metres off its truth must say why its radius is wide.
-    if distances.max() > FAR_OFF_M:
-        assert "another place" in answer["fit"]["detail"]
+    # Not asserted: that the detail names another place. Which of the places a fit lands at,
+    # and whether the far place or the noise alone makes the radius wide, is round-off's
+    # choice (one machine: the K = 1 case 0.83 m off with a 6.9 m radius and no far place;
+    # another: the K = 2 case 1.17 m off with a 7.8 m radius, no far place beyond it). The
+    # detail itself is tested where the case is deterministic (tests/vlp/test_ambiguity.py).
 
 
 def _request(seed: int, room: int, trial: int) -> tuple[Layout, dict[str, Any], np.ndarray]:
