@@ -24,6 +24,7 @@ from scipy import optimize, special
 from .typing import FloatArray, IntArray
 
 __all__ = [
+    "NOISE_ONLY_P",
     "POOR_FIT_CHI2",
     "SCALE_MISMATCH_FACTOR",
     "FitQuality",
@@ -45,6 +46,10 @@ Quality = Literal["ok", "poor", "scale_mismatch"]
 # A reduced chi-square above this says the model does not explain the measurement (the
 # room's reflections, gains or geometry differ from its layout): answered, but flagged.
 POOR_FIT_CHI2 = 4.0
+# Below that, a chi-square that noise alone would exceed less often than this is still
+# answered "ok" (the radii carry the model errors) but its detail says the room differs a
+# little from its layout, not that the model explains the measurement to its noise.
+NOISE_ONLY_P = 1e-3
 # A common amplitude scale outside [1/f, f] says the measurement is not in the fingerprint's
 # units (or the pilots / receiver gains changed): answered, but flagged.
 SCALE_MISMATCH_FACTOR = 1.5
@@ -127,6 +132,13 @@ def assess_fit(chi2: float, dof: int, scale: float) -> FitQuality:
             "layout (reflections, receivers' gain, height or tilt, LEDs); calibrate the room"
         )
         return FitQuality(reduced, scale, "poor", detail, dof)
+    if float(chi2) > float(special.chdtri(dof, NOISE_ONLY_P)):
+        detail = (
+            f"the model leaves {reduced:.3g}x the expected residual, more than the noise "
+            "would: the room differs a little from its layout (reflections, receivers' gain, "
+            "height or tilt, LEDs); the radii allow for it"
+        )
+        return FitQuality(reduced, scale, "ok", detail, dof)
     return FitQuality(reduced, scale, "ok", "the model explains the measurement to its noise", dof)
 
 

@@ -112,6 +112,25 @@ def test_fit_quality_classes() -> None:
     assert assess_fit(1e6, 100, 10.0).quality == "scale_mismatch"
 
 
+@pytest.mark.parametrize("dof", [10, 30, 110, 1000])
+def test_only_noise_is_said_to_be_explained_to_its_noise(dof: int) -> None:
+    """Chi-squares of pure noise (sums of ``dof`` squared standard normals) are said to be
+    explained to the noise nearly always (chance 1 - NOISE_ONLY_P); one of 2.5x its expected
+    value at 110 degrees of freedom (a gain 3 sd off its prior, K = 8) is answered ``ok``
+    but says the room differs from its layout."""
+    rng = np.random.default_rng(dof)
+    draws = np.sum(rng.standard_normal((4000, dof)) ** 2, axis=1)
+    said_noise = [
+        assess_fit(float(chi2), dof, 1.0).detail.endswith("to its noise") for chi2 in draws
+    ]
+    assert np.mean(said_noise) >= 0.995
+    if dof >= 30:
+        off = assess_fit(2.5 * dof, dof, 1.0)
+        assert off.quality == "ok"
+        assert "2.5x the expected residual" in off.detail
+        assert "differs a little from its layout" in off.detail
+
+
 def _linear_problem(seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """A whitened linear fit: Jacobian (L = 60, P = 4, the last with a unit Gaussian prior),
     its normal matrix, and model-error columns F (60, 60) scaled like a signal."""
