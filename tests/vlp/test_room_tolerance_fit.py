@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import numpy as np
 import pytest
@@ -143,6 +144,31 @@ def test_an_answer_says_when_the_tolerances_were_fitted(paper_fingerprint: Finge
         angle = float(detail.split("half-power angles ")[1].split(" deg")[0])
         assert 1.0 < amplitude < 12.0
         assert 0.5 < angle < 8.0
+
+
+def test_the_score_test_s_bar_gates_the_stage(paper_fingerprint: Fingerprint) -> None:
+    """``tolerance_score_ratio``: the first Gauss-Newton step must promise more than that
+    many times the extra parameters; an unreachable bar keeps every fit nominal, where the
+    default fits the LEDs' tolerances of most of these rooms."""
+    layout = paper_fingerprint.layout
+    fitted = {}
+    for ratio in (1.0, math.inf):
+        solver = GridlessSolver(
+            paper_fingerprint, "correlation", GridlessOptions(tolerance_score_ratio=ratio)
+        )
+        count = 0
+        for seed in range(4):
+            truth = random_positions(layout, 8, rng=np.random.default_rng(1000 + seed))
+            simulated = simulate_terminals(
+                layout, truth, Impairments.led_tolerances(0.05, 3.0), snr_db=30.0, rng=seed
+            )
+            measurement = measurement_from_amplitudes(simulated.amplitudes, "correlation", 16)
+            solution = solver.solve(measurement, 8)
+            assert solution.fit is not None
+            count += "tolerances were fitted" in solution.fit.detail
+        fitted[ratio] = count
+    assert fitted[1.0] >= 2
+    assert fitted[math.inf] == 0
 
 
 def test_radii_of_the_joint_fit_hold_the_truth(paper_fingerprint: Fingerprint) -> None:

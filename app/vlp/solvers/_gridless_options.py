@@ -94,6 +94,9 @@ class GridlessOptions:
     led_half_power_sd_deg: float = 3.0
     room_tilt_sd: float = 0.0
     tolerance_misfit_ratio: float = 1.1
+    # The score test passes when the first Gauss-Newton step promises more than this times
+    # the extra parameters' count (a room as modelled promises about half of it).
+    tolerance_score_ratio: float = 1.0
     tolerance_significance: float = 3.0
     # Where the tolerances are fitted, each target is also moved far (to the best grid point
     # at least half the LEDs' mean height away) and the joint fit keeps what lowers its cost,

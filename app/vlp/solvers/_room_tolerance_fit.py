@@ -598,6 +598,7 @@ def fit_room_tolerances(
     tolerances: RoomTolerances,
     significance: float,
     moves: GridMoves | None = None,
+    score_ratio: float = 1.0,
 ) -> ToleranceFit | None:
     """MAP fit of positions, gains, scale, noise and the room's tolerances (module doc).
 
@@ -605,9 +606,9 @@ def fit_room_tolerances(
     the tilts when fitted, the gains and the scale, freed here even when the fit without
     tolerances held them) fit the noise of a room exactly as modelled:
 
-    - a score test first: the first Gauss-Newton step must promise a decrease above ``n``
-      (in a room as modelled it promises about half of it: the priors shrink the step);
-      else None, with no fit;
+    - a score test first: the first Gauss-Newton step must promise a decrease above
+      ``score_ratio`` times ``n`` (in a room as modelled it promises about half of ``n``:
+      the priors shrink the step); else None, with no fit;
     - the first round runs in the starting state's own metric, where the fit without
       tolerances is at its optimum, and must lower the cost by more than
       ``n + significance sqrt(2 n)``, the chi-square of ``n`` parameters by chance; else None.
@@ -626,6 +627,10 @@ def fit_room_tolerances(
     tolerances : RoomTolerances
     significance : float
         Standard deviations of the chance decrease the first round must beat.
+    moves : GridMoves, optional
+        Long moves of each target tried after the rounds (None: none).
+    score_ratio : float, default=1.0
+        The score test's bar, in units of the extra parameters' count.
 
     Returns
     -------
@@ -650,7 +655,7 @@ def fit_room_tolerances(
         promised = float(gradient @ np.linalg.solve(jacobian.T @ jacobian, gradient))
     except np.linalg.LinAlgError:
         promised = math.inf
-    if not promised > extra:
+    if not promised > score_ratio * extra:
         return None
     theta, cost = _levenberg_marquardt(model, start, white, data)
     if not base_cost - cost > extra + significance * math.sqrt(2.0 * extra):

@@ -1175,6 +1175,7 @@ class GridlessSolver(Solver):
             )
             if opts.tolerance_jumps
             else None,
+            opts.tolerance_score_ratio,
         )
 
     def _uncertainty(self, run: _Run, state: FitState) -> tuple[FloatArray, FitQuality]:
