@@ -26,6 +26,7 @@ last nuisance stage, kept only when it explains the data significantly better.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -110,6 +111,9 @@ class GridMoves:
     alternatives : tuple of ndarrays of shape (K, 2), metres
         Whole placements to try as well (other local optima of the nominal fit, such as its
         restarts'), each with the fitted tolerances, gains reset.
+    split_offset : float, metres
+        The brightest estimate is also tried as two, this far either side of it, the other
+        estimate that explains least moved there (0: not tried).
     """
 
     gains: FloatArray
@@ -117,6 +121,7 @@ class GridMoves:
     min_jump: float
     height: float
     alternatives: tuple[FloatArray, ...] = ()
+    split_offset: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -504,6 +509,16 @@ def _jumps(
         score = 2.0 * unit * np.sum(grid * ((left * entry_weights) @ grid), axis=0)
         return np.asarray(score - unit**2 * grid_energy)
 
+    def explained(theta: FloatArray) -> FloatArray:
+        """Each target's share of the fit: the whitened data cost with its atom left out."""
+        scaled = scan(theta)[0]
+        base = measured - scaled @ scaled.T - theta[-1] * np.eye(m)
+        shares = np.empty(k)
+        for target in range(k):
+            left = rotation.T @ (base + np.outer(scaled[:, target], scaled[:, target])) @ rotation
+            shares[target] = float(np.sum(left**2 * entry_weights))
+        return shares
+
     scaled, positions, grid, grid_energy, unit = scan(theta)
     # The best point of the whole residual: where a terminal is missing.
     missing = int(np.argmax(scores(np.ones(k, dtype=bool))))
@@ -529,6 +544,11 @@ def _jumps(
                 scaled, positions, grid, grid_energy, unit = scan(theta)
                 missing = int(np.argmax(scores(np.ones(k, dtype=bool))))
                 break
+    if moves.split_offset > 0.0 and k >= 2:
+        split = _split_brightest(model, theta, cost, white, data, moves.split_offset, explained)
+        if split is not None:
+            theta, cost = split
+            positions = model.split(theta)[0]
     for placement in moves.alternatives:
         level = np.all(model.heights == moves.height)
         candidate = model if level else model.with_heights(np.full(k, moves.height))
@@ -543,6 +563,49 @@ def _jumps(
         white = model.whitening(theta, noise)
         theta, _ = _levenberg_marquardt(model, theta, white, white.data(values))
     return theta, white, model
+
+
+def _split_brightest(
+    model: _JointModel,
+    theta: FloatArray,
+    cost: float,
+    white: Whitening,
+    data: FloatArray,
+    offset: float,
+    explained: Callable[[FloatArray], FloatArray],
+) -> tuple[FloatArray, float] | None:
+    """The fit with the brightest estimate tried as two (``offset`` either side of it, along
+    x then y) and the estimate whose atom the fit misses least moved next to it, with its cost
+    when it lowers ``cost``; None when no estimate is brighter than half its gain prior's sd
+    or no split lowers the cost.
+
+    Two terminals closer than the beams can separate can be fitted as one estimate of
+    higher gain (the gain prior holds it near 1, so it sits between them), another estimate
+    taking the spare signal elsewhere. The long moves do not find the pair: the merged
+    estimate leaves little residual where the second terminal is.
+    """
+    k = model.n_targets
+    positions, log_gains, *_ = model.split(theta)
+    brightest = int(np.argmax(log_gains))
+    if log_gains[brightest] <= 0.5 / model.prior_inverse_sd[0]:
+        return None
+    shares = explained(theta)
+    shares[brightest] = np.inf
+    spare = int(np.argmin(shares))  # left out, the cost rises least
+    centre = positions[brightest]
+    for axis in (0, 1):
+        moved = theta.copy()
+        step = np.zeros(2)
+        step[axis] = offset
+        moved[spare], moved[k + spare] = centre + step
+        moved[brightest], moved[k + brightest] = centre - step
+        moved[2 * k + spare] = moved[2 * k + brightest] = 0.0
+        lower, upper = model.bounds()
+        moved = np.clip(moved, lower, upper)
+        tried = _try_move(model, cost, moved, white, data, positions)
+        if tried is not None:
+            return tried
+    return None
 
 
 def _try_move(

@@ -1171,7 +1171,12 @@ class GridlessSolver(Solver):
             tolerances,
             opts.tolerance_significance,
             GridMoves(
-                self._gains, self._centres, self._avoid_radius, self._priors.height_mean, others
+                self._gains,
+                self._centres,
+                self._avoid_radius,
+                self._priors.height_mean,
+                others,
+                0.5 * self.fingerprint.layout.grid.step,
             )
             if opts.tolerance_jumps
             else None,
