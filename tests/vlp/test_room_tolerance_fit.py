@@ -339,7 +339,7 @@ def test_a_close_pair_fitted_as_one_bright_estimate_is_split(
     No long moves here: from this start the joint fit's own refinement leaves some seeds
     merged."""
     worst: dict[float, list[float]] = {0.0: [], 0.1: []}
-    for seed in range(8):
+    for seed in range(12):  # 7 of them stay merged without the split on one machine
         solver, run, state, truth = _merged_pair_fit(paper_fingerprint, seed)
         opts = solver.options
         tolerances = RoomTolerances(
