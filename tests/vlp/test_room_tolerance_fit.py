@@ -123,9 +123,9 @@ def test_led_tolerances_are_fitted_out(paper_fingerprint: Fingerprint) -> None:
     assert np.median(with_stage) < 0.15
 
 
-def test_an_answer_says_when_the_tolerances_were_fitted(paper_fingerprint: Fingerprint) -> None:
-    layout = paper_fingerprint.layout
-    solver = GridlessSolver(paper_fingerprint, "correlation")
+def _led_tolerance_details(solver: GridlessSolver) -> list[str]:
+    """``fit.detail`` of four K = 8 answers under LED tolerances (5 %, 3 degrees)."""
+    layout = solver.fingerprint.layout
     details = []
     for seed in range(4):
         truth = random_positions(layout, 8, rng=np.random.default_rng(1000 + seed))
@@ -136,6 +136,11 @@ def test_an_answer_says_when_the_tolerances_were_fitted(paper_fingerprint: Finge
         solution = solver.solve(measurement, 8)
         assert solution.fit is not None
         details.append(solution.fit.detail)
+    return details
+
+
+def test_an_answer_says_when_the_tolerances_were_fitted(paper_fingerprint: Fingerprint) -> None:
+    details = _led_tolerance_details(GridlessSolver(paper_fingerprint, "correlation"))
     said = [detail for detail in details if "tolerances were fitted" in detail]
     assert len(said) >= 2
     # The fitted spread is of the drawn tolerances' size (5 %, 3 degrees), not wild.
@@ -150,23 +155,11 @@ def test_the_score_test_s_bar_gates_the_stage(paper_fingerprint: Fingerprint) ->
     """``tolerance_score_ratio``: the first Gauss-Newton step must promise more than that
     many times the extra parameters; an unreachable bar keeps every fit nominal, where the
     default fits the LEDs' tolerances of most of these rooms."""
-    layout = paper_fingerprint.layout
     fitted = {}
     for ratio in (1.0, math.inf):
-        solver = GridlessSolver(
-            paper_fingerprint, "correlation", GridlessOptions(tolerance_score_ratio=ratio)
-        )
-        count = 0
-        for seed in range(4):
-            truth = random_positions(layout, 8, rng=np.random.default_rng(1000 + seed))
-            simulated = simulate_terminals(
-                layout, truth, Impairments.led_tolerances(0.05, 3.0), snr_db=30.0, rng=seed
-            )
-            measurement = measurement_from_amplitudes(simulated.amplitudes, "correlation", 16)
-            solution = solver.solve(measurement, 8)
-            assert solution.fit is not None
-            count += "tolerances were fitted" in solution.fit.detail
-        fitted[ratio] = count
+        options = GridlessOptions(tolerance_score_ratio=ratio)
+        details = _led_tolerance_details(GridlessSolver(paper_fingerprint, "correlation", options))
+        fitted[ratio] = sum("tolerances were fitted" in detail for detail in details)
     assert fitted[1.0] >= 2
     assert fitted[math.inf] == 0
 
