@@ -593,14 +593,12 @@ def _split_brightest(
     shares[brightest] = np.inf
     spare = int(np.argmin(shares))  # left out, the cost rises least
     centre = positions[brightest]
-    for axis in (0, 1):
+    lower, upper = model.bounds()
+    for step in offset * np.eye(2):
         moved = theta.copy()
-        step = np.zeros(2)
-        step[axis] = offset
         moved[spare], moved[k + spare] = centre + step
         moved[brightest], moved[k + brightest] = centre - step
         moved[2 * k + spare] = moved[2 * k + brightest] = 0.0
-        lower, upper = model.bounds()
         moved = np.clip(moved, lower, upper)
         tried = _try_move(model, cost, moved, white, data, positions)
         if tried is not None:
