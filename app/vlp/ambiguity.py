@@ -26,7 +26,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from .typing import FloatArray
+from .typing import FloatArray, IntArray
 
 __all__ = [
     "OFF_LINE_FRACTION",
@@ -35,6 +35,7 @@ __all__ = [
     "far_optima",
     "farthest_in_region",
     "mirror_twins",
+    "reaching_beyond",
     "twins_possible",
 ]
 
@@ -266,6 +267,35 @@ def farthest_in_region(
         mine = rows == k
         far[k] = grid_points[cols[mine][np.argmax(distance[mine])]]
     return far
+
+
+def reaching_beyond(
+    explained: FloatArray,
+    best: FloatArray,
+    grid_points: FloatArray,
+    positions: FloatArray,
+    distance: float,
+) -> IntArray:
+    """The estimates whose profile's 95 % region (as :func:`farthest_in_region`'s) holds a
+    grid point more than ``distance`` (metres) from them, ascending.
+
+    Parameters
+    ----------
+    explained : ndarray of shape (K, N)
+    best : ndarray of shape (K,)
+        As :func:`farthest_in_region`'s.
+    grid_points : ndarray of shape (N, 2), metres
+    positions : ndarray of shape (K, 2), metres
+    distance : float, metres
+
+    Returns
+    -------
+    estimates : ndarray of shape (n,), int
+    """
+    rows, cols = np.nonzero(explained >= np.asarray(best)[:, np.newaxis] - _REGION_CHI2)
+    points = np.asarray(positions)[rows]
+    reach = np.hypot(grid_points[cols, 0] - points[:, 0], grid_points[cols, 1] - points[:, 1])
+    return np.unique(rows[reach > distance]).astype(np.int64)
 
 
 def covering_twins(covariances: FloatArray, positions: FloatArray, twins: FloatArray) -> FloatArray:

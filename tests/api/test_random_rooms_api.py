@@ -44,6 +44,11 @@ def test_once_a_500_now_an_answer_with_honest_radii(
         (1, 24, 6),  # correlation, K = 2, mix, 10 dB: 4.5 m off, radius 2.1
         (1, 15, 7),  # power, K = 2 given, mix: 1.1 m off, radius 0.45
         (1, 32, 6),  # power, K unknown, mix, 10 dB: 3.8 m off, radius 1.3
+        # Estimates stuck at a far optimum that fits to the noise, now tried there and moved
+        # (GridlessOptions.relocate_ambiguous):
+        (4, 38, 1),  # correlation, K = 2 given, ideal, 30 dB, 8 LEDs: 1.9 m off, radius 1.7
+        (4, 20, 2),  # correlation, K unknown, ideal, 30 dB, 9 LEDs: 6.2 m off, radius 2.6
+        (4, 19, 4),  # correlation, K = 5 given, ideal, 40 dB, 9 LEDs: 3.7 m off, radius 3.6
     ],
 )
 def test_once_confidently_wrong_now_a_radius_that_holds_the_truth(

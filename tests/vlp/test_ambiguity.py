@@ -12,6 +12,7 @@ from app.vlp.ambiguity import (
     far_optima,
     farthest_in_region,
     mirror_twins,
+    reaching_beyond,
     twins_possible,
 )
 from app.vlp.channel import channel_gains
@@ -171,6 +172,35 @@ def test_the_farthest_point_of_a_profile_region_beyond_the_circle() -> None:
     assert np.isnan(
         farthest_in_region(explained[:1], np.array([10.0]), points, positions[:1], wide, 0.1)
     ).all()
+
+
+def test_the_estimates_whose_profile_region_reaches_beyond_a_distance() -> None:
+    points = np.array([[0.0, 0.0], [0.1, 0.0], [2.0, 0.0], [3.0, 0.0]])
+    positions = np.array([[0.0, 0.0], [0.0, 0.0], [0.0, 0.0], [3.0, 0.0]])
+    explained = np.array(
+        [
+            [10.0, 9.0, 5.0, 0.0],  # (2, 0), 2 m away, is within 5.99 of the best
+            [10.0, 9.0, 3.0, 0.0],  # only the neighbourhood
+            [10.0, 9.0, 5.0, 0.0],  # the same, but the estimate itself explains 20
+            [10.0, 9.0, 5.0, 0.0],  # at (3, 0): (0, 0) is 3 m away, (2, 0) 1 m
+        ]
+    )
+    best = np.array([10.0, 10.0, 20.0, 10.0])
+    # Each estimate's region, brute force: the points within 5.99 of its best.
+    for distance in (0.05, 0.5, 1.5, 2.5):
+        want = [
+            k
+            for k in range(4)
+            if any(
+                explained[k, j] >= best[k] - 5.991464547107979
+                and np.hypot(*(points[j] - positions[k])) > distance
+                for j in range(4)
+            )
+        ]
+        got = reaching_beyond(explained, best, points, positions, distance)
+        assert got.tolist() == want
+    assert reaching_beyond(explained, best, points, positions, 1.5).tolist() == [0, 3]
+    assert reaching_beyond(explained, best, points, positions, 2.5).tolist() == [3]
 
 
 def test_terminals_in_the_dark_get_radii_that_hold_them() -> None:

@@ -63,6 +63,13 @@ class GridlessOptions:
     # in rooms with the dense dictionary (docs/accuracy.md, "Far relocation in the power
     # model").
     relocate_far: bool | None = None
+    # After the polish, each estimate whose profile (the others held, its gain free) fits
+    # as well, within chi-square(2)'s 95 %, somewhere beyond the restarts' radius is tried
+    # there as far relocation does, even when the fit does not look stuck: in rooms with few
+    # LEDs per target the aggregated fit has such optima at noise-level costs. None: the
+    # correlation model in rooms whose profiles are scanned (docs/accuracy.md, "Far places
+    # tried in the search").
+    relocate_ambiguous: bool | None = None
     # The noise coefficient held at 0 while targets are inserted (freed in the refinements
     # after): the power model's noise atom (ones, nearly a signal direction) otherwise takes
     # the signal of the targets not yet inserted, and later insertions find no room for them

@@ -19,13 +19,27 @@ import numpy as np
 from ._gridless_fit import FitState, Whitening
 from ._kernels import kernel_mode
 
-__all__ = ["MAX_KEPT_VALUES", "WhiteningMemo"]
+__all__ = ["MAX_KEPT_VALUES", "WhiteningMemo", "state_key"]
 
 # Whitenings kept per thread; a solve needs a few dozen at most (K = 8 with restarts).
 _CAPACITY = 64
 # Only whitenings of at most this many values are kept (a 16-LED correlation has 136; a
 # 1024-LED one would hold an 8 MB rotation and 4 MB of weights each: computed, not kept).
 MAX_KEPT_VALUES = 4096
+
+
+def state_key(state: FitState) -> bytes:
+    """The state's values (positions, heights, weights, gains, scale, noise) as one key:
+    what a whitening, and anything else computed from the state alone, depends on."""
+    return np.concatenate(
+        (
+            state.positions.ravel(),
+            state.heights,
+            state.weights,
+            state.log_gains,
+            (state.noise, state.log_scale),
+        )
+    ).tobytes()
 
 
 class WhiteningMemo:
@@ -36,18 +50,7 @@ class WhiteningMemo:
 
     def get(self, state: FitState, compute: Callable[[FitState], Whitening]) -> Whitening:
         """The whitening of ``state``, computed by ``compute`` unless already known."""
-        key = (
-            kernel_mode(),
-            np.concatenate(
-                (
-                    state.positions.ravel(),
-                    state.heights,
-                    state.weights,
-                    state.log_gains,
-                    (state.noise, state.log_scale),
-                )
-            ).tobytes(),
-        )
+        key = (kernel_mode(), state_key(state))
         known: dict[tuple[str, bytes], Whitening] | None = getattr(self._local, "known", None)
         if known is None:
             known = self._local.known = {}

@@ -17,6 +17,7 @@ from ..ambiguity import (
     far_optima,
     farthest_in_region,
     mirror_twins,
+    reaching_beyond,
     twins_possible,
 )
 from ..fingerprints import Fingerprint
@@ -58,7 +59,7 @@ from ._local import PowerScan, TerminalWindows
 from ._room_tolerance_fit import GridMoves, RoomTolerances, ToleranceFit, fit_room_tolerances
 from ._terminal_fit import TerminalFit, fit_terminal, starting_cells
 from ._uncertainty_compiled import uncertainty_kernel
-from ._whitening_memo import MAX_KEPT_VALUES, WhiteningMemo
+from ._whitening_memo import MAX_KEPT_VALUES, WhiteningMemo, state_key
 from .base import MAX_TARGETS, Solution, Solver, register_solver
 
 __all__ = ["LM_DEFAULTS", "GridlessOptions", "GridlessSolver"]
@@ -97,6 +98,12 @@ class _Run:
     # Objectives built for this run, by (whitening, priors, ceiling) (see
     # GridlessSolver._objective).
     objectives: dict[tuple[int, int, float], tuple[Whitening, Priors, Objective]] = field(
+        default_factory=dict, repr=False
+    )
+    # Profiles computed for this run's values, by the state's and the priors in force
+    # (GridlessSolver._profiles): the search's last polish and the answer's far places
+    # often ask for the same.
+    profiles: dict[tuple[bytes, Priors], tuple[FloatArray, FloatArray]] = field(
         default_factory=dict, repr=False
     )
 
@@ -308,6 +315,11 @@ class GridlessSolver(Solver):
         # The far-place scans read every grid point per answer: dense rooms small enough.
         self._scans_profiles = (
             self._dense and fingerprint.n_leds * fingerprint.n_cells <= _MAX_PROFILE_ENTRIES
+        )
+        self._relocate_ambiguous = self._scans_profiles and (
+            model == "correlation"
+            if self.options.relocate_ambiguous is None
+            else self.options.relocate_ambiguous
         )
         if self._dense:
             self._gains = np.ascontiguousarray(
@@ -621,6 +633,16 @@ class GridlessSolver(Solver):
         best = int(np.argmax(gain))
         return bool(gain[best] > self.options.count_threshold * weight**2 * norms_sq[best])
 
+    def _fits_to_noise(self, run: _Run, state: FitState) -> bool:
+        """Whether the whitened cost is within ``misfit_ratio`` times its degrees of
+        freedom: the profiles' likelihood-ratio regions then measure the noise, not a room
+        that differs from its model (where a far move that lowers the cost follows the
+        misfit, e.g. of a terminal's gain, not a target)."""
+        white = self._whitening(state)
+        residual = self._residual(run, white, state)
+        dof = residual.shape[0] - 2 * state.n_targets - 1
+        return bool(dof > 0 and float(residual @ residual) <= self.options.misfit_ratio * dof)
+
     def _plain_cost(self, run: _Run, state: FitState) -> float:
         residual = self._residual(run, self._identity, state)
         return float(residual @ residual)
@@ -683,23 +705,31 @@ class GridlessSolver(Solver):
             best = self._grow(run, best, opts.count_inner_iter)
         return best
 
-    def _relocate(self, run: _Run, state: FitState) -> tuple[FitState, bool]:
+    def _relocate(
+        self,
+        run: _Run,
+        state: FitState,
+        far: bool | None = None,
+        targets: IntArray | None = None,
+    ) -> tuple[FitState, bool]:
         """ADCG's non-convex escape: move one target at a time to the best grid point of the
         residual left by the others, keep the move when the refined cost is lower.
 
-        That point is usually the target's own spot. With ``relocate_far`` such a target is
-        tried at the best point of that residual at least the restarts' radius from its spot;
-        with ``relocate_to_missing`` or ``relocate_far`` then at the best point of the whole
-        residual (where a target is missing): the escapes from two estimates sharing one
-        target while another has none. The first move that lowers the cost is kept.
+        That point is usually the target's own spot. With ``far`` (default
+        ``relocate_far``) such a target is tried at the best point of that residual at least
+        the restarts' radius from its spot; with ``relocate_to_missing`` or ``far`` then at
+        the best point of the whole residual (where a target is missing): the escapes from
+        two estimates sharing one target while another has none. The first move that lowers
+        the cost is kept. ``targets``: only these are moved (default all).
         """
+        far = self._relocate_far if far is None else far
         moved = False
         step = self.fingerprint.layout.grid.step
         n_targets = state.n_targets
         white = self._whitening(state)
         cost = self._objective(run, white).cost(state)[0]
         missing: FloatArray | None = None
-        for k in range(n_targets):
+        for k in range(n_targets) if targets is None else targets:
             keep = np.arange(n_targets) != k
             others = state.subset(keep)
             own = state.positions[k]
@@ -707,9 +737,9 @@ class GridlessSolver(Solver):
             tries = [candidate]
             if np.linalg.norm(candidate.positions[-1] - own) <= 1.5 * step:
                 tries = []
-                if self._relocate_far:
+                if far:
                     tries.append(self._insert(run, others, white, avoid=own[np.newaxis]))
-                if self._relocate_to_missing or self._relocate_far:
+                if self._relocate_to_missing or far:
                     if missing is None:
                         missing = self._insert(run, state, white).positions[-1]
                     if all(
@@ -734,7 +764,9 @@ class GridlessSolver(Solver):
         return state, moved
 
     def _polish(self, run: _Run, state: FitState) -> FitState:
-        """Whitened refinement rounds, then relocation passes while the fit looks stuck."""
+        """Whitened refinement rounds, then relocation passes while the fit looks stuck,
+        then (``relocate_ambiguous``) far relocation of the estimates that fit as well far
+        away."""
         opts = self.options
         state = self._refine(run, state, opts.final_iter, opts.whiten_rounds)
         for _ in range(opts.relocate_passes):
@@ -744,6 +776,15 @@ class GridlessSolver(Solver):
             if not moved:
                 break
             state = self._refine(run, state, opts.final_iter, 1)
+        if self._relocate_ambiguous and state.n_targets >= 2 and self._fits_to_noise(run, state):
+            explained, best = self._profiles(run, state)
+            ambiguous = reaching_beyond(
+                explained, best, self._centres, state.positions, self._avoid_radius
+            )
+            if ambiguous.size:
+                state, moved = self._relocate(run, state, far=True, targets=ambiguous)
+                if moved:
+                    state = self._refine(run, state, opts.final_iter, 1)
         return state
 
     def _fit_known(self, run: _Run, n_targets: int, avoid: FloatArray) -> FitState:
@@ -1288,8 +1329,16 @@ class GridlessSolver(Solver):
         product of atoms is a quadratic form in ``rho_j o rho_k`` with the squared weights,
         so all K profiles cost one pass over the grid each, without forming any ``r_k``
         (compiled: :func:`._fit_compiled.correlation_profiles_kernel`, this NumPy code its
-        reference).
+        reference). Kept per run, state values and priors.
         """
+        key = (state_key(state), run.priors)
+        known = run.profiles.get(key)
+        if known is None:
+            known = run.profiles[key] = self._profiles_of(run, state)
+        return known
+
+    def _profiles_of(self, run: _Run, state: FitState) -> tuple[FloatArray, FloatArray]:
+        """:meth:`_profiles`, computed."""
         white = self._whitening(state)
         residual = self._residual(run, white, state)
         weights = white.weights
