@@ -6,6 +6,7 @@ from collections.abc import Callable
 
 import numpy as np
 import pytest
+from scipy import stats
 
 from app.vlp.ambiguity import (
     covering_twins,
@@ -186,13 +187,15 @@ def test_the_estimates_whose_profile_region_reaches_beyond_a_distance() -> None:
         ]
     )
     best = np.array([10.0, 10.0, 20.0, 10.0])
-    # Each estimate's region, brute force: the points within 5.99 of its best.
+    # Each estimate's region, brute force: the points within chi-square(2)'s 95 % quantile
+    # of its best.
+    quantile = stats.chi2.ppf(0.95, 2)
     for distance in (0.05, 0.5, 1.5, 2.5):
         want = [
             k
             for k in range(4)
             if any(
-                explained[k, j] >= best[k] - 5.991464547107979
+                explained[k, j] >= best[k] - quantile
                 and np.hypot(*(points[j] - positions[k])) > distance
                 for j in range(4)
             )
