@@ -252,9 +252,7 @@ def farthest_in_region(
     far = np.full((explained.shape[0], 2), np.nan)
     # The region is a few grid points per estimate: distances to those only, and the
     # circles only of the estimates whose region reaches beyond their neighbourhood.
-    rows, cols = np.nonzero(explained >= np.asarray(best)[:, np.newaxis] - _REGION_CHI2)
-    points = np.asarray(positions)[rows]
-    distance = np.hypot(grid_points[cols, 0] - points[:, 0], grid_points[cols, 1] - points[:, 1])
+    rows, cols, distance = _region(explained, best, grid_points, positions)
     reach = np.full(explained.shape[0], -np.inf)
     np.maximum.at(reach, rows, distance)
     for k in np.flatnonzero(reach > 1.5 * spacing):
@@ -292,10 +290,20 @@ def reaching_beyond(
     -------
     estimates : ndarray of shape (n,), int
     """
+    rows, _, reach = _region(explained, best, grid_points, positions)
+    return np.unique(rows[reach > distance]).astype(np.int64)
+
+
+def _region(
+    explained: FloatArray, best: FloatArray, grid_points: FloatArray, positions: FloatArray
+) -> tuple[IntArray, IntArray, FloatArray]:
+    """The profiles' 95 % regions as (estimate, grid point) pairs, each with the point's
+    distance from its estimate (metres): the points where an estimate's profile is within
+    chi-square(2)'s 95 % quantile of its best."""
     rows, cols = np.nonzero(explained >= np.asarray(best)[:, np.newaxis] - _REGION_CHI2)
     points = np.asarray(positions)[rows]
-    reach = np.hypot(grid_points[cols, 0] - points[:, 0], grid_points[cols, 1] - points[:, 1])
-    return np.unique(rows[reach > distance]).astype(np.int64)
+    distance = np.hypot(grid_points[cols, 0] - points[:, 0], grid_points[cols, 1] - points[:, 1])
+    return rows, cols, distance
 
 
 def covering_twins(covariances: FloatArray, positions: FloatArray, twins: FloatArray) -> FloatArray:

@@ -611,13 +611,11 @@ class GridlessSolver(Solver):
         """
         if self._relocate_far and state.n_targets >= 2:
             return True
-        white = self._whitening(state)
-        residual = self._residual(run, white, state)
-        dof = residual.shape[0] - 2 * state.n_targets - 1
+        white, residual, within = self._noise_test(run, state)
         # With no degree of freedom left (power model, 2K + 1 >= M) no cost tells a local
         # minimum from the truth: always escaping doubles the time there but is worth about
         # 8 % of the error (docs/accuracy.md, "The power model's uncertainty").
-        if dof <= 0 or float(residual @ residual) > self.options.misfit_ratio * dof:
+        if not within:
             return True
         if not self._dense:
             white = self._identity
@@ -633,15 +631,22 @@ class GridlessSolver(Solver):
         best = int(np.argmax(gain))
         return bool(gain[best] > self.options.count_threshold * weight**2 * norms_sq[best])
 
-    def _fits_to_noise(self, run: _Run, state: FitState) -> bool:
-        """Whether the whitened cost is within ``misfit_ratio`` times its degrees of
-        freedom: the profiles' likelihood-ratio regions then measure the noise, not a room
-        that differs from its model (where a far move that lowers the cost follows the
-        misfit, e.g. of a terminal's gain, not a target)."""
+    def _noise_test(self, run: _Run, state: FitState) -> tuple[Whitening, FloatArray, bool]:
+        """The state's whitening and whitened residual, and whether that residual is within
+        ``misfit_ratio`` times its degrees of freedom (False with none left): a complete fit
+        leaves only noise, about one unit per degree of freedom."""
         white = self._whitening(state)
         residual = self._residual(run, white, state)
         dof = residual.shape[0] - 2 * state.n_targets - 1
-        return bool(dof > 0 and float(residual @ residual) <= self.options.misfit_ratio * dof)
+        within = dof > 0 and float(residual @ residual) <= self.options.misfit_ratio * dof
+        return white, residual, bool(within)
+
+    def _fits_to_noise(self, run: _Run, state: FitState) -> bool:
+        """Whether the fit leaves only noise (:meth:`_noise_test`): the profiles'
+        likelihood-ratio regions then measure the noise, not a room that differs from its
+        model (where a far move that lowers the cost follows the misfit, e.g. of a
+        terminal's gain, not a target)."""
+        return self._noise_test(run, state)[2]
 
     def _plain_cost(self, run: _Run, state: FitState) -> float:
         residual = self._residual(run, self._identity, state)
