@@ -155,6 +155,8 @@ class Calibration:
     # The calibrated layout also says how much the receivers' heights spread (the
     # condition's own sd, as an admin who knows how the phones are held would set it).
     height_sd_in_layout: bool = False
+    # ... and how much their photodiodes tilt (grid.receiver_tilt_sd, the condition's own).
+    tilt_sd_in_layout: bool = False
 
 
 CALIBRATIONS: tuple[Calibration, ...] = (
@@ -163,6 +165,12 @@ CALIBRATIONS: tuple[Calibration, ...] = (
     Calibration("survey (default: LED x/y within 0.3 m)", survey=True),
     Calibration("survey, reflectance fitted too", survey=True, fit_reflectance=True),
     Calibration("survey (default), receivers' height sd in layout", True, height_sd_in_layout=True),
+    Calibration(
+        "survey (default), receivers' height and tilt sd in layout",
+        True,
+        height_sd_in_layout=True,
+        tilt_sd_in_layout=True,
+    ),
 )
 SURVEY_STEP_M = 0.5
 
@@ -240,11 +248,13 @@ def run_calibrated(
                         )
                         calibrated[key] = calibrated_layout(layout, result)
                     fitted = calibrated[key]
+                    grid = fitted.grid
                     if calibration.height_sd_in_layout:
-                        grid = dataclasses.replace(
-                            fitted.grid, receiver_height_sd=impairments.height_sd_m
-                        )
-                        fitted = dataclasses.replace(fitted, grid=grid)
+                        grid = dataclasses.replace(grid, receiver_height_sd=impairments.height_sd_m)
+                    if calibration.tilt_sd_in_layout:
+                        tilt_sd = impairments.tilt_component_sd_deg
+                        grid = dataclasses.replace(grid, receiver_tilt_sd=tilt_sd)
+                    fitted = dataclasses.replace(fitted, grid=grid)
                     fingerprint = build_fingerprint(fitted)
                 else:
                     fingerprint = plain

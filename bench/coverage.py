@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import math
 import sys
 import time
 from collections.abc import Sequence
@@ -47,9 +46,8 @@ __all__ = ["Cell", "coverage", "main"]
 
 KS = (1, 4, 8)
 SNR_DB = 30.0
-# The mix's tilts (polar angle uniform in [0, max], azimuth uniform) as the layout's spread:
-# the standard deviation of each tilt component, sqrt(E[polar^2] / 2) = max / sqrt(6).
-MIX_TILT_SD_DEG = MIX.tilt_max_deg / math.sqrt(6.0)
+# The mix's tilts as the layout's spread (each tilt component's standard deviation).
+MIX_TILT_SD_DEG = MIX.tilt_component_sd_deg
 # (mix, tilt spread in the layout) and the table's name for each condition.
 CONDITIONS = (
     (False, False, "ideal"),

@@ -92,6 +92,9 @@ class Condition:
     impairments: Impairments
     reflectance_in_layout: Reflectance | None = None
     height_sd_in_layout: float = 0.0
+    # grid.receiver_tilt_sd, degrees (the condition's own tilt spread, as an admin who knows
+    # how the phones are held would set it).
+    tilt_sd_in_layout: float = 0.0
 
 
 WALLS = Reflectance(walls=0.7, floor=0.0, ceiling=0.0)
@@ -105,6 +108,11 @@ CONDITIONS: tuple[Condition, ...] = (
     Condition("heights sd 15 cm", Impairments.heights(0.15)),
     Condition("heights sd 15 cm, sd in layout", Impairments.heights(0.15), None, 0.15),
     Condition("tilt 0-20 deg", Impairments.tilts(20.0)),
+    Condition(
+        "tilt 0-20 deg, spread in layout",
+        Impairments.tilts(20.0),
+        tilt_sd_in_layout=Impairments.tilts(20.0).tilt_component_sd_deg,
+    ),
     Condition("LED 5 % / 3 deg", Impairments.led_tolerances(0.05, 3.0)),
     Condition("realistic mix", MIX),
     Condition("realistic mix, reflectance in layout", MIX, MIX.reflectance),
@@ -113,6 +121,13 @@ CONDITIONS: tuple[Condition, ...] = (
         MIX,
         MIX.reflectance,
         MIX.height_sd_m,
+    ),
+    Condition(
+        "realistic mix, reflectance, height and tilt sd in layout",
+        MIX,
+        MIX.reflectance,
+        MIX.height_sd_m,
+        MIX.tilt_component_sd_deg,
     ),
 )
 
@@ -154,18 +169,24 @@ def _parse_option(text: str) -> tuple[str, object]:
 
 
 @cache
-def _layout(room: str, reflectance: Reflectance | None, height_sd: float = 0.0) -> Layout:
+def _layout(
+    room: str, reflectance: Reflectance | None, height_sd: float = 0.0, tilt_sd: float = 0.0
+) -> Layout:
     layout = make_room(room)
     return dataclasses.replace(
         layout,
         room=dataclasses.replace(layout.room, reflectance=reflectance),
-        grid=dataclasses.replace(layout.grid, receiver_height_sd=height_sd),
+        grid=dataclasses.replace(
+            layout.grid, receiver_height_sd=height_sd, receiver_tilt_sd=tilt_sd
+        ),
     )
 
 
 @cache
-def _fingerprint(room: str, reflectance: Reflectance | None, height_sd: float = 0.0) -> Fingerprint:
-    return build_fingerprint(_layout(room, reflectance, height_sd))
+def _fingerprint(
+    room: str, reflectance: Reflectance | None, height_sd: float = 0.0, tilt_sd: float = 0.0
+) -> Fingerprint:
+    return build_fingerprint(_layout(room, reflectance, height_sd, tilt_sd))
 
 
 def _generator(*key: object) -> np.random.Generator:
@@ -182,7 +203,12 @@ def run_trial(
     snr_db: float = SNR_DB,
 ) -> dict[str, float]:
     """Mean matched error (metres) of each mode in one trial; NaN where the solve failed."""
-    layout = _layout(room, condition.reflectance_in_layout, condition.height_sd_in_layout)
+    told = (
+        condition.reflectance_in_layout,
+        condition.height_sd_in_layout,
+        condition.tilt_sd_in_layout,
+    )
+    layout = _layout(room, *told)
     positions, simulated = draw_terminals(
         layout,
         count,
@@ -191,7 +217,7 @@ def run_trial(
         placement_rng=_generator(room, count, trial),
         noise_rng=_generator(room, condition.name, count, trial),
     )
-    fingerprint = _fingerprint(room, condition.reflectance_in_layout, condition.height_sd_in_layout)
+    fingerprint = _fingerprint(room, *told)
     amplitudes = simulated.amplitudes
     errors: dict[str, float] = {}
     try:

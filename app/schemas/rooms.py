@@ -111,8 +111,10 @@ class GridSpec(RequestModel):
         ge=0.0,
         le=MAX_RECEIVER_TILT_SD_DEG,
         description="spread (standard deviation) of each of the two tilt components of the "
-        "terminals' photodiodes, degrees (e.g. hand-held phones); the default solver's "
-        "accuracy_m then holds what such tilts move an estimate by. 0: level photodiodes",
+        "terminals' photodiodes, degrees (e.g. hand-held phones); the default solver then "
+        "fits the tilt of each terminal that sends its own amplitudes but no normal, with "
+        "this spread as its prior, and the other answers' accuracy_m holds what such tilts "
+        "move an estimate by. 0: level photodiodes",
     )
 
 

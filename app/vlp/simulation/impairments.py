@@ -90,6 +90,14 @@ class Impairments:
         """True when nothing departs from the layout (the paper's model)."""
         return self == Impairments()
 
+    @property
+    def tilt_component_sd_deg(self) -> float:
+        """Standard deviation of each of the two tilt components these tilts have, degrees:
+        ``sqrt(E[polar^2] / 2) = tilt_max_deg / sqrt(6)`` for a polar angle uniform in
+        ``[0, tilt_max_deg]`` and a uniform azimuth (what a layout's ``receiver_tilt_sd``
+        should say of them)."""
+        return self.tilt_max_deg / math.sqrt(6.0)
+
     @classmethod
     def ideal(cls) -> Impairments:
         """The paper's model: nothing departs from the layout."""

@@ -87,7 +87,9 @@ class GridlessOptions:
     log_gain_sd: float | None = 0.1
     log_scale_sd: float | None = 0.5
     # Prior sd of each component (tangent) of a terminal's unknown photodiode tilt, fitted
-    # when terminals send their own amplitudes but not their normal (hand-held phones tilt).
+    # when terminals send their own amplitudes but not their normal (hand-held phones tilt)
+    # and kept when significant; a layout's ``receiver_tilt_sd`` replaces it, and its tilts
+    # are then always fitted. None: photodiodes held level.
     tilt_sd: float | None = 0.15
     # The room's tolerances, fitted with the aggregated correlation as a last stage
     # (._room_tolerance_fit; None: never): each LED's pilot amplitude (log sd) and half-power

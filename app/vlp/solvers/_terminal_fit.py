@@ -125,11 +125,13 @@ def fit_terminal(
     height: float | None,
     normal: FloatArray | None,
     tilt_sd: float | None = None,
+    tilt_spread_known: bool = False,
 ) -> TerminalFit:
     """Fit one terminal from each start, keep the lowest cost.
 
     With priors (``sigma2`` given), the gain is held at 1 and an unknown photodiode kept
-    level unless freeing them lowers the cost by more than chance would.
+    level unless freeing them lowers the cost by more than chance would; an unknown tilt
+    whose spread the room declares is always fitted with that prior.
 
     Parameters
     ----------
@@ -150,6 +152,10 @@ def fit_terminal(
     tilt_sd : float or None
         Prior standard deviation of each component of an unknown photodiode's tilt
         (tangent units; with priors only); None keeps an unknown normal straight up.
+    tilt_spread_known : bool
+        ``tilt_sd`` is the room's own tilt spread (the layout's ``receiver_tilt_sd``), not a
+        default guess: the tilt is then always fitted with it as the prior (a maximum a
+        posteriori estimate), never held level by the significance test.
     """
     best: TerminalFit | None = None
     held_gain_sd: float | None = None  # the gain's prior sd when it is held at 1
@@ -193,11 +199,15 @@ def fit_terminal(
     # An unknown tilt is fitted too, and kept only when it lowers the cost by more than its
     # two components would by chance (mean plus three standard deviations of a chi-square
     # with 2 degrees of freedom): tilt and position trade off, so a free tilt costs a level
-    # terminal accuracy (measured in docs/real-rooms.md).
+    # terminal accuracy (measured in docs/real-rooms.md). A tilt spread the room declares
+    # is kept always: a tilt is nearly a shift, its cost decrease mostly too small for the
+    # test, and the prior is then the room's own (docs/real-rooms.md, "Tilts fitted with
+    # the layout's spread").
     tilted = _levenberg_marquardt(
         kernel, amplitudes, best.position, z0, free_height, priors, weight, None, tilt_sd
     )
-    chosen = tilted if best.cost - tilted.cost > _TILT_SIGNIFICANCE else best
+    significant = best.cost - tilted.cost > _TILT_SIGNIFICANCE
+    chosen = tilted if tilt_spread_known or significant else best
     return _with_gain_prior(chosen, held_gain_sd)
 
 

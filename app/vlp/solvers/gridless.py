@@ -993,7 +993,8 @@ class GridlessSolver(Solver):
         noise variance pooled over the terminals (its residual sum of squares over its
         degrees of freedom), then with the gain and height priors weighted by it (each
         terminal's gain held at 1 and its photodiode level unless freeing them lowers the
-        cost significantly: :func:`._terminal_fit.fit_terminal`). The covariance of each
+        cost significantly, or its tilt fitted with the layout's ``receiver_tilt_sd`` as
+        the prior when it declares one: :func:`._terminal_fit.fit_terminal`). The covariance of each
         position is the sandwich of its whitened fit with the noise and
         the model errors the fit does not fit (:meth:`_terminal_misfit_columns`), their
         variances estimated from all terminals' residuals together (the first pass's noise
@@ -1016,6 +1017,10 @@ class GridlessSolver(Solver):
             for k in range(n_terminals)
         ]
         own_normals = [None if normals is None else normals[k] for k in range(n_terminals)]
+        # The layout's tilt spread, when it declares one, is each unknown tilt's prior.
+        declared_tilt_sd = math.radians(self.fingerprint.layout.grid.receiver_tilt_sd)
+        tilt_spread_known = self.options.tilt_sd is not None and declared_tilt_sd > 0
+        tilt_sd = declared_tilt_sd if tilt_spread_known else self.options.tilt_sd
         first = []
         for k in range(n_terminals):
             kernel, seen, unseen_energy = self._kernel, values[k], 0.0
@@ -1036,7 +1041,8 @@ class GridlessSolver(Solver):
                 sigma2=None,
                 height=own_heights[k],
                 normal=own_normals[k],
-                tilt_sd=self.options.tilt_sd,
+                tilt_sd=tilt_sd,
+                tilt_spread_known=tilt_spread_known,
             )
             first.append(replace(fit, rss=fit.rss + unseen_energy))
         dof = np.array([max(n_leds - fit.n_params, 1) for fit in first])
@@ -1050,7 +1056,8 @@ class GridlessSolver(Solver):
                 sigma2=sigma2,
                 height=own_heights[k],
                 normal=own_normals[k],
-                tilt_sd=self.options.tilt_sd,
+                tilt_sd=tilt_sd,
+                tilt_spread_known=tilt_spread_known,
             )
             for k in range(n_terminals)
         ]
@@ -1069,11 +1076,10 @@ class GridlessSolver(Solver):
         covariances = np.array(
             [predictive_covariances(design, misfit, np.array([[0, 1]]))[0] for design in designs]
         )
-        tilt_sd = math.radians(self.fingerprint.layout.grid.receiver_tilt_sd)
-        if tilt_sd > 0:
+        if declared_tilt_sd > 0:
             for k, fit in enumerate(fits):
                 if not (fit.free_tilt or own_normals[k] is not None):
-                    covariances[k] += self._terminal_tilt_covariance(fit, tilt_sd)
+                    covariances[k] += self._terminal_tilt_covariance(fit, declared_tilt_sd)
         log_gains = np.array([fit.log_gain for fit in fits])
         positions = np.array([fit.position for fit in fits])
         fit_quality = assess_fit(
