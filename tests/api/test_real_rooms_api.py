@@ -147,3 +147,38 @@ def test_a_tilt_spread_in_the_layout_widens_the_radii_not_the_positions(
     # in quadrature, at least 10 cm of 95 % radius.
     for e, t in zip(level, tilted, strict=True):
         assert t["accuracy_m"] ** 2 - e["accuracy_m"] ** 2 > 0.10**2
+
+
+def test_terminals_in_a_room_with_a_tilt_spread_are_fitted_tilted(
+    worker_app: TestClient,
+) -> None:
+    """Terminals with tilted photodiodes, sent as `terminals` without their normals: in a room
+    whose layout declares the tilt spread, each terminal's tilt is fitted with it as the
+    prior, so the answers move towards the truth (tests/vlp/test_tilt_spread.py measures it
+    over many placements); without the spread they are the level fits."""
+    body = {
+        "targets": 8,
+        "snr_db": 30,
+        "seed": 2,
+        "form": "terminals",
+        "impairments": {"tilt_max_deg": 20.0},
+    }
+    errors = []
+    for grid in (PAPER_ROOM["grid"], PAPER_ROOM["grid"] | {"receiver_tilt_sd": 8.2}):
+        created = worker_app.post("/v1/rooms", json=PAPER_ROOM | {"grid": grid}, headers=ADMIN)
+        assert created.status_code == 201, created.text
+        room = wait_for_room(worker_app, created.json()["id"])
+        simulated = worker_app.post(f"/v1/rooms/{room['id']}/simulate", json=body, headers=TERMINAL)
+        assert simulated.status_code == 200, simulated.text
+        truth = np.array([[t["x"], t["y"]] for t in simulated.json()["truth"]])
+        located = worker_app.post(
+            f"/v1/rooms/{room['id']}/localize",
+            json=simulated.json()["measurement"],
+            headers=TERMINAL,
+        )
+        assert located.status_code == 200, located.text
+        found = np.array([[e["x"], e["y"]] for e in located.json()["estimates"]])
+        errors.append(np.linalg.norm(found - truth, axis=1))  # estimate k is terminal k
+    level, tilted = errors
+    assert not np.array_equal(level, tilted)
+    assert tilted.mean() < level.mean()
