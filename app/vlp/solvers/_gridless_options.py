@@ -91,6 +91,12 @@ class GridlessOptions:
     # and kept when significant; a layout's ``receiver_tilt_sd`` replaces it, and its tilts
     # are then always fitted. None: photodiodes held level.
     tilt_sd: float | None = 0.15
+    # In the ``terminals`` form, when the terminals' residuals show the LEDs' own relative
+    # errors (pilot amplitudes, beams off their data sheet) beyond the noise's chance, the
+    # terminals are refitted with each amplitude weighted by its noise plus that error
+    # (generalised least squares: the brightest LEDs carry the largest errors). False: one
+    # weight for all (docs/real-rooms.md, "The LEDs' errors in the terminals' weights").
+    terminal_led_weights: bool = True
     # The room's tolerances, fitted with the aggregated correlation as a last stage
     # (._room_tolerance_fit; None: never): each LED's pilot amplitude (log sd) and half-power
     # angle (degrees), as LED data sheets give them, and optionally each target's photodiode

@@ -66,7 +66,7 @@ class TerminalFit:
     cost: float = 0.0
     jacobian: FloatArray = field(default_factory=lambda: np.zeros((0, 0)))
     residual: FloatArray = field(default_factory=lambda: np.zeros(0))
-    data_weight: float = 1.0
+    data_weight: float | FloatArray = 1.0
     free_height: bool = False
     free_tilt: bool = False
 
@@ -121,7 +121,7 @@ def fit_terminal(
     starts: FloatArray,
     *,
     priors: Priors,
-    sigma2: float | None,
+    sigma2: float | FloatArray | None,
     height: float | None,
     normal: FloatArray | None,
     tilt_sd: float | None = None,
@@ -160,7 +160,11 @@ def fit_terminal(
     best: TerminalFit | None = None
     held_gain_sd: float | None = None  # the gain's prior sd when it is held at 1
     floor = _SIGMA2_REL_FLOOR * float(amplitudes @ amplitudes) / amplitudes.shape[0]
-    weight = 1.0 / math.sqrt(max(sigma2, floor, 1e-300)) if sigma2 is not None else 1.0
+    weight: float | FloatArray = 1.0
+    if isinstance(sigma2, np.ndarray):
+        weight = 1.0 / np.sqrt(np.maximum(sigma2, max(floor, 1e-300)))
+    elif sigma2 is not None:
+        weight = 1.0 / math.sqrt(max(sigma2, floor, 1e-300))
     free_height = height is None and priors.fits_heights
     z0 = priors.height_mean if height is None else float(height)
     for start in starts:
@@ -283,7 +287,7 @@ def _levenberg_marquardt(
     z0: float,
     free_height: bool,
     priors: Priors,
-    weight: float | None,
+    weight: float | FloatArray | None,
     normal: FloatArray | None,
     tilt_sd: float | None,
 ) -> TerminalFit:
@@ -319,6 +323,8 @@ def _levenberg_marquardt(
     if with_priors and priors.log_gain_sd is not None:
         lower[-1], upper[-1] = -MAX_LOG_GAIN - 3.0, MAX_LOG_GAIN + 3.0
     data_weight = weight if weight is not None else 1.0
+    # Per-value weights multiply the Jacobian's rows.
+    row_weight = data_weight[:, None] if isinstance(data_weight, np.ndarray) else data_weight
     tilt_at = 3 if free_height else 2
 
     def evaluate(params: FloatArray) -> tuple[FloatArray, FloatArray]:
@@ -326,7 +332,7 @@ def _levenberg_marquardt(
         amp = math.exp(float(params[-1]))
         residual = data_weight * (amplitudes - amp * gains)
         jacobian = np.empty((amplitudes.shape[0], params.shape[0]))
-        jacobian[:, :axes] = data_weight * amp * gradient[:, gradient_columns]
+        jacobian[:, :axes] = row_weight * amp * gradient[:, gradient_columns]
         jacobian[:, -1] = data_weight * amp * gains
         rows_r: list[float] = []
         rows_j: list[FloatArray] = []

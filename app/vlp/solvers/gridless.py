@@ -27,6 +27,8 @@ from ..simulation import mean_signal_power
 from ..typing import FloatArray, IntArray
 from ..uncertainty import (
     FitQuality,
+    Misfit,
+    MisfitDesign,
     assess_fit,
     bounded_covariances,
     fit_misfit,
@@ -67,6 +69,10 @@ __all__ = ["LM_DEFAULTS", "GridlessOptions", "GridlessSolver"]
 # Largest model-error design (observations x targets x LEDs) held for the covariance; a
 # larger room falls back to the reduced chi-square's inflation.
 _MAX_MISFIT_ENTRIES = 4_000_000
+# Share of the terminals' residual sum of squares that the LEDs' relative errors must
+# explain, in standard deviations of the noise's chi-square, for the terminals to be
+# refitted with the LEDs' errors in their weights.
+_LED_WEIGHT_SIGNIFICANCE = 3.0
 # A count read off the rank of R replaces a smaller count by energy only when its fit's
 # variance ratio against that one is above this (GridlessSolver._explains_more).
 _COUNT_F_RATIO = 10.0
@@ -999,7 +1005,11 @@ class GridlessSolver(Solver):
         the model errors the fit does not fit (:meth:`_terminal_misfit_columns`), their
         variances estimated from all terminals' residuals together (the first pass's noise
         level holds part of the misfit, so the noise variance is re-estimated with them)
-        and widened for their degrees of freedom (:mod:`app.vlp.uncertainty`).
+        and widened for their degrees of freedom (:mod:`app.vlp.uncertainty`). When the
+        LEDs' relative errors explain a significant share of the residuals
+        (:func:`_led_errors_seen`; option ``terminal_led_weights``), a third pass refits each
+        terminal with each amplitude's variance the noise's plus that error's, and the
+        variances are estimated again from its residuals.
         """
         check_amplitude_scale(self.fingerprint, np.asarray(amplitudes, dtype=np.float64))
         values = np.asarray(amplitudes, dtype=np.float64) / self._scale
@@ -1061,18 +1071,42 @@ class GridlessSolver(Solver):
             )
             for k in range(n_terminals)
         ]
-        chi2 = np.array([fit.rss for fit in fits]) / max(sigma2, 1e-300)
-        designs = [
-            misfit_design(
-                fit.jacobian,
-                fit.normal,
-                self._terminal_misfit_columns(
-                    fit, own_heights[k] is not None, own_normals[k] is not None
-                ),
-            )
-            for k, fit in enumerate(fits)
-        ]
-        misfit = fit_misfit(designs, [fit.residual for fit in fits])
+
+        def misfit_of(fits: list[TerminalFit]) -> tuple[list[MisfitDesign], Misfit]:
+            designs = [
+                misfit_design(
+                    fit.jacobian,
+                    fit.normal,
+                    self._terminal_misfit_columns(
+                        fit, own_heights[k] is not None, own_normals[k] is not None
+                    ),
+                )
+                for k, fit in enumerate(fits)
+            ]
+            return designs, fit_misfit(designs, [fit.residual for fit in fits])
+
+        designs, misfit = misfit_of(fits)
+        led_error = float(misfit.model_errors[0]) if misfit.model_errors.size else 0.0
+        if self.options.terminal_led_weights and _led_errors_seen(designs, led_error):
+            fits = [
+                fit_terminal(
+                    self._kernel,
+                    values[k],
+                    fit.position[None, :],
+                    priors=self._priors,
+                    sigma2=misfit.noise * sigma2
+                    + led_error * (fit.jacobian[:, -1] / fit.data_weight) ** 2,
+                    height=own_heights[k],
+                    normal=own_normals[k],
+                    tilt_sd=tilt_sd,
+                    tilt_spread_known=tilt_spread_known,
+                )
+                for k, fit in enumerate(fits)
+            ]
+            designs, misfit = misfit_of(fits)
+            chi2 = np.array([float(fit.residual @ fit.residual) for fit in fits])
+        else:
+            chi2 = np.array([fit.rss for fit in fits]) / max(sigma2, 1e-300)
         covariances = np.array(
             [predictive_covariances(design, misfit, np.array([[0, 1]]))[0] for design in designs]
         )
@@ -1108,7 +1142,8 @@ class GridlessSolver(Solver):
         that its fit holds level, shape (2, 2): as :meth:`_tilt_covariances`, with the
         terminal's own whitened Jacobian (position first)."""
         gradient = self._shape_gradients(fit.position[np.newaxis, :], np.array([fit.height]))[0]
-        columns = fit.data_weight * math.exp(fit.log_gain) * gradient[:, 1:3]  # (M, 2)
+        weight = np.reshape(fit.data_weight, (-1, 1))
+        columns = weight * math.exp(fit.log_gain) * gradient[:, 1:3]  # (M, 2)
         position = np.array([[0, 1]])
         covariances = _response_covariances(fit.normal, fit.jacobian.T, columns, position, tilt_sd)
         return np.asarray(covariances[0])
@@ -1124,7 +1159,7 @@ class GridlessSolver(Solver):
         # LEDs out of view give zero columns: left out (a large room has hundreds).
         columns = [np.diag(whitened)[:, whitened != 0.0]]
         gradient = self._shape_gradients(fit.position[np.newaxis, :], np.array([fit.height]))[0]
-        scale = fit.data_weight * math.exp(fit.log_gain)
+        scale = np.reshape(fit.data_weight, (-1, 1)) * math.exp(fit.log_gain)
         unknown_tilt = not (fit.free_tilt or normal_known)
         unknown_height = not (fit.free_height or height_known)
         columns.append(scale * gradient[:, 1:3] if unknown_tilt else gradient[:, :0])
@@ -1562,3 +1597,15 @@ class GridlessSolver(Solver):
             block = moved[upper] * rotated[lower] + rotated[upper] * moved[lower]
         block *= multipliers[np.newaxis, :, np.newaxis] * white.weights[:, np.newaxis, np.newaxis]
         return np.asarray(block.reshape(-1, k * n_dirs))
+
+
+def _led_errors_seen(designs: list[MisfitDesign], led_error: float) -> bool:
+    """Whether the LEDs' relative errors, variance ``led_error`` (the first model error of
+    each design), explain more of the residuals' sum of squares than the noise's chi-square
+    scatters (``_LED_WEIGHT_SIGNIFICANCE`` standard deviations): where the room's LEDs are
+    as modelled, a moment estimate of ``led_error`` above 0 is the noise's chance."""
+    if led_error <= 0.0:
+        return False
+    seen = led_error * sum(float(design.error_leverages[:, 0].sum()) for design in designs)
+    noise_dof = sum(float(design.noise_leverage.sum()) for design in designs)
+    return seen > _LED_WEIGHT_SIGNIFICANCE * math.sqrt(2.0 * noise_dof)

@@ -1,0 +1,111 @@
+"""Terminals refitted with the LEDs' relative errors in their weights (generalised least
+squares, ``GridlessOptions.terminal_led_weights``)."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from scipy import optimize
+
+from app.vlp.fingerprints import Fingerprint, build_fingerprint
+from app.vlp.layout import Layout
+from app.vlp.presets import paper_layout
+from app.vlp.simulation import (
+    Impairments,
+    random_positions,
+    simulate_terminals,
+    true_amplitudes,
+)
+from app.vlp.solvers._channel_kernel import ChannelKernel
+from app.vlp.solvers._gridless_options import nuisance_priors
+from app.vlp.solvers._terminal_fit import fit_terminal
+from app.vlp.solvers.gridless import GridlessOptions, GridlessSolver
+
+
+def test_a_terminal_fit_with_per_led_variances_minimises_their_weighted_cost(
+    paper_room: Layout,
+) -> None:
+    # Each amplitude weighted by its own variance: the fit is the weighted least-squares
+    # optimum, checked against scipy on the simulator's channel (not the solver's kernel).
+    kernel = ChannelKernel(paper_room, scale=1.0)
+    priors = replace(nuisance_priors(paper_room, GridlessOptions()), log_gain_sd=None)
+    point = np.array([1.1, 2.7])
+    clean = true_amplitudes(paper_room, point[None, :])[0]
+    sigma = 0.01 * float(np.sqrt(np.mean(clean**2)))
+    rng = np.random.default_rng(5)
+    amplitudes = clean * (1.0 + 0.05 * rng.standard_normal(clean.shape))
+    amplitudes = amplitudes + sigma * rng.standard_normal(clean.shape)
+    variances = sigma**2 + 0.05**2 * clean**2
+    height = paper_room.grid.receiver_height
+    fit = fit_terminal(
+        kernel,
+        amplitudes,
+        point[None, :],
+        priors=priors,
+        sigma2=variances,
+        height=height,
+        normal=None,
+    )
+
+    def weighted(theta: np.ndarray) -> np.ndarray:
+        model = np.exp(theta[2]) * true_amplitudes(paper_room, theta[None, :2])[0]
+        return np.asarray((amplitudes - model) / np.sqrt(variances))
+
+    reference = optimize.least_squares(weighted, np.r_[point, 0.0], xtol=1e-14, ftol=1e-14)
+    np.testing.assert_allclose(fit.position, reference.x[:2], atol=1e-6)
+    assert fit.log_gain == pytest.approx(reference.x[2], abs=1e-6)
+    np.testing.assert_allclose(fit.residual, weighted(reference.x), atol=1e-5)
+    # Not a formality: the same data with one variance for all land elsewhere.
+    plain = fit_terminal(
+        kernel,
+        amplitudes,
+        point[None, :],
+        priors=priors,
+        sigma2=sigma**2,
+        height=height,
+        normal=None,
+    )
+    assert np.linalg.norm(plain.position - fit.position) > 1e-3
+
+
+def test_terminals_under_led_tolerances_land_closer_with_the_leds_errors_weighed() -> None:
+    # Each LED's pilot amplitude 5 % and half-power angle 3 degrees off its data sheet: the
+    # brightest LEDs carry the largest errors, which a terminal's residuals show.
+    layout = paper_layout()
+    weighed = GridlessSolver(build_fingerprint(layout), "correlation")
+    plain = GridlessSolver(
+        weighed.fingerprint, "correlation", GridlessOptions(terminal_led_weights=False)
+    )
+    errors: dict[str, list[float]] = {"weighed": [], "plain": []}
+    for seed in range(8):
+        rng = np.random.default_rng(seed)
+        truth = random_positions(layout, 8, rng=rng)
+        simulated = simulate_terminals(
+            layout, truth, Impairments.led_tolerances(), snr_db=30.0, rng=rng
+        )
+        for name, solver in (("weighed", weighed), ("plain", plain)):
+            found = solver.solve_terminals(simulated.amplitudes).positions
+            errors[name] += np.linalg.norm(found - truth, axis=1).tolist()
+    assert np.mean(errors["weighed"]) < 0.9 * np.mean(errors["plain"])
+
+
+@pytest.mark.parametrize("count", [1, 8])
+def test_terminals_in_a_room_as_modelled_are_not_reweighted(
+    paper_fingerprint: Fingerprint, count: int
+) -> None:
+    # Where the LEDs are as modelled their errors' estimate is the noise's chance: the
+    # answer is the unweighted fit's, bit for bit.
+    layout = paper_fingerprint.layout
+    weighed = GridlessSolver(paper_fingerprint, "correlation")
+    plain = GridlessSolver(
+        paper_fingerprint, "correlation", GridlessOptions(terminal_led_weights=False)
+    )
+    for seed in range(6):
+        rng = np.random.default_rng(100 + seed)
+        truth = random_positions(layout, count, rng=rng)
+        simulated = simulate_terminals(layout, truth, Impairments.ideal(), snr_db=30.0, rng=rng)
+        one, other = (solver.solve_terminals(simulated.amplitudes) for solver in (weighed, plain))
+        np.testing.assert_array_equal(one.positions, other.positions)
+        np.testing.assert_array_equal(one.covariances, other.covariances)
