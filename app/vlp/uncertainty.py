@@ -24,6 +24,7 @@ from scipy import optimize, special
 from .typing import FloatArray, IntArray
 
 __all__ = [
+    "FITS_TO_NOISE",
     "NOISE_ONLY_P",
     "POOR_FIT_CHI2",
     "SCALE_MISMATCH_FACTOR",
@@ -50,6 +51,8 @@ POOR_FIT_CHI2 = 4.0
 # answered "ok" (the radii carry the model errors) but its detail says the room differs a
 # little from its layout, not that the model explains the measurement to its noise.
 NOISE_ONLY_P = 1e-3
+# The detail of a fit whose residuals are what the noise alone would leave.
+FITS_TO_NOISE = "the model explains the measurement to its noise"
 # A common amplitude scale outside [1/f, f] says the measurement is not in the fingerprint's
 # units (or the pilots / receiver gains changed): answered, but flagged.
 SCALE_MISMATCH_FACTOR = 1.5
@@ -139,7 +142,7 @@ def assess_fit(chi2: float, dof: int, scale: float) -> FitQuality:
             "height or tilt, LEDs); the radii allow for it"
         )
         return FitQuality(reduced, scale, "ok", detail, dof)
-    return FitQuality(reduced, scale, "ok", "the model explains the measurement to its noise", dof)
+    return FitQuality(reduced, scale, "ok", FITS_TO_NOISE, dof)
 
 
 def confidence_radius(covariance: FloatArray, level: float = 0.95) -> float:

@@ -22,6 +22,7 @@ from app.vlp.solvers._channel_kernel import ChannelKernel
 from app.vlp.solvers._gridless_options import nuisance_priors
 from app.vlp.solvers._terminal_fit import fit_terminal
 from app.vlp.solvers.gridless import GridlessOptions, GridlessSolver
+from app.vlp.uncertainty import FITS_TO_NOISE
 
 
 def test_a_terminal_fit_with_per_led_variances_minimises_their_weighted_cost(
@@ -79,16 +80,30 @@ def test_terminals_under_led_tolerances_land_closer_with_the_leds_errors_weighed
         weighed.fingerprint, "correlation", GridlessOptions(terminal_led_weights=False)
     )
     errors: dict[str, list[float]] = {"weighed": [], "plain": []}
+    said = 0
     for seed in range(8):
         rng = np.random.default_rng(seed)
         truth = random_positions(layout, 8, rng=rng)
         simulated = simulate_terminals(
             layout, truth, Impairments.led_tolerances(), snr_db=30.0, rng=rng
         )
-        for name, solver in (("weighed", weighed), ("plain", plain)):
-            found = solver.solve_terminals(simulated.amplitudes).positions
-            errors[name] += np.linalg.norm(found - truth, axis=1).tolist()
+        answers = {
+            name: solver.solve_terminals(simulated.amplitudes)
+            for name, solver in (("weighed", weighed), ("plain", plain))
+        }
+        for name, answer in answers.items():
+            errors[name] += np.linalg.norm(answer.positions - truth, axis=1).tolist()
+        # The goodness of fit stays the layout's own; the detail says what was weighed.
+        one, other = answers["weighed"].fit, answers["plain"].fit
+        assert one is not None and other is not None
+        assert (one.quality, one.chi2_per_dof) == (other.quality, other.chi2_per_dof)
+        if one.detail != other.detail:
+            # Said instead of "to its noise" (estimated from the same residuals), else after.
+            assert other.detail == FITS_TO_NOISE or one.detail.startswith(other.detail + "; ")
+            assert "off their data sheet" in one.detail
+            said += 1
     assert np.mean(errors["weighed"]) < 0.9 * np.mean(errors["plain"])
+    assert said >= 4  # the LEDs' errors are seen in most of these rooms
 
 
 @pytest.mark.parametrize("count", [1, 8])
@@ -109,3 +124,4 @@ def test_terminals_in_a_room_as_modelled_are_not_reweighted(
         one, other = (solver.solve_terminals(simulated.amplitudes) for solver in (weighed, plain))
         np.testing.assert_array_equal(one.positions, other.positions)
         np.testing.assert_array_equal(one.covariances, other.covariances)
+        assert one.fit == other.fit

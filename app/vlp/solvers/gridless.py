@@ -26,6 +26,7 @@ from ..scale import check_amplitude_scale
 from ..simulation import mean_signal_power
 from ..typing import FloatArray, IntArray
 from ..uncertainty import (
+    FITS_TO_NOISE,
     FitQuality,
     Misfit,
     MisfitDesign,
@@ -1086,8 +1087,12 @@ class GridlessSolver(Solver):
             return designs, fit_misfit(designs, [fit.residual for fit in fits])
 
         designs, misfit = misfit_of(fits)
+        # The goodness of fit is the layout's own, with one weight for all amplitudes: the
+        # reweighted fit below explains its residuals by construction.
+        chi2 = np.array([fit.rss for fit in fits]) / max(sigma2, 1e-300)
         led_error = float(misfit.model_errors[0]) if misfit.model_errors.size else 0.0
-        if self.options.terminal_led_weights and _led_errors_seen(designs, led_error):
+        reweighted = self.options.terminal_led_weights and _led_errors_seen(designs, led_error)
+        if reweighted:
             fits = [
                 fit_terminal(
                     self._kernel,
@@ -1104,9 +1109,6 @@ class GridlessSolver(Solver):
                 for k, fit in enumerate(fits)
             ]
             designs, misfit = misfit_of(fits)
-            chi2 = np.array([float(fit.residual @ fit.residual) for fit in fits])
-        else:
-            chi2 = np.array([fit.rss for fit in fits]) / max(sigma2, 1e-300)
         covariances = np.array(
             [predictive_covariances(design, misfit, np.array([[0, 1]]))[0] for design in designs]
         )
@@ -1119,6 +1121,18 @@ class GridlessSolver(Solver):
         fit_quality = assess_fit(
             float(chi2.sum()), int(dof.sum()), math.exp(float(np.median(log_gains)))
         )
+        if reweighted and fit_quality.quality != "scale_mismatch":
+            seen = (
+                f"the residuals grow with the amplitudes as if the LEDs were about "
+                f"{100.0 * math.sqrt(led_error):.0f} % off their data sheet, and the brightest "
+                "were weighted down for it (a survey calibration measures them)"
+            )
+            # The noise level was estimated from the same residuals: "to its noise" would
+            # hide what they show.
+            detail = (
+                seen if fit_quality.detail == FITS_TO_NOISE else f"{fit_quality.detail}; {seen}"
+            )
+            fit_quality = replace(fit_quality, detail=detail)
         far = self._far_optima(values, positions, covariances, sigma2)
         covariances, fit_quality = self._reported(positions, covariances, fit_quality, far)
         return Solution(
