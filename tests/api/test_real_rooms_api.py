@@ -182,3 +182,41 @@ def test_terminals_in_a_room_with_a_tilt_spread_are_fitted_tilted(
     level, tilted = errors
     assert not np.array_equal(level, tilted)
     assert tilted.mean() < level.mean()
+
+
+def test_terminals_under_led_tolerances_say_the_leds_are_off_their_data_sheet(
+    worker_app: TestClient,
+) -> None:
+    """LEDs 5 % / 3 degrees off their data sheet, eight terminals sent as `terminals`: their
+    residuals grow with the amplitudes, so the answer is refitted with the brightest LEDs
+    weighted down and says so, with the goodness of fit still the layout's own
+    (tests/vlp/test_terminal_led_weights.py measures the accuracy)."""
+    created = worker_app.post("/v1/rooms", json=PAPER_ROOM, headers=ADMIN)
+    assert created.status_code == 201, created.text
+    room = wait_for_room(worker_app, created.json()["id"])
+    body = {
+        "targets": 8,
+        "snr_db": 30,
+        "seed": 4,
+        "form": "terminals",
+        "impairments": {"led_amplitude_sd": 0.05, "led_half_power_sd_deg": 3.0},
+    }
+    simulated = worker_app.post(f"/v1/rooms/{room['id']}/simulate", json=body, headers=TERMINAL)
+    assert simulated.status_code == 200, simulated.text
+    located = worker_app.post(
+        f"/v1/rooms/{room['id']}/localize", json=simulated.json()["measurement"], headers=TERMINAL
+    )
+    assert located.status_code == 200, located.text
+    fit = located.json()["fit"]
+    assert fit["quality"] == "ok"
+    assert "off their data sheet" in fit["detail"], fit["detail"]
+    # Ideal LEDs, the same terminals: nothing of the kind is said.
+    ideal = worker_app.post(
+        f"/v1/rooms/{room['id']}/simulate", json=body | {"impairments": {}}, headers=TERMINAL
+    )
+    assert ideal.status_code == 200, ideal.text
+    answered = worker_app.post(
+        f"/v1/rooms/{room['id']}/localize", json=ideal.json()["measurement"], headers=TERMINAL
+    )
+    assert answered.status_code == 200, answered.text
+    assert "data sheet" not in answered.json()["fit"]["detail"]
