@@ -1073,13 +1073,15 @@ class GridlessSolver(Solver):
             for k in range(n_terminals)
         ]
 
-        def misfit_of(fits: list[TerminalFit]) -> tuple[list[MisfitDesign], Misfit]:
+        def misfit_of(
+            fits: list[TerminalFit], led_errors: bool = True
+        ) -> tuple[list[MisfitDesign], Misfit]:
             designs = [
                 misfit_design(
                     fit.jacobian,
                     fit.normal,
                     self._terminal_misfit_columns(
-                        fit, own_heights[k] is not None, own_normals[k] is not None
+                        fit, own_heights[k] is not None, own_normals[k] is not None, led_errors
                     ),
                 )
                 for k, fit in enumerate(fits)
@@ -1108,7 +1110,9 @@ class GridlessSolver(Solver):
                 )
                 for k, fit in enumerate(fits)
             ]
-            designs, misfit = misfit_of(fits)
+            # The LEDs' errors are in the weights now: a model error along them as well
+            # would count them twice (radii too wide).
+            designs, misfit = misfit_of(fits, led_errors=False)
         covariances = np.array(
             [predictive_covariances(design, misfit, np.array([[0, 1]]))[0] for design in designs]
         )
@@ -1163,15 +1167,17 @@ class GridlessSolver(Solver):
         return np.asarray(covariances[0])
 
     def _terminal_misfit_columns(
-        self, fit: TerminalFit, height_known: bool, normal_known: bool
+        self, fit: TerminalFit, height_known: bool, normal_known: bool, led_errors: bool = True
     ) -> list[FloatArray]:
         """Whitened derivatives of a terminal's amplitudes along the errors its fit does not
         fit, as :meth:`_misfit_columns`: each LED's relative error, (M, M), then the
         photodiode's tilt, (M, 2), and its height, (M, 1), unless fitted or sent by the
-        terminal (then (M, 0): every terminal keeps the same components)."""
+        terminal, or for the LEDs' errors ``led_errors`` False (their variance already in the
+        fit's weights) (then (M, 0): every terminal keeps the same components)."""
         whitened = fit.jacobian[:, -1]  # the log gain's column: the whitened amplitudes
         # LEDs out of view give zero columns: left out (a large room has hundreds).
-        columns = [np.diag(whitened)[:, whitened != 0.0]]
+        seen = (whitened != 0.0) & led_errors
+        columns = [np.diag(whitened)[:, seen]]
         gradient = self._shape_gradients(fit.position[np.newaxis, :], np.array([fit.height]))[0]
         scale = np.reshape(fit.data_weight, (-1, 1)) * math.exp(fit.log_gain)
         unknown_tilt = not (fit.free_tilt or normal_known)
