@@ -74,6 +74,10 @@ _MAX_MISFIT_ENTRIES = 4_000_000
 # explain, in standard deviations of the noise's chi-square, for the terminals to be
 # refitted with the LEDs' errors in their weights.
 _LED_WEIGHT_SIGNIFICANCE = 3.0
+# ... and the largest relative sd of an LED's error taken for one: data sheets bin flux
+# within +-10-15 %; a larger estimate is a fit that does not hold (a terminal placed far
+# off in a badly lit room), which the weights would make worse (docs/real-rooms.md).
+_MAX_LED_ERROR_SD = 0.25
 # A count read off the rank of R replaces a smaller count by energy only when its fit's
 # variance ratio against that one is above this (GridlessSolver._explains_more).
 _COUNT_F_RATIO = 10.0
@@ -1623,8 +1627,9 @@ def _led_errors_seen(designs: list[MisfitDesign], led_error: float) -> bool:
     """Whether the LEDs' relative errors, variance ``led_error`` (the first model error of
     each design), explain more of the residuals' sum of squares than the noise's chi-square
     scatters (``_LED_WEIGHT_SIGNIFICANCE`` standard deviations): where the room's LEDs are
-    as modelled, a moment estimate of ``led_error`` above 0 is the noise's chance."""
-    if led_error <= 0.0:
+    as modelled, a moment estimate of ``led_error`` above 0 is the noise's chance; and
+    whether it is an LED's error at all (relative sd at most ``_MAX_LED_ERROR_SD``)."""
+    if not 0.0 < led_error <= _MAX_LED_ERROR_SD**2:
         return False
     seen = led_error * sum(float(design.error_leverages[:, 0].sum()) for design in designs)
     noise_dof = sum(float(design.noise_leverage.sum()) for design in designs)
