@@ -39,6 +39,7 @@ __all__ = [
     "f2_widening",
     "fit_misfit",
     "misfit_design",
+    "own_excess_widening",
     "predictive_covariances",
 ]
 
@@ -555,3 +556,45 @@ def predictive_covariances(
     # (bounded_covariances).
     with np.errstate(invalid="ignore"):
         return np.asarray(covariances * widen[:, np.newaxis, np.newaxis])
+
+
+def own_excess_widening(
+    design: MisfitDesign, residual: FloatArray, misfit: Misfit, level: float = 0.95
+) -> float:
+    """How much one of several fits that share pooled variances must widen its covariance
+    when its own residual is beyond what those variances predict for it.
+
+    The pooled ``(a, b)`` of :func:`fit_misfit` give each residual of this fit its expected
+    square ``E_i = a (Q Q^T)_ii + sum_c b_c (Q F_c F_c^T Q^T)_ii``; their sum ``S`` scatters
+    like ``S chi2(nu) / nu`` with ``nu = S^2 / sum_i E_i^2`` (Satterthwaite, the residuals
+    taken as independent). A residual sum of squares ``R`` beyond its ``1 - NOISE_ONLY_P``
+    quantile says this fit does not hold as well as the others (a terminal placed at the
+    wrong optimum, or impaired more than the rest): its covariance is scaled by ``R / S`` (a
+    Birge ratio), times :func:`f2_widening` of ``nu`` since that ratio rests on this fit's
+    residuals alone. Otherwise 1.
+
+    Parameters
+    ----------
+    design : MisfitDesign
+        The fit's design, as passed to :func:`fit_misfit`.
+    residual : ndarray of shape (L,)
+        The fit's whitened data residuals.
+    misfit : Misfit
+        The variances pooled over all the fits.
+    level : float, default=0.95
+
+    Returns
+    -------
+    float, >= 1
+    """
+    expected_squares = (
+        misfit.noise * design.noise_leverage + design.error_leverages @ misfit.model_errors
+    )
+    expected = float(expected_squares.sum())
+    if not expected > 0.0:
+        return 1.0
+    dof = expected**2 / float(np.sum(expected_squares**2))
+    observed = float(np.asarray(residual, dtype=np.float64) @ residual)
+    if observed <= expected * float(special.chdtri(dof, NOISE_ONLY_P)) / dof:
+        return 1.0
+    return observed / expected * float(f2_widening(np.array([dof]), level)[0])

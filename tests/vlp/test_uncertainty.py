@@ -9,8 +9,10 @@ import pytest
 from scipy import integrate, special, stats
 
 from app.vlp.uncertainty import (
+    NOISE_ONLY_P,
     POOR_FIT_CHI2,
     SCALE_MISMATCH_FACTOR,
+    Misfit,
     assess_fit,
     bounded_covariances,
     confidence_radii,
@@ -18,6 +20,7 @@ from app.vlp.uncertainty import (
     f2_widening,
     fit_misfit,
     misfit_design,
+    own_excess_widening,
     predictive_covariances,
 )
 
@@ -196,6 +199,37 @@ def test_fitted_misfit_gives_honest_95_percent_regions(model_error: float) -> No
     assert 0.92 <= float(np.mean(inside)) <= 0.98
     if model_error > 0.0:
         assert float(np.mean(fitted)) == pytest.approx(model_error, rel=0.25)
+
+
+def test_a_fit_whose_own_residual_the_pooled_variances_do_not_explain_is_widened() -> None:
+    # Pooled variances (noise 1, a signal-proportional model error 0.02): residuals drawn
+    # from them are seldom widened; one whose square sum is past the 1 - NOISE_ONLY_P
+    # quantile of its Satterthwaite chi-square (computed here with explicit projections and
+    # scipy.stats) is widened by its Birge ratio times the F widening of those dof.
+    jacobian, normal, errors = _linear_problem(6)
+    design = misfit_design(jacobian, normal, [errors])
+    misfit = Misfit(1.0, np.array([0.02]), np.array([math.inf, 40.0]))
+    residual_map = np.eye(60) - jacobian @ np.linalg.inv(normal) @ jacobian.T  # Q
+    seen = residual_map @ errors
+    expected_squares = np.diag(residual_map @ residual_map.T) + 0.02 * np.diag(seen @ seen.T)
+    expected = float(expected_squares.sum())
+    dof = expected**2 / float(np.sum(expected_squares**2))
+    threshold = expected * float(stats.chi2.isf(NOISE_ONLY_P, dof)) / dof
+    rng = np.random.default_rng(8)
+    widened = 0
+    for _ in range(4000):
+        error = rng.standard_normal(60) + errors @ rng.standard_normal(60) * math.sqrt(0.02)
+        widened += own_excess_widening(design, residual_map @ error, misfit) > 1.0
+    # Nominally 0.1 % (4 of 4000); the Satterthwaite approximation may move that a little.
+    assert widened <= 40
+    direction = residual_map @ rng.standard_normal(60)
+    direction /= np.linalg.norm(direction)
+    below = direction * math.sqrt(threshold * (1.0 - 1e-6))
+    assert own_excess_widening(design, below, misfit) == 1.0
+    above = direction * math.sqrt(threshold * (1.0 + 1e-6))
+    expected_factor = threshold * (1.0 + 1e-6) / expected * f2_widening(np.array([dof]))[0]
+    assert own_excess_widening(design, above, misfit) == pytest.approx(expected_factor, rel=1e-9)
+    assert expected_factor > 1.5  # a fit past the quantile is widened by much, not by a hair
 
 
 def test_f2_widening_is_the_f_over_chi_square_quantile_ratio() -> None:

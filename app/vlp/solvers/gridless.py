@@ -34,6 +34,7 @@ from ..uncertainty import (
     bounded_covariances,
     fit_misfit,
     misfit_design,
+    own_excess_widening,
     predictive_covariances,
 )
 from ._channel_kernel import ChannelKernel
@@ -1118,7 +1119,13 @@ class GridlessSolver(Solver):
             # would count them twice (radii too wide).
             designs, misfit = misfit_of(fits, led_errors=False)
         covariances = np.array(
-            [predictive_covariances(design, misfit, np.array([[0, 1]]))[0] for design in designs]
+            [
+                predictive_covariances(design, misfit, np.array([[0, 1]]))[0]
+                # A terminal whose own residual the pooled variances do not explain: its radius
+                # says so (a terminal at a wrong optimum, or more impaired than the rest).
+                * own_excess_widening(design, fit.residual, misfit)
+                for design, fit in zip(designs, fits, strict=True)
+            ]
         )
         if declared_tilt_sd > 0:
             for k, fit in enumerate(fits):

@@ -1,0 +1,36 @@
+"""A terminal whose own residual the pooled variances do not explain gets a radius that says
+so (``uncertainty.own_excess_widening`` in ``GridlessSolver.solve_terminals``)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from app.vlp.fingerprints import build_fingerprint
+from app.vlp.solvers.gridless import GridlessSolver
+from app.vlp.uncertainty import confidence_radius
+from bench.random_rooms import draw_request, random_layout
+
+
+@pytest.mark.parametrize(
+    ("room", "trial"),
+    [
+        (6, 4),  # 16 LEDs, K = 8, realistic mix, 40 dB: one terminal 59 cm off, radius 52 cm
+        (6, 9),  # K = 6: one terminal 87 cm off, radius 46 cm
+    ],
+)
+def test_a_terminal_left_far_off_is_not_answered_confidently(room: int, trial: int) -> None:
+    # Random rooms (bench/random_rooms.py, seed 3), LEDs' errors weighed: the pooled variances
+    # fit the other terminals, and one terminal's fit, far off, left a residual 3.5-4.9x what
+    # they predict for it, with a radius as narrow as the others'. Wherever the fits land,
+    # each terminal is within 0.5 m or its truth is inside its 95 % radius.
+    rng = np.random.default_rng([3, room])
+    layout = random_layout(rng)
+    for _ in range(trial + 1):
+        body, truth, _outcome = draw_request(rng, layout, room)
+    amplitudes = np.array([terminal["amplitudes"] for terminal in body["terminals"]])
+    answer = GridlessSolver(build_fingerprint(layout), "correlation").solve_terminals(amplitudes)
+    assert answer.covariances is not None
+    errors = np.linalg.norm(answer.positions - truth, axis=1)
+    radii = np.array([confidence_radius(covariance) for covariance in answer.covariances])
+    assert np.all((errors < 0.5) | (errors <= radii)), (errors, radii)
