@@ -48,7 +48,7 @@ from app.vlp.simulation import Impairments, simulate_terminals
 from ._common import measured_section, replace_section, write_csv
 from ._server import ADMIN_KEY, TERMINAL_KEY, live_server
 
-__all__ = ["FORMS", "Outcome", "draw_request", "main", "random_layout", "run"]
+__all__ = ["FORMS", "Outcome", "draw_request", "main", "random_layout", "replay_request", "run"]
 
 FORMS = ("correlation", "power", "terminals")
 MIX_REFLECTANCE = Reflectance(walls=0.7, floor=0.2, ceiling=0.8)
@@ -166,6 +166,16 @@ def draw_request(
         body["targets"] = count
     outcome = Outcome(room, n_leds, form, count, given, snr_db, mix, status=0)
     return body, truth, outcome
+
+
+def replay_request(seed: int, room: int, trial: int) -> tuple[Layout, dict[str, Any], np.ndarray]:
+    """Room ``room`` of ``--seed seed`` and its ``trial``-th request (body and truth, (K, 2)),
+    drawn as :func:`run` draws them (to look at one answer again)."""
+    rng = np.random.default_rng([seed, room])
+    layout = random_layout(rng)
+    for _ in range(trial + 1):
+        body, truth, _outcome = draw_request(rng, layout, room)
+    return layout, body, truth
 
 
 def _judge(answer: dict[str, Any], truth: np.ndarray, layout: Layout, outcome: Outcome) -> Outcome:

@@ -11,7 +11,7 @@ import pytest
 
 from app.vlp.layout import Layout
 from app.vlp.metrics import match_positions
-from bench.random_rooms import WRONG_M, draw_request, random_layout
+from bench.random_rooms import WRONG_M, replay_request
 
 from .conftest import ADMIN, TERMINAL, TestClient, wait_for_room
 
@@ -27,7 +27,7 @@ from .conftest import ADMIN, TERMINAL, TestClient, wait_for_room
 def test_once_a_500_now_an_answer_with_honest_radii(
     worker_app: TestClient, seed: int, room: int, trial: int
 ) -> None:
-    layout, body, _truth = _request(seed, room, trial)
+    layout, body, _truth = replay_request(seed, room, trial)
     estimates = _answer(worker_app, layout, body)["estimates"]
     diagonal = math.hypot(layout.room.length, layout.room.width)
     for estimate in estimates:
@@ -57,7 +57,7 @@ def test_once_confidently_wrong_now_a_radius_that_holds_the_truth(
     """Aggregated answers whose estimate sat at one of two places that fit about as well,
     with a radius that knew only its own (quality ok): each estimate is now moved over the
     grid with the others held, and its radius holds the farthest place that fits as well."""
-    layout, body, truth = _request(seed, room, trial)
+    layout, body, truth = replay_request(seed, room, trial)
     answer = _answer(worker_app, layout, body)
     assert answer["fit"]["quality"] == "ok"
     estimates = np.array([[e["x"], e["y"]] for e in answer["estimates"]])
@@ -70,16 +70,6 @@ def test_once_confidently_wrong_now_a_radius_that_holds_the_truth(
     # choice (one machine: the K = 1 case 0.83 m off with a 6.9 m radius and no far place;
     # another: the K = 2 case 1.17 m off with a 7.8 m radius, no far place beyond it). The
     # detail itself is tested where the case is deterministic (tests/vlp/test_ambiguity.py).
-
-
-def _request(seed: int, room: int, trial: int) -> tuple[Layout, dict[str, Any], np.ndarray]:
-    """Room ``room`` of ``python -m bench.random_rooms --seed seed`` and its ``trial``-th
-    request (body and truth)."""
-    rng = np.random.default_rng([seed, room])
-    layout = random_layout(rng)
-    for _ in range(trial + 1):
-        body, truth, _outcome = draw_request(rng, layout, room)
-    return layout, body, truth
 
 
 def _answer(client: TestClient, layout: Layout, body: dict[str, Any]) -> dict[str, Any]:

@@ -23,7 +23,7 @@ from app.vlp.solvers._gridless_options import nuisance_priors
 from app.vlp.solvers._terminal_fit import fit_terminal
 from app.vlp.solvers.gridless import GridlessOptions, GridlessSolver
 from app.vlp.uncertainty import FITS_TO_NOISE
-from bench.random_rooms import draw_request, random_layout
+from bench.random_rooms import replay_request
 
 
 def test_a_terminal_fit_with_per_led_variances_minimises_their_weighted_cost(
@@ -140,10 +140,7 @@ def test_a_fit_that_does_not_hold_is_not_taken_for_the_leds_errors(room: int, tr
     # Random rooms (bench/random_rooms.py, seed 3): badly lit, a terminal placed far off
     # leaves residuals that grow with the amplitudes too, with an "LED error" no data sheet
     # would allow; weighing it moved the other terminals off. Answered as unweighted now.
-    rng = np.random.default_rng([3, room])
-    layout = random_layout(rng)
-    for _ in range(trial + 1):
-        body, _truth, _outcome = draw_request(rng, layout, room)
+    layout, body, _truth = replay_request(3, room, trial)
     amplitudes = np.array([terminal["amplitudes"] for terminal in body["terminals"]])
     fingerprint = build_fingerprint(layout)
     weighed = GridlessSolver(fingerprint, "correlation").solve_terminals(amplitudes)

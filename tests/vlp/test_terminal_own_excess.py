@@ -9,7 +9,7 @@ import pytest
 from app.vlp.fingerprints import build_fingerprint
 from app.vlp.solvers.gridless import GridlessSolver
 from app.vlp.uncertainty import confidence_radius
-from bench.random_rooms import draw_request, random_layout
+from bench.random_rooms import replay_request
 
 
 @pytest.mark.parametrize(
@@ -24,10 +24,7 @@ def test_a_terminal_left_far_off_is_not_answered_confidently(room: int, trial: i
     # fit the other terminals, and one terminal's fit, far off, left a residual 3.5-4.9x what
     # they predict for it, with a radius as narrow as the others'. Wherever the fits land,
     # each terminal is within 0.5 m or its truth is inside its 95 % radius.
-    rng = np.random.default_rng([3, room])
-    layout = random_layout(rng)
-    for _ in range(trial + 1):
-        body, truth, _outcome = draw_request(rng, layout, room)
+    layout, body, truth = replay_request(3, room, trial)
     amplitudes = np.array([terminal["amplitudes"] for terminal in body["terminals"]])
     answer = GridlessSolver(build_fingerprint(layout), "correlation").solve_terminals(amplitudes)
     assert answer.covariances is not None
