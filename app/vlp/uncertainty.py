@@ -593,8 +593,10 @@ def own_excess_widening(
     expected = float(expected_squares.sum())
     if not expected > 0.0:
         return 1.0
-    dof = expected**2 / float(np.sum(expected_squares**2))
     observed = float(np.asarray(residual, dtype=np.float64) @ residual)
+    if observed <= expected:  # below the mean, so below any upper quantile: no quantile needed
+        return 1.0
+    dof = expected**2 / float(np.sum(expected_squares**2))
     if observed <= expected * float(special.chdtri(dof, NOISE_ONLY_P)) / dof:
         return 1.0
     return observed / expected * float(f2_widening(np.array([dof]), level)[0])
