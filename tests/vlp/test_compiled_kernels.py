@@ -467,6 +467,135 @@ def test_terminal_model_matches_reference(table: str) -> None:
             assert_same(got_part, want_part)
 
 
+# The terminal fit's branches: (height free, photodiode normal sent, tilt fitted).
+_TERMINAL_SHAPES = [
+    (False, False, False),
+    (True, False, False),
+    (True, True, False),
+    (False, True, False),
+    (True, False, True),
+    (False, False, True),
+]
+
+
+def _tilted(rng: np.random.Generator, largest: float = 0.45) -> FloatArray:
+    """A unit normal whose tilt's components (tangents) are up to ``largest`` (0.45: about
+    25 degrees off vertical along both)."""
+    raw = np.array([rng.uniform(-largest, largest), rng.uniform(-largest, largest), 1.0])
+    return np.asarray(raw / np.linalg.norm(raw), dtype=np.float64)
+
+
+@pytest.mark.parametrize("table", TABLES)
+@pytest.mark.parametrize(("free_height", "sent_normal", "free_tilt"), _TERMINAL_SHAPES)
+def test_terminal_model_kernel_matches_reference(
+    table: str, free_height: bool, sent_normal: bool, free_tilt: bool
+) -> None:
+    """Gains and gradient of every branch (straight up, a sent normal, a fitted tilt), against
+    :func:`terminal_model` with the reference kernels; the tilt's columns are zero when the
+    tilt is not fitted."""
+    from app.vlp.solvers._terminal_compiled import terminal_model_kernel
+    from app.vlp.solvers._terminal_fit import terminal_model
+
+    kernel = make_kernel("paper", table, seed=3)
+    constants = channel_constants(kernel)
+    assert constants is not None
+    rng = np.random.default_rng(8)
+    z0 = 0.85
+    for _ in range(5):
+        x, y = rng.uniform(-0.1, 4.1, 2)
+        theta = np.array(
+            [
+                x,
+                y,
+                *([z0 + rng.uniform(-0.3, 0.3)] if free_height else []),
+                *(list(rng.uniform(-0.5, 0.5, 2)) if free_tilt else []),
+                rng.uniform(-0.3, 0.3),
+            ]
+        )
+        normal = _tilted(rng) if sent_normal else None
+        with use_kernels("reference"):
+            want_gains, want_gradient = terminal_model(
+                kernel, theta, free_height, z0, normal, free_tilt
+            )
+        gains, gradient = terminal_model_kernel(
+            *constants,
+            theta,
+            (free_height, sent_normal, free_tilt, z0),
+            np.zeros(3) if normal is None else normal,
+        )
+        assert_same(gains, want_gains)
+        columns = want_gradient.shape[1]
+        assert_same(gradient[:, :columns], want_gradient)
+        assert not gradient[:, columns:].any()
+
+
+@pytest.mark.parametrize("reflecting", [False, True])
+@pytest.mark.parametrize(("free_height", "sent_normal", "free_tilt"), _TERMINAL_SHAPES)
+@pytest.mark.parametrize("weighting", ["none", "scalar", "per_value"])
+def test_terminal_fit_matches_reference(
+    joint_kernels: dict[bool, ChannelKernel],
+    reflecting: bool,
+    free_height: bool,
+    sent_normal: bool,
+    free_tilt: bool,
+    weighting: str,
+) -> None:
+    """One terminal's whole fit from one start (the compiled LM loop against the NumPy
+    evaluation and :func:`projected_levenberg_marquardt`): every field of the result, with
+    and without priors (the gain, height and tilt pseudo-residuals), scalar and per-value
+    weights; the paper room without and with reflections."""
+    from app.vlp.solvers._terminal_fit import _levenberg_marquardt, terminal_model
+
+    kernel = joint_kernels[reflecting]
+    assert channel_constants(kernel) is not None  # so the compiled LM runs
+    rng = np.random.default_rng(21)
+    z0 = kernel.receiver_height
+    priors = Priors(
+        log_gain_sd=None if weighting == "none" else 0.1,
+        height_sd=0.1 if free_height else 0.0,
+        height_mean=z0,
+        height_bounds=(z0 - 0.4, z0 + 0.4),
+    )
+    for _ in range(3):
+        truth = rng.uniform(0.3, 3.7, 2)
+        sent = _tilted(rng) if sent_normal else None
+        # tilted only where the fit models it (sent, or fitted: a little, as a fit from a level
+        # start can reach), so that it lands near the truth
+        true_normal = (
+            sent if sent is not None else _tilted(rng, 0.15) if free_tilt else np.eye(3)[2]
+        )
+        height = z0 + (rng.uniform(-0.2, 0.2) if free_height else 0.0)
+        gains, _ = terminal_model(kernel, np.array([*truth, height, 0.0]), True, z0, true_normal)
+        noise_sd = 0.01 * float(np.abs(gains).max())
+        amplitudes = 1.1 * gains + noise_sd * normal(rng, gains.shape[0])
+        # whitening weights near one over the noise's sd, so that data and priors both count
+        weight: float | FloatArray | None = {
+            "none": None,
+            "scalar": 1.0 / noise_sd,
+            "per_value": rng.uniform(0.5, 2.0, amplitudes.shape[0]) / noise_sd,
+        }[weighting]
+        start = truth + rng.uniform(-0.4, 0.4, 2)
+        arguments = (kernel, amplitudes, start, z0, free_height, priors, weight, sent)
+        tilt_sd = 0.2 if free_tilt else None
+        with use_kernels("reference"):
+            want = _levenberg_marquardt(*arguments, tilt_sd)
+        got = _levenberg_marquardt(*arguments, tilt_sd)
+        assert got.n_params == want.n_params
+        assert (got.free_height, got.free_tilt) == (want.free_height, want.free_tilt)
+        # every parameter, normwise, as the aggregated LM's test
+        assert_same(
+            np.r_[got.position, got.height, got.log_gain],
+            np.r_[want.position, want.height, want.log_gain],
+        )
+        for name in ("normal", "jacobian", "residual"):
+            assert_same(getattr(got, name), getattr(want, name))
+        assert got.rss == pytest.approx(want.rss, rel=1e-8)
+        assert got.cost == pytest.approx(want.cost, rel=1e-8)
+        # the fit went somewhere: near the truth (a free tilt and height trade with the
+        # position: 11 cm in one of these draws)
+        assert np.hypot(*(got.position - truth)) < 0.2
+
+
 def test_power_solves_match_reference() -> None:
     """The power model's whole solve (no eigenbasis involved) lands on the same answer."""
     layout = paper_layout()
@@ -521,12 +650,13 @@ _NO_CACHE_SCRIPT = textwrap.dedent(
     from app.vlp.solvers._channel_compiled import channel_rows
     from app.vlp.solvers._uncertainty_compiled import uncertainty_kernel
     from app.vlp.solvers import _tolerance_compiled as joint
+    from app.vlp.solvers._terminal_compiled import terminal_lm_kernel
     from app.vlp.simulation import noisy_amplitudes
 
     kernels = [fit.lm_kernel, fit.gram_kernel, fit.residual_kernel, fit.whitening_kernel,
                fit.whiten_kernel, fit.correlation_scores_kernel, channel_rows,
                uncertainty_kernel, joint.joint_gains_kernel, joint.joint_residual_kernel,
-               joint.joint_lm_kernel]
+               joint.joint_lm_kernel, terminal_lm_kernel]
     # the fallback: compiled without a disk cache
     assert all(type(k._cache).__name__ == "NullCache" for k in kernels)
     warm_up()

@@ -1,7 +1,8 @@
 """A small projected Levenberg-Marquardt in NumPy for fits whose residual and Jacobian come
 from one callback (the terminal fit, the room-tolerance fit). Private: callers validate.
 
-The nominal aggregated fit has its own compiled loop (``_fit_compiled.lm_kernel``).
+The nominal aggregated fit has its own compiled loop (``_fit_compiled.lm_kernel``), and so
+does the terminal fit (``_terminal_compiled.terminal_lm_kernel``, this loop its reference).
 """
 
 from __future__ import annotations

@@ -27,12 +27,14 @@ from ._channel_kernel import ChannelKernel
 from ._gridless_fit import MAX_LOG_GAIN, Priors
 from ._kernels import kernel_mode
 from ._projected_lm import projected_levenberg_marquardt
+from ._terminal_compiled import _COST_TOL, _STEP_TOL_M, terminal_lm_kernel
 
 __all__ = ["TerminalFit", "fit_terminal", "los_with_normal", "starting_cells", "terminal_model"]
 
 # Candidate starts per terminal (the best grid points of its own correlation, kept apart).
 _STARTS = 3
 _MAX_ITER = 30
+_INITIAL_DAMPING = 1e-3
 # Smallest noise variance assumed, relative to a terminal's mean squared amplitude (40 dB).
 _SIGMA2_REL_FLOOR = 1e-4
 # A fitted tilt (tangent of its components) stays within +-45 degrees.
@@ -292,16 +294,23 @@ def _levenberg_marquardt(
     tilt_sd: float | None,
 ) -> TerminalFit:
     """Projected LM on ``[x, y, (z), (tx, ty), u]`` with the Gaussian priors as
-    pseudo-residuals (the tilt is free when ``tilt_sd`` is given and no normal was sent)."""
+    pseudo-residuals (the tilt is free when ``tilt_sd`` is given and no normal was sent).
+
+    With the compiled kernels the whole fit is one call (:mod:`._terminal_compiled`); the
+    NumPy evaluation below is its reference."""
     with_priors = weight is not None
     free_tilt = normal is None and tilt_sd is not None
     axes = (3 if free_height else 2) + (2 if free_tilt else 0)
     gradient_columns = [0, 1, *([2] if free_height else []), *([3, 4] if free_tilt else [])]
-    gains0, _ = terminal_model(kernel, np.array([start[0], start[1], z0]), free_height, z0, normal)
-    norm = float(gains0 @ gains0)
-    u0 = math.log(max(float(gains0 @ amplitudes) / norm, 1e-6)) if norm > 0 else 0.0
+    # The log gain starts at the start's least-squares gain (set below, or by the kernel).
     theta = np.array(
-        [start[0], start[1], *([z0] if free_height else []), *([0.0, 0.0] if free_tilt else []), u0]
+        [
+            start[0],
+            start[1],
+            *([z0] if free_height else []),
+            *([0.0, 0.0] if free_tilt else []),
+            0.0,
+        ]
     )
     lower = np.array(
         [
@@ -323,6 +332,41 @@ def _levenberg_marquardt(
     if with_priors and priors.log_gain_sd is not None:
         lower[-1], upper[-1] = -MAX_LOG_GAIN - 3.0, MAX_LOG_GAIN + 3.0
     data_weight = weight if weight is not None else 1.0
+    constants = channel_constants(kernel) if kernel_mode() == "compiled" else None
+    if constants is not None:
+        theta, residual, jacobian, cost = terminal_lm_kernel(
+            *constants,
+            np.ascontiguousarray(amplitudes, dtype=np.float64),
+            np.broadcast_to(np.asarray(data_weight, dtype=np.float64), amplitudes.shape).copy(),
+            theta,
+            lower,
+            upper,
+            (bool(free_height), normal is not None, bool(free_tilt), float(z0)),
+            np.zeros(3) if normal is None else np.asarray(normal, dtype=np.float64).copy(),
+            (
+                bool(with_priors),
+                -1.0 if priors.log_gain_sd is None else float(priors.log_gain_sd),
+                float(priors.height_mean),
+                float(priors.height_sd),
+                -1.0 if tilt_sd is None else float(tilt_sd),
+            ),
+            _MAX_ITER,
+            _INITIAL_DAMPING,
+        )
+        return _terminal_fit(
+            theta,
+            residual,
+            jacobian,
+            cost,
+            amplitudes.shape[0],
+            data_weight,
+            z0,
+            free_height,
+            free_tilt,
+        )
+    gains0, _ = terminal_model(kernel, np.array([start[0], start[1], z0]), free_height, z0, normal)
+    norm = float(gains0 @ gains0)
+    theta[-1] = math.log(max(float(gains0 @ amplitudes) / norm, 1e-6)) if norm > 0 else 0.0
     # Per-value weights multiply the Jacobian's rows.
     row_weight = data_weight[:, None] if isinstance(data_weight, np.ndarray) else data_weight
     tilt_at = 3 if free_height else 2
@@ -363,19 +407,44 @@ def _levenberg_marquardt(
         lower,
         upper,
         max_iter=_MAX_ITER,
-        damping=1e-3,
+        damping=_INITIAL_DAMPING,
         stop=lambda step, cost, trial_cost: (
-            cost - trial_cost < 1e-10 * cost or float(np.abs(step[:2]).max()) < 1e-6
+            cost - trial_cost < _COST_TOL * cost or float(np.abs(step[:2]).max()) < _STEP_TOL_M
         ),
     )
-    n_data = amplitudes.shape[0]
+    return _terminal_fit(
+        theta,
+        residual,
+        jacobian,
+        cost,
+        amplitudes.shape[0],
+        data_weight,
+        z0,
+        free_height,
+        free_tilt,
+    )
+
+
+def _terminal_fit(
+    theta: FloatArray,
+    residual: FloatArray,
+    jacobian: FloatArray,
+    cost: float,
+    n_data: int,
+    data_weight: float | FloatArray,
+    z0: float,
+    free_height: bool,
+    free_tilt: bool,
+) -> TerminalFit:
+    """The fit at LM's last accepted point (whitened residual and Jacobian, data rows
+    first)."""
     data_residual = residual[:n_data] / data_weight
     return TerminalFit(
         position=theta[:2].copy(),
         height=float(theta[2]) if free_height else z0,
         log_gain=float(theta[-1]),
         rss=float(data_residual @ data_residual),
-        cost=cost,
+        cost=float(cost),
         normal=jacobian.T @ jacobian,
         n_params=theta.shape[0],
         jacobian=jacobian[:n_data].copy(),

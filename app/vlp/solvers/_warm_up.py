@@ -16,6 +16,7 @@ from ._fit_compiled import correlation_profiles_kernel, correlation_scores_kerne
 from ._gridless_fit import FitState, Objective, Priors, Whitening, gram, levenberg_marquardt
 from ._local import _best_of_tiles
 from ._room_tolerance_fit import RoomTolerances, _JointModel, _levenberg_marquardt
+from ._terminal_fit import _levenberg_marquardt as terminal_fit
 from ._uncertainty_compiled import uncertainty_kernel
 
 __all__ = ["exercise"]
@@ -66,11 +67,15 @@ def exercise() -> None:
     data = white.data(np.ones(white.weights.shape[0]))
     joint.residual_and_jacobian(theta, white, data)
     _levenberg_marquardt(joint, theta, white, data, 1)
-    # a terminal's own fit evaluates the channel at one point
+    # a terminal's own fit evaluates the channel at one point, and runs its own LM (one
+    # signature for every branch: straight up, a sent normal, a fitted tilt)
     constants = channel_constants(kernel)
     assert constants is not None  # a line-of-sight kernel always has its compiled form
     point = np.array([1.0])
     channel_rows(*constants, point, point.copy(), np.array([height]), False)
+    terminal_fit(
+        kernel, np.ones(kernel.n_leds), np.array([1.0, 1.2]), height, True, priors, 1.0, None, 0.1
+    )
     # a large room's power scan scores tiles of grid points (G^T with int32 indices)
     by_cell = sp.csr_array(np.ones((4, kernel.n_leds)))
     _best_of_tiles(

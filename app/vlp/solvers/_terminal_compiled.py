@@ -1,0 +1,249 @@
+"""Compiled model and Levenberg-Marquardt loop of one terminal's own fit.
+
+Stand-ins for :func:`._terminal_fit.terminal_model` (all its branches: looking straight up,
+a photodiode normal the terminal sent, a fitted tilt) and for the evaluation and
+:func:`._projected_lm.projected_levenberg_marquardt` loop of
+:func:`._terminal_fit._levenberg_marquardt` (their NumPy code is the reference and documents
+the model); a whole fit from one start is one call here. Private: callers validate.
+
+Parameters are ``theta = [x, y, (z), (tx, ty), u]``. Arguments beyond the channel's
+constants (:func:`._channel_compiled.channel_constants`):
+
+- ``shape``: ``(free_height, has_normal, free_tilt, z0)``; ``normal`` (3,) is used only with
+  ``has_normal``
+- ``priors``: ``(with_priors, log_gain_sd, height_mean, height_sd, tilt_sd)``, a standard
+  deviation <= 0 meaning "no such prior"
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from ..typing import FloatArray
+from ._channel_compiled import ChannelConstants, TableConstants, channel_rows, diffuse_rows
+from ._fit_compiled import _cholesky_solve
+from ._kernels import compiled
+
+__all__ = ["terminal_lm_kernel", "terminal_model_kernel"]
+
+Shape = tuple[Any, ...]
+TerminalPriors = tuple[Any, ...]
+
+# As the reference (_projected_lm, _terminal_fit).
+_MAX_REJECTIONS = 10
+_COST_TOL = 1e-10
+_STEP_TOL_M = 1e-6
+
+
+@compiled
+def terminal_model_kernel(
+    channel: ChannelConstants,
+    table: TableConstants,
+    theta: FloatArray,
+    shape: Shape,
+    normal: FloatArray,
+) -> tuple[FloatArray, FloatArray]:
+    """:func:`terminal_model`: gains (M,) and their gradient (M, 5) along x, y, z, tx, ty
+    (the tilt's columns zero unless the tilt is free)."""
+    free_height, has_normal, free_tilt, z0 = shape
+    led_x, led_y, led_z, _, _, free_height_factor, orders, _, _, pilot, cos_fov2, _ = channel
+    n_leds = led_x.shape[0]
+    x, y = theta[0], theta[1]
+    z = theta[2] if free_height else z0
+    gradient = np.zeros((n_leds, 5))
+    xs, ys, zs = np.array([x]), np.array([y]), np.array([z])
+    if not has_normal and not free_tilt:
+        rows = channel_rows(channel, table, xs, ys, zs, False)
+        gains = rows[0, 0].copy()
+        for m in range(n_leds):
+            for axis in range(3):
+                gradient[m, axis] = rows[1 + axis, 0, m]
+        return gains, gradient
+    unit = np.empty(3)
+    derivative = np.zeros((3, 2))
+    if free_tilt:
+        at = 3 if free_height else 2
+        tx, ty = theta[at], theta[at + 1]
+        length = math.sqrt(tx * tx + ty * ty + 1.0)
+        unit[0], unit[1], unit[2] = tx / length, ty / length, 1.0 / length
+        for i in range(3):
+            for j in range(2):
+                identity = 1.0 if i == j else 0.0
+                derivative[i, j] = (identity - unit[i] * unit[j]) / length
+    else:
+        unit[:] = normal
+    gains = np.zeros(n_leds)
+    for m in range(n_leds):
+        ox, oy, oz = led_x[m] - x, led_y[m] - y, led_z[m] - z
+        drop = max(oz, 1e-9)
+        dist2 = ox * ox + oy * oy + oz * oz
+        facing = ox * unit[0] + oy * unit[1] + oz * unit[2]
+        if not (facing > 0.0 and facing * facing >= cos_fov2 * dist2):
+            continue  # out of view: gain and gradient zero
+        order = orders[m]
+        gain = (
+            free_height_factor[m]
+            * math.pow(drop, order)
+            * max(facing, 1e-300)
+            * math.pow(dist2, -(order + 3.0) / 2.0)
+        )
+        gains[m] = gain
+        along = (order + 3.0) / dist2
+        gradient[m, 0] = gain * (-unit[0] / facing + along * ox)
+        gradient[m, 1] = gain * (-unit[1] / facing + along * oy)
+        gradient[m, 2] = gain * (-(order / drop) - unit[2] / facing + along * oz)
+        if free_tilt:
+            along_normal = gain / facing
+            for j in range(2):
+                gradient[m, 3 + j] = (
+                    along_normal * ox * derivative[0, j]
+                    + along_normal * oy * derivative[1, j]
+                    + along_normal * oz * derivative[2, j]
+                )
+    if table[0] != 0:
+        diffuse = diffuse_rows(table, xs, ys, zs, True)
+        for m in range(n_leds):
+            gains[m] += diffuse[0, 0, m] * pilot[m]
+            for axis in range(3):
+                gradient[m, axis] += diffuse[1 + axis, 0, m] * pilot[m]
+    return gains, gradient
+
+
+@compiled
+def _evaluate(
+    channel: ChannelConstants,
+    table: TableConstants,
+    amplitudes: FloatArray,
+    weights: FloatArray,
+    theta: FloatArray,
+    shape: Shape,
+    normal: FloatArray,
+    priors: TerminalPriors,
+) -> tuple[FloatArray, FloatArray]:
+    """The reference's ``evaluate``: whitened residual (data, then priors) and Jacobian."""
+    free_height, _, free_tilt, _ = shape
+    with_priors, log_gain_sd, height_mean, height_sd, tilt_sd = priors
+    gains, gradient = terminal_model_kernel(channel, table, theta, shape, normal)
+    n_data = amplitudes.shape[0]
+    n_params = theta.shape[0]
+    axes = n_params - 1
+    gain_prior = with_priors and log_gain_sd > 0.0
+    height_prior = with_priors and free_height
+    tilt_prior = with_priors and free_tilt and tilt_sd > 0.0
+    n_rows = n_data + int(gain_prior) + int(height_prior) + 2 * int(tilt_prior)
+    residual = np.empty(n_rows)
+    jacobian = np.zeros((n_rows, n_params))
+    amp = math.exp(theta[n_params - 1])
+    # The gradient's columns in theta's order: x, y, then z and the tilt when free.
+    columns = np.empty(axes, dtype=np.int64)
+    columns[0], columns[1] = 0, 1
+    at = 2
+    if free_height:
+        columns[at] = 2
+        at += 1
+    if free_tilt:
+        columns[at], columns[at + 1] = 3, 4
+    for m in range(n_data):
+        weight = weights[m]
+        residual[m] = weight * (amplitudes[m] - amp * gains[m])
+        scaled = weight * amp
+        for p in range(axes):
+            jacobian[m, p] = scaled * gradient[m, columns[p]]
+        jacobian[m, n_params - 1] = scaled * gains[m]
+    row = n_data
+    if gain_prior:
+        residual[row] = -theta[n_params - 1] / log_gain_sd
+        jacobian[row, n_params - 1] = 1.0 / log_gain_sd
+        row += 1
+    if height_prior:
+        residual[row] = -(theta[2] - height_mean) / height_sd
+        jacobian[row, 2] = 1.0 / height_sd
+        row += 1
+    if tilt_prior:
+        tilt_at = 3 if free_height else 2
+        for offset in range(2):
+            residual[row] = -theta[tilt_at + offset] / tilt_sd
+            jacobian[row, tilt_at + offset] = 1.0 / tilt_sd
+            row += 1
+    return residual, jacobian
+
+
+@compiled
+def _squared_norm(values: FloatArray) -> float:
+    total = 0.0
+    for value in values:
+        total += value * value
+    return total
+
+
+@compiled
+def terminal_lm_kernel(
+    channel: ChannelConstants,
+    table: TableConstants,
+    amplitudes: FloatArray,
+    weights: FloatArray,
+    theta0: FloatArray,
+    lower: FloatArray,
+    upper: FloatArray,
+    shape: Shape,
+    normal: FloatArray,
+    priors: TerminalPriors,
+    max_iter: int,
+    damping: float,
+) -> tuple[FloatArray, FloatArray, FloatArray, float]:
+    """One start's projected LM (:func:`projected_levenberg_marquardt` with the reference's
+    ``evaluate`` and stop rule): theta, whitened residual, Jacobian and cost at the last
+    accepted point. ``theta0``'s last entry (the log gain) is replaced by the least-squares
+    gain of the start's gains, as the reference starts."""
+    free_height, has_normal, _, z0 = shape
+    theta = theta0.copy()
+    start = np.empty(3)
+    start[0], start[1], start[2] = theta[0], theta[1], z0
+    # The start's gains: its own normal if sent, else straight up (the tilt starts level).
+    start_shape = (free_height, has_normal, False, z0)
+    gains0, _ = terminal_model_kernel(channel, table, start, start_shape, normal)
+    norm = _squared_norm(gains0)
+    if norm > 0.0:
+        projection = 0.0
+        for m in range(gains0.shape[0]):
+            projection += gains0[m] * amplitudes[m]
+        theta[theta.shape[0] - 1] = math.log(max(projection / norm, 1e-6))
+    else:
+        theta[theta.shape[0] - 1] = 0.0
+    residual, jacobian = _evaluate(
+        channel, table, amplitudes, weights, theta, shape, normal, priors
+    )
+    cost = _squared_norm(residual)
+    n = theta.shape[0]
+    for _ in range(max_iter):
+        normal_matrix = jacobian.T @ jacobian
+        gradient = jacobian.T @ residual
+        improved = finished = False
+        for _ in range(_MAX_REJECTIONS):
+            scaled = normal_matrix.copy()
+            for i in range(n):
+                scaled[i, i] += damping * max(normal_matrix[i, i], 1e-30)
+            step, ok = _cholesky_solve(scaled, gradient)
+            if not ok:
+                damping *= 10.0
+                continue
+            trial = np.minimum(np.maximum(theta + step, lower), upper)
+            trial_residual, trial_jacobian = _evaluate(
+                channel, table, amplitudes, weights, trial, shape, normal, priors
+            )
+            trial_cost = _squared_norm(trial_residual)
+            if trial_cost < cost:
+                finished = cost - trial_cost < _COST_TOL * cost or (
+                    max(abs(step[0]), abs(step[1])) < _STEP_TOL_M
+                )
+                theta, residual, jacobian, cost = trial, trial_residual, trial_jacobian, trial_cost
+                damping = max(damping / 5.0, 1e-9)
+                improved = True
+                break
+            damping *= 4.0
+        if not improved or finished:
+            break
+    return theta, residual, jacobian, cost
