@@ -10,7 +10,8 @@ Two worker processes, one importing ``app`` (and ``bench``) from the other tree 
 this checkout, each with the default ``gridless`` solver built and warmed up once per model
 (the other tree's numba kernels compile into its own cache on its first run). They take
 turns: in every round each solves the same 50 seeded measurements of the paper room at
-30 dB (:func:`bench.solver_timing._kernel_pool`) per form, the order of the two alternating
+30 dB (:func:`bench.solver_timing._kernel_pool`) per form (``terminals``: each terminal's own
+amplitudes, ``solve_terminals``), the order of the two alternating
 between rounds, so that both see the same load. Medians of the CPU time per solve (BLAS one
 thread). Prints a table; writes nothing (the figures go into ``docs/performance.md`` by
 hand, with the command).
@@ -32,7 +33,15 @@ from ._common import REPO_ROOT
 
 __all__ = ["FORMS", "main"]
 
-FORMS = (("correlation", 1), ("correlation", 4), ("correlation", 8), ("power", 1), ("power", 8))
+FORMS = (
+    ("correlation", 1),
+    ("correlation", 4),
+    ("correlation", 8),
+    ("power", 1),
+    ("power", 8),
+    ("terminals", 1),
+    ("terminals", 8),
+)
 SOLVES_PER_TURN = 50
 
 # The worker: only what both trees have (solver_timing's pool, make_solver, warm_up).
@@ -55,17 +64,23 @@ print("ready", flush=True)
 for line in sys.stdin:
     model, k, n = line.split()
     k, n = int(k), int(n)
+    if model == "terminals":
+        # each terminal's own amplitudes (K, M), the correlation solver's solve_terminals
+        solve = lambda a, k: solvers["correlation"].solve_terminals(a)
+    else:
+        solve = solvers[model].solve
     if (model, k) not in pools:
         pools[(model, k)] = [
-            measurement_from_amplitudes(a, model, layout.n_leds) for a in _kernel_pool(k, 50)
+            a if model == "terminals" else measurement_from_amplitudes(a, model, layout.n_leds)
+            for a in _kernel_pool(k, 50)
         ]
         for m in pools[(model, k)][:2]:
-            solvers[model].solve(m, k)
+            solve(m, k)
     times = []
     for i in range(n):
         m = pools[(model, k)][i % 50]
         start = time.process_time()
-        solvers[model].solve(m, k)
+        solve(m, k)
         times.append(time.process_time() - start)
     print(repr(times), flush=True)
 """
