@@ -287,8 +287,8 @@ def _unwhiten(white: Whitening, whitened: FloatArray) -> FloatArray:
 
 
 @pytest.fixture(scope="module")
-def joint_kernels() -> dict[bool, ChannelKernel]:
-    """The paper room's solver kernels, without and with reflections in the layout (an
+def paper_solvers() -> dict[bool, GridlessSolver]:
+    """The paper room's correlation solvers, without and with reflections in the layout (an
     interpolated diffuse table)."""
     layout = paper_layout()
     room = dataclasses.replace(
@@ -298,9 +298,32 @@ def joint_kernels() -> dict[bool, ChannelKernel]:
         reflecting: GridlessSolver(
             build_fingerprint(dataclasses.replace(layout, room=room) if reflecting else layout),
             "correlation",
-        )._kernel
+        )
         for reflecting in (False, True)
     }
+
+
+@pytest.fixture(scope="module")
+def joint_kernels(paper_solvers: dict[bool, GridlessSolver]) -> dict[bool, ChannelKernel]:
+    """Their channel kernels."""
+    return {reflecting: solver._kernel for reflecting, solver in paper_solvers.items()}
+
+
+@pytest.mark.parametrize("reflecting", [False, True])
+def test_shape_gradients_match_reference(
+    paper_solvers: dict[bool, GridlessSolver], reflecting: bool
+) -> None:
+    """The height and tilt derivatives behind the model-error radii (the height's from the
+    compiled channel, reflections included), against the reference kernels."""
+    solver = paper_solvers[reflecting]
+    rng = np.random.default_rng(13)
+    positions = rng.uniform(0.0, 4.0, (5, 2))
+    heights = 0.85 + rng.uniform(-0.3, 0.3, 5)
+    with use_kernels("reference"):
+        want = solver._shape_gradients(positions, heights)
+    got = solver._shape_gradients(positions, heights)
+    assert_same(got, want)
+    assert np.abs(got[:, :, 0]).max() > 0.0  # the heights' column is there
 
 
 @pytest.mark.parametrize("reflecting", [False, True])

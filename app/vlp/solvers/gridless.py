@@ -37,6 +37,7 @@ from ..uncertainty import (
     own_excess_widening,
     predictive_covariances,
 )
+from ._channel_compiled import channel_constants, channel_rows
 from ._channel_kernel import ChannelKernel
 from ._fit_compiled import correlation_profiles_kernel, correlation_scores_kernel
 from ._gridless_fit import (
@@ -1583,7 +1584,15 @@ class GridlessSolver(Solver):
         """
         kernel = self._kernel
         k = positions.shape[0]
-        blocks = kernel.gradients_xyz(positions[:, 0], positions[:, 1], heights)
+        xs = np.ascontiguousarray(positions[:, 0], dtype=np.float64)
+        ys = np.ascontiguousarray(positions[:, 1], dtype=np.float64)
+        zs = np.ascontiguousarray(heights, dtype=np.float64)
+        constants = channel_constants(kernel) if kernel_mode() == "compiled" else None
+        along_z: FloatArray
+        if constants is not None:
+            along_z = channel_rows(*constants, xs, ys, zs, False)[3]  # (K, M)
+        else:
+            along_z = kernel.gradients_xyz(xs, ys, zs)[:, 2 * k : 3 * k].T
         offsets = kernel.led_xyz[:, np.newaxis, :] - np.column_stack((positions, heights))
         drop = np.maximum(offsets[:, :, 2], 1e-9)  # (M, K)
         dist2 = np.einsum("mkc,mkc->mk", offsets, offsets)
@@ -1595,7 +1604,7 @@ class GridlessSolver(Solver):
             * (drop * drop >= kernel.cos_fov2 * dist2)
         )
         out = np.empty((k, kernel.n_leds, 3))
-        out[:, :, 0] = blocks[:, 2 * k : 3 * k].T
+        out[:, :, 0] = along_z
         out[:, :, 1:] = ((los / drop)[:, :, np.newaxis] * offsets[:, :, :2]).transpose(1, 0, 2)
         return out
 
