@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING
 from ._bench import BENCHMARKS, run_benchmark
 from ._remote import add_remote_commands
 from ._workers import EXIT_STARTUP_FAILURE as _EXIT_STARTUP_FAILURE
-from ._workers import bind_listening_socket
+from ._workers import SharedPort, bind_listening_socket, reuse_port_available
 
 if TYPE_CHECKING:
     from app.settings import Settings
@@ -99,8 +99,13 @@ def _serve(args: argparse.Namespace) -> int:
         proxy_headers=False,
     )
     # Bind here, once, so that `--port 0` takes a free port from the kernel and the port
-    # actually bound can be reported: no other process can take it in between.
-    sock = bind_listening_socket(config)
+    # actually bound can be reported: no other process can take it in between. Several API
+    # processes each listen on a socket of their own where the kernel balances them.
+    shared: SharedPort | None = None
+    if workers > 1 and reuse_port_available():
+        shared, sock = SharedPort.bind(args.host, args.port)
+    else:
+        sock = bind_listening_socket(config)
     bound = int(sock.getsockname()[1])
     if args.port == 0 and "VLP_PUBLIC_URL" not in os.environ:
         settings.public_url = f"http://{host}:{bound}"  # read by the lifespan, at start-up
@@ -109,7 +114,12 @@ def _serve(args: argparse.Namespace) -> int:
     if workers > 1:
         from ._workers import serve_workers
 
-        return serve_workers(settings=settings, sock=sock, count=workers, log_level=args.log_level)
+        return serve_workers(
+            settings=settings,
+            port=sock if shared is None else shared,
+            count=workers,
+            log_level=args.log_level,
+        )
     from app.main import create_app
 
     config.app = create_app(settings)

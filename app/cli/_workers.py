@@ -1,9 +1,17 @@
 """``vlp serve --workers N``: N API processes on one listening socket (and that socket).
 
-The supervisor (the ``vlp serve`` process) binds the socket once, starts N API processes
-(``multiprocessing`` *spawn*: each imports the app afresh, nothing is shared but the socket
+The supervisor (the ``vlp serve`` process) binds the port once, starts N API processes
+(``multiprocessing`` *spawn*: each imports the app afresh, nothing is shared but the port
 and the registry) and the kernel spreads the connections among them. It serves no request
 itself and imports no numpy.
+
+On Linux each API process listens on a socket of its own, bound to the same address with
+``SO_REUSEPORT``, and the kernel hands each new connection to one of them by a hash of its
+addresses; the supervisor's socket only holds the port and never listens. With one shared
+listening socket every process woke on a new connection and the first to run accepted all
+that were queued: a burst of keep-alive connections (8 clients starting at once) mostly
+landed on one process and stayed there (measured: 7 or 8 of 8, 31 or 32 of 32, in most
+bursts), so a second process added nothing for them. Elsewhere the shared socket remains.
 
 What must run once per deployment runs in API process 0 only: the embedded build workers,
 the epoch sweeper and the demo-room seeding (whose "no rooms yet?" check is not atomic).
@@ -42,7 +50,14 @@ if TYPE_CHECKING:
 
     from app.settings import Settings
 
-__all__ = ["EXIT_STARTUP_FAILURE", "api_process_settings", "bind_listening_socket", "serve_workers"]
+__all__ = [
+    "EXIT_STARTUP_FAILURE",
+    "SharedPort",
+    "api_process_settings",
+    "bind_listening_socket",
+    "reuse_port_available",
+    "serve_workers",
+]
 
 # What `vlp serve` (an API process, the supervisor) exits with when the app does not start
 # (e.g. the registry is away).
@@ -63,6 +78,62 @@ def bind_listening_socket(config: uvicorn.Config) -> socket.socket:
     (headers, body) waits about 40 ms for the client's delayed ACK.
     """
     return socket.socket(fileno=config.bind_socket().detach())
+
+
+def reuse_port_available() -> bool:
+    """True where each API process can listen on a socket of its own (Linux's
+    ``SO_REUSEPORT`` balances connections among the sockets; other systems' does not)."""
+    return sys.platform.startswith("linux") and hasattr(socket, "SO_REUSEPORT")
+
+
+@dataclass(frozen=True)
+class SharedPort:
+    """An address every API process listens on with a socket of its own (``SO_REUSEPORT``):
+    what the supervisor passes to them instead of a socket."""
+
+    family: int
+    address: tuple[object, ...]
+    v6only: int
+
+    @classmethod
+    def bind(cls, host: str, port: int) -> tuple[SharedPort, socket.socket]:
+        """Bind ``host:port`` (port 0: the kernel's choice) with ``SO_REUSEPORT``, not
+        listening: the port and the socket that holds it for the service's lifetime (a
+        socket that does not listen receives no connection)."""
+        # As uvicorn picks the family; IPPROTO_TCP so that asyncio sets TCP_NODELAY on the
+        # accepted connections (bind_listening_socket).
+        family = socket.AF_INET6 if ":" in host else socket.AF_INET
+        holder = _reuse_port_socket(family)
+        try:
+            holder.bind((host, port))
+        except OSError:
+            holder.close()
+            raise
+        v6only = (
+            holder.getsockopt(socket.IPPROTO_IPV6, socket.IPV6_V6ONLY)
+            if family == socket.AF_INET6
+            else 0
+        )
+        return cls(family, tuple(holder.getsockname()), v6only), holder
+
+    def listener(self) -> socket.socket:
+        """A socket of this process bound to the port (uvicorn makes it listen)."""
+        sock = _reuse_port_socket(self.family)
+        if self.family == socket.AF_INET6:
+            sock.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_V6ONLY, self.v6only)
+        try:
+            sock.bind(self.address)
+        except OSError:
+            sock.close()
+            raise
+        return sock
+
+
+def _reuse_port_socket(family: int) -> socket.socket:
+    sock = socket.socket(family, socket.SOCK_STREAM, socket.IPPROTO_TCP)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEPORT, 1)
+    return sock
 
 
 def api_process_settings(settings: Settings, index: int) -> Settings:
@@ -88,13 +159,15 @@ def _die_with_parent(parent_pid: int) -> None:
 def _run_api_process(
     index: int,
     settings: Settings,
-    sock: socket.socket,
+    port: socket.socket | SharedPort,
     log_level: str,
     parent_pid: int,
     started: Synchronized[int],
 ) -> None:
-    """Body of one API process: the app on the inherited socket, until SIGTERM."""
+    """Body of one API process: the app on its own socket of the shared port (or on the
+    inherited socket), until SIGTERM."""
     _die_with_parent(parent_pid)
+    sock = port.listener() if isinstance(port, SharedPort) else port
     import uvicorn
 
     from app.api.logs import configure_logging
@@ -139,11 +212,16 @@ class _ApiProcess:
 
 class _Supervisor:
     def __init__(
-        self, *, settings: Settings, sock: socket.socket, count: int, log_level: str
+        self,
+        *,
+        settings: Settings,
+        port: socket.socket | SharedPort,
+        count: int,
+        log_level: str,
     ) -> None:
         self._context = multiprocessing.get_context("spawn")
         self._settings = settings
-        self._sock = sock
+        self._port = port
         self._count = count
         self._log_level = log_level
         self._stop = threading.Event()
@@ -153,7 +231,7 @@ class _Supervisor:
         started: Synchronized[int] = self._context.Value("i", 0)
         process = self._context.Process(
             target=_run_api_process,
-            args=(index, self._settings, self._sock, self._log_level, os.getpid(), started),
+            args=(index, self._settings, self._port, self._log_level, os.getpid(), started),
             name=f"vlp-api-{index}",
         )
         process.start()
@@ -223,6 +301,10 @@ class _Supervisor:
                 api.process.join()
 
 
-def serve_workers(*, settings: Settings, sock: socket.socket, count: int, log_level: str) -> int:
-    """Run ``count`` API processes on ``sock`` until a stop signal; the exit code."""
-    return _Supervisor(settings=settings, sock=sock, count=count, log_level=log_level).run()
+def serve_workers(
+    *, settings: Settings, port: socket.socket | SharedPort, count: int, log_level: str
+) -> int:
+    """Run ``count`` API processes on ``port`` (a :class:`SharedPort`, each process with a
+    socket of its own, or one listening socket they share) until a stop signal; the exit
+    code."""
+    return _Supervisor(settings=settings, port=port, count=count, log_level=log_level).run()
