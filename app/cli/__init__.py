@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import os
 import sys
 from collections.abc import Sequence
@@ -103,7 +104,11 @@ def _serve(args: argparse.Namespace) -> int:
     # processes each listen on a socket of their own where the kernel balances them.
     shared: SharedPort | None = None
     if workers > 1 and reuse_port_available():
-        shared, sock = SharedPort.bind(args.host, args.port)
+        try:
+            shared, sock = SharedPort.bind(args.host, args.port)
+        except OSError as exc:  # as uvicorn's own bind: logged, the start-up failure code
+            logging.getLogger("app.serve").error("cannot bind %s:%s: %s", args.host, args.port, exc)
+            return _EXIT_STARTUP_FAILURE
     else:
         sock = bind_listening_socket(config)
     bound = int(sock.getsockname()[1])

@@ -99,10 +99,21 @@ class SharedPort:
     def bind(cls, host: str, port: int) -> tuple[SharedPort, socket.socket]:
         """Bind ``host:port`` (port 0: the kernel's choice) with ``SO_REUSEPORT``, not
         listening: the port and the socket that holds it for the service's lifetime (a
-        socket that does not listen receives no connection)."""
+        socket that does not listen receives no connection).
+
+        Raises OSError (``EADDRINUSE``) when anything holds the port, as a plain bind would:
+        ``SO_REUSEPORT`` alone would let a second service of the same user share it and
+        take half of this one's connections.
+        """
         # As uvicorn picks the family; IPPROTO_TCP so that asyncio sets TCP_NODELAY on the
         # accepted connections (bind_listening_socket).
         family = socket.AF_INET6 if ":" in host else socket.AF_INET
+        if port != 0:
+            # A plain bind first (as uvicorn's, SO_REUSEADDR only): it fails on any socket
+            # bound there, SO_REUSEPORT or not.
+            with socket.socket(family, socket.SOCK_STREAM) as probe:
+                probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+                probe.bind((host, port))
         holder = _reuse_port_socket(family)
         try:
             holder.bind((host, port))

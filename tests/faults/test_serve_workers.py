@@ -10,9 +10,11 @@ leaves an API process behind.
 from __future__ import annotations
 
 import asyncio
+import errno
 import os
 import re
 import signal
+import socket
 import subprocess
 from collections.abc import Callable
 from pathlib import Path
@@ -23,7 +25,7 @@ import pytest
 import uvicorn
 
 from app.cli import main
-from app.cli._workers import bind_listening_socket
+from app.cli._workers import SharedPort, bind_listening_socket
 from app.vlp.presets import paper_layout
 from bench._server import VLP, serve_args, server_env
 from tests.processes import TERMINAL, VlpProcess, child_pids, pid_alive, process_fleet
@@ -195,6 +197,63 @@ def test_a_failed_start_up_ends_the_service_with_exit_code_3(tmp_path: Path) -> 
     )
     assert process.returncode == 3, process.stderr.decode(errors="replace")[-2000:]
     assert port_file.exists()
+
+
+def test_a_shared_port_takes_its_own_listeners_and_nobody_else() -> None:
+    """A :class:`SharedPort` hands out any number of listening sockets on its port, each
+    accepting connections (its holder does not listen: every connection of a burst is
+    accepted by a listener); a second service binding the same port is refused, whether it
+    asks for SO_REUSEPORT too (another `vlp serve --workers 2` of the same user) or not."""
+    shared, holder = SharedPort.bind("127.0.0.1", 0)
+    listeners = [shared.listener(), shared.listener()]
+    port = int(holder.getsockname()[1])
+    try:
+        for listener in listeners:
+            listener.listen(64)
+            listener.settimeout(SAFETY_TIMEOUT_S)
+        clients = [socket.create_connection(("127.0.0.1", port)) for _ in range(16)]
+        accepted = 0
+        for listener in listeners:
+            listener.setblocking(False)
+            while True:
+                try:
+                    connection, _ = listener.accept()
+                except BlockingIOError:
+                    break
+                connection.close()
+                accepted += 1
+        for client in clients:
+            client.close()
+        assert accepted == 16
+        with pytest.raises(OSError) as taken:
+            SharedPort.bind("127.0.0.1", port)
+        assert taken.value.errno == errno.EADDRINUSE
+    finally:
+        for sock in (*listeners, holder):
+            sock.close()
+    with socket.socket() as plain:
+        plain.bind(("127.0.0.1", 0))
+        plain.listen(1)
+        with pytest.raises(OSError) as taken:
+            SharedPort.bind("127.0.0.1", int(plain.getsockname()[1]))
+        assert taken.value.errno == errno.EADDRINUSE
+
+
+def test_workers_on_a_taken_port_end_with_exit_code_3(tmp_path: Path) -> None:
+    """`vlp serve --workers 2` on a port something listens on: exit 3, as uvicorn's own bind."""
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen(1)
+        port = str(taken.getsockname()[1])
+        process = subprocess.run(
+            [str(VLP), "serve", "--workers", "2", "--host", "127.0.0.1", "--port", port],
+            env=server_env(tmp_path / "data"),
+            capture_output=True,
+            timeout=SAFETY_TIMEOUT_S,
+            check=False,
+        )
+    assert process.returncode == 3, process.stderr.decode(errors="replace")[-2000:]
+    assert "cannot bind" in process.stderr.decode(errors="replace")
 
 
 def test_workers_must_be_a_positive_count(capsys: pytest.CaptureFixture[str]) -> None:
