@@ -63,7 +63,7 @@ from ._kernels import kernel_mode
 from ._local import PowerScan, TerminalWindows
 from ._room_tolerance_fit import GridMoves, RoomTolerances, ToleranceFit, fit_room_tolerances
 from ._terminal_fit import TerminalFit, fit_terminal, starting_cells
-from ._uncertainty_compiled import uncertainty_kernel
+from ._uncertainty_compiled import misfit_design_kernel, uncertainty_kernel
 from ._whitening_memo import MAX_KEPT_VALUES, WhiteningMemo, state_key
 from .base import MAX_TARGETS, Solution, Solver, register_solver
 
@@ -142,6 +142,25 @@ def _response_covariances(
     moved = np.linalg.pinv(normal, hermitian=True) @ (rows @ columns)  # (P, n)
     positions = moved[index]  # (K, 2, n)
     return np.asarray(sd**2 * positions @ positions.transpose(0, 2, 1))
+
+
+def _misfit_design(
+    jacobian: FloatArray, normal: FloatArray, columns: list[FloatArray]
+) -> MisfitDesign:
+    """:func:`app.vlp.uncertainty.misfit_design` (its reference), in one compiled call with
+    the compiled kernels."""
+    if kernel_mode() != "compiled":
+        return misfit_design(jacobian, normal, columns)
+    sizes = np.array([block.shape[1] for block in columns], dtype=np.int64)
+    side_by_side = np.ascontiguousarray(np.hstack(columns), dtype=np.float64)
+    return MisfitDesign(
+        *misfit_design_kernel(
+            np.ascontiguousarray(jacobian, dtype=np.float64),
+            np.ascontiguousarray(normal, dtype=np.float64),
+            side_by_side,
+            sizes,
+        )
+    )
 
 
 @register_solver
@@ -1083,7 +1102,7 @@ class GridlessSolver(Solver):
             fits: list[TerminalFit], led_errors: bool = True
         ) -> tuple[list[MisfitDesign], Misfit]:
             designs = [
-                misfit_design(
+                _misfit_design(
                     fit.jacobian,
                     fit.normal,
                     self._terminal_misfit_columns(
