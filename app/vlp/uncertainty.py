@@ -15,8 +15,9 @@ degrees of freedom behind those variances (:func:`predictive_covariances`).
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Literal
+from typing import Literal, cast
 
 import numpy as np
 from scipy import optimize, special
@@ -212,6 +213,19 @@ def confidence_radii(covariances: FloatArray, level: float = 0.95) -> FloatArray
     two_d = math.sqrt(-2.0 * math.log1p(-level))  # u when rho = 1 (Rayleigh)
     one_d = float(special.ndtri(0.5 + 0.5 * level))  # u when rho -> 0
     # P(0) = 0 < level and P(two_d) >= level (rho <= 1): a bracket for every estimate.
+    compiled = _compiled_radial_roots()
+    if compiled is not None:
+        reach = compiled(
+            np.ascontiguousarray(root_ratio[:, 0]),
+            float(level),
+            one_d,
+            two_d,
+            (_WEIGHTS, _SINES, _COSINES),
+            _RADIUS_TOLERANCE,
+            _MAX_RADIUS_STEPS,
+        )
+        radii[solve] = np.sqrt(major) * reach
+        return radii
     low = np.zeros(major.size)
     high = np.full(major.size, two_d * 1.01)
     reach = one_d + (two_d - one_d) * root_ratio[:, 0]  # within a few % of the root
@@ -242,6 +256,19 @@ def confidence_radii(covariances: FloatArray, level: float = 0.95) -> FloatArray
         reach = np.where(inside, step, 0.5 * (low + high))
     radii[solve] = np.sqrt(major) * reach
     return radii
+
+
+def _compiled_radial_roots() -> Callable[..., FloatArray] | None:
+    """The compiled Newton iteration of :func:`confidence_radii` while the compiled kernels
+    are in use, else None (the NumPy code above is its reference). Imported here, not at the
+    top: the solvers package imports this module."""
+    from .solvers._kernels import kernel_mode
+
+    if kernel_mode() != "compiled":
+        return None
+    from .solvers._radii_compiled import radial_roots_kernel
+
+    return cast("Callable[..., FloatArray]", radial_roots_kernel)
 
 
 def bounded_covariances(

@@ -619,6 +619,25 @@ def test_terminal_fit_matches_reference(
         assert np.hypot(*(got.position - truth)) < 0.2
 
 
+def test_confidence_radii_match_reference() -> None:
+    """The 95 % radii's compiled Newton iteration against the NumPy one: random covariances,
+    from circles to ellipses 10^6 times longer than wide, one to eleven per call."""
+    from app.vlp.uncertainty import confidence_radii
+
+    rng = np.random.default_rng(17)
+    for trial in range(60):
+        k = int(rng.integers(1, 12))
+        factors = rng.standard_normal((k, 2, 2)) * rng.uniform(1e-4, 1.0, (k, 1, 1))
+        covariances = factors @ factors.transpose(0, 2, 1)
+        if trial % 3 == 0:  # axis-aligned, eigenvalue ratios down to 1e-12
+            covariances[:, 0, 1] = covariances[:, 1, 0] = 0.0
+            covariances[:, 1, 1] *= 10.0 ** rng.uniform(-12.0, 0.0, k)
+        with use_kernels("reference"):
+            want = confidence_radii(covariances)
+        got = confidence_radii(covariances)
+        np.testing.assert_allclose(got, want, rtol=RTOL, atol=0.0)
+
+
 def test_power_solves_match_reference() -> None:
     """The power model's whole solve (no eigenbasis involved) lands on the same answer."""
     layout = paper_layout()
@@ -674,12 +693,13 @@ _NO_CACHE_SCRIPT = textwrap.dedent(
     from app.vlp.solvers._uncertainty_compiled import uncertainty_kernel
     from app.vlp.solvers import _tolerance_compiled as joint
     from app.vlp.solvers._terminal_compiled import terminal_lm_kernel
+    from app.vlp.solvers._radii_compiled import radial_roots_kernel
     from app.vlp.simulation import noisy_amplitudes
 
     kernels = [fit.lm_kernel, fit.gram_kernel, fit.residual_kernel, fit.whitening_kernel,
                fit.whiten_kernel, fit.correlation_scores_kernel, channel_rows,
                uncertainty_kernel, joint.joint_gains_kernel, joint.joint_residual_kernel,
-               joint.joint_lm_kernel, terminal_lm_kernel]
+               joint.joint_lm_kernel, terminal_lm_kernel, radial_roots_kernel]
     # the fallback: compiled without a disk cache
     assert all(type(k._cache).__name__ == "NullCache" for k in kernels)
     warm_up()

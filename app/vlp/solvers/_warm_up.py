@@ -10,6 +10,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..presets import paper_layout
+from ..uncertainty import confidence_radii
 from ._channel_compiled import channel_constants, channel_rows
 from ._channel_kernel import ChannelKernel
 from ._fit_compiled import correlation_profiles_kernel, correlation_scores_kernel
@@ -76,6 +77,8 @@ def exercise() -> None:
     terminal_fit(
         kernel, np.ones(kernel.n_leds), np.array([1.0, 1.2]), height, True, priors, 1.0, None, 0.1
     )
+    # an answer's 95 % radii (app.vlp.uncertainty.confidence_radii)
+    confidence_radii(np.array([[[0.01, 0.002], [0.002, 0.004]]]))
     # a large room's power scan scores tiles of grid points (G^T with int32 indices)
     by_cell = sp.csr_array(np.ones((4, kernel.n_leds)))
     _best_of_tiles(
