@@ -300,8 +300,6 @@ def _levenberg_marquardt(
     NumPy evaluation below is its reference."""
     with_priors = weight is not None
     free_tilt = normal is None and tilt_sd is not None
-    axes = (3 if free_height else 2) + (2 if free_tilt else 0)
-    gradient_columns = [0, 1, *([2] if free_height else []), *([3, 4] if free_tilt else [])]
     # The log gain starts at the start's least-squares gain (set below, or by the kernel).
     theta = np.array(
         [
@@ -353,17 +351,54 @@ def _levenberg_marquardt(
             _MAX_ITER,
             _INITIAL_DAMPING,
         )
-        return _terminal_fit(
+    else:
+        theta, residual, jacobian, cost = _reference_lm(
+            kernel,
+            amplitudes,
+            start,
             theta,
-            residual,
-            jacobian,
-            cost,
-            amplitudes.shape[0],
-            data_weight,
-            z0,
-            free_height,
-            free_tilt,
+            (lower, upper),
+            z0=z0,
+            free_height=free_height,
+            free_tilt=free_tilt,
+            normal=normal,
+            priors=priors if with_priors else None,
+            data_weight=data_weight,
+            tilt_sd=tilt_sd,
         )
+    return _terminal_fit(
+        theta,
+        residual,
+        jacobian,
+        cost,
+        amplitudes.shape[0],
+        data_weight,
+        z0,
+        free_height,
+        free_tilt,
+    )
+
+
+def _reference_lm(
+    kernel: ChannelKernel,
+    amplitudes: FloatArray,
+    start: FloatArray,
+    theta: FloatArray,
+    bounds: tuple[FloatArray, FloatArray],
+    *,
+    z0: float,
+    free_height: bool,
+    free_tilt: bool,
+    normal: FloatArray | None,
+    priors: Priors | None,
+    data_weight: float | FloatArray,
+    tilt_sd: float | None,
+) -> tuple[FloatArray, FloatArray, FloatArray, float]:
+    """The NumPy fit (:func:`terminal_lm_kernel`'s reference): theta, whitened residual,
+    Jacobian and cost at LM's last accepted point; ``priors`` None fits without them."""
+    lower, upper = bounds
+    axes = (3 if free_height else 2) + (2 if free_tilt else 0)
+    gradient_columns = [0, 1, *([2] if free_height else []), *([3, 4] if free_tilt else [])]
     gains0, _ = terminal_model(kernel, np.array([start[0], start[1], z0]), free_height, z0, normal)
     norm = float(gains0 @ gains0)
     theta[-1] = math.log(max(float(gains0 @ amplitudes) / norm, 1e-6)) if norm > 0 else 0.0
@@ -380,17 +415,17 @@ def _levenberg_marquardt(
         jacobian[:, -1] = data_weight * amp * gains
         rows_r: list[float] = []
         rows_j: list[FloatArray] = []
-        if with_priors and priors.log_gain_sd is not None:
+        if priors is not None and priors.log_gain_sd is not None:
             rows_r.append(-float(params[-1]) / priors.log_gain_sd)
             row = np.zeros(params.shape[0])
             row[-1] = 1.0 / priors.log_gain_sd
             rows_j.append(row)
-        if with_priors and free_height:
+        if priors is not None and free_height:
             rows_r.append(-(float(params[2]) - priors.height_mean) / priors.height_sd)
             row = np.zeros(params.shape[0])
             row[2] = 1.0 / priors.height_sd
             rows_j.append(row)
-        if with_priors and free_tilt and tilt_sd is not None:
+        if priors is not None and free_tilt and tilt_sd is not None:
             for offset in (0, 1):
                 rows_r.append(-float(params[tilt_at + offset]) / tilt_sd)
                 row = np.zeros(params.shape[0])
@@ -401,7 +436,7 @@ def _levenberg_marquardt(
             jacobian = np.vstack((jacobian, np.array(rows_j)))
         return residual, jacobian
 
-    theta, residual, jacobian, cost = projected_levenberg_marquardt(
+    return projected_levenberg_marquardt(
         evaluate,
         theta,
         lower,
@@ -411,17 +446,6 @@ def _levenberg_marquardt(
         stop=lambda step, cost, trial_cost: (
             cost - trial_cost < _COST_TOL * cost or float(np.abs(step[:2]).max()) < _STEP_TOL_M
         ),
-    )
-    return _terminal_fit(
-        theta,
-        residual,
-        jacobian,
-        cost,
-        amplitudes.shape[0],
-        data_weight,
-        z0,
-        free_height,
-        free_tilt,
     )
 
 
