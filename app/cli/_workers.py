@@ -1,4 +1,4 @@
-"""``vlp serve --workers N``: N API processes on one listening socket (and that socket).
+"""``vlp serve --workers N``: N API processes on one port.
 
 The supervisor (the ``vlp serve`` process) binds the port once, starts N API processes
 (``multiprocessing`` *spawn*: each imports the app afresh, nothing is shared but the port
