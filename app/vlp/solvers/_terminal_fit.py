@@ -310,37 +310,24 @@ def _levenberg_marquardt(
             0.0,
         ]
     )
-    lower = np.array(
-        [
-            0.0,
-            0.0,
-            *([priors.height_bounds[0]] if free_height else []),
-            *([-_MAX_TILT, -_MAX_TILT] if free_tilt else []),
-            -20.0,
-        ]
+    lower, upper = _bounds(
+        kernel, priors, free_height, free_tilt, with_priors and priors.log_gain_sd is not None
     )
-    upper = np.array(
-        [
-            *kernel.bounds,
-            *([priors.height_bounds[1]] if free_height else []),
-            *([_MAX_TILT, _MAX_TILT] if free_tilt else []),
-            20.0,
-        ]
-    )
-    if with_priors and priors.log_gain_sd is not None:
-        lower[-1], upper[-1] = -MAX_LOG_GAIN - 3.0, MAX_LOG_GAIN + 3.0
     data_weight = weight if weight is not None else 1.0
     constants = channel_constants(kernel) if kernel_mode() == "compiled" else None
     if constants is not None:
         theta, residual, jacobian, cost = terminal_lm_kernel(
             *constants,
             np.ascontiguousarray(amplitudes, dtype=np.float64),
-            np.broadcast_to(np.asarray(data_weight, dtype=np.float64), amplitudes.shape).copy(),
+            # fresh writable arrays: one compiled signature for all (warm_up compiles it)
+            np.array(data_weight, dtype=np.float64)
+            if isinstance(data_weight, np.ndarray)
+            else np.full(amplitudes.shape[0], float(data_weight)),
             theta,
             lower,
             upper,
             (bool(free_height), normal is not None, bool(free_tilt), float(z0)),
-            np.zeros(3) if normal is None else np.asarray(normal, dtype=np.float64).copy(),
+            _NO_NORMAL if normal is None else np.array(normal, dtype=np.float64),
             (
                 bool(with_priors),
                 -1.0 if priors.log_gain_sd is None else float(priors.log_gain_sd),
@@ -377,6 +364,47 @@ def _levenberg_marquardt(
         free_height,
         free_tilt,
     )
+
+
+# The kernel's normal argument when the terminal sent none (it reads it only when one was).
+_NO_NORMAL = np.zeros(3)
+
+
+def _bounds(
+    kernel: ChannelKernel, priors: Priors, free_height: bool, free_tilt: bool, gain_prior: bool
+) -> tuple[FloatArray, FloatArray]:
+    """Lower and upper bounds of ``[x, y, (z), (tx, ty), u]``: the room, the heights' prior
+    bounds, +-45 degrees of tilt, and a log gain within +-20 (within its prior's reach when
+    it has one). Kept on the kernel per layout of theta (many fits ask for the same):
+    callers must not write into them."""
+    key = (free_height, free_tilt, gain_prior, priors.height_bounds if free_height else None)
+    kept: dict[object, tuple[FloatArray, FloatArray]] = kernel.__dict__.setdefault(
+        "_terminal_bounds", {}
+    )
+    found = kept.get(key)
+    if found is not None:
+        return found
+    lower = np.array(
+        [
+            0.0,
+            0.0,
+            *([priors.height_bounds[0]] if free_height else []),
+            *([-_MAX_TILT, -_MAX_TILT] if free_tilt else []),
+            -20.0,
+        ]
+    )
+    upper = np.array(
+        [
+            *kernel.bounds,
+            *([priors.height_bounds[1]] if free_height else []),
+            *([_MAX_TILT, _MAX_TILT] if free_tilt else []),
+            20.0,
+        ]
+    )
+    if gain_prior:
+        lower[-1], upper[-1] = -MAX_LOG_GAIN - 3.0, MAX_LOG_GAIN + 3.0
+    kept[key] = (lower, upper)
+    return lower, upper
 
 
 def _reference_lm(
