@@ -9,9 +9,10 @@ On Linux each API process listens on a socket of its own, bound to the same addr
 ``SO_REUSEPORT``, and the kernel hands each new connection to one of them by a hash of its
 addresses; the supervisor's socket only holds the port and never listens. With one shared
 listening socket every process woke on a new connection and the first to run accepted all
-that were queued: a burst of keep-alive connections (8 clients starting at once) mostly
-landed on one process and stayed there (measured: 7 or 8 of 8, 31 or 32 of 32, in most
-bursts), so a second process added nothing for them. Elsewhere the shared socket remains.
+that were queued: a burst of keep-alive connections (clients starting at once) mostly
+landed on one process and stayed there, so a second process added nothing for them
+(docs/performance.md, "Connections spread over the API processes"). Elsewhere the shared
+socket remains.
 
 What must run once per deployment runs in API process 0 only: the embedded build workers,
 the epoch sweeper and the demo-room seeding (whose "no rooms yet?" check is not atomic).

@@ -124,7 +124,8 @@ def test_connections_opened_together_are_spread_over_the_api_processes(tmp_path:
     connection is answered by the same process). Each process listens on a socket of its own
     (SO_REUSEPORT) and the kernel picks one per connection by a hash: 3 or fewer of 32 for
     one process has a probability of 2.6e-6. With one shared socket the first process to wake
-    accepted nearly every queued connection (31 or 32 of 32 in most bursts measured)."""
+    accepted nearly every queued connection (docs/performance.md, "Connections spread over the
+    API processes")."""
 
     async def burst(url: str, count: int) -> list[tuple[int, int]]:
         clients = [httpx.AsyncClient(timeout=60.0) for _ in range(count)]
@@ -210,7 +211,6 @@ def test_a_shared_port_takes_its_own_listeners_and_nobody_else() -> None:
     try:
         for listener in listeners:
             listener.listen(64)
-            listener.settimeout(SAFETY_TIMEOUT_S)
         clients = [socket.create_connection(("127.0.0.1", port)) for _ in range(16)]
         accepted = 0
         for listener in listeners:

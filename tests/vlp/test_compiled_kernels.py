@@ -316,6 +316,7 @@ def test_shape_gradients_match_reference(
     """The height and tilt derivatives behind the model-error radii (the height's from the
     compiled channel, reflections included), against the reference kernels."""
     solver = paper_solvers[reflecting]
+    assert channel_constants(solver._kernel) is not None  # so the compiled channel runs
     rng = np.random.default_rng(13)
     positions = rng.uniform(0.0, 4.0, (5, 2))
     heights = 0.85 + rng.uniform(-0.3, 0.3, 5)
@@ -622,8 +623,9 @@ def test_terminal_fit_matches_reference(
 def test_confidence_radii_match_reference() -> None:
     """The 95 % radii's compiled Newton iteration against the NumPy one: random covariances,
     from circles to ellipses 10^6 times longer than wide, one to eleven per call."""
-    from app.vlp.uncertainty import confidence_radii
+    from app.vlp.uncertainty import _compiled_radial_roots, confidence_radii
 
+    assert _compiled_radial_roots() is not None  # so the compiled iteration runs
     rng = np.random.default_rng(17)
     for trial in range(60):
         k = int(rng.integers(1, 12))
