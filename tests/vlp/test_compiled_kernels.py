@@ -25,8 +25,9 @@ from scipy import optimize
 from app.vlp._reflection_table import ReflectionTable
 from app.vlp.fingerprints import build_fingerprint
 from app.vlp.layout import Grid, Layout, Led, Receiver, Reflectance, Room
-from app.vlp.measurements import Model
+from app.vlp.measurements import Model, measurement_from_amplitudes
 from app.vlp.presets import paper_layout
+from app.vlp.simulation import true_amplitudes
 from app.vlp.solvers._channel_compiled import channel_constants, channel_rows, diffuse_rows
 from app.vlp.solvers._channel_kernel import ChannelKernel
 from app.vlp.solvers._fit_compiled import _sparse_symmetric_product, correlation_scores_kernel
@@ -51,7 +52,7 @@ from app.vlp.solvers._uncertainty_compiled import (
     misfit_design_kernel,
     nnls_kernel,
 )
-from app.vlp.solvers.gridless import GridlessSolver, _Run
+from app.vlp.solvers.gridless import GridlessOptions, GridlessSolver, _Run
 from app.vlp.typing import FloatArray
 from app.vlp.uncertainty import MisfitDesign, fit_misfit, misfit_design
 
@@ -475,6 +476,72 @@ def test_insertion_scores_match_reference(layout_name: str) -> None:
             assert_same(got_part, want_part)
 
 
+def _grown(
+    solver: GridlessSolver,
+    run: _Run,
+    state: FitState,
+    inner_iter: int,
+    avoid: FloatArray | None,
+) -> tuple[FitState, int]:
+    """A growth step's new state and the LM iterations it used."""
+    before = run.iterations
+    grown = solver._grow(run, copy.deepcopy(state), inner_iter, avoid)
+    return grown, run.iterations - before
+
+
+@pytest.mark.parametrize("layout_name", list(LAYOUTS))
+@pytest.mark.parametrize("ceiling", ["none", "zero"])
+def test_growth_step_is_the_python_step(
+    layout_name: str, ceiling: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The compiled growth step (GridlessSolver._grow_compiled) gives the state of the
+    Python step (insertion, then a short LM) to the bit with the compiled kernels it calls,
+    and that of the NumPy reference kernels to 1e-10: from K = 0 to 3 targets (random
+    weights, gains, scale, heights), refined or only inserted, with points to avoid
+    (some, or so many that none is left) and a noise ceiling (0 when growing without
+    noise)."""
+    layout = LAYOUTS[layout_name]()
+    fingerprint = build_fingerprint(layout)
+    options = dataclasses.replace(GridlessOptions(), grow_without_noise=ceiling == "zero")
+    solver = GridlessSolver(fingerprint, "correlation", options)
+    python = GridlessSolver(fingerprint, "correlation", options)
+    monkeypatch.setattr(python, "_compiled_growth", lambda _run: False)
+    rng = np.random.default_rng(21)
+    centres = solver._centres
+    checked = 0
+    for k in range(4):
+        for on_plane in (True, False):
+            state = random_state(solver._kernel, k, rng, on_plane) if k else FitState.empty()
+            truth = random_points(solver._kernel, 3, rng).clip(0.1, 2.0)
+            values = np.asarray(
+                measurement_from_amplitudes(
+                    true_amplitudes(layout, truth), "correlation", layout.n_leds
+                ).values
+                / solver._scale**2
+                + 1e-3 * normal(rng, layout.n_leds * (layout.n_leds + 1) // 2),
+                dtype=np.float64,
+            )
+            for inner_iter in (0, 2):
+                for avoid in (None, centres[rng.choice(len(centres), 2)], centres):
+                    run = _Run(values=values, priors=solver._growth_priors)
+                    want_run = _Run(values=values, priors=python._growth_priors)
+                    assert solver._compiled_growth(run)
+                    got, got_used = _grown(solver, run, state, inner_iter, avoid)
+                    want, want_used = _grown(python, want_run, state, inner_iter, avoid)
+                    assert np.array_equal(got.positions, want.positions)
+                    assert got.noise == want.noise
+                    assert (got_used, got.converged) == (want_used, want.converged)
+                    for name in ("weights", "heights", "log_gains"):
+                        assert np.array_equal(getattr(got, name), getattr(want, name))
+                    assert got.log_scale == want.log_scale
+                    with use_kernels("reference"):
+                        reference, _ = _grown(python, want_run, state, inner_iter, avoid)
+                    assert_same(got.positions, reference.positions)
+                    assert_same(got.noise, reference.noise)
+                    checked += 1
+    assert checked == 4 * 2 * 2 * 3
+
+
 @pytest.mark.parametrize("table", TABLES)
 def test_terminal_model_matches_reference(table: str) -> None:
     """A terminal looking straight up: gains and gradient at one point, free height."""
@@ -696,12 +763,14 @@ _NO_CACHE_SCRIPT = textwrap.dedent(
     from app.vlp.solvers import _tolerance_compiled as joint
     from app.vlp.solvers._terminal_compiled import terminal_lm_kernel
     from app.vlp.solvers._radii_compiled import radial_roots_kernel
+    from app.vlp.solvers._growth_compiled import growth_step_kernel
     from app.vlp.simulation import noisy_amplitudes
 
     kernels = [fit.lm_kernel, fit.gram_kernel, fit.residual_kernel, fit.whitening_kernel,
                fit.whiten_kernel, fit.correlation_scores_kernel, channel_rows,
                uncertainty_kernel, joint.joint_gains_kernel, joint.joint_residual_kernel,
-               joint.joint_lm_kernel, terminal_lm_kernel, radial_roots_kernel]
+               joint.joint_lm_kernel, terminal_lm_kernel, radial_roots_kernel,
+               growth_step_kernel]
     # the fallback: compiled without a disk cache
     assert all(type(k._cache).__name__ == "NullCache" for k in kernels)
     warm_up()

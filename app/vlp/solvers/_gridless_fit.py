@@ -57,6 +57,8 @@ _MAX_REJECTIONS = 12
 # irregular rooms (measured in docs/accuracy.md, "Design measurements").
 _DAMPING_UP = 4.0
 _DAMPING_DOWN = 5.0
+# LM stops when no target moves by more than this (metres).
+STEP_TOL_M = 1e-5
 
 
 @dataclass(frozen=True)
@@ -717,7 +719,7 @@ def levenberg_marquardt(
     max_iter: int,
     initial_damping: float,
     tol: float,
-    step_tol_m: float = 1e-5,
+    step_tol_m: float = STEP_TOL_M,
 ) -> tuple[FitState, float, int]:
     """Projected LM on an :class:`Objective` (parameters kept within their bounds).
 

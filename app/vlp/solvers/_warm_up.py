@@ -14,7 +14,16 @@ from ..uncertainty import confidence_radii
 from ._channel_compiled import channel_constants, channel_rows
 from ._channel_kernel import ChannelKernel
 from ._fit_compiled import correlation_profiles_kernel, correlation_scores_kernel
-from ._gridless_fit import FitState, Objective, Priors, Whitening, gram, levenberg_marquardt
+from ._gridless_fit import (
+    FitState,
+    Objective,
+    Priors,
+    Whitening,
+    compiled_indices,
+    gram,
+    levenberg_marquardt,
+)
+from ._growth_compiled import growth_step_kernel
 from ._local import _best_of_tiles
 from ._room_tolerance_fit import RoomTolerances, _JointModel, _levenberg_marquardt
 from ._terminal_fit import _levenberg_marquardt as terminal_fit
@@ -25,8 +34,9 @@ __all__ = ["exercise"]
 
 def exercise() -> None:
     """Evaluate, whiten, fit and take the covariances of a two-target state of the paper's
-    room, both models; evaluate the joint fit under the room's tolerances there; score a
-    large room's power-scan tile (four grid points in one 2 x 2 tile)."""
+    room, both models; grow it by one target as the correlation search does; evaluate the
+    joint fit under the room's tolerances there; score a large room's power-scan tile (four
+    grid points in one 2 x 2 tile)."""
     layout = paper_layout()
     kernel = ChannelKernel(layout, 1.0)
     height = layout.grid.receiver_height
@@ -74,6 +84,41 @@ def exercise() -> None:
     assert constants is not None  # a line-of-sight kernel always has its compiled form
     point = np.array([1.0])
     channel_rows(*constants, point, point.copy(), np.array([height]), False)
+    # a growth step of the correlation search (GridlessSolver._grow_compiled)
+    identity = Whitening.identity("correlation", kernel.n_leds)
+    search = Objective(
+        kernel, identity, np.zeros(identity.weights.shape[0]), False, Priors(height_mean=height)
+    )
+    _, search_layout, search_priors = search.compiled_state(state)
+    lower, upper = search.bounds(state.n_targets + 1)
+    _, _, is_diag = compiled_indices("correlation", kernel.n_leds)
+    growth_step_kernel(
+        *constants,
+        identity.compiled(),
+        True,
+        is_diag,
+        np.ones(identity.weights.shape[0]),
+        state.positions,
+        1e-3,
+        state.heights,
+        state.weights,
+        state.log_gains,
+        0.0,
+        height,
+        np.ones((kernel.n_leds, 3)),
+        np.ones((3, 2)),
+        np.zeros((0, 2)),
+        0.5,
+        height,
+        search_layout,
+        search_priors,
+        lower,
+        upper,
+        1,
+        0.1,
+        1e-4,
+        1e-5,
+    )
     terminal_fit(
         kernel, np.ones(kernel.n_leds), np.array([1.0, 1.2]), height, True, priors, 1.0, None, 0.1
     )

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -42,11 +42,13 @@ from ._channel_kernel import ChannelKernel
 from ._fit_compiled import correlation_profiles_kernel, correlation_scores_kernel
 from ._gridless_fit import (
     MAX_LOG_SCALE,
+    STEP_TOL_M,
     FitState,
     Objective,
     Priors,
     Whitening,
     _Slots,
+    compiled_indices,
     gram,
     levenberg_marquardt,
     target_gains,
@@ -59,6 +61,7 @@ from ._gridless_options import (
     nuisance_priors,
     pick,
 )
+from ._growth_compiled import growth_step_kernel
 from ._kernels import kernel_mode
 from ._local import PowerScan, TerminalWindows
 from ._room_tolerance_fit import GridMoves, RoomTolerances, ToleranceFit, fit_room_tolerances
@@ -89,6 +92,8 @@ _COUNT_F_RATIO = 10.0
 _MAX_PROFILE_ENTRIES = 1_000_000
 # Grid steps added to the reach of a local refinement (targets move a little while fitted).
 _NEAR_MARGIN_STEPS = 4.0
+# No points to avoid (the compiled growth step takes an (n, 2) array).
+_NO_POINTS = np.zeros((0, 2))
 
 
 class _Search(NamedTuple):
@@ -392,6 +397,23 @@ class GridlessSolver(Solver):
             if not self._dense and model == "power" and not self.options.free_weights
             else None
         )
+        # The growth step as one compiled call (:meth:`_grow_compiled`): its constants, the
+        # search priors' tuples, and its bounds per noise ceiling and K.
+        self._growth_constants: tuple[Any, ...] | None = None
+        self._growth_objectives: dict[float, Objective] = {}
+        constants = channel_constants(self._kernel)
+        if (
+            model == "correlation"
+            and self._dense
+            and self._near_reach is None
+            and not self.options.free_weights
+            and constants is not None
+        ):
+            search = self._growth_objective(math.inf)
+            one = FitState.empty().with_target(np.zeros(2), self._growth_priors.height_mean)
+            _, growth_layout, growth_priors = search.compiled_state(one)
+            _, _, is_diag = compiled_indices(model, fingerprint.n_leds)
+            self._growth_constants = (*constants, growth_layout, growth_priors, is_diag)
         # The faintest (5th percentile: corners out of view aside) and brightest grid points.
         self._energy_band = (
             float(np.percentile(self._column_energy, 5.0)),
@@ -696,6 +718,8 @@ class GridlessSolver(Solver):
         """One ADCG step: insert at the best grid point, then refine everything (briefly,
         in the metric of the state before the insertion), with ``grow_without_noise`` the
         noise coefficient held at 0."""
+        if self._compiled_growth(run):
+            return self._grow_compiled(run, state, inner_iter, avoid)
         white = self._whitening(state)
         grown = self._insert(run, state, white, avoid)
         if inner_iter > 0:
@@ -711,6 +735,88 @@ class GridlessSolver(Solver):
                 ceiling=0.0 if self._grow_without_noise else math.inf,
             )
         return grown
+
+    def _compiled_growth(self, run: _Run) -> bool:
+        """Whether :meth:`_grow` runs as one compiled call (:mod:`._growth_compiled`): the
+        correlation model in a dense room, searching (positions and noise only), fixed
+        weights, the compiled kernels in use."""
+        return (
+            self._growth_constants is not None
+            and run.priors is self._growth_priors
+            and kernel_mode() == "compiled"
+        )
+
+    def _grow_compiled(
+        self,
+        run: _Run,
+        state: FitState,
+        inner_iter: int,
+        avoid: FloatArray | None,
+    ) -> FitState:
+        """:meth:`_grow` in one compiled call (the same kernels, in the same order: the
+        same state to the bit). The state's whitening is computed there, not kept: a
+        growth step's state is never whitened again (the next step adds a target), but for
+        the last state of a count, which the polish whitens once more."""
+        assert self._growth_constants is not None
+        channel, table, layout, priors, is_diag = self._growth_constants
+        k = state.n_targets
+        ceiling = 0.0 if self._grow_without_noise else math.inf
+        lower, upper = self._growth_objective(ceiling).bounds(k + 1)
+        positions, noise, used = growth_step_kernel(
+            channel,
+            table,
+            self._identity.compiled(),
+            self.options.whiten,
+            is_diag,
+            run.values,
+            np.ascontiguousarray(state.positions, dtype=np.float64),
+            float(state.noise),
+            np.ascontiguousarray(state.heights, dtype=np.float64),
+            np.ascontiguousarray(state.weights, dtype=np.float64),
+            np.ascontiguousarray(state.log_gains, dtype=np.float64),
+            float(state.log_scale),
+            self._kernel.receiver_height,
+            self._gains,
+            self._centres,
+            _NO_POINTS if avoid is None else np.ascontiguousarray(avoid, dtype=np.float64),
+            self._avoid_radius,
+            self._priors.height_mean,
+            layout,
+            priors,
+            lower,
+            upper,
+            inner_iter,
+            self._lm.initial_damping,
+            self._lm.tol,
+            STEP_TOL_M,
+        )
+        grown = FitState(
+            positions,
+            np.concatenate((state.weights, (1.0,))),
+            float(noise),
+            np.concatenate((state.heights, (self._priors.height_mean,))),
+            np.concatenate((state.log_gains, (0.0,))),
+            state.log_scale,
+        )
+        if inner_iter > 0:
+            run.iterations += int(used)
+            grown.converged = used < inner_iter
+        return grown
+
+    def _growth_objective(self, ceiling: float) -> Objective:
+        """An objective of the search priors with the noise at most ``ceiling``, for its
+        parameter layout and bounds (its data are never read)."""
+        found = self._growth_objectives.get(ceiling)
+        if found is None:
+            found = self._growth_objectives[ceiling] = Objective(
+                self._kernel,
+                self._identity,
+                np.zeros(self._identity.weights.shape[0]),
+                self.options.free_weights,
+                self._growth_priors,
+                ceiling,
+            )
+        return found
 
     def _count_and_fit(self, run: _Run) -> FitState:
         """Grow one target at a time while each brings its own energy (unknown K).
