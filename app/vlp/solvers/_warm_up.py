@@ -23,9 +23,9 @@ from ._gridless_fit import (
     gram,
     levenberg_marquardt,
 )
-from ._growth_compiled import growth_step_kernel
 from ._local import _best_of_tiles
 from ._room_tolerance_fit import RoomTolerances, _JointModel, _levenberg_marquardt
+from ._search_compiled import growth_step_kernel, refine_kernel
 from ._terminal_fit import _levenberg_marquardt as terminal_fit
 from ._uncertainty_compiled import uncertainty_kernel
 
@@ -34,9 +34,9 @@ __all__ = ["exercise"]
 
 def exercise() -> None:
     """Evaluate, whiten, fit and take the covariances of a two-target state of the paper's
-    room, both models; grow it by one target as the correlation search does; evaluate the
-    joint fit under the room's tolerances there; score a large room's power-scan tile (four
-    grid points in one 2 x 2 tile)."""
+    room, both models; grow it by one target and refine it as the correlation search does;
+    evaluate the joint fit under the room's tolerances there; score a large room's
+    power-scan tile (four grid points in one 2 x 2 tile)."""
     layout = paper_layout()
     kernel = ChannelKernel(layout, 1.0)
     height = layout.grid.receiver_height
@@ -114,6 +114,31 @@ def exercise() -> None:
         search_priors,
         lower,
         upper,
+        1,
+        0.1,
+        1e-4,
+        1e-5,
+    )
+    # ... and its whitened refinement (GridlessSolver._refine_compiled)
+    lower, upper = search.bounds(state.n_targets)
+    refine_kernel(
+        *constants,
+        identity.compiled(),
+        True,
+        is_diag,
+        np.ones(identity.weights.shape[0]),
+        state.positions,
+        1e-3,
+        state.heights,
+        state.weights,
+        state.log_gains,
+        0.0,
+        height,
+        search_layout,
+        search_priors,
+        lower,
+        upper,
+        2,
         1,
         0.1,
         1e-4,

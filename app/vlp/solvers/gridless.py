@@ -61,10 +61,10 @@ from ._gridless_options import (
     nuisance_priors,
     pick,
 )
-from ._growth_compiled import growth_step_kernel
 from ._kernels import kernel_mode
 from ._local import PowerScan, TerminalWindows
 from ._room_tolerance_fit import GridMoves, RoomTolerances, ToleranceFit, fit_room_tolerances
+from ._search_compiled import growth_step_kernel, refine_kernel
 from ._terminal_fit import TerminalFit, fit_terminal, starting_cells
 from ._uncertainty_compiled import misfit_design_kernel, uncertainty_kernel
 from ._whitening_memo import MAX_KEPT_VALUES, WhiteningMemo, state_key
@@ -608,6 +608,8 @@ class GridlessSolver(Solver):
 
     def _refine(self, run: _Run, state: FitState, max_iter: int, rounds: int) -> FitState:
         """LM rounds, each whitened by the covariance plugged in from the previous one."""
+        if state.n_targets > 0 and self._compiled_search(run):
+            return self._refine_compiled(run, state, max_iter, rounds)
         for round_index in range(max(rounds, 1)):
             before = run.iterations
             state, _ = self._fit(run, self._whitening(state), state, max_iter)
@@ -718,7 +720,7 @@ class GridlessSolver(Solver):
         """One ADCG step: insert at the best grid point, then refine everything (briefly,
         in the metric of the state before the insertion), with ``grow_without_noise`` the
         noise coefficient held at 0."""
-        if self._compiled_growth(run):
+        if self._compiled_search(run):
             return self._grow_compiled(run, state, inner_iter, avoid)
         white = self._whitening(state)
         grown = self._insert(run, state, white, avoid)
@@ -736,10 +738,10 @@ class GridlessSolver(Solver):
             )
         return grown
 
-    def _compiled_growth(self, run: _Run) -> bool:
-        """Whether :meth:`_grow` runs as one compiled call (:mod:`._growth_compiled`): the
-        correlation model in a dense room, searching (positions and noise only), fixed
-        weights, the compiled kernels in use."""
+    def _compiled_search(self, run: _Run) -> bool:
+        """Whether :meth:`_grow` and :meth:`_refine` run as one compiled call each
+        (:mod:`._search_compiled`): the correlation model in a dense room, searching
+        (positions and noise only), fixed weights, the compiled kernels in use."""
         return (
             self._growth_constants is not None
             and run.priors is self._growth_priors
@@ -802,6 +804,44 @@ class GridlessSolver(Solver):
             run.iterations += int(used)
             grown.converged = used < inner_iter
         return grown
+
+    def _refine_compiled(self, run: _Run, state: FitState, max_iter: int, rounds: int) -> FitState:
+        """:meth:`_refine` in one compiled call (the same kernels, in the same order: the
+        same state to the bit; the rounds' whitenings are not kept, no later step asks for
+        them)."""
+        assert self._growth_constants is not None
+        channel, table, layout, priors, is_diag = self._growth_constants
+        lower, upper = self._growth_objective(math.inf).bounds(state.n_targets)
+        positions, noise, total, last = refine_kernel(
+            channel,
+            table,
+            self._identity.compiled(),
+            self.options.whiten,
+            is_diag,
+            run.values,
+            np.ascontiguousarray(state.positions, dtype=np.float64),
+            float(state.noise),
+            np.ascontiguousarray(state.heights, dtype=np.float64),
+            np.ascontiguousarray(state.weights, dtype=np.float64),
+            np.ascontiguousarray(state.log_gains, dtype=np.float64),
+            float(state.log_scale),
+            self._kernel.receiver_height,
+            layout,
+            priors,
+            lower,
+            upper,
+            rounds,
+            max_iter,
+            self._lm.initial_damping,
+            self._lm.tol,
+            STEP_TOL_M,
+        )
+        run.iterations += int(total)
+        refined = FitState(
+            positions, state.weights, float(noise), state.heights, state.log_gains, state.log_scale
+        )
+        refined.converged = last < max_iter
+        return refined
 
     def _growth_objective(self, ceiling: float) -> Objective:
         """An objective of the search priors with the noise at most ``ceiling``, for its

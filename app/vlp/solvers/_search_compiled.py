@@ -1,0 +1,296 @@
+"""Compiled steps of the ``gridless`` search: an ADCG growth step and whitened refinement.
+
+Stand-ins for :meth:`GridlessSolver._grow` and :meth:`GridlessSolver._refine` in dense
+rooms with the correlation model during the search (positions and noise only;
+:meth:`GridlessSolver._compiled_search` says when):
+
+- :func:`growth_step_kernel`: the plug-in whitening of the current state, its whitened
+  residual, the insertion scores of every grid point, the best one (away from the points
+  to avoid), and the short Levenberg-Marquardt refinement with the new target;
+- :func:`refine_kernel`: rounds of the plug-in whitening of the current state and a
+  Levenberg-Marquardt fit in it, until a round barely moves the fit.
+
+Each is one call instead of some sixty Python-level steps. They call the kernels the Python
+path calls (:mod:`._fit_compiled`), in the same order, so the state they return is that
+path's to the bit; the Python path (and under ``VLP_KERNELS=reference`` its NumPy kernels)
+is their reference. Private: callers validate.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ..typing import FloatArray
+from ._channel_compiled import ChannelConstants, TableConstants
+from ._fit_compiled import (
+    Problem,
+    correlation_scores_kernel,
+    lm_kernel,
+    residual_kernel,
+    whiten_kernel,
+    whitening_kernel,
+)
+from ._kernels import compiled
+
+__all__ = ["growth_step_kernel", "refine_kernel"]
+
+
+@compiled
+def _facts(
+    heights: FloatArray,
+    weights: FloatArray,
+    log_gains: FloatArray,
+    log_scale: float,
+    receiver_height: float,
+) -> tuple[bool, bool]:
+    """Whether every target is on the receivers' plane, and every multiplier is 1
+    (:func:`._gridless_fit.fixed_tuple`)."""
+    on_plane = True
+    unit = log_scale == 0.0
+    for i in range(heights.shape[0]):
+        on_plane = on_plane and heights[i] == receiver_height
+        unit = unit and log_gains[i] == 0.0 and weights[i] == 1.0
+    return on_plane, unit
+
+
+@compiled
+def _plug_in(
+    channel: ChannelConstants,
+    table: TableConstants,
+    white: Problem,
+    positions: FloatArray,
+    fixed: Problem,
+    noise: float,
+    is_diag: FloatArray,
+) -> Problem:
+    """:meth:`Whitening.from_state` (correlation) of a state of K >= 1 targets, as the
+    compiled kernels take it; ``white`` lends its vech indices."""
+    upper_index, lower_index = white[3], white[4]
+    rotation, entry_weights = whitening_kernel(
+        channel,
+        table,
+        positions,
+        fixed,
+        noise,
+        float(positions.shape[0]),
+        True,
+        upper_index,
+        lower_index,
+        is_diag,
+    )
+    weighted_diag = np.empty(entry_weights.shape[0])
+    for col in range(entry_weights.shape[0]):
+        weighted_diag[col] = entry_weights[col] * is_diag[col]
+    return (True, rotation, entry_weights, upper_index, lower_index, weighted_diag)
+
+
+@compiled
+def growth_step_kernel(
+    channel: ChannelConstants,
+    table: TableConstants,
+    white: Problem,
+    plug_in: bool,
+    is_diag: FloatArray,
+    values: FloatArray,
+    positions: FloatArray,
+    noise: float,
+    heights: FloatArray,
+    weights: FloatArray,
+    log_gains: FloatArray,
+    log_scale: float,
+    receiver_height: float,
+    gains: FloatArray,
+    centres: FloatArray,
+    avoid: FloatArray,
+    avoid_radius: float,
+    height_mean: float,
+    layout: Problem,
+    priors: Problem,
+    lower: FloatArray,
+    upper: FloatArray,
+    inner_iter: int,
+    initial_damping: float,
+    tol: float,
+    step_tol: float,
+) -> tuple[FloatArray, float, int]:
+    """One growth step of the state ``(positions (K, 2), noise, heights, weights,
+    log_gains (K,), log_scale)``: the new positions (K + 1, 2), noise coefficient and LM
+    iterations used (0 when ``inner_iter`` is 0: inserted, not refined).
+
+    The step runs in the state's plug-in whitening when ``plug_in`` and K > 0
+    (:meth:`Whitening.from_state`, ``is_diag`` the entries' diagonal indicator), else in
+    ``white`` (the plain metric).
+
+    ``gains`` (M, N) and ``centres`` (N, 2): the grid's scaled gains and points; ``avoid``
+    (n, 2): points whose ``avoid_radius`` the insertion stays out of, unless that leaves
+    none; ``layout``, ``priors``: the search priors' tuples (positions and noise only);
+    ``lower``, ``upper``: the bounds of theta for K + 1 targets.
+    """
+    k = positions.shape[0]
+    if k > 0:
+        on_plane, unit = _facts(heights, weights, log_gains, log_scale, receiver_height)
+        fixed = (heights, weights, log_gains, log_scale, on_plane, unit)
+        if plug_in:
+            white = _plug_in(channel, table, white, positions, fixed, noise, is_diag)
+    data = whiten_kernel(white, values)
+    if k == 0:
+        residual = data
+    else:
+        theta = np.empty(2 * k + 1)
+        for i in range(k):
+            theta[i] = positions[i, 0]
+            theta[k + i] = positions[i, 1]
+        theta[2 * k] = noise
+        residual = residual_kernel(channel, table, white, data, theta, fixed, layout, priors)[
+            : data.shape[0]
+        ].copy()
+    num, norms = correlation_scores_kernel(white, residual, gains)
+    weight = math.exp(log_scale)
+    twice = 2.0 * weight
+    squared = weight**2
+    n_points = centres.shape[0]
+    scores = np.empty(n_points)
+    for j in range(n_points):
+        scores[j] = twice * num[j] - squared * norms[j]
+    if avoid.shape[0] > 0:
+        allowed = scores.copy()
+        radius2 = avoid_radius**2
+        for p in range(avoid.shape[0]):
+            for j in range(n_points):
+                dx = centres[j, 0] - avoid[p, 0]
+                dy = centres[j, 1] - avoid[p, 1]
+                if dx**2 + dy**2 < radius2:
+                    allowed[j] = -np.inf
+        any_finite = False
+        for j in range(n_points):
+            any_finite = any_finite or np.isfinite(allowed[j])
+        if any_finite:
+            scores = allowed
+    best = int(np.argmax(scores))
+    grown_heights = np.empty(k + 1)
+    grown_weights = np.empty(k + 1)
+    grown_gains = np.empty(k + 1)
+    grown_heights[:k] = heights
+    grown_weights[:k] = weights
+    grown_gains[:k] = log_gains
+    grown_heights[k] = height_mean
+    grown_weights[k] = 1.0
+    grown_gains[k] = 0.0
+    n = k + 1
+    theta = np.empty(2 * n + 1)
+    for i in range(k):
+        theta[i] = positions[i, 0]
+        theta[n + i] = positions[i, 1]
+    theta[k] = centres[best, 0]
+    theta[n + k] = centres[best, 1]
+    theta[2 * n] = noise
+    used = 0
+    if inner_iter > 0:
+        if upper[2 * n] < np.inf:
+            # The state's noise may be above this objective's ceiling: start within bounds.
+            for i in range(2 * n + 1):
+                theta[i] = min(max(theta[i], lower[i]), upper[i])
+        on_plane, unit = _facts(
+            grown_heights, grown_weights, grown_gains, log_scale, receiver_height
+        )
+        fixed = (grown_heights, grown_weights, grown_gains, log_scale, on_plane, unit)
+        theta, _, used = lm_kernel(
+            channel,
+            table,
+            white,
+            data,
+            theta,
+            fixed,
+            layout,
+            priors,
+            lower,
+            upper,
+            inner_iter,
+            initial_damping,
+            tol,
+            step_tol,
+        )
+    out = np.empty((n, 2))
+    for i in range(n):
+        out[i, 0] = theta[i]
+        out[i, 1] = theta[n + i]
+    return out, theta[2 * n], used
+
+
+@compiled
+def refine_kernel(
+    channel: ChannelConstants,
+    table: TableConstants,
+    white: Problem,
+    plug_in: bool,
+    is_diag: FloatArray,
+    values: FloatArray,
+    positions: FloatArray,
+    noise: float,
+    heights: FloatArray,
+    weights: FloatArray,
+    log_gains: FloatArray,
+    log_scale: float,
+    receiver_height: float,
+    layout: Problem,
+    priors: Problem,
+    lower: FloatArray,
+    upper: FloatArray,
+    rounds: int,
+    max_iter: int,
+    initial_damping: float,
+    tol: float,
+    step_tol: float,
+) -> tuple[FloatArray, float, int, int]:
+    """Whitened refinement of the state ``(positions (K >= 1, 2), noise, heights, weights,
+    log_gains (K,), log_scale)``: up to ``rounds`` (at least one) LM fits of positions and
+    noise, each in the plug-in whitening of the state the round before left when
+    ``plug_in`` (else in ``white``), stopping after a round past the first that used at
+    most 2 iterations. Returns the positions (K, 2), the noise coefficient, the iterations
+    of all rounds and those of the last."""
+    k = positions.shape[0]
+    on_plane, unit = _facts(heights, weights, log_gains, log_scale, receiver_height)
+    fixed = (heights, weights, log_gains, log_scale, on_plane, unit)
+    theta = np.empty(2 * k + 1)
+    for i in range(k):
+        theta[i] = positions[i, 0]
+        theta[k + i] = positions[i, 1]
+    theta[2 * k] = noise
+    current = positions.copy()
+    total = 0
+    used = 0
+    for round_index in range(max(rounds, 1)):
+        metric = white
+        if plug_in:
+            metric = _plug_in(channel, table, white, current, fixed, theta[2 * k], is_diag)
+        data = whiten_kernel(metric, values)
+        if upper[2 * k] < np.inf:
+            # The state's noise may be above this objective's ceiling: start within bounds.
+            for i in range(2 * k + 1):
+                theta[i] = min(max(theta[i], lower[i]), upper[i])
+        theta, _, used = lm_kernel(
+            channel,
+            table,
+            metric,
+            data,
+            theta,
+            fixed,
+            layout,
+            priors,
+            lower,
+            upper,
+            max_iter,
+            initial_damping,
+            tol,
+            step_tol,
+        )
+        total += used
+        current = np.empty((k, 2))
+        for i in range(k):
+            current[i, 0] = theta[i]
+            current[i, 1] = theta[k + i]
+        if round_index > 0 and used <= 2:
+            break  # the re-whitened metric no longer moves the fit
+    return current, theta[2 * k], total, used
