@@ -17,6 +17,8 @@ from pathlib import Path
 
 import httpx
 
+from ._common import REPO_ROOT
+
 ADMIN_KEY = "e2e-admin-key-0123456789"
 TERMINAL_KEY = "e2e-terminal-key-0123456789"
 VLP = Path(sys.executable).with_name("vlp")
@@ -58,9 +60,14 @@ def bound_url(port_file: Path, process: subprocess.Popen[bytes], timeout_s: floa
 
 
 def server_env(data_dir: Path, **extra: str) -> dict[str, str]:
-    """Environment for a server process with known keys and one-thread BLAS."""
+    """Environment for a server process with known keys and one-thread BLAS, importing the
+    ``app`` of this source tree (the ``vlp`` command would else import the one installed in
+    the environment: a benchmark started from another checkout would time this one)."""
     env = dict(os.environ)
     env.update(
+        PYTHONPATH=os.pathsep.join(
+            part for part in (str(REPO_ROOT), os.environ.get("PYTHONPATH", "")) if part
+        ),
         VLP_DATA_DIR=str(data_dir),
         VLP_ADMIN_KEYS=ADMIN_KEY,
         VLP_TERMINAL_KEYS=TERMINAL_KEY,
