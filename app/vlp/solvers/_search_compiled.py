@@ -56,6 +56,37 @@ def _facts(
 
 
 @compiled
+def _theta(positions: FloatArray, noise: float) -> FloatArray:
+    """The search's ``theta = [x_1..x_K, y_1..y_K, s]`` (:meth:`Objective.pack`)."""
+    k = positions.shape[0]
+    theta = np.empty(2 * k + 1)
+    for i in range(k):
+        theta[i] = positions[i, 0]
+        theta[k + i] = positions[i, 1]
+    theta[2 * k] = noise
+    return theta
+
+
+@compiled
+def _positions(theta: FloatArray, k: int) -> FloatArray:
+    """The positions (K, 2) held by a search ``theta`` (:meth:`Objective.unpack`)."""
+    out = np.empty((k, 2))
+    for i in range(k):
+        out[i, 0] = theta[i]
+        out[i, 1] = theta[k + i]
+    return out
+
+
+@compiled
+def _clip(theta: FloatArray, lower: FloatArray, upper: FloatArray) -> None:
+    """``theta`` within its bounds, in place, when its noise has a ceiling (a state's noise
+    may be above an objective's: LM starts within them, as the Python path does)."""
+    if upper[theta.shape[0] - 1] < np.inf:
+        for i in range(theta.shape[0]):
+            theta[i] = min(max(theta[i], lower[i]), upper[i])
+
+
+@compiled
 def _plug_in(
     channel: ChannelConstants,
     table: TableConstants,
@@ -138,11 +169,7 @@ def growth_step_kernel(
     if k == 0:
         residual = data
     else:
-        theta = np.empty(2 * k + 1)
-        for i in range(k):
-            theta[i] = positions[i, 0]
-            theta[k + i] = positions[i, 1]
-        theta[2 * k] = noise
+        theta = _theta(positions, noise)
         residual = residual_kernel(channel, table, white, data, theta, fixed, layout, priors)[
             : data.shape[0]
         ].copy()
@@ -179,19 +206,13 @@ def growth_step_kernel(
     grown_weights[k] = 1.0
     grown_gains[k] = 0.0
     n = k + 1
-    theta = np.empty(2 * n + 1)
-    for i in range(k):
-        theta[i] = positions[i, 0]
-        theta[n + i] = positions[i, 1]
-    theta[k] = centres[best, 0]
-    theta[n + k] = centres[best, 1]
-    theta[2 * n] = noise
+    grown = np.empty((n, 2))
+    grown[:k] = positions
+    grown[k] = centres[best]
+    theta = _theta(grown, noise)
     used = 0
     if inner_iter > 0:
-        if upper[2 * n] < np.inf:
-            # The state's noise may be above this objective's ceiling: start within bounds.
-            for i in range(2 * n + 1):
-                theta[i] = min(max(theta[i], lower[i]), upper[i])
+        _clip(theta, lower, upper)
         on_plane, unit = _facts(
             grown_heights, grown_weights, grown_gains, log_scale, receiver_height
         )
@@ -212,11 +233,7 @@ def growth_step_kernel(
             tol,
             step_tol,
         )
-    out = np.empty((n, 2))
-    for i in range(n):
-        out[i, 0] = theta[i]
-        out[i, 1] = theta[n + i]
-    return out, theta[2 * n], used
+    return _positions(theta, n), theta[2 * n], used
 
 
 @compiled
@@ -253,11 +270,7 @@ def refine_kernel(
     k = positions.shape[0]
     on_plane, unit = _facts(heights, weights, log_gains, log_scale, receiver_height)
     fixed = (heights, weights, log_gains, log_scale, on_plane, unit)
-    theta = np.empty(2 * k + 1)
-    for i in range(k):
-        theta[i] = positions[i, 0]
-        theta[k + i] = positions[i, 1]
-    theta[2 * k] = noise
+    theta = _theta(positions, noise)
     current = positions.copy()
     total = 0
     used = 0
@@ -266,10 +279,7 @@ def refine_kernel(
         if plug_in:
             metric = _plug_in(channel, table, white, current, fixed, theta[2 * k], is_diag)
         data = whiten_kernel(metric, values)
-        if upper[2 * k] < np.inf:
-            # The state's noise may be above this objective's ceiling: start within bounds.
-            for i in range(2 * k + 1):
-                theta[i] = min(max(theta[i], lower[i]), upper[i])
+        _clip(theta, lower, upper)
         theta, _, used = lm_kernel(
             channel,
             table,
@@ -287,10 +297,7 @@ def refine_kernel(
             step_tol,
         )
         total += used
-        current = np.empty((k, 2))
-        for i in range(k):
-            current[i, 0] = theta[i]
-            current[i, 1] = theta[k + i]
+        current = _positions(theta, k)
         if round_index > 0 and used <= 2:
             break  # the re-whitened metric no longer moves the fit
     return current, theta[2 * k], total, used

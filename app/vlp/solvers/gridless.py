@@ -397,10 +397,12 @@ class GridlessSolver(Solver):
             if not self._dense and model == "power" and not self.options.free_weights
             else None
         )
-        # The growth step as one compiled call (:meth:`_grow_compiled`): its constants, the
-        # search priors' tuples, and its bounds per noise ceiling and K.
-        self._growth_constants: tuple[Any, ...] | None = None
-        self._growth_objectives: dict[float, Objective] = {}
+        # The search's growth and refinement steps as one compiled call each
+        # (:meth:`_grow_compiled`, :meth:`_refine_compiled`): their constants (the channel's,
+        # the search priors' tuples, the entries' diagonal indicator), and their bounds per
+        # noise ceiling and K.
+        self._search_constants: tuple[Any, ...] | None = None
+        self._search_objectives: dict[float, Objective] = {}
         constants = channel_constants(self._kernel)
         if (
             model == "correlation"
@@ -409,11 +411,11 @@ class GridlessSolver(Solver):
             and not self.options.free_weights
             and constants is not None
         ):
-            search = self._growth_objective(math.inf)
+            search = self._search_objective(math.inf)
             one = FitState.empty().with_target(np.zeros(2), self._growth_priors.height_mean)
-            _, growth_layout, growth_priors = search.compiled_state(one)
+            _, search_layout, search_priors = search.compiled_state(one)
             _, _, is_diag = compiled_indices(model, fingerprint.n_leds)
-            self._growth_constants = (*constants, growth_layout, growth_priors, is_diag)
+            self._search_constants = (*constants, search_layout, search_priors, is_diag)
         # The faintest (5th percentile: corners out of view aside) and brightest grid points.
         self._energy_band = (
             float(np.percentile(self._column_energy, 5.0)),
@@ -743,7 +745,7 @@ class GridlessSolver(Solver):
         (:mod:`._search_compiled`): the correlation model in a dense room, searching
         (positions and noise only), fixed weights, the compiled kernels in use."""
         return (
-            self._growth_constants is not None
+            self._search_constants is not None
             and run.priors is self._growth_priors
             and kernel_mode() == "compiled"
         )
@@ -759,11 +761,11 @@ class GridlessSolver(Solver):
         same state to the bit). The state's whitening is computed there, not kept: a
         growth step's state is never whitened again (the next step adds a target), but for
         the last state of a count, which the polish whitens once more."""
-        assert self._growth_constants is not None
-        channel, table, layout, priors, is_diag = self._growth_constants
+        assert self._search_constants is not None
+        channel, table, layout, priors, is_diag = self._search_constants
         k = state.n_targets
         ceiling = 0.0 if self._grow_without_noise else math.inf
-        lower, upper = self._growth_objective(ceiling).bounds(k + 1)
+        lower, upper = self._search_objective(ceiling).bounds(k + 1)
         positions, noise, used = growth_step_kernel(
             channel,
             table,
@@ -809,9 +811,9 @@ class GridlessSolver(Solver):
         """:meth:`_refine` in one compiled call (the same kernels, in the same order: the
         same state to the bit; the rounds' whitenings are not kept, no later step asks for
         them)."""
-        assert self._growth_constants is not None
-        channel, table, layout, priors, is_diag = self._growth_constants
-        lower, upper = self._growth_objective(math.inf).bounds(state.n_targets)
+        assert self._search_constants is not None
+        channel, table, layout, priors, is_diag = self._search_constants
+        lower, upper = self._search_objective(math.inf).bounds(state.n_targets)
         positions, noise, total, last = refine_kernel(
             channel,
             table,
@@ -843,12 +845,12 @@ class GridlessSolver(Solver):
         refined.converged = last < max_iter
         return refined
 
-    def _growth_objective(self, ceiling: float) -> Objective:
+    def _search_objective(self, ceiling: float) -> Objective:
         """An objective of the search priors with the noise at most ``ceiling``, for its
         parameter layout and bounds (its data are never read)."""
-        found = self._growth_objectives.get(ceiling)
+        found = self._search_objectives.get(ceiling)
         if found is None:
-            found = self._growth_objectives[ceiling] = Objective(
+            found = self._search_objectives[ceiling] = Objective(
                 self._kernel,
                 self._identity,
                 np.zeros(self._identity.weights.shape[0]),
