@@ -121,44 +121,34 @@ def _plug_in(
 def growth_step_kernel(
     channel: ChannelConstants,
     table: TableConstants,
-    white: Problem,
-    plug_in: bool,
-    is_diag: FloatArray,
-    values: FloatArray,
-    positions: FloatArray,
-    noise: float,
-    heights: FloatArray,
-    weights: FloatArray,
-    log_gains: FloatArray,
-    log_scale: float,
-    receiver_height: float,
+    search: Problem,
+    state: Problem,
     gains: FloatArray,
     centres: FloatArray,
     avoid: FloatArray,
     avoid_radius: float,
-    height_mean: float,
-    layout: Problem,
-    priors: Problem,
     lower: FloatArray,
     upper: FloatArray,
     inner_iter: int,
-    initial_damping: float,
-    tol: float,
-    step_tol: float,
 ) -> tuple[FloatArray, float, int]:
-    """One growth step of the state ``(positions (K, 2), noise, heights, weights,
-    log_gains (K,), log_scale)``: the new positions (K + 1, 2), noise coefficient and LM
-    iterations used (0 when ``inner_iter`` is 0: inserted, not refined).
+    """One growth step of the search's ``state``: the new positions (K + 1, 2), noise
+    coefficient and LM iterations used (0 when ``inner_iter`` is 0: inserted, not refined).
 
-    The step runs in the state's plug-in whitening when ``plug_in`` and K > 0
-    (:meth:`Whitening.from_state`, ``is_diag`` the entries' diagonal indicator), else in
-    ``white`` (the plain metric).
-
+    ``search``: ``(white, plug_in, is_diag, values, receiver_height, layout, priors,
+    initial_damping, tol, step_tol)``: the step runs in the state's plug-in whitening when
+    ``plug_in`` and K > 0 (:meth:`Whitening.from_state`, ``is_diag`` the entries' diagonal
+    indicator), else in ``white`` (the plain metric); ``values`` the measurement
+    (normalised, not whitened); ``layout``, ``priors`` the search priors' tuples (positions
+    and noise only, new targets at the priors' mean height); the LM settings.
+    ``state``: ``(positions (K, 2), noise, heights, weights, log_gains (K,), log_scale)``.
     ``gains`` (M, N) and ``centres`` (N, 2): the grid's scaled gains and points; ``avoid``
     (n, 2): points whose ``avoid_radius`` the insertion stays out of, unless that leaves
-    none; ``layout``, ``priors``: the search priors' tuples (positions and noise only);
-    ``lower``, ``upper``: the bounds of theta for K + 1 targets.
+    none; ``lower``, ``upper``: the bounds of theta for K + 1 targets.
     """
+    white, plug_in, is_diag, values, receiver_height, layout, priors = search[:7]
+    initial_damping, tol, step_tol = search[7:]
+    positions, noise, heights, weights, log_gains, log_scale = state
+    height_mean = priors[3]
     k = positions.shape[0]
     if k > 0:
         on_plane, unit = _facts(heights, weights, log_gains, log_scale, receiver_height)
@@ -240,33 +230,22 @@ def growth_step_kernel(
 def refine_kernel(
     channel: ChannelConstants,
     table: TableConstants,
-    white: Problem,
-    plug_in: bool,
-    is_diag: FloatArray,
-    values: FloatArray,
-    positions: FloatArray,
-    noise: float,
-    heights: FloatArray,
-    weights: FloatArray,
-    log_gains: FloatArray,
-    log_scale: float,
-    receiver_height: float,
-    layout: Problem,
-    priors: Problem,
+    search: Problem,
+    state: Problem,
     lower: FloatArray,
     upper: FloatArray,
     rounds: int,
     max_iter: int,
-    initial_damping: float,
-    tol: float,
-    step_tol: float,
 ) -> tuple[FloatArray, float, int, int]:
-    """Whitened refinement of the state ``(positions (K >= 1, 2), noise, heights, weights,
-    log_gains (K,), log_scale)``: up to ``rounds`` (at least one) LM fits of positions and
+    """Whitened refinement of the search's ``state`` (K >= 1; the tuples of
+    :func:`growth_step_kernel`): up to ``rounds`` (at least one) LM fits of positions and
     noise, each in the plug-in whitening of the state the round before left when
     ``plug_in`` (else in ``white``), stopping after a round past the first that used at
     most 2 iterations. Returns the positions (K, 2), the noise coefficient, the iterations
     of all rounds and those of the last."""
+    white, plug_in, is_diag, values, receiver_height, layout, priors = search[:7]
+    initial_damping, tol, step_tol = search[7:]
+    positions, noise, heights, weights, log_gains, log_scale = state
     k = positions.shape[0]
     on_plane, unit = _facts(heights, weights, log_gains, log_scale, receiver_height)
     fixed = (heights, weights, log_gains, log_scale, on_plane, unit)

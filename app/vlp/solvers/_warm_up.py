@@ -84,66 +84,40 @@ def exercise() -> None:
     assert constants is not None  # a line-of-sight kernel always has its compiled form
     point = np.array([1.0])
     channel_rows(*constants, point, point.copy(), np.array([height]), False)
-    # a growth step of the correlation search (GridlessSolver._grow_compiled)
+    # a growth step of the correlation search and its whitened refinement
+    # (GridlessSolver._grow_compiled, _refine_compiled)
     identity = Whitening.identity("correlation", kernel.n_leds)
     search = Objective(
         kernel, identity, np.zeros(identity.weights.shape[0]), False, Priors(height_mean=height)
     )
     _, search_layout, search_priors = search.compiled_state(state)
-    lower, upper = search.bounds(state.n_targets + 1)
     _, _, is_diag = compiled_indices("correlation", kernel.n_leds)
-    growth_step_kernel(
-        *constants,
+    problem = (
         identity.compiled(),
         True,
         is_diag,
         np.ones(identity.weights.shape[0]),
-        state.positions,
-        1e-3,
-        state.heights,
-        state.weights,
-        state.log_gains,
-        0.0,
         height,
+        search_layout,
+        search_priors,
+        0.1,
+        1e-4,
+        1e-5,
+    )
+    fixed = (state.positions, 1e-3, state.heights, state.weights, state.log_gains, 0.0)
+    k = state.n_targets
+    growth_step_kernel(
+        *constants,
+        problem,
+        fixed,
         np.ones((kernel.n_leds, 3)),
         np.ones((3, 2)),
         np.zeros((0, 2)),
         0.5,
-        height,
-        search_layout,
-        search_priors,
-        lower,
-        upper,
+        *search.bounds(k + 1),
         1,
-        0.1,
-        1e-4,
-        1e-5,
     )
-    # ... and its whitened refinement (GridlessSolver._refine_compiled)
-    lower, upper = search.bounds(state.n_targets)
-    refine_kernel(
-        *constants,
-        identity.compiled(),
-        True,
-        is_diag,
-        np.ones(identity.weights.shape[0]),
-        state.positions,
-        1e-3,
-        state.heights,
-        state.weights,
-        state.log_gains,
-        0.0,
-        height,
-        search_layout,
-        search_priors,
-        lower,
-        upper,
-        2,
-        1,
-        0.1,
-        1e-4,
-        1e-5,
-    )
+    refine_kernel(*constants, problem, fixed, *search.bounds(k), 2, 1)
     terminal_fit(
         kernel, np.ones(kernel.n_leds), np.array([1.0, 1.2]), height, True, priors, 1.0, None, 0.1
     )

@@ -96,6 +96,19 @@ _NEAR_MARGIN_STEPS = 4.0
 _NO_POINTS = np.zeros((0, 2))
 
 
+def _search_state(state: FitState) -> tuple[Any, ...]:
+    """A search state as the compiled search steps take it: ``(positions, noise, heights,
+    weights, log_gains, log_scale)``."""
+    return (
+        np.ascontiguousarray(state.positions, dtype=np.float64),
+        float(state.noise),
+        np.ascontiguousarray(state.heights, dtype=np.float64),
+        np.ascontiguousarray(state.weights, dtype=np.float64),
+        np.ascontiguousarray(state.log_gains, dtype=np.float64),
+        float(state.log_scale),
+    )
+
+
 class _Search(NamedTuple):
     """One nominal search (GridlessSolver._search): its run, its fit, the restarts' optima
     it did not pick and the common scale it ran at."""
@@ -761,38 +774,19 @@ class GridlessSolver(Solver):
         same state to the bit). The state's whitening is computed there, not kept: a
         growth step's state is never whitened again (the next step adds a target), but for
         the last state of a count, which the polish whitens once more."""
-        assert self._search_constants is not None
-        channel, table, layout, priors, is_diag = self._search_constants
         k = state.n_targets
         ceiling = 0.0 if self._grow_without_noise else math.inf
         lower, upper = self._search_objective(ceiling).bounds(k + 1)
         positions, noise, used = growth_step_kernel(
-            channel,
-            table,
-            self._identity.compiled(),
-            self.options.whiten,
-            is_diag,
-            run.values,
-            np.ascontiguousarray(state.positions, dtype=np.float64),
-            float(state.noise),
-            np.ascontiguousarray(state.heights, dtype=np.float64),
-            np.ascontiguousarray(state.weights, dtype=np.float64),
-            np.ascontiguousarray(state.log_gains, dtype=np.float64),
-            float(state.log_scale),
-            self._kernel.receiver_height,
+            *self._search_problem(run),
+            _search_state(state),
             self._gains,
             self._centres,
             _NO_POINTS if avoid is None else np.ascontiguousarray(avoid, dtype=np.float64),
             self._avoid_radius,
-            self._priors.height_mean,
-            layout,
-            priors,
             lower,
             upper,
             inner_iter,
-            self._lm.initial_damping,
-            self._lm.tol,
-            STEP_TOL_M,
         )
         grown = FitState(
             positions,
@@ -811,32 +805,9 @@ class GridlessSolver(Solver):
         """:meth:`_refine` in one compiled call (the same kernels, in the same order: the
         same state to the bit; the rounds' whitenings are not kept, no later step asks for
         them)."""
-        assert self._search_constants is not None
-        channel, table, layout, priors, is_diag = self._search_constants
         lower, upper = self._search_objective(math.inf).bounds(state.n_targets)
         positions, noise, total, last = refine_kernel(
-            channel,
-            table,
-            self._identity.compiled(),
-            self.options.whiten,
-            is_diag,
-            run.values,
-            np.ascontiguousarray(state.positions, dtype=np.float64),
-            float(state.noise),
-            np.ascontiguousarray(state.heights, dtype=np.float64),
-            np.ascontiguousarray(state.weights, dtype=np.float64),
-            np.ascontiguousarray(state.log_gains, dtype=np.float64),
-            float(state.log_scale),
-            self._kernel.receiver_height,
-            layout,
-            priors,
-            lower,
-            upper,
-            rounds,
-            max_iter,
-            self._lm.initial_damping,
-            self._lm.tol,
-            STEP_TOL_M,
+            *self._search_problem(run), _search_state(state), lower, upper, rounds, max_iter
         )
         run.iterations += int(total)
         refined = FitState(
@@ -844,6 +815,25 @@ class GridlessSolver(Solver):
         )
         refined.converged = last < max_iter
         return refined
+
+    def _search_problem(self, run: _Run) -> tuple[Any, ...]:
+        """The compiled search steps' ``(channel, table, search)`` for ``run``
+        (:func:`._search_compiled.growth_step_kernel`)."""
+        assert self._search_constants is not None
+        channel, table, layout, priors, is_diag = self._search_constants
+        search = (
+            self._identity.compiled(),
+            self.options.whiten,
+            is_diag,
+            run.values,
+            self._kernel.receiver_height,
+            layout,
+            priors,
+            self._lm.initial_damping,
+            self._lm.tol,
+            STEP_TOL_M,
+        )
+        return channel, table, search
 
     def _search_objective(self, ceiling: float) -> Objective:
         """An objective of the search priors with the noise at most ``ceiling``, for its
