@@ -1,7 +1,8 @@
 """Which kernels the default solver runs: compiled (numba) or the plain NumPy reference.
 
 The compiled kernels (:mod:`._channel_compiled`, :mod:`._fit_compiled`,
-:mod:`._tolerance_compiled`, :mod:`._uncertainty_compiled`) compute the same numbers as the
+:mod:`._search_compiled`, :mod:`._tolerance_compiled`, :mod:`._terminal_compiled`,
+:mod:`._uncertainty_compiled`, :mod:`._radii_compiled`) compute the same numbers as the
 NumPy code they stand in for (``tests/vlp/test_compiled_kernels.py`` compares them); they
 exist because a 16-LED problem is bound by the per-call overhead of NumPy, not by its
 arithmetic. The environment variable ``VLP_KERNELS`` picks the default
