@@ -540,6 +540,22 @@ def test_growth_step_is_the_python_step(
                     assert_same(got.noise, reference.noise)
                     checked += 1
     assert checked == 4 * 2 * 2 * 3
+    # Growth to K targets in one call (GridlessSolver._fit_known), the first insertion away
+    # from the points to avoid: the states of the Python steps one by one.
+    for n_targets in (1, 3, 6):
+        for avoid in (np.zeros((0, 2)), centres[rng.choice(len(centres), 2)]):
+            run = _Run(values=values, priors=solver._growth_priors)
+            want_run = _Run(values=values, priors=python._growth_priors)
+            got = solver._grow_compiled(run, FitState.empty(), 2, avoid, n_targets)
+            want = FitState.empty()
+            while want.n_targets < n_targets:
+                first = want.n_targets == 0
+                want = python._grow(want_run, want, 2, avoid if first else None)
+            assert np.array_equal(got.positions, want.positions)
+            assert got.noise == want.noise
+            assert (run.iterations, got.converged) == (want_run.iterations, want.converged)
+            for name in ("weights", "heights", "log_gains"):
+                assert np.array_equal(getattr(got, name), getattr(want, name))
 
 
 @pytest.mark.parametrize("layout_name", list(LAYOUTS))
@@ -816,14 +832,15 @@ _NO_CACHE_SCRIPT = textwrap.dedent(
     from app.vlp.solvers import _tolerance_compiled as joint
     from app.vlp.solvers._terminal_compiled import terminal_lm_kernel
     from app.vlp.solvers._radii_compiled import radial_roots_kernel
-    from app.vlp.solvers._search_compiled import growth_step_kernel, refine_kernel
+    from app.vlp.solvers._search_compiled import (
+        growth_kernel, growth_step_kernel, refine_kernel)
     from app.vlp.simulation import noisy_amplitudes
 
     kernels = [fit.lm_kernel, fit.gram_kernel, fit.residual_kernel, fit.whitening_kernel,
                fit.whiten_kernel, fit.correlation_scores_kernel, channel_rows,
                uncertainty_kernel, joint.joint_gains_kernel, joint.joint_residual_kernel,
                joint.joint_lm_kernel, terminal_lm_kernel, radial_roots_kernel,
-               growth_step_kernel, refine_kernel]
+               growth_kernel, growth_step_kernel, refine_kernel]
     # the fallback: compiled without a disk cache
     assert all(type(k._cache).__name__ == "NullCache" for k in kernels)
     warm_up()

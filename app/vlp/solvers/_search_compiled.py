@@ -34,7 +34,7 @@ from ._fit_compiled import (
 )
 from ._kernels import compiled
 
-__all__ = ["growth_step_kernel", "refine_kernel"]
+__all__ = ["growth_kernel", "growth_step_kernel", "refine_kernel"]
 
 
 @compiled
@@ -224,6 +224,80 @@ def growth_step_kernel(
             step_tol,
         )
     return _positions(theta, n), theta[2 * n], used
+
+
+@compiled
+def _bounds_for(lower: FloatArray, upper: FloatArray, k: int) -> tuple[FloatArray, FloatArray]:
+    """The search's bounds of theta for ``k`` targets, from those for more (positions,
+    then the noise: each block's bounds are the same for every target)."""
+    n = (lower.shape[0] - 1) // 2
+    out_lower = np.empty(2 * k + 1)
+    out_upper = np.empty(2 * k + 1)
+    out_lower[:k] = lower[:k]
+    out_upper[:k] = upper[:k]
+    out_lower[k : 2 * k] = lower[n : n + k]
+    out_upper[k : 2 * k] = upper[n : n + k]
+    out_lower[2 * k] = lower[2 * n]
+    out_upper[2 * k] = upper[2 * n]
+    return out_lower, out_upper
+
+
+@compiled
+def growth_kernel(
+    channel: ChannelConstants,
+    table: TableConstants,
+    search: Problem,
+    state: Problem,
+    gains: FloatArray,
+    centres: FloatArray,
+    avoid: FloatArray,
+    avoid_radius: float,
+    lower: FloatArray,
+    upper: FloatArray,
+    inner_iter: int,
+) -> tuple[FloatArray, float, int, int]:
+    """Growth steps (:func:`growth_step_kernel`) from ``state`` until it holds as many
+    targets as ``lower`` and ``upper`` bound (2 K + 1 values), the first insertion away
+    from ``avoid``. Returns the positions (K, 2), the noise coefficient, the LM iterations of
+    all steps and those of the last."""
+    positions, noise, heights, weights, log_gains, log_scale = state
+    height_mean = search[6][3]
+    n_targets = (lower.shape[0] - 1) // 2
+    total = 0
+    used = 0
+    first = True
+    nowhere = np.empty((0, 2))
+    while positions.shape[0] < n_targets:
+        k = positions.shape[0]
+        step_lower, step_upper = _bounds_for(lower, upper, k + 1)
+        positions, noise, used = growth_step_kernel(
+            channel,
+            table,
+            search,
+            (positions, noise, heights, weights, log_gains, log_scale),
+            gains,
+            centres,
+            avoid if first else nowhere,
+            avoid_radius,
+            step_lower,
+            step_upper,
+            inner_iter,
+        )
+        total += used
+        first = False
+        grown = np.empty(k + 1)
+        grown[:k] = heights
+        grown[k] = height_mean
+        heights = grown
+        grown = np.empty(k + 1)
+        grown[:k] = weights
+        grown[k] = 1.0
+        weights = grown
+        grown = np.empty(k + 1)
+        grown[:k] = log_gains
+        grown[k] = 0.0
+        log_gains = grown
+    return positions, noise, total, used
 
 
 @compiled

@@ -25,7 +25,7 @@ from ._gridless_fit import (
 )
 from ._local import _best_of_tiles
 from ._room_tolerance_fit import RoomTolerances, _JointModel, _levenberg_marquardt
-from ._search_compiled import growth_step_kernel, refine_kernel
+from ._search_compiled import growth_kernel, growth_step_kernel, refine_kernel
 from ._terminal_fit import _levenberg_marquardt as terminal_fit
 from ._uncertainty_compiled import uncertainty_kernel
 
@@ -84,8 +84,8 @@ def exercise() -> None:
     assert constants is not None  # a line-of-sight kernel always has its compiled form
     point = np.array([1.0])
     channel_rows(*constants, point, point.copy(), np.array([height]), False)
-    # a growth step of the correlation search and its whitened refinement
-    # (GridlessSolver._grow_compiled, _refine_compiled)
+    # the correlation search's growth (a step, and the steps to K targets) and whitened
+    # refinement (GridlessSolver._grow_compiled, _refine_compiled)
     identity = Whitening.identity("correlation", kernel.n_leds)
     search = Objective(
         kernel, identity, np.zeros(identity.weights.shape[0]), False, Priors(height_mean=height)
@@ -106,18 +106,11 @@ def exercise() -> None:
     )
     fixed = (state.positions, 1e-3, state.heights, state.weights, state.log_gains, 0.0)
     k = state.n_targets
-    growth_step_kernel(
-        *constants,
-        problem,
-        fixed,
-        np.ones((kernel.n_leds, 3)),
-        np.ones((3, 2)),
-        np.zeros((0, 2)),
-        0.5,
-        *search.bounds(k + 1),
-        1,
-    )
+    grid = (np.ones((kernel.n_leds, 3)), np.ones((3, 2)), np.zeros((0, 2)), 0.5)
+    growth_step_kernel(*constants, problem, fixed, *grid, *search.bounds(k + 1), 1)
     refine_kernel(*constants, problem, fixed, *search.bounds(k), 2, 1)
+    empty = (np.zeros((0, 2)), 1e-3, np.zeros(0), np.zeros(0), np.zeros(0), 0.0)
+    growth_kernel(*constants, problem, empty, *grid, *search.bounds(k), 1)
     terminal_fit(
         kernel, np.ones(kernel.n_leds), np.array([1.0, 1.2]), height, True, priors, 1.0, None, 0.1
     )

@@ -64,7 +64,7 @@ from ._gridless_options import (
 from ._kernels import kernel_mode
 from ._local import PowerScan, TerminalWindows
 from ._room_tolerance_fit import GridMoves, RoomTolerances, ToleranceFit, fit_room_tolerances
-from ._search_compiled import growth_step_kernel, refine_kernel
+from ._search_compiled import growth_kernel, growth_step_kernel, refine_kernel
 from ._terminal_fit import TerminalFit, fit_terminal, starting_cells
 from ._uncertainty_compiled import misfit_design_kernel, uncertainty_kernel
 from ._whitening_memo import MAX_KEPT_VALUES, WhiteningMemo, state_key
@@ -769,35 +769,44 @@ class GridlessSolver(Solver):
         state: FitState,
         inner_iter: int,
         avoid: FloatArray | None,
+        n_targets: int | None = None,
     ) -> FitState:
-        """:meth:`_grow` in one compiled call (the same kernels, in the same order: the
-        same state to the bit). The state's whitening is computed there, not kept: a
-        growth step's state is never whitened again (the next step adds a target), but for
-        the last state of a count, which the polish whitens once more."""
+        """:meth:`_grow` in one compiled call, or with ``n_targets`` the steps up to that
+        many targets (the first one away from ``avoid``), as :meth:`_fit_known` takes them
+        (the same kernels, in the same order: the same state to the bit). The states'
+        whitenings are computed there, not kept: a growth step's state is never whitened
+        again (the next step adds a target), but for the last state of a count, which the
+        polish whitens once more."""
         k = state.n_targets
         ceiling = 0.0 if self._grow_without_noise else math.inf
-        lower, upper = self._search_objective(ceiling).bounds(k + 1)
-        positions, noise, used = growth_step_kernel(
+        problem = (
             *self._search_problem(run),
             _search_state(state),
             self._gains,
             self._centres,
             _NO_POINTS if avoid is None else np.ascontiguousarray(avoid, dtype=np.float64),
             self._avoid_radius,
-            lower,
-            upper,
-            inner_iter,
         )
+        if n_targets is None:
+            positions, noise, used = growth_step_kernel(
+                *problem, *self._search_objective(ceiling).bounds(k + 1), inner_iter
+            )
+            total = used
+        else:
+            positions, noise, total, used = growth_kernel(
+                *problem, *self._search_objective(ceiling).bounds(n_targets), inner_iter
+            )
+        added = positions.shape[0] - k
         grown = FitState(
             positions,
-            np.concatenate((state.weights, (1.0,))),
+            np.concatenate((state.weights, np.ones(added))),
             float(noise),
-            np.concatenate((state.heights, (self._priors.height_mean,))),
-            np.concatenate((state.log_gains, (0.0,))),
+            np.concatenate((state.heights, np.full(added, self._priors.height_mean))),
+            np.concatenate((state.log_gains, np.zeros(added))),
             state.log_scale,
         )
         if inner_iter > 0:
-            run.iterations += int(used)
+            run.iterations += int(total)
             grown.converged = used < inner_iter
         return grown
 
@@ -965,6 +974,8 @@ class GridlessSolver(Solver):
     def _fit_known(self, run: _Run, n_targets: int, avoid: FloatArray) -> FitState:
         """Greedy growth to ``n_targets`` (first insertion away from ``avoid``), polished."""
         state = FitState.empty()
+        if self._compiled_search(run) and n_targets > 0:
+            state = self._grow_compiled(run, state, self._lm.inner_iter, avoid, n_targets)
         while state.n_targets < n_targets:
             first = state.n_targets == 0
             state = self._grow(run, state, self._lm.inner_iter, avoid if first else None)
