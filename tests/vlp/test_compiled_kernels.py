@@ -832,15 +832,14 @@ _NO_CACHE_SCRIPT = textwrap.dedent(
     from app.vlp.solvers import _tolerance_compiled as joint
     from app.vlp.solvers._terminal_compiled import terminal_lm_kernel
     from app.vlp.solvers._radii_compiled import radial_roots_kernel
-    from app.vlp.solvers._search_compiled import (
-        growth_kernel, growth_step_kernel, refine_kernel)
+    from app.vlp.solvers._search_compiled import growth_kernel, refine_kernel
     from app.vlp.simulation import noisy_amplitudes
 
     kernels = [fit.lm_kernel, fit.gram_kernel, fit.residual_kernel, fit.whitening_kernel,
                fit.whiten_kernel, fit.correlation_scores_kernel, channel_rows,
                uncertainty_kernel, joint.joint_gains_kernel, joint.joint_residual_kernel,
                joint.joint_lm_kernel, terminal_lm_kernel, radial_roots_kernel,
-               growth_kernel, growth_step_kernel, refine_kernel]
+               growth_kernel, refine_kernel]
     # the fallback: compiled without a disk cache
     assert all(type(k._cache).__name__ == "NullCache" for k in kernels)
     warm_up()

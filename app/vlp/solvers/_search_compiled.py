@@ -4,9 +4,10 @@ Stand-ins for :meth:`GridlessSolver._grow` and :meth:`GridlessSolver._refine` in
 rooms with the correlation model during the search (positions and noise only;
 :meth:`GridlessSolver._compiled_search` says when):
 
-- :func:`growth_step_kernel`: the plug-in whitening of the current state, its whitened
-  residual, the insertion scores of every grid point, the best one (away from the points
-  to avoid), and the short Levenberg-Marquardt refinement with the new target;
+- :func:`growth_kernel`: growth steps (:func:`_growth_step`: the plug-in whitening of the
+  current state, its whitened residual, the insertion scores of every grid point, the best
+  one, away from the points to avoid, and the short Levenberg-Marquardt refinement with
+  the new target), one or as many as K targets take;
 - :func:`refine_kernel`: rounds of the plug-in whitening of the current state and a
   Levenberg-Marquardt fit in it, until a round barely moves the fit.
 
@@ -34,7 +35,7 @@ from ._fit_compiled import (
 )
 from ._kernels import compiled
 
-__all__ = ["growth_kernel", "growth_step_kernel", "refine_kernel"]
+__all__ = ["growth_kernel", "refine_kernel"]
 
 
 @compiled
@@ -118,7 +119,7 @@ def _plug_in(
 
 
 @compiled
-def growth_step_kernel(
+def _growth_step(
     channel: ChannelConstants,
     table: TableConstants,
     search: Problem,
@@ -256,7 +257,7 @@ def growth_kernel(
     upper: FloatArray,
     inner_iter: int,
 ) -> tuple[FloatArray, float, int, int]:
-    """Growth steps (:func:`growth_step_kernel`) from ``state`` until it holds as many
+    """Growth steps (:func:`_growth_step`) from ``state`` until it holds as many
     targets as ``lower`` and ``upper`` bound (2 K + 1 values), the first insertion away
     from ``avoid``. Returns the positions (K, 2), the noise coefficient, the LM iterations of
     all steps and those of the last."""
@@ -270,7 +271,7 @@ def growth_kernel(
     while positions.shape[0] < n_targets:
         k = positions.shape[0]
         step_lower, step_upper = _bounds_for(lower, upper, k + 1)
-        positions, noise, used = growth_step_kernel(
+        positions, noise, used = _growth_step(
             channel,
             table,
             search,
@@ -312,7 +313,7 @@ def refine_kernel(
     max_iter: int,
 ) -> tuple[FloatArray, float, int, int]:
     """Whitened refinement of the search's ``state`` (K >= 1; the tuples of
-    :func:`growth_step_kernel`): up to ``rounds`` (at least one) LM fits of positions and
+    :func:`_growth_step`): up to ``rounds`` (at least one) LM fits of positions and
     noise, each in the plug-in whitening of the state the round before left when
     ``plug_in`` (else in ``white``), stopping after a round past the first that used at
     most 2 iterations. Returns the positions (K, 2), the noise coefficient, the iterations

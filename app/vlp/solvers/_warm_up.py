@@ -25,7 +25,7 @@ from ._gridless_fit import (
 )
 from ._local import _best_of_tiles
 from ._room_tolerance_fit import RoomTolerances, _JointModel, _levenberg_marquardt
-from ._search_compiled import growth_kernel, growth_step_kernel, refine_kernel
+from ._search_compiled import growth_kernel, refine_kernel
 from ._terminal_fit import _levenberg_marquardt as terminal_fit
 from ._uncertainty_compiled import uncertainty_kernel
 
@@ -107,7 +107,7 @@ def exercise() -> None:
     fixed = (state.positions, 1e-3, state.heights, state.weights, state.log_gains, 0.0)
     k = state.n_targets
     grid = (np.ones((kernel.n_leds, 3)), np.ones((3, 2)), np.zeros((0, 2)), 0.5)
-    growth_step_kernel(*constants, problem, fixed, *grid, *search.bounds(k + 1), 1)
+    growth_kernel(*constants, problem, fixed, *grid, *search.bounds(k + 1), 1)
     refine_kernel(*constants, problem, fixed, *search.bounds(k), 2, 1)
     empty = (np.zeros((0, 2)), 1e-3, np.zeros(0), np.zeros(0), np.zeros(0), 0.0)
     growth_kernel(*constants, problem, empty, *grid, *search.bounds(k), 1)

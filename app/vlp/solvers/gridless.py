@@ -64,7 +64,7 @@ from ._gridless_options import (
 from ._kernels import kernel_mode
 from ._local import PowerScan, TerminalWindows
 from ._room_tolerance_fit import GridMoves, RoomTolerances, ToleranceFit, fit_room_tolerances
-from ._search_compiled import growth_kernel, growth_step_kernel, refine_kernel
+from ._search_compiled import growth_kernel, refine_kernel
 from ._terminal_fit import TerminalFit, fit_terminal, starting_cells
 from ._uncertainty_compiled import misfit_design_kernel, uncertainty_kernel
 from ._whitening_memo import MAX_KEPT_VALUES, WhiteningMemo, state_key
@@ -787,15 +787,11 @@ class GridlessSolver(Solver):
             _NO_POINTS if avoid is None else np.ascontiguousarray(avoid, dtype=np.float64),
             self._avoid_radius,
         )
-        if n_targets is None:
-            positions, noise, used = growth_step_kernel(
-                *problem, *self._search_objective(ceiling).bounds(k + 1), inner_iter
-            )
-            total = used
-        else:
-            positions, noise, total, used = growth_kernel(
-                *problem, *self._search_objective(ceiling).bounds(n_targets), inner_iter
-            )
+        # One step, or the steps up to n_targets: the bounds say how many targets to reach.
+        target_count = k + 1 if n_targets is None else n_targets
+        positions, noise, total, used = growth_kernel(
+            *problem, *self._search_objective(ceiling).bounds(target_count), inner_iter
+        )
         added = positions.shape[0] - k
         grown = FitState(
             positions,
@@ -827,7 +823,7 @@ class GridlessSolver(Solver):
 
     def _search_problem(self, run: _Run) -> tuple[Any, ...]:
         """The compiled search steps' ``(channel, table, search)`` for ``run``
-        (:func:`._search_compiled.growth_step_kernel`)."""
+        (:func:`._search_compiled.growth_kernel`)."""
         assert self._search_constants is not None
         channel, table, layout, priors, is_diag = self._search_constants
         search = (
