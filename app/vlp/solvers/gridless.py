@@ -137,6 +137,12 @@ class _Run:
     profiles: dict[tuple[bytes, Priors], tuple[FloatArray, FloatArray]] = field(
         default_factory=dict, repr=False
     )
+    # Each state's plug-in whitening and whitened residual, likewise
+    # (GridlessSolver._whitened_residual): the escape tests and the profiles of one polished
+    # fit ask for them up to four times.
+    whitened: dict[tuple[bytes, Priors], tuple[Whitening, FloatArray]] = field(
+        default_factory=dict, repr=False
+    )
 
 
 _NO_FIT_TEST = (
@@ -706,11 +712,20 @@ class GridlessSolver(Solver):
         """The state's whitening and whitened residual, and whether that residual is within
         ``misfit_ratio`` times its degrees of freedom (False with none left): a complete fit
         leaves only noise, about one unit per degree of freedom."""
-        white = self._whitening(state)
-        residual = self._residual(run, white, state)
+        white, residual = self._whitened_residual(run, state)
         dof = residual.shape[0] - 2 * state.n_targets - 1
         within = dof > 0 and float(residual @ residual) <= self.options.misfit_ratio * dof
         return white, residual, bool(within)
+
+    def _whitened_residual(self, run: _Run, state: FitState) -> tuple[Whitening, FloatArray]:
+        """The state's plug-in whitening and its whitened residual of the run's values, kept
+        per run, state values and priors (read only: callers do not write to them)."""
+        key = (state_key(state), run.priors)
+        known = run.whitened.get(key)
+        if known is None:
+            white = self._whitening(state)
+            known = run.whitened[key] = (white, self._residual(run, white, state))
+        return known
 
     def _fits_to_noise(self, run: _Run, state: FitState) -> bool:
         """Whether the fit leaves only noise (:meth:`_noise_test`): the profiles'
@@ -1581,8 +1596,7 @@ class GridlessSolver(Solver):
 
     def _profiles_of(self, run: _Run, state: FitState) -> tuple[FloatArray, FloatArray]:
         """:meth:`_profiles`, computed."""
-        white = self._whitening(state)
-        residual = self._residual(run, white, state)
+        white, residual = self._whitened_residual(run, state)
         weights = white.weights
         n_leds = self.fingerprint.n_leds
         targets = target_gains(self._kernel, state)  # (M, K)
