@@ -147,16 +147,28 @@ def joint_residual_kernel(
 ) -> tuple[FloatArray, FloatArray]:
     """:meth:`_JointModel.residual_and_jacobian`: the residual ``[data - c mu; prior]``
     (L + n_prior,) and ``J = d(c mu)/d theta`` with the priors' rows (L + n_prior, P)."""
+    pieces, multipliers, rotated = _joint_model(channel, table, white, theta, heights, has_tilts)
+    residual = _joint_residual(white, data, theta, rotated, multipliers, prior_inverse_sd)
+    jacobian = _joint_jacobian(white, data, theta, pieces, rotated, multipliers, prior_inverse_sd)
+    return residual, jacobian
+
+
+@compiled
+def _joint_model(
+    channel: ChannelConstants,
+    table: TableConstants,
+    white: Problem,
+    theta: FloatArray,
+    heights: FloatArray,
+    has_tilts: bool,
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """The pieces and multipliers of :func:`joint_gains_kernel` and the pieces the residual
+    and the Jacobian need in the whitening's basis: ``U^T`` of the gains and of the
+    per-target directions, each (M', K), rows 0 gains, 1-2 slopes, 3-4 tilts."""
     pieces, multipliers = joint_gains_kernel(channel, table, theta, heights, has_tilts)
-    rotation, weights, upper, lower = white[1], white[2], white[3], white[4]
+    rotation = white[1]
     k = heights.shape[0]
     n_leds = rotation.shape[0]
-    n_params = theta.shape[0]
-    n_data = data.shape[0]
-    n_prior = prior_inverse_sd.shape[0]
-    noise = theta[n_params - 1]
-    # U^T of the gains and of the per-target directions, each (M', K): rows 0 gains, 1-2
-    # slopes, 3-4 tilts.
     sources = (GAINS, SLOPE_X, SLOPE_Y, TILT_X, TILT_Y)
     n_rotated = 5 if has_tilts else 3
     rotated = np.zeros((n_rotated, n_leds, k))
@@ -167,6 +179,57 @@ def joint_residual_kernel(
                 factor = rotation[m, a]
                 for i in range(k):
                     rotated[r, a, i] += factor * piece[m, i]
+    return pieces, multipliers, rotated
+
+
+@compiled
+def _joint_residual(
+    white: Problem,
+    data: FloatArray,
+    theta: FloatArray,
+    rotated: FloatArray,
+    multipliers: FloatArray,
+    prior_inverse_sd: FloatArray,
+) -> FloatArray:
+    """The residual of :func:`joint_residual_kernel` from :func:`_joint_model`'s pieces:
+    what a trial step needs to be accepted or rejected."""
+    weights, upper, lower = white[2], white[3], white[4]
+    k = multipliers.shape[0]
+    n_data = data.shape[0]
+    n_prior = prior_inverse_sd.shape[0]
+    noise = theta[theta.shape[0] - 1]
+    residual = np.empty(n_data + n_prior)
+    for col in range(n_data):
+        a, b = upper[col], lower[col]
+        modelled = 0.0
+        for i in range(k):
+            atom = rotated[0, a, i] * rotated[0, b, i]
+            modelled += atom * multipliers[i]
+        diagonal = 1.0 if a == b else 0.0
+        residual[col] = data[col] - weights[col] * (modelled + noise * diagonal)
+    for j in range(n_prior):
+        residual[n_data + j] = -theta[2 * k + j] * prior_inverse_sd[j]
+    return residual
+
+
+@compiled
+def _joint_jacobian(
+    white: Problem,
+    data: FloatArray,
+    theta: FloatArray,
+    pieces: FloatArray,
+    rotated: FloatArray,
+    multipliers: FloatArray,
+    prior_inverse_sd: FloatArray,
+) -> FloatArray:
+    """The Jacobian of :func:`joint_residual_kernel` from :func:`_joint_model`'s pieces."""
+    rotation, weights, upper, lower = white[1], white[2], white[3], white[4]
+    k = multipliers.shape[0]
+    n_leds = rotation.shape[0]
+    n_params = theta.shape[0]
+    n_data = data.shape[0]
+    n_prior = prior_inverse_sd.shape[0]
+    n_rotated = rotated.shape[0]
     # Per LED: Q[c, a, i] = sum_k D_c[i, k] mult_k (U^T g)[a, k], D_0 the gains (the log
     # amplitude's direction), D_1 the order part; U^T as rows (contiguous along LEDs).
     transposed = np.ascontiguousarray(rotation.T)
@@ -179,7 +242,6 @@ def joint_residual_kernel(
                 for t in range(k):
                     total += piece[i, t] * multipliers[t] * rotated[0, a, t]
                 q[c, a, i] = total
-    residual = np.empty(n_data + n_prior)
     jacobian = np.zeros((n_data + n_prior, n_params))
     amps_at = 3 * k + 1
     tilts_at = amps_at + 2 * n_leds
@@ -209,11 +271,9 @@ def joint_residual_kernel(
                 row[start + i] = w * (transposed[a, i] * q[c, b, i] + transposed[b, i] * q[c, a, i])
         diagonal = 1.0 if a == b else 0.0
         row[n_params - 1] = w * diagonal
-        residual[col] = data[col] - w * (modelled + noise * diagonal)
     for j in range(n_prior):
-        residual[n_data + j] = -theta[2 * k + j] * prior_inverse_sd[j]
         jacobian[n_data + j, 2 * k + j] = prior_inverse_sd[j]
-    return residual, jacobian
+    return jacobian
 
 
 @compiled
@@ -293,14 +353,21 @@ def joint_lm_kernel(
                 damping *= 10.0
                 continue
             trial = np.minimum(np.maximum(theta + step, lower), upper)
-            trial_residual, trial_jacobian = joint_residual_kernel(
-                channel, table, white, data, trial, heights, has_tilts, prior_inverse_sd
+            # The Jacobian only once the step is taken: about half of the trials are not.
+            pieces, multipliers, rotated = _joint_model(
+                channel, table, white, trial, heights, has_tilts
+            )
+            trial_residual = _joint_residual(
+                white, data, trial, rotated, multipliers, prior_inverse_sd
             )
             # A wild trial may overflow: its cost is then inf (or nan) and it is rejected.
             trial_cost = np.dot(trial_residual, trial_residual)
             if trial_cost < cost:
                 finished = cost - trial_cost < rel_tol * cost
-                theta, residual, jacobian, cost = trial, trial_residual, trial_jacobian, trial_cost
+                jacobian = _joint_jacobian(
+                    white, data, trial, pieces, rotated, multipliers, prior_inverse_sd
+                )
+                theta, residual, cost = trial, trial_residual, trial_cost
                 damping = max(damping / 5.0, 1e-9)
                 improved = True
                 break
