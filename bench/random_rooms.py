@@ -5,6 +5,7 @@ Run from the repository root::
     python -m bench.random_rooms                      # 40 rooms x 12 requests, prints a table
     python -m bench.random_rooms --out docs           # and writes docs/real-rooms.md's section
     python -m bench.random_rooms --rooms 3 --trials 4 # a quick look
+    python -m bench.random_rooms --snr-db 0,5,50,60   # noise levels outside 10-40 dB
 
 The service is judged on rooms nobody tuned it for. This benchmark starts ``vlp serve``
 (SQLite, one embedded build worker), uploads ``--rooms`` layouts drawn at random (2-12 m by
@@ -14,9 +15,10 @@ up to 0.5 m; grid steps 0.1-0.5 m; receivers 0-1.5 m high with fields of view of
 degrees; a third of the rooms reflecting), waits for each fingerprint, and sends
 ``--trials`` localize requests per room: 1-8 terminals (fewer than the LEDs) placed
 uniformly, the ideal model or the realistic mix (:meth:`Impairments.realistic_mix`; its
-reflections only where the layout has them, else half the time none), 10-40 dB, as
-``correlation``, ``power`` or ``terminals``, with ``targets`` given in 60 % of them. The
-amplitudes come from :func:`app.vlp.simulation.simulate_terminals`.
+reflections only where the layout has them, else half the time none), at 10, 20, 30 or
+40 dB (``--snr-db`` draws from others), as ``correlation``, ``power`` or ``terminals``,
+with ``targets`` given in 60 % of them. The amplitudes come from
+:func:`app.vlp.simulation.simulate_terminals`.
 
 Per form it reports what a user would check first: answers other than 200, estimates that
 are not finite or lie outside the room, the mean matched error, how often the truth lies
@@ -48,9 +50,20 @@ from app.vlp.simulation import Impairments, simulate_terminals
 from ._common import measured_section, replace_section, write_csv
 from ._server import ADMIN_KEY, TERMINAL_KEY, live_server
 
-__all__ = ["FORMS", "Outcome", "draw_request", "main", "random_layout", "replay_request", "run"]
+__all__ = [
+    "FORMS",
+    "SNRS_DB",
+    "Outcome",
+    "draw_request",
+    "main",
+    "random_layout",
+    "replay_request",
+    "run",
+]
 
 FORMS = ("correlation", "power", "terminals")
+# The SNRs a request is drawn at (dB), unless --snr-db says others.
+SNRS_DB = (10.0, 20.0, 30.0, 40.0)
 MIX_REFLECTANCE = Reflectance(walls=0.7, floor=0.2, ceiling=0.8)
 # A confidently wrong answer: quality ok, the truth outside the 95 % radius and this far.
 WRONG_M = 0.5
@@ -135,9 +148,10 @@ def random_layout(rng: np.random.Generator) -> Layout:
 
 
 def draw_request(
-    rng: np.random.Generator, layout: Layout, room: int
+    rng: np.random.Generator, layout: Layout, room: int, snrs_db: Sequence[float] = SNRS_DB
 ) -> tuple[dict[str, Any], np.ndarray, Outcome]:
-    """One localize body, the truth (K, 2) and the outcome's fixed fields."""
+    """One localize body, the truth (K, 2) and the outcome's fixed fields; its SNR one of
+    ``snrs_db``."""
     n_leds = len(layout.leds)
     count = int(rng.integers(1, max(min(8, n_leds - 1), 1) + 1))
     truth = np.column_stack(
@@ -147,7 +161,7 @@ def draw_request(
     impairments = Impairments.realistic_mix() if mix else Impairments.ideal()
     if mix and layout.room.reflectance is None and rng.random() < 0.5:
         impairments = dataclasses.replace(impairments, reflectance=None)
-    snr_db = float(rng.choice([10.0, 20.0, 30.0, 40.0]))
+    snr_db = float(rng.choice(np.asarray(snrs_db, dtype=np.float64)))
     amplitudes = simulate_terminals(layout, truth, impairments, snr_db=snr_db, rng=rng).amplitudes
     form = str(rng.choice(FORMS))
     given = bool(rng.random() < 0.6)
@@ -215,7 +229,7 @@ def _wait_ready(client: httpx.Client, room_id: str, headers: dict[str, str]) -> 
         time.sleep(0.1)
 
 
-def run(rooms: int, trials: int, seed: int) -> list[Outcome]:
+def run(rooms: int, trials: int, seed: int, snrs_db: Sequence[float] = SNRS_DB) -> list[Outcome]:
     """Start a server and send every room's requests; one outcome per request."""
     outcomes: list[Outcome] = []
     with (
@@ -232,7 +246,7 @@ def run(rooms: int, trials: int, seed: int) -> list[Outcome]:
             room_id = created.json()["id"]
             _wait_ready(client, room_id, admin)
             for _ in range(trials):
-                body, truth, outcome = draw_request(rng, layout, room)
+                body, truth, outcome = draw_request(rng, layout, room, snrs_db)
                 response = client.post(f"/v1/rooms/{room_id}/localize", json=body, headers=terminal)
                 outcome = dataclasses.replace(outcome, status=response.status_code)
                 if response.status_code == 200:
@@ -265,16 +279,33 @@ def summary(outcomes: Sequence[Outcome]) -> str:
     return "\n".join(lines)
 
 
+def _snrs(text: str) -> tuple[float, ...]:
+    """``--snr-db``: comma-separated finite numbers."""
+    try:
+        values = tuple(float(part) for part in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a list of numbers: {text!r}") from None
+    if not values or not all(np.isfinite(values)):
+        raise argparse.ArgumentTypeError(f"not a list of finite numbers: {text!r}")
+    return values
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``python -m bench.random_rooms``."""
     parser = argparse.ArgumentParser(prog="python -m bench.random_rooms", description=__doc__)
     parser.add_argument("--rooms", type=int, default=40, help="rooms drawn (default 40)")
     parser.add_argument("--trials", type=int, default=12, help="requests per room (default 12)")
     parser.add_argument("--seed", type=int, default=1, help="seed of the draws (default 1)")
+    parser.add_argument(
+        "--snr-db",
+        type=_snrs,
+        default=SNRS_DB,
+        help="comma-separated SNRs (dB) the requests are drawn at (default 10,20,30,40)",
+    )
     parser.add_argument("--out", type=Path, default=None, help="write DIR/real-rooms.md's section")
     args = parser.parse_args(argv)
     started = time.perf_counter()
-    outcomes = run(args.rooms, args.trials, args.seed)
+    outcomes = run(args.rooms, args.trials, args.seed, args.snr_db)
     elapsed = time.perf_counter() - started
     table = summary(outcomes)
     print(table)

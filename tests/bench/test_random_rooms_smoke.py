@@ -3,9 +3,11 @@ answers every request."""
 
 from __future__ import annotations
 
+import csv
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from bench.random_rooms import FORMS, Outcome, main, random_layout, summary
 
@@ -34,11 +36,23 @@ def test_summary_counts_per_form() -> None:
 
 
 def test_a_short_run_answers_every_request(tmp_path: Path) -> None:
+    """At noise levels outside the default draws too (0 and 60 dB)."""
     (tmp_path / "real-rooms.md").write_text("# Real rooms\n\nhand-written\n")
-    assert main(["--rooms", "2", "--trials", "3", "--out", str(tmp_path)]) == 0
+    argv = ["--rooms", "2", "--trials", "3", "--snr-db", "0,60", "--out", str(tmp_path)]
+    assert main(argv) == 0
     text = (tmp_path / "real-rooms.md").read_text()
     assert text.startswith("# Real rooms\n\nhand-written\n")
-    rows = (tmp_path / "data" / "random_rooms.csv").read_text().splitlines()
-    assert len(rows) == 1 + 2 * 3
-    assert all(",200," in row for row in rows[1:])  # no 4xx, no 5xx
+    with (tmp_path / "data" / "random_rooms.csv").open() as handle:
+        rows = list(csv.DictReader(handle))
+    assert len(rows) == 2 * 3
+    assert {row["status"] for row in rows} == {"200"}  # no 4xx, no 5xx
+    assert {float(row["snr_db"]) for row in rows} <= {0.0, 60.0}
     assert f"| {FORMS[0]} |" in text and "| all | 6 | 0 | 0 | 0 |" in text
+    assert "--snr-db 0,60" in text  # the command that made the table
+
+
+@pytest.mark.parametrize("value", ["", "ten", "10,nan", "10,,20"])
+def test_snr_list_must_be_finite_numbers(value: str) -> None:
+    with pytest.raises(SystemExit) as exit_info:
+        main(["--snr-db", value])
+    assert exit_info.value.code == 2  # argparse's usage error, before any server starts
