@@ -149,7 +149,9 @@ def joint_residual_kernel(
     (L + n_prior,) and ``J = d(c mu)/d theta`` with the priors' rows (L + n_prior, P)."""
     pieces, multipliers, rotated = _joint_model(channel, table, white, theta, heights, has_tilts)
     residual = _joint_residual(white, data, theta, rotated, multipliers, prior_inverse_sd)
-    jacobian = _joint_jacobian(white, data, theta, pieces, rotated, multipliers, prior_inverse_sd)
+    jacobian = _joint_jacobian(
+        white, data.shape[0], theta, pieces, rotated, multipliers, prior_inverse_sd
+    )
     return residual, jacobian
 
 
@@ -215,19 +217,19 @@ def _joint_residual(
 @compiled
 def _joint_jacobian(
     white: Problem,
-    data: FloatArray,
+    n_data: int,
     theta: FloatArray,
     pieces: FloatArray,
     rotated: FloatArray,
     multipliers: FloatArray,
     prior_inverse_sd: FloatArray,
 ) -> FloatArray:
-    """The Jacobian of :func:`joint_residual_kernel` from :func:`_joint_model`'s pieces."""
+    """The Jacobian of :func:`joint_residual_kernel` (``n_data`` rows of data) from
+    :func:`_joint_model`'s pieces."""
     rotation, weights, upper, lower = white[1], white[2], white[3], white[4]
     k = multipliers.shape[0]
     n_leds = rotation.shape[0]
     n_params = theta.shape[0]
-    n_data = data.shape[0]
     n_prior = prior_inverse_sd.shape[0]
     n_rotated = rotated.shape[0]
     # Per LED: Q[c, a, i] = sum_k D_c[i, k] mult_k (U^T g)[a, k], D_0 the gains (the log
@@ -365,7 +367,7 @@ def joint_lm_kernel(
             if trial_cost < cost:
                 finished = cost - trial_cost < rel_tol * cost
                 jacobian = _joint_jacobian(
-                    white, data, trial, pieces, rotated, multipliers, prior_inverse_sd
+                    white, n_data, trial, pieces, rotated, multipliers, prior_inverse_sd
                 )
                 theta, residual, cost = trial, trial_residual, trial_cost
                 damping = max(damping / 5.0, 1e-9)
