@@ -87,3 +87,43 @@ def _whitened_atoms(solver: GridlessSolver, white: Whitening) -> np.ndarray:
     else:
         unwhitened = gains**2
     return np.array([white.data(unwhitened[:, j].copy()) for j in range(gains.shape[1])])
+
+
+def test_a_state_is_whitened_and_its_residual_formed_once_per_run(
+    paper_fingerprint: Fingerprint, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The escape tests and the profiles of one state share one whitened residual per run
+    (GridlessSolver._whitened_residual), equal to the one formed anew; another state, or
+    another run of the same values, forms its own."""
+    layout = paper_fingerprint.layout
+    rng = np.random.default_rng(3)
+    solver, run, truth = _simulated_run(paper_fingerprint, "correlation", 3, rng)
+    state = FitState(
+        truth + rng.normal(0.0, 0.03, truth.shape),
+        np.ones(3),
+        0.02,
+        np.full(3, layout.grid.receiver_height),
+        np.zeros(3),
+        0.0,
+    )
+    want = solver._residual(run, solver._whitening(state), state)
+    formed: list[int] = []
+    original = GridlessSolver._residual
+
+    def counted(self: GridlessSolver, run: _Run, white: Whitening, state: FitState) -> np.ndarray:
+        formed.append(state.n_targets)
+        return original(self, run, white, state)
+
+    monkeypatch.setattr(GridlessSolver, "_residual", counted)
+    first = solver._noise_test(run, state)
+    assert solver._noise_test(run, state)[1] is first[1]
+    assert solver._fits_to_noise(run, state) == first[2]
+    solver._profiles(run, state)
+    assert len(formed) == 1
+    np.testing.assert_array_equal(first[1], want)
+    moved = FitState(
+        state.positions + 0.01, state.weights, state.noise, state.heights, state.log_gains, 0.0
+    )
+    solver._noise_test(run, moved)
+    solver._noise_test(_Run(values=run.values, priors=run.priors), state)
+    assert len(formed) == 3
