@@ -15,6 +15,7 @@ from ._channel_compiled import channel_constants, channel_rows
 from ._channel_kernel import ChannelKernel
 from ._fit_compiled import correlation_profiles_kernel, correlation_scores_kernel
 from ._gridless_fit import (
+    STEP_TOL_M,
     FitState,
     Objective,
     Priors,
@@ -23,6 +24,7 @@ from ._gridless_fit import (
     gram,
     levenberg_marquardt,
 )
+from ._gridless_options import LM_DEFAULTS
 from ._local import _best_of_tiles
 from ._room_tolerance_fit import RoomTolerances, _JointModel, _levenberg_marquardt
 from ._search_compiled import growth_kernel, refine_kernel
@@ -100,9 +102,9 @@ def exercise() -> None:
         height,
         search_layout,
         search_priors,
-        0.1,
-        1e-4,
-        1e-5,
+        LM_DEFAULTS["correlation"].initial_damping,
+        LM_DEFAULTS["correlation"].tol,
+        STEP_TOL_M,
     )
     fixed = (state.positions, 1e-3, state.heights, state.weights, state.log_gains, 0.0)
     k = state.n_targets
