@@ -114,7 +114,15 @@ class GridSpec(RequestModel):
         "terminals' photodiodes, degrees (e.g. hand-held phones); the default solver then "
         "fits the tilt of each terminal that sends its own amplitudes but no normal, with "
         "this spread as its prior, and the other answers' accuracy_m holds what such tilts "
-        "move an estimate by. 0: level photodiodes",
+        "move an estimate by. 0: no spread declared (see receivers_level)",
+    )
+    receivers_level: bool = Field(
+        default=False,
+        description="the photodiodes face straight up (tags mounted level on carts, shelves "
+        "or robots): no terminal is fitted tilted and accuracy_m allows for no tilt. "
+        "false (hand-held phones, or not known): terminals are modelled level, but "
+        "accuracy_m also allows for the tilts their residuals may hide. Not with "
+        "receiver_tilt_sd > 0",
     )
 
 

@@ -111,14 +111,18 @@ class Grid:
     ``receiver_height_sd`` is the standard deviation of the terminals' heights around
     ``receiver_height`` (0: all terminals at that height, the paper's model).
     ``receiver_tilt_sd`` is the standard deviation, in degrees, of each of the two tilt
-    components of the terminals' photodiodes (hand-held phones; 0: level photodiodes, the
-    paper's model): the answers' radii then hold what such tilts move an estimate by.
+    components of the terminals' photodiodes (hand-held phones): the answers' radii then
+    hold what such tilts move an estimate by. ``receivers_level`` says the photodiodes face
+    straight up (tags mounted level): no terminal is then fitted tilted and no radius allows
+    for a tilt. With neither (0 and False, the default) the photodiodes are modelled level
+    but the radii allow for tilts the residuals show, since hand-held phones may tilt.
     """
 
     step: float
     receiver_height: float
     receiver_height_sd: float = 0.0
     receiver_tilt_sd: float = 0.0
+    receivers_level: bool = False
 
     def __post_init__(self) -> None:
         _check_positive(self.step, "grid.step")
@@ -139,6 +143,17 @@ class Grid:
                 f"grid.receiver_tilt_sd must be a number of degrees in [0, "
                 f"{MAX_RECEIVER_TILT_SD_DEG:g}], got {tilt!r}",
                 field="grid.receiver_tilt_sd",
+            )
+        if not isinstance(self.receivers_level, bool):
+            raise GeometryError(
+                f"grid.receivers_level must be true or false, got {self.receivers_level!r}",
+                field="grid.receivers_level",
+            )
+        if self.receivers_level and tilt > 0:
+            raise GeometryError(
+                "grid.receivers_level says the photodiodes face straight up, which "
+                f"contradicts grid.receiver_tilt_sd = {tilt!r} degrees: set one of them",
+                field="grid.receivers_level",
             )
 
 
@@ -314,9 +329,9 @@ class Layout:
     def to_mapping(self) -> dict[str, Any]:
         """The layout as the JSON-like mapping of the public ``RoomLayout`` body.
 
-        ``room.reflectance``, ``grid.receiver_height_sd`` and ``grid.receiver_tilt_sd`` appear
-        only when set (not None, not 0), so a layout without them maps exactly as before they
-        existed.
+        ``room.reflectance``, ``grid.receiver_height_sd``, ``grid.receiver_tilt_sd`` and
+        ``grid.receivers_level`` appear only when set (not None, not 0, not False), so a layout
+        without them maps exactly as before they existed.
         """
         room: dict[str, Any] = {
             "length": self.room.length,
@@ -333,6 +348,8 @@ class Layout:
             grid["receiver_height_sd"] = self.grid.receiver_height_sd
         if self.grid.receiver_tilt_sd > 0:
             grid["receiver_tilt_sd"] = self.grid.receiver_tilt_sd
+        if self.grid.receivers_level:
+            grid["receivers_level"] = True
         return {
             "name": self.name,
             "room": room,
@@ -378,6 +395,9 @@ def layout_from_mapping(data: Mapping[str, Any]) -> Layout:
             receiver_tilt_sd=_float_field(
                 data["grid"].get("receiver_tilt_sd", 0.0), "grid.receiver_tilt_sd"
             ),
+            receivers_level=_bool_field(
+                data["grid"].get("receivers_level", False), "grid.receivers_level"
+            ),
         )
         receiver = Receiver(**{k: float(v) for k, v in dict(data.get("receiver") or {}).items()})
         leds_in: Sequence[Mapping[str, Any]] = data["leds"]
@@ -409,6 +429,14 @@ def _float_field(value: object, name: str) -> float:
         return float(value)
     except ValueError as exc:
         raise GeometryError(f"{name} must be a number, got {value!r}", field=name) from exc
+
+
+def _bool_field(value: object, name: str) -> bool:
+    if value is None:
+        return False
+    if not isinstance(value, bool):
+        raise GeometryError(f"{name} must be true or false, got {value!r}", field=name)
+    return value
 
 
 def _reflectance_from_mapping(value: object) -> Reflectance | None:

@@ -100,8 +100,23 @@ def test_impaired_simulations_localize_with_their_heights_and_quality(
             {"grid": REFLECTIVE["grid"] | {"receiver_tilt_sd": 45.0}},
             ["body.grid.receiver_tilt_sd"],
         ),
+        (
+            {"grid": REFLECTIVE["grid"] | {"receiver_tilt_sd": 4.0, "receivers_level": True}},
+            ["body.grid.receivers_level"],
+        ),
+        (
+            {"grid": REFLECTIVE["grid"] | {"receivers_level": "sometimes"}},
+            ["body.grid.receivers_level"],
+        ),
     ],
-    ids=["reflectance-1", "reflectance-incomplete", "negative-height-sd", "tilt-sd-45"],
+    ids=[
+        "reflectance-1",
+        "reflectance-incomplete",
+        "negative-height-sd",
+        "tilt-sd-45",
+        "level-and-tilted",
+        "level-not-a-boolean",
+    ],
 )
 def test_bad_real_room_fields_are_refused_naming_them(
     client: TestClient, change: dict[str, Any], fields: list[str]
@@ -147,6 +162,36 @@ def test_a_tilt_spread_in_the_layout_widens_the_radii_not_the_positions(
     # in quadrature, at least 10 cm of 95 % radius.
     for e, t in zip(level, tilted, strict=True):
         assert t["accuracy_m"] ** 2 - e["accuracy_m"] ** 2 > 0.10**2
+
+
+def test_terminals_of_a_room_with_level_photodiodes_get_radii_without_tilts(
+    worker_app: TestClient,
+) -> None:
+    """The same eight terminals' amplitudes in the paper room as is and with
+    `grid.receivers_level`: the layout keeps the field, and the level room's radii are
+    narrower (tests/vlp/test_receivers_level.py measures their coverage over many
+    placements)."""
+    body = {"targets": 8, "snr_db": 30, "seed": 4, "form": "terminals"}
+    radii = []
+    measurement = None
+    for grid in (PAPER_ROOM["grid"], PAPER_ROOM["grid"] | {"receivers_level": True}):
+        created = worker_app.post("/v1/rooms", json=PAPER_ROOM | {"grid": grid}, headers=ADMIN)
+        assert created.status_code == 201, created.text
+        room = wait_for_room(worker_app, created.json()["id"])
+        assert room["layout"]["grid"]["receivers_level"] is grid.get("receivers_level", False)
+        if measurement is None:
+            simulated = worker_app.post(
+                f"/v1/rooms/{room['id']}/simulate", json=body, headers=TERMINAL
+            )
+            assert simulated.status_code == 200, simulated.text
+            measurement = simulated.json()["measurement"]
+        located = worker_app.post(
+            f"/v1/rooms/{room['id']}/localize", json=measurement, headers=TERMINAL
+        )
+        assert located.status_code == 200, located.text
+        radii.append(np.array([e["accuracy_m"] for e in located.json()["estimates"]]))
+    plain, level = radii
+    assert level.sum() < 0.8 * plain.sum(), (level, plain)
 
 
 def test_terminals_in_a_room_with_a_tilt_spread_are_fitted_tilted(

@@ -43,7 +43,12 @@ def test_create_applies_defaults_and_answers_location_and_etag(client: TestClien
     # The answer also shows the optional real-room fields with their defaults (line of
     # sight only, every receiver on the plane); the stored mapping leaves them out.
     stored["room"] = {**stored["room"], "reflectance": None}
-    stored["grid"] = {**stored["grid"], "receiver_height_sd": 0.0, "receiver_tilt_sd": 0.0}
+    stored["grid"] = {
+        **stored["grid"],
+        "receiver_height_sd": 0.0,
+        "receiver_tilt_sd": 0.0,
+        "receivers_level": False,
+    }
     assert room["layout"] == stored
     got = client.get(f"/v1/rooms/{room['id']}", headers=TERMINAL)
     assert got.status_code == 200

@@ -12,6 +12,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import importlib
+import itertools
 import os
 import subprocess
 import sys
@@ -982,7 +983,8 @@ def test_uncertainty_matches_reference(
     model: Model, k: int, priors_name: str, on_plane: bool
 ) -> None:
     """The compiled model-error sandwich (``_uncertainty_compiled``) gives the NumPy path's
-    covariances and fit quality, whitened or not, with a reflection table."""
+    covariances and fit quality, whitened or not, with a reflection table, and with the
+    tilt's columns left out for a layout whose photodiodes are level."""
     layout = paper_layout()
     solver = GridlessSolver(build_fingerprint(layout), model)
     # The solver's normalisation (gains of order one), diffuse gains a tenth of the direct.
@@ -997,10 +999,14 @@ def test_uncertainty_matches_reference(
     state = random_state(kernel, k, rng, on_plane)
     if free_weights:
         state = dataclasses.replace(state, log_gains=np.zeros(k), log_scale=0.0)
-    for white in (
-        Whitening.identity(model, kernel.n_leds),
-        Whitening._from_state_reference(model, kernel, state, float(k)),
+    for white, level in itertools.product(
+        (
+            Whitening.identity(model, kernel.n_leds),
+            Whitening._from_state_reference(model, kernel, state, float(k)),
+        ),
+        (False, True),
     ):
+        solver._receivers_level = level
         values = normal(rng, white.weights.shape[0])
         objective = Objective(kernel, white, values, free_weights, priors)
         assert objective.compiled_problem() is not None

@@ -126,11 +126,23 @@ def test_reflectance_and_height_spread_round_trip() -> None:
     assert layout_from_mapping(out) == layout
 
 
+def test_level_photodiodes_round_trip() -> None:
+    mapping = _mapping()
+    mapping["grid"]["receivers_level"] = True
+    layout = layout_from_mapping(mapping)
+    assert layout.grid.receivers_level is True
+    out = layout.to_mapping()
+    assert out["grid"]["receivers_level"] is True
+    assert layout_from_mapping(out) == layout
+    assert layout != layout_from_mapping(_mapping())
+
+
 def test_absent_reflectance_and_spread_map_exactly_as_before() -> None:
     mapping = _mapping()
     mapping["room"]["reflectance"] = None
     mapping["grid"]["receiver_height_sd"] = 0.0
     mapping["grid"]["receiver_tilt_sd"] = 0.0
+    mapping["grid"]["receivers_level"] = False
     layout = layout_from_mapping(mapping)
     assert layout.room.reflectance is None and layout.grid.receiver_height_sd == 0.0
     out = layout.to_mapping()
@@ -189,3 +201,19 @@ def test_tilt_spread_validation_names_the_field(tilt_sd: float) -> None:
     with pytest.raises(GeometryError) as info:
         layout_from_mapping(mapping)
     assert info.value.field == "grid.receiver_tilt_sd"
+
+
+@pytest.mark.parametrize("level", [1, "yes", 0.0])
+def test_level_photodiodes_must_be_a_boolean(level: object) -> None:
+    mapping = _mapping()
+    mapping["grid"]["receivers_level"] = level
+    with pytest.raises(GeometryError) as info:
+        layout_from_mapping(mapping)
+    assert info.value.field == "grid.receivers_level"
+
+
+def test_level_photodiodes_with_a_tilt_spread_are_refused_naming_the_field() -> None:
+    with pytest.raises(GeometryError, match="receiver_tilt_sd") as info:
+        Grid(step=0.5, receiver_height=0.8, receiver_tilt_sd=4.0, receivers_level=True)
+    assert info.value.field == "grid.receivers_level"
+    assert Grid(step=0.5, receiver_height=0.8, receiver_tilt_sd=0.0, receivers_level=True)

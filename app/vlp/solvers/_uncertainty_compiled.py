@@ -76,10 +76,12 @@ def misfit_columns_kernel(
     theta: FloatArray,
     fixed: Problem,
     layout: Problem,
+    level: bool,
 ) -> tuple[FloatArray, IntArray]:
     """``GridlessSolver._misfit_columns`` side by side: each target's relative error per LED
-    (K M columns), its photodiode's tilt (2 K), and its height (K) unless heights are
-    fitted; and the number of columns of each kind."""
+    (K M columns), its photodiode's tilt (2 K; zeros when ``level``, the layout's
+    photodiodes facing straight up), and its height (K) unless heights are fitted; and the
+    number of columns of each kind."""
     led_x, led_y, led_z, _, _, free_height_factor, orders, half_exponent, _, _, cos_fov2, _ = (
         channel
     )
@@ -130,7 +132,7 @@ def misfit_columns_kernel(
             drop = max(led_z[m] - heights[i], 1e-9)
             dist2 = off_x * off_x + off_y * off_y + drop * drop
             shape[m, i, 0] = free[3, i, m]
-            if drop * drop >= cos_fov2 * dist2:
+            if not level and drop * drop >= cos_fov2 * dist2:
                 los = (
                     free_height_factor[m]
                     * math.pow(drop, orders[m] + 1.0)
@@ -476,16 +478,18 @@ def uncertainty_kernel(
     layout: Problem,
     priors: Problem,
     max_noise: float,
+    level: bool,
 ) -> tuple[FloatArray, float]:
     """``GridlessSolver._uncertainty`` at ``theta``: the position covariances (K, 2, 2)
-    and the whitened data cost at the optimum."""
+    and the whitened data cost at the optimum (``level``: as
+    :func:`misfit_columns_kernel`)."""
     augmented = _augmented(channel, table, white, data, theta, fixed, layout, priors)
     n_params = theta.shape[0]
     n_data = data.shape[0]
     normal = _symmetric_product(augmented[:n_params])
     jacobian = np.ascontiguousarray(augmented[:n_params, :n_data].T)
     residual = augmented[n_params, :n_data].copy()
-    columns, sizes = misfit_columns_kernel(channel, table, white, theta, fixed, layout)
+    columns, sizes = misfit_columns_kernel(channel, table, white, theta, fixed, layout, level)
     inverse, data_normal, prior_normal, error_normals, noise_leverage, error_leverages, spread = (
         misfit_design_kernel(jacobian, normal, columns, sizes)
     )

@@ -61,7 +61,7 @@ def exercise() -> None:
         # an answer's covariances (GridlessSolver._covariances)
         problem = objective.compiled_problem()
         assert problem is not None
-        uncertainty_kernel(*problem, theta, *objective.compiled_state(state), 1.0)
+        uncertainty_kernel(*problem, theta, *objective.compiled_state(state), 1.0, False)
         if model == "correlation":
             correlation_scores_kernel(white.compiled(), values, np.ones((kernel.n_leds, 3)))
             # an answer's far places (GridlessSolver._profiles)

@@ -327,6 +327,8 @@ class GridlessSolver(Solver):
         self._centres = layout.cell_centres()
         self._led_xy = np.ascontiguousarray(layout.led_positions[:, :2])
         self._dense = fingerprint.is_dense
+        # Photodiodes the layout says face straight up: no tilt to fit or allow for.
+        self._receivers_level = layout.grid.receivers_level
         # Most rooms have no mirror twins anywhere: their answers skip the check (decided
         # here, once, in dense rooms; large ones check every answer).
         floor = layout.room
@@ -1213,10 +1215,13 @@ class GridlessSolver(Solver):
             for k in range(n_terminals)
         ]
         own_normals = [None if normals is None else normals[k] for k in range(n_terminals)]
-        # The layout's tilt spread, when it declares one, is each unknown tilt's prior.
+        # The layout's tilt spread, when it declares one, is each unknown tilt's prior; a
+        # layout whose photodiodes are level has no tilt to fit.
         declared_tilt_sd = math.radians(self.fingerprint.layout.grid.receiver_tilt_sd)
         tilt_spread_known = self.options.tilt_sd is not None and declared_tilt_sd > 0
         tilt_sd = declared_tilt_sd if tilt_spread_known else self.options.tilt_sd
+        if self._receivers_level:
+            tilt_sd = None
         first = []
         for k in range(n_terminals):
             kernel, seen, unseen_energy = self._kernel, values[k], 0.0
@@ -1363,15 +1368,16 @@ class GridlessSolver(Solver):
         """Whitened derivatives of a terminal's amplitudes along the errors its fit does not
         fit, as :meth:`_misfit_columns`: each LED's relative error, (M, M), then the
         photodiode's tilt, (M, 2), and its height, (M, 1), unless fitted or sent by the
-        terminal, or for the LEDs' errors ``led_errors`` False (their variance already in the
-        fit's weights) (then (M, 0): every terminal keeps the same components)."""
+        terminal (or, for the tilt, the layout's photodiodes are level), or for the LEDs'
+        errors ``led_errors`` False (their variance already in the fit's weights) (then
+        (M, 0): every terminal keeps the same components)."""
         whitened = fit.jacobian[:, -1]  # the log gain's column: the whitened amplitudes
         # LEDs out of view give zero columns: left out (a large room has hundreds).
         seen = (whitened != 0.0) & led_errors
         columns = [np.diag(whitened)[:, seen]]
         gradient = self._shape_gradients(fit.position[np.newaxis, :], np.array([fit.height]))[0]
         scale = np.reshape(fit.data_weight, (-1, 1)) * math.exp(fit.log_gain)
-        unknown_tilt = not (fit.free_tilt or normal_known)
+        unknown_tilt = not (fit.free_tilt or normal_known or self._receivers_level)
         unknown_height = not (fit.free_height or height_known)
         columns.append(scale * gradient[:, 1:3] if unknown_tilt else gradient[:, :0])
         columns.append(scale * gradient[:, 0:1] if unknown_height else gradient[:, :0])
@@ -1707,7 +1713,11 @@ class GridlessSolver(Solver):
         if problem is not None and k > 0 and small:
             # The same sandwich in one compiled call (._uncertainty_compiled).
             covariances, cost = uncertainty_kernel(
-                *problem, theta, *objective.compiled_state(state), self._max_noise
+                *problem,
+                theta,
+                *objective.compiled_state(state),
+                self._max_noise,
+                self._receivers_level,
             )
             return covariances, assess_fit(float(cost), n_data - n_params, scale)
         columns = self._misfit_columns(objective, theta, state)
@@ -1730,8 +1740,9 @@ class GridlessSolver(Solver):
     ) -> list[FloatArray] | None:
         """Whitened derivatives of the model along the errors it does not fit: each target's
         relative amplitude error on each LED, shape (L, K M), and each target's photodiode
-        tilt, shape (L, 2 K); None when too large to hold (then the reduced chi-square
-        inflates the inverse Fisher information instead).
+        tilt, shape (L, 2 K) (zeros where the layout's photodiodes are level); None when too
+        large to hold (then the reduced chi-square inflates the inverse Fisher information
+        instead).
 
         The room's residual model error (LEDs' power and beam tolerances, heights,
         reflections) scales with the signal: target k's amplitude from LED m is
@@ -1747,6 +1758,8 @@ class GridlessSolver(Solver):
         relative = np.einsum("mk,mn->kmn", gains, np.eye(n_leds))  # diag(g_k) per target
         errors = self._perturbation_columns(objective, theta, state, gains, relative)
         tilts = self._shape_gradients(state.positions, state.heights)
+        if self._receivers_level:
+            tilts[:, :, 1:] = 0.0  # zero columns: no variance, as the compiled kernel
         out = [errors, self._perturbation_columns(objective, theta, state, gains, tilts[:, :, 1:])]
         if objective.slots(k).n_axes != 3:  # heights held fixed
             out.append(self._perturbation_columns(objective, theta, state, gains, tilts[:, :, :1]))
