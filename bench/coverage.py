@@ -6,9 +6,10 @@ fit's covariance (noise and the model errors its residuals show, see
 ``--snr``), the fraction of true positions inside that radius around their
 (Hungarian-matched) estimate, with the median radius next to the median error (a radius
 must not cover by being huge), for the aggregated correlation and the ``terminals`` form,
-on the ideal model and under the realistic mix (reflectance in the layout; then also with
-the mix's tilt spread in the layout, ``grid.receiver_tilt_sd``), in the paper room and the
-irregular room of ``bench/rooms.py``.
+on the ideal model (as is, then with the layout saying the photodiodes are level,
+``grid.receivers_level``) and under the realistic mix (reflectance in the layout; then also
+with the mix's tilt spread in the layout, ``grid.receiver_tilt_sd``), in the paper room and
+the irregular room of ``bench/rooms.py``.
 
     python -m bench.coverage             # writes the coverage section of docs/accuracy.md
     python -m bench.coverage --trials 10 --out bench/out/quick
@@ -48,11 +49,16 @@ KS = (1, 4, 8)
 SNR_DB = 30.0
 # The mix's tilts as the layout's spread (each tilt component's standard deviation).
 MIX_TILT_SD_DEG = MIX.tilt_component_sd_deg
-# (mix, tilt spread in the layout) and the table's name for each condition.
-CONDITIONS = (
-    (False, False, "ideal"),
-    (True, False, "realistic mix, reflectance in layout"),
-    (True, True, "realistic mix, reflectance and tilt spread in layout"),
+# What a layout may say about the photodiodes (``grid`` fields; none: the default).
+TILT_SPREAD = (("receiver_tilt_sd", MIX_TILT_SD_DEG),)
+LEVEL = (("receivers_level", True),)
+# (mix, what the layout's grid says about the photodiodes) and the table's name for each
+# condition.
+CONDITIONS: tuple[tuple[bool, tuple[tuple[str, object], ...], str], ...] = (
+    (False, (), "ideal"),
+    (False, LEVEL, "ideal, photodiodes level in layout"),
+    (True, (), "realistic mix, reflectance in layout"),
+    (True, TILT_SPREAD, "realistic mix, reflectance and tilt spread in layout"),
 )
 
 
@@ -73,14 +79,15 @@ def coverage(
     trials: int,
     snr_db: float = SNR_DB,
     model: Model = "correlation",
-    tilt_spread: bool = False,
+    photodiodes: tuple[tuple[str, object], ...] = (),
 ) -> Cell:
     """Coverage of the 95 % radius for the aggregated ``model`` (key ``"aggregated"``) and
-    the terminals (key ``"terminals"``); ``tilt_spread`` puts the mix's tilt spread in the
-    layout (the same placements and draws as without)."""
+    the terminals (key ``"terminals"``); ``photodiodes`` are the layout's ``grid`` fields
+    about them (:data:`TILT_SPREAD`, :data:`LEVEL`; the same placements and draws as
+    without)."""
     reflectance = MIX.reflectance if mix else None
-    if tilt_spread:
-        fingerprint = _tilted_fingerprint(room, reflectance)
+    if photodiodes:
+        fingerprint = _declared_fingerprint(room, reflectance, photodiodes)
         layout = fingerprint.layout
     else:
         layout = _layout(room, reflectance)
@@ -122,10 +129,12 @@ def coverage(
 
 
 @cache
-def _tilted_fingerprint(room: str, reflectance: Reflectance | None) -> Fingerprint:
-    """The room's fingerprint with the mix's tilt spread in its layout (built once)."""
+def _declared_fingerprint(
+    room: str, reflectance: Reflectance | None, photodiodes: tuple[tuple[str, object], ...]
+) -> Fingerprint:
+    """The room's fingerprint with ``photodiodes`` in its layout's grid (built once)."""
     layout = _layout(room, reflectance)
-    grid = dataclasses.replace(layout.grid, receiver_tilt_sd=MIX_TILT_SD_DEG)
+    grid = dataclasses.replace(layout.grid, **dict(photodiodes))  # type: ignore[arg-type]
     return build_fingerprint(dataclasses.replace(layout, grid=grid))
 
 
@@ -152,10 +161,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     ]
     with threadpool_limits(limits=1):
         for room in rooms:
-            for mix, tilt_spread, name in CONDITIONS:
+            for mix, photodiodes, name in CONDITIONS:
                 for count in KS:
                     cell = coverage(
-                        room, mix, count, args.trials, args.snr, args.model, tilt_spread
+                        room, mix, count, args.trials, args.snr, args.model, photodiodes
                     )
                     parts = [
                         f"{cell.inside[mode]:.3f} | {100 * cell.radius[mode]:.1f} / "
