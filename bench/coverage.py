@@ -8,8 +8,9 @@ fit's covariance (noise and the model errors its residuals show, see
 must not cover by being huge), for the aggregated correlation and the ``terminals`` form,
 on the ideal model (as is, then with the layout saying the photodiodes are level,
 ``grid.receivers_level``) and under the realistic mix (reflectance in the layout; then also
-with the mix's tilt spread in the layout, ``grid.receiver_tilt_sd``), in the paper room and
-the irregular room of ``bench/rooms.py``.
+with the mix's tilt spread in the layout, ``grid.receiver_tilt_sd``, and with its tilted
+photodiodes wrongly declared level), in the paper room and the irregular room of
+``bench/rooms.py``.
 
     python -m bench.coverage             # writes the coverage section of docs/accuracy.md
     python -m bench.coverage --trials 10 --out bench/out/quick
@@ -59,6 +60,8 @@ CONDITIONS: tuple[tuple[bool, tuple[tuple[str, object], ...], str], ...] = (
     (False, LEVEL, "ideal, photodiodes level in layout"),
     (True, (), "realistic mix, reflectance in layout"),
     (True, TILT_SPREAD, "realistic mix, reflectance and tilt spread in layout"),
+    # What a wrong declaration costs: hand-held (tilted) terminals declared level.
+    (True, LEVEL, "realistic mix, reflectance in layout, photodiodes wrongly declared level"),
 )
 
 
