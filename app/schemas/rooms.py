@@ -5,7 +5,7 @@ from __future__ import annotations
 from datetime import datetime
 from typing import Any
 
-from pydantic import ConfigDict, Field
+from pydantic import ConfigDict, Field, StrictBool
 
 from app.vlp.constants import (
     DEFAULT_FILTER_GAIN,
@@ -116,7 +116,8 @@ class GridSpec(RequestModel):
         "this spread as its prior, and the other answers' accuracy_m holds what such tilts "
         "move an estimate by. 0: no spread declared (see receivers_level)",
     )
-    receivers_level: bool = Field(
+    # Strict: the schema says boolean, so 0 or "no" is a 422, not a guess.
+    receivers_level: StrictBool = Field(
         default=False,
         description="the photodiodes face straight up (tags mounted level on carts, shelves "
         "or robots): no terminal is fitted tilted and accuracy_m allows for no tilt. "

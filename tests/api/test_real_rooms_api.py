@@ -108,6 +108,10 @@ def test_impaired_simulations_localize_with_their_heights_and_quality(
             {"grid": REFLECTIVE["grid"] | {"receivers_level": "sometimes"}},
             ["body.grid.receivers_level"],
         ),
+        (
+            {"grid": REFLECTIVE["grid"] | {"receivers_level": 0}},
+            ["body.grid.receivers_level"],
+        ),
     ],
     ids=[
         "reflectance-1",
@@ -116,6 +120,7 @@ def test_impaired_simulations_localize_with_their_heights_and_quality(
         "tilt-sd-45",
         "level-and-tilted",
         "level-not-a-boolean",
+        "level-zero",
     ],
 )
 def test_bad_real_room_fields_are_refused_naming_them(
