@@ -357,3 +357,64 @@ def test_a_close_pair_fitted_as_one_bright_estimate_is_split(
     fixed = int(np.sum(split[stuck] < 0.25))
     assert fixed >= 2 and fixed >= stuck.sum() / 2
     assert np.all(split[~stuck] <= merged[~stuck] + 0.05)
+
+
+def _tilted_errors(
+    fingerprint: Fingerprint, options: GridlessOptions, seeds: range
+) -> tuple[list[float], list[str]]:
+    """Mean errors and fit details of K = 8 answers with hand-held photodiodes (tilted
+    0-20 degrees) under LED tolerances (5 %, 3 degrees), 30 dB."""
+    impairments = Impairments(tilt_max_deg=20.0, led_amplitude_sd=0.05, led_half_power_sd_deg=3.0)
+    solver = GridlessSolver(fingerprint, "correlation", options)
+    layout = fingerprint.layout
+    errors, details = [], []
+    for seed in seeds:
+        truth = random_positions(layout, 8, rng=np.random.default_rng(2000 + seed))
+        simulated = simulate_terminals(layout, truth, impairments, snr_db=30.0, rng=seed)
+        measurement = measurement_from_amplitudes(simulated.amplitudes, "correlation", 16)
+        solution = solver.solve(measurement, 8)
+        assert solution.fit is not None
+        errors.append(mean_position_error(solution.positions, truth))
+        details.append(solution.fit.detail)
+    return errors, details
+
+
+def test_hand_held_photodiodes_tilts_are_fitted_after_the_tolerances(
+    paper_fingerprint: Fingerprint,
+) -> None:
+    """Where the joint fit is kept, the photodiodes' tilts are fitted from its optimum
+    (prior ``tolerance_tilt_sd``): on tilted terminals the answers land closer than the same fits
+    with the tilts held level, most of them (docs/real-rooms.md, "Tilts after the room's
+    tolerances"), and say so."""
+    seeds = range(16)
+    level, _ = _tilted_errors(paper_fingerprint, GridlessOptions(tolerance_tilt_sd=0.0), seeds)
+    tilted, details = _tilted_errors(paper_fingerprint, GridlessOptions(), seeds)
+    assert np.mean(tilted) < 0.95 * np.mean(level)
+    assert sum(a < b for a, b in zip(tilted, level, strict=True)) >= 10
+    assert any("the photodiodes' tilts" in detail for detail in details)
+
+
+def test_a_level_room_fits_no_tilts(paper_room: Layout) -> None:
+    """A layout whose photodiodes are level: the answers are those with the stage off."""
+    grid = dataclasses.replace(paper_room.grid, receivers_level=True)
+    fingerprint = build_fingerprint(dataclasses.replace(paper_room, grid=grid))
+    seeds = range(3)
+    off, _ = _tilted_errors(fingerprint, GridlessOptions(tolerance_tilt_sd=0.0), seeds)
+    default, details = _tilted_errors(fingerprint, GridlessOptions(), seeds)
+    assert default == off
+    assert not any("the photodiodes' tilts" in detail for detail in details)
+    assert any("tolerances were fitted" in detail for detail in details)
+
+
+def test_the_tilts_prior_is_the_layout_s_spread_else_the_hand_held_default(
+    paper_room: Layout, paper_fingerprint: Fingerprint
+) -> None:
+    def prior(fingerprint: Fingerprint, options: GridlessOptions) -> float:
+        return GridlessSolver(fingerprint, "correlation", options)._tolerance_tilt_sd()
+
+    spread = dataclasses.replace(paper_room.grid, receiver_tilt_sd=4.0)
+    declared = build_fingerprint(dataclasses.replace(paper_room, grid=spread))
+    assert prior(declared, GridlessOptions()) == pytest.approx(math.radians(4.0))
+    assert prior(paper_fingerprint, GridlessOptions()) == GridlessOptions().tolerance_tilt_sd
+    assert prior(paper_fingerprint, GridlessOptions(tolerance_tilt_sd=0.2)) == 0.2
+    assert prior(declared, GridlessOptions(tolerance_tilt_sd=0.0)) == 0.0

@@ -108,6 +108,15 @@ class GridlessOptions:
     led_log_amplitude_sd: float | None = 0.05
     led_half_power_sd_deg: float = 3.0
     room_tilt_sd: float = 0.0
+    # Where the tolerances are kept, the photodiodes' tilts are then fitted too, from the
+    # joint optimum, with the layout's ``receiver_tilt_sd`` as their prior, else this one
+    # (tangent sd, about radians: hand-held phones; 0.1 is 5.7 degrees per component,
+    # between the issue's realistic 0-10 and tilted 0-20 degree ranges, 4.1 and 8.2), unless
+    # the layout says its photodiodes are level (``receivers_level``). Not gated as
+    # ``tilt_sd``'s terminal fits are: the tilts lower the aggregated cost too little to tell
+    # a tilted room from a level one. 0: not fitted (docs/real-rooms.md, "Tilts after the
+    # room's tolerances").
+    tolerance_tilt_sd: float = 0.1
     tolerance_misfit_ratio: float = 1.1
     # The score test passes when the first Gauss-Newton step promises more than this times
     # the extra parameters' count (a room as modelled promises about half of it).

@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -145,6 +145,9 @@ class ToleranceFit:
         The whitened data cost at the optimum.
     dof : int
         Its degrees of freedom: values minus positions, gains, scale and noise.
+    tilts : ndarray of shape (K, 2) or None
+        Each photodiode's fitted tilt (tangent components, about radians); None where the
+        tilts were not fitted (then the covariances do not hold them).
     """
 
     state: FitState
@@ -153,6 +156,7 @@ class ToleranceFit:
     covariances: FloatArray
     chi2: float
     dof: int
+    tilts: FloatArray | None = None
 
 
 class _JointModel:
@@ -660,6 +664,7 @@ def fit_room_tolerances(
     significance: float,
     moves: GridMoves | None = None,
     score_ratio: float = 1.0,
+    tilt_stage_sd: float = 0.0,
 ) -> ToleranceFit | None:
     """MAP fit of positions, gains, scale, noise and the room's tolerances (module doc).
 
@@ -674,7 +679,8 @@ def fit_room_tolerances(
       tolerances is at its optimum, and must lower the cost by more than
       ``n + significance sqrt(2 n)``, the chi-square of ``n`` parameters by chance; else None.
 
-    Then more rounds follow, each in the metric of the previous one's gains.
+    Then more rounds follow, each in the metric of the previous one's gains, the long moves,
+    and (``tilt_stage_sd``) a stage with the photodiodes' tilts.
 
     Parameters
     ----------
@@ -692,6 +698,10 @@ def fit_room_tolerances(
         Long moves of each target tried after the rounds (None: none).
     score_ratio : float, default=1.0
         The score test's bar, in units of the extra parameters' count.
+    tilt_stage_sd : float, default=0.0
+        When the fit is kept and ``tolerances`` hold no tilts: each photodiode's tilt is then
+        fitted too, from the joint optimum, with this prior sd per tangent component (about
+        radians); 0: not.
 
     Returns
     -------
@@ -726,6 +736,19 @@ def fit_room_tolerances(
         theta, _ = _levenberg_marquardt(model, theta, white, white.data(values))
     if moves is not None:
         theta, white, model = _jumps(model, theta, noise, values, white, moves)
+    if tilt_stage_sd > 0 and model.n_tilts == 0:
+        # Hand-held photodiodes tilt. Fitted from the start, the tilts (nearly shifts of the
+        # positions) widen the gate's bar and the moves' reach, and many placements lost the
+        # whole joint fit; added here, from its optimum, they refine it. Not gated: a tilt
+        # lowers the cost little whether it is there or not (docs/real-rooms.md), so only
+        # the layout (receivers_level) can say there is none.
+        model = _JointModel(
+            kernel, model.heights, priors, replace(tolerances, tilt_sd=tilt_stage_sd)
+        )
+        theta = np.concatenate((theta[:-1], np.zeros(model.n_tilts), theta[-1:]))
+        for _ in range(_ROUNDS):
+            white = model.whitening(theta, noise)
+            theta, _ = _levenberg_marquardt(model, theta, white, white.data(values))
     residual, jacobian = model.residual_and_jacobian(theta, white, white.data(values))
     n_data, k = white.weights.shape[0], model.n_targets
     chi2 = float(residual[:n_data] @ residual[:n_data])
@@ -733,7 +756,7 @@ def fit_room_tolerances(
     inverse = np.linalg.pinv(jacobian.T @ jacobian, hermitian=True) * max(1.0, chi2 / dof)
     index = np.column_stack((np.arange(k), np.arange(k) + k))
     covariances = inverse[index[:, :, np.newaxis], index[:, np.newaxis, :]]
-    positions, log_gains, log_scale, amps, order_changes, _, noise = model.split(theta)
+    positions, log_gains, log_scale, amps, order_changes, tilts, noise = model.split(theta)
     fitted = FitState(
         positions.copy(),
         state.weights.copy(),
@@ -749,4 +772,5 @@ def fit_room_tolerances(
         np.asarray(covariances),
         chi2,
         dof,
+        tilts.T.copy() if model.n_tilts else None,
     )

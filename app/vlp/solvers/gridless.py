@@ -1117,7 +1117,13 @@ class GridlessSolver(Solver):
             # The joint fit's own information: its model holds what the nominal one misses.
             covariances = tolerances.covariances
             fit = assess_fit(tolerances.chi2, tolerances.dof, math.exp(0.5 * state.log_scale))
-        tilted = self._tilt_covariances(run, state)
+        # The layout's tilt spread widens the radii by what its tilts move the estimates,
+        # unless the joint fit fitted them (its covariances then hold them).
+        tilted = (
+            self._tilt_covariances(run, state)
+            if tolerances is None or tolerances.tilts is None
+            else None
+        )
         if tilted is not None:
             covariances = covariances + tilted
         far = self._aggregated_far_optima(run, state, covariances)
@@ -1130,11 +1136,18 @@ class GridlessSolver(Solver):
         if tolerances is not None:
             amplitude_rms = float(np.sqrt(np.mean(np.expm1(tolerances.led_log_amplitudes) ** 2)))
             angle_rms = float(np.sqrt(np.mean(tolerances.led_half_power_changes_deg**2)))
+            tilts = (
+                ""
+                if tolerances.tilts is None
+                else ", and the photodiodes' tilts "
+                f"({math.degrees(float(np.sqrt(np.mean(tolerances.tilts**2)))):.1f} deg rms "
+                "per component)"
+            )
             fit = replace(
                 fit,
                 detail=f"{fit.detail}; the LEDs' tolerances were fitted (amplitudes "
                 f"{100 * amplitude_rms:.1f} % and half-power angles {angle_rms:.1f} deg rms "
-                "from the layout): a survey calibration would measure them once",
+                f"from the layout){tilts}: a survey calibration would measure the LEDs once",
             )
         if not self._noise_identified and fit.quality != "scale_mismatch":
             # No noise level to hold the residuals against: no goodness-of-fit test.
@@ -1439,7 +1452,8 @@ class GridlessSolver(Solver):
         room exactly as modelled and cost it accuracy; the gate was chosen on three rooms and
         seven conditions (docs/real-rooms.md, "Room tolerances in the aggregated fit"). The
         joint fit then tries long moves of each target and the placements ``others`` (the
-        restarts' optima not picked), kept when they lower its cost (``tolerance_jumps``).
+        restarts' optima not picked), kept when they lower its cost (``tolerance_jumps``),
+        and last each photodiode's tilt (:meth:`_tolerance_tilt_sd`).
 
         Correlation model, K >= 2 (one target's LED errors cannot be told from its
         position), fixed unit weights and rooms whose Jacobian stays small (dense rooms).
@@ -1485,7 +1499,19 @@ class GridlessSolver(Solver):
             if opts.tolerance_jumps
             else None,
             opts.tolerance_score_ratio,
+            self._tolerance_tilt_sd(),
         )
+
+    def _tolerance_tilt_sd(self) -> float:
+        """The prior sd (per tangent component, about radians) of the photodiodes' tilts in
+        the joint fit's last stage: the layout's spread, else the hand-held default
+        (``tolerance_tilt_sd``); 0 where the layout's photodiodes are level or the stage is
+        off."""
+        opts = self.options
+        if opts.tolerance_tilt_sd <= 0 or self._receivers_level:
+            return 0.0
+        declared = math.radians(self.fingerprint.layout.grid.receiver_tilt_sd)
+        return declared if declared > 0 else opts.tolerance_tilt_sd
 
     def _uncertainty(self, run: _Run, state: FitState) -> tuple[FloatArray, FitQuality]:
         """Position covariances of the final whitened fit and the fit's quality.
