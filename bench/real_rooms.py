@@ -383,8 +383,10 @@ def _read_rows(path: Path) -> list[tuple[str, str, int, int, str, float]]:
     ]
 
 
-def _section(out: Path, tag: str, title: str, command: str, text: list[str]) -> Path:
-    body = [f"## {title}", "", f"Command: `{command.strip()}`.", "", *text]
+def _section(
+    out: Path, tag: str, title: str, command: str, elapsed: float, text: list[str]
+) -> Path:
+    body = [f"## {title}", "", f"Command: `{command.strip()}` ({elapsed:.0f} s).", "", *text]
     body += ["Machine:", "", machine_markdown(machine_record()), ""]
     path = out / "real-rooms.md"
     replace_section(path, tag, "\n".join(body), preamble="# Real rooms\n")
@@ -407,7 +409,12 @@ def _main_bounds(args: argparse.Namespace, rooms: list[str], trials: int, comman
     for room in rooms:
         text += [f"### Room `{room}`", "", bounds_table(rows, achieved, room, trials), ""]
     path = _section(
-        out, "real-rooms-bounds", f"Bounds with nuisances ({elapsed:.0f} s)", command, text
+        out,
+        "real-rooms-bounds",
+        "Bounds with nuisances (`bench/real_rooms.py --bounds`)",
+        command,
+        elapsed,
+        text,
     )
     print(f"{len(rows)} rows, {elapsed:.0f} s; wrote {path}")
     return 0
@@ -443,8 +450,9 @@ def _main_calibrated(args: argparse.Namespace, rooms: list[str], trials: int, co
     path = _section(
         out,
         "real-rooms-calibrated",
-        f"Realistic mix, uncalibrated vs survey calibration ({elapsed:.0f} s)",
+        "Realistic mix, uncalibrated vs survey calibration (`bench/real_rooms.py --calibrated`)",
         command,
+        elapsed,
         text,
     )
     print(f"{len(rows)} rows, {elapsed:.0f} s; wrote {path}")
