@@ -194,22 +194,20 @@ def test_reflectance_dataclass_checks_its_own_range() -> None:
     assert info.value.field == "grid.receiver_height_sd"
 
 
-@pytest.mark.parametrize("tilt_sd", [-1.0, 30.5, float("nan"), float("inf")])
-def test_tilt_spread_validation_names_the_field(tilt_sd: float) -> None:
+@pytest.mark.parametrize(
+    ("name", "value"),
+    [
+        *(("receiver_tilt_sd", tilt_sd) for tilt_sd in (-1.0, 30.5, float("nan"), float("inf"))),
+        # The level flag is a boolean only (not a number, not a word).
+        *(("receivers_level", level) for level in (1, "yes", 0.0)),
+    ],
+)
+def test_photodiode_fields_validation_names_the_field(name: str, value: object) -> None:
     mapping = _mapping()
-    mapping["grid"]["receiver_tilt_sd"] = tilt_sd
+    mapping["grid"][name] = value
     with pytest.raises(GeometryError) as info:
         layout_from_mapping(mapping)
-    assert info.value.field == "grid.receiver_tilt_sd"
-
-
-@pytest.mark.parametrize("level", [1, "yes", 0.0])
-def test_level_photodiodes_must_be_a_boolean(level: object) -> None:
-    mapping = _mapping()
-    mapping["grid"]["receivers_level"] = level
-    with pytest.raises(GeometryError) as info:
-        layout_from_mapping(mapping)
-    assert info.value.field == "grid.receivers_level"
+    assert info.value.field == f"grid.{name}"
 
 
 def test_level_photodiodes_with_a_tilt_spread_are_refused_naming_the_field() -> None:
