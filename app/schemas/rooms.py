@@ -120,10 +120,11 @@ class GridSpec(RequestModel):
     receivers_level: StrictBool = Field(
         default=False,
         description="the photodiodes face straight up (tags mounted level on carts, shelves "
-        "or robots): no terminal is fitted tilted and accuracy_m allows for no tilt. "
-        "false (hand-held phones, or not known): terminals are modelled level, but "
-        "accuracy_m also allows for the tilts their residuals may hide. Not with "
-        "receiver_tilt_sd > 0",
+        "or robots): no tilt is fitted and accuracy_m allows for none. false (hand-held "
+        "phones, or not known): terminals are fitted level unless their data ask for a "
+        "tilt, a room whose aggregated measurement shows it differs from its model gets "
+        "each target's tilt fitted, and accuracy_m also allows for the tilts the residuals "
+        "may hide. Not with receiver_tilt_sd > 0",
     )
 
 
