@@ -7,9 +7,9 @@ from collections.abc import Callable, Mapping
 
 from prometheus_client import CollectorRegistry, Counter, Histogram, Info
 
-from app.jobs.telemetry import JOB_STATUSES, JobsCollector, register_process_collectors
+from app.collectors import JobsCollector, register_process_collectors
 
-__all__ = ["JOB_STATUSES", "JobsCollector", "Metrics"]
+__all__ = ["Metrics"]
 
 _LATENCY_BUCKETS = (0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0)
 
