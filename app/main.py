@@ -144,7 +144,9 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
         await run_in_threadpool(registry.migrate)
         await run_in_threadpool(warm_up_solvers)  # compile the solver kernels before serving
         app.state.registry = registry
-        await run_in_threadpool(lambda: provision_keys(registry=registry, settings=settings))
+        credentials = await run_in_threadpool(
+            lambda: provision_keys(registry=registry, settings=settings)
+        )
         app.state.keys = KeyCache(registry=registry)
         demo_room = None
         if settings.demo:
@@ -171,16 +173,19 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
             workers.start()
         docs_url = f"{settings.public_url.rstrip('/')}/docs"
         demo_room_id = demo_room.id if demo_room is not None else None
-        # The message itself names the docs and the demo room: it is the line people read.
+        # The message itself names the docs, the demo room and the generated keys' file: it is
+        # the line people read.
         _log.info(
-            "service started: API docs at %s%s",
+            "service started: API docs at %s%s%s",
             docs_url,
             f", demo room {demo_room_id}" if demo_room_id else "",
+            f", generated API keys in {credentials} (`source` it)" if credentials else "",
             extra={
                 "data_dir": str(settings.data_dir),
                 "embedded_workers": settings.embedded_workers,
                 "docs_url": docs_url,
                 "demo_room_id": demo_room_id,
+                "credentials": None if credentials is None else str(credentials),
             },
         )
         try:

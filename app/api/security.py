@@ -4,8 +4,9 @@ Only sha256 hashes of keys are stored; which keys are in force is decided by the
 (:mod:`app.registry.keys`). At start, :func:`provision_keys` makes the stored environment
 keys those of ``VLP_ADMIN_KEYS`` / ``VLP_TERMINAL_KEYS`` (generated keys stop being in force
 once any are set). With none set and no admin key in force, it generates one admin and one
-terminal key, writes them to ``VLP_DATA_DIR/credentials`` (mode 0600) as ``export`` lines,
-and prints them once on stderr: never into a log record, which log collectors keep.
+terminal key and writes them to ``VLP_DATA_DIR/credentials`` (mode 0600) as ``export``
+lines. It prints them once on stderr only when stderr is a terminal: never into a log
+record or a redirected stream, which collectors keep (the start-up line names the file).
 
 :class:`KeyCache` answers the per-request question "which role has this key?" from memory
 for ``KEY_CACHE_TTL_S`` after it last read the key from the registry, so a key revoked by any
@@ -27,10 +28,10 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Literal
+from typing import Literal, TextIO
 
+from app.errors import RegistryError
 from app.registry import Registry
-from app.registry.errors import RegistryError
 from app.settings import MIN_KEY_LENGTH, Settings
 
 __all__ = [
@@ -217,8 +218,15 @@ def _upgrade_old_credentials(path: Path, *, registry: Registry, url: str) -> Non
     _log.info("credentials file rewritten with export lines", extra={"credentials": str(path)})
 
 
-def provision_keys(*, registry: Registry, settings: Settings) -> None:
-    """Sync the environment keys and generate the first pair when needed (module docstring)."""
+def provision_keys(*, registry: Registry, settings: Settings) -> Path | None:
+    """Sync the environment keys and generate the first pair when needed (module docstring).
+
+    Returns
+    -------
+    Path or None
+        The credentials file when generated keys are in force and it is there (the start-up
+        line names it), else None.
+    """
     configured = [(hash_key(key), "admin") for key in settings.admin_key_list()]
     configured += [(hash_key(key), "terminal") for key in settings.terminal_key_list()]
     revoked, deleted = registry.sync_environment_keys(configured=configured)
@@ -235,18 +243,31 @@ def provision_keys(*, registry: Registry, settings: Settings) -> None:
         )
     if configured or registry.count_active_admin_keys() > 0:
         _upgrade_old_credentials(credentials, registry=registry, url=settings.public_url)
-        return
+        return None if configured or not credentials.exists() else credentials
     admin_key, terminal_key = generate_key(), generate_key()
     pair = [(hash_key(admin_key), "admin"), (hash_key(terminal_key), "terminal")]
     if not registry.add_generated_keys_if_no_admin(keys=pair):
-        return  # another process starting at the same time generated them
+        # Another process starting at the same time generated them.
+        return credentials if credentials.exists() else None
     _write_credentials(
         credentials, url=settings.public_url, admin_key=admin_key, terminal_key=terminal_key
     )
-    sys.stderr.write(
+    _show_generated_keys(sys.stderr, credentials, admin_key=admin_key, terminal_key=terminal_key)
+    _log.info("generated an admin and a terminal key", extra={"credentials": str(credentials)})
+    return credentials
+
+
+def _show_generated_keys(
+    stream: TextIO, credentials: Path, *, admin_key: str, terminal_key: str
+) -> None:
+    """Print the generated keys on ``stream`` when it is a terminal, which a person reads;
+    anything else (a pipe, a file, a container's log) is collected and kept, so there the
+    keys stay in the credentials file alone."""
+    if not stream.isatty():
+        return
+    stream.write(
         "\nNo API keys configured: generated these (shown only now; only their hashes are "
         f"stored).\n  admin key:    {admin_key}\n  terminal key: {terminal_key}\n"
         f"They are also in {credentials} (mode 0600): `source {credentials}`.\n\n"
     )
-    sys.stderr.flush()
-    _log.info("generated an admin and a terminal key", extra={"credentials": str(credentials)})
+    stream.flush()

@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 import logging
+import os
+import select
 import stat
 import subprocess
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -200,10 +203,13 @@ def test_first_start_generates_keys_once(
         assert keys["VLP_ADMIN_KEYS"] == admin and keys["VLP_TERMINAL_KEYS"] == terminal
         assert keys["VLP_URL"] == "http://127.0.0.1:8123"
         assert len(admin) >= 40 and len(terminal) >= 40 and admin != terminal
-        # Shown once on the terminal, never in a log record.
+        # stderr is captured here, not a terminal: the keys stay in the file, and the
+        # start-up line says where it is (the terminal case: the pseudo-terminal test below).
         printed = capsys.readouterr().err
-        assert admin in printed and terminal in printed
+        assert admin not in printed and terminal not in printed
         assert admin not in caplog.text and terminal not in caplog.text
+        started = [r.getMessage() for r in caplog.records if "service started" in r.getMessage()]
+        assert len(started) == 1 and f"generated API keys in {path}" in started[0]
         assert (
             client.post("/v1/rooms", json=small_room(), headers={"X-API-Key": admin}).status_code
             == 201
@@ -223,6 +229,40 @@ def test_first_start_generates_keys_once(
     with TestClient(create_app(settings)) as client:
         assert not path.exists() and admin not in capsys.readouterr().err
         assert client.get("/v1/rooms", headers={"X-API-Key": admin}).status_code == 200
+
+
+def test_generated_keys_are_printed_only_on_a_terminal(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """With stderr a pseudo-terminal the generated keys are shown there once; never in a log."""
+    settings = make_settings(tmp_path, admin_keys="", terminal_keys="")
+    leader, follower = os.openpty()
+    with os.fdopen(follower, "w", encoding="utf-8") as terminal_stderr:
+        monkeypatch.setattr(sys, "stderr", terminal_stderr)
+        with caplog.at_level(logging.DEBUG), TestClient(create_app(settings)):
+            pass
+    shown = _drain(leader)
+    keys = _credentials(tmp_path / CREDENTIALS_FILE)
+    text = shown.decode("utf-8")
+    assert keys["ADMIN_KEY"] in text and keys["TERMINAL_KEY"] in text
+    assert str(tmp_path / CREDENTIALS_FILE) in text
+    assert keys["ADMIN_KEY"] not in caplog.text and keys["TERMINAL_KEY"] not in caplog.text
+
+
+def _drain(leader: int) -> bytes:
+    """What the terminal's side of a pseudo-terminal holds (its other side closed)."""
+    shown = b""
+    try:
+        while select.select([leader], [], [], 0)[0]:
+            chunk = os.read(leader, 65536)
+            if not chunk:
+                break
+            shown += chunk
+    except OSError:  # EIO: everything written was read and the other side is closed
+        pass
+    finally:
+        os.close(leader)
+    return shown
 
 
 def _wal_has(data_dir: Path, text: str) -> bool:
