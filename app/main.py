@@ -22,7 +22,6 @@ from app.api import api_router
 from app.api.docs import install_docs
 from app.api.errors import PROBLEM_MEDIA_TYPE, install_error_handlers, problem_example
 from app.api.middleware import BodySizeLimitMiddleware, RequestContextMiddleware
-from app.api.picture_cache import PictureCache
 from app.api.security import KeyCache, provision_keys
 from app.clock import Clock, SystemClock
 from app.jobs import EmbeddedWorkers
@@ -31,6 +30,7 @@ from app.registry import Registry
 from app.registry.seed import find_demo_room, seed_demo_room
 from app.services.epoch_settler import EpochSettler
 from app.services.fingerprint_cache import FingerprintCache
+from app.services.picture_cache import PictureCache
 from app.settings import Settings, get_settings
 from app.telemetry import Metrics
 from app.vlp.solvers import warm_up as warm_up_solvers

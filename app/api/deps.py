@@ -14,11 +14,11 @@ from starlette.concurrency import run_in_threadpool
 
 from app.registry import Registry
 from app.services.fingerprint_cache import FingerprintCache
+from app.services.picture_cache import PictureCache
 from app.settings import Settings
 from app.telemetry import Metrics
 
 from .errors import ApiProblem, ProblemKind
-from .picture_cache import PictureCache
 from .security import KeyCache, Role
 
 __all__ = [

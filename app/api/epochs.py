@@ -15,16 +15,16 @@ from typing import Annotated
 from fastapi import APIRouter, Body, Depends, Path, Request, Response, status
 from starlette.concurrency import run_in_threadpool
 
-from app.registry.records import EpochRecord, EpochSettings
-from app.schemas import Epoch, EpochCreate, EpochMeasurement, Localization
+from app.schemas import Epoch, EpochCreate, EpochMeasurement
 from app.schemas.epochs import epoch_create_examples, epoch_measurement_examples
 from app.services.epoch_settler import EpochSettler
-from app.services.epochs import open_epoch, post_to_epoch
+from app.services.epochs import open_requested_epoch, post_to_epoch
+from app.services.public import epoch_public
 
 from .deps import AnyRole, RegistryDep, RoomId, SettingsDep
-from .errors import InvalidInput, problem_responses
+from .errors import problem_responses
 
-__all__ = ["epoch_public", "router"]
+__all__ = ["router"]
 
 router = APIRouter(prefix="/v1/rooms", tags=["epochs"])
 # How often a solve request looks again while another process is solving the epoch.
@@ -42,28 +42,6 @@ def get_settler(request: Request) -> EpochSettler:
 
 
 SettlerDep = Annotated[EpochSettler, Depends(get_settler)]
-
-
-def epoch_public(record: EpochRecord) -> Epoch:
-    """The public form of an epoch record."""
-    settings = record.settings
-    return Epoch(
-        id=record.id,
-        room_id=record.room_id,
-        status="open" if record.status == "solving" else record.status,
-        closed=record.status != "open",
-        terminals=record.terminals,
-        created_at=record.created_at,
-        expires_at=record.expires_at,
-        model=settings.model,
-        solver=settings.solver,
-        targets=settings.targets,
-        min_terminals=settings.min_terminals,
-        window_s=settings.window_s,
-        fingerprint_version=settings.fingerprint_version,
-        localization=(None if record.localization is None else Localization(**record.localization)),
-        error=record.error,
-    )
 
 
 @router.post(
@@ -89,28 +67,8 @@ def create_epoch(
     The epoch uses the room's current fingerprint (409 while there is none).
     """
     body = body or EpochCreate()
-    if body.min_terminals > settings.epoch_max_terminals:
-        raise InvalidInput(
-            [
-                (
-                    "body.min_terminals",
-                    f"at most {settings.epoch_max_terminals} terminals may join an epoch, "
-                    f"so min_terminals {body.min_terminals} could never be reached",
-                )
-            ]
-        )
-    wanted = EpochSettings(
-        model=body.model,
-        solver=body.solver,
-        targets=body.targets,
-        min_terminals=body.min_terminals,
-        max_terminals=settings.epoch_max_terminals,
-        window_s=body.window_s,
-        fingerprint_version=0,  # pinned by open_epoch
-        leds=0,
-    )
-    record = open_epoch(
-        registry, room_id=room_id, settings=wanted, fingerprint_version=body.fingerprint_version
+    record = open_requested_epoch(
+        registry, room_id=room_id, body=body, max_terminals=settings.epoch_max_terminals
     )
     response.headers["Location"] = f"/v1/rooms/{room_id}/epochs/{record.id}"
     return epoch_public(record)

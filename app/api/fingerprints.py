@@ -7,22 +7,15 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Path, Response, status
 from fastapi.responses import FileResponse
 
-from app.registry import FingerprintRecord, JobRecord
-from app.registry.errors import MatrixNotFound
-from app.schemas import Fingerprint, FingerprintsList, Job, JobResult, MatrixMeta, MatrixName
+from app.errors import MatrixNotFound
+from app.schemas import Fingerprint, FingerprintsList, Job, MatrixName
 from app.services.matrices import rebuilding_if_corrupt
+from app.services.public import fingerprint_public, job_public
 
 from .deps import AdminRole, AnyRole, JobId, RegistryDep, RoomId
 from .errors import ApiProblem, ProblemKind, problem_responses
 
-__all__ = [
-    "JOB_ACCEPTED_HEADERS",
-    "JOB_POLL_AFTER_S",
-    "fingerprint_public",
-    "job_public",
-    "jobs_router",
-    "router",
-]
+__all__ = ["JOB_ACCEPTED_HEADERS", "JOB_POLL_AFTER_S", "jobs_router", "router"]
 
 # A 202 names the job to poll (Location) and how long to wait before the first poll.
 JOB_POLL_AFTER_S = 1
@@ -52,51 +45,6 @@ _BINARY: dict[int | str, dict[str, Any]] = {
         "headers": {"ETag": {"schema": {"type": "string"}, "description": "the file's sha256"}},
     }
 }
-
-
-def fingerprint_public(record: FingerprintRecord) -> Fingerprint:
-    """The public form of a fingerprint record."""
-    return Fingerprint(
-        version=record.version,
-        room_id=record.room_id,
-        layout_version=record.layout_version,
-        leds=record.leds,
-        grid_points=record.grid_points,
-        built_at=record.built_at,
-        build_seconds=record.build_seconds,
-        job_id=record.job_id,
-        calibration_id=record.calibration_id,
-        masked_leds=list(record.masked_leds),
-        matrices={
-            name: MatrixMeta(shape=list(info.shape), sha256=info.sha256, format=info.format)
-            for name, info in record.matrices.items()
-        },
-    )
-
-
-def job_public(record: JobRecord) -> Job:
-    """The public form of a job record."""
-    result = (
-        JobResult(
-            fingerprint_version=record.fingerprint_version, calibration_id=record.calibration_id
-        )
-        if record.fingerprint_version is not None
-        else None
-    )
-    return Job(
-        id=record.id,
-        kind=record.kind,
-        room_id=record.room_id,
-        status=record.status,
-        progress=record.progress,
-        error=record.error,
-        created_at=record.created_at,
-        started_at=record.started_at,
-        finished_at=record.finished_at,
-        result=result,
-        attempts=record.attempts,
-        layout_version=record.layout_version,
-    )
 
 
 def _version(value: str) -> int | None:

@@ -6,8 +6,8 @@ from typing import Annotated
 
 from fastapi import APIRouter, Path, Response, status
 
-from app.registry.records import KeyRecord
-from app.schemas import ApiKey, ApiKeyCreate, ApiKeyCreated, ApiKeysList
+from app.schemas import ApiKeyCreate, ApiKeyCreated, ApiKeysList
+from app.services.public import created_key_public, key_public
 
 from .deps import AdminRole, KeysDep, RegistryDep
 from .errors import problem_responses
@@ -20,19 +20,6 @@ router = APIRouter(prefix="/v1/keys", tags=["keys"])
 KeyId = Annotated[
     str, Path(max_length=64, description="the key's `id` (from `GET /v1/keys`), not the secret")
 ]
-
-
-def _public(record: KeyRecord) -> ApiKey:
-    return ApiKey.model_validate(
-        {
-            "id": record.id,
-            "role": record.role,
-            "label": record.label,
-            "created_at": record.created_at,
-            "last_used_at": record.last_used_at,
-            "source": record.source,
-        }
-    )
 
 
 @router.post(
@@ -50,21 +37,13 @@ def create_key(body: ApiKeyCreate, registry: RegistryDep, _role: AdminRole) -> A
     record = registry.create_api_key(
         key_hash=hash_key(key), role=body.role, label=body.label, source="api"
     )
-    return ApiKeyCreated.model_validate(
-        {
-            "id": record.id,
-            "role": record.role,
-            "label": record.label,
-            "key": key,
-            "created_at": record.created_at,
-        }
-    )
+    return created_key_public(record, key=key)
 
 
 @router.get("", summary="List API keys", responses=problem_responses(401, 403))
 def list_keys(registry: RegistryDep, _role: AdminRole) -> ApiKeysList:
     """The keys in force (never their secrets), oldest first."""
-    return ApiKeysList(items=[_public(record) for record in registry.list_api_keys()])
+    return ApiKeysList(items=[key_public(record) for record in registry.list_api_keys()])
 
 
 @router.delete(

@@ -22,8 +22,7 @@ from fastapi.responses import JSONResponse
 from pydantic import ValidationError
 from starlette.concurrency import run_in_threadpool
 
-from app.errors import InvalidFields, VLPError
-from app.registry.errors import CorruptMatrix, FingerprintNotFound
+from app.errors import CorruptMatrix, FingerprintNotFound, InvalidFields, VLPError
 from app.schemas import LocalizationBatch, Measurement, MeasurementBatch
 from app.services.fingerprint_cache import FingerprintCache
 from app.services.localization import localize_measurement

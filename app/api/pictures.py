@@ -1,26 +1,19 @@
 """Pictures: the room plan (``map.png``) and estimates against the truth (``localization.png``).
 
-The plan is drawn from the layout of a fingerprint version (the current one by default, so
-a calibrated room shows its fitted beams and no masked LEDs), or from the room's layout
-while no fingerprint is ready. Rendered PNGs are kept in the process's
-:class:`~app.api.picture_cache.PictureCache`, keyed by room, version and options.
+What is drawn, and how plans are cached, is :mod:`app.services.pictures`.
 """
 
 from __future__ import annotations
 
 from typing import Annotated, Any, Literal
 
-import numpy as np
 from fastapi import APIRouter, Header, Query, Response
 from starlette.concurrency import run_in_threadpool
 
-from app.pictures import localization_png, room_map_png
-from app.registry import Registry
-from app.registry.errors import FingerprintNotReady
 from app.schemas import LocalizationPlot
 from app.schemas.common import MAX_VERSION
-from app.services.fingerprint_cache import FingerprintCache
-from app.vlp.layout import Layout, layout_from_mapping
+from app.services.pictures import localization_picture as draw_localization
+from app.services.pictures import room_map as draw_room_map
 
 from .deps import AnyRole, CacheDep, PicturesDep, RegistryDep, RoomId
 from .errors import problem_responses
@@ -42,21 +35,6 @@ _PNG: dict[int | str, dict[str, Any]] = {
         },
     }
 }
-
-
-def _layout_for(
-    room_id: str, version: int | None, registry: Registry, cache: FingerprintCache
-) -> tuple[Layout, int | None, int]:
-    """``(layout, fingerprint version or None, room layout version)`` to draw."""
-    room = registry.get_room(room_id=room_id)
-    if version is None:
-        try:
-            version = cache.current_version(room_id)
-        except FingerprintNotReady:
-            return layout_from_mapping(room.layout), None, room.layout_version
-    else:
-        registry.get_fingerprint(room_id=room_id, version=version)  # 404 when unknown
-    return cache.fingerprint(room_id, version).layout, version, room.layout_version
 
 
 def _headers(etag: str, version: int | None, *, pinned: bool) -> dict[str, str]:
@@ -104,21 +82,23 @@ async def room_map(
     Cached per (room, fingerprint version, options): a new version draws anew. Answers 304
     to a matching `If-None-Match`.
     """
-    layout, version, layout_version = await run_in_threadpool(
-        _layout_for, room_id, fingerprint_version, registry, cache
-    )
-    source = ("fingerprint", version) if version is not None else ("layout", layout_version)
-    key = (room_id, *source, heatmap, float(snr_db), width_px)
-    picture = pictures.get(key)
-    if picture is None:
-        png = await run_in_threadpool(
-            lambda: room_map_png(layout, heatmap=heatmap, snr_db=snr_db, width_px=width_px)
+    plan = await run_in_threadpool(
+        lambda: draw_room_map(
+            registry,
+            cache,
+            pictures,
+            room_id=room_id,
+            fingerprint_version=fingerprint_version,
+            heatmap=heatmap,
+            snr_db=snr_db,
+            width_px=width_px,
         )
-        picture = pictures.put(key, png)
-    headers = _headers(picture.etag, version, pinned=fingerprint_version is not None)
-    if if_none_match is not None and picture.etag in {t.strip() for t in if_none_match.split(",")}:
+    )
+    etag = plan.picture.etag
+    headers = _headers(etag, plan.fingerprint_version, pinned=fingerprint_version is not None)
+    if if_none_match is not None and etag in {t.strip() for t in if_none_match.split(",")}:
         return Response(status_code=304, headers=headers)
-    return Response(content=picture.png, media_type="image/png", headers=headers)
+    return Response(content=plan.picture.png, media_type="image/png", headers=headers)
 
 
 @router.post(
@@ -136,27 +116,10 @@ async def localization_picture(
     Paste a localization's `estimates` and a simulation's `truth` as they are (their other
     fields are ignored).
     """
-    layout, version, _ = await run_in_threadpool(
-        _layout_for, room_id, body.fingerprint_version, registry, cache
-    )
-    estimates = np.array([[p.x, p.y] for p in body.estimates], dtype=np.float64).reshape(-1, 2)
-    truth = (
-        None
-        if body.truth is None
-        else np.array([[p.x, p.y] for p in body.truth], dtype=np.float64).reshape(-1, 2)
-    )
-    labels = [p.terminal_id for p in body.estimates]
-    png = await run_in_threadpool(
-        lambda: localization_png(
-            layout,
-            estimates,
-            truth,
-            labels=labels if any(labels) else None,
-            width_px=body.width_px,
-            title=body.title,
-        )
+    drawn = await run_in_threadpool(
+        lambda: draw_localization(registry, cache, room_id=room_id, body=body)
     )
     headers = {"Cache-Control": "no-store"}
-    if version is not None:
-        headers["X-Fingerprint-Version"] = str(version)
-    return Response(content=png, media_type="image/png", headers=headers)
+    if drawn.fingerprint_version is not None:
+        headers["X-Fingerprint-Version"] = str(drawn.fingerprint_version)
+    return Response(content=drawn.png, media_type="image/png", headers=headers)

@@ -2,64 +2,21 @@
 
 from __future__ import annotations
 
-import math
-from typing import Annotated, Any
+from typing import Annotated
 
 from fastapi import APIRouter, Header, Query, Response, status
 
 from app.registry import RoomRecord
-from app.schemas import FingerprintState, Room, RoomLayout, RoomsPage
-from app.settings import Settings
-from app.vlp.layout import layout_from_mapping
+from app.schemas import Room, RoomLayout, RoomsPage
+from app.services import rooms as room_service
+from app.services.public import room_public
 
 from .deps import AdminRole, AnyRole, CacheDep, RegistryDep, RoomId, SettingsDep
-from .errors import ApiProblem, InvalidInput, ProblemKind, problem_responses
+from .errors import ApiProblem, ProblemKind, problem_responses
 
-__all__ = ["room_public", "router", "validated_layout"]
+__all__ = ["router"]
 
 router = APIRouter(prefix="/v1/rooms", tags=["rooms"])
-
-
-def room_public(record: RoomRecord) -> Room:
-    """The public form of a room record."""
-    return Room(
-        id=record.id,
-        name=record.name,
-        layout=record.layout,
-        layout_version=record.layout_version,
-        created_at=record.created_at,
-        updated_at=record.updated_at,
-        fingerprint=FingerprintState(
-            status=record.fingerprint_status,
-            version=record.fingerprint_version,
-            job_id=record.job_id,
-        ),
-    )
-
-
-def validated_layout(body: RoomLayout, settings: Settings) -> dict[str, Any]:
-    """The layout mapping with defaults applied, after the size limits and geometry checks.
-
-    The grid size is computed from the numbers alone, before anything is allocated.
-    """
-    if len(body.leds) > settings.max_leds:
-        raise InvalidInput(
-            [("body.leds", f"at most {settings.max_leds} LEDs are allowed, got {len(body.leds)}")]
-        )
-    step = body.grid.step
-    points = (body.room.length / step) * (body.room.width / step)
-    if not math.isfinite(points) or points > settings.max_grid_points * (1 + 1e-9):
-        raise InvalidInput(
-            [
-                (
-                    "body.grid.step",
-                    f"grid.step {step!r} m gives about {points:.3g} grid points; at "
-                    f"most {settings.max_grid_points} are allowed",
-                )
-            ]
-        )
-    layout = layout_from_mapping(body.model_dump())
-    return layout.to_mapping()
 
 
 def _set_room_headers(response: Response, record: RoomRecord) -> None:
@@ -93,7 +50,7 @@ def create_room(
     The answer's `fingerprint.job_id` is the build job; the room can localize once
     `fingerprint.status` is `ready`.
     """
-    record = registry.create_room(name=body.name, layout=validated_layout(body, settings))
+    record = room_service.create_room(registry, body=body, settings=settings)
     _set_room_headers(response, record)
     return room_public(record)
 
@@ -137,15 +94,10 @@ def get_room(
     """The room, with its `ETag` (send it back in `If-Match` to replace the room, or in
     `If-None-Match` to get a bodiless 304 while the room is unchanged)."""
     record = registry.get_room(room_id=room_id)
-    if if_none_match is not None and _matches(if_none_match, record.etag):
+    if if_none_match is not None and room_service.etag_matches(if_none_match, record.etag):
         return Response(status_code=status.HTTP_304_NOT_MODIFIED, headers={"ETag": record.etag})
     response.headers["ETag"] = record.etag
     return room_public(record)
-
-
-def _matches(if_match: str, etag: str) -> bool:
-    candidates = [part.strip() for part in if_match.split(",")]
-    return "*" in candidates or etag in candidates
 
 
 @router.put(
@@ -176,22 +128,9 @@ def replace_room(
             "send the room's current ETag in If-Match to replace it",
             kind=ProblemKind.PRECONDITION_REQUIRED,
         )
-    layout = validated_layout(body, settings)
-    current = registry.get_room(room_id=room_id)
-    if not _matches(if_match, current.etag):
-        raise ApiProblem(
-            412,
-            f"If-Match {if_match} is not the room's current ETag "
-            f"{current.etag}; read the room again",
-            kind=ProblemKind.PRECONDITION_FAILED,
-        )
-    record = registry.replace_room(
-        room_id=room_id,
-        name=body.name,
-        layout=layout,
-        expected_layout_version=current.layout_version,
+    record = room_service.replace_room(
+        registry, cache, room_id=room_id, body=body, settings=settings, if_match=if_match
     )
-    cache.forget(room_id)
     _set_room_headers(response, record)
     return room_public(record)
 

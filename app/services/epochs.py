@@ -9,12 +9,50 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import replace
 
+from app.errors import InvalidFields
 from app.registry import Registry
 from app.registry.records import EpochRecord, EpochSettings
+from app.schemas import EpochCreate
 
 from .masking import fit_to_fingerprint
 
-__all__ = ["open_epoch", "post_to_epoch"]
+__all__ = ["open_epoch", "open_requested_epoch", "post_to_epoch"]
+
+
+def open_requested_epoch(
+    registry: Registry, *, room_id: str, body: EpochCreate, max_terminals: int
+) -> EpochRecord:
+    """Open the epoch a request asks for, with at most ``max_terminals`` terminals.
+
+    Raises
+    ------
+    InvalidFields
+        ``min_terminals`` above ``max_terminals`` (the epoch could never be solved).
+    RoomNotFound, FingerprintNotReady, FingerprintNotFound
+    """
+    if body.min_terminals > max_terminals:
+        raise InvalidFields(
+            [
+                (
+                    "min_terminals",
+                    f"at most {max_terminals} terminals may join an epoch, "
+                    f"so min_terminals {body.min_terminals} could never be reached",
+                )
+            ]
+        )
+    wanted = EpochSettings(
+        model=body.model,
+        solver=body.solver,
+        targets=body.targets,
+        min_terminals=body.min_terminals,
+        max_terminals=max_terminals,
+        window_s=body.window_s,
+        fingerprint_version=0,  # pinned by open_epoch
+        leds=0,
+    )
+    return open_epoch(
+        registry, room_id=room_id, settings=wanted, fingerprint_version=body.fingerprint_version
+    )
 
 
 def open_epoch(

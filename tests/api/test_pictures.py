@@ -8,8 +8,8 @@ import io
 import pytest
 from PIL import Image
 
-from app.api.picture_cache import PictureCache
 from app.schemas.rooms import paper_room_example
+from app.services.picture_cache import PictureCache
 
 from .conftest import (
     ADMIN,

@@ -8,7 +8,7 @@ from typing import Any
 
 import pytest
 
-import app.api.rooms
+import app.services.rooms
 from app.schemas.rooms import paper_room_example
 from app.vlp.layout import layout_from_mapping
 
@@ -207,7 +207,7 @@ def test_tiny_grid_step_is_refused_before_any_allocation(
     def refuse_to_build(*_args: object, **_kwargs: object) -> None:
         raise AssertionError("the layout was built before its grid size was checked")
 
-    monkeypatch.setattr(app.api.rooms, "layout_from_mapping", refuse_to_build)
+    monkeypatch.setattr(app.services.rooms, "layout_from_mapping", refuse_to_build)
     tracemalloc.start()
     try:
         response = client.post("/v1/rooms", json=body, headers=ADMIN)
