@@ -1,6 +1,6 @@
 """The ``vlp`` console script.
 
-``serve``, ``worker``, ``migrate``, ``openapi`` and ``bench`` run here; ``rooms``, ``simulate`` and
+``serve``, ``worker``, ``migrate`` and ``openapi`` run here; ``rooms``, ``simulate`` and
 ``localize`` talk to a running service through :class:`app.client.VLPClient` (``--json`` for
 scripts, tables and progress bars otherwise).
 
@@ -19,7 +19,6 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from ._bench import BENCHMARKS, run_benchmark
 from ._remote import add_remote_commands
 from ._workers import EXIT_STARTUP_FAILURE as _EXIT_STARTUP_FAILURE
 from ._workers import SharedPort, bind_listening_socket, reuse_port_available
@@ -235,20 +234,8 @@ def _parser() -> argparse.ArgumentParser:
     )
     openapi.set_defaults(handler=_openapi)
 
-    bench = commands.add_parser(
-        "bench", help="run a benchmark from bench/ (repository root); ARGS go to it"
-    )
-    bench.add_argument("benchmark", choices=BENCHMARKS)
-    bench.add_argument("args", nargs=argparse.REMAINDER, help="passed to bench.NAME")
-    bench.set_defaults(handler=_bench)
-
     add_remote_commands(commands)
     return parser
-
-
-def _bench(args: argparse.Namespace) -> int:
-    _pin_blas()
-    return run_benchmark(f"bench.{args.benchmark}", args.args)
 
 
 def _run_remote(args: argparse.Namespace) -> int:

@@ -13,10 +13,9 @@ import pytest
 
 from app.cli import EXIT_NO_ANSWER, EXIT_REFUSED, EXIT_USAGE, main
 from app.cli import _remote as remote_commands
-from app.cli._bench import run_benchmark
 from app.client import VLPClient
 from app.schemas.localize import localize_example
-from bench._server import ADMIN_KEY, TERMINAL_KEY, LiveServer, live_server
+from tests.live_server import ADMIN_KEY, TERMINAL_KEY, LiveServer, live_server
 
 REPO = Path(__file__).resolve().parents[2]
 PAPER_ROOM = REPO / "examples" / "paper-room.json"
@@ -185,15 +184,3 @@ def test_calibrate_posts_the_survey_and_prints_the_report(
         ("GET", "/v1/jobs/j1"),
         ("GET", "/v1/rooms/r1/calibrations/c9"),
     ]
-
-
-def test_bench_passes_its_arguments_through(capsys: pytest.CaptureFixture[str]) -> None:
-    with pytest.raises(SystemExit) as done:
-        main(["bench", "http", "--help"])
-    assert done.value.code == 0
-    assert "--concurrency" in capsys.readouterr().out  # bench.http's own options
-
-
-def test_bench_names_a_missing_module(capsys: pytest.CaptureFixture[str]) -> None:
-    assert run_benchmark("bench.not_written_yet", []) == 2
-    assert "no module bench.not_written_yet" in capsys.readouterr().err
