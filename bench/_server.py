@@ -1,7 +1,7 @@
-"""Run a real ``vlp serve`` process on a free loopback port (benchmarks and end-to-end tests).
+"""A real ``vlp serve`` process for the benchmarks that measure through HTTP.
 
-The server binds port 0 itself and writes the port it got to a file (``--port-file``), so no
-other process can take the port between choosing and binding it.
+The server binds a free loopback port itself and reports it in a file; it imports the
+``app`` of this source tree and knows two keys, one per role.
 """
 
 from __future__ import annotations
@@ -19,9 +19,10 @@ import httpx
 
 from ._common import REPO_ROOT
 
-ADMIN_KEY = "e2e-admin-key-0123456789"
-TERMINAL_KEY = "e2e-terminal-key-0123456789"
-VLP = Path(sys.executable).with_name("vlp")
+__all__ = ["ADMIN_KEY", "TERMINAL_KEY", "LiveServer", "live_server", "ready_demo_room"]
+
+ADMIN_KEY = "bench-admin-key-0123456789"
+TERMINAL_KEY = "bench-terminal-key-0123456789"
 
 
 @dataclass(frozen=True)
@@ -33,80 +34,39 @@ class LiveServer:
     process: subprocess.Popen[bytes]
 
 
-def serve_args(port_file: Path) -> list[str]:
-    """Arguments of ``vlp serve`` for a loopback port of the kernel's choosing, reported in
-    ``port_file``."""
-    return ["--host", "127.0.0.1", "--port", "0", "--port-file", str(port_file)]
-
-
-def bound_url(port_file: Path, process: subprocess.Popen[bytes], timeout_s: float) -> str:
-    """The base URL of a server started with :func:`serve_args`, once it has bound.
+@contextmanager
+def live_server(data_dir: Path, *, timeout_s: float = 120.0, **env: str) -> Iterator[LiveServer]:
+    """Start ``vlp serve`` (BLAS on one thread, ``env`` added) until it is ready; stop it on
+    exit.
 
     Raises
     ------
     RuntimeError
-        When the process exits first.
+        When the server exits before it is ready.
     TimeoutError
-        When no port is reported within ``timeout_s`` (a safety timeout).
+        When it is not ready within ``timeout_s``.
     """
-    deadline = time.monotonic() + timeout_s
-    while not port_file.exists():
-        if process.poll() is not None:
-            raise RuntimeError(f"server exited early with code {process.returncode}")
-        if time.monotonic() > deadline:
-            raise TimeoutError(f"the server reported no port in {port_file} after {timeout_s} s")
-        time.sleep(0.05)
-    return f"http://127.0.0.1:{int(port_file.read_text(encoding='utf-8'))}"
-
-
-def server_env(data_dir: Path, **extra: str) -> dict[str, str]:
-    """Environment for a server process with known keys and one-thread BLAS, importing the
-    ``app`` of this source tree (the ``vlp`` command would else import the one installed in
-    the environment: a benchmark started from another checkout would time this one)."""
-    env = dict(os.environ)
-    env.update(
-        PYTHONPATH=os.pathsep.join(
-            part for part in (str(REPO_ROOT), os.environ.get("PYTHONPATH", "")) if part
-        ),
-        VLP_DATA_DIR=str(data_dir),
-        VLP_ADMIN_KEYS=ADMIN_KEY,
-        VLP_TERMINAL_KEYS=TERMINAL_KEY,
-        OPENBLAS_NUM_THREADS="1",
-        OMP_NUM_THREADS="1",
-    )
-    env.update(extra)
-    return env
-
-
-def wait_until_healthy(url: str, process: subprocess.Popen[bytes], timeout_s: float) -> None:
-    """Poll ``/readyz`` until it answers 200; fail if the process exits first."""
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if process.poll() is not None:
-            raise RuntimeError(f"server exited early with code {process.returncode}")
-        try:
-            if httpx.get(f"{url}/readyz", timeout=1.0).status_code == 200:
-                return
-        except httpx.HTTPError:
-            pass
-        time.sleep(0.1)
-    raise TimeoutError(f"server at {url} not ready after {timeout_s} s")
-
-
-@contextmanager
-def live_server(data_dir: Path, *, timeout_s: float = 120.0, **env: str) -> Iterator[LiveServer]:
-    """Start ``vlp serve`` on a free port; stop it (SIGTERM, then SIGKILL) on exit."""
     port_file = data_dir / "serve.port"
     port_file.unlink(missing_ok=True)
+    python_path = os.pathsep.join(filter(None, (str(REPO_ROOT), os.environ.get("PYTHONPATH"))))
+    vlp = Path(sys.executable).with_name("vlp")
     process = subprocess.Popen(
-        [str(VLP), "serve", *serve_args(port_file)],
-        env=server_env(data_dir, **env),
+        [str(vlp), "serve", "--host", "127.0.0.1", "--port", "0", "--port-file", str(port_file)],
+        env={
+            **os.environ,
+            "PYTHONPATH": python_path,
+            "VLP_DATA_DIR": str(data_dir),
+            "VLP_ADMIN_KEYS": ADMIN_KEY,
+            "VLP_TERMINAL_KEYS": TERMINAL_KEY,
+            "OPENBLAS_NUM_THREADS": "1",
+            "OMP_NUM_THREADS": "1",
+            **env,
+        },
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,
     )
     try:
-        url = bound_url(port_file, process, timeout_s)
-        wait_until_healthy(url, process, timeout_s)
+        url = _wait_until_ready(port_file, process, time.monotonic() + timeout_s)
         yield LiveServer(url=url, data_dir=data_dir, process=process)
     finally:
         process.terminate()
@@ -115,6 +75,22 @@ def live_server(data_dir: Path, *, timeout_s: float = 120.0, **env: str) -> Iter
         except subprocess.TimeoutExpired:
             process.kill()
             process.wait()
+
+
+def _wait_until_ready(port_file: Path, process: subprocess.Popen[bytes], deadline: float) -> str:
+    url = None
+    while time.monotonic() < deadline:
+        if process.poll() is not None:
+            raise RuntimeError(f"server exited early with code {process.returncode}")
+        if url is None and port_file.exists():
+            url = f"http://127.0.0.1:{int(port_file.read_text(encoding='utf-8'))}"
+        try:
+            if url is not None and httpx.get(f"{url}/readyz", timeout=1.0).status_code == 200:
+                return url
+        except httpx.HTTPError:
+            pass
+        time.sleep(0.1)
+    raise TimeoutError(f"the server was not ready in time (port file {port_file})")
 
 
 def ready_demo_room(url: str, *, timeout_s: float = 120.0) -> str:

@@ -21,7 +21,7 @@ from typing import Any
 
 import httpx
 
-from bench._server import (
+from tests.live_server import (
     ADMIN_KEY,
     TERMINAL_KEY,
     VLP,

@@ -13,8 +13,8 @@ from app.api.security import CREDENTIALS_FILE, KEY_CACHE_TTL_S, KeyCache, hash_k
 from app.main import create_app
 from app.registry import Registry
 from app.registry.records import KeyRecord
-from bench._server import ADMIN_KEY as LIVE_ADMIN_KEY
-from bench._server import live_server
+from tests.live_server import ADMIN_KEY as LIVE_ADMIN_KEY
+from tests.live_server import live_server
 from tests.waiting import wait_for
 
 from .conftest import ADMIN, ADMIN_KEY, TERMINAL, TestClient, assert_problem, make_settings

@@ -15,7 +15,7 @@ import pytest
 from app.cli import main as vlp_main
 from app.cli import openapi_document
 from app.registry.errors import RegistryUnavailable
-from bench._server import bound_url, wait_until_healthy
+from tests.live_server import bound_url, wait_until_healthy
 from tests.waiting import SAFETY_TIMEOUT_S
 
 from .conftest import ADMIN, TERMINAL, TestClient, assert_problem

@@ -9,7 +9,7 @@ from typing import Any
 import pytest
 
 from app.cli import EXIT_REFUSED, main
-from bench._server import ADMIN_KEY, LiveServer, live_server
+from tests.live_server import ADMIN_KEY, LiveServer, live_server
 
 _KEY_VARIABLES = ("VLP_API_KEY", "VLP_ADMIN_KEYS", "VLP_TERMINAL_KEYS", "VLP_URL")
 

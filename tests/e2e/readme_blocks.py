@@ -18,7 +18,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
-from bench._server import LiveServer, live_server
+from tests.live_server import LiveServer, live_server
 
 __all__ = [
     "PYTHON_WALKTHROUGH_FILE",

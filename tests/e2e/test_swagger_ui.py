@@ -28,7 +28,7 @@ from selenium.webdriver.support import expected_conditions
 from selenium.webdriver.support.ui import WebDriverWait
 
 from app.client import VLPClient
-from bench._server import TERMINAL_KEY, LiveServer, live_server
+from tests.live_server import TERMINAL_KEY, LiveServer, live_server
 
 REPO = Path(__file__).resolve().parents[2]
 CHROMIUM = Path("/usr/bin/chromium")

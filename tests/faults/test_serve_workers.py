@@ -27,7 +27,7 @@ import uvicorn
 from app.cli import main
 from app.cli._workers import SharedPort, bind_listening_socket
 from app.vlp.presets import paper_layout
-from bench._server import VLP, serve_args, server_env
+from tests.live_server import VLP, serve_args, server_env
 from tests.processes import TERMINAL, VlpProcess, child_pids, pid_alive, process_fleet
 from tests.waiting import SAFETY_TIMEOUT_S, wait_for
 
