@@ -1,4 +1,5 @@
 """The science core: channel model, fingerprints, measurements, solvers, simulation.
 
-Pure numpy/scipy/cvxpy; no web or database imports (a test enforces this).
+numpy/scipy, cvxpy for l1 and numba for the hot kernels; no web or database imports (a test
+enforces this).
 """
