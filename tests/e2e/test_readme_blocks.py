@@ -7,7 +7,6 @@ module runs every other shell block and checks that no block is left out.
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import pytest
 
@@ -18,9 +17,11 @@ from .readme_blocks import (
     REPO,
     SHELL_LANGUAGES,
     Block,
+    Checkout,
     readme_blocks,
-    readme_checkout,
 )
+
+pytestmark = pytest.mark.slow
 
 # Blocks run by test_readme_walkthrough.py and test_readme_python_walkthrough.py.
 _RUN_ELSEWHERE = ("walkthrough", "python-walkthrough")
@@ -72,9 +73,8 @@ def test_no_block_is_left_out() -> None:
 
 
 @pytest.mark.parametrize("block", _run_here(), ids=lambda block: block.name)
-def test_block_runs_verbatim(block: Block, tmp_path: Path) -> None:
-    with readme_checkout(tmp_path / "checkout") as checkout:
-        result = checkout.run(block.code)
+def test_block_runs_verbatim(block: Block, checkout: Checkout) -> None:
+    result = checkout.run(block.code)
     assert result.returncode == 0, f"stdout:\n{result.stdout}\nstderr:\n{result.stderr}"
     for expected in _EXPECTED_OUTPUT.get(block.marker or "", []):
         assert expected in result.stdout, (expected, result.stdout)

@@ -4,11 +4,13 @@ from __future__ import annotations
 
 import json
 import math
-from pathlib import Path
 
+import pytest
 from scipy.optimize import linear_sum_assignment
 
-from .readme_blocks import PYTHON_WALKTHROUGH_FILE, readme_blocks, readme_checkout
+from .readme_blocks import PYTHON_WALKTHROUGH_FILE, Checkout, readme_blocks
+
+pytestmark = pytest.mark.slow
 
 
 def _points(lines: list[str], label: str) -> list[tuple[float, float]]:
@@ -29,9 +31,8 @@ def _run_line() -> str:
     return found[0]
 
 
-def test_readme_python_walkthrough_runs_and_localizes(tmp_path: Path) -> None:
-    with readme_checkout(tmp_path / "checkout") as checkout:
-        result = checkout.run(_run_line(), timeout_s=180)
+def test_readme_python_walkthrough_runs_and_localizes(checkout: Checkout) -> None:
+    result = checkout.run(_run_line(), timeout_s=180)
     assert result.returncode == 0, result.stderr
     lines = result.stdout.strip().splitlines()
     assert lines[-17] == "fingerprint: ready" and lines[-18] == "build 100%", lines

@@ -4,17 +4,17 @@ from __future__ import annotations
 
 import json
 import math
-from pathlib import Path
 
+import pytest
 from scipy.optimize import linear_sum_assignment
 
-from .readme_blocks import block_with_marker, readme_checkout
+from .readme_blocks import Checkout, block_with_marker
+
+pytestmark = pytest.mark.slow
 
 
-def test_readme_walkthrough_runs_and_localizes(tmp_path: Path) -> None:
-    script = block_with_marker("walkthrough").code
-    with readme_checkout(tmp_path / "checkout") as checkout:
-        result = checkout.run(script, timeout_s=180)
+def test_readme_walkthrough_runs_and_localizes(checkout: Checkout) -> None:
+    result = checkout.run(block_with_marker("walkthrough").code, timeout_s=180)
     assert result.returncode == 0, result.stderr
     lines = result.stdout.strip().splitlines()
     assert lines[0] == "build: succeeded"
@@ -36,18 +36,19 @@ def test_readme_walkthrough_runs_and_localizes(tmp_path: Path) -> None:
 
 
 def test_readme_walkthrough_stops_and_shows_the_problem_on_a_refused_key(
-    tmp_path: Path,
+    checkout: Checkout,
 ) -> None:
     """A wrong key must not loop and exit 0: the walkthrough stops at the 401 and says why."""
-    script = block_with_marker("walkthrough").code
-    with readme_checkout(tmp_path / "checkout") as checkout:
-        credentials = checkout.root / "var" / "credentials"
-        text = credentials.read_text(encoding="utf-8")
-        admin = next(line for line in text.splitlines() if line.startswith("export ADMIN_KEY="))
+    credentials = checkout.root / "var" / "credentials"
+    text = credentials.read_text(encoding="utf-8")
+    admin = next(line for line in text.splitlines() if line.startswith("export ADMIN_KEY="))
+    try:
         credentials.write_text(
             text.replace(admin, "export ADMIN_KEY=not-a-key-0123456789abcdef"), encoding="utf-8"
         )
-        result = checkout.run(script, timeout_s=60)
+        result = checkout.run(block_with_marker("walkthrough").code, timeout_s=60)
+    finally:
+        credentials.write_text(text, encoding="utf-8")
     assert result.returncode != 0
     assert "POST /v1/rooms failed" in result.stderr and '"status":401' in result.stderr
     assert "unknown API key" in result.stderr
