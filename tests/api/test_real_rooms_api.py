@@ -30,6 +30,7 @@ def reflective(worker_app: TestClient) -> tuple[TestClient, dict[str, Any]]:
     return worker_app, wait_for_room(worker_app, response.json()["id"])
 
 
+@pytest.mark.slow
 def test_a_reflective_layout_is_kept_and_its_h_includes_the_reflections(
     reflective: tuple[TestClient, dict[str, Any]],
 ) -> None:
@@ -46,6 +47,7 @@ def test_a_reflective_layout_is_kept_and_its_h_includes_the_reflections(
     assert 0.15 < extra < 0.35  # about a quarter of the light bounces off the walls
 
 
+@pytest.mark.slow
 def test_impaired_simulations_localize_with_their_heights_and_quality(
     reflective: tuple[TestClient, dict[str, Any]],
 ) -> None:
@@ -130,12 +132,11 @@ def test_bad_real_room_fields_are_refused_naming_them(
     assert_problem(response, 422, fields)
 
 
-def test_impairments_want_the_noise_as_an_snr(
-    reflective: tuple[TestClient, dict[str, Any]],
-) -> None:
-    client, room = reflective
+def test_impairments_want_the_noise_as_an_snr(worker_app: TestClient) -> None:
+    """Refused from the body alone, before the room's fingerprint is needed (not built)."""
+    room = worker_app.post("/v1/rooms", json=REFLECTIVE, headers=ADMIN).json()
     body = {"targets": 2, "noise_std": 1e-7, "impairments": {"gain_sd": 0.1}}
-    response = client.post(f"/v1/rooms/{room['id']}/simulate", json=body, headers=TERMINAL)
+    response = worker_app.post(f"/v1/rooms/{room['id']}/simulate", json=body, headers=TERMINAL)
     assert_problem(response, 422, ["body.noise_std"])
 
 
