@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import os
+from collections import Counter
+
 import numpy as np
 import pytest
 
@@ -29,3 +32,20 @@ def paper_room() -> Layout:
 def paper_fingerprint(paper_room: Layout) -> Fingerprint:
     """Fingerprint of the paper's room (built once per session; treat as read-only)."""
     return build_fingerprint(paper_room)
+
+
+@pytest.hookimpl(trylast=True)
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Under pytest-xdist (``./test``), refuse tests that share a node id: the workers run
+    tests by id, so all but the first of them would silently not run. Such a module is
+    marked ``serial`` and ``./test`` runs it in a plain pass (docs/architecture.md, "Tests
+    and their lanes")."""
+    if not os.environ.get("PYTEST_XDIST_WORKER"):
+        return
+    counts = Counter(item.nodeid for item in items)
+    shared = sorted(nodeid for nodeid, count in counts.items() if count > 1)
+    if shared:
+        raise pytest.UsageError(
+            f"{len(shared)} node ids are shared by several tests ({shared[0]}, ...): under "
+            "pytest-xdist only the first of each would run; mark the module `serial`"
+        )

@@ -203,6 +203,7 @@ def test_swagger_example_then_mask_only(worker_app: TestClient) -> None:
     assert [item["active"] for item in items] == [True, False]
 
 
+@pytest.mark.slow
 def test_calibration_fits_led_positions_and_walls(worker_app: TestClient) -> None:
     """A displaced LED and reflecting walls the layout does not know: the report has the
     fitted position (and shift) of every LED and the walls' reflectance with its sd."""

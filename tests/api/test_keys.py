@@ -271,6 +271,7 @@ def test_a_credentials_file_of_the_first_format_is_rewritten_with_exports(tmp_pa
         assert path.read_text(encoding="utf-8") == stale
 
 
+@pytest.mark.slow
 def test_two_real_api_processes_on_postgresql_see_a_revocation(
     tmp_path: Path, postgres_url: str
 ) -> None:

@@ -4,11 +4,14 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import pytest
+
 from app.main import create_app
 
 from .conftest import ADMIN, TestClient, make_settings, small_room, wait_for_room
 
 
+@pytest.mark.slow
 def test_lifespan_twice_keeps_building_and_fails_no_job(tmp_path: Path) -> None:
     app = create_app(make_settings(tmp_path, embedded_workers=1))
     room_ids = []

@@ -163,6 +163,7 @@ def test_docs_work_offline(client: TestClient) -> None:
     assert "/openapi.json" in client.get("/docs").text
 
 
+@pytest.mark.slow
 def test_vlp_serve_logs_json_and_vlp_rooms_lists(tmp_path: Path) -> None:
     """A real `vlp serve` process on the port it picked: JSON log lines with request ids;
     `vlp rooms` reads it."""

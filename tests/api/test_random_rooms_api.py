@@ -15,6 +15,8 @@ from bench.random_rooms import WRONG_M, replay_request
 
 from .conftest import ADMIN, TERMINAL, TestClient, wait_for_room
 
+pytestmark = pytest.mark.slow
+
 
 @pytest.mark.parametrize(
     ("seed", "room", "trial"),

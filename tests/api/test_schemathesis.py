@@ -27,6 +27,9 @@ from app.main import create_app
 
 from .conftest import ADMIN_KEY, TERMINAL_KEY, TestClient, make_settings, small_room, wait_for_room
 
+# Slow (a minute of fuzzing), and serial: under pytest-xdist the cases of a schemathesis
+# parametrization share one node id and only the first would run.
+pytestmark = [pytest.mark.slow, pytest.mark.serial]
 ApiCase = schemathesis.Case[schemathesis.APIOperation[Any, Any, Any, Any]]
 SEED = 20261122
 # Examples per operation and generation mode: about 35 s for the module on two cores.

@@ -4,7 +4,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import pytest
+
 from bench.counting import count_cell, main
+
+pytestmark = pytest.mark.slow
 
 
 def test_counting_cell_counts_every_placement() -> None:

@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
+import pytest
+
 from bench.hall_refinement import run
+
+pytestmark = pytest.mark.slow
 
 
 def test_local_and_full_refinements_are_both_reported() -> None:

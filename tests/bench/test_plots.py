@@ -13,6 +13,8 @@ from PIL import Image
 from bench.plots import fig4, read_summary
 from bench.results import SUMMARY_HEADER, summary_tuple
 
+pytestmark = pytest.mark.slow
+
 REPO = Path(__file__).resolve().parents[2]
 SUMMARY = REPO / "docs" / "data" / "accuracy_summary.csv"
 

@@ -11,6 +11,8 @@ import pytest
 
 from bench.random_rooms import FORMS, Outcome, main, random_layout, summary
 
+pytestmark = pytest.mark.slow
+
 
 def test_random_layouts_are_valid_and_bounded() -> None:
     kinds = set()

@@ -15,6 +15,8 @@ from bench import real_rooms
 from bench._real_rooms_extra import BOUND_CASES, CALIBRATIONS, run_bounds, run_calibrated, tilt_sd
 from bench.rooms import make_room
 
+pytestmark = pytest.mark.slow
+
 
 def test_bounds_mode_rows_and_the_ideal_case_is_the_aggregated_bound() -> None:
     rows = run_bounds(["paper"], 1, (4,), real_rooms._placements, real_rooms._noise_std)

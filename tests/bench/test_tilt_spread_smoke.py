@@ -5,8 +5,11 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from bench import tilt_spread
+
+pytestmark = pytest.mark.slow
 
 
 def test_one_placement_per_case_writes_the_section(tmp_path: Path) -> None:

@@ -53,6 +53,7 @@ def _json(
     return json.loads(out)
 
 
+@pytest.mark.slow
 def test_rooms_list_and_status(
     server: tuple[LiveServer, str], capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -66,6 +67,7 @@ def test_rooms_list_and_status(
     assert code == 0 and room_id in out and "Paper room" in out
 
 
+@pytest.mark.slow
 def test_rooms_create_waits_then_rebuild_shows_progress(
     server: tuple[LiveServer, str], capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -84,6 +86,7 @@ def test_rooms_create_waits_then_rebuild_shows_progress(
     assert _json(capsys, live, "rooms", "delete", room["id"]) == {"deleted": room["id"]}
 
 
+@pytest.mark.slow
 def test_simulate_and_localize(
     server: tuple[LiveServer, str], capsys: pytest.CaptureFixture[str], tmp_path: Path
 ) -> None:
@@ -101,6 +104,7 @@ def test_simulate_and_localize(
     assert "8 estimates (gridless" in out and "to nearest truth" in out
 
 
+@pytest.mark.slow
 def test_localize_batch(
     server: tuple[LiveServer, str], capsys: pytest.CaptureFixture[str], tmp_path: Path
 ) -> None:
@@ -117,6 +121,7 @@ def test_localize_batch(
     assert "2 answers" in out and "422" in out
 
 
+@pytest.mark.slow
 def test_errors_exit_with_the_problem(
     server: tuple[LiveServer, str], capsys: pytest.CaptureFixture[str], tmp_path: Path
 ) -> None:
@@ -152,6 +157,7 @@ def test_unreachable_service_exits_3(capsys: pytest.CaptureFixture[str]) -> None
     assert code == EXIT_NO_ANSWER and out == "" and f"no answer from {url}" in err
 
 
+@pytest.mark.slow
 def test_calibrate_posts_the_survey_and_prints_the_report(
     monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str], tmp_path: Path
 ) -> None:

@@ -11,6 +11,8 @@ import pytest
 from app.cli import EXIT_REFUSED, main
 from tests.live_server import ADMIN_KEY, LiveServer, live_server
 
+pytestmark = pytest.mark.slow
+
 _KEY_VARIABLES = ("VLP_API_KEY", "VLP_ADMIN_KEYS", "VLP_TERMINAL_KEYS", "VLP_URL")
 
 

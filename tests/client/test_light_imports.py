@@ -13,6 +13,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from tests.processes import ADMIN, process_fleet
 
 HEAVY = frozenset({"numpy", "scipy", "cvxpy", "numba", "matplotlib"})
@@ -67,6 +69,7 @@ def test_the_schema_examples_still_come_from_the_science_core() -> None:
     assert "numpy" in heavy
 
 
+@pytest.mark.slow
 def test_vlp_rooms_list_against_a_live_server_loads_no_numerics(tmp_path: Path) -> None:
     with process_fleet(tmp_path / "data") as fleet:
         server = fleet.serve()

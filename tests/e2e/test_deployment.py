@@ -21,6 +21,8 @@ import yaml
 from app.cli import _parser
 from app.registry import Registry
 
+pytestmark = pytest.mark.slow
+
 REPO = Path(__file__).resolve().parents[2]
 COMPOSE = REPO / "deploy" / "compose.yaml"
 # Values the compose file requires from the operator's environment.

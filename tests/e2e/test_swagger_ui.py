@@ -30,6 +30,8 @@ from selenium.webdriver.support.ui import WebDriverWait
 from app.client import VLPClient
 from tests.live_server import TERMINAL_KEY, LiveServer, live_server
 
+pytestmark = pytest.mark.slow
+
 REPO = Path(__file__).resolve().parents[2]
 CHROMIUM = Path("/usr/bin/chromium")
 CHROMEDRIVER = Path("/usr/bin/chromedriver")

@@ -39,6 +39,7 @@ def lease_expiry(registry: Registry, job_id: str) -> datetime | None:
     return expiry
 
 
+@pytest.mark.slow
 def test_heartbeats_keep_a_long_build_from_being_stolen(
     registry: Registry,
     clock: FakeClock,

@@ -39,6 +39,7 @@ def test_unreachable_registry_gives_no_job_sample() -> None:
     assert "vlp_jobs{" not in text and "process_cpu_seconds_total" in text
 
 
+@pytest.mark.slow
 def test_vlp_worker_metrics_port(tmp_path: Path) -> None:
     """A real `vlp worker --metrics-port 0`: it binds a port itself, logs it, and its
     /metrics answers there while it runs."""

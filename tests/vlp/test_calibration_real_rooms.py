@@ -119,6 +119,7 @@ def test_position_bound_holds(room: Layout, sigma: float) -> None:
     assert info.value.field == "led_position_bound_m"
 
 
+@pytest.mark.slow
 def test_reflectance_recovers_a_known_value_within_its_uncertainty(
     room: Layout, sigma: float
 ) -> None:

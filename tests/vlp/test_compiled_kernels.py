@@ -866,6 +866,7 @@ _NO_CACHE_SCRIPT = textwrap.dedent(
 )
 
 
+@pytest.mark.slow
 def test_works_without_a_writable_cache(tmp_path: Path) -> None:
     """Pointing NUMBA_CACHE_DIR at a place that cannot be written (below a regular file:
     not even root can make that folder) still solves, compiling in memory; and warm_up
