@@ -36,12 +36,18 @@ def paper_fingerprint(paper_room: Layout) -> Fingerprint:
 
 @pytest.hookimpl(trylast=True)
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    """Under pytest-xdist (``./test``), refuse tests that share a node id: the workers run
-    tests by id, so all but the first of them would silently not run. Such a module is
-    marked ``serial`` and ``./test`` runs it in a plain pass (docs/architecture.md, "Tests
-    and their lanes")."""
+    """Under pytest-xdist (``./test``): hand out the modules that hold slow tests first, and
+    refuse tests that share a node id.
+
+    Workers take whole modules in collection order (``--dist loadfile``); a long module
+    taken last keeps one worker busy while the other idles, so the long ones go first
+    (longest first balances best). Tests that share a node id: the workers run tests by id,
+    so all but the first of them would silently not run. Such a module is marked ``serial``
+    and ``./test`` runs it in a plain pass (docs/architecture.md, "Tests and their lanes").
+    """
     if not os.environ.get("PYTEST_XDIST_WORKER"):
         return
+    _slow_modules_first(items)
     counts = Counter(item.nodeid for item in items)
     shared = sorted(nodeid for nodeid, count in counts.items() if count > 1)
     if shared:
@@ -49,3 +55,10 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
             f"{len(shared)} node ids are shared by several tests ({shared[0]}, ...): under "
             "pytest-xdist only the first of each would run; mark the module `serial`"
         )
+
+
+def _slow_modules_first(items: list[pytest.Item]) -> None:
+    """Reorder ``items`` in place: modules with a ``slow`` test first, each module's tests in
+    their order (every worker collects the same order, as xdist requires)."""
+    slow_modules = {item.nodeid.split("::")[0] for item in items if item.get_closest_marker("slow")}
+    items.sort(key=lambda item: item.nodeid.split("::")[0] not in slow_modules)
