@@ -140,6 +140,7 @@ def test_impairments_want_the_noise_as_an_snr(worker_app: TestClient) -> None:
     assert_problem(response, 422, ["body.noise_std"])
 
 
+@pytest.mark.slow
 def test_a_tilt_spread_in_the_layout_widens_the_radii_not_the_positions(
     worker_app: TestClient,
 ) -> None:
