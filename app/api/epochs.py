@@ -61,6 +61,7 @@ def epoch_public(record: EpochRecord) -> Epoch:
         min_terminals=settings.min_terminals,
         window_s=settings.window_s,
         fingerprint_version=settings.fingerprint_version,
+        track=settings.track,
         localization=(None if record.localization is None else Localization(**record.localization)),
         error=record.error,
     )
@@ -108,6 +109,7 @@ def create_epoch(
         window_s=body.window_s,
         fingerprint_version=0,  # pinned by open_epoch
         leds=0,
+        track=body.track,
     )
     record = open_epoch(
         registry, room_id=room_id, settings=wanted, fingerprint_version=body.fingerprint_version
