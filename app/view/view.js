@@ -88,10 +88,10 @@
   }
 
   function heatColour(value, low, high) {
-    // Dark blue (accurate) to pale (poor); a bound of inf (position not determined) is grey.
+    // Pale green (accurate) to pale sand (poor); inf (position not determined) is grey.
     if (!Number.isFinite(value)) return "#d9d9d9";
     const t = Math.min(1, Math.max(0, (Math.log(value) - Math.log(low)) / (Math.log(high) - Math.log(low) || 1)));
-    const from = [32, 84, 147], to = [232, 240, 248];
+    const from = [190, 224, 200], to = [250, 238, 220];
     const c = from.map((f, i) => Math.round(f + (to[i] - f) * t));
     return `rgb(${c[0]},${c[1]},${c[2]})`;
   }
@@ -244,6 +244,7 @@
       n.trail.setAttribute("class", `trail ${t.status}${hide ? " hidden" : ""}`);
       n.trail.setAttribute("points", entry.trail.map(([, x, y]) => `${x},${sy(y)}`).join(" "));
       n.label.setAttribute("class", `label${out ? " outside" : ""}${hide ? " hidden" : ""}`);
+      n.label.setAttribute("font-size", 1.6 * unit); // user units are metres
       n.label.setAttribute("x", t.x + unit);
       n.label.setAttribute("y", sy(t.y) - unit);
       n.label.textContent = (t.terminal_id || t.id.slice(0, 6)) + (out ? " (outside the plan)" : "");
