@@ -10,7 +10,7 @@ from collections.abc import Sequence
 __all__ = ["BENCHMARKS", "run_benchmark"]
 
 # The benchmarks `vlp bench` offers, each the module `bench.<name>` with `main(argv) -> int`.
-BENCHMARKS = ("accuracy", "http", "load")
+BENCHMARKS = ("accuracy", "http", "load", "tracking")
 
 
 def run_benchmark(module_name: str, argv: Sequence[str]) -> int:

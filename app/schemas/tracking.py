@@ -127,6 +127,9 @@ class TrackingSettings(ResponseModel):
     tentative_max_misses: int = Field(
         description="solves in a row without it after which a tentative anonymous track ends"
     )
+    lost_after_misses: int = Field(
+        description="solves in a row without it after which an anonymous track is `lost`"
+    )
     lost_after_s: float = Field(description="no update for this long: the track is `lost`")
     drop_after_s: float = Field(description="no update for this long: the track ends")
     history_s: float = Field(description="how long points and stream events are kept, s")
@@ -144,6 +147,7 @@ class TrackingSettingsUpdate(RequestModel):
     reset_after_wild: RequestInt | None = Field(default=None, ge=1, le=100)
     confirm_after_updates: RequestInt | None = Field(default=None, ge=1, le=100)
     tentative_max_misses: RequestInt | None = Field(default=None, ge=1, le=100)
+    lost_after_misses: RequestInt | None = Field(default=None, ge=1, le=100)
     lost_after_s: FiniteFloat | None = Field(default=None, gt=0, le=86_400)
     drop_after_s: FiniteFloat | None = Field(default=None, gt=0, le=86_400)
     history_s: FiniteFloat | None = Field(default=None, gt=0, le=86_400)

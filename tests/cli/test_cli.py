@@ -197,3 +197,21 @@ def test_bench_passes_its_arguments_through(capsys: pytest.CaptureFixture[str]) 
 def test_bench_names_a_missing_module(capsys: pytest.CaptureFixture[str]) -> None:
     assert run_benchmark("bench.not_written_yet", []) == 2
     assert "no module bench.not_written_yet" in capsys.readouterr().err
+
+
+def test_demo_walkers_post_tracked_walkers_then_stop(
+    capsys: pytest.CaptureFixture[str], server: tuple[LiveServer, str]
+) -> None:
+    live, room_id = server
+    args = ["demo", "walkers", "--count", "3", "--steps", "5", "--rate-hz", "50", "--seed", "2"]
+    answer = _json(capsys, live, *args, key=TERMINAL_KEY)
+    assert answer == {"room_id": room_id, "steps": 5, "walkers": 3}
+    with VLPClient(live.url, api_key=TERMINAL_KEY) as client:
+        tracks = client.list_tracks(room_id).items
+    walkers = {
+        t.terminal_id: t for t in tracks if t.terminal_id and t.terminal_id.startswith("walker-")
+    }
+    assert sorted(walkers) == ["walker-1", "walker-2", "walker-3"]
+    assert all(t.updates == 5 and t.status == "confirmed" for t in walkers.values())
+    code, _, err = _run(capsys, *args, "--room", "nope", "--url", live.url, "--key", TERMINAL_KEY)
+    assert code == EXIT_REFUSED and "nope" in err

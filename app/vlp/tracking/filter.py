@@ -33,7 +33,6 @@ __all__ = [
 ]
 
 N_MODELS = 2  # 0: standing, 1: walking
-_STANDING_PRIOR = 0.5
 
 
 @dataclass(frozen=True)
@@ -145,7 +144,7 @@ def start_tracks(
     Returns
     -------
     TrackBank
-        ``m`` tracks, even odds of standing and walking.
+        ``m`` tracks, standing with probability ``settings.standing_prior``.
     """
     count = positions.shape[0]
     state = np.zeros((count, N_MODELS, 4))
@@ -155,7 +154,8 @@ def start_tracks(
     speed_var = (0.5 * settings.max_speed_mps) ** 2
     covariance[:, 1, 2, 2] = covariance[:, 1, 3, 3] = speed_var
     covariance[:, 0, 2, 2] = covariance[:, 0, 3, 3] = settings.start_speed_sd_mps**2
-    probabilities = np.tile([_STANDING_PRIOR, 1.0 - _STANDING_PRIOR], (count, 1))
+    prior = settings.standing_prior
+    probabilities = np.tile([prior, 1.0 - prior], (count, 1))
     return TrackBank(
         means=state,
         covariances=covariance,

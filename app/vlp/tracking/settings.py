@@ -44,12 +44,16 @@ class TrackerSettings:
         A tentative track is confirmed after this many updates.
     tentative_max_misses : int
         An anonymous tentative track missed by this many solves in a row is dropped.
+    lost_after_misses : int
+        An anonymous confirmed track missed by this many solves in a row is lost.
     lost_after_s : float
         A track not updated for this long is ``lost``, seconds.
     drop_after_s : float
         A lost track is removed after this long without an update, seconds.
     history_s : float
         How long a track's points and the room's stream events are kept, seconds.
+    standing_prior : float
+        Probability that a new track stands (the rest: walks).
     """
 
     walking_accel_sd_mps2: float = 1.5
@@ -62,9 +66,11 @@ class TrackerSettings:
     min_measurement_sd_m: float = 0.005
     confirm_after_updates: int = 3
     tentative_max_misses: int = 3
+    lost_after_misses: int = 5
     lost_after_s: float = 5.0
     drop_after_s: float = 60.0
     history_s: float = 300.0
+    standing_prior: float = 0.5
 
     def __post_init__(self) -> None:
         for item in fields(self):
@@ -73,6 +79,11 @@ class TrackerSettings:
                 raise VLPError(
                     f"{item.name} must be a finite number > 0, got {value!r}", field=item.name
                 )
+        if not self.standing_prior < 1.0:
+            raise VLPError(
+                f"standing_prior must be below 1, got {self.standing_prior!r}",
+                field="standing_prior",
+            )
         if not self.gate_probability < 1.0:
             raise VLPError(
                 f"gate_probability must be below 1, got {self.gate_probability!r}",

@@ -98,7 +98,11 @@ class Step:
 
 
 def associate(
-    predicted: TrackBank, positions: FloatArray, covariances: FloatArray, settings: TrackerSettings
+    predicted: TrackBank,
+    positions: FloatArray,
+    covariances: FloatArray,
+    settings: TrackerSettings,
+    elapsed_s: FloatArray | None = None,
 ) -> tuple[IntArray, IntArray]:
     """Gated assignment of fixes to tracks of least total cost.
 
@@ -109,17 +113,22 @@ def associate(
     positions : ndarray of shape (m, 2), metres
     covariances : ndarray of shape (m, 2, 2), m^2
     settings : TrackerSettings
+    elapsed_s : ndarray of shape (n,), seconds, default=None
+        Time since each track's last update: a fix beyond the gate is still allowed where the
+        terminal could have reached it at ``max_speed_mps`` (a start the prediction did not
+        foresee); None: the gate alone.
 
     Returns
     -------
     track_rows, fix_rows : ndarray of shape (a,), int
-        Pairs ``(track_rows[i], fix_rows[i])``; every pair lies within the gate.
+        Pairs ``(track_rows[i], fix_rows[i])``; every pair is allowed.
 
     Notes
     -----
     The cost of a pair is ``d2 + ln det S``, the negative log-likelihood of the fix under the
     track's prediction up to a constant, with ``S = P + R`` and ``d2`` the squared
-    Mahalanobis distance; pairs with ``d2 > gate_chi2`` are not allowed.
+    Mahalanobis distance; pairs with ``d2 > gate_chi2`` are allowed only within reach (their
+    larger ``d2`` makes the assignment prefer pairs within the gate).
     """
     if predicted.size == 0 or positions.shape[0] == 0:
         return np.zeros(0, dtype=np.intp), np.zeros(0, dtype=np.intp)
@@ -129,6 +138,11 @@ def associate(
     inverse, det = inverse_2x2(spread)
     distance2 = np.einsum("nma,nmab,nmb->nm", innovation, inverse, innovation)
     allowed = distance2 <= settings.gate_chi2
+    if elapsed_s is not None:
+        # Reach: how far the terminal can have gone, plus the 95 % spread of the fix.
+        fix_spread = np.sqrt(np.trace(covariances, axis1=1, axis2=2))
+        reach = settings.max_speed_mps * elapsed_s[:, None] + 2.448 * fix_spread[None, :]
+        allowed |= np.linalg.norm(innovation, axis=2) <= reach
     cost = np.where(allowed, distance2 + np.log(det), _INFEASIBLE)
     rows, cols = linear_sum_assignment(cost)
     keep = allowed[rows, cols]
@@ -252,20 +266,29 @@ def step_anonymous(
     Returns
     -------
     Step
-        Tentative tracks missed ``tentative_max_misses`` times are still in ``tracks`` with
+        Confirmed tracks missed ``lost_after_misses`` times in a row are lost. Tentative
+        tracks missed ``tentative_max_misses`` times are still in ``tracks`` with
         their misses counted: :func:`age_tracks` tells the caller to remove them.
     """
     predicted = predict(tracks.bank, np.full(tracks.size, time_s), settings)
-    track_rows, fix_cols = associate(predicted, positions, covariances, settings)
+    elapsed = np.maximum(time_s - tracks.bank.times_s, 0.0)
+    track_rows, fix_cols = associate(predicted, positions, covariances, settings, elapsed)
     rows = np.full(positions.shape[0], -1, dtype=np.intp)
     rows[fix_cols] = track_rows
     step = step_labelled(tracks, rows, positions, covariances, time_s, settings)
     claimed = np.zeros(step.tracks.size, dtype=bool)
     claimed[step.fix_rows] = True
     misses = np.where(claimed, step.tracks.misses, step.tracks.misses + 1)
+    # A confirmed track no solve claims for several solves in a row is lost (it may be
+    # claimed again); its place in the answer goes to whatever the solves now see.
+    status = np.where(
+        (step.tracks.status == CONFIRMED) & (misses >= settings.lost_after_misses),
+        LOST,
+        step.tracks.status,
+    )
     after = Tracks(
         bank=step.tracks.bank,
-        status=step.tracks.status,
+        status=status.astype(np.intp),
         updates=step.tracks.updates,
         misses=misses.astype(np.intp),
     )
