@@ -24,6 +24,7 @@ from app.schemas import (
     TracksPage,
 )
 from app.schemas.tracking import TRACK_STATUSES, TrackStatus
+from app.services import track_resources
 from app.services.track_stream import TrackEventHub
 from app.services.tracking import Tracking
 
@@ -65,7 +66,7 @@ HubDep = Annotated[TrackEventHub, Depends(get_hub)]
 )
 def list_tracks(
     room_id: RoomId,
-    tracking: TrackingDep,
+    registry: RegistryDep,
     _role: AnyRole,
     status_: Annotated[
         list[TrackStatus] | None,
@@ -78,7 +79,9 @@ def list_tracks(
 ) -> TracksPage:
     """The room's tracks, oldest first; `?status=lost` (repeatable) for other statuses."""
     statuses = tuple(status_) if status_ else TRACK_STATUSES[:2]
-    return tracking.list_tracks(room_id=room_id, statuses=statuses, limit=limit, cursor=cursor)
+    return track_resources.list_tracks(
+        registry, room_id=room_id, statuses=statuses, limit=limit, cursor=cursor
+    )
 
 
 async def _stream_start(
@@ -123,7 +126,7 @@ async def _stream_start(
 async def stream_tracks(
     room_id: RoomId,
     request: Request,
-    tracking: TrackingDep,
+    registry: RegistryDep,
     hub: HubDep,
     _role: AnyRole,
     resume_after: Annotated[int | None, Depends(_stream_start)],
@@ -136,9 +139,10 @@ async def stream_tracks(
     at), then follows.
     """
     if resume_after is None:
-        after = await run_in_threadpool(tracking.latest_sequence, room_id=room_id)
+        after = await run_in_threadpool(registry.tracks.latest_sequence, room_id=room_id)
         page = await run_in_threadpool(
-            tracking.list_tracks,
+            track_resources.list_tracks,
+            registry,
             room_id=room_id,
             statuses=TRACK_STATUSES[:2],
             limit=1000,
@@ -152,7 +156,11 @@ async def stream_tracks(
         after = resume_after
     while not await request.is_disconnected():
         events = await run_in_threadpool(
-            tracking.events_since, room_id=room_id, after=after, limit=_STREAM_BATCH
+            track_resources.events_since,
+            registry,
+            room_id=room_id,
+            after=after,
+            limit=_STREAM_BATCH,
         )
         for event in events:
             yield ServerSentEvent(
@@ -170,9 +178,9 @@ async def stream_tracks(
     summary="Read a track",
     responses=problem_responses(401, 404, 503),
 )
-def get_track(room_id: RoomId, track_id: TrackId, tracking: TrackingDep, _role: AnyRole) -> Track:
+def get_track(room_id: RoomId, track_id: TrackId, registry: RegistryDep, _role: AnyRole) -> Track:
     """One track of the room (404 once it has ended)."""
-    return tracking.get_track(room_id=room_id, track_id=track_id)
+    return track_resources.get_track(registry, room_id=room_id, track_id=track_id)
 
 
 @router.get(
@@ -183,7 +191,7 @@ def get_track(room_id: RoomId, track_id: TrackId, tracking: TrackingDep, _role: 
 def get_track_points(
     room_id: RoomId,
     track_id: TrackId,
-    tracking: TrackingDep,
+    registry: RegistryDep,
     _role: AnyRole,
     since: Annotated[
         AwareDatetime | None, Query(description="only points from this time on (RFC 3339)")
@@ -195,8 +203,8 @@ def get_track_points(
 ) -> TrackPointsPage:
     """The track's state after each estimate that reached it, and that estimate (`raw`),
     oldest first, within the room's `history_s`."""
-    return tracking.points(
-        room_id=room_id, track_id=track_id, since=since, limit=limit, cursor=cursor
+    return track_resources.track_points(
+        registry, room_id=room_id, track_id=track_id, since=since, limit=limit, cursor=cursor
     )
 
 
@@ -221,10 +229,10 @@ def delete_track(
     responses=problem_responses(401, 404, 503),
 )
 def get_tracking_settings(
-    room_id: RoomId, tracking: TrackingDep, _role: AnyRole
+    room_id: RoomId, registry: RegistryDep, _role: AnyRole
 ) -> TrackingSettings:
     """Motion limits, gates, timeouts and history of the room's tracks, as in force."""
-    return tracking.settings(room_id=room_id)
+    return track_resources.tracking_settings(registry, room_id=room_id)
 
 
 @router.put(
@@ -235,12 +243,12 @@ def get_tracking_settings(
 def put_tracking_settings(
     room_id: RoomId,
     body: TrackingSettingsUpdate,
-    tracking: TrackingDep,
+    registry: RegistryDep,
     _role: AdminRole,
 ) -> TrackingSettings:
     """The fields sent replace those in force (`null`: back to the default); the others
     stay. Fingerprints are not rebuilt; tracks keep their state."""
-    return tracking.update_settings(room_id=room_id, body=body)
+    return track_resources.update_tracking_settings(registry, room_id=room_id, body=body)
 
 
 @router.get(
@@ -248,7 +256,7 @@ def put_tracking_settings(
     summary="Read a room's accuracy map",
     responses=problem_responses(401, 404, 503),
 )
-def get_accuracy_map(room_id: RoomId, tracking: TrackingDep, _role: AnyRole) -> AccuracyMap:
+def get_accuracy_map(room_id: RoomId, registry: RegistryDep, _role: AnyRole) -> AccuracyMap:
     """The bound on how accurately one terminal can be placed from its own amplitudes, on
     blocks of the grid: the live view draws it behind the tracks."""
-    return tracking.accuracy_map(room_id=room_id)
+    return track_resources.accuracy_map(registry, room_id=room_id)

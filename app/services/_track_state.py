@@ -11,7 +11,6 @@ import numpy as np
 from app.registry.records import TrackRecord
 from app.schemas import RawFix, Track, TrackedState, TrackingSettings
 from app.vlp.tracking import STATUS_NAMES, TrackBank, TrackerSettings, Tracks
-from app.vlp.typing import FloatArray
 
 __all__ = [
     "filter_json",
@@ -117,8 +116,3 @@ def track_public(record: TrackRecord) -> Track:
         updates=record.updates,
         raw=None if raw is None else RawFix(**raw),
     )
-
-
-def position_covariances(covariances: FloatArray) -> list[list[list[float]]]:
-    """Each track's 2 x 2 position block as nested lists."""
-    return [block.tolist() for block in covariances[:, :2, :2]]

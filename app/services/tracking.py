@@ -21,24 +21,14 @@ from typing import Any
 import numpy as np
 
 from app.clock import Clock
-from app.errors import InvalidFields, RecordNotFound, TrackNotFound, VLPError
-from app.pictures.heatmaps import amplitude_crlb_m, noise_std_on_samples, sample_grid
+from app.errors import InvalidFields, RecordNotFound, TrackNotFound
 from app.registry import Registry
-from app.registry.records import TrackChanges, TrackEventRecord, TrackPointRecord, TrackRecord
+from app.registry.records import TrackChanges, TrackPointRecord, TrackRecord
 from app.registry.tracks import new_track_id
 from app.schemas import (
-    AccuracyMap,
     Estimate,
     Localization,
-    RawFix,
-    Track,
-    TrackingSettings,
-    TrackingSettingsUpdate,
-    TrackPoint,
-    TrackPointsPage,
-    TracksPage,
 )
-from app.vlp.layout import layout_from_mapping
 from app.vlp.tracking import (
     STATUS_NAMES,
     TrackBank,
@@ -54,7 +44,6 @@ from app.vlp.uncertainty import confidence_radii
 
 from ._track_state import (
     filter_json,
-    public_settings,
     seconds,
     to_time,
     track_public,
@@ -63,12 +52,7 @@ from ._track_state import (
     tracks_of,
 )
 
-__all__ = ["ACCURACY_SNR_DB", "MAX_FUTURE_S", "Tracking"]
-
-# The view's backdrop: the accuracy bound at this SNR (the simulator's default), on at most
-# this many blocks per side.
-ACCURACY_SNR_DB = 30.0
-ACCURACY_SAMPLES_PER_SIDE = 48
+__all__ = ["MAX_FUTURE_S", "Tracking"]
 
 # A measurement's time may run ahead of the service's clock by this much (terminals' clocks).
 MAX_FUTURE_S = 60.0
@@ -402,91 +386,6 @@ class Tracking:
         if not changes.removed:
             raise TrackNotFound(f"room {room_id} has no track {track_id!r}", field="track_id")
         self._announce(room_id, sequence)
-
-    def list_tracks(
-        self, *, room_id: str, statuses: tuple[str, ...], limit: int, cursor: str | None
-    ) -> TracksPage:
-        """A page of a room's tracks with one of ``statuses``. RoomNotFound."""
-        self._registry.get_room(room_id=room_id)
-        records, next_cursor = self._registry.tracks.list_tracks(
-            room_id=room_id, statuses=statuses, limit=limit, cursor=cursor
-        )
-        return TracksPage(items=[track_public(r) for r in records], next_cursor=next_cursor)
-
-    def get_track(self, *, room_id: str, track_id: str) -> Track:
-        """One track. TrackNotFound."""
-        return track_public(self._registry.tracks.get_track(room_id=room_id, track_id=track_id))
-
-    def points(
-        self,
-        *,
-        room_id: str,
-        track_id: str,
-        since: datetime | None,
-        limit: int,
-        cursor: str | None,
-    ) -> TrackPointsPage:
-        """A page of a track's history. TrackNotFound, InvalidCursor."""
-        points, next_cursor = self._registry.tracks.list_points(
-            room_id=room_id, track_id=track_id, since=since, limit=limit, cursor=cursor
-        )
-        return TrackPointsPage(
-            items=[
-                TrackPoint(
-                    time=p.time,
-                    x=p.x,
-                    y=p.y,
-                    accuracy_m=p.accuracy_m,
-                    raw=None
-                    if p.raw_x is None or p.raw_y is None or p.raw_accuracy_m is None
-                    else RawFix(x=p.raw_x, y=p.raw_y, accuracy_m=p.raw_accuracy_m),
-                )
-                for p in points
-            ],
-            next_cursor=next_cursor,
-        )
-
-    def settings(self, *, room_id: str) -> TrackingSettings:
-        """The room's tracking settings in force. RoomNotFound."""
-        self._registry.get_room(room_id=room_id)
-        return public_settings(
-            tracker_settings(self._registry.tracks.get_settings(room_id=room_id))
-        )
-
-    def update_settings(self, *, room_id: str, body: TrackingSettingsUpdate) -> TrackingSettings:
-        """Replace the fields sent (null: back to the default). RoomNotFound; InvalidFields
-        when the result is inconsistent (e.g. ``drop_after_s`` below ``lost_after_s``)."""
-        stored = dict(self._registry.tracks.get_settings(room_id=room_id) or {})
-        for name in body.model_fields_set:
-            stored[name] = getattr(body, name)
-        stored = {k: v for k, v in stored.items() if v is not None}
-        try:
-            settings = tracker_settings(stored)
-        except VLPError as exc:
-            raise InvalidFields([(exc.field or "body", exc.message)]) from exc
-        self._registry.tracks.put_settings(room_id=room_id, settings=stored or None)
-        return public_settings(settings)
-
-    def events_since(self, *, room_id: str, after: int, limit: int) -> list[TrackEventRecord]:
-        """The room's kept events after sequence ``after``, oldest first."""
-        return self._registry.tracks.events_since(room_id=room_id, after=after, limit=limit)
-
-    def accuracy_map(self, *, room_id: str, snr_db: float = ACCURACY_SNR_DB) -> AccuracyMap:
-        """The room's single-terminal accuracy bound on a coarse grid (the view's backdrop)."""
-        layout = layout_from_mapping(self._registry.get_room(room_id=room_id).layout)
-        grid = sample_grid(layout, ACCURACY_SAMPLES_PER_SIDE)
-        noise = noise_std_on_samples(layout, grid.points, snr_db)
-        bound = amplitude_crlb_m(layout, grid.points, noise).reshape(grid.shape)
-        return AccuracyMap(
-            snr_db=snr_db,
-            x_edges=grid.x_edges.tolist(),
-            y_edges=grid.y_edges.tolist(),
-            accuracy_m=[[float(v) if np.isfinite(v) else None for v in row] for row in bound],
-        )
-
-    def latest_sequence(self, *, room_id: str) -> int:
-        """The room's newest stream event (0: none yet)."""
-        return self._registry.tracks.latest_sequence(room_id=room_id)
 
 
 def _due(records: list[TrackRecord], settings: TrackerSettings, now: datetime) -> bool:
