@@ -14,6 +14,7 @@ from fastapi import APIRouter, Depends, Header, Path, Query, Request, Response, 
 from fastapi.sse import EventSourceResponse, ServerSentEvent
 from pydantic import AwareDatetime
 from starlette.concurrency import run_in_threadpool
+from starlette.convertors import Convertor, register_url_convertor
 
 from app.schemas import (
     AccuracyMap,
@@ -40,7 +41,22 @@ _STREAM_BATCH = 500
 # A client that loses the stream reconnects after this long, milliseconds.
 _RETRY_MS = 1000
 
-TrackId = Annotated[str, Path(max_length=64, description="the track's id")]
+TrackId = Annotated[str, Path(pattern="^[0-9a-f]{32}$", description="the track's id")]
+
+
+class _TrackIdConvertor(Convertor[str]):
+    """Track ids are 32 hex digits: so `/tracks/stream` is never taken for a track's path."""
+
+    regex = "[0-9a-f]{32}"
+
+    def convert(self, value: str) -> str:
+        return value
+
+    def to_string(self, value: str) -> str:
+        return value
+
+
+register_url_convertor("track_id", _TrackIdConvertor())
 
 
 def get_tracking(request: Request) -> Tracking:
@@ -174,7 +190,7 @@ async def stream_tracks(
 
 
 @router.get(
-    "/{room_id}/tracks/{track_id}",
+    "/{room_id}/tracks/{track_id:track_id}",
     summary="Read a track",
     responses=problem_responses(401, 404, 503),
 )
@@ -184,7 +200,7 @@ def get_track(room_id: RoomId, track_id: TrackId, registry: RegistryDep, _role: 
 
 
 @router.get(
-    "/{room_id}/tracks/{track_id}/points",
+    "/{room_id}/tracks/{track_id:track_id}/points",
     summary="Read a track's recent history",
     responses=problem_responses(401, 404, 422, 503),
 )
@@ -209,7 +225,7 @@ def get_track_points(
 
 
 @router.delete(
-    "/{room_id}/tracks/{track_id}",
+    "/{room_id}/tracks/{track_id:track_id}",
     status_code=status.HTTP_204_NO_CONTENT,
     summary="End a track",
     responses=problem_responses(401, 403, 404, 503),

@@ -233,8 +233,10 @@ def test_bad_tracking_input_is_a_problem_naming_the_field(
     assert_problem(
         client.get(f"/v1/rooms/{room}/tracks", params={"status": "gone"}, headers=TERMINAL), 422
     )
-    assert_problem(client.delete(f"/v1/rooms/{room}/tracks/nope", headers=TERMINAL), 403)
-    assert_problem(client.delete(f"/v1/rooms/{room}/tracks/nope", headers=ADMIN), 404)
+    unknown = "0" * 32
+    assert_problem(client.delete(f"/v1/rooms/{room}/tracks/{unknown}", headers=TERMINAL), 403)
+    assert_problem(client.delete(f"/v1/rooms/{room}/tracks/{unknown}", headers=ADMIN), 404)
+    assert_problem(client.get(f"/v1/rooms/{room}/tracks/{unknown}/points", headers=TERMINAL), 404)
 
 
 def test_the_stream_resumes_after_last_event_id_losing_nothing(
