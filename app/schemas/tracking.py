@@ -5,7 +5,7 @@ from __future__ import annotations
 from datetime import datetime
 from typing import Literal
 
-from pydantic import Field
+from pydantic import ConfigDict, Field
 
 from .common import FiniteFloat, RequestInt, RequestModel, ResponseModel
 
@@ -138,6 +138,10 @@ class TrackingSettings(ResponseModel):
 class TrackingSettingsUpdate(RequestModel):
     """Change a room's tracking settings: the fields sent replace those in force, `null`
     restores a default. Fingerprints are not rebuilt."""
+
+    model_config = ConfigDict(
+        json_schema_extra={"examples": [{"lost_after_s": 10.0, "history_s": 600.0}]}
+    )
 
     max_speed_mps: FiniteFloat | None = Field(default=None, gt=0, le=50)
     walking_accel_sd_mps2: FiniteFloat | None = Field(default=None, gt=0, le=100)
