@@ -41,7 +41,14 @@ _STREAM_BATCH = 500
 # A client that loses the stream reconnects after this long, milliseconds.
 _RETRY_MS = 1000
 
-TrackId = Annotated[str, Path(pattern="^[0-9a-f]{32}$", description="the track's id")]
+TrackId = Annotated[
+    str,
+    Path(
+        pattern="^[0-9a-f]{32}$",
+        description="the track's id (32 hex digits)",
+        examples=["5d0c1f2e3a4b4c6d8e9f0a1b2c3d4e5f"],
+    ),
+]
 
 
 class _TrackIdConvertor(Convertor[str]):
