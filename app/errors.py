@@ -11,7 +11,8 @@ The tree::
         └── SolverFailed             a valid problem the solver found no answer to (503)
     RegistryError                    the registry refuses or cannot do (app.registry.errors)
     ├── RecordNotFound
-    │   ├── RoomNotFound, JobNotFound, FingerprintNotFound, MatrixNotFound, EpochNotFound
+    │   ├── RoomNotFound, JobNotFound, FingerprintNotFound, MatrixNotFound, EpochNotFound,
+    │   └── TrackNotFound
     ├── StateConflict
     │   ├── EpochClosed, EpochFull
     ├── PreconditionFailed, FingerprintNotReady, CorruptMatrix, InvalidCursor
@@ -41,6 +42,7 @@ from app.registry.errors import (
     RegistryUnavailable,
     RoomNotFound,
     StateConflict,
+    TrackNotFound,
 )
 from app.vlp.errors import (
     GeometryError,
@@ -74,6 +76,7 @@ __all__ = [
     "SolverError",
     "SolverFailed",
     "StateConflict",
+    "TrackNotFound",
     "UnknownSolverError",
     "VLPError",
 ]

@@ -31,6 +31,8 @@ from app.registry.seed import find_demo_room, seed_demo_room
 from app.services.epoch_settler import EpochSettler
 from app.services.fingerprint_cache import FingerprintCache
 from app.services.picture_cache import PictureCache
+from app.services.track_stream import TrackEventHub
+from app.services.tracking import Tracking
 from app.settings import Settings, get_settings
 from app.telemetry import Metrics
 from app.vlp.solvers import warm_up as warm_up_solvers
@@ -70,6 +72,11 @@ _TAGS = [
         "name": "pictures",
         "description": "PNG pictures: the room plan with a coverage or CRLB heat map, and "
         "estimates against the truth",
+    },
+    {
+        "name": "tracking",
+        "description": "Tracks of moving terminals: their state, history, settings and a "
+        "live stream (Server-Sent Events); the live view is at /view",
     },
     {"name": "keys", "description": "API keys: create, list, revoke (admin)"},
     {"name": "operations", "description": "Health, readiness, metrics (no key)"},
@@ -116,11 +123,18 @@ def _count_jobs(app: FastAPI) -> dict[str, int] | None:
     return dict(counter()) if callable(counter) else None
 
 
-def _epoch_sweeper(settler: EpochSettler, settings: Settings) -> EpochSweeper | None:
-    """The started sweeper that closes passed epoch windows (None when switched off)."""
+def _epoch_sweeper(
+    settler: EpochSettler, tracking: Tracking, settings: Settings
+) -> EpochSweeper | None:
+    """The started sweeper that closes passed epoch windows and ages tracks (None when
+    switched off)."""
     if settings.epoch_sweep_seconds <= 0:
         return None
-    sweeper = EpochSweeper(sweep=settler.sweep, interval_s=settings.epoch_sweep_seconds)
+
+    def sweep() -> int:
+        return settler.sweep() + tracking.sweep()
+
+    sweeper = EpochSweeper(sweep=sweep, interval_s=settings.epoch_sweep_seconds)
     sweeper.start()
     return sweeper
 
@@ -160,14 +174,19 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
             metrics=metrics,
             clock=clock,
         )
+        hub = TrackEventHub(store=registry.tracks, poll_s=settings.track_stream_poll_seconds)
+        hub.start()
+        app.state.track_hub = hub
+        app.state.tracking = Tracking(registry=registry, clock=clock, on_event=hub.published)
         app.state.epoch_settler = EpochSettler(
             registry=registry,
             cache=app.state.cache,
             metrics=metrics,
             settings=settings,
             clock=clock,
+            tracking=app.state.tracking,
         )
-        sweeper = _epoch_sweeper(app.state.epoch_settler, settings)
+        sweeper = _epoch_sweeper(app.state.epoch_settler, app.state.tracking, settings)
         workers = EmbeddedWorkers(registry=registry, settings=settings, clock=clock)
         if settings.embedded_workers > 0:
             workers.start()
@@ -195,6 +214,7 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
                 await run_in_threadpool(sweeper.stop)
             if settings.embedded_workers > 0:
                 await run_in_threadpool(workers.stop)
+            await run_in_threadpool(hub.stop)
             registry.dispose()
 
 

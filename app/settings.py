@@ -98,6 +98,10 @@ class Settings(BaseSettings):
     epoch_max_terminals: int = Field(default=64, ge=1, le=64)
     epoch_retention_seconds: float = Field(default=86_400.0, gt=0)
 
+    # Track streams: a reader with no news reads the registry again after this long (news
+    # comes at once from this process, and on PostgreSQL from every process).
+    track_stream_poll_seconds: float = Field(default=1.0, gt=0, le=60)
+
     # Localization cache: how often an API process re-reads a room's current version.
     version_check_seconds: float = Field(default=1.0, ge=0)
     fingerprint_cache_size: int = Field(default=16, ge=1)

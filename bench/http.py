@@ -302,7 +302,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Entry point of ``python -m bench.http`` and ``vlp bench http``."""
+    """Entry point of ``python -m bench.http``."""
     parser = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
     parser.add_argument("--sequential", type=int, default=300, help="requests of each kind")
     parser.add_argument("--measurements", type=int, default=100, help="distinct bodies cycled")

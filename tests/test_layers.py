@@ -18,6 +18,7 @@ LEVELS = {
     "vlp": 0,
     "clock": 0,
     "settings": 0,
+    "view": 0,  # static files of the live view, read by app.api.view
     "schemas": 1,
     "pictures": 1,
     "collectors": 2,

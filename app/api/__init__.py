@@ -13,6 +13,8 @@ from . import (
     pictures,
     rooms,
     simulate,
+    tracks,
+    view,
 )
 
 __all__ = ["api_router"]
@@ -28,4 +30,6 @@ api_router.include_router(simulate.router)
 api_router.include_router(epochs.router)
 api_router.include_router(pictures.router)
 api_router.include_router(calibrations.router)
+api_router.include_router(tracks.router)
 api_router.include_router(keys.router)
+api_router.include_router(view.router)

@@ -294,12 +294,32 @@ def _unreadable_body(exc: StarletteHTTPException) -> str | None:
     return None
 
 
+def _path_pattern(template: str, operation: dict[str, Any]) -> str:
+    """The regular expression of an OpenAPI path: each ``{parameter}`` as its declared
+    ``pattern`` (``/tracks/stream`` is not ``/tracks/{track_id}``), else any segment."""
+    declared = {
+        parameter["name"]: parameter.get("schema", {}).get("pattern")
+        for parameter in operation.get("parameters", [])
+        if parameter.get("in") == "path"
+    }
+    parts = []
+    for part in re.split(r"(\{[^/]+?\})", template):
+        if part.startswith("{") and part.endswith("}"):
+            pattern = declared.get(part[1:-1])
+            parts.append(
+                f"(?:{pattern.removeprefix('^').removesuffix('$')})" if pattern else "[^/]+"
+            )
+        else:
+            parts.append(re.escape(part))
+    return "".join(parts)
+
+
 def _allowed_methods(app: FastAPI, path: str) -> str:
     methods: set[str] = set()
     for template, operations in app.openapi().get("paths", {}).items():
-        pattern = re.sub(r"\\\{[^/]+?\\\}", "[^/]+", re.escape(template))
-        if re.fullmatch(pattern, path):
-            methods |= {method.upper() for method in operations}
+        for method, operation in operations.items():
+            if re.fullmatch(_path_pattern(template, operation), path):
+                methods.add(method.upper())
     return ", ".join(sorted(methods))
 
 

@@ -12,6 +12,7 @@ from app.services.localization import localize_measurement
 from .deps import AnyRole, CacheDep, MetricsDep, RoomId, SettingsDep
 from .errors import problem_responses
 from .json_body import FastJsonRoute
+from .tracks import TrackingDep
 
 __all__ = ["router"]
 
@@ -29,19 +30,26 @@ async def localize(
     cache: CacheDep,
     metrics: MetricsDep,
     settings: SettingsDep,
+    tracking: TrackingDep,
     _role: AnyRole,
 ) -> Localization:
     """Send exactly one of `power`, `correlation` (M x M or its upper triangle) or
     `terminals` (each terminal's amplitudes); get the targets' positions.
 
     Tip: `POST /v1/rooms/{room_id}/simulate` makes a ready-to-send body. 409 while the room
-    has no ready fingerprint.
+    has no ready fingerprint. With `track: true` the estimates also update the room's tracks
+    (each carries `track_id` and `tracked`).
     """
-    return await run_in_threadpool(
+    answer = await run_in_threadpool(
         localize_measurement,
         cache,
         metrics,
         room_id=room_id,
         body=body,
         max_work=settings.max_localize_work,
+    )
+    if not body.track:
+        return answer
+    return await run_in_threadpool(
+        tracking.track, room_id=room_id, localization=answer, time=body.time
     )

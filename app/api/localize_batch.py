@@ -26,11 +26,13 @@ from app.errors import CorruptMatrix, FingerprintNotFound, InvalidFields, VLPErr
 from app.schemas import LocalizationBatch, Measurement, MeasurementBatch
 from app.services.fingerprint_cache import FingerprintCache
 from app.services.localization import localize_measurement
+from app.services.tracking import Tracking
 from app.telemetry import Metrics
 
 from .deps import AnyRole, CacheDep, MetricsDep, RoomId, SettingsDep
 from .errors import ApiProblem, ProblemKind, as_problem, problem_body, problem_responses
 from .json_body import FastJsonRoute
+from .tracks import TrackingDep
 
 __all__ = ["router"]
 
@@ -46,6 +48,7 @@ class _Batch:
     cache: FingerprintCache
     metrics: Metrics
     max_work: int
+    tracking: Tracking
     current: int | None = None
 
     def solve(self, body: Measurement) -> dict[str, Any]:
@@ -57,6 +60,8 @@ class _Batch:
         answer = localize_measurement(
             self.cache, self.metrics, room_id=self.room_id, body=body, max_work=self.max_work
         )
+        if body.track:  # items update the tracks in their order
+            answer = self.tracking.track(room_id=self.room_id, localization=answer, time=body.time)
         return answer.model_dump(mode="json")
 
 
@@ -143,6 +148,7 @@ async def localize_batch(
     cache: CacheDep,
     metrics: MetricsDep,
     settings: SettingsDep,
+    tracking: TrackingDep,
     _role: AnyRole,
 ) -> JSONResponse:
     """Send `{"items": [Measurement, ...]}` (1 to 1000, each as the body of
@@ -153,7 +159,7 @@ async def localize_batch(
     For many terminals at once this saves the per-request cost (HTTP, key check, room
     lookup) of single calls. 409 while the room has no ready fingerprint.
     """
-    batch = _Batch(room_id, cache, metrics, settings.max_localize_work)
+    batch = _Batch(room_id, cache, metrics, settings.max_localize_work, tracking)
     return await run_in_threadpool(
         _localize_batch,
         body.items,

@@ -72,6 +72,10 @@ class Output:
         for field in error.errors:
             self.errors.print(f"  {field.field}: {field.message}", markup=False)
 
+    def note(self, message: str) -> None:
+        """A progress note for people on stderr (stdout stays the result's)."""
+        self.errors.print(message, markup=False, highlight=False)
+
     def failure(self, message: str) -> None:
         """Report a failure that has no problem body (no answer, job failed)."""
         self.errors.print(f"[bold red]error[/]: {message}", markup=True, highlight=False)

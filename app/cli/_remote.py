@@ -292,11 +292,14 @@ def _add_rooms(commands: Any) -> None:
 
 
 def add_remote_commands(commands: Any) -> None:
-    """Add ``rooms``, ``keys``, ``simulate`` and ``localize`` to the ``vlp`` sub-commands."""
+    """Add ``rooms``, ``keys``, ``demo``, ``simulate`` and ``localize`` to the ``vlp``
+    sub-commands."""
+    from ._demo import add_demo_command
     from ._keys import add_keys_command
 
     _add_rooms(commands)
     add_keys_command(commands, _remote)
+    add_demo_command(commands, _remote)
     simulate = _remote(
         commands, "simulate", _simulate, "simulate a measurement (and localize it with --localize)"
     )

@@ -23,6 +23,7 @@ from ._errors import (
     TransportError,
 )
 from ._models import Epoch, Job
+from ._tracks import TrackEvent
 
 __all__ = [
     "DEFAULT_TIMEOUT_S",
@@ -42,6 +43,7 @@ __all__ = [
     "PreconditionError",
     "ProgressCallback",
     "ServerError",
+    "TrackEvent",
     "TransportError",
     "VLPClient",
 ]

@@ -27,6 +27,7 @@ from app.schemas import (
 
 from ._errors import APIError, JobFailed, JobTimeout, TransportError, api_error_from_answer
 from ._models import Epoch, Job
+from ._tracks import TrackMethods
 
 __all__ = ["DEFAULT_TIMEOUT_S", "ProgressCallback", "VLPClient"]
 
@@ -42,7 +43,7 @@ def _json_body(body: Body) -> Any:
     return dict(body)
 
 
-class VLPClient:
+class VLPClient(TrackMethods):
     """A typed client of the VLP service (``/v1``).
 
     Every method sends one request (``wait_for_*`` poll) and returns the answer parsed into

@@ -7,6 +7,7 @@ from datetime import UTC, datetime
 from sqlalchemy import (
     JSON,
     BigInteger,
+    Boolean,
     Column,
     DateTime,
     Dialect,
@@ -21,6 +22,7 @@ from sqlalchemy import (
     Table,
     Text,
     UniqueConstraint,
+    true,
 )
 from sqlalchemy.types import TypeDecorator
 
@@ -36,7 +38,11 @@ __all__ = [
     "matrix_blob_chunks",
     "matrix_blobs",
     "metadata",
+    "room_tracking",
     "rooms",
+    "track_events",
+    "track_points",
+    "tracks",
 ]
 
 metadata = MetaData()
@@ -203,6 +209,8 @@ epochs = Table(
     Column("finished_at", UTCDateTime(), nullable=True),
     Column("localization", JSON, nullable=True),
     Column("error", Text, nullable=True),
+    # Whether the solved epoch updates the room's tracks (migration 0006).
+    Column("track", Boolean, nullable=False, server_default=true()),
     Index("ix_epochs_status_expires_at", "status", "expires_at"),
     Index("ix_epochs_room_id", "room_id"),
 )
@@ -236,4 +244,75 @@ calibrations = Table(
     Column("finished_at", UTCDateTime(), nullable=True),
     Index("ix_calibrations_room_id_created_at", "room_id", "created_at"),
     Index("ix_calibrations_job_id", "job_id"),
+)
+
+# Tracking (migration 0006). One row per room that has ever tracked: its tracking settings
+# (null: the defaults) and the sequence number of its newest stream event. Every update of a
+# room's tracks locks this row first, so updates of one room are serialised on every backend.
+room_tracking = Table(
+    "room_tracking",
+    metadata,
+    Column("room_id", ID, ForeignKey("rooms.id", ondelete="CASCADE"), primary_key=True),
+    Column("sequence", BigInteger, nullable=False),
+    Column("settings", JSON, nullable=True),
+)
+
+# A track: the filter's state (``filter``: per-model means, covariances, probabilities), the
+# public summary beside it, and the fix that last moved it. Ended tracks are deleted; ids are
+# random and never reused.
+tracks = Table(
+    "tracks",
+    metadata,
+    Column("id", ID, primary_key=True),
+    Column("room_id", ID, ForeignKey("rooms.id", ondelete="CASCADE"), nullable=False),
+    Column("terminal_id", String(64), nullable=True),
+    Column("status", String(16), nullable=False),
+    Column("filter", JSON, nullable=False),
+    Column("x", Float, nullable=False),
+    Column("y", Float, nullable=False),
+    Column("vx", Float, nullable=False),
+    Column("vy", Float, nullable=False),
+    Column("covariance", JSON, nullable=False),
+    Column("accuracy_m", Float, nullable=False),
+    Column("state_time", UTCDateTime(), nullable=False),
+    Column("created_at", UTCDateTime(), nullable=False),
+    Column("updated_at", UTCDateTime(), nullable=False),
+    Column("updates", Integer, nullable=False),
+    Column("misses", Integer, nullable=False),
+    Column("last_raw", JSON, nullable=True),
+    UniqueConstraint("room_id", "terminal_id", name="uq_tracks_room_terminal"),
+    Index("ix_tracks_room_id_created_at", "room_id", "created_at"),
+)
+
+# A track's bounded history: the state after each fix, and the fix.
+track_points = Table(
+    "track_points",
+    metadata,
+    Column(
+        "id", BigInteger().with_variant(Integer, "sqlite"), primary_key=True, autoincrement=True
+    ),
+    Column("track_id", ID, ForeignKey("tracks.id", ondelete="CASCADE"), nullable=False),
+    Column("room_id", ID, nullable=False),
+    Column("time", UTCDateTime(), nullable=False),
+    Column("x", Float, nullable=False),
+    Column("y", Float, nullable=False),
+    Column("accuracy_m", Float, nullable=False),
+    Column("raw_x", Float, nullable=True),
+    Column("raw_y", Float, nullable=True),
+    Column("raw_accuracy_m", Float, nullable=True),
+    Index("ix_track_points_track_id_id", "track_id", "id"),
+    Index("ix_track_points_room_id_time", "room_id", "time"),
+)
+
+# The room's stream: one row per event, numbered per room; kept for the history window so a
+# client that reconnects with Last-Event-ID gets what it missed.
+track_events = Table(
+    "track_events",
+    metadata,
+    Column("room_id", ID, ForeignKey("rooms.id", ondelete="CASCADE"), primary_key=True),
+    Column("sequence", BigInteger, primary_key=True),
+    Column("kind", String(16), nullable=False),
+    Column("track_id", ID, nullable=False),
+    Column("data", JSON, nullable=False),
+    Column("created_at", UTCDateTime(), nullable=False),
 )

@@ -41,6 +41,7 @@ __all__ = [
     "RegistryUnavailable",
     "RoomNotFound",
     "StateConflict",
+    "TrackNotFound",
 ]
 
 
@@ -75,6 +76,10 @@ class MatrixNotFound(RecordNotFound):
 
 class EpochNotFound(RecordNotFound):
     """No epoch with this id in this room."""
+
+
+class TrackNotFound(RecordNotFound):
+    """No track with this id in this room (it never existed or has ended)."""
 
 
 class StateConflict(RegistryError):

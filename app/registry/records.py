@@ -23,6 +23,10 @@ __all__ = [
     "MatrixInfo",
     "RoomRecord",
     "StoredBuild",
+    "TrackChanges",
+    "TrackEventRecord",
+    "TrackPointRecord",
+    "TrackRecord",
 ]
 
 JOB_KIND_BUILD = "build_fingerprint"
@@ -176,7 +180,8 @@ class KeyRecord:
 
 @dataclass(frozen=True)
 class EpochSettings:
-    """What an epoch is created with (validated by the caller)."""
+    """What an epoch is created with (validated by the caller); ``track``: its solution
+    updates the room's tracks."""
 
     model: str
     solver: str
@@ -186,6 +191,7 @@ class EpochSettings:
     window_s: float
     fingerprint_version: int
     leds: int
+    track: bool = True
 
 
 @dataclass(frozen=True)
@@ -221,3 +227,72 @@ class LoadedFingerprint:
 
     record: FingerprintRecord
     fingerprint: Fingerprint
+
+
+@dataclass(frozen=True)
+class TrackRecord:
+    """A track as stored: its filter state (``filter``, the science core's arrays as lists)
+    and the public summary (position, velocity, 2 x 2 position covariance in m^2, 95 %
+    radius) at ``state_time``, the time of the fix that last moved it. ``last_raw`` is that
+    fix (``{"x", "y", "accuracy_m"}``)."""
+
+    id: str
+    room_id: str
+    terminal_id: str | None
+    status: str
+    filter: dict[str, Any]
+    x: float
+    y: float
+    vx: float
+    vy: float
+    covariance: list[list[float]]
+    accuracy_m: float
+    state_time: datetime
+    created_at: datetime
+    updated_at: datetime
+    updates: int
+    misses: int
+    last_raw: dict[str, float] | None
+
+
+@dataclass(frozen=True)
+class TrackPointRecord:
+    """One point of a track's history: the state after a fix, and the fix (``raw_*``)."""
+
+    track_id: str
+    time: datetime
+    x: float
+    y: float
+    accuracy_m: float
+    raw_x: float | None = None
+    raw_y: float | None = None
+    raw_accuracy_m: float | None = None
+    id: int | None = None
+
+
+@dataclass(frozen=True)
+class TrackEventRecord:
+    """One event of a room's stream: ``kind`` is ``track`` (``data``: the track) or
+    ``removed`` (``data``: ``{"id"}``); ``sequence`` counts a room's events from 1."""
+
+    room_id: str
+    sequence: int
+    kind: str
+    track_id: str
+    data: dict[str, Any]
+    created_at: datetime
+
+
+@dataclass(frozen=True)
+class TrackChanges:
+    """What one update of a room's tracks writes: tracks to insert or replace, tracks that
+    ended, history points, the stream events in order (``(kind, track_id, data)``), and
+    the history bounds (points before ``points_before`` and events stored before
+    ``events_before`` are deleted)."""
+
+    upserts: tuple[TrackRecord, ...] = ()
+    removed: tuple[str, ...] = ()
+    points: tuple[TrackPointRecord, ...] = ()
+    events: tuple[tuple[str, str, dict[str, Any]], ...] = ()
+    points_before: datetime | None = None
+    events_before: datetime | None = None

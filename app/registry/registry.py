@@ -4,7 +4,8 @@ Rows never leave this module: every method returns frozen records from
 :mod:`app.registry.records`. All methods are keyword-only. The registry owns one door per
 other concern on the same database: :attr:`Registry.jobs` (:class:`~app.registry.queue.JobQueue`:
 claim, heartbeat, finish, used by :mod:`app.jobs`) and :attr:`Registry.epochs`
-(:class:`~app.registry.epochs.EpochStore`); nothing outside this package touches the engine.
+(:class:`~app.registry.epochs.EpochStore`) and :attr:`Registry.tracks`
+(:class:`~app.registry.tracks.TrackStore`); nothing outside this package touches the engine.
 """
 
 from __future__ import annotations
@@ -66,6 +67,7 @@ from .records import (
     LoadedFingerprint,
     RoomRecord,
 )
+from .tracks import TrackStore
 
 __all__ = ["Registry"]
 
@@ -121,6 +123,7 @@ class Registry:
         )
         self.jobs = JobQueue(self._engine)
         self.epochs = EpochStore(self._engine)
+        self.tracks = TrackStore(self._engine)
 
     # -- lifecycle ------------------------------------------------------------------------
     def migrate(self) -> None:

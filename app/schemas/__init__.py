@@ -35,9 +35,23 @@ from .rooms import (
 )
 from .simulate import Simulation, SimulationRequest, TruthTarget
 from .statuses import EpochStatus
+from .tracking import (
+    AccuracyMap,
+    RawFix,
+    Track,
+    TrackedState,
+    TrackingSettings,
+    TrackingSettingsUpdate,
+    TrackPoint,
+    TrackPointsPage,
+    TrackRemoved,
+    TracksPage,
+    TrackStatus,
+)
 
 __all__ = [
     "MAX_BATCH_ITEMS",
+    "AccuracyMap",
     "ApiKey",
     "ApiKeyCreate",
     "ApiKeyCreated",
@@ -70,6 +84,7 @@ __all__ = [
     "ModelName",
     "PlotPoint",
     "Problem",
+    "RawFix",
     "ReceiverSpec",
     "Room",
     "RoomBox",
@@ -81,5 +96,14 @@ __all__ = [
     "SurfaceReflectance",
     "SurveyRow",
     "TerminalAmplitudes",
+    "Track",
+    "TrackPoint",
+    "TrackPointsPage",
+    "TrackRemoved",
+    "TrackStatus",
+    "TrackedState",
+    "TrackingSettings",
+    "TrackingSettingsUpdate",
+    "TracksPage",
     "TruthTarget",
 ]

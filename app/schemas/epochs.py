@@ -96,6 +96,12 @@ class EpochCreate(RequestModel):
     fingerprint_version: RequestInt | None = Field(
         default=None, ge=1, le=MAX_VERSION, description="default: the room's current version"
     )
+    track: bool = Field(
+        default=True,
+        strict=True,
+        description="the solved epoch updates the room's tracks at its close time (each "
+        "estimate then carries `track_id` and `tracked`)",
+    )
 
 
 class EpochMeasurement(RequestModel):
@@ -131,6 +137,7 @@ class Epoch(ResponseModel):
     min_terminals: int
     window_s: float
     fingerprint_version: int = Field(description="the fingerprint version the epoch uses")
+    track: bool = Field(default=True, description="the solution updates the room's tracks")
     localization: Localization | None = Field(
         description="when solved; every estimate carries its `terminal_id`"
     )

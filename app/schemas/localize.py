@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, Any, Literal
 
-from pydantic import ConfigDict, Field
+from pydantic import AwareDatetime, ConfigDict, Field
 
 from app.vlp.constants import MAX_TARGETS
 
@@ -16,6 +16,7 @@ from .common import (
     ResponseModel,
     lazy_examples,
 )
+from .tracking import TrackedState
 
 if TYPE_CHECKING:
     from app.vlp.typing import FloatArray
@@ -156,6 +157,23 @@ class Measurement(RequestModel):
     fingerprint_version: RequestInt | None = Field(
         default=None, ge=1, le=MAX_VERSION, description="default: the current version"
     )
+    track: bool = Field(
+        default=False,
+        strict=True,
+        description="update the room's tracks with the estimates (each estimate then carries "
+        "`track_id` and `tracked`); false: the answer is as without tracking and no state "
+        "changes",
+    )
+    time: AwareDatetime | None = Field(
+        default=None,
+        description="when the terminals measured (RFC 3339 with an offset); default: when "
+        "the service received it. Used with `track`",
+    )
+
+
+def _unset(value: object) -> bool:
+    """Fields added by tracking are left out of answers without it (as before tracking)."""
+    return value is None
 
 
 class Estimate(ResponseModel):
@@ -186,6 +204,17 @@ class Estimate(ResponseModel):
     )
     z: float | None = Field(
         default=None, description="the target's height, metres, when heights are free or sent"
+    )
+    track_id: str | None = Field(
+        default=None,
+        exclude_if=_unset,
+        description="the track this estimate updated (with `track: true`; stable for a "
+        "terminal_id, never reused)",
+    )
+    tracked: TrackedState | None = Field(
+        default=None,
+        exclude_if=_unset,
+        description="the track's state after this estimate (with `track: true`)",
     )
 
 

@@ -4,7 +4,8 @@
 process wins, see :mod:`app.registry.epochs`), sums its terminals' amplitudes, solves on the
 epoch's fingerprint version through the same path as localize
 (:func:`app.services.localization.localize_terminals`),
-labels every estimate with its terminal, and records the outcome under its claim.
+labels every estimate with its terminal, updates the room's tracks at the epoch's close time
+(unless created with ``track: false``), and records the outcome under its claim.
 
 Windows close in three ways: an explicit ``solve``; a read of an open epoch whose window
 has passed (lazily); and the sweeper of each API process (:class:`app.jobs.EpochSweeper`),
@@ -34,6 +35,7 @@ from app.vlp.measurements import Model
 
 from .fingerprint_cache import FingerprintCache
 from .localization import TerminalSet, localize_terminals
+from .tracking import Tracking
 
 __all__ = ["EpochSettler"]
 
@@ -57,8 +59,10 @@ class EpochSettler:
         metrics: Metrics,
         settings: Settings,
         clock: Clock | None = None,
+        tracking: Tracking | None = None,
     ) -> None:
         self._registry = registry
+        self._tracking = tracking
         self._cache = cache
         self._metrics = metrics
         self._settings = settings
@@ -146,6 +150,12 @@ class EpochSettler:
             ),
             max_work=self._settings.max_localize_work,
         )
+        if settings.track and self._tracking is not None:
+            # The epoch's estimates hold at its close: its window's end, or now if solved early.
+            closed_at = min(self._clock.now(), claimed.record.expires_at)
+            localization = self._tracking.track(
+                room_id=claimed.record.room_id, localization=localization, time=closed_at
+            )
         return localization.model_dump(mode="json")
 
     def _finish(

@@ -49,6 +49,7 @@ def open_requested_epoch(
         window_s=body.window_s,
         fingerprint_version=0,  # pinned by open_epoch
         leds=0,
+        track=body.track,
     )
     return open_epoch(
         registry, room_id=room_id, settings=wanted, fingerprint_version=body.fingerprint_version

@@ -155,6 +155,7 @@ def epoch_public(record: EpochRecord) -> Epoch:
         min_terminals=settings.min_terminals,
         window_s=settings.window_s,
         fingerprint_version=settings.fingerprint_version,
+        track=settings.track,
         localization=(None if record.localization is None else Localization(**record.localization)),
         error=record.error,
     )

@@ -123,6 +123,7 @@ def test_every_error_family_is_exported_and_mapped() -> None:
         "FingerprintNotFound": 404,
         "MatrixNotFound": 409,
         "EpochNotFound": 404,
+        "TrackNotFound": 404,
         "RecordNotFound": 404,
         "StateConflict": 409,
         "EpochClosed": 409,

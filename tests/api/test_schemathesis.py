@@ -149,7 +149,28 @@ def _send(client: TestClient, case: ApiCase) -> Any:
 _ITEMS_ANSWERED_ONE_BY_ONE = "/v1/rooms/{room_id}/localize/batch"
 
 
+# An event stream never ends: its 200 is checked by its headers (tests/api/test_tracks.py
+# reads its events); its refusals are whole problem answers, checked as any other.
+_ENDLESS = "/v1/rooms/{room_id}/tracks/stream"
+
+
+def _check_stream(client: TestClient, case: ApiCase) -> None:
+    kwargs = case.as_transport_kwargs(base_url="http://testserver")
+    with client.stream(
+        kwargs["method"], kwargs["url"], params=kwargs.get("params"), headers=kwargs.get("headers")
+    ) as response:
+        if response.status_code == 200:
+            assert response.headers["content-type"].startswith("text/event-stream")
+            return
+        response.read()
+    assert response.status_code < 500, f"{case.method} {case.formatted_path}: {response.text}"
+    case.validate_response(response)
+
+
 def _check(client: TestClient, case: ApiCase) -> None:
+    if case.path == _ENDLESS:
+        _check_stream(client, case)
+        return
     response = _send(client, case)
     assert response.status_code < 500, f"{case.method} {case.formatted_path}: {response.text}"
     excluded = [negative_data_rejection] if case.path == _ITEMS_ANSWERED_ONE_BY_ONE else None

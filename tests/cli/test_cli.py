@@ -190,3 +190,21 @@ def test_calibrate_posts_the_survey_and_prints_the_report(
         ("GET", "/v1/jobs/j1"),
         ("GET", "/v1/rooms/r1/calibrations/c9"),
     ]
+
+
+def test_demo_walkers_post_tracked_walkers_then_stop(
+    capsys: pytest.CaptureFixture[str], server: tuple[LiveServer, str]
+) -> None:
+    live, room_id = server
+    args = ["demo", "walkers", "--count", "3", "--steps", "5", "--rate-hz", "50", "--seed", "2"]
+    answer = _json(capsys, live, *args, key=TERMINAL_KEY)
+    assert answer == {"room_id": room_id, "steps": 5, "walkers": 3}
+    with VLPClient(live.url, api_key=TERMINAL_KEY) as client:
+        tracks = client.list_tracks(room_id).items
+    walkers = {
+        t.terminal_id: t for t in tracks if t.terminal_id and t.terminal_id.startswith("walker-")
+    }
+    assert sorted(walkers) == ["walker-1", "walker-2", "walker-3"]
+    assert all(t.updates == 5 and t.status == "confirmed" for t in walkers.values())
+    code, _, err = _run(capsys, *args, "--room", "nope", "--url", live.url, "--key", TERMINAL_KEY)
+    assert code == EXIT_REFUSED and "nope" in err

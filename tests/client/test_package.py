@@ -29,6 +29,7 @@ def test_public_names_are_pinned() -> None:
         "PreconditionError",
         "ProgressCallback",
         "ServerError",
+        "TrackEvent",
         "TransportError",
         "VLPClient",
     ]

@@ -66,9 +66,10 @@ def test_no_block_is_left_out() -> None:
             assert block.marker == "python-walkthrough", f"{where}: a Python block no test runs"
         elif block.language not in SHELL_LANGUAGES:
             assert block.language in ("json", "text"), f"{where}: unexpected {block.language}"
-    # The few blocks that cannot run: `./run`/`./test`, the minute-long benchmark and the
-    # compose deployment (no Docker engine on the test machines).
-    assert len([b for b in blocks if b.not_run_reason is not None]) <= 3
+    # The few blocks that cannot run: `./run`/`./test`, the minute-long benchmark, the
+    # compose deployment (no Docker engine on the test machines) and the walkers demo (it
+    # runs until stopped; tests/cli/test_cli.py runs the same command for a few steps).
+    assert len([b for b in blocks if b.not_run_reason is not None]) <= 4
     assert {marker for marker in _EXPECTED_OUTPUT} <= {b.marker for b in _run_here()}
 
 

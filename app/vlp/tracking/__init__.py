@@ -1,0 +1,46 @@
+"""Tracking of moving terminals: a standing / walking mixture filter per track, gated
+association of anonymous fixes, and the tracks' lifecycle, over batches of arrays.
+
+No web or database imports; time is always passed in (seconds), never read from a clock.
+"""
+
+from __future__ import annotations
+
+from .filter import N_MODELS, TrackBank, Update, combined, predict, start_tracks, update
+from .metrics import Gospa, gospa
+from .settings import TrackerSettings
+from .tracker import (
+    CONFIRMED,
+    LOST,
+    STATUS_NAMES,
+    TENTATIVE,
+    Step,
+    Tracks,
+    age_tracks,
+    associate,
+    step_anonymous,
+    step_labelled,
+)
+
+__all__ = [
+    "CONFIRMED",
+    "LOST",
+    "N_MODELS",
+    "STATUS_NAMES",
+    "TENTATIVE",
+    "Gospa",
+    "Step",
+    "TrackBank",
+    "TrackerSettings",
+    "Tracks",
+    "Update",
+    "age_tracks",
+    "associate",
+    "combined",
+    "gospa",
+    "predict",
+    "start_tracks",
+    "step_anonymous",
+    "step_labelled",
+    "update",
+]

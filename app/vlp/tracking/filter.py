@@ -1,0 +1,333 @@
+"""The filter: a standing / walking mixture of two Kalman filters per track, all tracks at once.
+
+State ``[x, y, vx, vy]`` (metres, m/s). Model 0 (standing) keeps the position up to a slow
+drift and lets the velocity fall to zero; model 1 (walking) is constant velocity with
+white-noise acceleration. The interacting multiple model (IMM) filter mixes the two by their
+probabilities at every step (Blom and Bar-Shalom, IEEE TAC 33(8), 1988). Every function takes
+and returns whole batches of arrays: ``n`` tracks, never one Python object per track.
+
+Each fix brings its own covariance (the solver's) and its own time: the step between two fixes
+is the difference of their times, however irregular. A wild fix (innovation beyond the gate)
+is not dropped: its covariance is inflated so that its innovation lies on the gate.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..typing import BoolArray, FloatArray, IntArray
+from .settings import TrackerSettings
+
+__all__ = [
+    "N_MODELS",
+    "TrackBank",
+    "Update",
+    "combined",
+    "floored_covariances",
+    "inverse_2x2",
+    "predict",
+    "start_tracks",
+    "update",
+]
+
+N_MODELS = 2  # 0: standing, 1: walking
+
+
+@dataclass(frozen=True)
+class TrackBank:
+    """The filter state of ``n`` tracks.
+
+    Attributes
+    ----------
+    means : ndarray of shape (n, 2, 4)
+        Each model's state ``[x, y, vx, vy]`` per track (m, m/s).
+    covariances : ndarray of shape (n, 2, 4, 4)
+        Each model's state covariance.
+    model_probabilities : ndarray of shape (n, 2)
+        Probability of standing and of walking.
+    times_s : ndarray of shape (n,)
+        Time of the state, seconds (any fixed origin, e.g. POSIX time).
+    wild : ndarray of shape (n,), int
+        Wild fixes in a row.
+    """
+
+    means: FloatArray
+    covariances: FloatArray
+    model_probabilities: FloatArray
+    times_s: FloatArray
+    wild: IntArray
+
+    @property
+    def size(self) -> int:
+        """The number of tracks ``n``."""
+        return int(self.times_s.shape[0])
+
+    def take(self, rows: IntArray | BoolArray) -> TrackBank:
+        """The tracks at ``rows`` (indices or a mask)."""
+        return TrackBank(
+            means=self.means[rows],
+            covariances=self.covariances[rows],
+            model_probabilities=self.model_probabilities[rows],
+            times_s=self.times_s[rows],
+            wild=self.wild[rows],
+        )
+
+    def put(self, rows: IntArray | BoolArray, other: TrackBank) -> TrackBank:
+        """A copy with the tracks at ``rows`` replaced by ``other``'s, in order."""
+        out = TrackBank(
+            means=self.means.copy(),
+            covariances=self.covariances.copy(),
+            model_probabilities=self.model_probabilities.copy(),
+            times_s=self.times_s.copy(),
+            wild=self.wild.copy(),
+        )
+        out.means[rows] = other.means
+        out.covariances[rows] = other.covariances
+        out.model_probabilities[rows] = other.model_probabilities
+        out.times_s[rows] = other.times_s
+        out.wild[rows] = other.wild
+        return out
+
+    @staticmethod
+    def concatenate(first: TrackBank, second: TrackBank) -> TrackBank:
+        """``first``'s tracks followed by ``second``'s."""
+        return TrackBank(
+            means=np.concatenate((first.means, second.means)),
+            covariances=np.concatenate((first.covariances, second.covariances)),
+            model_probabilities=np.concatenate(
+                (first.model_probabilities, second.model_probabilities)
+            ),
+            times_s=np.concatenate((first.times_s, second.times_s)),
+            wild=np.concatenate((first.wild, second.wild)),
+        )
+
+    @staticmethod
+    def empty() -> TrackBank:
+        """No track."""
+        return TrackBank(
+            means=np.zeros((0, N_MODELS, 4)),
+            covariances=np.zeros((0, N_MODELS, 4, 4)),
+            model_probabilities=np.zeros((0, N_MODELS)),
+            times_s=np.zeros(0),
+            wild=np.zeros(0, dtype=np.intp),
+        )
+
+
+def inverse_2x2(matrices: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Inverses and determinants of a stack of 2 x 2 matrices ``(..., 2, 2)`` (closed form)."""
+    a, b = matrices[..., 0, 0], matrices[..., 0, 1]
+    c, d = matrices[..., 1, 0], matrices[..., 1, 1]
+    det = a * d - b * c
+    inverse = np.stack((np.stack((d, -b), -1), np.stack((-c, a), -1)), -2) / det[..., None, None]
+    return inverse, det
+
+
+def floored_covariances(covariances: FloatArray, settings: TrackerSettings) -> FloatArray:
+    """Fix covariances ``(m, 2, 2)`` (m^2) with ``min_measurement_sd_m`` added in quadrature."""
+    return np.asarray(covariances + settings.min_measurement_sd_m**2 * np.eye(2))
+
+
+def start_tracks(
+    positions: FloatArray, covariances: FloatArray, times_s: FloatArray, settings: TrackerSettings
+) -> TrackBank:
+    """New tracks at fixes: position as fixed, speed unknown (sd ``max_speed_mps / 2``).
+
+    Parameters
+    ----------
+    positions : ndarray of shape (m, 2), metres
+    covariances : ndarray of shape (m, 2, 2), m^2 (floored here)
+    times_s : ndarray of shape (m,), seconds
+    settings : TrackerSettings
+
+    Returns
+    -------
+    TrackBank
+        ``m`` tracks, standing with probability ``settings.standing_prior``.
+    """
+    count = positions.shape[0]
+    state = np.zeros((count, N_MODELS, 4))
+    state[:, :, :2] = positions[:, None, :]
+    covariance = np.zeros((count, N_MODELS, 4, 4))
+    covariance[:, :, :2, :2] = floored_covariances(covariances, settings)[:, None]
+    speed_var = (0.5 * settings.max_speed_mps) ** 2
+    covariance[:, 1, 2, 2] = covariance[:, 1, 3, 3] = speed_var
+    covariance[:, 0, 2, 2] = covariance[:, 0, 3, 3] = settings.start_speed_sd_mps**2
+    prior = settings.standing_prior
+    probabilities = np.tile([prior, 1.0 - prior], (count, 1))
+    return TrackBank(
+        means=state,
+        covariances=covariance,
+        model_probabilities=probabilities,
+        times_s=np.asarray(times_s, dtype=np.float64).copy(),
+        wild=np.zeros(count, dtype=np.intp),
+    )
+
+
+def _motion(dt: FloatArray, settings: TrackerSettings) -> tuple[FloatArray, FloatArray]:
+    """Transition matrices and process noise ``(n, 2, 4, 4)`` of both models over ``dt``."""
+    count = dt.shape[0]
+    transition = np.zeros((count, N_MODELS, 4, 4))
+    transition[:, 0, 0, 0] = transition[:, 0, 1, 1] = 1.0  # standing: velocity falls to 0
+    transition[:, 1] = np.eye(4)
+    transition[:, 1, 0, 2] = transition[:, 1, 1, 3] = dt
+    noise = np.zeros((count, N_MODELS, 4, 4))
+    drift = settings.standing_drift_mps**2 * dt
+    noise[:, 0, 0, 0] = noise[:, 0, 1, 1] = drift
+    noise[:, 0, 2, 2] = noise[:, 0, 3, 3] = settings.start_speed_sd_mps**2
+    accel = settings.walking_accel_sd_mps2**2
+    noise[:, 1, 0, 0] = noise[:, 1, 1, 1] = accel * dt**3 / 3.0
+    noise[:, 1, 0, 2] = noise[:, 1, 2, 0] = noise[:, 1, 1, 3] = noise[:, 1, 3, 1] = (
+        accel * dt**2 / 2.0
+    )
+    noise[:, 1, 2, 2] = noise[:, 1, 3, 3] = accel * dt
+    return transition, noise
+
+
+def _switching(dt: FloatArray, settings: TrackerSettings) -> FloatArray:
+    """Model transition probabilities ``(n, 2, 2)`` (row: from, column: to) over ``dt``."""
+    switch = -np.expm1(-dt / settings.mean_dwell_s)
+    stay = 1.0 - switch
+    return np.stack((np.stack((stay, switch), -1), np.stack((switch, stay), -1)), -2)
+
+
+def predict(bank: TrackBank, times_s: FloatArray, settings: TrackerSettings) -> TrackBank:
+    """Mix the two models and move every track to its new time (IMM interaction + prediction).
+
+    Parameters
+    ----------
+    bank : TrackBank
+        ``n`` tracks.
+    times_s : ndarray of shape (n,), seconds
+        Each track's new time; a time before the track's own is treated as no step.
+    settings : TrackerSettings
+
+    Returns
+    -------
+    TrackBank
+        The predicted tracks (their ``model_probabilities`` are the predicted ones).
+    """
+    dt = np.maximum(np.asarray(times_s, dtype=np.float64) - bank.times_s, 0.0)
+    mixing = bank.model_probabilities[:, :, None] * _switching(dt, settings)  # (n, i, j)
+    predicted_probabilities = mixing.sum(axis=1)
+    weights = mixing / predicted_probabilities[:, None, :]
+    mixed = np.einsum("nij,nia->nja", weights, bank.means)
+    spread = bank.means[:, :, None, :] - mixed[:, None, :, :]  # (n, i, j, 4)
+    mixed_cov = np.einsum("nij,niab->njab", weights, bank.covariances) + np.einsum(
+        "nij,nija,nijb->njab", weights, spread, spread
+    )
+    transition, noise = _motion(dt, settings)
+    means = np.einsum("nmab,nmb->nma", transition, mixed)
+    covariances = transition @ mixed_cov @ np.swapaxes(transition, -1, -2) + noise
+    return TrackBank(
+        means=_capped_speed(means, settings.max_speed_mps),
+        covariances=covariances,
+        model_probabilities=predicted_probabilities,
+        times_s=np.maximum(np.asarray(times_s, dtype=np.float64), bank.times_s),
+        wild=bank.wild,
+    )
+
+
+def _capped_speed(means: FloatArray, max_speed: float) -> FloatArray:
+    speed = np.hypot(means[..., 2], means[..., 3])
+    factor = np.minimum(1.0, max_speed / np.maximum(speed, 1e-12))
+    out = means.copy()
+    out[..., 2:] *= factor[..., None]
+    return out
+
+
+def combined(bank: TrackBank) -> tuple[FloatArray, FloatArray]:
+    """The mixture's mean ``(n, 4)`` and covariance ``(n, 4, 4)`` of every track."""
+    weights = bank.model_probabilities
+    mean = np.einsum("nm,nma->na", weights, bank.means)
+    spread = bank.means - mean[:, None, :]
+    covariance = np.einsum("nm,nmab->nab", weights, bank.covariances) + np.einsum(
+        "nm,nma,nmb->nab", weights, spread, spread
+    )
+    return mean, covariance
+
+
+@dataclass(frozen=True)
+class Update:
+    """The outcome of :func:`update`: the new tracks, which fixes were wild, which tracks
+    restarted at their fix."""
+
+    bank: TrackBank
+    wild: BoolArray
+    restarted: BoolArray
+
+
+def update(
+    predicted: TrackBank,
+    positions: FloatArray,
+    covariances: FloatArray,
+    settings: TrackerSettings,
+) -> Update:
+    """Update each predicted track with its fix (row ``k`` with fix ``k``).
+
+    A fix whose squared Mahalanobis distance ``d2`` from the mixture's prediction exceeds
+    ``settings.gate_chi2`` gets the innovation covariance ``S (d2 / gate)``, i.e. its own
+    covariance becomes ``(d2 / gate) S - P``: it moves the track as a fix on the gate would.
+    After ``reset_after_wild`` wild fixes in a row the track restarts at the newest.
+
+    Parameters
+    ----------
+    predicted : TrackBank
+        ``n`` tracks predicted to their fixes' times (:func:`predict`).
+    positions : ndarray of shape (n, 2), metres
+    covariances : ndarray of shape (n, 2, 2), m^2
+    settings : TrackerSettings
+
+    Returns
+    -------
+    Update
+    """
+    noise = floored_covariances(covariances, settings)
+    mean, covariance = combined(predicted)
+    prior = covariance[:, :2, :2]
+    innovation = positions - mean[:, :2]
+    inverse, _ = inverse_2x2(prior + noise)
+    distance2 = np.einsum("na,nab,nb->n", innovation, inverse, innovation)
+    gate = settings.gate_chi2
+    wild = distance2 > gate
+    scale = np.where(wild, distance2 / gate, 1.0)
+    noise = np.where(wild[:, None, None], scale[:, None, None] * (prior + noise) - prior, noise)
+    means, covs, probabilities = _model_updates(predicted, positions, noise)
+    streak = np.where(wild, predicted.wild + 1, 0)
+    bank = TrackBank(
+        means=_capped_speed(means, settings.max_speed_mps),
+        covariances=covs,
+        model_probabilities=probabilities,
+        times_s=predicted.times_s,
+        wild=streak,
+    )
+    restarted = streak >= settings.reset_after_wild
+    if np.any(restarted):
+        fresh = start_tracks(
+            positions[restarted], covariances[restarted], predicted.times_s[restarted], settings
+        )
+        bank = bank.put(restarted, fresh)
+    return Update(bank=bank, wild=wild, restarted=restarted)
+
+
+def _model_updates(
+    predicted: TrackBank, positions: FloatArray, noise: FloatArray
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Each model's Kalman update (Joseph form) and the models' new probabilities."""
+    prior = predicted.covariances
+    innovation = positions[:, None, :] - predicted.means[:, :, :2]  # (n, m, 2)
+    inverse, det = inverse_2x2(prior[:, :, :2, :2] + noise[:, None])
+    gain = prior[:, :, :, :2] @ inverse  # (n, m, 4, 2)
+    means = predicted.means + np.einsum("nmab,nmb->nma", gain, innovation)
+    identity = np.broadcast_to(np.eye(4), prior.shape).copy()
+    identity[:, :, :, :2] -= gain  # I - K H (H picks the position)
+    covariances = identity @ prior @ np.swapaxes(identity, -1, -2)
+    covariances += gain @ noise[:, None] @ np.swapaxes(gain, -1, -2)
+    distance2 = np.einsum("nma,nmab,nmb->nm", innovation, inverse, innovation)
+    log_likelihood = -0.5 * distance2 - 0.5 * np.log(det)
+    log_weight = log_likelihood + np.log(np.maximum(predicted.model_probabilities, 1e-300))
+    log_weight -= log_weight.max(axis=1, keepdims=True)
+    weight = np.exp(log_weight)
+    probabilities = weight / weight.sum(axis=1, keepdims=True)
+    return means, covariances, np.maximum(probabilities, 1e-9)

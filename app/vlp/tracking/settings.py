@@ -1,0 +1,103 @@
+"""How people move indoors, and how long a track lives: the tracker's one set of settings."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields
+
+from ..errors import VLPError
+
+__all__ = ["TrackerSettings"]
+
+
+@dataclass(frozen=True)
+class TrackerSettings:
+    """Motion limits, gates and timeouts of a room's tracks (defaults: people walking).
+
+    Attributes
+    ----------
+    walking_accel_sd_mps2 : float
+        Sd of the white-noise acceleration of the walking (constant-velocity) model, m/s^2.
+    standing_drift_mps : float
+        Sd of the random walk of a standing terminal's position per square-root second
+        (a hand that sways), m/s^0.5.
+    start_speed_sd_mps : float
+        Sd of the velocity a standing terminal may set off with, m/s (the standing model's
+        velocity spread: what the walking model inherits when a terminal starts to walk).
+    mean_dwell_s : float
+        Mean time a terminal stays standing or walking before switching, seconds (the
+        switching rate of the two-model mixture).
+    max_speed_mps : float
+        Fastest a terminal moves, m/s: a new track's speed prior (sd half of it) and the
+        cap on a track's speed.
+    gate_probability : float
+        A fix whose innovation lies beyond this probability of the predicted spread is
+        "wild": its covariance is inflated until it lies on the gate (not dropped), and an
+        anonymous fix beyond it is not associated with the track.
+    reset_after_wild : int
+        This many wild fixes in a row restart the track at the newest fix (a track cannot
+        lock out a terminal that really moved).
+    min_measurement_sd_m : float
+        Floor on the sd of a fix in each axis, metres (a solver's covariance is never
+        trusted below it).
+    confirm_after_updates : int
+        A tentative track is confirmed after this many updates.
+    tentative_max_misses : int
+        An anonymous tentative track missed by this many solves in a row is dropped.
+    lost_after_misses : int
+        An anonymous confirmed track missed by this many solves in a row is lost.
+    lost_after_s : float
+        A track not updated for this long is ``lost``, seconds.
+    drop_after_s : float
+        A lost track is removed after this long without an update, seconds.
+    history_s : float
+        How long a track's points and the room's stream events are kept, seconds.
+    standing_prior : float
+        Probability that a new track stands (the rest: walks).
+    """
+
+    walking_accel_sd_mps2: float = 1.5
+    standing_drift_mps: float = 0.01
+    start_speed_sd_mps: float = 0.5
+    mean_dwell_s: float = 2.0
+    max_speed_mps: float = 3.0
+    gate_probability: float = 0.999
+    reset_after_wild: int = 3
+    min_measurement_sd_m: float = 0.005
+    confirm_after_updates: int = 3
+    tentative_max_misses: int = 3
+    lost_after_misses: int = 5
+    lost_after_s: float = 5.0
+    drop_after_s: float = 60.0
+    history_s: float = 300.0
+    standing_prior: float = 0.5
+
+    def __post_init__(self) -> None:
+        for item in fields(self):
+            value = getattr(self, item.name)
+            if not (math.isfinite(value) and value > 0):
+                raise VLPError(
+                    f"{item.name} must be a finite number > 0, got {value!r}", field=item.name
+                )
+        if not self.standing_prior < 1.0:
+            raise VLPError(
+                f"standing_prior must be below 1, got {self.standing_prior!r}",
+                field="standing_prior",
+            )
+        if not self.gate_probability < 1.0:
+            raise VLPError(
+                f"gate_probability must be below 1, got {self.gate_probability!r}",
+                field="gate_probability",
+            )
+        if self.drop_after_s < self.lost_after_s:
+            raise VLPError(
+                f"drop_after_s ({self.drop_after_s:g}) must be at least lost_after_s "
+                f"({self.lost_after_s:g})",
+                field="drop_after_s",
+            )
+
+    @property
+    def gate_chi2(self) -> float:
+        """The gate on the squared Mahalanobis distance of a 2-D innovation:
+        ``-2 ln(1 - gate_probability)`` (the chi-square quantile with 2 degrees of freedom)."""
+        return -2.0 * math.log1p(-self.gate_probability)

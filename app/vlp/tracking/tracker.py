@@ -1,0 +1,316 @@
+"""Tracks' lives: association of anonymous fixes, labelled updates, confirmation and loss.
+
+A room's tracks are one :class:`Tracks` batch. A labelled fix (its terminal is known) updates
+its terminal's track; anonymous fixes (aggregated measurements say where targets are, not
+who) are associated with the anonymous tracks by gated assignment of least total cost
+(Mahalanobis distance plus the log-determinant of the innovation covariance,
+:func:`scipy.optimize.linear_sum_assignment`). A fix no track claims starts a tentative
+track; tentative tracks are confirmed after ``confirm_after_updates`` updates and dropped
+after ``tentative_max_misses`` missed solves; a track not updated for ``lost_after_s`` is
+lost, and removed after ``drop_after_s``. Which ids the tracks carry is the caller's
+business: rows here are positions in the batch.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+
+from ..typing import BoolArray, FloatArray, IntArray
+from .filter import TrackBank, combined, floored_covariances, inverse_2x2, predict, start_tracks
+from .filter import update as filter_update
+from .settings import TrackerSettings
+
+__all__ = [
+    "CONFIRMED",
+    "LOST",
+    "STATUS_NAMES",
+    "TENTATIVE",
+    "Step",
+    "Tracks",
+    "age_tracks",
+    "associate",
+    "step_anonymous",
+    "step_labelled",
+]
+
+TENTATIVE, CONFIRMED, LOST = 0, 1, 2
+STATUS_NAMES = ("tentative", "confirmed", "lost")
+# Cost of leaving a pair unassigned in the assignment matrix (beyond every gated cost).
+_INFEASIBLE = 1e12
+
+
+@dataclass(frozen=True)
+class Tracks:
+    """A room's tracks: filter state and lifecycle.
+
+    Attributes
+    ----------
+    bank : TrackBank
+        Filter state of the ``n`` tracks (``bank.times_s``: time of the last update).
+    status : ndarray of shape (n,), int
+        :data:`TENTATIVE`, :data:`CONFIRMED` or :data:`LOST`.
+    updates : ndarray of shape (n,), int
+        Fixes that moved the track.
+    misses : ndarray of shape (n,), int
+        Anonymous solves in a row that did not claim the track.
+    """
+
+    bank: TrackBank
+    status: IntArray
+    updates: IntArray
+    misses: IntArray
+
+    @property
+    def size(self) -> int:
+        """The number of tracks ``n``."""
+        return self.bank.size
+
+    @staticmethod
+    def empty() -> Tracks:
+        """No track."""
+        zeros = np.zeros(0, dtype=np.intp)
+        return Tracks(bank=TrackBank.empty(), status=zeros, updates=zeros, misses=zeros)
+
+
+@dataclass(frozen=True)
+class Step:
+    """What one set of fixes did.
+
+    Attributes
+    ----------
+    tracks : Tracks
+        The tracks afterwards: the old ones in their rows, new ones appended.
+    fix_rows : ndarray of shape (m,), int
+        The track (row of ``tracks``) each fix went to.
+    moved : ndarray of shape (m,), bool
+        Whether the fix moved its track (False for a fix older than its track's state).
+    wild : ndarray of shape (m,), bool
+        Whether the fix lay beyond the gate (its covariance was inflated).
+    """
+
+    tracks: Tracks
+    fix_rows: IntArray
+    moved: BoolArray
+    wild: BoolArray
+
+
+def associate(
+    predicted: TrackBank,
+    positions: FloatArray,
+    covariances: FloatArray,
+    settings: TrackerSettings,
+    elapsed_s: FloatArray | None = None,
+) -> tuple[IntArray, IntArray]:
+    """Gated assignment of fixes to tracks of least total cost.
+
+    Parameters
+    ----------
+    predicted : TrackBank
+        ``n`` tracks predicted to the fixes' time.
+    positions : ndarray of shape (m, 2), metres
+    covariances : ndarray of shape (m, 2, 2), m^2
+    settings : TrackerSettings
+    elapsed_s : ndarray of shape (n,), seconds, default=None
+        Time since each track's last update: a fix beyond the gate is still allowed where the
+        terminal could have reached it at ``max_speed_mps`` (a start the prediction did not
+        foresee); None: the gate alone.
+
+    Returns
+    -------
+    track_rows, fix_rows : ndarray of shape (a,), int
+        Pairs ``(track_rows[i], fix_rows[i])``; every pair is allowed.
+
+    Notes
+    -----
+    The cost of a pair is ``d2 + ln det S``, the negative log-likelihood of the fix under the
+    track's prediction up to a constant, with ``S = P + R`` and ``d2`` the squared
+    Mahalanobis distance; pairs with ``d2 > gate_chi2`` are allowed only within reach (their
+    larger ``d2`` makes the assignment prefer pairs within the gate).
+    """
+    if predicted.size == 0 or positions.shape[0] == 0:
+        return np.zeros(0, dtype=np.intp), np.zeros(0, dtype=np.intp)
+    mean, covariance = combined(predicted)
+    innovation = positions[None, :, :] - mean[:, None, :2]  # (n, m, 2)
+    spread = covariance[:, None, :2, :2] + floored_covariances(covariances, settings)[None]
+    inverse, det = inverse_2x2(spread)
+    distance2 = np.einsum("nma,nmab,nmb->nm", innovation, inverse, innovation)
+    allowed = distance2 <= settings.gate_chi2
+    if elapsed_s is not None:
+        # Reach: how far the terminal can have gone, plus the 95 % spread of the fix.
+        fix_spread = np.sqrt(np.trace(covariances, axis1=1, axis2=2))
+        reach = settings.max_speed_mps * elapsed_s[:, None] + 2.448 * fix_spread[None, :]
+        allowed |= np.linalg.norm(innovation, axis=2) <= reach
+    cost = np.where(allowed, distance2 + np.log(det), _INFEASIBLE)
+    rows, cols = linear_sum_assignment(cost)
+    keep = allowed[rows, cols]
+    return rows[keep].astype(np.intp), cols[keep].astype(np.intp)
+
+
+def _apply(
+    tracks: Tracks,
+    rows: IntArray,
+    positions: FloatArray,
+    covariances: FloatArray,
+    time_s: float,
+    settings: TrackerSettings,
+) -> tuple[Tracks, BoolArray, BoolArray]:
+    """Predict and update the tracks at ``rows`` with their fixes (in order); a fix older than
+    its track's state does not move it. Returns the tracks, ``moved`` and ``wild`` per fix."""
+    moved = tracks.bank.times_s[rows] <= time_s
+    wild = np.zeros(rows.shape[0], dtype=bool)
+    if not np.any(moved):
+        return tracks, moved, wild
+    live = rows[moved]
+    chosen = tracks.bank.take(live)
+    predicted = predict(chosen, np.full(live.shape[0], time_s), settings)
+    result = filter_update(predicted, positions[moved], covariances[moved], settings)
+    wild[moved] = result.wild
+    updates = tracks.updates.copy()
+    updates[live] += 1
+    status = tracks.status.copy()
+    confirmed = updates[live] >= settings.confirm_after_updates
+    status[live] = np.where(confirmed | (status[live] != TENTATIVE), CONFIRMED, TENTATIVE)
+    misses = tracks.misses.copy()
+    misses[live] = 0
+    bank = tracks.bank.put(live, result.bank)
+    return Tracks(bank=bank, status=status, updates=updates, misses=misses), moved, wild
+
+
+def _started(
+    positions: FloatArray, covariances: FloatArray, time_s: float, settings: TrackerSettings
+) -> Tracks:
+    count = positions.shape[0]
+    bank = start_tracks(positions, covariances, np.full(count, time_s), settings)
+    ones = np.ones(count, dtype=np.intp)
+    status = np.where(ones >= settings.confirm_after_updates, CONFIRMED, TENTATIVE)
+    return Tracks(
+        bank=bank,
+        status=status.astype(np.intp),
+        updates=ones,
+        misses=np.zeros(count, dtype=np.intp),
+    )
+
+
+def _joined(first: Tracks, second: Tracks) -> Tracks:
+    return Tracks(
+        bank=TrackBank.concatenate(first.bank, second.bank),
+        status=np.concatenate((first.status, second.status)),
+        updates=np.concatenate((first.updates, second.updates)),
+        misses=np.concatenate((first.misses, second.misses)),
+    )
+
+
+def step_labelled(
+    tracks: Tracks,
+    rows: IntArray,
+    positions: FloatArray,
+    covariances: FloatArray,
+    time_s: float,
+    settings: TrackerSettings,
+) -> Step:
+    """Fixes whose terminals are known: fix ``k`` updates track ``rows[k]``, or starts a new
+    track where ``rows[k]`` is -1.
+
+    Parameters
+    ----------
+    tracks : Tracks
+    rows : ndarray of shape (m,), int
+        Distinct rows of ``tracks``, or -1.
+    positions : ndarray of shape (m, 2), metres
+    covariances : ndarray of shape (m, 2, 2), m^2
+    time_s : float
+        The fixes' time, seconds.
+    settings : TrackerSettings
+
+    Returns
+    -------
+    Step
+    """
+    old = rows >= 0
+    updated, moved_old, wild_old = _apply(
+        tracks, rows[old], positions[old], covariances[old], time_s, settings
+    )
+    new = _started(positions[~old], covariances[~old], time_s, settings)
+    fix_rows = rows.copy()
+    fix_rows[~old] = tracks.size + np.arange(new.size)
+    moved = np.ones(rows.shape[0], dtype=bool)
+    moved[old] = moved_old
+    wild = np.zeros(rows.shape[0], dtype=bool)
+    wild[old] = wild_old
+    return Step(tracks=_joined(updated, new), fix_rows=fix_rows, moved=moved, wild=wild)
+
+
+def step_anonymous(
+    tracks: Tracks,
+    positions: FloatArray,
+    covariances: FloatArray,
+    time_s: float,
+    settings: TrackerSettings,
+) -> Step:
+    """Anonymous fixes of one solve: associated with ``tracks`` (all anonymous), the rest
+    start tentative tracks; tracks no fix claimed count a miss.
+
+    Parameters
+    ----------
+    tracks : Tracks
+        The room's anonymous tracks (lost ones may be claimed again).
+    positions : ndarray of shape (m, 2), metres
+    covariances : ndarray of shape (m, 2, 2), m^2
+    time_s : float
+        The solve's time, seconds.
+    settings : TrackerSettings
+
+    Returns
+    -------
+    Step
+        Confirmed tracks missed ``lost_after_misses`` times in a row are lost. Tentative
+        tracks missed ``tentative_max_misses`` times are still in ``tracks`` with
+        their misses counted: :func:`age_tracks` tells the caller to remove them.
+    """
+    predicted = predict(tracks.bank, np.full(tracks.size, time_s), settings)
+    elapsed = np.maximum(time_s - tracks.bank.times_s, 0.0)
+    track_rows, fix_cols = associate(predicted, positions, covariances, settings, elapsed)
+    rows = np.full(positions.shape[0], -1, dtype=np.intp)
+    rows[fix_cols] = track_rows
+    step = step_labelled(tracks, rows, positions, covariances, time_s, settings)
+    claimed = np.zeros(step.tracks.size, dtype=bool)
+    claimed[step.fix_rows] = True
+    misses = np.where(claimed, step.tracks.misses, step.tracks.misses + 1)
+    # A confirmed track no solve claims for several solves in a row is lost (it may be
+    # claimed again); its place in the answer goes to whatever the solves now see.
+    status = np.where(
+        (step.tracks.status == CONFIRMED) & (misses >= settings.lost_after_misses),
+        LOST,
+        step.tracks.status,
+    )
+    after = Tracks(
+        bank=step.tracks.bank,
+        status=status.astype(np.intp),
+        updates=step.tracks.updates,
+        misses=misses.astype(np.intp),
+    )
+    return Step(tracks=after, fix_rows=step.fix_rows, moved=step.moved, wild=step.wild)
+
+
+def age_tracks(
+    tracks: Tracks, now_s: float, settings: TrackerSettings
+) -> tuple[IntArray, BoolArray]:
+    """Statuses at ``now_s`` and which tracks end.
+
+    A track not updated for ``lost_after_s`` is lost; one not updated for ``drop_after_s``
+    ends, as does a tentative track missed ``tentative_max_misses`` times in a row.
+
+    Returns
+    -------
+    status : ndarray of shape (n,), int
+    removed : ndarray of shape (n,), bool
+    """
+    idle = now_s - tracks.bank.times_s
+    status = np.where(idle > settings.lost_after_s, LOST, tracks.status).astype(np.intp)
+    removed = (idle > settings.drop_after_s) | (
+        (tracks.status == TENTATIVE) & (tracks.misses >= settings.tentative_max_misses)
+    )
+    return status, removed

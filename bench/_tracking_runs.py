@@ -1,0 +1,280 @@
+"""The tracking benchmark's runs: walkers simulated, raw fixes solved, fixes tracked, scored.
+
+One :class:`Scenario` is a room, how it really differs from its layout, how the walkers'
+measurements reach the service (their own labelled amplitudes, or K of them aggregated into
+one correlation matrix), and whether a hand or a body shadows a fix now and then. Raw fixes
+come from the service's own solver (``make_solver("gridless", ...)``, labelled fixes through
+``solve_terminals`` as the service does); tracks from :mod:`app.vlp.tracking`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from functools import cache
+
+import numpy as np
+
+from app.vlp.fingerprints import Fingerprint, build_fingerprint
+from app.vlp.layout import Layout
+from app.vlp.measurements import measurement_from_amplitudes
+from app.vlp.presets import paper_layout
+from app.vlp.simulation import (
+    Impairments,
+    WalkerPaths,
+    crossing_paths,
+    random_waypoint_paths,
+    simulate_walk,
+)
+from app.vlp.solvers import Solution, make_solver
+from app.vlp.solvers.gridless import GridlessSolver
+from app.vlp.tracking import (
+    CONFIRMED,
+    TrackerSettings,
+    Tracks,
+    age_tracks,
+    combined,
+    gospa,
+    step_anonymous,
+    step_labelled,
+)
+from app.vlp.typing import FloatArray, IntArray
+from app.vlp.uncertainty import confidence_radii
+
+from .rooms import hall_layout
+
+__all__ = ["ROOMS", "Outcome", "Scenario", "run_scenario"]
+
+RATE_HZ = 5.0
+SNR_DB = 30.0
+SHADOWING = 0.05
+GOSPA_CUTOFF_M = 1.0
+# When the lag after a start is read: the along-track shortfall over this window after it.
+LAG_WINDOW_S = (0.4, 2.0)
+MIX = Impairments.realistic_mix()
+
+
+@dataclass(frozen=True)
+class Room:
+    """A benchmark room: the layout the service knows and how the real room differs."""
+
+    name: str
+    layout: Layout
+    impairments: Impairments
+
+
+def _with_reflectance(layout: Layout) -> Layout:
+    import dataclasses
+
+    room = dataclasses.replace(layout.room, reflectance=MIX.reflectance)
+    return dataclasses.replace(layout, room=room)
+
+
+ROOMS = {
+    "paper": Room("paper", paper_layout(), Impairments.ideal()),
+    "mix": Room("realistic mix", _with_reflectance(paper_layout()), MIX),
+    "hall": Room("hall", hall_layout(), Impairments.ideal()),
+}
+
+
+@dataclass(frozen=True)
+class Scenario:
+    """One cell of the results: room, mode (``terminals`` or ``correlation``), K, shadowing
+    and the paths (``waypoints`` or ``crossing``)."""
+
+    room: str
+    mode: str
+    walkers: int
+    shadowing: bool
+    paths: str = "waypoints"
+
+
+@dataclass
+class Outcome:
+    """What a scenario measured (errors in metres, lag in seconds)."""
+
+    scenario: Scenario
+    raw_walking: list[float] = field(default_factory=list)
+    tracked_walking: list[float] = field(default_factory=list)
+    raw_standing: list[float] = field(default_factory=list)
+    tracked_standing: list[float] = field(default_factory=list)
+    covered: list[bool] = field(default_factory=list)
+    lags_s: list[float] = field(default_factory=list)
+    gospa_raw: list[tuple[float, float, float, float]] = field(default_factory=list)
+    gospa_tracked: list[tuple[float, float, float, float]] = field(default_factory=list)
+    switches: int = 0
+    walked_m: float = 0.0
+
+
+@cache
+def _fingerprint(room: str) -> Fingerprint:
+    return build_fingerprint(ROOMS[room].layout)
+
+
+@cache
+def _solver(room: str, model: str) -> GridlessSolver:
+    solver = make_solver("gridless", _fingerprint(room), "correlation" if model else "power")
+    assert isinstance(solver, GridlessSolver)
+    return solver
+
+
+def _paths(scenario: Scenario, duration_s: float, seed: int) -> WalkerPaths:
+    layout = ROOMS[scenario.room].layout
+    if scenario.paths == "crossing":
+        return crossing_paths(layout, duration_s=duration_s, rate_hz=RATE_HZ)
+    return random_waypoint_paths(
+        layout, scenario.walkers, duration_s=duration_s, rate_hz=RATE_HZ, rng=seed
+    )
+
+
+def _fix(scenario: Scenario, amplitudes: FloatArray) -> Solution:
+    solver = _solver(scenario.room, "correlation")
+    if scenario.mode == "terminals":
+        return solver.solve_terminals(amplitudes)
+    measurement = measurement_from_amplitudes(amplitudes, "correlation", amplitudes.shape[1])
+    return solver.solve(measurement, amplitudes.shape[0])
+
+
+def run_scenario(
+    scenario: Scenario,
+    *,
+    duration_s: float,
+    seed: int,
+    settings: TrackerSettings | None = None,
+) -> Outcome:
+    """Simulate, solve and track one scenario; the errors and scores it produced."""
+    settings = settings or TrackerSettings()
+    room = ROOMS[scenario.room]
+    paths = _paths(scenario, duration_s, seed)
+    walk = simulate_walk(
+        room.layout,
+        paths.positions,
+        room.impairments,
+        snr_db=SNR_DB,
+        shadowing_probability=SHADOWING if scenario.shadowing else 0.0,
+        rng=seed + 1,
+    )
+    outcome = Outcome(scenario)
+    tracks = Tracks.empty()
+    ids: IntArray = np.zeros(0, dtype=np.intp)  # a stable id per track row
+    next_id = 0
+    labelled_rows = np.full(paths.positions.shape[1], -1, dtype=np.intp)
+    tracked_path = np.full(paths.positions.shape, np.nan)
+    last_owner: dict[int, int] = {}
+    for step, time_s in enumerate(paths.times_s):
+        truth = paths.positions[step]
+        solution = _fix(scenario, walk.amplitudes[step])
+        raw = solution.positions
+        raw_cov = _covariances(solution)
+        if scenario.mode == "terminals":
+            result = step_labelled(tracks, labelled_rows, raw, raw_cov, float(time_s), settings)
+        else:
+            result = step_anonymous(tracks, raw, raw_cov, float(time_s), settings)
+        tracks = result.tracks
+        new = tracks.size - ids.size
+        ids = np.concatenate((ids, next_id + np.arange(new)))
+        next_id += new
+        status, removed = age_tracks(tracks, float(time_s), settings)
+        tracks = Tracks(tracks.bank, status, tracks.updates, tracks.misses)
+        mean, covariance = combined(tracks.bank)
+        radius = confidence_radii(covariance[:, :2, :2])
+        if scenario.mode == "terminals":
+            labelled_rows = result.fix_rows
+            own = result.fix_rows
+            tracked_path[step] = mean[own, :2]
+            _score_labelled(outcome, truth, raw, mean[own, :2], radius[own], paths.walking[step])
+        else:
+            shown = (status == CONFIRMED) & ~removed
+            _score_anonymous(outcome, truth, raw, mean[shown, :2], ids[shown], last_owner)
+        keep = ~removed
+        if not np.all(keep):
+            tracks = _take(tracks, keep)
+            ids = ids[keep]
+    if scenario.mode == "terminals":
+        outcome.lags_s = _lags(paths, tracked_path)
+    steps = np.linalg.norm(np.diff(paths.positions, axis=0), axis=2)
+    outcome.walked_m = float(np.sum(steps))
+    return outcome
+
+
+def _take(tracks: Tracks, keep: np.ndarray) -> Tracks:
+    return Tracks(
+        tracks.bank.take(keep), tracks.status[keep], tracks.updates[keep], tracks.misses[keep]
+    )
+
+
+def _covariances(solution: Solution) -> FloatArray:
+    if solution.covariances is None:
+        raise AssertionError("the gridless solver gives every estimate a covariance")
+    return np.asarray(solution.covariances)
+
+
+def _score_labelled(
+    outcome: Outcome,
+    truth: FloatArray,
+    raw: FloatArray,
+    tracked: FloatArray,
+    radius: FloatArray,
+    walking: np.ndarray,
+) -> None:
+    raw_error = np.linalg.norm(raw - truth, axis=1)
+    tracked_error = np.linalg.norm(tracked - truth, axis=1)
+    for k in range(truth.shape[0]):
+        if walking[k]:
+            outcome.raw_walking.append(float(raw_error[k]))
+            outcome.tracked_walking.append(float(tracked_error[k]))
+        else:
+            outcome.raw_standing.append(float(raw_error[k]))
+            outcome.tracked_standing.append(float(tracked_error[k]))
+        outcome.covered.append(bool(tracked_error[k] <= radius[k]))
+
+
+def _score_anonymous(
+    outcome: Outcome,
+    truth: FloatArray,
+    raw: FloatArray,
+    tracked: FloatArray,
+    ids: IntArray,
+    last_owner: dict[int, int],
+) -> None:
+    for estimates, sink in ((raw, outcome.gospa_raw), (tracked, outcome.gospa_tracked)):
+        score = gospa(truth, estimates, cutoff_m=GOSPA_CUTOFF_M)
+        sink.append((score.distance, score.localisation, score.missed, score.false))
+    if tracked.shape[0] == 0:
+        return
+    from scipy.optimize import linear_sum_assignment
+
+    distance = np.linalg.norm(truth[:, None, :] - tracked[None, :, :], axis=2)
+    rows, cols = linear_sum_assignment(distance)
+    for walker, column in zip(rows, cols, strict=True):
+        if distance[walker, column] >= GOSPA_CUTOFF_M:
+            continue
+        track = int(ids[column])
+        previous = last_owner.get(int(walker))
+        if previous is not None and previous != track:
+            outcome.switches += 1
+        last_owner[int(walker)] = track
+
+
+def _lags(paths: WalkerPaths, tracked: FloatArray) -> list[float]:
+    """For each start from standing: the mean along-track shortfall of the track behind the
+    walker, divided by the walker's speed, over :data:`LAG_WINDOW_S` after the start."""
+    lags = []
+    times = paths.times_s
+    for k in range(paths.positions.shape[1]):
+        moving = paths.walking[:, k]
+        starts = np.nonzero(moving[1:] & ~moving[:-1])[0] + 1
+        for start in starts:
+            begin = times[start]
+            window = (times >= begin + LAG_WINDOW_S[0]) & (times <= begin + LAG_WINDOW_S[1])
+            window &= moving
+            if np.count_nonzero(window) < 3:
+                continue
+            velocity = np.gradient(paths.positions[:, k], times, axis=0)[window]
+            speed = np.linalg.norm(velocity, axis=1)
+            direction = velocity / speed[:, None]
+            behind = np.einsum(
+                "ta,ta->t", paths.positions[window, k] - tracked[window, k], direction
+            )
+            lags.append(float(np.mean(behind / speed)))
+    return [lag for lag in lags if math.isfinite(lag)]

@@ -1,0 +1,104 @@
+"""The delay from a tracked POST on one ``vlp serve`` to its event on another's stream.
+
+Both processes share one PostgreSQL (a fresh schema of the given database, dropped after);
+the first seeds and builds the demo room. One terminal posts its amplitudes with
+``track: true`` to the first process, one post at a time; a thread follows the room's stream
+on the second. Each post changes one track, so event ``k`` answers post ``k``: the delay is
+from sending the POST to receiving its event (the POST's own solve included).
+"""
+
+from __future__ import annotations
+
+import queue
+import tempfile
+import threading
+import time
+import uuid
+from pathlib import Path
+
+import numpy as np
+import psycopg
+from sqlalchemy import make_url
+
+from app.client import VLPClient
+from app.vlp.fingerprints import build_fingerprint
+from app.vlp.presets import paper_layout
+from app.vlp.simulation import noise_std_for_snr, noisy_amplitudes
+
+from ._server import TERMINAL_KEY, live_server, ready_demo_room
+
+__all__ = ["stream_latencies_ms"]
+
+_PAUSE_S = 0.05
+_SILENCE_S = 30.0
+
+
+def _schema_url(url: str, schema: str) -> str:
+    return (
+        make_url(url)
+        .update_query_dict({"options": f"-csearch_path={schema}"})
+        .render_as_string(hide_password=False)
+    )
+
+
+def _admin(url: str) -> psycopg.Connection[tuple[object, ...]]:
+    parsed = make_url(url)
+    return psycopg.connect(
+        host=parsed.host or "127.0.0.1",
+        port=parsed.port or 5432,
+        dbname=parsed.database or "postgres",
+        user=parsed.username or "postgres",
+        password=parsed.password,
+        autocommit=True,
+    )
+
+
+def stream_latencies_ms(url: str, posts: int) -> list[float]:
+    """Delays of ``posts`` tracked POSTs to their events on the other process, milliseconds."""
+    schema = f"bench_{uuid.uuid4().hex[:12]}"
+    with _admin(url) as admin:
+        admin.execute(f'CREATE SCHEMA "{schema}"')
+    try:
+        return _measure(_schema_url(url, schema), posts)
+    finally:
+        with _admin(url) as admin:
+            admin.execute(f'DROP SCHEMA IF EXISTS "{schema}" CASCADE')
+
+
+def _measure(database_url: str, posts: int) -> list[float]:
+    layout = paper_layout()
+    noise = noise_std_for_snr(build_fingerprint(layout), 30.0)
+    with (
+        tempfile.TemporaryDirectory() as first_dir,
+        tempfile.TemporaryDirectory() as second_dir,
+        live_server(Path(first_dir), VLP_DATABASE_URL=database_url, VLP_DEMO="1") as first,
+    ):
+        room_id = ready_demo_room(first.url)
+        with live_server(
+            Path(second_dir), VLP_DATABASE_URL=database_url, VLP_DEMO="0", VLP_EMBEDDED_WORKERS="0"
+        ) as second:
+            received: queue.Queue[float] = queue.Queue()
+
+            def follow() -> None:
+                with VLPClient(second.url, api_key=TERMINAL_KEY) as client:
+                    for _ in client.stream_tracks(
+                        room_id, last_event_id=0, read_timeout_s=_SILENCE_S
+                    ):
+                        received.put(time.perf_counter())
+
+            threading.Thread(target=follow, daemon=True).start()
+            delays = []
+            with VLPClient(first.url, api_key=TERMINAL_KEY) as client:
+                for k in range(posts + 1):
+                    amplitudes = noisy_amplitudes(layout, np.array([[2.0, 2.0]]), noise, rng=k)
+                    body = {
+                        "terminals": [{"id": "t1", "amplitudes": amplitudes[0].tolist()}],
+                        "track": True,
+                    }
+                    sent = time.perf_counter()
+                    client.localize(room_id, body)
+                    arrived = received.get(timeout=_SILENCE_S)
+                    if k:  # the first also waits for the stream to connect
+                        delays.append(1e3 * (arrived - sent))
+                    time.sleep(_PAUSE_S)
+            return delays

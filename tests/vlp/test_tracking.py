@@ -1,0 +1,232 @@
+"""The tracking core against independent computations: a textbook Kalman filter, the gate's
+closed form, association, lifecycle, GOSPA."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+from numpy.testing import assert_allclose
+
+from app.vlp.errors import VLPError
+from app.vlp.tracking import (
+    CONFIRMED,
+    LOST,
+    TENTATIVE,
+    TrackBank,
+    TrackerSettings,
+    Tracks,
+    age_tracks,
+    associate,
+    combined,
+    gospa,
+    predict,
+    start_tracks,
+    step_anonymous,
+    step_labelled,
+    update,
+)
+
+# Walking only: switching never happens and the gate never fires.
+CV_ONLY = TrackerSettings(mean_dwell_s=1e12, gate_probability=1.0 - 1e-15, max_speed_mps=50.0)
+
+
+def _walking_only(bank: TrackBank) -> TrackBank:
+    probabilities = np.tile([0.0, 1.0], (bank.size, 1))
+    return dataclasses.replace(bank, model_probabilities=probabilities)
+
+
+def _textbook_kalman(
+    x: np.ndarray,
+    p: np.ndarray,
+    fixes: np.ndarray,
+    noise: np.ndarray,
+    times: np.ndarray,
+    accel: float,
+) -> list[np.ndarray]:
+    """A constant-velocity Kalman filter written out plainly (one target, explicit inverse)."""
+    h = np.hstack((np.eye(2), np.zeros((2, 2))))
+    out = []
+    for k in range(1, times.size):
+        dt = times[k] - times[k - 1]
+        f = np.eye(4)
+        f[0, 2] = f[1, 3] = dt
+        block = accel**2 * np.array([[dt**3 / 3, dt**2 / 2], [dt**2 / 2, dt]])
+        q = np.kron(block, np.eye(2))
+        x = f @ x
+        p = f @ p @ f.T + q
+        s = h @ p @ h.T + noise[k]
+        gain = p @ h.T @ np.linalg.inv(s)
+        x = x + gain @ (fixes[k] - h @ x)
+        p = (np.eye(4) - gain @ h) @ p
+        out.append(x.copy())
+    return out
+
+
+def test_walking_model_alone_is_the_textbook_kalman_filter(rng: np.random.Generator) -> None:
+    times = np.cumsum(rng.uniform(0.1, 0.4, 30))  # irregular steps: each fix brings its time
+    truth = np.column_stack((0.5 + 1.2 * times, 2.0 - 0.4 * times))
+    sds = rng.uniform(0.02, 0.08, times.size)
+    noise = sds[:, None, None] ** 2 * np.eye(2)
+    fixes = truth + sds[:, None] * rng.standard_normal(truth.shape)
+    bank = _walking_only(start_tracks(fixes[:1], noise[:1], times[:1], CV_ONLY))
+    x0 = bank.means[0, 1].copy()
+    p0 = bank.covariances[0, 1].copy() - CV_ONLY.min_measurement_sd_m**2 * np.diag([0, 0, 0, 0])
+    floored = noise + CV_ONLY.min_measurement_sd_m**2 * np.eye(2)
+    expected = _textbook_kalman(x0, p0, fixes, floored, times, CV_ONLY.walking_accel_sd_mps2)
+    for k in range(1, times.size):
+        bank = _walking_only(predict(bank, times[k : k + 1], CV_ONLY))
+        bank = update(bank, fixes[k : k + 1], noise[k : k + 1], CV_ONLY).bank
+        mean, _ = combined(_walking_only(bank))
+        assert_allclose(mean[0], expected[k - 1], rtol=1e-9, atol=1e-9)
+
+
+def test_a_wild_fix_moves_the_track_as_a_fix_on_the_gate() -> None:
+    settings = dataclasses.replace(CV_ONLY, gate_probability=0.99, max_speed_mps=3.0)
+    bank = _walking_only(
+        start_tracks(np.zeros((1, 2)), 1e-4 * np.eye(2)[None], np.zeros(1), settings)
+    )
+    predicted = _walking_only(predict(bank, np.array([0.2]), settings))
+    far = np.array([[3.0, 0.0]])
+    noise = 1e-4 * np.eye(2)[None]
+    result = update(predicted, far, noise, settings)
+    assert result.wild.tolist() == [True]
+    # Closed form: the innovation covariance is scaled by d2 / gate.
+    p = predicted.covariances[0, 1]
+    s = p[:2, :2] + noise[0] + settings.min_measurement_sd_m**2 * np.eye(2)
+    nu = far[0] - predicted.means[0, 1, :2]
+    d2 = nu @ np.linalg.solve(s, nu)
+    gain = p[:, :2] @ np.linalg.inv(s * d2 / settings.gate_chi2)
+    expected = predicted.means[0, 1] + gain @ nu
+    assert_allclose(result.bank.means[0, 1], expected, rtol=1e-9)
+    moved = np.linalg.norm(result.bank.means[0, 1, :2])
+    assert moved < 0.5 * np.linalg.norm(far)  # inflated, not trusted
+    assert moved > 0.0  # and not dropped
+
+
+@pytest.mark.parametrize(
+    ("settings", "restarts"),
+    [
+        (TrackerSettings(), False),  # the walking model follows the inflated fixes
+        # A track too slow to follow the jump: only the restart brings it there.
+        (
+            TrackerSettings(max_speed_mps=0.5, walking_accel_sd_mps2=0.1, start_speed_sd_mps=0.1),
+            True,
+        ),
+    ],
+    ids=["walking", "slow"],
+)
+def test_a_track_cannot_lock_out_a_terminal_that_moved(
+    settings: TrackerSettings, restarts: bool
+) -> None:
+    noise = 1e-4 * np.eye(2)[None]
+    here = np.array([[1.0, 1.0]])
+    tracks = step_labelled(Tracks.empty(), np.array([-1]), here, noise, 0.0, settings).tracks
+    for k in range(1, 4):
+        tracks = step_labelled(tracks, np.array([0]), here, noise, 0.2 * k, settings).tracks
+    teleported = np.array([[3.5, 3.0]])
+    wild = []
+    for k in range(settings.reset_after_wild):
+        step = step_labelled(tracks, np.array([0]), teleported, noise, 1.0 + 0.2 * k, settings)
+        wild.append(bool(step.wild[0]))
+        tracks = step.tracks
+    assert wild[0]
+    mean, _ = combined(tracks.bank)
+    assert np.linalg.norm(mean[0, :2] - teleported[0]) < 0.05
+    assert all(wild) == restarts
+    if restarts:  # at the newest fix exactly, its wild streak over
+        assert_allclose(mean[0, :2], teleported[0])
+        assert tracks.bank.wild.tolist() == [0]
+
+
+def test_a_fix_older_than_the_track_does_not_move_it() -> None:
+    settings = TrackerSettings()
+    noise = 1e-4 * np.eye(2)[None]
+    tracks = step_labelled(
+        Tracks.empty(), np.array([-1]), np.array([[1.0, 1.0]]), noise, 10.0, settings
+    ).tracks
+    step = step_labelled(tracks, np.array([0]), np.array([[2.0, 2.0]]), noise, 9.0, settings)
+    assert step.moved.tolist() == [False]
+    assert_allclose(step.tracks.bank.means, tracks.bank.means)
+    assert step.tracks.updates.tolist() == [1]
+
+
+def test_standing_still_averages_fixes_down(rng: np.random.Generator) -> None:
+    settings = TrackerSettings()
+    sd = 0.05
+    noise = np.tile(sd**2 * np.eye(2), (1, 1, 1))
+    truth = np.array([[2.0, 1.5]])
+    tracks = Tracks.empty()
+    rows = np.array([-1])
+    raw_errors, tracked_errors = [], []
+    for k in range(200):
+        fix = truth + sd * rng.standard_normal((1, 2))
+        step = step_labelled(tracks, rows, fix, noise, 0.2 * k, settings)
+        tracks, rows = step.tracks, step.fix_rows
+        if k >= 20:
+            raw_errors.append(np.linalg.norm(fix - truth))
+            tracked_errors.append(np.linalg.norm(combined(tracks.bank)[0][0, :2] - truth))
+    ratio = np.sqrt(np.mean(np.square(tracked_errors)) / np.mean(np.square(raw_errors)))
+    assert ratio < 0.5, ratio
+
+
+def test_association_follows_the_predictions_and_starts_tentative_tracks() -> None:
+    settings = TrackerSettings()
+    noise = np.tile(1e-4 * np.eye(2), (2, 1, 1))
+    first = np.array([[1.0, 1.0], [3.0, 3.0]])
+    step = step_anonymous(Tracks.empty(), first, noise, 0.0, settings)
+    assert step.tracks.size == 2 and step.tracks.status.tolist() == [TENTATIVE, TENTATIVE]
+    swapped = np.array([[3.02, 3.0], [1.0, 1.02]])  # the solver's order means nothing
+    step = step_anonymous(step.tracks, swapped, noise, 0.2, settings)
+    assert step.fix_rows.tolist() == [1, 0]
+    far = np.vstack((swapped, [[0.2, 3.8]]))
+    step = step_anonymous(step.tracks, far, np.tile(1e-4 * np.eye(2), (3, 1, 1)), 0.4, settings)
+    assert step.fix_rows.tolist() == [1, 0, 2]
+    assert step.tracks.status.tolist() == [CONFIRMED, CONFIRMED, TENTATIVE]
+
+
+def test_associate_leaves_fixes_outside_every_gate() -> None:
+    settings = TrackerSettings()
+    bank = start_tracks(np.array([[1.0, 1.0]]), 1e-4 * np.eye(2)[None], np.zeros(1), settings)
+    rows, cols = associate(bank, np.array([[3.0, 3.0]]), 1e-4 * np.eye(2)[None], settings)
+    assert rows.size == 0 and cols.size == 0
+
+
+def test_lifecycle_by_time_and_by_misses() -> None:
+    settings = TrackerSettings(lost_after_s=2.0, drop_after_s=10.0, tentative_max_misses=2)
+    noise = 1e-4 * np.eye(2)[None]
+    step = step_anonymous(Tracks.empty(), np.array([[1.0, 1.0]]), noise, 0.0, settings)
+    for k in range(2):  # solves that see nothing
+        step = step_anonymous(
+            step.tracks, np.zeros((0, 2)), np.zeros((0, 2, 2)), 0.2 * (k + 1), settings
+        )
+    status, removed = age_tracks(step.tracks, 0.4, settings)
+    assert removed.tolist() == [True]  # tentative and missed twice
+    labelled = step_labelled(
+        Tracks.empty(), np.array([-1]), np.array([[1.0, 1.0]]), noise, 0.0, settings
+    )
+    status, removed = age_tracks(labelled.tracks, 3.0, settings)
+    assert status.tolist() == [LOST] and removed.tolist() == [False]
+    status, removed = age_tracks(labelled.tracks, 10.5, settings)
+    assert removed.tolist() == [True]
+
+
+def test_settings_refuse_inconsistent_values() -> None:
+    with pytest.raises(VLPError, match="drop_after_s"):
+        TrackerSettings(lost_after_s=10.0, drop_after_s=5.0)
+    with pytest.raises(VLPError, match="max_speed_mps"):
+        TrackerSettings(max_speed_mps=0.0)
+
+
+def test_gospa_against_its_closed_form() -> None:
+    truth = np.array([[0.0, 0.0], [5.0, 5.0]])
+    estimates = np.array([[0.3, 0.4], [9.0, 9.0], [5.0, 5.6]])
+    score = gospa(truth, estimates, cutoff_m=1.0)
+    # Pairs: (0, 0) at 0.5 m, (1, 2) at 0.6 m; the third estimate is false.
+    assert_allclose(score.localisation, 0.25 + 0.36)
+    assert score.missed == 0.0
+    assert_allclose(score.false, 0.5)
+    assert_allclose(score.distance, np.sqrt(0.25 + 0.36 + 0.5))
+    far = gospa(truth[:1], np.array([[3.0, 0.0]]), cutoff_m=1.0)
+    assert (far.missed, far.false, far.localisation) == (0.5, 0.5, 0.0)
