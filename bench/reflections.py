@@ -1,4 +1,4 @@
-"""Accuracy and cost of the diffuse-reflection model (the figures in docs/reflections.md).
+"""Accuracy and cost of the diffuse-reflection model (the figures in docs/results/reflections.md).
 
     python -m bench.reflections
 

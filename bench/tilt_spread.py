@@ -10,7 +10,7 @@ error over the placements). The declared spread is the condition's own tilts'
 (:attr:`Impairments.tilt_component_sd_deg`), or the realistic mix's in a room whose
 photodiodes are level (a spread declared that the terminals do not have).
 
-    python -m bench.tilt_spread                   # writes a section of docs/real-rooms.md
+    python -m bench.tilt_spread                   # writes docs/results/tilt-spread.md
     python -m bench.tilt_spread --trials 5 --rooms paper --out bench/out/quick
 """
 
@@ -182,8 +182,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             machine_markdown(machine_record()),
         ]
     )
-    path = args.out / "real-rooms.md"
-    replace_section(path, "tilt-spread", body, preamble="# Real rooms\n")
+    path = args.out / "results" / "tilt-spread.md"
+    replace_section(path, "tilt-spread", body, preamble="# Results: a tilt spread declared\n")
     print(f"wrote {path}")
     return 0
 

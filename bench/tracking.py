@@ -294,7 +294,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             f"{duration:g} s of walking per cell at 5 Hz, seed {SEED}; run time "
             f"{time.perf_counter() - started:.0f} s. CSV: `docs/data/tracking.csv`, "
             "`docs/data/tracking_step_time.csv`. What the columns mean: "
-            "[tracking.md](tracking.md).",
+            "[tracking moving terminals](../how-to/track-moving-terminals.md).",
             "",
             f"Filter: {FILTERS[args.walking_only]}.",
             "",
@@ -342,8 +342,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             "",
         ]
     )
-    (out / "tracking-results.md").write_text(page, encoding="utf-8")
-    print(f"wrote {out / 'tracking-results.md'}")
+    (out / "results" / "tracking.md").parent.mkdir(parents=True, exist_ok=True)
+    (out / "results" / "tracking.md").write_text(page, encoding="utf-8")
+    print(f"wrote {out / 'results' / 'tracking.md'}")
     return 0
 
 
