@@ -189,11 +189,11 @@ def main(argv: Sequence[str] | None = None) -> int:
             "per cell: the fraction of true positions inside `accuracy_m` of their estimate "
             "(target 0.90-0.98 on the ideal model).",
             "",
-            *lines,
-            "",
             "Machine:",
             "",
             machine_markdown(machine_record()),
+            "",
+            *lines,
             "",
         ]
     )

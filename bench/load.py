@@ -162,10 +162,10 @@ def markdown(report: LoadReport, command: str) -> str:
         )
     return (
         f"Command: `{command}` (solver `{report.solver}`, paper room, K = 8, correlation "
-        "at 30 dB, one uvicorn worker, loopback).\n\n"
+        f"at 30 dB, one uvicorn worker, loopback).\n\n{machine_markdown(report.machine)}\n\n"
         + "\n".join(rows)
         + f"\n\nLoad average (1, 5, 15 min) before: {report.load_average_before}, "
-        f"after: {report.load_average_after}.\n\n{machine_markdown(report.machine)}\n"
+        f"after: {report.load_average_after}.\n"
     )
 
 

@@ -388,8 +388,8 @@ def _read_rows(path: Path) -> list[tuple[str, str, int, int, str, float]]:
 def _section(
     out: Path, tag: str, title: str, command: str, elapsed: float, text: list[str]
 ) -> Path:
-    body = [f"## {title}", "", f"Command: `{command.strip()}` ({elapsed:.0f} s).", "", *text]
-    body += ["Machine:", "", machine_markdown(machine_record()), ""]
+    body = [f"## {title}", "", f"Command: `{command.strip()}` ({elapsed:.0f} s).", ""]
+    body += ["Machine:", "", machine_markdown(machine_record()), "", *text]
     path = out / "results" / "real-rooms.md"
     replace_section(path, tag, "\n".join(body), preamble=PREAMBLE)
     return path
@@ -499,10 +499,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         f"{args.snr:g} dB, columns K = 1 / 4 / 8 aggregated correlation, then each of the "
         "K = 8 terminals sent as `terminals` (each fitted from its own amplitudes).",
         "",
+        "Machine:",
+        "",
+        machine_markdown(machine_record()),
+        "",
     ]
     for room in rooms:
         body += [f"### Room `{room}`", "", summary_table(rows, room, trials), ""]
-    body += ["Machine:", "", machine_markdown(machine_record()), ""]
     path = out / "results" / "real-rooms.md"
     replace_section(path, "real-rooms-bench", "\n".join(body), preamble=PREAMBLE)
     print(f"{len(rows)} rows, {elapsed:.0f} s; wrote {path}")

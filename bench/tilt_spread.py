@@ -175,11 +175,11 @@ def main(argv: Sequence[str] | None = None) -> int:
             f"{SNR_DB:.0f} dB, {args.trials} placements per case; coverage: the fraction of "
             "terminals whose truth is inside `accuracy_m`.",
             "",
-            *lines,
-            "",
             "Machine:",
             "",
             machine_markdown(machine_record()),
+            "",
+            *lines,
         ]
     )
     path = args.out / "results" / "tilt-spread.md"
