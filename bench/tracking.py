@@ -326,9 +326,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             "",
             _targets(outcomes, steps, stream),
             "",
-            "Floor: for standing, the RMSE of the mean of every raw fix of each pause over the "
-            "raw RMSE (the part of the error successive fixes at one place share, which no "
-            "averaging removes); for identity switches, how often two walkers come within "
+            "Floor: for standing, the RMSE of the weighted mean (by the inverse of each fix's "
+            "covariance) of all the raw fixes of each pause over the raw RMSE (the part of the "
+            "error successive fixes at one place share, which no averaging removes); for "
+            "identity switches, how often two walkers come within "
             f"{CLOSE_PASS_M:g} m of each other per 100 m walked (closer than a person's width, "
             "where positions alone cannot tell them apart). Switches are counted as the CLEAR "
             "MOT metrics count them: a walker keeps its track while it stays within 1 m.",
