@@ -65,6 +65,12 @@ class MasseySurvey:
         """(n, M) bool: the LED was detected at the point."""
         return np.isfinite(self.readings)
 
+    def with_leds(self, indices: list[int]) -> MasseySurvey:
+        """The same survey with only the LEDs ``indices`` (0-based): a sparser room."""
+        return MasseySurvey(
+            leds=self.leds[indices], points=self.points, readings=self.readings[:, indices]
+        )
+
 
 @dataclass(frozen=True)
 class Split:

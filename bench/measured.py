@@ -537,9 +537,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument(
         "--level", choices=("both", "no", "yes"), default="both", help="receivers_level rows"
     )
+    parser.add_argument(
+        "--leds",
+        default=None,
+        help="keep only these luminaires (1-based, comma-separated): a room with fewer LEDs",
+    )
     parser.add_argument("--out", type=Path, default=None, help="default: docs/ (full run)")
     args = parser.parse_args(argv)
     survey = load_survey(args.data, args.commit)
+    if args.leds:
+        survey = survey.with_leds([int(name) - 1 for name in args.leds.split(",")])
     levels = {"both": (False, True), "no": (False,), "yes": (True,)}[args.level]
     with tempfile.TemporaryDirectory(prefix="vlp-measured-") as tmp:
         rows, info = run(
