@@ -533,7 +533,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--commit", default=None, help="commit to read from a git directory")
     parser.add_argument("--max-test", type=int, default=600, help="test points (0: all)")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--undetected", choices=("null", "floor"), default="floor")
+    parser.add_argument("--undetected", choices=("null", "floor"), default="null")
     parser.add_argument(
         "--level", choices=("both", "no", "yes"), default="both", help="receivers_level rows"
     )
