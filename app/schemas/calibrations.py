@@ -75,7 +75,11 @@ class SurveyRow(RequestModel):
     x: FiniteFloat = Field(ge=0, description="m, on the receivers' plane")
     y: FiniteFloat = Field(ge=0, description="m")
     led: RequestInt = Field(ge=0, le=MAX_LED_INDEX, description="LED index (0-based, layout order)")
-    amplitude: FiniteFloat = Field(description="received pilot amplitude a = h x (+ noise)")
+    amplitude: FiniteFloat | None = Field(
+        description="received pilot amplitude a = h x (+ noise); null: the LED was not "
+        "detected at this point (such rows are never taken as a number; the fit leaves them "
+        "out)"
+    )
 
 
 class CalibrationCreate(RequestModel):

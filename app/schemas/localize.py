@@ -101,7 +101,17 @@ class TerminalAmplitudes(RequestModel):
     id: str = Field(
         pattern=TERMINAL_ID_PATTERN, description="the terminal's own id", examples=["t1"]
     )
-    amplitudes: list[FiniteFloat] = Field(min_length=1, description="a_ik for each LED i")
+    amplitudes: list[FiniteFloat | None] = Field(
+        min_length=1,
+        description="a_ik for each LED i; null where the LED was not detected (below this "
+        "terminal's detection floor, never taken as zero)",
+    )
+    detection_floor: FiniteFloat | None = Field(
+        default=None,
+        gt=0.0,
+        description="the amplitude below which this terminal does not detect an LED (same "
+        "units as its amplitudes); default: the weakest amplitude it detected",
+    )
     height: FiniteFloat | None = Field(
         default=None,
         ge=0.0,

@@ -65,10 +65,15 @@ def _checked_request(body: CalibrationCreate, layout: Layout) -> dict[str, Any]:
         errors.append(("masked_leds", f"at least one of the {n_leds} LEDs must stay"))
     if body.dead_below > body.dimmed_below:
         errors.append(("dead_below", "dead_below must not exceed dimmed_below"))
+    # "Not detected" rows say only that the amplitude is below the receiver's floor: the
+    # least-squares fit cannot take them as a number, so it leaves them out.
+    detected = [row for row in body.survey if row.amplitude is not None]
+    if body.survey and not detected:
+        errors.append(("survey", "every row is null (not detected): nothing to fit"))
     if errors:
         raise InvalidFields(errors)
     return {
-        "survey": [[row.x, row.y, row.led, row.amplitude] for row in body.survey],
+        "survey": [[row.x, row.y, row.led, row.amplitude] for row in detected],
         "masked_leds": sorted(set(body.masked_leds)),
         "mask_dead_leds": body.mask_dead_leds,
         "dimmed_below": body.dimmed_below,

@@ -36,6 +36,7 @@ from app.vlp.measurements import (
     measurement_from_power,
 )
 from app.vlp.solvers import Solution
+from app.vlp.solvers._censored import censored_substitutes
 from app.vlp.solvers.gridless import GridlessSolver
 from app.vlp.typing import FloatArray
 from app.vlp.uncertainty import confidence_radii
@@ -64,6 +65,14 @@ class TerminalSet:
     amplitudes: FloatArray
     heights: FloatArray | None = None
     normals: FloatArray | None = None
+    # NaN amplitudes: LEDs not detected; floors[k] the terminal's own floor (NaN: not sent).
+    floors: FloatArray | None = None
+
+    @property
+    def filled(self) -> FloatArray:
+        """The amplitudes with each undetected LED at half its terminal's floor (for the
+        aggregated forms, which cannot say "not detected")."""
+        return censored_substitutes(self.amplitudes, self.floors)[0]
 
 
 def input_form(body: Measurement) -> tuple[str, Model]:
@@ -129,7 +138,7 @@ def localize_measurement(
     elif body.correlation is not None:
         measurement = measurement_from_correlation(body.correlation, n_leds)
     else:
-        sent = np.zeros(0) if terminals is None else terminals.amplitudes  # shape error
+        sent = np.zeros(0) if terminals is None else terminals.filled  # shape error
         try:
             measurement = measurement_from_amplitudes(sent, model, n_leds)
         except MeasurementError as exc:  # name the field the caller sent, not the aggregate
@@ -156,9 +165,7 @@ def localize_terminals(
     estimate labelled with its terminal; ``targets`` None means one per terminal;
     ``max_work`` bounds the solve (:func:`check_work`)."""
     prepared = cache.prepare(room_id, version, model, solver)
-    measurement = measurement_from_amplitudes(
-        terminals.amplitudes, model, prepared.fingerprint.n_leds
-    )
+    measurement = measurement_from_amplitudes(terminals.filled, model, prepared.fingerprint.n_leds)
     task = _Task(room_id, version, measurement, solver, targets, terminals, "terminals")
     if max_work is not None:
         check_work(prepared, task, max_work)
@@ -193,14 +200,22 @@ def _terminal_set(sent: list[TerminalAmplitudes]) -> TerminalSet:
             )
             continue
         normals.append(vector / length)
+    errors += [
+        (f"terminals[{index}].amplitudes", "at least one LED must be detected (not null)")
+        for index, terminal in enumerate(sent)
+        if all(value is None for value in terminal.amplitudes)
+    ]
     if errors:
         raise InvalidFields(errors)
     heights = [np.nan if t.height is None else t.height for t in sent]
+    floors = [np.nan if t.detection_floor is None else t.detection_floor for t in sent]
+    amplitudes = [[np.nan if a is None else a for a in t.amplitudes] for t in sent]
     return TerminalSet(
         ids=tuple(ids),
-        amplitudes=np.array([terminal.amplitudes for terminal in sent], dtype=np.float64),
+        amplitudes=np.array(amplitudes, dtype=np.float64),
         heights=None if all(t.height is None for t in sent) else np.array(heights),
         normals=None if all(t.normal is None for t in sent) else np.array(normals),
+        floors=None if all(t.detection_floor is None for t in sent) else np.array(floors),
     )
 
 
@@ -284,7 +299,7 @@ def _solve_and_label(prepared: PreparedVersion, metrics: Metrics, task: _Task) -
         started = time.perf_counter()
         if per_terminal and terminals is not None and gridless is not None:
             solution = gridless.solve_terminals(
-                terminals.amplitudes, terminals.heights, terminals.normals
+                terminals.amplitudes, terminals.heights, terminals.normals, terminals.floors
             )
         else:
             solution = prepared.solver.solve(measurement, targets)
@@ -295,7 +310,7 @@ def _solve_and_label(prepared: PreparedVersion, metrics: Metrics, task: _Task) -
         owners = list(terminals.ids)
     elif terminals is not None:
         assigned = assign_terminals(
-            prepared.fingerprint.layout, solution.positions, terminals.amplitudes
+            prepared.fingerprint.layout, solution.positions, terminals.filled
         )
         owners = [terminals.ids[int(index)] if index >= 0 else None for index in assigned]
     return Localization(

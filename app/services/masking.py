@@ -10,6 +10,7 @@ lives in :func:`fit_to_fingerprint`; localize and epoch posts both use it.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import TypeVar
 
 from app.schemas import Measurement
 from app.vlp.errors import MeasurementError
@@ -17,15 +18,23 @@ from app.vlp.errors import MeasurementError
 __all__ = ["drop_masked_leds", "fit_to_fingerprint"]
 
 
+# Per-LED values: numbers, or numbers and nulls (terminals' LEDs not detected).
+_Value = TypeVar("_Value", float, float | None)
+
+
 def fit_to_fingerprint(
-    values: Sequence[float], masked_leds: Sequence[int], n_fingerprint_leds: int, *, field: str
-) -> list[float]:
+    values: Sequence[_Value],
+    masked_leds: Sequence[int],
+    n_fingerprint_leds: int,
+    *,
+    field: str,
+) -> list[_Value]:
     """One value per fingerprint LED: values sent for the room's M LEDs lose the masked
     LEDs' entries; values already sized for the fingerprint's M' LEDs pass unchanged.
 
     Parameters
     ----------
-    values : sequence of float
+    values : sequence of float (or None: an LED not detected)
         Per-LED values (power or amplitudes), M or M' of them.
     masked_leds : sequence of int
         Room LED indices that the fingerprint leaves out (ascending); may be empty.
@@ -40,11 +49,11 @@ def fit_to_fingerprint(
         When ``values`` is sized for neither M nor M' LEDs.
     """
     if len(values) == n_fingerprint_leds:
-        return [float(value) for value in values]
+        return list(values)
     n_room = n_fingerprint_leds + len(masked_leds)
     if masked_leds and len(values) == n_room:
         masked = set(masked_leds)
-        return [float(value) for i, value in enumerate(values) if i not in masked]
+        return [value for i, value in enumerate(values) if i not in masked]
     noun = "amplitudes" if field.endswith("amplitudes") else "entries"
     expected = (
         f"{n_fingerprint_leds} {noun} (one per LED)"

@@ -252,6 +252,7 @@ def test_calibration_fits_led_positions_and_walls(worker_app: TestClient) -> Non
         ({"surveys": []}, None),
         ({"led_position_bound_m": 1.5}, ["body.led_position_bound_m"]),
         ({"fit_reflectance": "yes"}, ["body.fit_reflectance"]),
+        ({"survey": [{"x": 1.0, "y": 1.0, "led": 0, "amplitude": None}]}, ["body.survey"]),
     ],
     ids=[
         "led-range",
@@ -263,6 +264,7 @@ def test_calibration_fits_led_positions_and_walls(worker_app: TestClient) -> Non
         "typo",
         "position-bound",
         "reflectance-flag",
+        "nothing-detected",
     ],
 )
 def test_bad_requests_name_the_field(
@@ -326,3 +328,26 @@ def test_epoch_posts_on_a_masked_room_send_one_amplitude_per_room_led(
     found = {e["terminal_id"]: (e["x"], e["y"]) for e in solved["localization"]["estimates"]}
     assert np.hypot(*(np.array(found["t1"]) - truth[0])) < 0.02
     assert np.hypot(*(np.array(found["t2"]) - truth[1])) < 0.02
+
+
+def test_rows_not_detected_are_left_out_of_the_fit(worker_app: TestClient) -> None:
+    # The same survey with extra "not detected" rows fits exactly as without them: a null
+    # is never taken as a number (zero or the floor).
+    client = worker_app
+    nominal = paper_layout()
+    body = _survey_body(_perturbed(nominal), 0.0)
+    with_nulls = {
+        "survey": body["survey"]
+        + [{"x": 0.25, "y": 0.25, "led": led, "amplitude": None} for led in range(16)]
+    }
+    reports = []
+    for sent in (body, with_nulls):
+        room_id = _paper_room(client)
+        response = client.post(f"/v1/rooms/{room_id}/calibrations", json=sent, headers=ADMIN)
+        assert response.status_code == 202, response.text
+        result = wait_for_job(client, response.json()["id"])["result"]
+        url = f"/v1/rooms/{room_id}/calibrations/{result['calibration_id']}"
+        reports.append(client.get(url, headers=ADMIN).json())
+    plain, nulls = ([led["pilot_amplitude"] for led in r["leds"]] for r in reports)
+    assert nulls == pytest.approx(plain, rel=1e-9)
+    assert [led["flag"] for led in reports[1]["leds"]][DEAD] == "dead"

@@ -24,6 +24,7 @@ import numpy as np
 from ..typing import FloatArray
 from ._channel_compiled import channel_constants, channel_rows
 from ._channel_kernel import ChannelKernel
+from ._data_support import detected_leds, leaves_dof, supports_nuisance
 from ._gridless_fit import MAX_LOG_GAIN, Priors
 from ._kernels import kernel_mode
 from ._projected_lm import projected_levenberg_marquardt
@@ -184,6 +185,8 @@ def fit_terminal(
         if best is None or fit.rss < best.rss:
             best = fit
     assert best is not None
+    # [data-support hook] how many LEDs this terminal's data really has (see _data_support).
+    n_seen = detected_leds(amplitudes, sigma2)
     if sigma2 is not None and priors.log_gain_sd is not None:
         # The gain is kept free only when the data ask for it, as the tilt below: free, it
         # trades against the distance to the brightest LEDs and costs a terminal exactly as
@@ -192,9 +195,12 @@ def fit_terminal(
         held = _levenberg_marquardt(
             kernel, amplitudes, best.position, z0, free_height, held_priors, weight, normal, None
         )
-        if held.cost - best.cost <= _GAIN_SIGNIFICANCE:
+        # [data-support hook] a free gain also needs the detected LEDs to leave room for it.
+        gain_supported = leaves_dof(n_seen, best.n_params - 1, 1)
+        if held.cost - best.cost <= _GAIN_SIGNIFICANCE or not gain_supported:
             best, priors, held_gain_sd = held, held_priors, priors.log_gain_sd
-    if normal is not None or tilt_sd is None:
+    # [data-support hook] no tilt where the detected LEDs leave no degrees of freedom for it.
+    if normal is not None or tilt_sd is None or not leaves_dof(n_seen, best.n_params, 2):
         return _with_gain_prior(best, held_gain_sd)
     if sigma2 is None:
         # The noise estimate comes from a fit that may tilt (no prior): a tilted room's
@@ -212,7 +218,10 @@ def fit_terminal(
     tilted = _levenberg_marquardt(
         kernel, amplitudes, best.position, z0, free_height, priors, weight, None, tilt_sd
     )
-    significant = best.cost - tilted.cost > _TILT_SIGNIFICANCE
+    # [data-support hook] the count rule and a BIC-type price next to the chance level.
+    significant = supports_nuisance(
+        best.cost - tilted.cost, n_seen, best.n_params, 2, _TILT_SIGNIFICANCE
+    )
     chosen = tilted if tilt_spread_known or significant else best
     return _with_gain_prior(chosen, held_gain_sd)
 

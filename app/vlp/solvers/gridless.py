@@ -37,6 +37,7 @@ from ..uncertainty import (
     own_excess_widening,
     predictive_covariances,
 )
+from ._censored import censored_substitutes, with_censored_variance
 from ._channel_compiled import channel_constants, channel_rows
 from ._channel_kernel import ChannelKernel
 from ._fit_compiled import correlation_profiles_kernel, correlation_scores_kernel
@@ -1182,17 +1183,22 @@ class GridlessSolver(Solver):
         amplitudes: FloatArray,
         heights: FloatArray | None = None,
         normals: FloatArray | None = None,
+        floors: FloatArray | None = None,
     ) -> Solution:
         """Locate each terminal from its own amplitudes; estimate k belongs to terminal k.
 
         Parameters
         ----------
         amplitudes : ndarray of shape (K, M)
-            Each terminal's received pilot amplitudes (validated by the caller).
+            Each terminal's received pilot amplitudes (validated by the caller); NaN where
+            the LED was not detected (censored below the terminal's floor: :mod:`._censored`).
         heights : ndarray of shape (K,) or None, metres
             Terminals' own heights; NaN (or None for all) where unknown.
         normals : ndarray of shape (K, 3) or None
             Terminals' photodiode unit normals; None for straight up.
+        floors : ndarray of shape (K,) or None
+            Terminals' detection floors (amplitude units); NaN (or None for all): the
+            weakest amplitude each detected.
 
         Notes
         -----
@@ -1212,8 +1218,13 @@ class GridlessSolver(Solver):
         terminal with each amplitude's variance the noise's plus that error's, and the
         variances are estimated again from its residuals.
         """
-        check_amplitude_scale(self.fingerprint, np.asarray(amplitudes, dtype=np.float64))
-        values = np.asarray(amplitudes, dtype=np.float64) / self._scale
+        # [censored hook] LEDs not detected enter as their interval below the floor.
+        amplitudes, censored_var = censored_substitutes(
+            np.asarray(amplitudes, dtype=np.float64), floors
+        )
+        check_amplitude_scale(self.fingerprint, amplitudes)
+        values = amplitudes / self._scale
+        censored_var = censored_var / self._scale**2
         n_terminals, n_leds = values.shape
         windows = self._windows
         if windows is None:
@@ -1267,7 +1278,7 @@ class GridlessSolver(Solver):
                 values[k],
                 first[k].position[None, :],
                 priors=self._priors,
-                sigma2=sigma2,
+                sigma2=with_censored_variance(sigma2, censored_var[k]),  # [censored hook]
                 height=own_heights[k],
                 normal=own_normals[k],
                 tilt_sd=tilt_sd,
@@ -1304,8 +1315,11 @@ class GridlessSolver(Solver):
                     values[k],
                     fit.position[None, :],
                     priors=self._priors,
-                    sigma2=misfit.noise * sigma2
-                    + led_error * (fit.jacobian[:, -1] / fit.data_weight) ** 2,
+                    sigma2=with_censored_variance(  # [censored hook]
+                        misfit.noise * sigma2
+                        + led_error * (fit.jacobian[:, -1] / fit.data_weight) ** 2,
+                        censored_var[k],
+                    ),
                     height=own_heights[k],
                     normal=own_normals[k],
                     tilt_sd=tilt_sd,
