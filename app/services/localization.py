@@ -46,6 +46,7 @@ from .fingerprint_cache import FingerprintCache, PreparedVersion
 from .masking import drop_masked_leds
 
 __all__ = [
+    "WAITLESS_TARGETS",
     "WAITLESS_WORK",
     "TerminalSet",
     "check_work",
@@ -62,8 +63,11 @@ _FORMS = ("power", "correlation", "terminals")
 # points, 16 LEDs, K = 8 correlation: 435 200 units) solves in a few milliseconds, about
 # the interpreter's switch interval, for which a worker thread would hold the GIL as
 # long; the hop to it and back costs two thread switches, which a loaded machine
-# stretches. Larger solves go to a worker thread and leave the loop free.
+# stretches. Larger solves go to a worker thread and leave the loop free. The work is a
+# bound, not a prediction, and each target or terminal costs its own fits: more than
+# WAITLESS_TARGETS of them (a crowd of terminals in a small room) go to the pool too.
 WAITLESS_WORK = 1_000_000
+WAITLESS_TARGETS = 8
 
 
 @dataclass(frozen=True)
@@ -150,7 +154,8 @@ def localize_in_memory(
     """:func:`localize_measurement` when it can answer without waiting: its version and
     prepared solver in ``cache`` (no registry read, no load), the solver free (no other
     request solving with it) and the solve no more than ``max_waitless_work``
-    (:func:`app.vlp.workload.localize_work` units); else None, and nothing was done. The
+    (:func:`app.vlp.workload.localize_work` units) for at most :data:`WAITLESS_TARGETS`
+    targets or terminals; else None, and nothing was done. The
     same answer and the same errors as :func:`localize_measurement` otherwise.
 
     Raises
@@ -166,7 +171,8 @@ def localize_in_memory(
     task = _measurement_task(prepared, room_id, version, body, form, model)
     if max_work is not None:
         check_work(prepared, task, max_work)
-    if task_work(prepared, task).units > max_waitless_work:
+    work = task_work(prepared, task)
+    if work.units > max_waitless_work or work.targets > WAITLESS_TARGETS:
         return None
     if not prepared.lock.acquire(blocking=False):
         return None

@@ -13,7 +13,11 @@ from app.registry import Registry
 from app.registry.errors import FingerprintNotReady, RoomNotFound
 from app.schemas import Measurement
 from app.services.fingerprint_cache import FingerprintCache
-from app.services.localization import localize_in_memory, localize_measurement
+from app.services.localization import (
+    WAITLESS_TARGETS,
+    localize_in_memory,
+    localize_measurement,
+)
 from app.telemetry import Metrics
 from app.vlp.errors import ProblemSizeError
 from tests.api.conftest import ADMIN, TestClient, make_settings, small_room, wait_for_room
@@ -151,6 +155,9 @@ def test_a_waitless_localize_answers_as_the_thread_pool_one_or_leaves_it(
     assert (
         localize_in_memory(cache, metrics, room_id=room_id, body=body, max_waitless_work=1) is None
     )
+    # and one of more targets than the bound (each costs its own fits)
+    crowd = body.model_copy(update={"targets": WAITLESS_TARGETS + 1})
+    assert localize_in_memory(cache, metrics, room_id=room_id, body=crowd) is None
     # so does one whose solver is busy with another request
     prepared = cache.prepare(room_id, reference.fingerprint_version, "correlation", "gridless")
     with prepared.lock:
