@@ -60,7 +60,7 @@ class Settings(BaseSettings):
     demo: bool = Field(default=True, description="seed the paper's room into an empty registry")
 
     # Limits (security by default; the defaults admit a 10^6-point, 4096-LED hall).
-    # See docs/reliability.md, "Hostile input and security".
+    # See docs/explanation/reliability.md#hostile-input-and-security.
     max_body_bytes: int = Field(
         default=16 * 1024 * 1024, ge=1024, description="larger request bodies answer 413"
     )

@@ -105,9 +105,9 @@ def machine_markdown(record: Mapping[str, str]) -> str:
 
 def measured_section(heading: str, lead: str, table: str) -> str:
     """A generated docs section: ``heading``, the paragraph ``lead`` (the command and what
-    it measured), ``table``, and the machine it ran on (:func:`machine_record`)."""
+    it measured), the machine it ran on and when (:func:`machine_record`), then ``table``."""
     return "\n".join(
-        [heading, "", lead, "", table, "", "Machine:", "", machine_markdown(machine_record()), ""]
+        [heading, "", lead, "", "Machine:", "", machine_markdown(machine_record()), "", table, ""]
     )
 
 

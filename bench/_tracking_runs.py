@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 from functools import cache
 
 import numpy as np
+from scipy.optimize import linear_sum_assignment
 
 from app.vlp.fingerprints import Fingerprint, build_fingerprint
 from app.vlp.layout import Layout
@@ -43,7 +44,7 @@ from app.vlp.uncertainty import confidence_radii
 
 from .rooms import hall_layout
 
-__all__ = ["ROOMS", "Outcome", "Scenario", "run_scenario"]
+__all__ = ["CLOSE_PASS_M", "ROOMS", "Outcome", "Scenario", "correspondences", "run_scenario"]
 
 RATE_HZ = 5.0
 SNR_DB = 30.0
@@ -98,11 +99,13 @@ class Outcome:
     tracked_walking: list[float] = field(default_factory=list)
     raw_standing: list[float] = field(default_factory=list)
     tracked_standing: list[float] = field(default_factory=list)
+    averaged_standing: list[float] = field(default_factory=list)
     covered: list[bool] = field(default_factory=list)
     lags_s: list[float] = field(default_factory=list)
     gospa_raw: list[tuple[float, float, float, float]] = field(default_factory=list)
     gospa_tracked: list[tuple[float, float, float, float]] = field(default_factory=list)
     switches: int = 0
+    close_passes: int = 0
     walked_m: float = 0.0
 
 
@@ -160,6 +163,8 @@ def run_scenario(
     next_id = 0
     labelled_rows = np.full(paths.positions.shape[1], -1, dtype=np.intp)
     tracked_path = np.full(paths.positions.shape, np.nan)
+    raw_path = np.full(paths.positions.shape, np.nan)
+    raw_cov_path = np.tile(np.eye(2), (*paths.positions.shape[:2], 1, 1))
     last_owner: dict[int, int] = {}
     for step, time_s in enumerate(paths.times_s):
         truth = paths.positions[step]
@@ -182,6 +187,8 @@ def run_scenario(
             labelled_rows = result.fix_rows
             own = result.fix_rows
             tracked_path[step] = mean[own, :2]
+            raw_path[step] = raw
+            raw_cov_path[step] = raw_cov
             _score_labelled(outcome, truth, raw, mean[own, :2], radius[own], paths.walking[step])
         else:
             shown = (status == CONFIRMED) & ~removed
@@ -192,6 +199,9 @@ def run_scenario(
             ids = ids[keep]
     if scenario.mode == "terminals":
         outcome.lags_s = _lags(paths, tracked_path)
+        outcome.averaged_standing = _averaged_standing(paths, raw_path, raw_cov_path)
+    else:
+        outcome.close_passes = _close_passes(paths)
     steps = np.linalg.norm(np.diff(paths.positions, axis=0), axis=2)
     outcome.walked_m = float(np.sum(steps))
     return outcome
@@ -242,18 +252,37 @@ def _score_anonymous(
         sink.append((score.distance, score.localisation, score.missed, score.false))
     if tracked.shape[0] == 0:
         return
-    from scipy.optimize import linear_sum_assignment
-
-    distance = np.linalg.norm(truth[:, None, :] - tracked[None, :, :], axis=2)
-    rows, cols = linear_sum_assignment(distance)
-    for walker, column in zip(rows, cols, strict=True):
-        if distance[walker, column] >= GOSPA_CUTOFF_M:
-            continue
-        track = int(ids[column])
-        previous = last_owner.get(int(walker))
+    for walker, track in correspondences(truth, tracked, ids, last_owner).items():
+        previous = last_owner.get(walker)
         if previous is not None and previous != track:
             outcome.switches += 1
-        last_owner[int(walker)] = track
+        last_owner[walker] = track
+
+
+def correspondences(
+    truth: FloatArray, tracked: FloatArray, ids: IntArray, last_owner: dict[int, int]
+) -> dict[int, int]:
+    """Which track answers for each walker now, as the CLEAR MOT metrics count identity
+    switches (Bernardin and Stiefelhagen, EURASIP JIVP 2008): a walker keeps last instant's
+    track while it is still within the cut-off; the others are paired by least total
+    distance. (Pairing every instant afresh would count two walkers who pass within a few
+    centimetres of each other as swapping and swapping back, whatever the tracks did.)"""
+    distance = np.linalg.norm(truth[:, None, :] - tracked[None, :, :], axis=2)
+    column_of = {int(track): column for column, track in enumerate(ids)}
+    pairs: dict[int, int] = {}
+    for walker, track in last_owner.items():
+        column = column_of.get(track)
+        if column is not None and distance[walker, column] < GOSPA_CUTOFF_M:
+            pairs[walker] = column
+    free_rows = [w for w in range(truth.shape[0]) if w not in pairs]
+    free_cols = [c for c in range(tracked.shape[0]) if c not in pairs.values()]
+    if free_rows and free_cols:
+        sub = distance[np.ix_(free_rows, free_cols)]
+        rows, cols = linear_sum_assignment(sub)
+        for r, c in zip(rows, cols, strict=True):
+            if sub[r, c] < GOSPA_CUTOFF_M:
+                pairs[free_rows[r]] = free_cols[c]
+    return {walker: int(ids[column]) for walker, column in pairs.items()}
 
 
 def _lags(paths: WalkerPaths, tracked: FloatArray) -> list[float]:
@@ -278,3 +307,42 @@ def _lags(paths: WalkerPaths, tracked: FloatArray) -> list[float]:
             )
             lags.append(float(np.mean(behind / speed)))
     return [lag for lag in lags if math.isfinite(lag)]
+
+
+# Walkers closer than this are one blob to any tracker without more than positions (about
+# a person's width: real people seldom come closer, simulated points do).
+CLOSE_PASS_M = 0.3
+
+
+def _averaged_standing(
+    paths: WalkerPaths, raw: FloatArray, raw_covariances: FloatArray
+) -> list[float]:
+    """Errors of the weighted mean (weights: the inverse of each fix's covariance) of every
+    raw fix of each whole pause, at each instant of the pause: what averaging all of a
+    pause's fixes, past and future, leaves (an error shared by successive fixes at one place,
+    as a layout that does not fit the room gives, does not average out)."""
+    errors: list[float] = []
+    for k in range(paths.positions.shape[1]):
+        standing = np.nonzero(~paths.walking[:, k])[0]
+        for pause in np.split(standing, np.nonzero(np.diff(standing) > 1)[0] + 1):
+            if pause.size == 0:
+                continue
+            weights = np.linalg.inv(raw_covariances[pause, k])
+            mean = np.linalg.solve(
+                weights.sum(axis=0), np.einsum("tab,tb->a", weights, raw[pause, k])
+            )
+            errors += np.linalg.norm(mean - paths.positions[pause, k], axis=1).tolist()
+    return errors
+
+
+def _close_passes(paths: WalkerPaths) -> int:
+    """How often two walkers come within :data:`CLOSE_PASS_M` of each other (each approach
+    counted once)."""
+    count = 0
+    walkers = paths.positions.shape[1]
+    for a in range(walkers):
+        for b in range(a + 1, walkers):
+            gap = np.linalg.norm(paths.positions[:, a] - paths.positions[:, b], axis=1)
+            close = gap < CLOSE_PASS_M
+            count += int(close[0]) + int(np.count_nonzero(close[1:] & ~close[:-1]))
+    return count

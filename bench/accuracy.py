@@ -272,7 +272,7 @@ def plan_from_args(args: argparse.Namespace) -> list[Case]:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Run the benchmark and write CSV, figures and ``accuracy.md`` into ``--out``."""
+    """Run the benchmark and write CSV, figures and ``results/accuracy.md`` into ``--out``."""
     from . import plots, report
 
     args = _parse_args(argv)
@@ -295,7 +295,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         figures.append(plots.fig3(scenes, layout, out / "figures" / "fig3_estimates_k8.png"))
         figures += plots.fig4_all(summary, out / "figures")
     report.write_accuracy_md(
-        out / "accuracy.md",
+        out / "results" / "accuracy.md",
         summary,
         cases,
         names,

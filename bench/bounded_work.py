@@ -11,7 +11,7 @@ does not wait for a running build). This measures what that buys, as medians:
 - ``worker stop``: ``EmbeddedWorkers.stop()`` while a build that never ends is running in
   the worker's process pool (the job goes back to the queue).
 
-    python -m bench.bounded_work [--repeat 5] [--update-doc docs/performance.md]
+    python -m bench.bounded_work [--repeat 5] [--update-doc docs/results/bounded-work.md]
 """
 
 from __future__ import annotations
@@ -193,7 +193,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.update_doc is not None:
         shown = list(argv) if argv is not None else sys.argv[1:]
         replace_section(
-            args.update_doc, "bounded-work", markdown(figures, shown), preamble="# Performance\n"
+            args.update_doc,
+            "bounded-work",
+            markdown(figures, shown),
+            preamble="# Results: bounded work\n",
         )
     print(json.dumps(asdict(figures), indent=2))
     return 0

@@ -10,10 +10,10 @@ gave, and the mean matched error of the right counts.
 
     python -m bench.counting                               # paper room, K = 4, 20 placements
     python -m bench.counting --rooms paper,hall --ks 2,4 --trials 30 --conditions ideal,mix
-    python -m bench.counting --out docs        # writes its section of docs/real-rooms.md
+    python -m bench.counting --out docs        # writes docs/results/counting.md
 
 Prints a markdown table; with ``--out DIR`` also writes it between the ``counting`` markers
-of ``DIR/real-rooms.md``.
+of ``DIR/results/counting.md``.
 """
 
 from __future__ import annotations
@@ -106,7 +106,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument(
         "--conditions", default="ideal", help=f"comma-separated, of {', '.join(CONDITIONS)}"
     )
-    parser.add_argument("--out", type=Path, default=None, help="write DIR/real-rooms.md's section")
+    parser.add_argument("--out", type=Path, default=None, help="write DIR/results/counting.md")
     args = parser.parse_args(argv)
     rooms = [room.strip() for room in args.rooms.split(",") if room.strip()]
     counts = [int(k) for k in args.ks.split(",")]
@@ -142,7 +142,12 @@ def main(argv: Sequence[str] | None = None) -> int:
             "reflectance in the layout; `gains`: terminal gains sd 10 %).",
             "\n".join(lines),
         )
-        replace_section(args.out / "real-rooms.md", "counting", body, preamble="# Real rooms\n")
+        replace_section(
+            args.out / "results" / "counting.md",
+            "counting",
+            body,
+            preamble="# Results: counting the terminals\n",
+        )
     return 0
 
 

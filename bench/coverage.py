@@ -12,7 +12,7 @@ with the mix's tilt spread in the layout, ``grid.receiver_tilt_sd``, and with it
 photodiodes wrongly declared level), in the paper room and the irregular room of
 ``bench/rooms.py``.
 
-    python -m bench.coverage             # writes the coverage section of docs/accuracy.md
+    python -m bench.coverage             # writes its section of docs/results/coverage.md
     python -m bench.coverage --trials 10 --out bench/out/quick
     python -m bench.coverage --snr 20 --rooms hall --out bench/out/hall20
     python -m bench.coverage --model power    # the aggregated power vector (CSM-VLP) instead
@@ -189,17 +189,17 @@ def main(argv: Sequence[str] | None = None) -> int:
             "per cell: the fraction of true positions inside `accuracy_m` of their estimate "
             "(target 0.90-0.98 on the ideal model).",
             "",
-            *lines,
-            "",
             "Machine:",
             "",
             machine_markdown(machine_record()),
             "",
+            *lines,
+            "",
         ]
     )
-    path = args.out / "accuracy.md"
+    path = args.out / "results" / "coverage.md"
     tag = "coverage" if args.model == "correlation" else f"coverage-{args.model}"
-    replace_section(path, tag, body, preamble="# Accuracy\n")
+    replace_section(path, tag, body, preamble="# Results: coverage of the 95 % radius\n")
     print(f"wrote {path}")
     return 0
 

@@ -9,7 +9,7 @@ run ends by itself. Reports per level: requests, throughput, p50/p99 latency and
 since other work on the machine changes the figures.
 
     python -m bench.load --seconds 60 [--levels 1,2,4,8,16] [--solver gridless]
-        [--update-doc docs/reliability.md]
+        [--update-doc docs/results/load.md]
 """
 
 from __future__ import annotations
@@ -35,7 +35,7 @@ from bench._server import ADMIN_KEY, TERMINAL_KEY, live_server, ready_demo_room
 __all__ = ["LevelResult", "LoadReport", "main", "markdown", "run"]
 
 REQUEST_TIMEOUT_S = 30.0
-_PREAMBLE = "# Reliability\n"
+_PREAMBLE = "# Results: load\n"
 
 
 @dataclass(frozen=True)
@@ -147,7 +147,7 @@ def run(seconds: float, levels: list[int], solver: str) -> LoadReport:
 
 
 def markdown(report: LoadReport, command: str) -> str:
-    """The report as the load results block of docs/reliability.md."""
+    """The report as the load results block of docs/results/load.md."""
     rows = [
         "| concurrency | seconds | requests | ok | throughput (req/s) | p50 (ms) | p99 (ms) "
         "| max (ms) | errors |",
@@ -162,10 +162,10 @@ def markdown(report: LoadReport, command: str) -> str:
         )
     return (
         f"Command: `{command}` (solver `{report.solver}`, paper room, K = 8, correlation "
-        "at 30 dB, one uvicorn worker, loopback).\n\n"
+        f"at 30 dB, one uvicorn worker, loopback).\n\n{machine_markdown(report.machine)}\n\n"
         + "\n".join(rows)
         + f"\n\nLoad average (1, 5, 15 min) before: {report.load_average_before}, "
-        f"after: {report.load_average_after}.\n\n{machine_markdown(report.machine)}\n"
+        f"after: {report.load_average_after}.\n"
     )
 
 

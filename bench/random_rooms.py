@@ -3,7 +3,7 @@
 Run from the repository root::
 
     python -m bench.random_rooms                      # 40 rooms x 12 requests, prints a table
-    python -m bench.random_rooms --out docs           # and writes docs/real-rooms.md's section
+    python -m bench.random_rooms --out docs           # and writes docs/results/random-rooms.md
     python -m bench.random_rooms --rooms 3 --trials 4 # a quick look
     python -m bench.random_rooms --snr-db 0,5,50,60   # noise levels outside 10-40 dB
 
@@ -302,7 +302,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         default=SNRS_DB,
         help="comma-separated SNRs (dB) the requests are drawn at (default 10,20,30,40)",
     )
-    parser.add_argument("--out", type=Path, default=None, help="write DIR/real-rooms.md's section")
+    parser.add_argument("--out", type=Path, default=None, help="write DIR/results/random-rooms.md")
     args = parser.parse_args(argv)
     started = time.perf_counter()
     outcomes = run(args.rooms, args.trials, args.seed, args.snr_db)
@@ -325,7 +325,12 @@ def main(argv: Sequence[str] | None = None) -> int:
             "`docs/data/random_rooms.csv`.",
             table,
         )
-        replace_section(args.out / "real-rooms.md", "random-rooms", body, preamble="# Real rooms\n")
+        replace_section(
+            args.out / "results" / "random-rooms.md",
+            "random-rooms",
+            body,
+            preamble="# Results: rooms drawn at random\n",
+        )
     return 0
 
 

@@ -78,6 +78,8 @@ __all__ = ["CONDITIONS", "Condition", "Localizer", "gridless_localizer", "main",
 
 SEED = 20261123
 SNR_DB = 30.0
+# A results page written where none exists yet (the generated sections are appended to it).
+PREAMBLE = "# Results: realistic rooms\n"
 KS = (1, 4, 8)
 MODES = ("correlation", "terminals")
 
@@ -386,10 +388,10 @@ def _read_rows(path: Path) -> list[tuple[str, str, int, int, str, float]]:
 def _section(
     out: Path, tag: str, title: str, command: str, elapsed: float, text: list[str]
 ) -> Path:
-    body = [f"## {title}", "", f"Command: `{command.strip()}` ({elapsed:.0f} s).", "", *text]
-    body += ["Machine:", "", machine_markdown(machine_record()), ""]
-    path = out / "real-rooms.md"
-    replace_section(path, tag, "\n".join(body), preamble="# Real rooms\n")
+    body = [f"## {title}", "", f"Command: `{command.strip()}` ({elapsed:.0f} s).", ""]
+    body += ["Machine:", "", machine_markdown(machine_record()), "", *text]
+    path = out / "results" / "real-rooms.md"
+    replace_section(path, tag, "\n".join(body), preamble=PREAMBLE)
     return path
 
 
@@ -461,7 +463,7 @@ def _main_calibrated(args: argparse.Namespace, rooms: list[str], trials: int, co
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the benchmark; write ``data/real_rooms.csv`` and the measured section of
-    ``real-rooms.md`` (between its ``real-rooms-bench`` markers) into ``--out``."""
+    ``results/real-rooms.md`` (between its ``real-rooms-bench`` markers) into ``--out``."""
     args = _parse_args(argv)
     load_solvers()
     trials = args.trials or (3 if args.quick else 30)
@@ -497,12 +499,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         f"{args.snr:g} dB, columns K = 1 / 4 / 8 aggregated correlation, then each of the "
         "K = 8 terminals sent as `terminals` (each fitted from its own amplitudes).",
         "",
+        "Machine:",
+        "",
+        machine_markdown(machine_record()),
+        "",
     ]
     for room in rooms:
         body += [f"### Room `{room}`", "", summary_table(rows, room, trials), ""]
-    body += ["Machine:", "", machine_markdown(machine_record()), ""]
-    path = out / "real-rooms.md"
-    replace_section(path, "real-rooms-bench", "\n".join(body), preamble="# Real rooms\n")
+    path = out / "results" / "real-rooms.md"
+    replace_section(path, "real-rooms-bench", "\n".join(body), preamble=PREAMBLE)
     print(f"{len(rows)} rows, {elapsed:.0f} s; wrote {path}")
     return 0
 

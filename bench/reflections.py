@@ -1,4 +1,4 @@
-"""Accuracy and cost of the diffuse-reflection model (the figures in docs/reflections.md).
+"""Accuracy and cost of the diffuse-reflection model (the figures in docs/results/reflections.md).
 
     python -m bench.reflections
 
@@ -115,7 +115,8 @@ def main() -> int:
 
 def _run() -> int:
     layout = paper_layout()
-    lines = ["## Convergence with the element size (NLoS/LoS, paper room, walls 0.7)", ""]
+    lines = ["Machine:", "", machine_markdown(machine_record()), ""]
+    lines += ["## Convergence with the element size (NLoS/LoS, paper room, walls 0.7)", ""]
     lines += _convergence(layout)
     lines += ["", _grid_ratio(layout), ""]
     flat = _with(layout, SURFACES)
@@ -158,10 +159,6 @@ def _run() -> int:
         f"of {16 * 400}) | {fingerprint_s:.1f} |",
         "",
         f"Load average at the end (1, 5, 15 min): {os.getloadavg()}.",
-        "",
-        "Machine:",
-        "",
-        machine_markdown(machine_record()),
     ]
     print("\n".join(lines))
     return 0

@@ -1,4 +1,4 @@
-"""Markdown of the accuracy benchmark: the generated part of ``docs/accuracy.md``."""
+"""Markdown of the accuracy benchmark: the generated part of ``docs/results/accuracy.md``."""
 
 from __future__ import annotations
 
@@ -15,17 +15,18 @@ if TYPE_CHECKING:
     from .accuracy import Case
     from .results import Summary
 
-__all__ = ["GRID_FLOOR_FACTOR", "ISSUE_TARGETS_CM", "issue_target_rows", "write_accuracy_md"]
+__all__ = ["GRID_FLOOR_FACTOR", "TARGETS_CM", "target_rows", "write_accuracy_md"]
 
 # Mean distance from a uniform point of the unit square to its centre, (sqrt2 + ln(1+sqrt2))/6.
 GRID_FLOOR_FACTOR = (math.sqrt(2.0) + math.log(1.0 + math.sqrt(2.0))) / 6.0
-# Accuracy targets (docs/accuracy.md): paper room, 30 dB, correlation model, default
+# Accuracy targets (docs/explanation/accuracy.md): paper room, 30 dB, correlation model, default
 # solver: mean error ceilings (cm).
-ISSUE_TARGETS_CM = {1: 3.0, 4: 6.0, 8: 10.0}
-PREAMBLE = """# Accuracy: the paper's Fig. 3 and Fig. 4, reproduced
+TARGETS_CM = {1: 3.0, 4: 6.0, 8: 10.0}
+PREAMBLE = """# Results: accuracy on the paper's model (Fig. 3 and Fig. 4)
 
-Everything between the `accuracy-results` markers below is written by `python -m bench.accuracy`;
-the discussion around it is written by hand from those numbers.
+Written by `python -m bench.accuracy`: the command, machine and date of the run are at the
+top of the generated block. What the numbers mean:
+[the accuracy explanation](../explanation/accuracy.md).
 """
 
 
@@ -42,7 +43,7 @@ def _bound(value: float, n_values: int, n_targets: int) -> str:
     return _cm(value)
 
 
-def issue_target_rows(
+def target_rows(
     summary: Sequence[Summary], default: str, floor_m: float
 ) -> list[tuple[int, str, float, float, bool]]:
     """(K, ceiling text, mean m, median m, met) for the default solver, CoCSM, paper, 30 dB."""
@@ -51,15 +52,15 @@ def issue_target_rows(
         if (s.room, s.snr_db, s.method, s.model) != ("paper", 30.0, default, "correlation"):
             continue
         limits = []
-        if s.n_targets in ISSUE_TARGETS_CM:
-            limits.append(ISSUE_TARGETS_CM[s.n_targets] / 100)
+        if s.n_targets in TARGETS_CM:
+            limits.append(TARGETS_CM[s.n_targets] / 100)
         if s.n_targets <= 4:
             limits.append(floor_m)
         if not limits:
             continue
         ceiling = min(limits)
         text = " and ".join(
-            ([f"≤ {ISSUE_TARGETS_CM[s.n_targets]:g} cm"] if s.n_targets in ISSUE_TARGETS_CM else [])
+            ([f"≤ {TARGETS_CM[s.n_targets]:g} cm"] if s.n_targets in TARGETS_CM else [])
             + ([f"< floor {100 * floor_m:.2f} cm"] if s.n_targets <= 4 else [])
         )
         met = s.failures == 0 and s.mean_error_m <= ceiling
@@ -139,12 +140,12 @@ def write_accuracy_md(
         "MEAN error can sit slightly below them. CSM has M values for 2K + 1 unknowns",
         "(positions and noise power): from K = M/2 on its bound is infinite.",
         "",
-        f"### Issue targets (paper room, 30 dB, CoCSM-VLP, `{default}`)",
+        f"### Targets (paper room, 30 dB, CoCSM-VLP, `{default}`)",
         "",
         "| K | target | mean (cm) | median (cm) | met (on the mean) |",
         "|---|---|---|---|---|",
     ]
-    for k, text, mean, median, met in issue_target_rows(summary, default, floor):
+    for k, text, mean, median, met in target_rows(summary, default, floor):
         parts.append(
             f"| {k} | {text} | {_cm(mean)} | {_cm(median)} | {'yes' if met else '**no**'} |"
         )
@@ -155,5 +156,5 @@ def write_accuracy_md(
         parts += [f"### Room `{room}`, {snr:g} dB", "", _table(summary, room, snr)]
     if figures:
         parts += ["### Figures", ""]
-        parts += [f"![{fig.stem}](figures/{fig.name})" for fig in figures]
+        parts += [f"![{fig.stem}](../figures/{fig.name})" for fig in figures]
     replace_section(path, "accuracy-results", "\n".join(parts), preamble=PREAMBLE)

@@ -13,8 +13,8 @@ turns: in every round each solves the same 50 seeded measurements of the paper r
 30 dB (:func:`bench.solver_timing._kernel_pool`) per form (``terminals``: each terminal's own
 amplitudes, ``solve_terminals``), the order of the two alternating
 between rounds, so that both see the same load. Medians of the CPU time per solve (BLAS one
-thread). Prints a table; writes nothing (the figures go into ``docs/performance.md`` by
-hand, with the command).
+thread). Prints a table; writes nothing (the figures go into ``docs/explanation/performance.md``
+by hand, with the command).
 """
 
 from __future__ import annotations

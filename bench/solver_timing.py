@@ -3,7 +3,8 @@
 Run from the repository root::
 
     python -m bench.solver_timing            # writes docs/data/solver_timing.csv and the
-                                             # "Solver timings" section of docs/performance.md
+                                             # "Solver timings" section of
+                                             # docs/results/solver-timing.md
     python -m bench.solver_timing --quick    # a few repetitions, into bench/out/quick/
     python -m bench.solver_timing --kernels  # only the default solver, compiled vs reference
                                              # kernels (the "Compiled kernels" section)
@@ -68,12 +69,12 @@ FAST_REPETITIONS = 300
 # A combination gets at least this many timed solves, more while within the time budget.
 MIN_REPETITIONS = 30
 BUDGET_S = 20.0
-# Issue 2's in-process targets at K = 8 (median, milliseconds); l1 compiled vs rebuilt.
+# In-process targets at K = 8 (median, milliseconds); l1 compiled vs rebuilt.
 TARGET_MEDIAN_MS = {"gridless": 5.0, "omp": 1.0}
 TARGET_L1_SPEEDUP = 3.0
 HEADER = ("solver", "model", "variant", "repetitions", "median_ms", "p90_ms", "mean_ms", "min_ms")
-PREAMBLE = "# Performance\n"
-# Issue 13's in-process targets for the default solver (median, milliseconds), by (form, K).
+PREAMBLE = "# Results: solver timings\n"
+# In-process targets for the default solver's compiled kernels (median, milliseconds), by (form, K).
 KERNEL_TARGETS_MS = {("correlation", 8): 2.0, ("power", 8): 5.0, ("correlation", 1): 0.3}
 KERNEL_KS = (1, 4, 8)
 KERNEL_FORMS = ("correlation", "power", "terminals")
@@ -191,7 +192,7 @@ def kernels_markdown(
     argv: Sequence[str],
     load: tuple[float, float, float],
 ) -> str:
-    """The self-contained "Compiled kernels" section of ``docs/performance.md``."""
+    """The self-contained "Compiled kernels" section of ``docs/results/solver-timing.md``."""
     parts = [
         "## Default solver: compiled vs reference kernels",
         "",
@@ -221,7 +222,7 @@ def kernels_markdown(
     by = {(t.form, t.n_targets): t for t in results}
     parts += [
         "",
-        "### Issue 13 targets (compiled kernels)",
+        "### Targets (compiled kernels)",
         "",
         "| check | target | measured | met |",
         "|---|---|---|---|",
@@ -425,7 +426,7 @@ def markdown(
     argv: Sequence[str],
     load: tuple[float, float, float],
 ) -> str:
-    """The self-contained "Solver timings" section of ``docs/performance.md``."""
+    """The self-contained "Solver timings" section of ``docs/results/solver-timing.md``."""
     parts = [
         "## Solver timings",
         "",
@@ -453,7 +454,7 @@ def markdown(
     ]
     parts += [
         "",
-        "### Issue 2 timing targets",
+        "### Timing targets",
         "",
         *_targets(results),
         "",
@@ -510,7 +511,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         )
     write_csv(out / "data" / "solver_timing.csv", HEADER, (t.as_tuple() for t in results))
     replace_section(
-        out / "performance.md",
+        out / "results" / "solver-timing.md",
         "solver-timings",
         markdown(results, machine_record(), shown, load),
         preamble=PREAMBLE,
@@ -532,7 +533,7 @@ def _main_kernels(out: Path, shown: Sequence[str], *, quick: bool) -> int:
         )
     write_csv(out / "data" / "kernel_timing.csv", KERNEL_HEADER, (t.as_tuple() for t in results))
     replace_section(
-        out / "performance.md",
+        out / "results" / "solver-timing.md",
         "kernel-timings",
         kernels_markdown(results, machine_record(), shown, load),
         preamble=PREAMBLE,

@@ -10,7 +10,7 @@ error over the placements). The declared spread is the condition's own tilts'
 (:attr:`Impairments.tilt_component_sd_deg`), or the realistic mix's in a room whose
 photodiodes are level (a spread declared that the terminals do not have).
 
-    python -m bench.tilt_spread                   # writes a section of docs/real-rooms.md
+    python -m bench.tilt_spread                   # writes docs/results/tilt-spread.md
     python -m bench.tilt_spread --trials 5 --rooms paper --out bench/out/quick
 """
 
@@ -175,15 +175,15 @@ def main(argv: Sequence[str] | None = None) -> int:
             f"{SNR_DB:.0f} dB, {args.trials} placements per case; coverage: the fraction of "
             "terminals whose truth is inside `accuracy_m`.",
             "",
-            *lines,
-            "",
             "Machine:",
             "",
             machine_markdown(machine_record()),
+            "",
+            *lines,
         ]
     )
-    path = args.out / "real-rooms.md"
-    replace_section(path, "tilt-spread", body, preamble="# Real rooms\n")
+    path = args.out / "results" / "tilt-spread.md"
+    replace_section(path, "tilt-spread", body, preamble="# Results: a tilt spread declared\n")
     print(f"wrote {path}")
     return 0
 

@@ -30,7 +30,7 @@ def paper_room() -> Layout:
 
 @pytest.fixture(scope="session")
 def paper_fingerprint(paper_room: Layout) -> Fingerprint:
-    """Fingerprint of the paper's room (built once per session; treat as read-only)."""
+    """Fingerprint of the paper's room (built once per test run; treat as read-only)."""
     return build_fingerprint(paper_room)
 
 
@@ -43,7 +43,8 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     taken last keeps one worker busy while the other idles, so the long ones go first
     (longest first balances best). Tests that share a node id: the workers run tests by id,
     so all but the first of them would silently not run. Such a module is marked ``serial``
-    and ``./test`` runs it in a plain pass (docs/architecture.md, "Tests and their lanes").
+    and ``./test`` runs it in a plain pass
+    (docs/explanation/architecture.md#tests-and-their-lanes).
     """
     if not os.environ.get("PYTEST_XDIST_WORKER"):
         return

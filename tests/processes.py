@@ -1,6 +1,6 @@
 """Real ``vlp serve`` and ``vlp worker`` processes for fault, concurrency and scale-out tests.
 
-:class:`ProcessFleet` starts processes, each in its own session (process group) with its JSON
+:class:`ProcessFleet` starts processes, each in its own process group with its JSON
 log on a file, and on exit ends every group it started, build children included, even when
 the test failed. ``kill -9`` in a test hits one process only (:meth:`VlpProcess.kill9`), as
 the OOM killer or a crash would; the fleet still sweeps the group afterwards.

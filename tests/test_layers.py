@@ -1,4 +1,5 @@
-"""Imports go one way (docs/architecture.md): each part of ``app`` imports only parts below it.
+"""Imports go one way (docs/explanation/architecture.md): each part of ``app`` imports only
+parts below it.
 
 Lazy imports inside functions count too. The science core's own rule (stdlib, numpy, scipy,
 cvxpy, numba only) is tests/vlp/test_imports.py.

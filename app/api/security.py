@@ -51,8 +51,8 @@ __all__ = [
 Role = Literal["admin", "terminal"]
 ROLES: tuple[Role, ...] = ("admin", "terminal")
 CREDENTIALS_FILE = "credentials"
-# A revoked key must answer 401 in every API process within 2 s (docs/reliability.md,
-# "Keys"): 1 s of cache.
+# A revoked key must answer 401 in every API process within 2 s
+# (docs/explanation/reliability.md#keys): 1 s of cache.
 KEY_CACHE_TTL_S = 1.0
 LAST_USED_INTERVAL_S = 60.0
 # What every key the service generates starts with.

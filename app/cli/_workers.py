@@ -11,8 +11,8 @@ addresses; the supervisor's socket only holds the port and never listens. With o
 listening socket every process woke on a new connection and the first to run accepted all
 that were queued: a burst of keep-alive connections (clients starting at once) mostly
 landed on one process and stayed there, so a second process added nothing for them
-(docs/performance.md, "Connections spread over the API processes"). Elsewhere the shared
-socket remains.
+(docs/decisions/connections-spread-over-processes.md). Elsewhere the shared socket
+remains.
 
 What must run once per deployment runs in API process 0 only: the embedded build workers,
 the epoch sweeper and the demo-room seeding (whose "no rooms yet?" check is not atomic).

@@ -44,7 +44,7 @@ class Job(BaseModel):
 
 
 class Epoch(BaseModel):
-    """A cooperation window that terminals join one by one (docs/epochs.md)."""
+    """A cooperation window that terminals join one by one (docs/how-to/use-epochs.md)."""
 
     model_config = ConfigDict(extra="allow")
 

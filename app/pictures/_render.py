@@ -1,4 +1,4 @@
-"""Shared drawing helpers: figures sized in pixels, PNG bytes, the room outline and its LEDs."""
+"""Shared drawing functions: figures sized in pixels, PNG bytes, the room outline and its LEDs."""
 
 from __future__ import annotations
 

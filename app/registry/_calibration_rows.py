@@ -1,4 +1,4 @@
-"""Connection-level helpers that tie survey calibrations into the build queue.
+"""Connection-level functions that tie survey calibrations into the build queue.
 
 A room's *active* calibration is its newest succeeded calibration for the room's current
 layout version: ordinary builds of that layout use its calibrated (and masked) layout. A PUT

@@ -188,7 +188,8 @@ class Estimate(ResponseModel):
         default=None,
         description="radius of the 95 % confidence circle around (x, y), metres (solver "
         "`gridless`; from the fit's noise and the model errors its residuals show: per-LED "
-        "gain errors, tilts, heights not sent; docs/accuracy.md measures how often it holds). "
+        "gain errors, tilts, heights not sent; docs/results/coverage.md measures how often it "
+        "holds). "
         "The floor's diagonal where the data leave the position open (a receiver that sees "
         "one LED or none); wide enough to hold the mirror image where the LEDs a receiver "
         "sees lie on one line, and any other place where the target would fit the "

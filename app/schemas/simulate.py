@@ -22,7 +22,8 @@ class ImpairmentsSpec(RequestModel):
 
     Ranges seen in practice: reflectance of walls 0.5-0.8, floor 0.2, ceiling 0.8; terminal
     gains a few to 10 % apart; heights a few to 15 cm apart; hand-held tilts up to 10-20
-    degrees; LED flux within about 5-7 % and beams within a few degrees (docs/real-rooms.md).
+    degrees; LED flux within about 5-7 % and beams within a few degrees
+    (docs/explanation/real-rooms.md).
     """
 
     reflectance: SurfaceReflectance | None = Field(

@@ -1,7 +1,7 @@
 """Least-squares kernels of the survey calibration (inputs already validated).
 
 Split out of :mod:`app.vlp.calibration`, which holds the public functions and documents the
-model; these helpers trust their input.
+model; these functions trust their input.
 """
 
 from __future__ import annotations

@@ -25,7 +25,8 @@ _GAUSS_POINTS = 3
 # An LED or receiver closer than this to a plane is treated as lying on it (no grading there).
 ON_PLANE_M = 1e-9
 # LEDs closer to a plane than this many element sizes get cells graded towards their foot
-# (farther ones light it smoothly enough for the uniform cells; docs/reflections.md).
+# (farther ones light it smoothly enough for the uniform cells;
+# docs/explanation/reflections.md#quadrature-the-element-size-and-why).
 _LED_GRADING_REACH = 2.0
 SURFACES = ("floor", "ceiling", "wall_x0", "wall_x1", "wall_y0", "wall_y1")
 

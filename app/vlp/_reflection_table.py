@@ -10,7 +10,8 @@ Nodes: along x and y, the room's walls and interior nodes at most :data:`NODE_SP
 plus nodes :data:`WALL_NODE_OFFSETS_M` from each wall, where the gains change fastest (their
 scale there is the distance to the wall). With ``grid.receiver_height_sd > 0`` the heights
 ``receiver_height +- 3 sd`` are covered by at least four levels at most
-:data:`HEIGHT_SPACING_M` apart. ``docs/reflections.md`` has the measured interpolation error.
+:data:`HEIGHT_SPACING_M` apart. ``docs/results/reflections.md`` has the measured interpolation
+error.
 """
 
 from __future__ import annotations
@@ -41,7 +42,8 @@ HEIGHT_SPACING_M = 0.1
 _WALL_INSET_M = 1e-4
 # Coefficients (nodes x LEDs x 4 or 8 Hermite terms) above which a table is refused: 8e6
 # float64 = 64 MB, and a build of minutes, not hours (its cost grows like nodes x LEDs x
-# wall length). Hall-scale rooms exceed it (docs/reflections.md).
+# wall length). Hall-scale rooms exceed it (docs/explanation/reflections.md, "The reflection
+# table").
 MAX_TABLE_ENTRIES = 8_000_000
 # Points evaluated per call of diffuse_gains while building (progress granularity).
 _BUILD_CHUNK = 64

@@ -84,7 +84,7 @@ _DETECTION_SNR = 25.0
 # are placed to a few centimetres, a wrong drawing or a swapped fitting is further off.
 DEFAULT_LED_POSITION_BOUND_M = 0.3
 # Where a fitted reflectance starts when the layout gives none (the lighting-design default
-# for walls, docs/real-rooms.md).
+# for walls, docs/explanation/real-rooms.md#the-simulators-true-channel).
 _REFLECTANCE_START = 0.5
 
 

@@ -94,7 +94,7 @@ def single_target_crlb(layout: Layout, position: FloatArray, noise_std: float) -
         F = \\sum_i (m_i + 3)^2\\, \\mathrm{SNR}_i\\, \\frac{(p - s_i)(p - s_i)^T}{d_i^4},
         \\qquad \\mathrm{SNR}_i = g_i(p)^2 / \\sigma^2,
 
-    the aggregated Fisher information docs/accuracy.md evaluates, where ``SNR_i`` is the
+    the aggregated Fisher information docs/results/accuracy.md evaluates, where ``SNR_i`` is the
     link SNR at ``p``. In our SNR convention
     (``SNR = mean_ij g_ij^2 / sigma^2`` over LEDs and grid points)
     ``SNR_i = SNR * g_i(p)^2 / mean(J)``. LEDs outside the FOV contribute nothing.
@@ -271,7 +271,7 @@ def aggregated_crlb(
 
 # -- bounds with nuisance parameters ---------------------------------------------------------
 # Step of the central differences of the diffuse gains, metres: the quadrature's relative
-# noise (about 1e-4, docs/reflections.md) then perturbs the derivative by well under 1 %.
+# noise (about 1e-4, docs/results/reflections.md) then perturbs the derivative by well under 1 %.
 _DIFFUSE_STEP_M = 0.02
 
 

@@ -14,8 +14,9 @@ rectangle is a tensor Gauss-Legendre rule on a graded mesh: cells no larger than
 than :data:`GRADING` times the distance to that point, down to a floor. The receiver-side
 kernel varies on the scale of the receiver's distance ``a`` to the plane (it integrates to a
 configuration factor concentrated within a few ``a`` of the foot point), so a uniform mesh is
-not converged near a wall while the graded one is; ``docs/reflections.md`` shows the measured
-convergence and why the defaults are what they are.
+not converged near a wall while the graded one is; ``docs/explanation/reflections.md`` says why
+the defaults are what they are and ``docs/results/reflections.md`` shows the measured
+convergence.
 """
 
 from __future__ import annotations

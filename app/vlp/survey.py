@@ -159,7 +159,7 @@ def check_survey(layout: Layout, survey: Survey) -> None:
         )
 
 
-# -- private helpers -----------------------------------------------------------------------------
+# -- private functions ---------------------------------------------------------------------------
 def _require_finite(array: FloatArray, name: str) -> None:
     bad = np.flatnonzero(~np.isfinite(array.reshape(array.shape[0], -1)).all(axis=1))
     if bad.size:

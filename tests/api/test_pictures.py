@@ -83,7 +83,7 @@ def test_default_map_of_the_demo_room_is_not_one_flat_colour(
         return max(count for count, _ in colours) / (box.width * box.height)
 
     coverage = client.get(f"{url}&heatmap=coverage", headers=ADMIN).content
-    assert commonest_colour_share(coverage) > 0.5  # the flat map the issue saw
+    assert commonest_colour_share(coverage) > 0.5  # flat: every point sees all 16 LEDs
     assert commonest_colour_share(default) < 0.2
 
 

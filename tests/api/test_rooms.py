@@ -197,7 +197,7 @@ def test_tiny_grid_step_is_refused_before_any_allocation(
 ) -> None:
     """The grid size is checked from the numbers alone: the layout is never built and the
     request allocates next to nothing (traced by tracemalloc). Its speed is in
-    docs/performance.md (bench.bounded_work)."""
+    docs/results/bounded-work.md (bench.bounded_work)."""
     # 1e-5 m over 4 x 4 m would be 1.6e11 grid points.
     body = small_room(
         room={"length": 4.0, "width": 4.0, "height": 3.0},

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import math
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -50,7 +51,9 @@ def _read(path: Path) -> tuple[list[str], list[dict[str, str]]]:
 
 def test_accuracy_benchmark_runs_end_to_end(tmp_path: Path) -> None:
     handwritten = "# Accuracy\n\nHand-written discussion that a rerun must keep.\n"
-    (tmp_path / "accuracy.md").write_text(handwritten, encoding="utf-8")
+    page = tmp_path / "results" / "accuracy.md"
+    page.parent.mkdir()
+    page.write_text(handwritten, encoding="utf-8")
     args = [
         "--trials",
         "2",
@@ -117,8 +120,11 @@ def test_accuracy_benchmark_runs_end_to_end(tmp_path: Path) -> None:
 
     for name in ("fig3_estimates_k8.png", "fig4_error_vs_k_paper.png"):
         assert (tmp_path / "figures" / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    markdown = (tmp_path / "accuracy.md").read_text(encoding="utf-8")
+    markdown = page.read_text(encoding="utf-8")
     assert markdown.startswith(handwritten)
     assert "<!-- accuracy-results:start -->" in markdown
     assert "python -m bench.accuracy --trials 2" in markdown
     assert "### Room `paper`, 30 dB" in markdown
+    # The page sits in results/ beside data/ and figures/: its image links must resolve.
+    images = re.findall(r"!\[[^\]]*\]\(([^)]+)\)", markdown)
+    assert images and all((page.parent / image).resolve().is_file() for image in images)

@@ -15,8 +15,8 @@ REPO_ROOT = Path(__file__).resolve().parents[2]
 
 
 def test_bounded_work_benchmark_runs_and_rewrites_only_its_block(tmp_path: Path) -> None:
-    doc = tmp_path / "performance.md"
-    doc.write_text("# Performance\n\n## Solver timings\n\nKept.\n")
+    doc = tmp_path / "bounded-work.md"
+    doc.write_text("# Results: bounded work\n\n## Reading it\n\nKept.\n")
     result = subprocess.run(
         [sys.executable, "-m", "bench.bounded_work", "--repeat", "1", "--update-doc", str(doc)],
         cwd=REPO_ROOT,

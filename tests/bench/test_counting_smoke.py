@@ -20,11 +20,13 @@ def test_counting_cell_counts_every_placement() -> None:
 
 
 def test_counting_writes_its_section(tmp_path: Path) -> None:
-    (tmp_path / "real-rooms.md").write_text(
-        "# Real rooms\n\nbefore\n<!-- counting:start -->\nold\n<!-- counting:end -->\nafter\n"
+    page = tmp_path / "results" / "counting.md"
+    page.parent.mkdir()
+    page.write_text(
+        "# Counting\n\nbefore\n<!-- counting:start -->\nold\n<!-- counting:end -->\nafter\n"
     )
     assert main(["--ks", "1", "--scales", "1.0", "--trials", "2", "--out", str(tmp_path)]) == 0
-    text = (tmp_path / "real-rooms.md").read_text()
-    assert "old" not in text and text.startswith("# Real rooms\n\nbefore\n")
+    text = page.read_text()
+    assert "old" not in text and text.startswith("# Counting\n\nbefore\n")
     assert text.rstrip().endswith("after")
     assert "| paper | ideal | 1 | 1 | 1.00 | 1: 2 |" in text

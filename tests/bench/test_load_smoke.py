@@ -15,8 +15,8 @@ REPO_ROOT = Path(__file__).resolve().parents[2]
 
 
 def test_load_benchmark_runs_and_rewrites_only_its_block(tmp_path: Path) -> None:
-    doc = tmp_path / "reliability.md"
-    doc.write_text("# Reliability\n\n## Load\n\nKept.\n\n## Hostile input\n\nAlso kept.\n")
+    doc = tmp_path / "load.md"
+    doc.write_text("# Results: load\n\n## Load\n\nKept.\n\n## Reading it\n\nAlso kept.\n")
     args = ["--seconds", "2", "--levels", "1,2", "--solver", "nnls", "--update-doc", str(doc)]
     result = subprocess.run(
         [sys.executable, "-m", "bench.load", *args],

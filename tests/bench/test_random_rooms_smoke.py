@@ -39,11 +39,13 @@ def test_summary_counts_per_form() -> None:
 
 def test_a_short_run_answers_every_request(tmp_path: Path) -> None:
     """At noise levels outside the default draws too (0 and 60 dB)."""
-    (tmp_path / "real-rooms.md").write_text("# Real rooms\n\nhand-written\n")
+    page = tmp_path / "results" / "random-rooms.md"
+    page.parent.mkdir()
+    page.write_text("# Random rooms\n\nhand-written\n")
     argv = ["--rooms", "2", "--trials", "3", "--snr-db", "0,60", "--out", str(tmp_path)]
     assert main(argv) == 0
-    text = (tmp_path / "real-rooms.md").read_text()
-    assert text.startswith("# Real rooms\n\nhand-written\n")
+    text = page.read_text()
+    assert text.startswith("# Random rooms\n\nhand-written\n")
     with (tmp_path / "data" / "random_rooms.csv").open() as handle:
         rows = list(csv.DictReader(handle))
     assert len(rows) == 2 * 3

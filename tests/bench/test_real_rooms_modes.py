@@ -78,7 +78,7 @@ def test_an_option_builds_the_default_solver_with_it(tmp_path: Path) -> None:
         )
         built = [s for s in real_rooms._SOLVERS.values() if isinstance(s, GridlessSolver)]
         assert built and all(not s.options.tolerance_jumps for s in built)
-        assert "40 dB" in (tmp_path / "real-rooms.md").read_text()
+        assert "40 dB" in (tmp_path / "results" / "real-rooms.md").read_text()
     finally:
         real_rooms._OPTIONS.clear()
         real_rooms._SOLVERS.clear()

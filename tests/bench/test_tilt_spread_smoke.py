@@ -14,7 +14,7 @@ pytestmark = pytest.mark.slow
 
 def test_one_placement_per_case_writes_the_section(tmp_path: Path) -> None:
     assert tilt_spread.main(["--trials", "1", "--rooms", "paper", "--out", str(tmp_path)]) == 0
-    text = (tmp_path / "real-rooms.md").read_text(encoding="utf-8")
+    text = (tmp_path / "results" / "tilt-spread.md").read_text(encoding="utf-8")
     rows = [line for line in text.splitlines() if line.startswith("| paper |")]
     assert [row.split(" | ")[1] for row in rows] == [case.name for case in tilt_spread.CASES]
 

@@ -44,7 +44,7 @@ def test_tracking_benchmark_runs_end_to_end(tmp_path: Path) -> None:
     labelled = [r for r in rows if r["mode"] == "terminals"]
     assert all(math.isfinite(float(r["tracked_rmse_standing_m"])) for r in labelled)
     assert all(0.0 <= float(r["coverage_95"]) <= 1.0 for r in labelled)
-    page = (tmp_path / "tracking-results.md").read_text(encoding="utf-8")
+    page = (tmp_path / "results" / "tracking.md").read_text(encoding="utf-8")
     assert page.startswith("# Tracking results")
     assert "python -m bench.tracking --quick --duration 4" in page
     assert "## Targets" in page and "| 100 |" in page

@@ -1,4 +1,4 @@
-"""The README's Python-client walkthrough, run verbatim against a live server."""
+"""The Python-client tutorial's walkthrough, run verbatim against a live server."""
 
 from __future__ import annotations
 
@@ -21,7 +21,7 @@ def _points(lines: list[str], label: str) -> list[tuple[float, float]]:
 
 
 def _run_line() -> str:
-    """The README's shell block that runs the saved walkthrough."""
+    """The tutorial's shell block that runs the saved walkthrough."""
     found = [
         block.code
         for block in readme_blocks()

@@ -22,9 +22,9 @@ def test_readme_walkthrough_runs_and_localizes(checkout: Checkout) -> None:
     estimates = [json.loads(line) for line in lines[9:]]
     assert len(truth) == 8 and len(estimates) == 8
     # Hungarian-matched mean error, computed here independently of the service's metrics:
-    # at 30 dB and K = 8 the default solver's median is ~5 cm (docs/accuracy.md), but seed 7
-    # places a close pair and gives 16.5 cm (the in-process solver gives the same); 0.25 m
-    # still fails when an estimate is missing or lands on the wrong terminal.
+    # at 30 dB and K = 8 the default solver's median is ~5 cm (docs/results/accuracy.md), but
+    # seed 7 places a close pair and gives 16.5 cm (the in-process solver gives the same);
+    # 0.25 m still fails when an estimate is missing or lands on the wrong terminal.
     rows, cols = linear_sum_assignment(
         [[math.hypot(tx - ex, ty - ey) for ex, ey in estimates] for tx, ty in truth]
     )

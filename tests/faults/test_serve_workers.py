@@ -124,8 +124,8 @@ def test_connections_opened_together_are_spread_over_the_api_processes(tmp_path:
     connection is answered by the same process). Each process listens on a socket of its own
     (SO_REUSEPORT) and the kernel picks one per connection by a hash: 3 or fewer of 32 for
     one process has a probability of 2.6e-6. With one shared socket the first process to wake
-    accepted nearly every queued connection (docs/performance.md, "Connections spread over the
-    API processes")."""
+    accepted nearly every queued connection
+    (docs/decisions/connections-spread-over-processes.md)."""
 
     async def burst(url: str, count: int) -> list[tuple[int, int]]:
         clients = [httpx.AsyncClient(timeout=60.0) for _ in range(count)]

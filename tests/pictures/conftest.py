@@ -1,4 +1,4 @@
-"""Helpers for picture tests: decode PNG bytes independently of the code under test."""
+"""Tools for picture tests: decode PNG bytes independently of the code under test."""
 
 from __future__ import annotations
 

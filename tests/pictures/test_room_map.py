@@ -94,7 +94,7 @@ def test_million_point_room_is_drawn_from_a_bounded_sample(
 ) -> None:
     """A 10^6-point room costs what a 200 x 200 one does: each heat map is evaluated on at
     most MAX_SAMPLES_PER_SIDE^2 block centres, and no array of every grid point is made.
-    (Render times: ``python -m bench.bounded_work``, docs/performance.md.)"""
+    (Render times: ``python -m bench.bounded_work``, docs/results/bounded-work.md.)"""
     leds = tuple(Led(x, y, 4.0) for x in (20.0, 50.0, 80.0) for y in (25.0, 75.0))
     big = Layout(Room(100.0, 100.0, 4.0), Grid(0.1, 0.85), leds, name="Big")
     assert big.n_cells == 1_000_000

@@ -277,7 +277,7 @@ def test_calibrate_rejects_rows_that_do_not_fit_the_room(
     assert info.value.field == field
 
 
-def test_layout_helpers_reject_bad_input(
+def test_layout_functions_reject_bad_input(
     paper_room: Layout,
     recovered: tuple[Layout, FloatArray, FloatArray, CalibrationResult],
 ) -> None:

@@ -1,4 +1,4 @@
-"""Calibration in real rooms (issue 10, part 4): LED positions, reflectances, a drifted survey.
+"""Calibration in real rooms: LED positions, reflectances, a drifted survey.
 
 The surveys are simulated independently of the fit's model: line of sight by
 :func:`app.vlp.channel.los_gains` from the TRUE LEDs, the first diffuse bounce off the TRUE

@@ -15,7 +15,7 @@ from app.vlp.measurements import vech
 from app.vlp.simulation import noise_std_for_snr
 
 
-def _issue_formula(layout: Layout, point: np.ndarray, sigma: float) -> float:
+def _closed_form_bound(layout: Layout, point: np.ndarray, sigma: float) -> float:
     """(m+3)^2 sum_i SNR_i (p - s_i)(p - s_i)^T / d_i^4 with SNR_i = (h_i x_i)^2 / sigma^2."""
     gains = channel_gains(layout, point[None, :])[:, 0] * layout.pilot_amplitudes
     fisher = np.zeros((2, 2))
@@ -32,19 +32,19 @@ def _issue_formula(layout: Layout, point: np.ndarray, sigma: float) -> float:
 @pytest.mark.parametrize(
     "point", [(2.0, 2.0), (0.3, 3.1), (1.7, 0.9)], ids=["centre", "corner", "off-centre"]
 )
-def test_single_target_matches_issue_formula(
+def test_single_target_matches_closed_form_bound(
     paper_room: Layout, point: tuple[float, float]
 ) -> None:
     p = np.array(point)
     assert single_target_crlb(paper_room, p, 1e-7) == pytest.approx(
-        _issue_formula(paper_room, p, 1e-7), rel=1e-10
+        _closed_form_bound(paper_room, p, 1e-7), rel=1e-10
     )
 
 
 def test_single_target_mixed_room_and_scaling(mixed_room: Layout) -> None:
     p = np.array([1.4, 1.1])
     bound = single_target_crlb(mixed_room, p, 1e-7)
-    assert bound == pytest.approx(_issue_formula(mixed_room, p, 1e-7), rel=1e-10)
+    assert bound == pytest.approx(_closed_form_bound(mixed_room, p, 1e-7), rel=1e-10)
     # The bound is proportional to the noise standard deviation.
     assert single_target_crlb(mixed_room, p, 3e-7) == pytest.approx(3 * bound, rel=1e-12)
 

@@ -3,7 +3,7 @@
 Without it the answers' radii allow for photodiode tilts the residuals may hide (hand-held
 phones): in a room exactly as modelled the model-error fit then puts a variance on tilts from
 the noise in about half of the answers, and as a tilt is nearly a shift of the position those
-radii are several times the errors (docs/accuracy.md, "Level photodiodes declared").
+radii are several times the errors (docs/decisions/receivers-level.md).
 """
 
 from __future__ import annotations
@@ -74,10 +74,10 @@ def test_aggregated_radii_of_a_level_room_hold_their_level(
 ) -> None:
     """The aggregated correlation of four level terminals, 40 placements: the same
     estimates in both layouts once the undeclared room's joint fit holds its tilts level too
-    (where a placement enters it, it would fit them: docs/real-rooms.md, "Tilts after the
-    room's tolerances"), radii narrower where the layout says the photodiodes are level (the
-    model-error variances are fitted together: without the tilt's, another's may grow a
-    little), and those radii still cover about 95 %."""
+    (where a placement enters it, it would fit them: docs/decisions/tilts-after-tolerances.md),
+    radii narrower where the layout says the photodiodes are level (the model-error variances
+    are fitted together: without the tilt's, another's may grow a little), and those radii
+    still cover about 95 %."""
     sigma = noise_std_for_snr(paper_fingerprint, 30.0)
     inside: list[bool] = []
     narrower = 0

@@ -64,7 +64,8 @@ def test_interpolant_reproduces_diffuse_gains_off_the_nodes(
     gains, *_ = flat_table.evaluate(xs, ys)
     exact = diffuse_gains(layout, np.column_stack((xs, ys, np.full(xs.size, 0.8))))
     scale = exact.max(axis=1, keepdims=True)
-    assert np.max(np.abs(gains - exact) / scale) < 5e-3  # measured 0.2 %, docs/reflections.md
+    # Measured 0.2 % (docs/results/reflections.md).
+    assert np.max(np.abs(gains - exact) / scale) < 5e-3
 
 
 def test_heights_are_interpolated_too(

@@ -152,7 +152,8 @@ def test_diffuse_gains_match_an_independent_quadrature(point: list[float]) -> No
 
 def test_hanging_leds_match_an_independent_quadrature() -> None:
     # LEDs below the ceiling: a wall is lit only below the LED's height and seen only above
-    # the FOV edge, a thin band that needs finer cells than the default (docs/reflections.md).
+    # the FOV edge, a thin band that needs finer cells than the default
+    # (docs/explanation/reflections.md).
     # The ceiling stays dark: the LEDs point down.
     layout = _box(leds=(Led(1.3, 0.9, 2.0, 60.0), Led(3.0, 2.0, 1.8, 40.0)))
     rho = Reflectance(walls=0.6, floor=0.3, ceiling=0.8)
@@ -178,7 +179,8 @@ def test_converges_with_element_size() -> None:
 
 
 def test_paper_room_reflects_a_quarter_of_its_light() -> None:
-    # The independent simulator: walls 0.7, NLoS/LoS about 25 % over the grid.
+    # As independent simulators of the same room give: walls 0.7, NLoS/LoS about 25 % over the
+    # grid.
     layout = paper_layout()
     centres = layout.cell_centres()[::7]
     xyz = np.column_stack((centres, np.full(len(centres), 0.85)))

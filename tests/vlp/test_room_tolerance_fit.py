@@ -115,7 +115,7 @@ def _errors(
 
 def test_led_tolerances_are_fitted_out(paper_fingerprint: Fingerprint) -> None:
     # LEDs 5 % / 3 degrees off their data sheet: the aggregated fit without the stage is
-    # biased by 15-20 cm at K = 8 (docs/real-rooms.md), with it about half of that.
+    # biased by 15-20 cm at K = 8 (docs/decisions/room-tolerance-stage.md), with it about half.
     impairments = Impairments.led_tolerances(0.05, 3.0)
     without = _errors(paper_fingerprint, impairments, False, range(6), 8)
     with_stage = _errors(paper_fingerprint, impairments, True, range(6), 8)
@@ -384,8 +384,8 @@ def test_hand_held_photodiodes_tilts_are_fitted_after_the_tolerances(
 ) -> None:
     """Where the joint fit is kept, the photodiodes' tilts are fitted from its optimum
     (prior ``tolerance_tilt_sd``): on tilted terminals the answers land closer than the same fits
-    with the tilts held level, most of them (docs/real-rooms.md, "Tilts after the room's
-    tolerances"), and say so."""
+    with the tilts held level, most of them (docs/decisions/tilts-after-tolerances.md), and say
+    so."""
     seeds = range(16)
     level, _ = _tilted_errors(paper_fingerprint, GridlessOptions(tolerance_tilt_sd=0.0), seeds)
     tilted, details = _tilted_errors(paper_fingerprint, GridlessOptions(), seeds)

@@ -119,7 +119,7 @@ def test_each_terminal_alone_beats_their_aggregate(
         aggregate = measurement_from_amplitudes(amplitudes, "correlation", 16)
         pooled.append(float(np.mean(_matched(truth, solver.solve(aggregate, 8).positions)[1])))
     # The single-terminal Cramer-Rao bound here is about 2.3 cm; the aggregate's at K = 8
-    # about 5.4 cm (docs/accuracy.md).
+    # about 5.4 cm (docs/results/accuracy.md).
     assert np.mean(alone) < 0.04
     assert np.mean(alone) < np.mean(pooled)
 

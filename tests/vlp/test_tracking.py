@@ -212,6 +212,23 @@ def test_lifecycle_by_time_and_by_misses() -> None:
     assert removed.tolist() == [True]
 
 
+def test_an_anonymous_track_missed_twice_is_lost_and_claimed_again() -> None:
+    settings = TrackerSettings(confirm_after_updates=1)
+    noise = 1e-4 * np.eye(2)[None]
+    here = np.array([[1.0, 1.0]])
+    step = step_anonymous(Tracks.empty(), here, noise, 0.0, settings)
+    assert step.tracks.status.tolist() == [CONFIRMED]
+    statuses = []
+    for k in range(settings.lost_after_misses):  # solves that see nothing
+        step = step_anonymous(
+            step.tracks, np.zeros((0, 2)), np.zeros((0, 2, 2)), 0.2 * (k + 1), settings
+        )
+        statuses.append(int(step.tracks.status[0]))
+    assert statuses == [CONFIRMED] * (settings.lost_after_misses - 1) + [LOST]
+    step = step_anonymous(step.tracks, here, noise, 1.0, settings)
+    assert step.fix_rows.tolist() == [0] and step.tracks.status.tolist() == [CONFIRMED]
+
+
 def test_settings_refuse_inconsistent_values() -> None:
     with pytest.raises(VLPError, match="drop_after_s"):
         TrackerSettings(lost_after_s=10.0, drop_after_s=5.0)

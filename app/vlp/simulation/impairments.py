@@ -1,18 +1,17 @@
 """What makes a real room differ from the paper's model, and by how much.
 
-Ranges and where they come from (``docs/real-rooms.md`` keeps the discussion):
+Ranges and where they come from (``docs/explanation/real-rooms.md`` keeps the discussion):
 
 - Surface reflectance: lighting-design practice takes ceiling 0.8, walls 0.5, floor 0.2 as
   defaults for ordinary rooms (the "80/50/20" rule); light, matte-painted walls reach 0.7-0.8.
-  The realistic mix uses walls 0.7 / floor 0.2 / ceiling 0.8 (docs/real-rooms.md: the
-  light end for walls, the defaults for floor and ceiling).
+  The realistic mix uses walls 0.7 / floor 0.2 / ceiling 0.8 (the light end for walls, the
+  defaults for floor and ceiling).
 - LED amplitude: manufacturers bin LEDs by flux in bins about 7 % wide with a stated tester
   tolerance of +-7.5 % (Lumileds LUXEON datasheets), so a 5 % relative sd between fittings is
   a moderate assumption; the 3-degree sd of the half-power angle is an assumption.
-- Terminal gain (photodiode, filter, amplifier differ between phones): sd 10 %, an assumption
-  recorded in docs/real-rooms.md.
+- Terminal gain (photodiode, filter, amplifier differ between phones): sd 10 %, an assumption.
 - Heights (terminals held at desk or hand height) and tilts (a phone held in the hand):
-  sd 5-15 cm and 0-10 / 0-20 degrees are assumptions recorded in docs/real-rooms.md.
+  sd 5-15 cm and 0-10 / 0-20 degrees are assumptions.
 """
 
 from __future__ import annotations
@@ -107,7 +106,8 @@ class Impairments:
     def reflections(
         cls, walls: float = 0.7, floor: float = 0.0, ceiling: float = 0.0
     ) -> Impairments:
-        """Diffuse first-bounce reflections (walls only by default, as in the issue's table)."""
+        """Diffuse first-bounce reflections (walls only by default: downward LEDs light neither
+        the ceiling nor a floor an upward receiver sees)."""
         return cls(reflectance=Reflectance(walls=walls, floor=floor, ceiling=ceiling))
 
     @classmethod

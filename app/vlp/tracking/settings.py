@@ -45,7 +45,10 @@ class TrackerSettings:
     tentative_max_misses : int
         An anonymous tentative track missed by this many solves in a row is dropped.
     lost_after_misses : int
-        An anonymous confirmed track missed by this many solves in a row is lost.
+        An anonymous confirmed track missed by this many solves in a row is lost (a solve
+        gives as many estimates as it was told targets: a track none of them claims twice
+        running is most often one a wild estimate has left behind, and counting it would show
+        a terminal twice; a lost track is claimed again like any other).
     lost_after_s : float
         A track not updated for this long is ``lost``, seconds.
     drop_after_s : float
@@ -66,7 +69,7 @@ class TrackerSettings:
     min_measurement_sd_m: float = 0.005
     confirm_after_updates: int = 3
     tentative_max_misses: int = 3
-    lost_after_misses: int = 5
+    lost_after_misses: int = 2
     lost_after_s: float = 5.0
     drop_after_s: float = 60.0
     history_s: float = 300.0
