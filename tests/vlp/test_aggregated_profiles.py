@@ -6,11 +6,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from app.vlp._kernels import KernelMode, use_kernels
 from app.vlp.fingerprints import Fingerprint
 from app.vlp.measurements import Model, measurement_from_amplitudes
 from app.vlp.simulation import Impairments, random_positions, simulate_terminals
 from app.vlp.solvers._gridless_fit import FitState, Whitening
-from app.vlp.solvers._kernels import KernelMode, use_kernels
 from app.vlp.solvers.gridless import GridlessSolver, _Run
 
 

@@ -23,12 +23,14 @@ import numpy as np
 import pytest
 from scipy import optimize
 
+from app.vlp._kernels import kernel_cache_dir, kernel_mode, use_kernels
 from app.vlp._reflection_table import ReflectionTable
 from app.vlp.fingerprints import build_fingerprint
 from app.vlp.layout import Grid, Layout, Led, Receiver, Reflectance, Room
 from app.vlp.measurements import Model, measurement_from_amplitudes
 from app.vlp.presets import paper_layout
 from app.vlp.simulation import true_amplitudes
+from app.vlp.solvers import warm_up
 from app.vlp.solvers._channel_compiled import channel_constants, channel_rows, diffuse_rows
 from app.vlp.solvers._channel_kernel import ChannelKernel
 from app.vlp.solvers._fit_compiled import _sparse_symmetric_product, correlation_scores_kernel
@@ -41,7 +43,6 @@ from app.vlp.solvers._gridless_fit import (
     gram_reference,
     levenberg_marquardt,
 )
-from app.vlp.solvers._kernels import kernel_cache_dir, kernel_mode, use_kernels, warm_up
 from app.vlp.solvers._room_tolerance_fit import (
     RoomTolerances,
     _JointModel,
@@ -825,14 +826,14 @@ _NO_CACHE_SCRIPT = textwrap.dedent(
     from app.vlp.presets import paper_layout
     from app.vlp.simulation import true_amplitudes
     from app.vlp.solvers import _fit_compiled as fit
-    from app.vlp.solvers._kernels import warm_up
+    from app.vlp.solvers import warm_up
     from app.vlp.solvers.gridless import GridlessSolver
 
     from app.vlp.solvers._channel_compiled import channel_rows
     from app.vlp.solvers._uncertainty_compiled import uncertainty_kernel
     from app.vlp.solvers import _tolerance_compiled as joint
     from app.vlp.solvers._terminal_compiled import terminal_lm_kernel
-    from app.vlp.solvers._radii_compiled import radial_roots_kernel
+    from app.vlp._radii_compiled import radial_roots_kernel
     from app.vlp.solvers._search_compiled import growth_kernel, refine_kernel
     from app.vlp.simulation import noisy_amplitudes
 

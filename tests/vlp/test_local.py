@@ -7,6 +7,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from app.vlp._kernels import KERNELS, use_kernels
 from app.vlp.channel import los_gains
 from app.vlp.fingerprints import Fingerprint, build_fingerprint
 from app.vlp.layout import Grid, Layout, Led, Receiver, Reflectance, Room
@@ -14,7 +15,6 @@ from app.vlp.measurements import Measurement, measurement_from_amplitudes
 from app.vlp.metrics import matched_errors
 from app.vlp.simulation import noise_std_for_snr, noisy_amplitudes, random_positions
 from app.vlp.solvers._gridless_fit import FitState, Whitening
-from app.vlp.solvers._kernels import KERNELS, use_kernels
 from app.vlp.solvers._local import TerminalWindows, _best_of_tiles
 from app.vlp.solvers._terminal_fit import starting_cells
 from app.vlp.solvers.gridless import GridlessOptions, GridlessSolver, _Run

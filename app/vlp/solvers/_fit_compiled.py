@@ -22,9 +22,9 @@ from typing import Any
 
 import numpy as np
 
+from .._kernels import compiled, compiled_reassociating
 from ..typing import FloatArray, IntArray
 from ._channel_compiled import ChannelConstants, TableConstants, channel_rows
-from ._kernels import compiled, compiled_reassociating
 
 __all__ = [
     "correlation_profiles_kernel",

@@ -29,6 +29,7 @@ import numpy as np
 import numpy.typing as npt
 from scipy.linalg import lapack
 
+from .._kernels import kernel_mode
 from ..measurements import Model
 from ..typing import FloatArray, IntArray
 from ._channel_compiled import channel_constants
@@ -40,7 +41,6 @@ from ._fit_compiled import (
     whiten_kernel,
     whitening_kernel,
 )
-from ._kernels import kernel_mode
 
 # Relative floor on whitening eigenvalues (guards a noiseless fit against infinite weights).
 _EIG_FLOOR = 1e-9

@@ -17,12 +17,12 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sp
 
+from .._kernels import compiled, kernel_mode
 from ..channel import channel_gains
 from ..fingerprints import Fingerprint
 from ..layout import Layout
 from ..typing import FloatArray, IntArray
 from ._channel_kernel import ChannelKernel
-from ._kernels import compiled, kernel_mode
 from ._terminal_fit import starting_cells
 
 __all__ = ["PowerScan", "TerminalWindows"]

@@ -31,6 +31,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from .._kernels import kernel_mode
 from ..metrics import matched_errors
 from ..typing import FloatArray
 from ._channel_compiled import ChannelConstants, TableConstants, channel_constants
@@ -46,7 +47,6 @@ from ._gridless_fit import (
     _vech_indices,
     entry_variances,
 )
-from ._kernels import kernel_mode
 from ._projected_lm import projected_levenberg_marquardt
 from ._tolerance_compiled import (
     GAINS,

@@ -23,6 +23,7 @@ import math
 
 import numpy as np
 
+from .._kernels import compiled
 from ..typing import FloatArray
 from ._channel_compiled import ChannelConstants, TableConstants
 from ._fit_compiled import (
@@ -33,7 +34,6 @@ from ._fit_compiled import (
     whiten_kernel,
     whitening_kernel,
 )
-from ._kernels import compiled
 
 __all__ = ["growth_kernel", "refine_kernel"]
 

@@ -22,10 +22,10 @@ from typing import Any
 
 import numpy as np
 
+from .._kernels import compiled
 from ..typing import FloatArray
 from ._channel_compiled import ChannelConstants, TableConstants, channel_rows, diffuse_rows
 from ._fit_compiled import _cholesky_solve
-from ._kernels import compiled
 
 __all__ = ["terminal_lm_kernel", "terminal_model_kernel"]
 

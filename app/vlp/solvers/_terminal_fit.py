@@ -21,11 +21,11 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from .._kernels import kernel_mode
 from ..typing import FloatArray
 from ._channel_compiled import channel_constants, channel_rows
 from ._channel_kernel import ChannelKernel
 from ._gridless_fit import MAX_LOG_GAIN, Priors
-from ._kernels import kernel_mode
 from ._projected_lm import projected_levenberg_marquardt
 from ._terminal_compiled import _COST_TOL, _STEP_TOL_M, terminal_lm_kernel
 

@@ -26,10 +26,10 @@ from typing import Any
 
 import numpy as np
 
+from .._kernels import compiled
 from ..typing import FloatArray
 from ._channel_compiled import ChannelConstants, TableConstants, diffuse_rows
 from ._fit_compiled import cholesky_substitution
-from ._kernels import compiled
 from ._projected_lm import _MAX_REJECTIONS
 
 __all__ = [

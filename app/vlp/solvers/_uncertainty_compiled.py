@@ -24,10 +24,10 @@ import math
 
 import numpy as np
 
+from .._kernels import compiled
 from ..typing import FloatArray, IntArray
 from ._channel_compiled import ChannelConstants, TableConstants, channel_rows
 from ._fit_compiled import Problem, _augmented, _multipliers, _symmetric_product
-from ._kernels import compiled
 
 __all__ = [
     "fit_misfit_kernel",

@@ -1,14 +1,19 @@
-"""Run every compiled kernel once on a small problem, so that later calls find them compiled.
+"""Compile (or load from the disk cache) every kernel before the first request.
 
-The calls go through the same code as a solve (the :mod:`._gridless_fit` entry points), so
-they compile exactly the argument types a solve uses. Private: see :func:`._kernels.warm_up`.
+The top of the kernels' imports: it imports every kernel's caller, and nothing in
+:mod:`app.vlp` imports it but :mod:`app.vlp.solvers` (which exports :func:`warm_up`). The
+calls go through the same code as a solve (the :mod:`._gridless_fit` entry points), so they
+compile exactly the argument types a solve uses.
 """
 
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 import scipy.sparse as sp
 
+from .._kernels import kernel_mode
 from ..presets import paper_layout
 from ..uncertainty import confidence_radii
 from ._channel_compiled import channel_constants, channel_rows
@@ -31,7 +36,26 @@ from ._search_compiled import growth_kernel, refine_kernel
 from ._terminal_fit import _levenberg_marquardt as terminal_fit
 from ._uncertainty_compiled import uncertainty_kernel
 
-__all__ = ["exercise"]
+__all__ = ["exercise", "warm_up"]
+
+_lock = threading.Lock()
+_warm = False
+
+
+def warm_up() -> None:
+    """Compile (or load from the disk cache) every kernel the default solver uses.
+
+    Idempotent and thread-safe; a no-op with the reference kernels. Called by the service at
+    start-up, so that no terminal's request waits for the compiler.
+    """
+    global _warm
+    if kernel_mode() != "compiled":
+        return
+    with _lock:
+        if _warm:
+            return
+        exercise()
+        _warm = True
 
 
 def exercise() -> None:

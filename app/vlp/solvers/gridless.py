@@ -12,6 +12,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from .._kernels import kernel_mode
 from ..ambiguity import (
     covering_twins,
     far_optima,
@@ -61,7 +62,6 @@ from ._gridless_options import (
     nuisance_priors,
     pick,
 )
-from ._kernels import kernel_mode
 from ._local import PowerScan, TerminalWindows
 from ._room_tolerance_fit import GridMoves, RoomTolerances, ToleranceFit, fit_room_tolerances
 from ._search_compiled import growth_kernel, refine_kernel
