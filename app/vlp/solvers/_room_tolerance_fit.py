@@ -37,8 +37,6 @@ from ..typing import FloatArray
 from ._channel_compiled import ChannelConstants, TableConstants, channel_constants
 from ._channel_kernel import ChannelKernel
 from ._gridless_fit import (
-    _EIG_FLOOR,
-    _SIGMA2_FLOOR,
     _SIGMA2_REL_FLOOR,
     MAX_LOG_GAIN,
     MAX_LOG_SCALE,
@@ -47,7 +45,12 @@ from ._gridless_fit import (
     _vech_indices,
     entry_variances,
 )
-from ._projected_lm import projected_levenberg_marquardt
+from ._levenberg_marquardt import (
+    EIG_FLOOR,
+    SIGMA2_FLOOR,
+    TOLERANCE_INITIAL_DAMPING,
+    projected_levenberg_marquardt,
+)
 from ._tolerance_compiled import (
     GAINS,
     ORDER,
@@ -64,7 +67,8 @@ __all__ = ["GridMoves", "RoomTolerances", "ToleranceFit", "fit_room_tolerances"]
 
 _LN2 = math.log(2.0)
 # LM for the joint fit (one compiled call, _tolerance_compiled.joint_lm_kernel; the NumPy
-# reference is _projected_lm). It runs only on measurements that show a misfit.
+# reference is _levenberg_marquardt.projected_levenberg_marquardt). It runs only on
+# measurements that show a misfit.
 _MAX_ITER = 30
 # Stop at this relative decrease (the aggregated LM's tolerance, LM_DEFAULTS).
 _REL_TOL = 1e-4
@@ -355,11 +359,11 @@ class _JointModel:
         gains, multipliers, _ = self.gains(theta)
         k, m = self.n_targets, self.n_leds
         power = float(np.sum(gains**2 * multipliers)) / (m * k)
-        sigma2 = max(noise / k, _SIGMA2_REL_FLOOR * power, _SIGMA2_FLOOR)
+        sigma2 = max(noise / k, _SIGMA2_REL_FLOOR * power, SIGMA2_FLOOR)
         signal = (gains * multipliers) @ gains.T
         signal.flat[:: m + 1] += 0.5 * k * sigma2
         lam, rotation = np.linalg.eigh(signal)
-        lam = np.maximum(lam, _EIG_FLOOR * max(float(lam[-1]), _SIGMA2_FLOOR))
+        lam = np.maximum(lam, EIG_FLOOR * max(float(lam[-1]), SIGMA2_FLOOR))
         var = entry_variances(sigma2, lam, self.upper, self.lower, self.is_diag)
         return Whitening("correlation", m, rotation, 1.0 / np.sqrt(var))
 
@@ -638,7 +642,7 @@ def _levenberg_marquardt(
     data: FloatArray,
     max_iter: int = _MAX_ITER,
 ) -> tuple[FloatArray, float]:
-    damping = 1e-2
+    damping = TOLERANCE_INITIAL_DAMPING
     fitted = model.compiled_fit(theta, white, data, max_iter, damping, _REL_TOL)
     if fitted is not None:
         return fitted

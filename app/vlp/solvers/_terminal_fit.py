@@ -26,15 +26,19 @@ from ..typing import FloatArray
 from ._channel_compiled import channel_constants, channel_rows
 from ._channel_kernel import ChannelKernel
 from ._gridless_fit import MAX_LOG_GAIN, Priors
-from ._projected_lm import projected_levenberg_marquardt
-from ._terminal_compiled import _COST_TOL, _STEP_TOL_M, terminal_lm_kernel
+from ._levenberg_marquardt import (
+    TERMINAL_COST_TOL,
+    TERMINAL_INITIAL_DAMPING,
+    TERMINAL_STEP_TOL_M,
+    projected_levenberg_marquardt,
+)
+from ._terminal_compiled import terminal_lm_kernel
 
 __all__ = ["TerminalFit", "fit_terminal", "los_with_normal", "starting_cells", "terminal_model"]
 
 # Candidate starts per terminal (the best grid points of its own correlation, kept apart).
 _STARTS = 3
 _MAX_ITER = 30
-_INITIAL_DAMPING = 1e-3
 # Smallest noise variance assumed, relative to a terminal's mean squared amplitude (40 dB).
 _SIGMA2_REL_FLOOR = 1e-4
 # A fitted tilt (tangent of its components) stays within +-45 degrees.
@@ -336,7 +340,7 @@ def _levenberg_marquardt(
                 -1.0 if tilt_sd is None else float(tilt_sd),
             ),
             _MAX_ITER,
-            _INITIAL_DAMPING,
+            TERMINAL_INITIAL_DAMPING,
         )
     else:
         theta, residual, jacobian, cost = _reference_lm(
@@ -470,9 +474,10 @@ def _reference_lm(
         lower,
         upper,
         max_iter=_MAX_ITER,
-        damping=_INITIAL_DAMPING,
+        damping=TERMINAL_INITIAL_DAMPING,
         stop=lambda step, cost, trial_cost: (
-            cost - trial_cost < _COST_TOL * cost or float(np.abs(step[:2]).max()) < _STEP_TOL_M
+            cost - trial_cost < TERMINAL_COST_TOL * cost
+            or float(np.abs(step[:2]).max()) < TERMINAL_STEP_TOL_M
         ),
     )
 

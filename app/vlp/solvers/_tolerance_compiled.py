@@ -3,7 +3,7 @@ tolerances.
 
 Stand-ins for :meth:`._room_tolerance_fit._JointModel.gains`,
 :meth:`~._room_tolerance_fit._JointModel.residual_and_jacobian` and the joint fit's
-``_levenberg_marquardt`` (:func:`._projected_lm.projected_levenberg_marquardt`); their NumPy
+``_levenberg_marquardt`` (:func:`._levenberg_marquardt.projected_levenberg_marquardt`); their NumPy
 code is the reference and documents the model. A 16-LED, 8-target evaluation is a few
 hundred small NumPy operations there, bound by their overhead; a whole LM run is one call
 here. Private: callers validate.
@@ -30,7 +30,14 @@ from .._kernels import compiled
 from ..typing import FloatArray
 from ._channel_compiled import ChannelConstants, TableConstants, diffuse_rows
 from ._fit_compiled import cholesky_substitution
-from ._projected_lm import _MAX_REJECTIONS
+from ._levenberg_marquardt import (
+    DAMPING_DOWN,
+    DAMPING_SINGULAR,
+    DAMPING_UP,
+    DIAGONAL_FLOOR,
+    MIN_DAMPING,
+    PROJECTED_MAX_REJECTIONS,
+)
 
 __all__ = [
     "GAINS",
@@ -330,7 +337,7 @@ def joint_lm_kernel(
     rel_tol: float,
 ) -> tuple[FloatArray, float, int]:
     """``_levenberg_marquardt`` of :mod:`._room_tolerance_fit`, i.e.
-    :func:`._projected_lm.projected_levenberg_marquardt` on :func:`joint_residual_kernel`
+    :func:`._levenberg_marquardt.projected_levenberg_marquardt` on :func:`joint_residual_kernel`
     stopped at a relative decrease below ``rel_tol``: the fitted theta, its cost and the
     iterations used."""
     n_data = data.shape[0]
@@ -346,13 +353,13 @@ def joint_lm_kernel(
         normal, gradient = _normal_equations(residual, jacobian, n_data, prior_at, prior_inverse_sd)
         n = gradient.shape[0]
         improved = finished = False
-        for _ in range(_MAX_REJECTIONS):
+        for _ in range(PROJECTED_MAX_REJECTIONS):
             scaled = normal.copy()
             for i in range(n):
-                scaled[i, i] += damping * max(normal[i, i], 1e-30)
+                scaled[i, i] += damping * max(normal[i, i], DIAGONAL_FLOOR)
             step, ok = _damped_solve(scaled, gradient)
             if not ok:
-                damping *= 10.0
+                damping *= DAMPING_SINGULAR
                 continue
             trial = np.minimum(np.maximum(theta + step, lower), upper)
             # The Jacobian only once the step is taken: about half of the trials are not.
@@ -370,10 +377,10 @@ def joint_lm_kernel(
                     white, n_data, trial, pieces, rotated, multipliers, prior_inverse_sd
                 )
                 theta, residual, cost = trial, trial_residual, trial_cost
-                damping = max(damping / 5.0, 1e-9)
+                damping = max(damping / DAMPING_DOWN, MIN_DAMPING)
                 improved = True
                 break
-            damping *= 4.0
+            damping *= DAMPING_UP
         if not improved or finished:
             break
     return theta, float(cost), used

@@ -20,7 +20,6 @@ from ._channel_compiled import channel_constants, channel_rows
 from ._channel_kernel import ChannelKernel
 from ._fit_compiled import correlation_profiles_kernel, correlation_scores_kernel
 from ._gridless_fit import (
-    STEP_TOL_M,
     FitState,
     Objective,
     Priors,
@@ -30,6 +29,7 @@ from ._gridless_fit import (
     levenberg_marquardt,
 )
 from ._gridless_options import LM_DEFAULTS
+from ._levenberg_marquardt import STEP_TOL_M
 from ._local import _best_of_tiles
 from ._room_tolerance_fit import RoomTolerances, _JointModel, _levenberg_marquardt
 from ._search_compiled import growth_kernel, refine_kernel

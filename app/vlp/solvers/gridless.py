@@ -43,7 +43,6 @@ from ._channel_kernel import ChannelKernel
 from ._fit_compiled import correlation_profiles_kernel, correlation_scores_kernel
 from ._gridless_fit import (
     MAX_LOG_SCALE,
-    STEP_TOL_M,
     FitState,
     Objective,
     Priors,
@@ -62,6 +61,7 @@ from ._gridless_options import (
     nuisance_priors,
     pick,
 )
+from ._levenberg_marquardt import STEP_TOL_M
 from ._local import PowerScan, TerminalWindows
 from ._room_tolerance_fit import GridMoves, RoomTolerances, ToleranceFit, fit_room_tolerances
 from ._search_compiled import growth_kernel, refine_kernel
