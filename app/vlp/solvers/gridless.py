@@ -256,6 +256,9 @@ class GridlessSolver(Solver):
     before stopping. Terminals that send
     their own amplitudes are fitted one by one (:meth:`solve_terminals`).
 
+    The stages in order, what each estimates and why each gate sits where it does:
+    ``docs/explanation/solver.md`` (its section names are quoted below).
+
     Accuracy, counting and speed are measured by ``bench/accuracy.py``,
     ``bench/real_rooms.py``, ``bench/tune_gridless.py``, ``bench/solver_timing.py`` and
     ``bench/solve_loop.py`` (instruction counts); the figures are in ``docs/accuracy.md``,
@@ -673,7 +676,8 @@ class GridlessSolver(Solver):
         return state.with_target(self._centres[best], self._priors.height_mean)
 
     def _needs_escape(self, run: _Run, state: FitState) -> bool:
-        """True when the fit looks like a local minimum worth relocating or restarting from.
+        """True when the fit looks like a local minimum worth relocating or restarting from
+        (docs/explanation/solver.md, "Escapes").
 
         Two signs, either suffices: (1) the whitened cost per degree of freedom is above
         ``misfit_ratio``: a complete fit leaves only noise, about one unit per degree of
@@ -873,7 +877,8 @@ class GridlessSolver(Solver):
         return found
 
     def _count_and_fit(self, run: _Run) -> FitState:
-        """Grow one target at a time while each brings its own energy (unknown K).
+        """Grow one target at a time while each brings its own energy (unknown K;
+        docs/explanation/solver.md, "Counting").
 
         A real target removes about its own atom energy ``||phi(p)||^2`` from the plain
         residual; a spurious one, of unit weight, adds about as much. A state with more
@@ -998,7 +1003,7 @@ class GridlessSolver(Solver):
         """A first guess of the common power scale, when K is known and the received power
         per target is more than 1.5x outside what any grid point gives (brightest to
         faintest): the power per target over the room's mean. Else 1, and the search runs
-        exactly as in a room measured as modelled."""
+        exactly as in a room measured as modelled (docs/explanation/solver.md, "Prescale")."""
         if n_targets is None:
             return 1.0
         upper, lower = self._upper_lower
@@ -1398,7 +1403,8 @@ class GridlessSolver(Solver):
 
     def _with_nuisances(self, run: _Run, fixed: FitState) -> FitState:
         """Free the common scale and the heights, then the targets' gains; keep each stage
-        only when it explains the data significantly better than the one before.
+        only when it explains the data significantly better than the one before
+        (docs/explanation/solver.md, "Nuisance stages").
 
         Each free parameter lowers the whitened cost by about one unit of noise even when
         the targets are exactly as modelled, and costs accuracy (K = 8, paper room: free
@@ -1442,7 +1448,8 @@ class GridlessSolver(Solver):
         self, run: _Run, state: FitState, others: tuple[FloatArray, ...] = ()
     ) -> ToleranceFit | None:
         """The fit with the room's tolerances (LED amplitudes and beams, optionally the
-        photodiodes' tilts) as nuisance parameters (:mod:`._room_tolerance_fit`); None where
+        photodiodes' tilts) as nuisance parameters (:mod:`._room_tolerance_fit`; see
+        docs/explanation/solver.md, "Room tolerances"); None where
         it is not tried or not kept.
 
         Tried only when the fit shows a misfit (whitened cost per degree of freedom above
@@ -1514,7 +1521,8 @@ class GridlessSolver(Solver):
         return declared if declared > 0 else opts.tolerance_tilt_sd
 
     def _uncertainty(self, run: _Run, state: FitState) -> tuple[FloatArray, FitQuality]:
-        """Position covariances of the final whitened fit and the fit's quality.
+        """Position covariances of the final whitened fit and the fit's quality
+        (docs/explanation/solver.md, "Uncertainty").
 
         The inverse Fisher information alone counts only the noise; a room that differs
         from its model moves the estimates further. The covariance is the sandwich
