@@ -1,13 +1,13 @@
 """Compiled model and Levenberg-Marquardt loop of one terminal's own fit.
 
-Stand-ins for :func:`._terminal_fit.terminal_model` (all its branches: looking straight up,
+Stand-ins for :func:`.gridless.terminals.terminal_model` (all its branches: looking straight up,
 a photodiode normal the terminal sent, a fitted tilt) and for the evaluation and
-:func:`._levenberg_marquardt.projected_levenberg_marquardt` loop of
-:func:`._terminal_fit._levenberg_marquardt` (their NumPy code is the reference and documents
+:func:`.gridless.lm.projected_levenberg_marquardt` loop of
+:func:`.gridless.terminals._levenberg_marquardt` (their NumPy code is the reference and documents
 the model); a whole fit from one start is one call here. Private: callers validate.
 
 Parameters are ``theta = [x, y, (z), (tx, ty), u]``. Arguments beyond the channel's
-constants (:func:`._channel_compiled.channel_constants`):
+constants (:func:`.gridless._compiled.channel.channel_constants`):
 
 - ``shape``: ``(free_height, has_normal, free_tilt, z0)``; ``normal`` (3,) is used only with
   ``has_normal``
@@ -22,11 +22,9 @@ from typing import Any
 
 import numpy as np
 
-from .._kernels import compiled
-from ..typing import FloatArray
-from ._channel_compiled import ChannelConstants, TableConstants, channel_rows, diffuse_rows
-from ._fit_compiled import _cholesky_solve
-from ._levenberg_marquardt import (
+from ...._kernels import compiled
+from ....typing import FloatArray
+from ..lm import (
     DAMPING_DOWN,
     DAMPING_SINGULAR,
     DAMPING_UP,
@@ -36,6 +34,8 @@ from ._levenberg_marquardt import (
     TERMINAL_COST_TOL,
     TERMINAL_STEP_TOL_M,
 )
+from .channel import ChannelConstants, TableConstants, channel_rows, diffuse_rows
+from .fit import _cholesky_solve
 
 __all__ = ["terminal_lm_kernel", "terminal_model_kernel"]
 

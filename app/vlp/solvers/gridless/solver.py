@@ -12,8 +12,8 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from .._kernels import kernel_mode
-from ..ambiguity import (
+from ..._kernels import kernel_mode
+from ...ambiguity import (
     covering_twins,
     far_optima,
     farthest_in_region,
@@ -21,12 +21,12 @@ from ..ambiguity import (
     reaching_beyond,
     twins_possible,
 )
-from ..fingerprints import Fingerprint
-from ..measurements import Measurement, Model, noise_atom, summed_terminals
-from ..scale import check_amplitude_scale
-from ..simulation import mean_signal_power
-from ..typing import FloatArray, IntArray
-from ..uncertainty import (
+from ...fingerprints import Fingerprint
+from ...measurements import Measurement, Model, noise_atom, summed_terminals
+from ...scale import check_amplitude_scale
+from ...simulation import mean_signal_power
+from ...typing import FloatArray, IntArray
+from ...uncertainty import (
     FITS_TO_NOISE,
     FitQuality,
     Misfit,
@@ -38,10 +38,15 @@ from ..uncertainty import (
     own_excess_widening,
     predictive_covariances,
 )
-from ._channel_compiled import channel_constants, channel_rows
-from ._channel_kernel import ChannelKernel
-from ._fit_compiled import correlation_profiles_kernel, correlation_scores_kernel
-from ._gridless_fit import (
+from ..base import MAX_TARGETS, Solution, Solver, register_solver
+from ._compiled.channel import channel_constants, channel_rows
+from ._compiled.fit import correlation_profiles_kernel, correlation_scores_kernel
+from ._compiled.search import growth_kernel, refine_kernel
+from ._compiled.uncertainty import misfit_design_kernel, uncertainty_kernel
+from .channel import ChannelKernel
+from .lm import STEP_TOL_M
+from .local import PowerScan, TerminalWindows
+from .model import (
     MAX_LOG_SCALE,
     FitState,
     Objective,
@@ -53,7 +58,7 @@ from ._gridless_fit import (
     levenberg_marquardt,
     target_gains,
 )
-from ._gridless_options import (
+from .options import (
     LM_DEFAULTS,
     GridlessOptions,
     LevenbergMarquardtSettings,
@@ -61,14 +66,9 @@ from ._gridless_options import (
     nuisance_priors,
     pick,
 )
-from ._levenberg_marquardt import STEP_TOL_M
-from ._local import PowerScan, TerminalWindows
-from ._room_tolerance_fit import GridMoves, RoomTolerances, ToleranceFit, fit_room_tolerances
-from ._search_compiled import growth_kernel, refine_kernel
-from ._terminal_fit import TerminalFit, fit_terminal, starting_cells
-from ._uncertainty_compiled import misfit_design_kernel, uncertainty_kernel
-from ._whitening_memo import MAX_KEPT_VALUES, WhiteningMemo, state_key
-from .base import MAX_TARGETS, Solution, Solver, register_solver
+from .terminals import TerminalFit, fit_terminal, starting_cells
+from .tolerances import GridMoves, RoomTolerances, ToleranceFit, fit_room_tolerances
+from .whitening_memo import MAX_KEPT_VALUES, WhiteningMemo, state_key
 
 __all__ = ["LM_DEFAULTS", "GridlessOptions", "GridlessSolver"]
 
@@ -200,7 +200,7 @@ class GridlessSolver(Solver):
 
     Notes
     -----
-    Model (normalised units, see :mod:`._gridless_fit`):
+    Model (normalised units, see :mod:`.gridless.model`):
     ``y = sum_k w_k e^(v + 2 u_k) phi(g(p_k, z_k)) + s a`` with ``phi(g) = vech(g g^T)``
     (correlation) or ``g o g`` (power), ``a`` the noise atom (``E[R] = sum_k g_k g_k^T +
     K sigma^2 I``), ``g`` the line of sight plus the room's interpolated diffuse reflections,
@@ -323,7 +323,7 @@ class GridlessSolver(Solver):
         ]
         if len(self._stages) == 2 and self._stages[0] == self._stages[1]:
             self._stages.pop()
-        # Whitenings already computed, by state values (._whitening_memo).
+        # Whitenings already computed, by state values (.gridless.whitening_memo).
         self._whitenings = WhiteningMemo()
         # Plain least squares (one object: the compiled kernels keep their view of it).
         self._identity = Whitening.identity(model, fingerprint.n_leds)
@@ -776,7 +776,7 @@ class GridlessSolver(Solver):
 
     def _compiled_search(self, run: _Run) -> bool:
         """Whether :meth:`_grow` and :meth:`_refine` run as one compiled call each
-        (:mod:`._search_compiled`): the correlation model in a dense room, searching
+        (:mod:`.gridless._compiled.search`): the correlation model in a dense room, searching
         (positions and noise only), fixed weights, the compiled kernels in use."""
         return (
             self._search_constants is not None
@@ -844,7 +844,7 @@ class GridlessSolver(Solver):
 
     def _search_problem(self, run: _Run) -> tuple[Any, ...]:
         """The compiled search steps' ``(channel, table, search)`` for ``run``
-        (:func:`._search_compiled.growth_kernel`)."""
+        (:func:`.gridless._compiled.search.growth_kernel`)."""
         assert self._search_constants is not None
         channel, table, layout, priors, is_diag = self._search_constants
         search = (
@@ -1201,13 +1201,13 @@ class GridlessSolver(Solver):
 
         Notes
         -----
-        See :mod:`._terminal_fit`. Two passes: without priors, to estimate the amplitude
+        See :mod:`.gridless.terminals`. Two passes: without priors, to estimate the amplitude
         noise variance pooled over the terminals (its residual sum of squares over its
         degrees of freedom), then with the gain and height priors weighted by it (each
         terminal's gain held at 1 and its photodiode level unless freeing them lowers the
         cost significantly, or its tilt fitted with the layout's ``receiver_tilt_sd`` as
-        the prior when it declares one: :func:`._terminal_fit.fit_terminal`). The covariance of each
-        position is the sandwich of its whitened fit with the noise and
+        the prior when it declares one: :func:`.terminals.fit_terminal`). The covariance of
+        each position is the sandwich of its whitened fit with the noise and
         the model errors the fit does not fit (:meth:`_terminal_misfit_columns`), their
         variances estimated from all terminals' residuals together (the first pass's noise
         level holds part of the misfit, so the noise variance is re-estimated with them)
@@ -1448,12 +1448,12 @@ class GridlessSolver(Solver):
         self, run: _Run, state: FitState, others: tuple[FloatArray, ...] = ()
     ) -> ToleranceFit | None:
         """The fit with the room's tolerances (LED amplitudes and beams, optionally the
-        photodiodes' tilts) as nuisance parameters (:mod:`._room_tolerance_fit`; see
+        photodiodes' tilts) as nuisance parameters (:mod:`.gridless.tolerances`; see
         docs/explanation/solver.md, "Room tolerances"); None where
         it is not tried or not kept.
 
         Tried only when the fit shows a misfit (whitened cost per degree of freedom above
-        ``tolerance_misfit_ratio``), then gated by :func:`._room_tolerance_fit.fit_room_tolerances`
+        ``tolerance_misfit_ratio``), then gated by :func:`.gridless.tolerances.fit_room_tolerances`
         (a score test, and a decrease beyond ``tolerance_significance`` standard deviations
         of chance, 3 as the other stages). Fitted always, the tolerances fit the noise of a
         room exactly as modelled and cost it accuracy; the gate was chosen on three rooms and
@@ -1625,7 +1625,7 @@ class GridlessSolver(Solver):
         itself ``||r_k||^2 - ||r||^2``. In the rotated basis (``rho = U^T g``) every inner
         product of atoms is a quadratic form in ``rho_j o rho_k`` with the squared weights,
         so all K profiles cost one pass over the grid each, without forming any ``r_k``
-        (compiled: :func:`._fit_compiled.correlation_profiles_kernel`, this NumPy code its
+        (compiled: :func:`.gridless._compiled.fit.correlation_profiles_kernel`, this NumPy code its
         reference). Kept per run, state values and priors.
         """
         key = (state_key(state), run.priors)
@@ -1736,7 +1736,7 @@ class GridlessSolver(Solver):
 
     def _covariances(self, objective: Objective, state: FitState) -> tuple[FloatArray, FitQuality]:
         """:meth:`_uncertainty` in the metric of ``objective``: compiled
-        (:mod:`._uncertainty_compiled`) or, with the reference kernels, in NumPy."""
+        (:mod:`.gridless._compiled.uncertainty`) or, with the reference kernels, in NumPy."""
         theta = objective.pack(state)
         k = state.n_targets
         index = np.column_stack((np.arange(k), np.arange(k) + k))
@@ -1745,7 +1745,7 @@ class GridlessSolver(Solver):
         problem = objective.compiled_problem()
         small = n_data * k * self.fingerprint.n_leds <= _MAX_MISFIT_ENTRIES
         if problem is not None and k > 0 and small:
-            # The same sandwich in one compiled call (._uncertainty_compiled).
+            # The same sandwich in one compiled call (.gridless._compiled.uncertainty).
             covariances, cost = uncertainty_kernel(
                 *problem,
                 theta,
@@ -1805,7 +1805,7 @@ class GridlessSolver(Solver):
 
         Tilting the normal ``n`` moves the line of sight ``h ∝ n . v`` by
         ``h / v_z (v_x, v_y)`` per unit of tilt (``v`` = LED minus receiver); the diffuse
-        part is modelled for a level photodiode (as in :func:`._terminal_fit.terminal_model`).
+        part is modelled for a level photodiode (as in :func:`.gridless.terminals.terminal_model`).
         """
         kernel = self._kernel
         k = positions.shape[0]

@@ -2,10 +2,10 @@
 projected loop in NumPy for fits whose residual and Jacobian come from one callback (the
 terminal fit, the room-tolerance fit). Private: callers validate.
 
-Every LM loop -- the aggregated fit's NumPy reference (``_gridless_fit.levenberg_marquardt``)
-and its compiled twin (``_fit_compiled.lm_kernel``), the terminal fit's
-(``_terminal_compiled.terminal_lm_kernel``, this loop its reference) and the joint
-room-tolerance fit's (``_tolerance_compiled.joint_lm_kernel``, this loop its reference) --
+Every LM loop -- the aggregated fit's NumPy reference (``gridless.model.levenberg_marquardt``)
+and its compiled twin (``gridless._compiled.fit.lm_kernel``), the terminal fit's
+(``gridless._compiled.terminal.terminal_lm_kernel``, this loop its reference) and the joint
+room-tolerance fit's (``gridless._compiled.tolerance.joint_lm_kernel``, this loop its reference) --
 imports its damping schedule and floors from here: one source for each constant. The
 compiled kernels read them as compile-time constants.
 """
@@ -16,7 +16,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from ..typing import FloatArray
+from ...typing import FloatArray
 
 __all__ = [
     "DAMPING_DOWN",

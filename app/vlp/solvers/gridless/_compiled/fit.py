@@ -1,7 +1,7 @@
 """Compiled evaluation and Levenberg-Marquardt loop of the ``gridless`` objective.
 
 Stand-ins for :meth:`Objective.augmented` / :func:`gram`, :meth:`Objective.residual`,
-:func:`levenberg_marquardt` and :meth:`Whitening.from_state` of :mod:`._gridless_fit` (their
+:func:`levenberg_marquardt` and :meth:`Whitening.from_state` of :mod:`.gridless.model` (their
 NumPy code is the reference and documents the model); a whole LM run is one call here.
 Private: callers validate.
 
@@ -22,10 +22,9 @@ from typing import Any
 
 import numpy as np
 
-from .._kernels import compiled, compiled_reassociating
-from ..typing import FloatArray, IntArray
-from ._channel_compiled import ChannelConstants, TableConstants, channel_rows
-from ._levenberg_marquardt import (
+from ...._kernels import compiled, compiled_reassociating
+from ....typing import FloatArray, IntArray
+from ..lm import (
     DAMPING_DOWN,
     DAMPING_SINGULAR,
     DAMPING_UP,
@@ -35,6 +34,7 @@ from ._levenberg_marquardt import (
     MIN_DAMPING,
     SIGMA2_FLOOR,
 )
+from .channel import ChannelConstants, TableConstants, channel_rows
 
 __all__ = [
     "correlation_profiles_kernel",

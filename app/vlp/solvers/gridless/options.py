@@ -5,11 +5,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import TypeVar
 
-from ..fingerprints import Fingerprint
-from ..layout import Layout
-from ..measurements import Model
-from ._channel_kernel import DiffuseTable
-from ._gridless_fit import Priors
+from ...fingerprints import Fingerprint
+from ...layout import Layout
+from ...measurements import Model
+from .channel import DiffuseTable
+from .model import Priors
 
 __all__ = [
     "LM_DEFAULTS",
@@ -98,7 +98,7 @@ class GridlessOptions:
     # weight for all (docs/real-rooms.md, "The LEDs' errors in the terminals' weights").
     terminal_led_weights: bool = True
     # The room's tolerances, fitted with the aggregated correlation as a last stage
-    # (._room_tolerance_fit; None: never): each LED's pilot amplitude (log sd) and half-power
+    # (.gridless.tolerances; None: never): each LED's pilot amplitude (log sd) and half-power
     # angle (degrees), as LED data sheets give them, and optionally each target's photodiode
     # tilt (tangent sd, about radians; 0: not fitted, which measured better, see
     # docs/real-rooms.md). Tried only when the fit's whitened cost per degree of freedom is
@@ -124,7 +124,7 @@ class GridlessOptions:
     tolerance_significance: float = 3.0
     # Where the tolerances are fitted, each target is also moved far (to the best grid point
     # at least half the LEDs' mean height away) and the joint fit keeps what lowers its cost,
-    # as it does with the restarts' placements (._room_tolerance_fit.GridMoves).
+    # as it does with the restarts' placements (.gridless.tolerances.GridMoves).
     tolerance_jumps: bool = True
     # A stage of nuisances is kept when it lowers the whitened cost by more than its extra
     # parameters' chi-square mean plus this many standard deviations.

@@ -14,7 +14,7 @@ module fits them jointly with the positions, each with a Gaussian prior (a MAP f
 with ``a_m`` LED m's log amplitude, ``delta_m`` the change of its Lambertian order,
 ``phi_mk`` the irradiance angle, ``t_k`` target k's photodiode tilt (tangent components,
 first order: ``n . v`` grows by ``t . v_xy``, ``D`` = the LED's height above the target),
-and the model ``R = sum_k e^(v + 2 u_k) g_k g_k^T + s I`` as in :mod:`._gridless_fit`. The
+and the model ``R = sum_k e^(v + 2 u_k) g_k g_k^T + s I`` as in :mod:`.gridless.model`. The
 metric is the plug-in whitening of *this* model's gains: a whitening computed from the
 nominal gains puts part of the real signal into the noise-only subspace, whose weights
 are the largest, and wastes most of what the fit gains.
@@ -31,27 +31,11 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from .._kernels import kernel_mode
-from ..metrics import matched_errors
-from ..typing import FloatArray
-from ._channel_compiled import ChannelConstants, TableConstants, channel_constants
-from ._channel_kernel import ChannelKernel
-from ._gridless_fit import (
-    _SIGMA2_REL_FLOOR,
-    MAX_LOG_GAIN,
-    MAX_LOG_SCALE,
-    FitState,
-    Whitening,
-    _vech_indices,
-    entry_variances,
-)
-from ._levenberg_marquardt import (
-    EIG_FLOOR,
-    SIGMA2_FLOOR,
-    TOLERANCE_INITIAL_DAMPING,
-    projected_levenberg_marquardt,
-)
-from ._tolerance_compiled import (
+from ..._kernels import kernel_mode
+from ...metrics import matched_errors
+from ...typing import FloatArray
+from ._compiled.channel import ChannelConstants, TableConstants, channel_constants
+from ._compiled.tolerance import (
     GAINS,
     ORDER,
     SLOPE_X,
@@ -62,12 +46,28 @@ from ._tolerance_compiled import (
     joint_lm_kernel,
     joint_residual_kernel,
 )
+from .channel import ChannelKernel
+from .lm import (
+    EIG_FLOOR,
+    SIGMA2_FLOOR,
+    TOLERANCE_INITIAL_DAMPING,
+    projected_levenberg_marquardt,
+)
+from .model import (
+    _SIGMA2_REL_FLOOR,
+    MAX_LOG_GAIN,
+    MAX_LOG_SCALE,
+    FitState,
+    Whitening,
+    _vech_indices,
+    entry_variances,
+)
 
 __all__ = ["GridMoves", "RoomTolerances", "ToleranceFit", "fit_room_tolerances"]
 
 _LN2 = math.log(2.0)
-# LM for the joint fit (one compiled call, _tolerance_compiled.joint_lm_kernel; the NumPy
-# reference is _levenberg_marquardt.projected_levenberg_marquardt). It runs only on
+# LM for the joint fit (one compiled call, gridless._compiled.tolerance.joint_lm_kernel; the NumPy
+# reference is gridless.lm.projected_levenberg_marquardt). It runs only on
 # measurements that show a misfit.
 _MAX_ITER = 30
 # Stop at this relative decrease (the aggregated LM's tolerance, LM_DEFAULTS).

@@ -21,18 +21,18 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from .._kernels import kernel_mode
-from ..typing import FloatArray
-from ._channel_compiled import channel_constants, channel_rows
-from ._channel_kernel import ChannelKernel
-from ._gridless_fit import MAX_LOG_GAIN, Priors
-from ._levenberg_marquardt import (
+from ..._kernels import kernel_mode
+from ...typing import FloatArray
+from ._compiled.channel import channel_constants, channel_rows
+from ._compiled.terminal import terminal_lm_kernel
+from .channel import ChannelKernel
+from .lm import (
     TERMINAL_COST_TOL,
     TERMINAL_INITIAL_DAMPING,
     TERMINAL_STEP_TOL_M,
     projected_levenberg_marquardt,
 )
-from ._terminal_compiled import terminal_lm_kernel
+from .model import MAX_LOG_GAIN, Priors
 
 __all__ = ["TerminalFit", "fit_terminal", "los_with_normal", "starting_cells", "terminal_model"]
 
@@ -300,7 +300,7 @@ def _levenberg_marquardt(
     """Projected LM on ``[x, y, (z), (tx, ty), u]`` with the Gaussian priors as
     pseudo-residuals (the tilt is free when ``tilt_sd`` is given and no normal was sent).
 
-    With the compiled kernels the whole fit is one call (:mod:`._terminal_compiled`); the
+    With the compiled kernels the whole fit is one call (:mod:`.gridless._compiled.terminal`); the
     NumPy evaluation below is its reference."""
     with_priors = weight is not None
     free_tilt = normal is None and tilt_sd is not None

@@ -29,19 +29,19 @@ import numpy as np
 import numpy.typing as npt
 from scipy.linalg import lapack
 
-from .._kernels import kernel_mode
-from ..measurements import Model
-from ..typing import FloatArray, IntArray
-from ._channel_compiled import channel_constants
-from ._channel_kernel import ChannelKernel
-from ._fit_compiled import (
+from ..._kernels import kernel_mode
+from ...measurements import Model
+from ...typing import FloatArray, IntArray
+from ._compiled.channel import channel_constants
+from ._compiled.fit import (
     gram_kernel,
     lm_kernel,
     residual_kernel,
     whiten_kernel,
     whitening_kernel,
 )
-from ._levenberg_marquardt import (
+from .channel import ChannelKernel
+from .lm import (
     DAMPING_DOWN,
     DAMPING_SINGULAR,
     DAMPING_UP,

@@ -5,7 +5,7 @@ Stands in for the NumPy path of :meth:`GridlessSolver._uncertainty` (its referen
 :meth:`GridlessSolver._shape_gradients` and, in :mod:`app.vlp.uncertainty`,
 :func:`misfit_design`, :func:`fit_misfit` and :func:`predictive_covariances`, whose
 docstrings give the method). Every answer pays for it, and in NumPy it is some forty small
-calls. Arguments are the tuples of :mod:`._fit_compiled`. Private: callers validate.
+calls. Arguments are the tuples of :mod:`.gridless._compiled.fit`. Private: callers validate.
 
 The pieces are separate kernels so that each can be compared with its reference:
 
@@ -24,10 +24,10 @@ import math
 
 import numpy as np
 
-from .._kernels import compiled
-from ..typing import FloatArray, IntArray
-from ._channel_compiled import ChannelConstants, TableConstants, channel_rows
-from ._fit_compiled import Problem, _augmented, _multipliers, _symmetric_product
+from ...._kernels import compiled
+from ....typing import FloatArray, IntArray
+from .channel import ChannelConstants, TableConstants, channel_rows
+from .fit import Problem, _augmented, _multipliers, _symmetric_product
 
 __all__ = [
     "fit_misfit_kernel",
