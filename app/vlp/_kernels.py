@@ -7,7 +7,7 @@ This module is the bottom of the science package's kernels: it imports nothing f
 
 The compiled kernels (the ``*_compiled.py`` modules of :mod:`app.vlp.solvers` and
 :mod:`app.vlp._radii_compiled`) compute the same numbers as the NumPy code they stand in for
-(``tests/vlp/test_compiled_kernels.py`` compares them); they exist because a 16-LED problem
+(``tests/vlp/gridless/test_compiled.py`` compares them); they exist because a 16-LED problem
 is bound by the per-call overhead of NumPy, not by its arithmetic. The environment variable
 ``VLP_KERNELS`` picks the default (``compiled``, or ``reference``); :func:`use_kernels`
 switches within a process (the benchmarks time both side by side).

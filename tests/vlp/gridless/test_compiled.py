@@ -64,7 +64,7 @@ from app.vlp.uncertainty import MisfitDesign, fit_misfit, misfit_design
 RTOL = 1e-10
 # The whole uncertainty chain (test_uncertainty_matches_reference): round-off amplified.
 CHAIN_RTOL = 1e-8
-REPO = Path(__file__).resolve().parents[2]
+REPO = Path(__file__).resolve().parents[3]
 
 
 def assert_same(compiled: object, reference: object, rtol: float = RTOL) -> None:
@@ -911,7 +911,7 @@ def test_the_disk_cache_is_keyed_by_every_science_source(tmp_path: Path) -> None
     (sources / "solvers" / "kernel.py").rename(sources / "solvers" / "moved.py")
     assert kernel_cache_dir(base, sources) != first  # a renamed file counts too
     # In this process, the kernels' cache lives in the folder of the real sources.
-    science = Path(__file__).resolve().parents[2] / "app" / "vlp"
+    science = Path(__file__).resolve().parents[3] / "app" / "vlp"
     folder = Path(importlib.import_module("numba.core.config").CACHE_DIR)
     assert folder == kernel_cache_dir(folder.parent, science)
     cache_path = Path(channel_rows._cache._cache_path)  # type: ignore[attr-defined]
