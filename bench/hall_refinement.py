@@ -10,7 +10,7 @@ median and worst of the per-seed mean errors and the per-seed solve time (median
     python -m bench.hall_refinement [--room hall|medium] [--targets 50] [--seeds 1-20]
 
 ``hall``: the million-point hall of :mod:`bench.hall_build`; ``medium``: 40 x 40 m, 0.1 m
-grid, 144 LEDs on a 3.2 m pitch (the room of ``tests/vlp/test_local.py``).
+grid, 144 LEDs on a 3.2 m pitch (the room of ``tests/vlp/gridless/test_local.py``).
 """
 
 from __future__ import annotations

@@ -17,12 +17,12 @@ import argparse
 
 import numpy as np
 
+from app.vlp._kernels import KERNELS, use_kernels
 from app.vlp.fingerprints import build_fingerprint
 from app.vlp.measurements import Model, measurement_from_amplitudes
 from app.vlp.presets import paper_layout
 from app.vlp.simulation import noise_std_for_snr, noisy_amplitudes, random_positions
 from app.vlp.solvers import make_solver, warm_up
-from app.vlp.solvers._kernels import KERNELS, use_kernels
 
 N_TARGETS = 8
 

@@ -35,11 +35,11 @@ from pathlib import Path
 import numpy as np
 from threadpoolctl import threadpool_info, threadpool_limits
 
+from app.vlp._kernels import KernelMode, use_kernels
 from app.vlp.fingerprints import build_fingerprint
 from app.vlp.measurements import MODELS, Measurement, Model, measurement_from_amplitudes
 from app.vlp.simulation import noise_std_for_snr
 from app.vlp.solvers import Solver, make_solver, warm_up
-from app.vlp.solvers._kernels import KernelMode, use_kernels
 from app.vlp.typing import FloatArray
 
 from ._common import (

@@ -36,9 +36,8 @@ from app.vlp.measurements import (
     measurement_from_correlation,
     measurement_from_power,
 )
-from app.vlp.solvers import Solution
+from app.vlp.solvers import Solution, TerminalSolver
 from app.vlp.solvers._censored import censored_substitutes
-from app.vlp.solvers.gridless import GridlessSolver
 from app.vlp.typing import FloatArray
 from app.vlp.uncertainty import confidence_radii
 from app.vlp.workload import LocalizeWork, localize_work
@@ -309,7 +308,7 @@ def _per_terminal(prepared: PreparedVersion, task: _Task) -> bool:
     terminals = task.terminals
     return (
         terminals is not None
-        and isinstance(prepared.solver, GridlessSolver)
+        and isinstance(prepared.solver, TerminalSolver)
         and task.targets in (None, len(terminals.ids))
     )
 
@@ -376,12 +375,12 @@ def _solve_and_label(
     measurement, terminals, targets = task.measurement, task.terminals, task.targets
     if terminals is not None and targets is None:
         targets = len(terminals.ids)  # the contract: one target per terminal sent
-    gridless = prepared.solver if isinstance(prepared.solver, GridlessSolver) else None
+    own = prepared.solver if isinstance(prepared.solver, TerminalSolver) else None
     per_terminal = _per_terminal(prepared, task)
     with contextlib.nullcontext() if lock_held else prepared.lock:
         started = time.perf_counter()
-        if per_terminal and terminals is not None and gridless is not None:
-            solution = gridless.solve_terminals(
+        if per_terminal and terminals is not None and own is not None:
+            solution = own.solve_terminals(
                 terminals.amplitudes, terminals.heights, terminals.normals, terminals.floors
             )
         else:

@@ -20,7 +20,7 @@ from .reflections import diffuse_gains
 from .typing import BoolArray, FloatArray, IntArray
 
 if TYPE_CHECKING:
-    from .calibration import Survey
+    from .survey import Survey
 
 __all__ = [
     "MAX_ORDER",

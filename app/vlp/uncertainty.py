@@ -261,12 +261,12 @@ def confidence_radii(covariances: FloatArray, level: float = 0.95) -> FloatArray
 def _compiled_radial_roots() -> Callable[..., FloatArray] | None:
     """The compiled Newton iteration of :func:`confidence_radii` while the compiled kernels
     are in use, else None (the NumPy code above is its reference). Imported here, not at the
-    top: the solvers package imports this module."""
-    from .solvers._kernels import kernel_mode
+    top: numba loads with the first radius, not with this module."""
+    from ._kernels import kernel_mode
 
     if kernel_mode() != "compiled":
         return None
-    from .solvers._radii_compiled import radial_roots_kernel
+    from ._radii_compiled import radial_roots_kernel
 
     return cast("Callable[..., FloatArray]", radial_roots_kernel)
 

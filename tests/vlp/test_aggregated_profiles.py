@@ -6,12 +6,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from app.vlp._kernels import KernelMode, use_kernels
 from app.vlp.fingerprints import Fingerprint
 from app.vlp.measurements import Model, measurement_from_amplitudes
 from app.vlp.simulation import Impairments, random_positions, simulate_terminals
-from app.vlp.solvers._gridless_fit import FitState, Whitening
-from app.vlp.solvers._kernels import KernelMode, use_kernels
-from app.vlp.solvers.gridless import GridlessSolver, _Run
+from app.vlp.solvers.gridless.model import FitState, Whitening
+from app.vlp.solvers.gridless.solver import GridlessSolver, _Run
 
 
 @pytest.mark.parametrize("model", ["correlation", "power"])

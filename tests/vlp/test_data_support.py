@@ -9,16 +9,16 @@ import numpy as np
 import pytest
 
 from app.vlp.layout import Layout
-from app.vlp.solvers._channel_kernel import ChannelKernel
 from app.vlp.solvers._data_support import (
     MIN_RESIDUAL_DOF,
     detected_leds,
     leaves_dof,
     supports_nuisance,
 )
-from app.vlp.solvers._gridless_options import nuisance_priors
-from app.vlp.solvers._terminal_fit import fit_terminal, los_with_normal
 from app.vlp.solvers.gridless import GridlessOptions
+from app.vlp.solvers.gridless.channel import ChannelKernel
+from app.vlp.solvers.gridless.options import nuisance_priors
+from app.vlp.solvers.gridless.terminals import fit_terminal, los_with_normal
 
 
 def test_detected_leds_are_those_above_three_noise_sd() -> None:

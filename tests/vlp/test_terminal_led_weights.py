@@ -18,10 +18,10 @@ from app.vlp.simulation import (
     simulate_terminals,
     true_amplitudes,
 )
-from app.vlp.solvers._channel_kernel import ChannelKernel
-from app.vlp.solvers._gridless_options import nuisance_priors
-from app.vlp.solvers._terminal_fit import fit_terminal
 from app.vlp.solvers.gridless import GridlessOptions, GridlessSolver
+from app.vlp.solvers.gridless.channel import ChannelKernel
+from app.vlp.solvers.gridless.options import nuisance_priors
+from app.vlp.solvers.gridless.terminals import fit_terminal
 from app.vlp.uncertainty import FITS_TO_NOISE
 from bench.random_rooms import replay_request
 

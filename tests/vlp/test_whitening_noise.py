@@ -7,12 +7,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from app.vlp._kernels import KernelMode, use_kernels
 from app.vlp.fingerprints import build_fingerprint
 from app.vlp.presets import paper_layout
 from app.vlp.simulation import mean_signal_power
-from app.vlp.solvers._channel_kernel import ChannelKernel
-from app.vlp.solvers._gridless_fit import FitState, Whitening, target_gains
-from app.vlp.solvers._kernels import KernelMode, use_kernels
+from app.vlp.solvers.gridless.channel import ChannelKernel
+from app.vlp.solvers.gridless.model import FitState, Whitening, target_gains
 
 N_DRAWS = 4000
 

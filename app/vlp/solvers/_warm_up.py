@@ -1,21 +1,29 @@
-"""Run every compiled kernel once on a small problem, so that later calls find them compiled.
+"""Compile (or load from the disk cache) every kernel before the first request.
 
-The calls go through the same code as a solve (the :mod:`._gridless_fit` entry points), so
-they compile exactly the argument types a solve uses. Private: see :func:`._kernels.warm_up`.
+The top of the kernels' imports: it imports every kernel's caller, and nothing in
+:mod:`app.vlp` imports it but :mod:`app.vlp.solvers` (which exports :func:`warm_up`). The
+calls go through the same code as a solve (the :mod:`.gridless.model` entry points), so they
+compile exactly the argument types a solve uses.
 """
 
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 import scipy.sparse as sp
 
+from .._kernels import kernel_mode
 from ..presets import paper_layout
 from ..uncertainty import confidence_radii
-from ._channel_compiled import channel_constants, channel_rows
-from ._channel_kernel import ChannelKernel
-from ._fit_compiled import correlation_profiles_kernel, correlation_scores_kernel
-from ._gridless_fit import (
-    STEP_TOL_M,
+from .gridless._compiled.channel import channel_constants, channel_rows
+from .gridless._compiled.fit import correlation_profiles_kernel, correlation_scores_kernel
+from .gridless._compiled.search import growth_kernel, refine_kernel
+from .gridless._compiled.uncertainty import uncertainty_kernel
+from .gridless.channel import ChannelKernel
+from .gridless.lm import STEP_TOL_M
+from .gridless.local import _best_of_tiles
+from .gridless.model import (
     FitState,
     Objective,
     Priors,
@@ -24,14 +32,30 @@ from ._gridless_fit import (
     gram,
     levenberg_marquardt,
 )
-from ._gridless_options import LM_DEFAULTS
-from ._local import _best_of_tiles
-from ._room_tolerance_fit import RoomTolerances, _JointModel, _levenberg_marquardt
-from ._search_compiled import growth_kernel, refine_kernel
-from ._terminal_fit import _levenberg_marquardt as terminal_fit
-from ._uncertainty_compiled import uncertainty_kernel
+from .gridless.options import LM_DEFAULTS
+from .gridless.terminals import _levenberg_marquardt as terminal_fit
+from .gridless.tolerances import RoomTolerances, _JointModel, _levenberg_marquardt
 
-__all__ = ["exercise"]
+__all__ = ["exercise", "warm_up"]
+
+_lock = threading.Lock()
+_warm = False
+
+
+def warm_up() -> None:
+    """Compile (or load from the disk cache) every kernel the default solver uses.
+
+    Idempotent and thread-safe; a no-op with the reference kernels. Called by the service at
+    start-up, so that no terminal's request waits for the compiler.
+    """
+    global _warm
+    if kernel_mode() != "compiled":
+        return
+    with _lock:
+        if _warm:
+            return
+        exercise()
+        _warm = True
 
 
 def exercise() -> None:

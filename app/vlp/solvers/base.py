@@ -7,6 +7,8 @@ A solver is built once per (fingerprint, model) -- that is where it may precompu
     solution = solver.solve(measurement, n_targets=8)
 
 The web layer caches solver objects per (room, fingerprint version, model, solver name).
+A solver that can also locate each terminal from its own amplitudes says so by having
+:meth:`TerminalSolver.solve_terminals`; the service asks for that protocol, not for a class.
 """
 
 from __future__ import annotations
@@ -14,7 +16,7 @@ from __future__ import annotations
 import math
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import ClassVar, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -31,6 +33,7 @@ __all__ = [
     "SOLVERS",
     "Solution",
     "Solver",
+    "TerminalSolver",
     "make_solver",
     "register_solver",
     "solver_names",
@@ -153,6 +156,37 @@ class Solver(ABC):
     @abstractmethod
     def _solve(self, measurement: Measurement, n_targets: int | None) -> Solution:
         """Solve a validated measurement."""
+
+
+@runtime_checkable
+class TerminalSolver(Protocol):
+    """A solver that also locates each terminal from its own pilot amplitudes (the labels
+    are known: estimate k belongs to terminal k), which is more information than their sum.
+    """
+
+    def solve_terminals(
+        self,
+        amplitudes: FloatArray,
+        heights: FloatArray | None = None,
+        normals: FloatArray | None = None,
+        floors: FloatArray | None = None,
+    ) -> Solution:
+        """Locate each terminal from its own amplitudes.
+
+        Parameters
+        ----------
+        amplitudes : ndarray of shape (K, M)
+            Each terminal's received pilot amplitudes (validated by the caller); NaN where
+            the LED was not detected.
+        heights : ndarray of shape (K,) or None, metres
+            Terminals' own heights; NaN (or None for all) where unknown.
+        normals : ndarray of shape (K, 3) or None
+            Terminals' photodiode unit normals; None for straight up.
+        floors : ndarray of shape (K,) or None
+            Terminals' detection floors (amplitude units); NaN (or None for all) where not
+            sent.
+        """
+        ...
 
 
 SOLVERS: dict[str, type[Solver]] = {}

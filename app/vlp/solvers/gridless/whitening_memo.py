@@ -16,8 +16,8 @@ from collections.abc import Callable
 
 import numpy as np
 
-from ._gridless_fit import FitState, Whitening
-from ._kernels import kernel_mode
+from ..._kernels import kernel_mode
+from .model import FitState, Whitening
 
 __all__ = ["MAX_KEPT_VALUES", "WhiteningMemo", "state_key"]
 

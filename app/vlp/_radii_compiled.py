@@ -16,8 +16,8 @@ import math
 
 import numpy as np
 
-from ..typing import FloatArray
 from ._kernels import compiled
+from .typing import FloatArray
 
 __all__ = ["radial_roots_kernel"]
 

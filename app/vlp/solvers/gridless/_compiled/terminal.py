@@ -1,13 +1,13 @@
 """Compiled model and Levenberg-Marquardt loop of one terminal's own fit.
 
-Stand-ins for :func:`._terminal_fit.terminal_model` (all its branches: looking straight up,
+Stand-ins for :func:`.gridless.terminals.terminal_model` (all its branches: looking straight up,
 a photodiode normal the terminal sent, a fitted tilt) and for the evaluation and
-:func:`._projected_lm.projected_levenberg_marquardt` loop of
-:func:`._terminal_fit._levenberg_marquardt` (their NumPy code is the reference and documents
+:func:`.gridless.lm.projected_levenberg_marquardt` loop of
+:func:`.gridless.terminals._levenberg_marquardt` (their NumPy code is the reference and documents
 the model); a whole fit from one start is one call here. Private: callers validate.
 
 Parameters are ``theta = [x, y, (z), (tx, ty), u]``. Arguments beyond the channel's
-constants (:func:`._channel_compiled.channel_constants`):
+constants (:func:`.gridless._compiled.channel.channel_constants`):
 
 - ``shape``: ``(free_height, has_normal, free_tilt, z0)``; ``normal`` (3,) is used only with
   ``has_normal``
@@ -22,20 +22,25 @@ from typing import Any
 
 import numpy as np
 
-from ..typing import FloatArray
-from ._channel_compiled import ChannelConstants, TableConstants, channel_rows, diffuse_rows
-from ._fit_compiled import _cholesky_solve
-from ._kernels import compiled
+from ...._kernels import compiled
+from ....typing import FloatArray
+from ..lm import (
+    DAMPING_DOWN,
+    DAMPING_SINGULAR,
+    DAMPING_UP,
+    DIAGONAL_FLOOR,
+    MIN_DAMPING,
+    PROJECTED_MAX_REJECTIONS,
+    TERMINAL_COST_TOL,
+    TERMINAL_STEP_TOL_M,
+)
+from .channel import ChannelConstants, TableConstants, channel_rows, diffuse_rows
+from .fit import _cholesky_solve
 
 __all__ = ["terminal_lm_kernel", "terminal_model_kernel"]
 
 Shape = tuple[Any, ...]
 TerminalPriors = tuple[Any, ...]
-
-# As the reference (_projected_lm, _terminal_fit).
-_MAX_REJECTIONS = 10
-_COST_TOL = 1e-10
-_STEP_TOL_M = 1e-6
 
 
 @compiled
@@ -222,13 +227,13 @@ def terminal_lm_kernel(
         normal_matrix = jacobian.T @ jacobian
         gradient = jacobian.T @ residual
         improved = finished = False
-        for _ in range(_MAX_REJECTIONS):
+        for _ in range(PROJECTED_MAX_REJECTIONS):
             scaled = normal_matrix.copy()
             for i in range(n):
-                scaled[i, i] += damping * max(normal_matrix[i, i], 1e-30)
+                scaled[i, i] += damping * max(normal_matrix[i, i], DIAGONAL_FLOOR)
             step, ok = _cholesky_solve(scaled, gradient)
             if not ok:
-                damping *= 10.0
+                damping *= DAMPING_SINGULAR
                 continue
             trial = np.minimum(np.maximum(theta + step, lower), upper)
             trial_residual, trial_jacobian = _evaluate(
@@ -236,14 +241,14 @@ def terminal_lm_kernel(
             )
             trial_cost = _squared_norm(trial_residual)
             if trial_cost < cost:
-                finished = cost - trial_cost < _COST_TOL * cost or (
-                    max(abs(step[0]), abs(step[1])) < _STEP_TOL_M
+                finished = cost - trial_cost < TERMINAL_COST_TOL * cost or (
+                    max(abs(step[0]), abs(step[1])) < TERMINAL_STEP_TOL_M
                 )
                 theta, residual, jacobian, cost = trial, trial_residual, trial_jacobian, trial_cost
-                damping = max(damping / 5.0, 1e-9)
+                damping = max(damping / DAMPING_DOWN, MIN_DAMPING)
                 improved = True
                 break
-            damping *= 4.0
+            damping *= DAMPING_UP
         if not improved or finished:
             break
     return theta, residual, jacobian, cost

@@ -12,7 +12,7 @@ rooms with the correlation model during the search (positions and noise only;
   Levenberg-Marquardt fit in it, until a round barely moves the fit.
 
 Each is one call instead of some sixty Python-level steps. They call the kernels the Python
-path calls (:mod:`._fit_compiled`), in the same order, so the state they return is that
+path calls (:mod:`.gridless._compiled.fit`), in the same order, so the state they return is that
 path's to the bit; the Python path (and under ``VLP_KERNELS=reference`` its NumPy kernels)
 is their reference. Private: callers validate.
 """
@@ -23,9 +23,10 @@ import math
 
 import numpy as np
 
-from ..typing import FloatArray
-from ._channel_compiled import ChannelConstants, TableConstants
-from ._fit_compiled import (
+from ...._kernels import compiled
+from ....typing import FloatArray
+from .channel import ChannelConstants, TableConstants
+from .fit import (
     Problem,
     correlation_scores_kernel,
     lm_kernel,
@@ -33,7 +34,6 @@ from ._fit_compiled import (
     whiten_kernel,
     whitening_kernel,
 )
-from ._kernels import compiled
 
 __all__ = ["growth_kernel", "refine_kernel"]
 
@@ -47,7 +47,7 @@ def _facts(
     receiver_height: float,
 ) -> tuple[bool, bool]:
     """Whether every target is on the receivers' plane, and every multiplier is 1
-    (:func:`._gridless_fit.fixed_tuple`)."""
+    (:func:`.gridless.model.fixed_tuple`)."""
     on_plane = True
     unit = log_scale == 0.0
     for i in range(heights.shape[0]):

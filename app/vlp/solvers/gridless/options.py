@@ -5,11 +5,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import TypeVar
 
-from ..fingerprints import Fingerprint
-from ..layout import Layout
-from ..measurements import Model
-from ._channel_kernel import DiffuseTable
-from ._gridless_fit import Priors
+from ...fingerprints import Fingerprint
+from ...layout import Layout
+from ...measurements import Model
+from .channel import DiffuseTable
+from .model import Priors
 
 __all__ = [
     "LM_DEFAULTS",
@@ -54,28 +54,26 @@ class GridlessOptions:
     # Relocation also tries moving a target whose own spot is still its best point to the
     # best point of the whole residual (where a target is missing). None: in rooms too large
     # for the dense dictionary, where greedy growth leaves targets out while two estimates
-    # share one (docs/performance.md, "Relocation to where a target is missing").
+    # share one (docs/decisions/relocate-to-missing-in-large-rooms.md).
     relocate_to_missing: bool | None = None
     # Far relocation: such a target is first tried at the best point of the residual the
     # others leave at least the restarts' radius away from its spot, then where a target is
     # missing; and at K >= 2 the escape is always taken, since the test of a stuck fit
     # cannot see one (a power fit's noise level absorbs its misfit). None: the power model
-    # in rooms with the dense dictionary (docs/accuracy.md, "Far relocation in the power
-    # model").
+    # in rooms with the dense dictionary (docs/decisions/power-model-search.md).
     relocate_far: bool | None = None
     # After the polish, each estimate whose profile (the others held, its gain free) fits
     # as well, within chi-square(2)'s 95 %, somewhere beyond the restarts' radius is tried
     # there as far relocation does, even when the fit does not look stuck: in rooms with few
     # LEDs per target the aggregated fit has such optima at noise-level costs. None: the
-    # correlation model in rooms whose profiles are scanned (docs/accuracy.md, "Far places
-    # tried in the search").
+    # correlation model in rooms whose profiles are scanned
+    # (docs/decisions/far-places-in-the-search.md).
     relocate_ambiguous: bool | None = None
     # The noise coefficient held at 0 while targets are inserted (freed in the refinements
     # after): the power model's noise atom (ones, nearly a signal direction) otherwise takes
     # the signal of the targets not yet inserted, and later insertions find no room for them
     # (the targets then run to the room's corners). None: the power model in rooms with the
-    # dense dictionary (measured worse in large rooms; docs/accuracy.md, "Far relocation in
-    # the power model").
+    # dense dictionary (measured worse in large rooms; docs/decisions/power-model-search.md).
     grow_without_noise: bool | None = None
     # Restarts when the fit looks stuck, K known and K > 1. None: 0 with far relocation
     # (which finds what they find, at half their cost), else 1.
@@ -95,13 +93,14 @@ class GridlessOptions:
     # errors (pilot amplitudes, beams off their data sheet) beyond the noise's chance, the
     # terminals are refitted with each amplitude weighted by its noise plus that error
     # (generalised least squares: the brightest LEDs carry the largest errors). False: one
-    # weight for all (docs/real-rooms.md, "The LEDs' errors in the terminals' weights").
+    # weight for all (docs/decisions/led-errors-in-terminal-weights.md).
     terminal_led_weights: bool = True
     # The room's tolerances, fitted with the aggregated correlation as a last stage
-    # (._room_tolerance_fit; None: never): each LED's pilot amplitude (log sd) and half-power
+    # (.gridless.tolerances; None: never): each LED's pilot amplitude (log sd) and half-power
     # angle (degrees), as LED data sheets give them, and optionally each target's photodiode
     # tilt (tangent sd, about radians; 0: not fitted, which measured better, see
-    # docs/real-rooms.md). Tried only when the fit's whitened cost per degree of freedom is
+    # docs/decisions/room-tolerance-stage.md). Tried only when the fit's whitened cost per degree
+    # of freedom is
     # above ``tolerance_misfit_ratio`` and a score test promises enough; kept only when it
     # lowers that cost by more than its extra parameters' chi-square mean plus
     # ``tolerance_significance`` standard deviations (GridlessSolver._with_room_tolerances).
@@ -111,11 +110,11 @@ class GridlessOptions:
     # Where the tolerances are kept, the photodiodes' tilts are then fitted too, from the
     # joint optimum, with the layout's ``receiver_tilt_sd`` as their prior, else this one
     # (tangent sd, about radians: hand-held phones; 0.1 is 5.7 degrees per component,
-    # between the issue's realistic 0-10 and tilted 0-20 degree ranges, 4.1 and 8.2), unless
+    # between the realistic mix's 0-10 and the tilted condition's 0-20 degree ranges, 4.1 and 8.2),
+    # unless
     # the layout says its photodiodes are level (``receivers_level``). Not gated as
     # ``tilt_sd``'s terminal fits are: the tilts lower the aggregated cost too little to tell
-    # a tilted room from a level one. 0: not fitted (docs/real-rooms.md, "Tilts after the
-    # room's tolerances").
+    # a tilted room from a level one. 0: not fitted (docs/decisions/tilts-after-tolerances.md).
     tolerance_tilt_sd: float = 0.1
     tolerance_misfit_ratio: float = 1.1
     # The score test passes when the first Gauss-Newton step promises more than this times
@@ -124,7 +123,7 @@ class GridlessOptions:
     tolerance_significance: float = 3.0
     # Where the tolerances are fitted, each target is also moved far (to the best grid point
     # at least half the LEDs' mean height away) and the joint fit keeps what lowers its cost,
-    # as it does with the restarts' placements (._room_tolerance_fit.GridMoves).
+    # as it does with the restarts' placements (.gridless.tolerances.GridMoves).
     tolerance_jumps: bool = True
     # A stage of nuisances is kept when it lowers the whitened cost by more than its extra
     # parameters' chi-square mean plus this many standard deviations.
@@ -142,7 +141,7 @@ class LevenbergMarquardtSettings:
 
 # Per model: correlation takes few damped iterations at a loose tolerance (as accurate, far
 # fewer evaluations); power has M values for 2K + 1 unknowns, a much flatter, multimodal
-# cost, and keeps the careful settings (measured in docs/accuracy.md, "Design measurements").
+# cost, and keeps the careful settings (measured in docs/decisions/gridless-defaults.md).
 LM_DEFAULTS: dict[Model, LevenbergMarquardtSettings] = {
     "correlation": LevenbergMarquardtSettings(inner_iter=2, initial_damping=1e-1, tol=1e-4),
     "power": LevenbergMarquardtSettings(inner_iter=4, initial_damping=1e-3, tol=1e-7),

@@ -13,10 +13,10 @@ from typing import Any
 
 import numpy as np
 
-from .._reflection_table import _UNIT_BASIS, ReflectionTable
-from ..typing import FloatArray
-from ._channel_kernel import ChannelKernel, DiffuseTable
-from ._kernels import compiled
+from ...._kernels import compiled
+from ...._reflection_table import _UNIT_BASIS, ReflectionTable
+from ....typing import FloatArray
+from ..channel import ChannelKernel, DiffuseTable
 
 __all__ = ["ChannelConstants", "TableConstants", "channel_constants", "channel_rows"]
 

@@ -1,20 +1,20 @@
 """Compiled gains, residual and Jacobian, and LM loop of the joint fit under the room's
 tolerances.
 
-Stand-ins for :meth:`._room_tolerance_fit._JointModel.gains`,
-:meth:`~._room_tolerance_fit._JointModel.residual_and_jacobian` and the joint fit's
-``_levenberg_marquardt`` (:func:`._projected_lm.projected_levenberg_marquardt`); their NumPy
+Stand-ins for :meth:`.gridless.tolerances._JointModel.gains`,
+:meth:`~.gridless.tolerances._JointModel.residual_and_jacobian` and the joint fit's
+``_levenberg_marquardt`` (:func:`.gridless.lm.projected_levenberg_marquardt`); their NumPy
 code is the reference and documents the model. A 16-LED, 8-target evaluation is a few
 hundred small NumPy operations there, bound by their overhead; a whole LM run is one call
 here. Private: callers validate.
 
 Arguments come as plain arrays and numbers:
 
-- ``channel``, ``table``: :func:`._channel_compiled.channel_constants` of the kernel;
+- ``channel``, ``table``: :func:`.gridless._compiled.channel.channel_constants` of the kernel;
 - ``theta``: ``[x (K), y (K), u (K), v, a (M), delta (M), t_x (K), t_y (K), s]``, the tilts
   only when ``has_tilts``;
 - ``heights`` (K,): the targets' heights;
-- ``white``: :meth:`._gridless_fit.Whitening.compiled` of a correlation whitening (with a
+- ``white``: :meth:`.gridless.model.Whitening.compiled` of a correlation whitening (with a
   rotation);
 - ``prior_inverse_sd``: the prior rows' weights, ``1 / sd`` of ``theta[2K : 2K + n]``.
 """
@@ -26,11 +26,18 @@ from typing import Any
 
 import numpy as np
 
-from ..typing import FloatArray
-from ._channel_compiled import ChannelConstants, TableConstants, diffuse_rows
-from ._fit_compiled import cholesky_substitution
-from ._kernels import compiled
-from ._projected_lm import _MAX_REJECTIONS
+from ...._kernels import compiled
+from ....typing import FloatArray
+from ..lm import (
+    DAMPING_DOWN,
+    DAMPING_SINGULAR,
+    DAMPING_UP,
+    DIAGONAL_FLOOR,
+    MIN_DAMPING,
+    PROJECTED_MAX_REJECTIONS,
+)
+from .channel import ChannelConstants, TableConstants, diffuse_rows
+from .fit import cholesky_substitution
 
 __all__ = [
     "GAINS",
@@ -329,8 +336,8 @@ def joint_lm_kernel(
     damping: float,
     rel_tol: float,
 ) -> tuple[FloatArray, float, int]:
-    """``_levenberg_marquardt`` of :mod:`._room_tolerance_fit`, i.e.
-    :func:`._projected_lm.projected_levenberg_marquardt` on :func:`joint_residual_kernel`
+    """``_levenberg_marquardt`` of :mod:`.gridless.tolerances`, i.e.
+    :func:`.gridless.lm.projected_levenberg_marquardt` on :func:`joint_residual_kernel`
     stopped at a relative decrease below ``rel_tol``: the fitted theta, its cost and the
     iterations used."""
     n_data = data.shape[0]
@@ -346,13 +353,13 @@ def joint_lm_kernel(
         normal, gradient = _normal_equations(residual, jacobian, n_data, prior_at, prior_inverse_sd)
         n = gradient.shape[0]
         improved = finished = False
-        for _ in range(_MAX_REJECTIONS):
+        for _ in range(PROJECTED_MAX_REJECTIONS):
             scaled = normal.copy()
             for i in range(n):
-                scaled[i, i] += damping * max(normal[i, i], 1e-30)
+                scaled[i, i] += damping * max(normal[i, i], DIAGONAL_FLOOR)
             step, ok = _damped_solve(scaled, gradient)
             if not ok:
-                damping *= 10.0
+                damping *= DAMPING_SINGULAR
                 continue
             trial = np.minimum(np.maximum(theta + step, lower), upper)
             # The Jacobian only once the step is taken: about half of the trials are not.
@@ -370,10 +377,10 @@ def joint_lm_kernel(
                     white, n_data, trial, pieces, rotated, multipliers, prior_inverse_sd
                 )
                 theta, residual, cost = trial, trial_residual, trial_cost
-                damping = max(damping / 5.0, 1e-9)
+                damping = max(damping / DAMPING_DOWN, MIN_DAMPING)
                 improved = True
                 break
-            damping *= 4.0
+            damping *= DAMPING_UP
         if not improved or finished:
             break
     return theta, float(cost), used

@@ -12,7 +12,8 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from ..ambiguity import (
+from ..._kernels import kernel_mode
+from ...ambiguity import (
     covering_twins,
     far_optima,
     farthest_in_region,
@@ -20,12 +21,12 @@ from ..ambiguity import (
     reaching_beyond,
     twins_possible,
 )
-from ..fingerprints import Fingerprint
-from ..measurements import Measurement, Model, noise_atom, summed_terminals
-from ..scale import check_amplitude_scale
-from ..simulation import mean_signal_power
-from ..typing import FloatArray, IntArray
-from ..uncertainty import (
+from ...fingerprints import Fingerprint
+from ...measurements import Measurement, Model, noise_atom, summed_terminals
+from ...scale import check_amplitude_scale
+from ...simulation import mean_signal_power
+from ...typing import FloatArray, IntArray
+from ...uncertainty import (
     FITS_TO_NOISE,
     FitQuality,
     Misfit,
@@ -37,13 +38,17 @@ from ..uncertainty import (
     own_excess_widening,
     predictive_covariances,
 )
-from ._censored import censored_substitutes, with_censored_variance
-from ._channel_compiled import channel_constants, channel_rows
-from ._channel_kernel import ChannelKernel
-from ._fit_compiled import correlation_profiles_kernel, correlation_scores_kernel
-from ._gridless_fit import (
+from .._censored import censored_substitutes, with_censored_variance
+from ..base import MAX_TARGETS, Solution, Solver, register_solver
+from ._compiled.channel import channel_constants, channel_rows
+from ._compiled.fit import correlation_profiles_kernel, correlation_scores_kernel
+from ._compiled.search import growth_kernel, refine_kernel
+from ._compiled.uncertainty import misfit_design_kernel, uncertainty_kernel
+from .channel import ChannelKernel
+from .lm import STEP_TOL_M
+from .local import PowerScan, TerminalWindows
+from .model import (
     MAX_LOG_SCALE,
-    STEP_TOL_M,
     FitState,
     Objective,
     Priors,
@@ -54,7 +59,7 @@ from ._gridless_fit import (
     levenberg_marquardt,
     target_gains,
 )
-from ._gridless_options import (
+from .options import (
     LM_DEFAULTS,
     GridlessOptions,
     LevenbergMarquardtSettings,
@@ -62,14 +67,9 @@ from ._gridless_options import (
     nuisance_priors,
     pick,
 )
-from ._kernels import kernel_mode
-from ._local import PowerScan, TerminalWindows
-from ._room_tolerance_fit import GridMoves, RoomTolerances, ToleranceFit, fit_room_tolerances
-from ._search_compiled import growth_kernel, refine_kernel
-from ._terminal_fit import TerminalFit, fit_terminal, starting_cells
-from ._uncertainty_compiled import misfit_design_kernel, uncertainty_kernel
-from ._whitening_memo import MAX_KEPT_VALUES, WhiteningMemo, state_key
-from .base import MAX_TARGETS, Solution, Solver, register_solver
+from .terminals import TerminalFit, fit_terminal, starting_cells
+from .tolerances import GridMoves, RoomTolerances, ToleranceFit, fit_room_tolerances
+from .whitening_memo import MAX_KEPT_VALUES, WhiteningMemo, state_key
 
 __all__ = ["LM_DEFAULTS", "GridlessOptions", "GridlessSolver"]
 
@@ -82,7 +82,8 @@ _MAX_MISFIT_ENTRIES = 4_000_000
 _LED_WEIGHT_SIGNIFICANCE = 3.0
 # ... and the largest relative sd of an LED's error taken for one: data sheets bin flux
 # within +-10-15 %; a larger estimate is a fit that does not hold (a terminal placed far
-# off in a badly lit room), which the weights would make worse (docs/real-rooms.md).
+# off in a badly lit room), which the weights would make worse
+# (docs/decisions/led-errors-in-terminal-weights.md).
 _MAX_LED_ERROR_SD = 0.25
 # A count read off the rank of R replaces a smaller count by energy only when its fit's
 # variance ratio against that one is above this (GridlessSolver._explains_more).
@@ -201,7 +202,7 @@ class GridlessSolver(Solver):
 
     Notes
     -----
-    Model (normalised units, see :mod:`._gridless_fit`):
+    Model (normalised units, see :mod:`.gridless.model`):
     ``y = sum_k w_k e^(v + 2 u_k) phi(g(p_k, z_k)) + s a`` with ``phi(g) = vech(g g^T)``
     (correlation) or ``g o g`` (power), ``a`` the noise atom (``E[R] = sum_k g_k g_k^T +
     K sigma^2 I``), ``g`` the line of sight plus the room's interpolated diffuse reflections,
@@ -257,10 +258,13 @@ class GridlessSolver(Solver):
     before stopping. Terminals that send
     their own amplitudes are fitted one by one (:meth:`solve_terminals`).
 
+    The stages in order, what each estimates and why each gate sits where it does:
+    ``docs/explanation/solver.md`` (its section names are quoted below).
+
     Accuracy, counting and speed are measured by ``bench/accuracy.py``,
     ``bench/real_rooms.py``, ``bench/tune_gridless.py``, ``bench/solver_timing.py`` and
-    ``bench/solve_loop.py`` (instruction counts); the figures are in ``docs/accuracy.md``,
-    ``docs/real-rooms.md`` and ``docs/performance.md``.
+    ``bench/solve_loop.py`` (instruction counts); the figures are in ``docs/results/accuracy.md``,
+    ``docs/results/real-rooms.md`` and ``docs/results/solver-timing.md``.
 
     Examples
     --------
@@ -321,7 +325,7 @@ class GridlessSolver(Solver):
         ]
         if len(self._stages) == 2 and self._stages[0] == self._stages[1]:
             self._stages.pop()
-        # Whitenings already computed, by state values (._whitening_memo).
+        # Whitenings already computed, by state values (.gridless.whitening_memo).
         self._whitenings = WhiteningMemo()
         # Plain least squares (one object: the compiled kernels keep their view of it).
         self._identity = Whitening.identity(model, fingerprint.n_leds)
@@ -674,7 +678,8 @@ class GridlessSolver(Solver):
         return state.with_target(self._centres[best], self._priors.height_mean)
 
     def _needs_escape(self, run: _Run, state: FitState) -> bool:
-        """True when the fit looks like a local minimum worth relocating or restarting from.
+        """True when the fit looks like a local minimum worth relocating or restarting from
+        (docs/explanation/solver.md, "Escapes").
 
         Two signs, either suffices: (1) the whitened cost per degree of freedom is above
         ``misfit_ratio``: a complete fit leaves only noise, about one unit per degree of
@@ -682,19 +687,19 @@ class GridlessSolver(Solver):
         the cost by at least ``count_threshold`` of its own energy somewhere: a target the
         fit has not found (two estimates sharing one terminal, another left out). The
         threshold separates good fits from gross failures (bench/tune_gridless.py,
-        docs/accuracy.md, "Design measurements").
+        docs/decisions/gridless-defaults.md).
 
         With far relocation (the power model's default) always, from K = 2: the power
         model's noise atom (ones) is nearly a signal direction, so a fit stuck far from the
         truth raises its fitted noise level instead of its whitened cost, and neither sign
-        shows (docs/accuracy.md, "Far relocation in the power model").
+        shows (docs/decisions/power-model-search.md).
         """
         if self._relocate_far and state.n_targets >= 2:
             return True
         white, residual, within = self._noise_test(run, state)
         # With no degree of freedom left (power model, 2K + 1 >= M) no cost tells a local
         # minimum from the truth: always escaping doubles the time there but is worth about
-        # 8 % of the error (docs/accuracy.md, "The power model's uncertainty").
+        # 8 % of the error (docs/explanation/uncertainty.md#the-fits-quality).
         if not within:
             return True
         if not self._dense:
@@ -773,7 +778,7 @@ class GridlessSolver(Solver):
 
     def _compiled_search(self, run: _Run) -> bool:
         """Whether :meth:`_grow` and :meth:`_refine` run as one compiled call each
-        (:mod:`._search_compiled`): the correlation model in a dense room, searching
+        (:mod:`.gridless._compiled.search`): the correlation model in a dense room, searching
         (positions and noise only), fixed weights, the compiled kernels in use."""
         return (
             self._search_constants is not None
@@ -841,7 +846,7 @@ class GridlessSolver(Solver):
 
     def _search_problem(self, run: _Run) -> tuple[Any, ...]:
         """The compiled search steps' ``(channel, table, search)`` for ``run``
-        (:func:`._search_compiled.growth_kernel`)."""
+        (:func:`.gridless._compiled.search.growth_kernel`)."""
         assert self._search_constants is not None
         channel, table, layout, priors, is_diag = self._search_constants
         search = (
@@ -874,7 +879,8 @@ class GridlessSolver(Solver):
         return found
 
     def _count_and_fit(self, run: _Run) -> FitState:
-        """Grow one target at a time while each brings its own energy (unknown K).
+        """Grow one target at a time while each brings its own energy (unknown K;
+        docs/explanation/solver.md, "Counting").
 
         A real target removes about its own atom energy ``||phi(p)||^2`` from the plain
         residual; a spurious one, of unit weight, adds about as much. A state with more
@@ -999,7 +1005,7 @@ class GridlessSolver(Solver):
         """A first guess of the common power scale, when K is known and the received power
         per target is more than 1.5x outside what any grid point gives (brightest to
         faintest): the power per target over the room's mean. Else 1, and the search runs
-        exactly as in a room measured as modelled."""
+        exactly as in a room measured as modelled (docs/explanation/solver.md, "Prescale")."""
         if n_targets is None:
             return 1.0
         upper, lower = self._upper_lower
@@ -1061,7 +1067,7 @@ class GridlessSolver(Solver):
         targets (the insertions and the first refinements run before the scale is fitted),
         and such a fit may not show that the count by energy left targets out; the data
         show the scale once positions are roughly right. (With K given by the client it was
-        measured mixed, so it is not used there: docs/real-rooms.md, "Counting by the rank
+        measured mixed, so it is not used there: docs/decisions/count-by-rank.md
         of R".)"""
         first = self._search(values, n_targets)
         cost, scale = self._scale_free_fit(values, first)
@@ -1082,7 +1088,7 @@ class GridlessSolver(Solver):
         :data:`_COUNT_F_RATIO`. A target the smaller count left out leaves its whole signal
         in that fit's residual; spare targets on noise take out about their share of it
         (a ratio near 1), and a spare unit-weight target where nothing is adds to it
-        (measured in docs/real-rooms.md, "Counting by the rank of R")."""
+        (measured in docs/decisions/count-by-rank.md)."""
         dof = max(n_values - 2 * extra - 2, 1)
         decrease = (cost - more_cost) / (2 * extra)
         return bool(decrease > _COUNT_F_RATIO * max(more_cost, 0.0) / dof)
@@ -1202,13 +1208,13 @@ class GridlessSolver(Solver):
 
         Notes
         -----
-        See :mod:`._terminal_fit`. Two passes: without priors, to estimate the amplitude
+        See :mod:`.gridless.terminals`. Two passes: without priors, to estimate the amplitude
         noise variance pooled over the terminals (its residual sum of squares over its
         degrees of freedom), then with the gain and height priors weighted by it (each
         terminal's gain held at 1 and its photodiode level unless freeing them lowers the
         cost significantly, or its tilt fitted with the layout's ``receiver_tilt_sd`` as
-        the prior when it declares one: :func:`._terminal_fit.fit_terminal`). The covariance of each
-        position is the sandwich of its whitened fit with the noise and
+        the prior when it declares one: :func:`.terminals.fit_terminal`). The covariance of
+        each position is the sandwich of its whitened fit with the noise and
         the model errors the fit does not fit (:meth:`_terminal_misfit_columns`), their
         variances estimated from all terminals' residuals together (the first pass's noise
         level holds part of the misfit, so the noise variance is re-estimated with them)
@@ -1412,7 +1418,8 @@ class GridlessSolver(Solver):
 
     def _with_nuisances(self, run: _Run, fixed: FitState) -> FitState:
         """Free the common scale and the heights, then the targets' gains; keep each stage
-        only when it explains the data significantly better than the one before.
+        only when it explains the data significantly better than the one before
+        (docs/explanation/solver.md, "Nuisance stages").
 
         Each free parameter lowers the whitened cost by about one unit of noise even when
         the targets are exactly as modelled, and costs accuracy (K = 8, paper room: free
@@ -1456,15 +1463,16 @@ class GridlessSolver(Solver):
         self, run: _Run, state: FitState, others: tuple[FloatArray, ...] = ()
     ) -> ToleranceFit | None:
         """The fit with the room's tolerances (LED amplitudes and beams, optionally the
-        photodiodes' tilts) as nuisance parameters (:mod:`._room_tolerance_fit`); None where
+        photodiodes' tilts) as nuisance parameters (:mod:`.gridless.tolerances`; see
+        docs/explanation/solver.md, "Room tolerances"); None where
         it is not tried or not kept.
 
         Tried only when the fit shows a misfit (whitened cost per degree of freedom above
-        ``tolerance_misfit_ratio``), then gated by :func:`._room_tolerance_fit.fit_room_tolerances`
+        ``tolerance_misfit_ratio``), then gated by :func:`.gridless.tolerances.fit_room_tolerances`
         (a score test, and a decrease beyond ``tolerance_significance`` standard deviations
         of chance, 3 as the other stages). Fitted always, the tolerances fit the noise of a
         room exactly as modelled and cost it accuracy; the gate was chosen on three rooms and
-        seven conditions (docs/real-rooms.md, "Room tolerances in the aggregated fit"). The
+        seven conditions (docs/decisions/room-tolerance-stage.md). The
         joint fit then tries long moves of each target and the placements ``others`` (the
         restarts' optima not picked), kept when they lower its cost (``tolerance_jumps``),
         and last each photodiode's tilt (:meth:`_tolerance_tilt_sd`).
@@ -1528,7 +1536,8 @@ class GridlessSolver(Solver):
         return declared if declared > 0 else opts.tolerance_tilt_sd
 
     def _uncertainty(self, run: _Run, state: FitState) -> tuple[FloatArray, FitQuality]:
-        """Position covariances of the final whitened fit and the fit's quality.
+        """Position covariances of the final whitened fit and the fit's quality
+        (docs/explanation/solver.md, "Uncertainty").
 
         The inverse Fisher information alone counts only the noise; a room that differs
         from its model moves the estimates further. The covariance is the sandwich
@@ -1631,7 +1640,7 @@ class GridlessSolver(Solver):
         itself ``||r_k||^2 - ||r||^2``. In the rotated basis (``rho = U^T g``) every inner
         product of atoms is a quadratic form in ``rho_j o rho_k`` with the squared weights,
         so all K profiles cost one pass over the grid each, without forming any ``r_k``
-        (compiled: :func:`._fit_compiled.correlation_profiles_kernel`, this NumPy code its
+        (compiled: :func:`.gridless._compiled.fit.correlation_profiles_kernel`, this NumPy code its
         reference). Kept per run, state values and priors.
         """
         key = (state_key(state), run.priors)
@@ -1742,7 +1751,7 @@ class GridlessSolver(Solver):
 
     def _covariances(self, objective: Objective, state: FitState) -> tuple[FloatArray, FitQuality]:
         """:meth:`_uncertainty` in the metric of ``objective``: compiled
-        (:mod:`._uncertainty_compiled`) or, with the reference kernels, in NumPy."""
+        (:mod:`.gridless._compiled.uncertainty`) or, with the reference kernels, in NumPy."""
         theta = objective.pack(state)
         k = state.n_targets
         index = np.column_stack((np.arange(k), np.arange(k) + k))
@@ -1751,7 +1760,7 @@ class GridlessSolver(Solver):
         problem = objective.compiled_problem()
         small = n_data * k * self.fingerprint.n_leds <= _MAX_MISFIT_ENTRIES
         if problem is not None and k > 0 and small:
-            # The same sandwich in one compiled call (._uncertainty_compiled).
+            # The same sandwich in one compiled call (.gridless._compiled.uncertainty).
             covariances, cost = uncertainty_kernel(
                 *problem,
                 theta,
@@ -1811,7 +1820,7 @@ class GridlessSolver(Solver):
 
         Tilting the normal ``n`` moves the line of sight ``h ∝ n . v`` by
         ``h / v_z (v_x, v_y)`` per unit of tilt (``v`` = LED minus receiver); the diffuse
-        part is modelled for a level photodiode (as in :func:`._terminal_fit.terminal_model`).
+        part is modelled for a level photodiode (as in :func:`.gridless.terminals.terminal_model`).
         """
         kernel = self._kernel
         k = positions.shape[0]

@@ -1,7 +1,7 @@
 """Compiled evaluation and Levenberg-Marquardt loop of the ``gridless`` objective.
 
 Stand-ins for :meth:`Objective.augmented` / :func:`gram`, :meth:`Objective.residual`,
-:func:`levenberg_marquardt` and :meth:`Whitening.from_state` of :mod:`._gridless_fit` (their
+:func:`levenberg_marquardt` and :meth:`Whitening.from_state` of :mod:`.gridless.model` (their
 NumPy code is the reference and documents the model); a whole LM run is one call here.
 Private: callers validate.
 
@@ -22,9 +22,19 @@ from typing import Any
 
 import numpy as np
 
-from ..typing import FloatArray, IntArray
-from ._channel_compiled import ChannelConstants, TableConstants, channel_rows
-from ._kernels import compiled, compiled_reassociating
+from ...._kernels import compiled, compiled_reassociating
+from ....typing import FloatArray, IntArray
+from ..lm import (
+    DAMPING_DOWN,
+    DAMPING_SINGULAR,
+    DAMPING_UP,
+    DIAGONAL_FLOOR,
+    EIG_FLOOR,
+    MAX_REJECTIONS,
+    MIN_DAMPING,
+    SIGMA2_FLOOR,
+)
+from .channel import ChannelConstants, TableConstants, channel_rows
 
 __all__ = [
     "correlation_profiles_kernel",
@@ -38,12 +48,6 @@ __all__ = [
 
 Problem = tuple[Any, ...]
 
-# Same constants as the reference (_gridless_fit imports them from here would be circular).
-_MAX_REJECTIONS = 12
-_DAMPING_UP = 4.0
-_DAMPING_DOWN = 5.0
-_EIG_FLOOR = 1e-9
-_SIGMA2_FLOOR = 1e-12
 _SIGMA2_REL_FLOOR = 1e-4
 
 
@@ -387,15 +391,15 @@ def lm_kernel(
         used += 1
         scaling = np.empty(n)
         for i in range(n):
-            scaling[i] = max(normal[i, i], 1e-30)
+            scaling[i] = max(normal[i, i], DIAGONAL_FLOOR)
         found = False
-        for _ in range(_MAX_REJECTIONS):
+        for _ in range(MAX_REJECTIONS):
             damped = normal.copy()
             for i in range(n):
                 damped[i, i] += damping * scaling[i]
             step, ok = _cholesky_solve(damped, gradient)
             if not ok:
-                damping *= 10.0
+                damping *= DAMPING_SINGULAR
                 continue
             predicted = 0.0
             for i in range(n):
@@ -414,13 +418,13 @@ def lm_kernel(
             if trial_cost < cost:
                 converged = converged or (cost - trial_cost) < tol * cost
                 theta, normal, gradient, cost = trial, trial_normal, trial_gradient, trial_cost
-                damping = max(damping / _DAMPING_DOWN, 1e-9)
+                damping = max(damping / DAMPING_DOWN, MIN_DAMPING)
                 found = True
                 break
             if converged:
                 found = True
                 break
-            damping *= _DAMPING_UP
+            damping *= DAMPING_UP
         if not found:
             converged = True  # no decrease found along any damping: a local minimum
     return theta, cost, used
@@ -455,7 +459,7 @@ def whitening_kernel(
         for m in range(n_leds):
             total += gains[i, m] * gains[i, m] * multipliers[i]
     power = total / (n_leds * count)
-    sigma2 = max(noise / count, _SIGMA2_REL_FLOOR * power, _SIGMA2_FLOOR)
+    sigma2 = max(noise / count, _SIGMA2_REL_FLOOR * power, SIGMA2_FLOOR)
     half_noise = 0.5 * count * sigma2
     if not correlation:
         weights = np.empty(n_leds)
@@ -475,7 +479,7 @@ def whitening_kernel(
             signal[a, b] = total
         signal[a, a] += half_noise
     lam, rotation = np.linalg.eigh(signal)
-    floor = _EIG_FLOOR * max(lam[n_leds - 1], _SIGMA2_FLOOR)
+    floor = EIG_FLOOR * max(lam[n_leds - 1], SIGMA2_FLOOR)
     for m in range(n_leds):
         lam[m] = max(lam[m], floor)
     weights = np.empty(upper.shape[0])

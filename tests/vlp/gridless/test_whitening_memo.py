@@ -1,4 +1,4 @@
-"""Whitenings and whitened data kept between the steps of a solve (``_whitening_memo``)."""
+"""Whitenings and whitened data kept between the steps of a solve (``gridless.whitening_memo``)."""
 
 from __future__ import annotations
 
@@ -7,14 +7,14 @@ import threading
 
 import numpy as np
 
+from app.vlp._kernels import use_kernels
 from app.vlp.fingerprints import build_fingerprint
 from app.vlp.measurements import measurement_from_amplitudes
 from app.vlp.presets import paper_layout
 from app.vlp.simulation import noise_std_for_snr, noisy_amplitudes, random_positions
-from app.vlp.solvers._gridless_fit import FitState, Whitening
-from app.vlp.solvers._kernels import use_kernels
-from app.vlp.solvers._whitening_memo import MAX_KEPT_VALUES, WhiteningMemo
 from app.vlp.solvers.gridless import GridlessSolver
+from app.vlp.solvers.gridless.model import FitState, Whitening
+from app.vlp.solvers.gridless.whitening_memo import MAX_KEPT_VALUES, WhiteningMemo
 
 
 def _state() -> FitState:

@@ -1,4 +1,5 @@
-"""Locality in large rooms (solvers/_local.py): terminals started near their own footprint."""
+"""Locality in large rooms (solvers/gridless/local.py): terminals started near their own
+footprint."""
 
 from __future__ import annotations
 
@@ -7,17 +8,17 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from app.vlp._kernels import KERNELS, use_kernels
 from app.vlp.channel import los_gains
 from app.vlp.fingerprints import Fingerprint, build_fingerprint
 from app.vlp.layout import Grid, Layout, Led, Receiver, Reflectance, Room
 from app.vlp.measurements import Measurement, measurement_from_amplitudes
 from app.vlp.metrics import matched_errors
 from app.vlp.simulation import noise_std_for_snr, noisy_amplitudes, random_positions
-from app.vlp.solvers._gridless_fit import FitState, Whitening
-from app.vlp.solvers._kernels import KERNELS, use_kernels
-from app.vlp.solvers._local import TerminalWindows, _best_of_tiles
-from app.vlp.solvers._terminal_fit import starting_cells
-from app.vlp.solvers.gridless import GridlessOptions, GridlessSolver, _Run
+from app.vlp.solvers.gridless.local import TerminalWindows, _best_of_tiles
+from app.vlp.solvers.gridless.model import FitState, Whitening
+from app.vlp.solvers.gridless.solver import GridlessOptions, GridlessSolver, _Run
+from app.vlp.solvers.gridless.terminals import starting_cells
 from app.vlp.typing import FloatArray
 
 

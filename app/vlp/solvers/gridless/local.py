@@ -17,13 +17,13 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sp
 
-from ..channel import channel_gains
-from ..fingerprints import Fingerprint
-from ..layout import Layout
-from ..typing import FloatArray, IntArray
-from ._channel_kernel import ChannelKernel
-from ._kernels import compiled, kernel_mode
-from ._terminal_fit import starting_cells
+from ..._kernels import compiled, kernel_mode
+from ...channel import channel_gains
+from ...fingerprints import Fingerprint
+from ...layout import Layout
+from ...typing import FloatArray, IntArray
+from .channel import ChannelKernel
+from .terminals import starting_cells
 
 __all__ = ["PowerScan", "TerminalWindows"]
 
@@ -177,7 +177,7 @@ class TerminalWindows:
     def starting_cells(
         self, amplitudes: FloatArray, centres: FloatArray, min_distance_m: float
     ) -> list[int]:
-        """:func:`._terminal_fit.starting_cells` over :meth:`candidates` (grid indices)."""
+        """:func:`.gridless.terminals.starting_cells` over :meth:`candidates` (grid indices)."""
         cells, scores = self.candidates(amplitudes)
         chosen = starting_cells(scores, centres[cells], min_distance_m)
         return [int(cells[index]) for index in chosen]

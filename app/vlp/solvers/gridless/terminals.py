@@ -21,21 +21,25 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from ..typing import FloatArray
-from ._channel_compiled import channel_constants, channel_rows
-from ._channel_kernel import ChannelKernel
-from ._data_support import detected_leds, leaves_dof, supports_nuisance
-from ._gridless_fit import MAX_LOG_GAIN, Priors
-from ._kernels import kernel_mode
-from ._projected_lm import projected_levenberg_marquardt
-from ._terminal_compiled import _COST_TOL, _STEP_TOL_M, terminal_lm_kernel
+from ..._kernels import kernel_mode
+from ...typing import FloatArray
+from .._data_support import detected_leds, leaves_dof, supports_nuisance
+from ._compiled.channel import channel_constants, channel_rows
+from ._compiled.terminal import terminal_lm_kernel
+from .channel import ChannelKernel
+from .lm import (
+    TERMINAL_COST_TOL,
+    TERMINAL_INITIAL_DAMPING,
+    TERMINAL_STEP_TOL_M,
+    projected_levenberg_marquardt,
+)
+from .model import MAX_LOG_GAIN, Priors
 
 __all__ = ["TerminalFit", "fit_terminal", "los_with_normal", "starting_cells", "terminal_model"]
 
 # Candidate starts per terminal (the best grid points of its own correlation, kept apart).
 _STARTS = 3
 _MAX_ITER = 30
-_INITIAL_DAMPING = 1e-3
 # Smallest noise variance assumed, relative to a terminal's mean squared amplitude (40 dB).
 _SIGMA2_REL_FLOOR = 1e-4
 # A fitted tilt (tangent of its components) stays within +-45 degrees.
@@ -44,8 +48,7 @@ _MAX_TILT = 1.0
 _TILT_SIGNIFICANCE = 8.0
 # ... and a free gain, over the gain held at 1: 2 per parameter (Akaike). Every phone's
 # gain differs a little, so the test leans to freeing it: at 3 standard deviations (5.2)
-# the gains held at 1 biased a 10 % gain spread (docs/real-rooms.md, "Terminal gains held
-# unless the data ask").
+# the gains held at 1 biased a 10 % gain spread (docs/decisions/terminal-gain-gate.md).
 _GAIN_SIGNIFICANCE = 2.0
 # Prior sd of a log gain held at 0: its information dwarfs the data's, so the normal matrix
 # (and the covariance from it) is that of a fit without the gain, in the same layout.
@@ -190,7 +193,7 @@ def fit_terminal(
     if sigma2 is not None and priors.log_gain_sd is not None:
         # The gain is kept free only when the data ask for it, as the tilt below: free, it
         # trades against the distance to the brightest LEDs and costs a terminal exactly as
-        # modelled accuracy (docs/real-rooms.md, "Terminal gains held unless the data ask").
+        # modelled accuracy (docs/decisions/terminal-gain-gate.md).
         held_priors = replace(priors, log_gain_sd=_HELD_LOG_GAIN_SD)
         held = _levenberg_marquardt(
             kernel, amplitudes, best.position, z0, free_height, held_priors, weight, normal, None
@@ -211,10 +214,10 @@ def fit_terminal(
     # An unknown tilt is fitted too, and kept only when it lowers the cost by more than its
     # two components would by chance (mean plus three standard deviations of a chi-square
     # with 2 degrees of freedom): tilt and position trade off, so a free tilt costs a level
-    # terminal accuracy (measured in docs/real-rooms.md). A tilt spread the room declares
+    # terminal accuracy (measured in docs/decisions/declared-tilt-spread.md). A tilt spread the
+    # room declares
     # is kept always: a tilt is nearly a shift, its cost decrease mostly too small for the
-    # test, and the prior is then the room's own (docs/real-rooms.md, "Tilts fitted with
-    # the layout's spread").
+    # test, and the prior is then the room's own (docs/decisions/declared-tilt-spread.md).
     tilted = _levenberg_marquardt(
         kernel, amplitudes, best.position, z0, free_height, priors, weight, None, tilt_sd
     )
@@ -230,7 +233,8 @@ def _with_gain_prior(fit: TerminalFit, gain_sd: float | None) -> TerminalFit:
     """``fit`` (its gain held at 1) with the information of the gain's own prior ``gain_sd``
     in its normal matrix instead of the holding one, so that its covariance still carries
     what a gain error too small for the test would do to the position (held, the radii
-    were too narrow in a realistic room: docs/real-rooms.md); unchanged when None."""
+    were too narrow in a realistic room: docs/decisions/terminal-gain-gate.md); unchanged when
+    None."""
     if gain_sd is None:
         return fit
     normal = fit.normal.copy()
@@ -305,7 +309,7 @@ def _levenberg_marquardt(
     """Projected LM on ``[x, y, (z), (tx, ty), u]`` with the Gaussian priors as
     pseudo-residuals (the tilt is free when ``tilt_sd`` is given and no normal was sent).
 
-    With the compiled kernels the whole fit is one call (:mod:`._terminal_compiled`); the
+    With the compiled kernels the whole fit is one call (:mod:`.gridless._compiled.terminal`); the
     NumPy evaluation below is its reference."""
     with_priors = weight is not None
     free_tilt = normal is None and tilt_sd is not None
@@ -345,7 +349,7 @@ def _levenberg_marquardt(
                 -1.0 if tilt_sd is None else float(tilt_sd),
             ),
             _MAX_ITER,
-            _INITIAL_DAMPING,
+            TERMINAL_INITIAL_DAMPING,
         )
     else:
         theta, residual, jacobian, cost = _reference_lm(
@@ -479,9 +483,10 @@ def _reference_lm(
         lower,
         upper,
         max_iter=_MAX_ITER,
-        damping=_INITIAL_DAMPING,
+        damping=TERMINAL_INITIAL_DAMPING,
         stop=lambda step, cost, trial_cost: (
-            cost - trial_cost < _COST_TOL * cost or float(np.abs(step[:2]).max()) < _STEP_TOL_M
+            cost - trial_cost < TERMINAL_COST_TOL * cost
+            or float(np.abs(step[:2]).max()) < TERMINAL_STEP_TOL_M
         ),
     )
 

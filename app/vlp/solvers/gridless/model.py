@@ -29,36 +29,35 @@ import numpy as np
 import numpy.typing as npt
 from scipy.linalg import lapack
 
-from ..measurements import Model
-from ..typing import FloatArray, IntArray
-from ._channel_compiled import channel_constants
-from ._channel_kernel import ChannelKernel
-from ._fit_compiled import (
+from ..._kernels import kernel_mode
+from ...measurements import Model
+from ...typing import FloatArray, IntArray
+from ._compiled.channel import channel_constants
+from ._compiled.fit import (
     gram_kernel,
     lm_kernel,
     residual_kernel,
     whiten_kernel,
     whitening_kernel,
 )
-from ._kernels import kernel_mode
+from .channel import ChannelKernel
+from .lm import (
+    DAMPING_DOWN,
+    DAMPING_SINGULAR,
+    DAMPING_UP,
+    DIAGONAL_FLOOR,
+    EIG_FLOOR,
+    MAX_REJECTIONS,
+    MIN_DAMPING,
+    SIGMA2_FLOOR,
+    STEP_TOL_M,
+)
 
-# Relative floor on whitening eigenvalues (guards a noiseless fit against infinite weights).
-_EIG_FLOOR = 1e-9
-# Smallest noise variance (normalised units) assumed when whitening, absolute and relative
-# to the mean received power (1e-4: an SNR of 40 dB).
-_SIGMA2_FLOOR = 1e-12
+# Smallest noise variance assumed when whitening relative to the mean received power (1e-4:
+# an SNR of 40 dB; the absolute floor is SIGMA2_FLOOR).
 _SIGMA2_REL_FLOOR = 1e-4
 # Whitened measurements of at most this many values are kept by their Whitening.
 _KEPT_DATA_MAX = 4096
-# Damping increases tried per LM iteration before the point is taken as a local minimum.
-_MAX_REJECTIONS = 12
-# Marquardt damping factors after a rejected / accepted step (the start is the caller's).
-# Nielsen's adaptive update needs fewer evaluations but lands in worse local minima on
-# irregular rooms (measured in docs/accuracy.md, "Design measurements").
-_DAMPING_UP = 4.0
-_DAMPING_DOWN = 5.0
-# LM stops when no target moves by more than this (metres).
-STEP_TOL_M = 1e-5
 
 
 @dataclass(frozen=True)
@@ -319,7 +318,7 @@ class Whitening:
         # Floor sigma^2 at a fraction of the mean received power per LED and terminal: a
         # near-zero noise estimate would make the metric singular off the fitted signal.
         power = float(np.sum(gains**2 * weights)) / (kernel.n_leds * max(n_terminals, 1.0))
-        sigma2 = max(state.noise / max(n_terminals, 1.0), _SIGMA2_REL_FLOOR * power, _SIGMA2_FLOOR)
+        sigma2 = max(state.noise / max(n_terminals, 1.0), _SIGMA2_REL_FLOOR * power, SIGMA2_FLOOR)
         half_noise = 0.5 * max(n_terminals, 1.0) * sigma2
         if model == "power":
             var = 4.0 * sigma2 * ((gains**2) @ weights + half_noise)
@@ -327,7 +326,7 @@ class Whitening:
         signal = (gains * weights) @ gains.T
         signal.flat[:: kernel.n_leds + 1] += half_noise
         lam, rot = np.linalg.eigh(signal)
-        lam = np.maximum(lam, _EIG_FLOOR * max(float(lam[-1]), _SIGMA2_FLOOR))
+        lam = np.maximum(lam, EIG_FLOOR * max(float(lam[-1]), SIGMA2_FLOOR))
         upper, lower, is_diag = _vech_indices(model, kernel.n_leds)
         weights = 1.0 / np.sqrt(entry_variances(sigma2, lam, upper, lower, is_diag))
         return cls(model, kernel.n_leds, rot, weights)
@@ -755,11 +754,11 @@ def levenberg_marquardt(
     converged = False
     while used < max_iter and not converged:
         used += 1
-        scaling = np.diag(np.maximum(normal.diagonal(), 1e-30))
-        for _ in range(_MAX_REJECTIONS):
+        scaling = np.diag(np.maximum(normal.diagonal(), DIAGONAL_FLOOR))
+        for _ in range(MAX_REJECTIONS):
             _, step, info = lapack.dposv(normal + damping * scaling, gradient)
             if info != 0:
-                damping *= 10.0
+                damping *= DAMPING_SINGULAR
                 continue
             # Converged when the step no longer moves any target or the linearised model
             # promises (almost) no decrease; the step is still tried.
@@ -772,11 +771,11 @@ def levenberg_marquardt(
             if trial_cost < cost:
                 converged = converged or (cost - trial_cost) < tol * cost
                 theta, normal, gradient, cost = trial, trial_normal, trial_gradient, trial_cost
-                damping = max(damping / _DAMPING_DOWN, 1e-9)
+                damping = max(damping / DAMPING_DOWN, MIN_DAMPING)
                 break
             if converged:
                 break
-            damping *= _DAMPING_UP
+            damping *= DAMPING_UP
         else:
             converged = True  # no decrease found along any damping: a local minimum
     return objective.unpack(theta, state), cost, used

@@ -14,7 +14,7 @@ module fits them jointly with the positions, each with a Gaussian prior (a MAP f
 with ``a_m`` LED m's log amplitude, ``delta_m`` the change of its Lambertian order,
 ``phi_mk`` the irradiance angle, ``t_k`` target k's photodiode tilt (tangent components,
 first order: ``n . v`` grows by ``t . v_xy``, ``D`` = the LED's height above the target),
-and the model ``R = sum_k e^(v + 2 u_k) g_k g_k^T + s I`` as in :mod:`._gridless_fit`. The
+and the model ``R = sum_k e^(v + 2 u_k) g_k g_k^T + s I`` as in :mod:`.gridless.model`. The
 metric is the plug-in whitening of *this* model's gains: a whitening computed from the
 nominal gains puts part of the real signal into the noise-only subspace, whose weights
 are the largest, and wastes most of what the fit gains.
@@ -31,24 +31,11 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from ..metrics import matched_errors
-from ..typing import FloatArray
-from ._channel_compiled import ChannelConstants, TableConstants, channel_constants
-from ._channel_kernel import ChannelKernel
-from ._gridless_fit import (
-    _EIG_FLOOR,
-    _SIGMA2_FLOOR,
-    _SIGMA2_REL_FLOOR,
-    MAX_LOG_GAIN,
-    MAX_LOG_SCALE,
-    FitState,
-    Whitening,
-    _vech_indices,
-    entry_variances,
-)
-from ._kernels import kernel_mode
-from ._projected_lm import projected_levenberg_marquardt
-from ._tolerance_compiled import (
+from ..._kernels import kernel_mode
+from ...metrics import matched_errors
+from ...typing import FloatArray
+from ._compiled.channel import ChannelConstants, TableConstants, channel_constants
+from ._compiled.tolerance import (
     GAINS,
     ORDER,
     SLOPE_X,
@@ -59,12 +46,29 @@ from ._tolerance_compiled import (
     joint_lm_kernel,
     joint_residual_kernel,
 )
+from .channel import ChannelKernel
+from .lm import (
+    EIG_FLOOR,
+    SIGMA2_FLOOR,
+    TOLERANCE_INITIAL_DAMPING,
+    projected_levenberg_marquardt,
+)
+from .model import (
+    _SIGMA2_REL_FLOOR,
+    MAX_LOG_GAIN,
+    MAX_LOG_SCALE,
+    FitState,
+    Whitening,
+    _vech_indices,
+    entry_variances,
+)
 
 __all__ = ["GridMoves", "RoomTolerances", "ToleranceFit", "fit_room_tolerances"]
 
 _LN2 = math.log(2.0)
-# LM for the joint fit (one compiled call, _tolerance_compiled.joint_lm_kernel; the NumPy
-# reference is _projected_lm). It runs only on measurements that show a misfit.
+# LM for the joint fit (one compiled call, gridless._compiled.tolerance.joint_lm_kernel; the NumPy
+# reference is gridless.lm.projected_levenberg_marquardt). It runs only on
+# measurements that show a misfit.
 _MAX_ITER = 30
 # Stop at this relative decrease (the aggregated LM's tolerance, LM_DEFAULTS).
 _REL_TOL = 1e-4
@@ -355,11 +359,11 @@ class _JointModel:
         gains, multipliers, _ = self.gains(theta)
         k, m = self.n_targets, self.n_leds
         power = float(np.sum(gains**2 * multipliers)) / (m * k)
-        sigma2 = max(noise / k, _SIGMA2_REL_FLOOR * power, _SIGMA2_FLOOR)
+        sigma2 = max(noise / k, _SIGMA2_REL_FLOOR * power, SIGMA2_FLOOR)
         signal = (gains * multipliers) @ gains.T
         signal.flat[:: m + 1] += 0.5 * k * sigma2
         lam, rotation = np.linalg.eigh(signal)
-        lam = np.maximum(lam, _EIG_FLOOR * max(float(lam[-1]), _SIGMA2_FLOOR))
+        lam = np.maximum(lam, EIG_FLOOR * max(float(lam[-1]), SIGMA2_FLOOR))
         var = entry_variances(sigma2, lam, self.upper, self.lower, self.is_diag)
         return Whitening("correlation", m, rotation, 1.0 / np.sqrt(var))
 
@@ -638,7 +642,7 @@ def _levenberg_marquardt(
     data: FloatArray,
     max_iter: int = _MAX_ITER,
 ) -> tuple[FloatArray, float]:
-    damping = 1e-2
+    damping = TOLERANCE_INITIAL_DAMPING
     fitted = model.compiled_fit(theta, white, data, max_iter, damping, _REL_TOL)
     if fitted is not None:
         return fitted
@@ -740,7 +744,8 @@ def fit_room_tolerances(
         # Hand-held photodiodes tilt. Fitted from the start, the tilts (nearly shifts of the
         # positions) widen the gate's bar and the moves' reach, and many placements lost the
         # whole joint fit; added here, from its optimum, they refine it. Not gated: a tilt
-        # lowers the cost little whether it is there or not (docs/real-rooms.md), so only
+        # lowers the cost little whether it is there or not
+        # (docs/decisions/tilts-after-tolerances.md), so only
         # the layout (receivers_level) can say there is none.
         model = _JointModel(
             kernel, model.heights, priors, replace(tolerances, tilt_sd=tilt_stage_sd)

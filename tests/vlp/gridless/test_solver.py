@@ -16,8 +16,8 @@ from app.vlp.measurements import Measurement, Model, measurement_from_amplitudes
 from app.vlp.metrics import matched_errors
 from app.vlp.simulation import noise_std_for_snr, noisy_amplitudes, random_positions
 from app.vlp.solvers import make_solver, solver_names
-from app.vlp.solvers._channel_kernel import ChannelKernel
 from app.vlp.solvers.gridless import GridlessOptions, GridlessSolver
+from app.vlp.solvers.gridless.channel import ChannelKernel
 
 GRID_FLOOR_M = 0.0765  # mean quantisation error of the 0.2 m grid
 

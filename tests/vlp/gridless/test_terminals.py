@@ -1,4 +1,4 @@
-"""Per-terminal fits: each terminal's own amplitudes locate it (solvers/_terminal_fit.py)."""
+"""Per-terminal fits: each terminal's own amplitudes locate it (solvers/gridless/terminals.py)."""
 
 from __future__ import annotations
 
@@ -14,10 +14,10 @@ from app.vlp.fingerprints import Fingerprint
 from app.vlp.layout import Layout
 from app.vlp.measurements import measurement_from_amplitudes
 from app.vlp.simulation import noise_std_for_snr, random_positions, true_amplitudes
-from app.vlp.solvers._channel_kernel import ChannelKernel
-from app.vlp.solvers._gridless_options import nuisance_priors
-from app.vlp.solvers._terminal_fit import _HELD_LOG_GAIN_SD, fit_terminal, los_with_normal
 from app.vlp.solvers.gridless import GridlessOptions, GridlessSolver
+from app.vlp.solvers.gridless.channel import ChannelKernel
+from app.vlp.solvers.gridless.options import nuisance_priors
+from app.vlp.solvers.gridless.terminals import _HELD_LOG_GAIN_SD, fit_terminal, los_with_normal
 from tests.vlp.test_gridless_nuisances import _matched
 
 

@@ -1,21 +1,23 @@
-"""Which kernels the default solver runs: compiled (numba) or the plain NumPy reference.
+"""The kernel engine: which kernels run (compiled with numba, or their plain NumPy
+references), the ``@compiled`` decorators, and the disk cache of compiled code.
 
-The compiled kernels (:mod:`._channel_compiled`, :mod:`._fit_compiled`,
-:mod:`._search_compiled`, :mod:`._tolerance_compiled`, :mod:`._terminal_compiled`,
-:mod:`._uncertainty_compiled`, :mod:`._radii_compiled`) compute the same numbers as the
-NumPy code they stand in for (``tests/vlp/test_compiled_kernels.py`` compares them); they
-exist because a 16-LED problem is bound by the per-call overhead of NumPy, not by its
-arithmetic. The environment variable ``VLP_KERNELS`` picks the default
-(``compiled``, or ``reference``); :func:`use_kernels` switches within a process (the
-benchmarks time both side by side).
+This module is the bottom of the science package's kernels: it imports nothing from
+:mod:`app.vlp`, so every kernel module and every caller can import it without a circle.
+:func:`app.vlp.solvers.warm_up`, at the top, compiles every kernel before the first request.
+
+The compiled kernels (the ``*_compiled.py`` modules of :mod:`app.vlp.solvers` and
+:mod:`app.vlp._radii_compiled`) compute the same numbers as the NumPy code they stand in for
+(``tests/vlp/gridless/test_compiled.py`` compares them); they exist because a 16-LED problem
+is bound by the per-call overhead of NumPy, not by its arithmetic. The environment variable
+``VLP_KERNELS`` picks the default (``compiled``, or ``reference``); :func:`use_kernels`
+switches within a process (the benchmarks time both side by side).
 
 Compiled functions are cached on disk, in a folder named after a digest of every source file
 of :mod:`app.vlp` (:func:`kernel_cache_dir`) inside ``NUMBA_CACHE_DIR``, else next to the
 sources, else the user's cache folder; with no writable place they are compiled in memory at
 every start (slower to start, same results). The digest is there because numba keys a cached
 function by its own file only: a kernel that calls one in another file would keep the old
-callee's machine code after that file changed (an upgrade in place, a checkout). :func:`warm_up`
-compiles (or loads) every kernel, so that no request pays for it.
+callee's machine code after that file changed (an upgrade in place, a checkout).
 """
 
 from __future__ import annotations
@@ -23,7 +25,6 @@ from __future__ import annotations
 import hashlib
 import importlib
 import os
-import threading
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -39,7 +40,6 @@ __all__ = [
     "kernel_cache_dir",
     "kernel_mode",
     "use_kernels",
-    "warm_up",
 ]
 
 KernelMode = Literal["compiled", "reference"]
@@ -56,9 +56,9 @@ def _mode_from_env() -> KernelMode:
 
 _mode: KernelMode = _mode_from_env()
 # The science package, whose sources key the compiled kernels' disk cache.
-_SCIENCE_ROOT = Path(__file__).resolve().parents[1]
-# numba's settings (``CACHE_DIR`` is read when a kernel is decorated) and its cache folder
-# helper; untyped modules.
+_SCIENCE_ROOT = Path(__file__).resolve().parent
+# numba's settings (``CACHE_DIR`` is read when a kernel is decorated) and its cache-folder
+# function; untyped modules.
 _NUMBA_CONFIG: Any = importlib.import_module("numba.core.config")
 _APPDIRS: Any = importlib.import_module("numba.misc.appdirs")
 
@@ -99,8 +99,6 @@ def _use_keyed_cache() -> None:
 
 
 _use_keyed_cache()
-_lock = threading.Lock()
-_warm = False
 
 
 def kernel_mode() -> KernelMode:
@@ -140,21 +138,3 @@ def _jit(function: Callable[..., Any], options: dict[str, Any]) -> Callable[...,
     except RuntimeError:
         dispatcher = numba.njit(cache=False, nogil=True, **options)(function)
     return dispatcher
-
-
-def warm_up() -> None:
-    """Compile (or load from the disk cache) every kernel the default solver uses.
-
-    Idempotent and thread-safe; a no-op with the reference kernels. Called by the service at
-    start-up, so that no terminal's request waits for the compiler.
-    """
-    global _warm
-    if _mode != "compiled":
-        return
-    with _lock:
-        if _warm:
-            return
-        from ._warm_up import exercise
-
-        exercise()
-        _warm = True

@@ -14,14 +14,14 @@ from app.vlp.layout import Layout, Reflectance
 from app.vlp.measurements import measurement_from_amplitudes
 from app.vlp.metrics import mean_position_error
 from app.vlp.simulation import Impairments, random_positions, simulate_terminals
-from app.vlp.solvers._gridless_fit import FitState, Whitening, target_gains
-from app.vlp.solvers._room_tolerance_fit import (
+from app.vlp.solvers.gridless.model import FitState, Whitening, target_gains
+from app.vlp.solvers.gridless.solver import GridlessOptions, GridlessSolver, _Run
+from app.vlp.solvers.gridless.tolerances import (
     GridMoves,
     RoomTolerances,
     _JointModel,
     fit_room_tolerances,
 )
-from app.vlp.solvers.gridless import GridlessOptions, GridlessSolver, _Run
 from app.vlp.uncertainty import confidence_radii
 
 _TOLERANCES = RoomTolerances(led_log_amplitude_sd=0.05, led_half_power_sd_deg=3.0, tilt_sd=0.07)

@@ -13,9 +13,9 @@ from typing import Protocol
 
 import numpy as np
 
-from ..channel import led_constants
-from ..layout import Layout
-from ..typing import FloatArray
+from ...channel import led_constants
+from ...layout import Layout
+from ...typing import FloatArray
 
 __all__ = ["ChannelKernel", "DiffuseTable"]
 

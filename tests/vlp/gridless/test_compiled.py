@@ -1,7 +1,7 @@
 """The compiled kernels of the gridless solver against their NumPy references.
 
-Each compiled kernel (``app/vlp/solvers/_channel_compiled.py``, ``_fit_compiled.py``,
-``_tolerance_compiled.py``) must
+Each compiled kernel (``app/vlp/solvers/gridless/_compiled/channel.py``,
+``gridless/_compiled/fit.py``, ``gridless/_compiled/tolerance.py``) must
 give the numbers of the plain NumPy code it stands in for, to 1e-10 relative (normwise: a
 difference is measured against the largest magnitude of the reference array), on random
 inputs of several shapes, including one target (K = 1), one LED (M = 1) and one point.
@@ -23,16 +23,27 @@ import numpy as np
 import pytest
 from scipy import optimize
 
+from app.vlp._kernels import kernel_cache_dir, kernel_mode, use_kernels
 from app.vlp._reflection_table import ReflectionTable
 from app.vlp.fingerprints import build_fingerprint
 from app.vlp.layout import Grid, Layout, Led, Receiver, Reflectance, Room
 from app.vlp.measurements import Model, measurement_from_amplitudes
 from app.vlp.presets import paper_layout
 from app.vlp.simulation import true_amplitudes
-from app.vlp.solvers._channel_compiled import channel_constants, channel_rows, diffuse_rows
-from app.vlp.solvers._channel_kernel import ChannelKernel
-from app.vlp.solvers._fit_compiled import _sparse_symmetric_product, correlation_scores_kernel
-from app.vlp.solvers._gridless_fit import (
+from app.vlp.solvers import warm_up
+from app.vlp.solvers.gridless._compiled.channel import channel_constants, channel_rows, diffuse_rows
+from app.vlp.solvers.gridless._compiled.fit import (
+    _sparse_symmetric_product,
+    correlation_scores_kernel,
+)
+from app.vlp.solvers.gridless._compiled.tolerance import _damped_solve
+from app.vlp.solvers.gridless._compiled.uncertainty import (
+    fit_misfit_kernel,
+    misfit_design_kernel,
+    nnls_kernel,
+)
+from app.vlp.solvers.gridless.channel import ChannelKernel
+from app.vlp.solvers.gridless.model import (
     FitState,
     Objective,
     Priors,
@@ -41,26 +52,19 @@ from app.vlp.solvers._gridless_fit import (
     gram_reference,
     levenberg_marquardt,
 )
-from app.vlp.solvers._kernels import kernel_cache_dir, kernel_mode, use_kernels, warm_up
-from app.vlp.solvers._room_tolerance_fit import (
+from app.vlp.solvers.gridless.solver import GridlessOptions, GridlessSolver, _Run
+from app.vlp.solvers.gridless.tolerances import (
     RoomTolerances,
     _JointModel,
     _levenberg_marquardt,
 )
-from app.vlp.solvers._tolerance_compiled import _damped_solve
-from app.vlp.solvers._uncertainty_compiled import (
-    fit_misfit_kernel,
-    misfit_design_kernel,
-    nnls_kernel,
-)
-from app.vlp.solvers.gridless import GridlessOptions, GridlessSolver, _Run
 from app.vlp.typing import FloatArray
 from app.vlp.uncertainty import MisfitDesign, fit_misfit, misfit_design
 
 RTOL = 1e-10
 # The whole uncertainty chain (test_uncertainty_matches_reference): round-off amplified.
 CHAIN_RTOL = 1e-8
-REPO = Path(__file__).resolve().parents[2]
+REPO = Path(__file__).resolve().parents[3]
 
 
 def assert_same(compiled: object, reference: object, rtol: float = RTOL) -> None:
@@ -336,7 +340,7 @@ def test_joint_tolerance_model_matches_reference(
     joint_kernels: dict[bool, ChannelKernel], reflecting: bool, tilt_sd: float, k: int
 ) -> None:
     """The joint fit's gains (and the pieces of its Jacobian), residual and Jacobian under
-    the room's tolerances (``_tolerance_compiled``), on the plane and off it, at random
+    the room's tolerances (``gridless._compiled.tolerance``), on the plane and off it, at random
     tolerances in a random metric; every Jacobian column against its own magnitude."""
     kernel = joint_kernels[reflecting]
     assert (kernel.diffuse is not None) == reflecting
@@ -615,7 +619,7 @@ def test_refinement_is_the_python_refinement(
 @pytest.mark.parametrize("table", TABLES)
 def test_terminal_model_matches_reference(table: str) -> None:
     """A terminal looking straight up: gains and gradient at one point, free height."""
-    from app.vlp.solvers._terminal_fit import terminal_model
+    from app.vlp.solvers.gridless.terminals import terminal_model
 
     kernel = make_kernel("paper", table, seed=2)
     rng = np.random.default_rng(6)
@@ -654,8 +658,8 @@ def test_terminal_model_kernel_matches_reference(
     """Gains and gradient of every branch (straight up, a sent normal, a fitted tilt), against
     :func:`terminal_model` with the reference kernels; the tilt's columns are zero when the
     tilt is not fitted."""
-    from app.vlp.solvers._terminal_compiled import terminal_model_kernel
-    from app.vlp.solvers._terminal_fit import terminal_model
+    from app.vlp.solvers.gridless._compiled.terminal import terminal_model_kernel
+    from app.vlp.solvers.gridless.terminals import terminal_model
 
     kernel = make_kernel("paper", table, seed=3)
     constants = channel_constants(kernel)
@@ -705,7 +709,7 @@ def test_terminal_fit_matches_reference(
     evaluation and :func:`projected_levenberg_marquardt`): every field of the result, with
     and without priors (the gain, height and tilt pseudo-residuals), scalar and per-value
     weights; the paper room without and with reflections."""
-    from app.vlp.solvers._terminal_fit import _levenberg_marquardt, terminal_model
+    from app.vlp.solvers.gridless.terminals import _levenberg_marquardt, terminal_model
 
     kernel = joint_kernels[reflecting]
     assert channel_constants(kernel) is not None  # so the compiled LM runs
@@ -824,16 +828,16 @@ _NO_CACHE_SCRIPT = textwrap.dedent(
     from app.vlp.measurements import measurement_from_amplitudes
     from app.vlp.presets import paper_layout
     from app.vlp.simulation import true_amplitudes
-    from app.vlp.solvers import _fit_compiled as fit
-    from app.vlp.solvers._kernels import warm_up
+    from app.vlp.solvers.gridless._compiled import fit
+    from app.vlp.solvers import warm_up
     from app.vlp.solvers.gridless import GridlessSolver
 
-    from app.vlp.solvers._channel_compiled import channel_rows
-    from app.vlp.solvers._uncertainty_compiled import uncertainty_kernel
-    from app.vlp.solvers import _tolerance_compiled as joint
-    from app.vlp.solvers._terminal_compiled import terminal_lm_kernel
-    from app.vlp.solvers._radii_compiled import radial_roots_kernel
-    from app.vlp.solvers._search_compiled import growth_kernel, refine_kernel
+    from app.vlp.solvers.gridless._compiled.channel import channel_rows
+    from app.vlp.solvers.gridless._compiled.uncertainty import uncertainty_kernel
+    from app.vlp.solvers.gridless._compiled import tolerance as joint
+    from app.vlp.solvers.gridless._compiled.terminal import terminal_lm_kernel
+    from app.vlp._radii_compiled import radial_roots_kernel
+    from app.vlp.solvers.gridless._compiled.search import growth_kernel, refine_kernel
     from app.vlp.simulation import noisy_amplitudes
 
     kernels = [fit.lm_kernel, fit.gram_kernel, fit.residual_kernel, fit.whitening_kernel,
@@ -907,7 +911,7 @@ def test_the_disk_cache_is_keyed_by_every_science_source(tmp_path: Path) -> None
     (sources / "solvers" / "kernel.py").rename(sources / "solvers" / "moved.py")
     assert kernel_cache_dir(base, sources) != first  # a renamed file counts too
     # In this process, the kernels' cache lives in the folder of the real sources.
-    science = Path(__file__).resolve().parents[2] / "app" / "vlp"
+    science = Path(__file__).resolve().parents[3] / "app" / "vlp"
     folder = Path(importlib.import_module("numba.core.config").CACHE_DIR)
     assert folder == kernel_cache_dir(folder.parent, science)
     cache_path = Path(channel_rows._cache._cache_path)  # type: ignore[attr-defined]
@@ -983,7 +987,7 @@ _UNCERTAINTY_CASES = [
 def test_uncertainty_matches_reference(
     model: Model, k: int, priors_name: str, on_plane: bool
 ) -> None:
-    """The compiled model-error sandwich (``_uncertainty_compiled``) gives the NumPy path's
+    """The compiled model-error sandwich (``gridless._compiled.uncertainty``) gives the NumPy path's
     covariances and fit quality, whitened or not, with a reflection table, and with the
     tilt's columns left out for a layout whose photodiodes are level."""
     layout = paper_layout()

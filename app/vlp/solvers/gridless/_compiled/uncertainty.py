@@ -5,7 +5,7 @@ Stands in for the NumPy path of :meth:`GridlessSolver._uncertainty` (its referen
 :meth:`GridlessSolver._shape_gradients` and, in :mod:`app.vlp.uncertainty`,
 :func:`misfit_design`, :func:`fit_misfit` and :func:`predictive_covariances`, whose
 docstrings give the method). Every answer pays for it, and in NumPy it is some forty small
-calls. Arguments are the tuples of :mod:`._fit_compiled`. Private: callers validate.
+calls. Arguments are the tuples of :mod:`.gridless._compiled.fit`. Private: callers validate.
 
 The pieces are separate kernels so that each can be compared with its reference:
 
@@ -24,10 +24,10 @@ import math
 
 import numpy as np
 
-from ..typing import FloatArray, IntArray
-from ._channel_compiled import ChannelConstants, TableConstants, channel_rows
-from ._fit_compiled import Problem, _augmented, _multipliers, _symmetric_product
-from ._kernels import compiled
+from ...._kernels import compiled
+from ....typing import FloatArray, IntArray
+from .channel import ChannelConstants, TableConstants, channel_rows
+from .fit import Problem, _augmented, _multipliers, _symmetric_product
 
 __all__ = [
     "fit_misfit_kernel",
@@ -298,7 +298,8 @@ def nnls_kernel(matrix: FloatArray, target: FloatArray) -> FloatArray:
 
     Round-off is judged column by column, relative to the column's own size: a fit's
     model-error columns can be 20 orders of magnitude below its noise column while they
-    are the only ones that reach some rows (docs/real-rooms.md, "Rooms drawn at random")."""
+    are the only ones that reach some rows
+    (docs/explanation/real-rooms.md#rooms-nobody-tuned-it-for)."""
     n_rows, n = matrix.shape
     x = np.zeros(n)
     passive = np.zeros(n, dtype=np.bool_)
