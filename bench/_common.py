@@ -8,7 +8,6 @@ import importlib
 import os
 import pkgutil
 import platform
-import subprocess
 from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 
@@ -54,31 +53,8 @@ def _cpu_model() -> str:
     return platform.processor() or "unknown"
 
 
-def _git_commit() -> str:
-    try:
-        out = subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"],
-            cwd=REPO_ROOT,
-            capture_output=True,
-            text=True,
-            check=True,
-            timeout=10,
-        )
-    except (OSError, subprocess.SubprocessError):
-        return "unknown"
-    dirty = subprocess.run(
-        ["git", "status", "--porcelain", "--untracked-files=no", "app"],
-        cwd=REPO_ROOT,
-        capture_output=True,
-        text=True,
-        check=False,
-        timeout=10,
-    ).stdout.strip()
-    return out.stdout.strip() + (" (app/ modified)" if dirty else "")
-
-
 def machine_record() -> dict[str, str]:
-    """Date, CPU, cores, library versions, BLAS set-up and git commit of this run."""
+    """Date, CPU, cores, library versions and BLAS set-up of this run."""
     blas = [
         f"{info.get('internal_api')} {info.get('version')} "
         f"({info.get('architecture')}, {info.get('num_threads')} threads)"
@@ -94,7 +70,6 @@ def machine_record() -> dict[str, str]:
         "scipy": scipy.__version__,
         "blas": "; ".join(blas) or "unknown",
         "OPENBLAS_CORETYPE": os.environ.get("OPENBLAS_CORETYPE", "(unset)"),
-        "commit": _git_commit(),
     }
 
 

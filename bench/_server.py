@@ -35,9 +35,11 @@ class LiveServer:
 
 
 @contextmanager
-def live_server(data_dir: Path, *, timeout_s: float = 120.0, **env: str) -> Iterator[LiveServer]:
+def live_server(
+    data_dir: Path, *, timeout_s: float = 120.0, source: Path = REPO_ROOT, **env: str
+) -> Iterator[LiveServer]:
     """Start ``vlp serve`` (BLAS on one thread, ``env`` added) until it is ready; stop it on
-    exit.
+    exit. The server imports the ``app`` of the source tree ``source`` (default: this one).
 
     Raises
     ------
@@ -48,7 +50,7 @@ def live_server(data_dir: Path, *, timeout_s: float = 120.0, **env: str) -> Iter
     """
     port_file = data_dir / "serve.port"
     port_file.unlink(missing_ok=True)
-    python_path = os.pathsep.join(filter(None, (str(REPO_ROOT), os.environ.get("PYTHONPATH"))))
+    python_path = os.pathsep.join(filter(None, (str(source), os.environ.get("PYTHONPATH"))))
     vlp = Path(sys.executable).with_name("vlp")
     process = subprocess.Popen(
         [str(vlp), "serve", "--host", "127.0.0.1", "--port", "0", "--port-file", str(port_file)],

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import statistics
 import sys
 import tempfile
@@ -146,7 +145,6 @@ class Figures:
     """One run's medians."""
 
     repeat: int
-    load_average: str
     room_map_s: dict[str, float]
     tiny_grid_ms: float
     worker_stop_s: float
@@ -168,8 +166,7 @@ def markdown(figures: Figures, argv: Sequence[str]) -> str:
         "that does not wait for the build), never their time; the times are here. Medians "
         f"of {figures.repeat} runs each ({10 * figures.repeat} for the refusal).\n\n"
         f"Command (repository root): `{command}`\n\n"
-        f"{machine_markdown(machine_record())}\n"
-        f"- load average at start (1/5/15 min): `{figures.load_average}`\n\n"
+        f"{machine_markdown(machine_record())}\n\n"
         "| path | median |\n|---|---|\n"
         f"{table}\n"
     )
@@ -181,11 +178,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--repeat", type=int, default=5, help="runs per figure (median)")
     parser.add_argument("--update-doc", type=Path, default=None, help="rewrite its section")
     args = parser.parse_args(argv)
-    load = " ".join(f"{x:.2f}" for x in os.getloadavg())
     with tempfile.TemporaryDirectory() as tmp:
         figures = Figures(
             repeat=args.repeat,
-            load_average=load,
             room_map_s=room_map_seconds(args.repeat),
             tiny_grid_ms=1000.0 * tiny_grid_seconds(10 * args.repeat, Path(tmp) / "http"),
             worker_stop_s=worker_stop_seconds(args.repeat, Path(tmp) / "workers"),

@@ -1,21 +1,25 @@
 """HTTP benchmark: the localize path over loopback, real ``vlp serve`` processes.
 
 Paper room (the demo room), K = 8 correlation measurements at 30 dB (seeds 0..N-1, cycled),
-default solver unless said otherwise, BLAS one thread. Three figures, each a ratio measured
-in one run:
+default solver unless said otherwise, BLAS one thread. Each figure is a ratio measured in
+one run (``ratios`` in the output collects them):
 
 (a) sequential client, one API process: localize p50 against ``/healthz`` p50, the two
-    requests interleaved so both see the same load; also localize with the ``omp`` solver
-    (the path with an almost free solver) and the solver's own median (``elapsed_ms``), to
-    show what the path costs besides the solve; and the server process's CPU time per
-    request of each kind, which a loaded shared machine does not stretch as it does latency;
+    requests interleaved so both see the same load; the service's own cost around a solve,
+    ``(localize p50 - solver p50) / healthz p50`` (the solver's time is each answer's
+    ``elapsed_ms``); also localize with the ``omp`` solver (the path with an almost free
+    solver), and the server process's CPU time per request of each kind, which a loaded
+    shared machine does not stretch as it does latency;
 (b) throughput at concurrency C (default 8) of ``vlp serve --workers 2`` against
     ``--workers 1``: both servers run for the whole benchmark, phases alternate between them
     (W1, W2, W2, W1, ...), medians over the rounds;
-(c) a batch of B (default 100) measurements in one ``localize/batch`` request against the
-    same B sent as single requests one after another (one keep-alive connection), wall time,
-    alternating, medians; again with the ``omp`` solver, where the solve is nearly free and
-    what a batch saves (HTTP, key check, lookups per request) shows.
+(c) a batch of B (default 100) measurements in one ``localize/batch`` request: its wall time
+    against the sum of its items' solver times (``elapsed_ms``), and against the same B sent
+    as single requests one after another (one keep-alive connection), alternating, medians;
+    again with the ``omp`` solver, where the solve is nearly free and what a batch saves
+    (HTTP, key check, lookups per request) shows;
+(d) the one-worker API process's peak resident memory (``VmHWM``) once it is ready, before
+    any request.
 
     python -m bench.http [--sequential 300] [--seconds 5] [--rounds 5] [--concurrency 8]
                          [--batch 100] [--batch-rounds 5]
@@ -58,6 +62,15 @@ def _measurements(url: str, room_id: str, count: int) -> list[dict[str, Any]]:
             body.pop("fingerprint_version", None)
             bodies.append(body)
     return bodies
+
+
+def _peak_rss_mib(pid: int) -> float:
+    """A process's peak resident memory so far (``VmHWM``), MiB."""
+    for line in Path(f"/proc/{pid}/status").read_text(encoding="utf-8").splitlines():
+        key, _, rest = line.partition(":")
+        if key == "VmHWM":
+            return int(rest.split()[0]) / 1024
+    raise RuntimeError(f"no VmHWM in /proc/{pid}/status")
 
 
 def _ratio(numerator: float, denominator: float) -> float | None:
@@ -127,13 +140,18 @@ def _sequential(
     healthz_ms = statistics.median(healthz) * 1e3
     localize_ms = statistics.median(default) * 1e3
     omp_ms = statistics.median(omp) * 1e3
+    solver_ms = statistics.median(solver)
+    # Each request's own time around its solve, for the spread of the figure below.
+    around = [wall * 1e3 - solve for wall, solve in zip(default, solver, strict=True)]
     return {
         "requests_each": requests,
         "healthz_p50_ms": round(healthz_ms, 3),
         "localize_p50_ms": round(localize_ms, 3),
         "localize_p99_ms": round(float(np.percentile(np.asarray(default) * 1e3, 99)), 3),
         "localize_over_healthz": round(localize_ms / healthz_ms, 2),
-        "solver_p50_ms": round(statistics.median(solver), 3),
+        "solver_p50_ms": round(solver_ms, 3),
+        "service_overhead_over_healthz": round((localize_ms - solver_ms) / healthz_ms, 2),
+        "around_solve_p50_ms": round(statistics.median(around), 3),
         "localize_omp_p50_ms": round(omp_ms, 3),
         "localize_omp_over_healthz": round(omp_ms / healthz_ms, 2),
         "server_cpu_ms_per_healthz": round(cpu_healthz, 3),
@@ -211,7 +229,7 @@ def _path(room_id: str) -> str:
 
 def _batch(url: str, room_id: str, bodies: list[dict[str, Any]], rounds: int) -> dict[str, Any]:
     """(c): one batch of the bodies against the same bodies as single requests."""
-    singles, batches = [], []
+    singles, batches, batch_over_solves = [], [], []
     with httpx.Client(base_url=url, headers=_HEADERS, timeout=300.0) as client:
         batch_answers: list[dict[str, Any]] = []
         single_answers: list[dict[str, Any]] = []
@@ -223,8 +241,11 @@ def _batch(url: str, room_id: str, bodies: list[dict[str, Any]], rounds: int) ->
                         f"/v1/rooms/{room_id}/localize/batch", json={"items": bodies}
                     )
                     response.raise_for_status()
-                    batches.append(time.perf_counter() - start)
+                    wall = time.perf_counter() - start
+                    batches.append(wall)
                     batch_answers = response.json()["items"]
+                    solves_s = sum(float(item["elapsed_ms"]) for item in batch_answers) / 1e3
+                    batch_over_solves.append(wall / solves_s)
                 else:
                     single_answers = []
                     for body in bodies:
@@ -242,6 +263,8 @@ def _batch(url: str, room_id: str, bodies: list[dict[str, Any]], rounds: int) ->
         "singles_s_median": round(single_s, 3),
         "batch_s_median": round(batch_s, 3),
         "batch_speedup": round(single_s / batch_s, 2),
+        # the batch's wall time over the sum of its items' solver times, median of rounds
+        "batch_over_item_solves": round(statistics.median(batch_over_solves), 2),
         "same_estimates": same,
     }
 
@@ -278,6 +301,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     """Start the servers, measure (a), (b), (c) and return the figures."""
     load = " ".join(f"{value:.2f}" for value in os.getloadavg())
     with tempfile.TemporaryDirectory() as tmp, _servers(Path(tmp)) as servers:
+        idle_mib = _peak_rss_mib(servers[1].process.pid)
         prepared = {}
         for workers, server in servers.items():
             room_id = ready_demo_room(server.url, timeout_s=300.0)
@@ -289,11 +313,18 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         omp_bodies = [{**body, "solver": "omp"} for body in bodies_one[: args.batch]]
         batch_omp = _batch(one.url, room_one, omp_bodies, args.batch_rounds)
         scaling = _scaling(prepared, args.seconds, args.rounds, args.concurrency)
+    ratios = {
+        "service_overhead_over_healthz": sequential["service_overhead_over_healthz"],
+        "batch_over_item_solves": batch["batch_over_item_solves"],
+        "workers_2_over_1": scaling["workers_2_over_1"],
+        "idle_api_process_peak_mib": round(idle_mib),
+    }
     return {
         "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
         "machine": f"{_cpu_model()}, {os.cpu_count()} cores",
         "commit": _commit(),
         "load_average_at_start": load,
+        "ratios": ratios,
         "sequential_one_worker": sequential,
         "batch_vs_singles": batch,
         "batch_vs_singles_omp": batch_omp,

@@ -5,8 +5,8 @@ Starts its own server on a free 127.0.0.1 port (demo room: the paper's 4 x 4 m r
 an async httpx client at each concurrency level for an equal share of ``--seconds``. Every
 level is bounded in time (no new request after its deadline, 30 s per request), so the whole
 run ends by itself. Reports per level: requests, throughput, p50/p99 latency and errors
-(non-200 answers and transport failures), plus the machine's load average before and after,
-since other work on the machine changes the figures.
+(non-200 answers and transport failures). Other work on the machine changes the figures: run it
+on a quiet machine.
 
     python -m bench.load --seconds 60 [--levels 1,2,4,8,16] [--solver gridless]
         [--update-doc docs/results/load.md]
@@ -17,7 +17,6 @@ from __future__ import annotations
 import argparse
 import asyncio
 import json
-import os
 import statistics
 import sys
 import tempfile
@@ -123,8 +122,6 @@ class LoadReport:
     """One run: where, under what background load, and each level's figures."""
 
     machine: dict[str, str]
-    load_average_before: list[float]
-    load_average_after: list[float]
     solver: str
     seconds: float
     levels: list[LevelResult]
@@ -132,14 +129,11 @@ class LoadReport:
 
 def run(seconds: float, levels: list[int], solver: str) -> LoadReport:
     """Start a server, drive each level for ``seconds / len(levels)``, return the figures."""
-    load_before = os.getloadavg()
     with tempfile.TemporaryDirectory() as tmp, live_server(Path(tmp)) as server:
         room_id, body = _measurement(server.url, solver)
         results = asyncio.run(_levels(server.url, room_id, body, levels, seconds / len(levels)))
     return LoadReport(
         machine=machine_record(),
-        load_average_before=[round(x, 2) for x in load_before],
-        load_average_after=[round(x, 2) for x in os.getloadavg()],
         solver=solver,
         seconds=seconds,
         levels=results,
@@ -164,8 +158,7 @@ def markdown(report: LoadReport, command: str) -> str:
         f"Command: `{command}` (solver `{report.solver}`, paper room, K = 8, correlation "
         f"at 30 dB, one uvicorn worker, loopback).\n\n{machine_markdown(report.machine)}\n\n"
         + "\n".join(rows)
-        + f"\n\nLoad average (1, 5, 15 min) before: {report.load_average_before}, "
-        f"after: {report.load_average_after}.\n"
+        + "\n"
     )
 
 

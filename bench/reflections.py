@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import os
 import statistics
 import time
 from collections.abc import Callable
@@ -157,8 +156,6 @@ def _run() -> int:
         f"{tall.coefficients.size} |",
         f"| fingerprint with reflections, paper room (s, one run; nnz {fingerprint.gains.nnz} "
         f"of {16 * 400}) | {fingerprint_s:.1f} |",
-        "",
-        f"Load average at the end (1, 5, 15 min): {os.getloadavg()}.",
     ]
     print("\n".join(lines))
     return 0

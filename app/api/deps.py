@@ -133,7 +133,7 @@ async def current_role(
 AnyRole = Annotated[Role, Depends(current_role)]
 
 
-def require_admin(role: AnyRole) -> Role:
+async def require_admin(role: AnyRole) -> Role:
     """403 unless the caller is an admin."""
     if role != "admin":
         raise ApiProblem(

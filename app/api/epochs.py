@@ -35,7 +35,7 @@ EpochId = Annotated[
 ]
 
 
-def get_settler(request: Request) -> EpochSettler:
+async def get_settler(request: Request) -> EpochSettler:
     """The epoch settler built in the lifespan."""
     settler: EpochSettler = request.app.state.epoch_settler
     return settler

@@ -1,5 +1,12 @@
 """Localization: a measurement in, the targets' positions out (the service logic is
-:func:`app.services.localization.localize_measurement`)."""
+:func:`app.services.localization.localize_measurement`).
+
+A request whose room version and solver are in memory, whose solver is free and whose solve
+is small (:data:`app.services.localization.WAITLESS_WORK`) is solved right here, on the
+event loop: it would hold the GIL as long in a worker thread, and the hop there and back is
+most of what the service adds around such a solve. Anything that may wait (a registry read,
+a load, a busy solver, a large solve, the tracks' writes) goes to the thread pool.
+"""
 
 from __future__ import annotations
 
@@ -7,7 +14,7 @@ from fastapi import APIRouter
 from starlette.concurrency import run_in_threadpool
 
 from app.schemas import Localization, Measurement
-from app.services.localization import localize_measurement
+from app.services.localization import localize_in_memory, localize_measurement
 
 from .deps import AnyRole, CacheDep, MetricsDep, RoomId, SettingsDep
 from .errors import problem_responses
@@ -40,14 +47,18 @@ async def localize(
     has no ready fingerprint. With `track: true` the estimates also update the room's tracks
     (each carries `track_id` and `tracked`).
     """
-    answer = await run_in_threadpool(
-        localize_measurement,
-        cache,
-        metrics,
-        room_id=room_id,
-        body=body,
-        max_work=settings.max_localize_work,
+    answer = localize_in_memory(
+        cache, metrics, room_id=room_id, body=body, max_work=settings.max_localize_work
     )
+    if answer is None:
+        answer = await run_in_threadpool(
+            localize_measurement,
+            cache,
+            metrics,
+            room_id=room_id,
+            body=body,
+            max_work=settings.max_localize_work,
+        )
     if not body.track:
         return answer
     return await run_in_threadpool(

@@ -5,7 +5,9 @@ item then goes through the single localize's logic
 (:func:`app.services.localization.localize_measurement`, called from one place,
 ``_Batch.solve``), in order, in one trip to the thread pool; its fingerprint and prepared
 solver come from the in-memory cache. A bad item answers the
-problem a single localize would have answered, in its place; the others are solved.
+problem a single localize would have answered, in its place; the others are solved. Each
+answer is encoded once, straight to JSON bytes by its model's serializer (as a single
+localize's answer is), and the batch's body is those bytes joined.
 
 What concerns the room rather than an item answers for the whole batch, as for a single
 localize: 404 when the room does not exist, 409 while it has no ready fingerprint (when an
@@ -14,16 +16,16 @@ item needs the current one), 503 when the registry is unreachable.
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass
 from typing import Any
 
-from fastapi import APIRouter, Request
-from fastapi.responses import JSONResponse
+from fastapi import APIRouter, Request, Response
 from pydantic import ValidationError
 from starlette.concurrency import run_in_threadpool
 
 from app.errors import CorruptMatrix, FingerprintNotFound, InvalidFields, VLPError
-from app.schemas import LocalizationBatch, Measurement, MeasurementBatch
+from app.schemas import Localization, LocalizationBatch, Measurement, MeasurementBatch
 from app.services.fingerprint_cache import FingerprintCache
 from app.services.localization import localize_measurement
 from app.services.tracking import Tracking
@@ -51,8 +53,9 @@ class _Batch:
     tracking: Tracking
     current: int | None = None
 
-    def solve(self, body: Measurement) -> dict[str, Any]:
-        """One item, through the single localize's logic (the one call to it)."""
+    def solve(self, body: Measurement) -> bytes:
+        """One item, through the single localize's logic (the one call to it), as the JSON
+        a single localize answers."""
         if body.fingerprint_version is None:
             if self.current is None:
                 self.current = self.cache.current_version(self.room_id)
@@ -62,7 +65,7 @@ class _Batch:
         )
         if body.track:  # items update the tracks in their order
             answer = self.tracking.track(room_id=self.room_id, localization=answer, time=body.time)
-        return answer.model_dump(mode="json")
+        return Localization.__pydantic_serializer__.to_json(answer)
 
 
 def _in_item(location: str, index: int) -> str:
@@ -121,18 +124,25 @@ _ITEM_ERRORS = (
 )
 
 
+def _problem_json(problem: dict[str, Any]) -> bytes:
+    """A problem item as JSON, written as a single localize's problem answer is."""
+    return json.dumps(problem, ensure_ascii=False, allow_nan=False, separators=(",", ":")).encode(
+        "utf-8"
+    )
+
+
 def _localize_batch(
     items: list[Any], batch: _Batch, instance: str, request_id: str | None
-) -> JSONResponse:
+) -> Response:
     """The batch's answer, serialised here: a problem item carries only the members a
     problem answer has (no nulls), as a single localize's problem does."""
-    answers: list[dict[str, Any]] = []
+    answers: list[bytes] = []
     for index, item in enumerate(items):
         try:
             answers.append(batch.solve(Measurement.model_validate(item)))
         except _ITEM_ERRORS as exc:
-            answers.append(_item_problem(exc, index, instance, request_id))
-    return JSONResponse({"items": answers})
+            answers.append(_problem_json(_item_problem(exc, index, instance, request_id)))
+    return Response(b'{"items":[' + b",".join(answers) + b"]}", media_type="application/json")
 
 
 @router.post(
@@ -150,7 +160,7 @@ async def localize_batch(
     settings: SettingsDep,
     tracking: TrackingDep,
     _role: AnyRole,
-) -> JSONResponse:
+) -> Response:
     """Send `{"items": [Measurement, ...]}` (1 to 1000, each as the body of
     `POST /v1/rooms/{room_id}/localize`); get `{"items": [...]}` in the same order: each a
     `Localization`, or the problem (with its `status`) that a single localize of that item

@@ -66,13 +66,14 @@ class _TrackIdConvertor(Convertor[str]):
 register_url_convertor("track_id", _TrackIdConvertor())
 
 
-def get_tracking(request: Request) -> Tracking:
-    """The tracking service built in the lifespan."""
+async def get_tracking(request: Request) -> Tracking:
+    """The tracking service built in the lifespan (``async``: no thread-pool hop, as in
+    :mod:`app.api.deps`)."""
     tracking: Tracking = request.app.state.tracking
     return tracking
 
 
-def get_hub(request: Request) -> TrackEventHub:
+async def get_hub(request: Request) -> TrackEventHub:
     """This process's stream hub."""
     hub: TrackEventHub = request.app.state.track_hub
     return hub

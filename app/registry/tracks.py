@@ -18,7 +18,6 @@ from collections.abc import Callable, Iterable
 from datetime import datetime
 from typing import Any
 
-import psycopg
 from sqlalchemy import Connection, Engine, bindparam, delete, func, insert, select, text, update
 from sqlalchemy.dialects.postgresql import insert as pg_insert
 from sqlalchemy.dialects.sqlite import insert as sqlite_insert
@@ -397,6 +396,8 @@ class TrackStore:
         """
         if not self.notifies:
             return
+        import psycopg  # PostgreSQL's driver: loaded only where notifications are listened to
+
         raw = self._engine.raw_connection()
         try:
             connection: Any = raw.driver_connection

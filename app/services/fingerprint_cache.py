@@ -117,6 +117,29 @@ class FingerprintCache:
                     entry.prepared[key] = prepared
         return prepared
 
+    def prepared_in_memory(
+        self, room_id: str, version: int | None, model: Model, name: str
+    ) -> tuple[int, PreparedVersion] | None:
+        """The version (``version``, else the room's current one) and its prepared solver
+        ``name`` for ``model`` when this cache holds them and need not ask the registry
+        (the current version read within the interval); else None, and nothing is read.
+        Counts a cache hit when it answers, as :meth:`prepare` does."""
+        now = self._clock.monotonic()
+        with self._lock:
+            if version is None:
+                cached = self._versions.get(room_id)
+                if cached is None or now - cached[1] >= self._interval:
+                    return None
+                version = cached[0]
+            key = (room_id, version)
+            entry = self._entries.get(key)
+            prepared = None if entry is None else entry.prepared.get((model, name))
+            if prepared is None:
+                return None
+            self._entries.move_to_end(key)
+        self._metrics.cache.labels(result="hit").inc()
+        return version, prepared
+
     def forget(self, room_id: str) -> None:
         """Drop everything cached about a room (after it was replaced or deleted)."""
         with self._lock:

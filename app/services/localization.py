@@ -17,6 +17,7 @@ terminal's amplitude count in :mod:`app.services.masking`, shapes, signs and fin
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import time
 from collections.abc import Sequence
@@ -41,22 +42,36 @@ from app.vlp.solvers._censored import censored_substitutes
 from app.vlp.solvers.gridless import GridlessSolver
 from app.vlp.typing import FloatArray
 from app.vlp.uncertainty import confidence_radii
-from app.vlp.workload import localize_work
+from app.vlp.workload import LocalizeWork, localize_work
 
 from .fingerprint_cache import FingerprintCache, PreparedVersion
 from .masking import drop_masked_leds
 
 __all__ = [
+    "WAITLESS_TARGETS",
+    "WAITLESS_WORK",
     "TerminalSet",
     "censored_terminal_set",
     "check_work",
     "input_form",
+    "localize_in_memory",
     "localize_measurement",
     "localize_terminals",
     "nothing_detected",
+    "task_work",
 ]
 
 _FORMS = ("power", "correlation", "terminals")
+# The largest solve (localize_work units) that :func:`localize_in_memory` does where it is
+# called, on the event loop, instead of in a worker thread: a room of the paper's size (400
+# points, 16 LEDs, K = 8 correlation: 435 200 units) solves in a few milliseconds, about
+# the interpreter's switch interval, for which a worker thread would hold the GIL as
+# long; the hop to it and back costs two thread switches, which a loaded machine
+# stretches. Larger solves go to a worker thread and leave the loop free. The work is a
+# bound, not a prediction, and each target or terminal costs its own fits: more than
+# WAITLESS_TARGETS of them (a crowd of terminals in a small room) go to the pool too.
+WAITLESS_WORK = 1_000_000
+WAITLESS_TARGETS = 8
 
 
 @dataclass(frozen=True)
@@ -133,6 +148,66 @@ def localize_measurement(
     form, model = input_form(body)
     version = body.fingerprint_version or cache.current_version(room_id)
     prepared = cache.prepare(room_id, version, model, body.solver)
+    task = _measurement_task(prepared, room_id, version, body, form, model)
+    if max_work is not None:
+        check_work(prepared, task, max_work)
+    return _solve_and_label(prepared, metrics, task)
+
+
+def localize_in_memory(
+    cache: FingerprintCache,
+    metrics: Metrics,
+    *,
+    room_id: str,
+    body: Measurement,
+    max_work: int | None = None,
+    max_waitless_work: int = WAITLESS_WORK,
+) -> Localization | None:
+    """:func:`localize_measurement` when it can answer without waiting: its version and
+    prepared solver in ``cache`` (no registry read, no load), the solver free (no other
+    request solving with it) and the solve no more than ``max_waitless_work``
+    (:func:`app.vlp.workload.localize_work` units) for at most :data:`WAITLESS_TARGETS`
+    targets or terminals; else None, and nothing was done. The
+    same answer and the same errors as :func:`localize_measurement` otherwise.
+
+    Raises
+    ------
+    InvalidFields, MeasurementError, SolverError, ProblemSizeError
+        As :func:`localize_measurement`.
+    """
+    form, model = input_form(body)
+    found = cache.prepared_in_memory(room_id, body.fingerprint_version, model, body.solver)
+    if found is None:
+        return None
+    version, prepared = found
+    task = _measurement_task(prepared, room_id, version, body, form, model)
+    if max_work is not None:
+        check_work(prepared, task, max_work)
+    work = task_work(prepared, task)
+    if work.units > max_waitless_work or work.targets > WAITLESS_TARGETS:
+        return None
+    if not prepared.lock.acquire(blocking=False):
+        return None
+    try:
+        return _solve_and_label(prepared, metrics, task, lock_held=True)
+    finally:
+        prepared.lock.release()
+
+
+def _measurement_task(
+    prepared: PreparedVersion,
+    room_id: str,
+    version: int,
+    body: Measurement,
+    form: str,
+    model: Model,
+) -> _Task:
+    """The request body as a measurement of the fingerprint's LEDs (masked ones dropped).
+
+    Raises
+    ------
+    InvalidFields, MeasurementError
+    """
     n_leds = prepared.fingerprint.n_leds
     body = drop_masked_leds(body, prepared.masked_leds, n_leds)
     terminals = _terminal_set(body.terminals) if body.terminals else None
@@ -146,10 +221,7 @@ def localize_measurement(
             measurement = measurement_from_amplitudes(sent, model, n_leds)
         except MeasurementError as exc:  # name the field the caller sent, not the aggregate
             raise MeasurementError(exc.message, field="terminals") from exc
-    task = _Task(room_id, version, measurement, body.solver, body.targets, terminals, form)
-    if max_work is not None:
-        check_work(prepared, task, max_work)
-    return _solve_and_label(prepared, metrics, task)
+    return _Task(room_id, version, measurement, body.solver, body.targets, terminals, form)
 
 
 def localize_terminals(
@@ -277,6 +349,21 @@ def _per_terminal(prepared: PreparedVersion, task: _Task) -> bool:
     )
 
 
+def task_work(prepared: PreparedVersion, task: _Task) -> LocalizeWork:
+    """The work a solve of ``task`` asks for (:func:`app.vlp.workload.localize_work`)."""
+    fingerprint = prepared.fingerprint
+    per_terminal = _per_terminal(prepared, task)
+    n_terminals = 0 if task.terminals is None else len(task.terminals.ids)
+    targets = task.targets if task.targets is not None or task.terminals is None else n_terminals
+    return localize_work(
+        n_cells=fingerprint.n_cells,
+        n_leds=fingerprint.n_leds,
+        model=task.measurement.model,
+        targets=targets,
+        terminals=n_terminals if per_terminal else None,
+    )
+
+
 def check_work(prepared: PreparedVersion, task: _Task, max_work: int) -> None:
     """Refuse, before any of it is done, a solve that asks for more than ``max_work``
     (:func:`app.vlp.workload.localize_work`; the service's ``VLP_MAX_LOCALIZE_WORK``).
@@ -289,16 +376,8 @@ def check_work(prepared: PreparedVersion, task: _Task, max_work: int) -> None:
     """
     fingerprint = prepared.fingerprint
     per_terminal = _per_terminal(prepared, task)
-    n_terminals = 0 if task.terminals is None else len(task.terminals.ids)
-    targets = task.targets if task.targets is not None or task.terminals is None else n_terminals
     model = task.measurement.model
-    work = localize_work(
-        n_cells=fingerprint.n_cells,
-        n_leds=fingerprint.n_leds,
-        model=model,
-        targets=targets,
-        terminals=n_terminals if per_terminal else None,
-    )
+    work = task_work(prepared, task)
     if work.units <= max_work:
         return
     one = localize_work(
@@ -322,15 +401,19 @@ def check_work(prepared: PreparedVersion, task: _Task, max_work: int) -> None:
     )
 
 
-def _solve_and_label(prepared: PreparedVersion, metrics: Metrics, task: _Task) -> Localization:
+def _solve_and_label(
+    prepared: PreparedVersion, metrics: Metrics, task: _Task, *, lock_held: bool = False
+) -> Localization:
     """Solve an aggregated measurement and, when the terminals' own amplitudes are known,
-    label each estimate with its terminal (per-terminal fit, else an assignment problem)."""
+    label each estimate with its terminal (per-terminal fit, else an assignment problem).
+    The solve holds ``prepared.lock`` (a solver solves one measurement at a time), unless
+    the caller already does (``lock_held``)."""
     measurement, terminals, targets = task.measurement, task.terminals, task.targets
     if terminals is not None and targets is None:
         targets = len(terminals.ids)  # the contract: one target per terminal sent
     gridless = prepared.solver if isinstance(prepared.solver, GridlessSolver) else None
     per_terminal = _per_terminal(prepared, task)
-    with prepared.lock:
+    with contextlib.nullcontext() if lock_held else prepared.lock:
         started = time.perf_counter()
         if per_terminal and terminals is not None and gridless is not None:
             solution = gridless.solve_terminals(

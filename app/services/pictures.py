@@ -12,8 +12,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+import app.pictures as renderers  # the renderers load matplotlib on first use
 from app.errors import FingerprintNotReady
-from app.pictures import HeatmapKind, localization_png, room_map_png
+from app.pictures import HeatmapKind
 from app.registry import Registry
 from app.schemas import LocalizationPlot
 from app.vlp.layout import Layout, layout_from_mapping
@@ -91,7 +92,9 @@ def room_map(
     key = (room_id, *source, heatmap, float(snr_db), width_px)
     picture = pictures.get(key)
     if picture is None:
-        png = room_map_png(drawn.layout, heatmap=heatmap, snr_db=snr_db, width_px=width_px)
+        png = renderers.room_map_png(
+            drawn.layout, heatmap=heatmap, snr_db=snr_db, width_px=width_px
+        )
         picture = pictures.put(key, png)
     return Plan(picture, drawn.fingerprint_version)
 
@@ -114,7 +117,7 @@ def localization_picture(
         else np.array([[p.x, p.y] for p in body.truth], dtype=np.float64).reshape(-1, 2)
     )
     labels = [p.terminal_id for p in body.estimates]
-    png = localization_png(
+    png = renderers.localization_png(
         drawn.layout,
         estimates,
         truth,

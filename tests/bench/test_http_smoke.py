@@ -37,3 +37,12 @@ def test_http_benchmark_runs_and_reports_every_figure() -> None:
     throughput = report["throughput_workers"]
     assert throughput["errors"] == 0, shown
     assert [len(throughput["rps_per_round"][w]) for w in ("1", "2")] == [2, 2]
+    ratios = report["ratios"]
+    # the service's own time around a solve is positive (the solve is timed inside it)
+    assert sequential["localize_p50_ms"] > sequential["solver_p50_ms"], shown
+    assert ratios["service_overhead_over_healthz"] > 0, shown
+    # a batch's wall time holds its items' solves
+    assert ratios["batch_over_item_solves"] > 1, shown
+    assert ratios["workers_2_over_1"] == throughput["workers_2_over_1"]
+    # an API process holds at least the interpreter and the web stack, and not gigabytes
+    assert 50 < ratios["idle_api_process_peak_mib"] < 2048, shown

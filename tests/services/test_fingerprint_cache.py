@@ -11,8 +11,15 @@ from app.clock import FakeClock
 from app.main import create_app
 from app.registry import Registry
 from app.registry.errors import FingerprintNotReady, RoomNotFound
+from app.schemas import Measurement
 from app.services.fingerprint_cache import FingerprintCache
+from app.services.localization import (
+    WAITLESS_TARGETS,
+    localize_in_memory,
+    localize_measurement,
+)
 from app.telemetry import Metrics
+from app.vlp.errors import ProblemSizeError
 from tests.api.conftest import ADMIN, TestClient, make_settings, small_room, wait_for_room
 
 
@@ -93,3 +100,68 @@ def test_lru_keeps_size_entries_and_solvers_with_them(
     hits, misses = _counts(metrics)
     assert cache.fingerprint(first, v_first) is not None
     assert _counts(metrics) == (hits, misses + 1)
+
+
+def _measurement(client: TestClient, room_id: str) -> Measurement:
+    simulated = client.post(
+        f"/v1/rooms/{room_id}/simulate",
+        json={"targets": 2, "snr_db": 30, "seed": 3},
+        headers=ADMIN,
+    )
+    body = simulated.json()["measurement"]
+    body.pop("fingerprint_version", None)
+    return Measurement.model_validate(body)
+
+
+def test_in_memory_lookup_answers_only_what_needs_no_registry_read(
+    two_ready_rooms: tuple[TestClient, Registry, list[str]],
+) -> None:
+    _, registry, (room_id, _) = two_ready_rooms
+    clock = FakeClock()
+    metrics = Metrics()
+    cache = FingerprintCache(
+        registry=registry, size=2, version_check_seconds=1.0, metrics=metrics, clock=clock
+    )
+    assert cache.prepared_in_memory(room_id, None, "correlation", "omp") is None  # no version
+    version = cache.current_version(room_id)
+    assert cache.prepared_in_memory(room_id, None, "correlation", "omp") is None  # not loaded
+    assert _counts(metrics) == (0.0, 0.0)  # nothing was read
+    prepared = cache.prepare(room_id, version, "correlation", "omp")
+    hits, misses = _counts(metrics)
+    assert cache.prepared_in_memory(room_id, None, "correlation", "omp") == (version, prepared)
+    assert cache.prepared_in_memory(room_id, version, "correlation", "omp") == (version, prepared)
+    assert _counts(metrics) == (hits + 2, misses)
+    assert cache.prepared_in_memory(room_id, version, "power", "omp") is None  # not prepared
+    clock.advance(1.0)  # the current version is due for a re-read: only a pinned one answers
+    assert cache.prepared_in_memory(room_id, None, "correlation", "omp") is None
+    assert cache.prepared_in_memory(room_id, version, "correlation", "omp") == (version, prepared)
+
+
+def test_a_waitless_localize_answers_as_the_thread_pool_one_or_leaves_it(
+    two_ready_rooms: tuple[TestClient, Registry, list[str]],
+) -> None:
+    client, registry, (room_id, _) = two_ready_rooms
+    metrics = Metrics()
+    cache = FingerprintCache(registry=registry, size=2, version_check_seconds=60.0, metrics=metrics)
+    body = _measurement(client, room_id)
+    assert localize_in_memory(cache, metrics, room_id=room_id, body=body) is None  # cold
+    assert _counts(metrics) == (0.0, 0.0)  # and nothing was read for it
+    reference = localize_measurement(cache, metrics, room_id=room_id, body=body)
+    answer = localize_in_memory(cache, metrics, room_id=room_id, body=body)
+    assert answer is not None
+    assert answer.estimates == reference.estimates
+    assert answer.fingerprint_version == reference.fingerprint_version
+    # a solve larger than the bound goes to the pool
+    assert (
+        localize_in_memory(cache, metrics, room_id=room_id, body=body, max_waitless_work=1) is None
+    )
+    # and one of more targets than the bound (each costs its own fits)
+    crowd = body.model_copy(update={"targets": WAITLESS_TARGETS + 1})
+    assert localize_in_memory(cache, metrics, room_id=room_id, body=crowd) is None
+    # so does one whose solver is busy with another request
+    prepared = cache.prepare(room_id, reference.fingerprint_version, "correlation", "gridless")
+    with prepared.lock:
+        assert localize_in_memory(cache, metrics, room_id=room_id, body=body) is None
+    # a request over the service's limit is refused as on the pool's path
+    with pytest.raises(ProblemSizeError):
+        localize_in_memory(cache, metrics, room_id=room_id, body=body, max_work=1)
