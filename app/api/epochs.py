@@ -99,7 +99,8 @@ def post_epoch_measurement(
     _role: AnyRole,
 ) -> Epoch:
     """Add (or replace) this terminal's amplitudes, one per LED of the room (the LEDs a
-    calibration masked are dropped) or of the epoch's fingerprint.
+    calibration masked are dropped) or of the epoch's fingerprint; null for an LED it did not
+    detect, as in localize's `terminals`, with its optional `detection_floor`.
 
     409 once the window has closed or the epoch has its maximum of terminals.
     """
@@ -109,6 +110,7 @@ def post_epoch_measurement(
         epoch_id=epoch_id,
         terminal_id=body.terminal_id,
         amplitudes=body.amplitudes,
+        detection_floor=body.detection_floor,
     )
     to_close_s = (record.expires_at - datetime.now(UTC)).total_seconds()
     response.headers["Retry-After"] = str(max(1, math.ceil(to_close_s)))

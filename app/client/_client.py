@@ -347,14 +347,20 @@ class VLPClient(TrackMethods):
         return self._post(f"/v1/rooms/{room_id}/epochs", Epoch, options)
 
     def post_epoch_measurement(
-        self, room_id: str, epoch_id: str, *, terminal_id: str, amplitudes: Sequence[float]
+        self,
+        room_id: str,
+        epoch_id: str,
+        *,
+        terminal_id: str,
+        amplitudes: Sequence[float | None],
+        detection_floor: float | None = None,
     ) -> None:
-        """One terminal's amplitudes for an open epoch (posting again replaces them)."""
-        self.request(
-            "POST",
-            f"/v1/rooms/{room_id}/epochs/{epoch_id}/measurements",
-            json={"terminal_id": terminal_id, "amplitudes": list(amplitudes)},
-        )
+        """One terminal's amplitudes for an open epoch (posting again replaces them); None for
+        an LED it did not detect, with its ``detection_floor`` when it knows it."""
+        body: dict[str, Any] = {"terminal_id": terminal_id, "amplitudes": list(amplitudes)}
+        if detection_floor is not None:
+            body["detection_floor"] = detection_floor
+        self.request("POST", f"/v1/rooms/{room_id}/epochs/{epoch_id}/measurements", json=body)
 
     def solve_epoch(self, room_id: str, epoch_id: str) -> Epoch:
         """Close the window now and solve it."""

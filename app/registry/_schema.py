@@ -220,8 +220,11 @@ epoch_measurements = Table(
     metadata,
     Column("epoch_id", ID, ForeignKey("epochs.id", ondelete="CASCADE"), primary_key=True),
     Column("terminal_id", String(64), primary_key=True),
+    # A JSON array of numbers and nulls (LEDs not detected); the floor is the terminal's own
+    # (migration 0007), null when it sent none.
     Column("amplitudes", JSON, nullable=False),
     Column("posted_at", UTCDateTime(), nullable=False),
+    Column("detection_floor", Float, nullable=True),
 )
 
 # A survey calibration (migration 0003): the request, and once its job succeeded the fit

@@ -89,15 +89,12 @@ def _closed_reason(row: Any, now: datetime) -> str | None:
     return None
 
 
-def _upsert(
-    conn: Connection, epoch: Any, terminal_id: str, amplitudes: list[float], now: datetime
-) -> None:
+def _upsert(conn: Connection, epoch: Any, terminal_id: str, values: dict[str, Any]) -> None:
     # Replace the terminal's row, else add one if the epoch has room. The caller holds the
     # epoch row lock, so no other post of this epoch runs between the update and the insert.
     mine = (epoch_measurements.c.epoch_id == epoch.id) & (
         epoch_measurements.c.terminal_id == terminal_id
     )
-    values = {"amplitudes": amplitudes, "posted_at": now}
     if conn.execute(update(epoch_measurements).where(mine).values(**values)).rowcount:
         return
     count = conn.execute(
@@ -116,7 +113,11 @@ def _upsert(
 
 def _claimed(conn: Connection, record: EpochRecord, owner: str) -> ClaimedEpoch:
     rows = conn.execute(
-        select(epoch_measurements.c.terminal_id, epoch_measurements.c.amplitudes)
+        select(
+            epoch_measurements.c.terminal_id,
+            epoch_measurements.c.amplitudes,
+            epoch_measurements.c.detection_floor,
+        )
         .where(epoch_measurements.c.epoch_id == record.id)
         .order_by(epoch_measurements.c.posted_at, epoch_measurements.c.terminal_id)
     ).all()
@@ -124,7 +125,12 @@ def _claimed(conn: Connection, record: EpochRecord, owner: str) -> ClaimedEpoch:
         record=record,
         owner=owner,
         terminal_ids=tuple(str(row.terminal_id) for row in rows),
-        amplitudes=tuple(tuple(float(a) for a in row.amplitudes) for row in rows),
+        amplitudes=tuple(
+            tuple(None if a is None else float(a) for a in row.amplitudes) for row in rows
+        ),
+        detection_floors=tuple(
+            None if row.detection_floor is None else float(row.detection_floor) for row in rows
+        ),
     )
 
 
@@ -170,10 +176,12 @@ class EpochStore:
         room_id: str,
         epoch_id: str,
         terminal_id: str,
-        amplitudes: Sequence[float],
+        amplitudes: Sequence[float | None],
         now: datetime,
+        detection_floor: float | None = None,
     ) -> EpochRecord:
-        """Store (or replace) one terminal's amplitudes while the epoch is open.
+        """Store (or replace) one terminal's amplitudes (None: an LED it did not detect,
+        stored as JSON null) and its own detection floor while the epoch is open.
 
         Raises
         ------
@@ -203,7 +211,12 @@ class EpochStore:
                     f"expected {row.leds} amplitudes (the epoch's fingerprint LEDs), "
                     f"got {len(amplitudes)}: fit them to the fingerprint before posting"
                 )
-            _upsert(conn, row, terminal_id, [float(a) for a in amplitudes], now)
+            values = {
+                "amplitudes": [None if a is None else float(a) for a in amplitudes],
+                "detection_floor": None if detection_floor is None else float(detection_floor),
+                "posted_at": now,
+            }
+            _upsert(conn, row, terminal_id, values)
             return _read(conn, room_id=room_id, epoch_id=epoch_id)
 
     def claim(

@@ -213,12 +213,14 @@ class EpochRecord:
 
 @dataclass(frozen=True)
 class ClaimedEpoch:
-    """An epoch this process has claimed, with every terminal's amplitudes (posting order)."""
+    """An epoch this process has claimed, with every terminal's amplitudes (None: an LED it
+    did not detect) and own detection floor (None: not sent), in posting order."""
 
     record: EpochRecord
     owner: str
     terminal_ids: tuple[str, ...]
-    amplitudes: tuple[tuple[float, ...], ...]
+    amplitudes: tuple[tuple[float | None, ...], ...]
+    detection_floors: tuple[float | None, ...]
 
 
 @dataclass(frozen=True)

@@ -10,7 +10,15 @@ from pydantic import ConfigDict, Field
 from app.vlp.constants import MAX_TARGETS
 
 from .common import MAX_VERSION, FiniteFloat, RequestInt, RequestModel, ResponseModel
-from .localize import TERMINAL_ID_PATTERN, Localization, ModelName, SolverName, terminals_example
+from .localize import (
+    TERMINAL_ID_PATTERN,
+    DetectedAmplitudes,
+    DetectionFloor,
+    Localization,
+    ModelName,
+    SolverName,
+    terminals_example,
+)
 from .statuses import EpochStatus
 
 __all__ = [
@@ -105,14 +113,14 @@ class EpochCreate(RequestModel):
 
 
 class EpochMeasurement(RequestModel):
-    """One terminal's amplitudes; posting again with the same `terminal_id` replaces them."""
+    """One terminal's amplitudes (null for an LED it did not detect, as in localize's
+    `terminals`); posting again with the same `terminal_id` replaces them."""
 
     terminal_id: str = Field(
         pattern=TERMINAL_ID_PATTERN, description="the terminal's own id", examples=["t1"]
     )
-    amplitudes: list[FiniteFloat] = Field(
-        min_length=1, description="a_ik for each LED i, in the layout's LED order"
-    )
+    amplitudes: DetectedAmplitudes
+    detection_floor: DetectionFloor = None
 
 
 class Epoch(ResponseModel):

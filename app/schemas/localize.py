@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any, Literal
+from typing import TYPE_CHECKING, Annotated, Any, Literal
 
 from pydantic import AwareDatetime, ConfigDict, Field
 
@@ -24,6 +24,8 @@ if TYPE_CHECKING:
 __all__ = [
     "EXAMPLE_POSITIONS_M",
     "TERMINAL_ID_PATTERN",
+    "DetectedAmplitudes",
+    "DetectionFloor",
     "Estimate",
     "Fit",
     "Localization",
@@ -95,23 +97,34 @@ def terminals_example() -> dict[str, Any]:
     }
 
 
+# One terminal's per-LED amplitudes and its floor: a localize terminal and an epoch post
+# take them alike (one definition, so the two validate and document them the same way).
+DetectedAmplitudes = Annotated[
+    list[FiniteFloat | None],
+    Field(
+        min_length=1,
+        description="a_ik for each LED i, in the layout's LED order; null where the LED was "
+        "not detected (below this terminal's detection floor, never taken as zero)",
+    ),
+]
+DetectionFloor = Annotated[
+    FiniteFloat | None,
+    Field(
+        gt=0.0,
+        description="the amplitude below which this terminal does not detect an LED (same "
+        "units as its amplitudes); default: the weakest amplitude it detected",
+    ),
+]
+
+
 class TerminalAmplitudes(RequestModel):
     """One terminal's pilot amplitude estimates, one per LED (in the layout's LED order)."""
 
     id: str = Field(
         pattern=TERMINAL_ID_PATTERN, description="the terminal's own id", examples=["t1"]
     )
-    amplitudes: list[FiniteFloat | None] = Field(
-        min_length=1,
-        description="a_ik for each LED i; null where the LED was not detected (below this "
-        "terminal's detection floor, never taken as zero)",
-    )
-    detection_floor: FiniteFloat | None = Field(
-        default=None,
-        gt=0.0,
-        description="the amplitude below which this terminal does not detect an LED (same "
-        "units as its amplitudes); default: the weakest amplitude it detected",
-    )
+    amplitudes: DetectedAmplitudes
+    detection_floor: DetectionFloor = None
     height: FiniteFloat | None = Field(
         default=None,
         ge=0.0,

@@ -22,8 +22,6 @@ import socket
 import uuid
 from datetime import timedelta
 
-import numpy as np
-
 from app.clock import Clock
 from app.errors import RecordNotFound, RegistryError, RegistryUnavailable, VLPError
 from app.registry import Registry
@@ -34,7 +32,7 @@ from app.telemetry import Metrics
 from app.vlp.measurements import Model
 
 from .fingerprint_cache import FingerprintCache
-from .localization import TerminalSet, localize_terminals
+from .localization import censored_terminal_set, localize_terminals
 from .tracking import Tracking
 
 __all__ = ["EpochSettler"]
@@ -144,9 +142,8 @@ class EpochSettler:
             model=model,
             solver=settings.solver,
             targets=settings.targets,
-            terminals=TerminalSet(
-                ids=claimed.terminal_ids,
-                amplitudes=np.array(claimed.amplitudes, dtype=np.float64),
+            terminals=censored_terminal_set(
+                claimed.terminal_ids, claimed.amplitudes, claimed.detection_floors
             ),
             max_work=self._settings.max_localize_work,
         )

@@ -1,7 +1,9 @@
 """Opening epochs and taking terminals' posts (the registry's epoch store does the storing).
 
 A post is fitted to the epoch's fingerprint here (:func:`app.services.masking.fit_to_fingerprint`,
-the rule localize uses), so the store only ever sees one amplitude per fingerprint LED.
+the rule localize uses), and refused when it detected no LED
+(:func:`app.services.localization.nothing_detected`), so the store only ever sees one
+amplitude (or None: not detected) per fingerprint LED.
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ from app.registry import Registry
 from app.registry.records import EpochRecord, EpochSettings
 from app.schemas import EpochCreate
 
+from .localization import nothing_detected
 from .masking import fit_to_fingerprint
 
 __all__ = ["open_epoch", "open_requested_epoch", "post_to_epoch"]
@@ -81,16 +84,19 @@ def post_to_epoch(
     room_id: str,
     epoch_id: str,
     terminal_id: str,
-    amplitudes: Sequence[float],
+    amplitudes: Sequence[float | None],
+    detection_floor: float | None = None,
 ) -> EpochRecord:
-    """Store or replace one terminal's amplitudes (one per room LED, or per fingerprint LED)
-    while the epoch is open.
+    """Store or replace one terminal's amplitudes (one per room LED, or per fingerprint LED;
+    None for an LED it did not detect) and its own ``detection_floor`` while the epoch is open.
 
     Raises
     ------
     EpochNotFound, EpochClosed, EpochFull
     MeasurementError
         Amplitudes sized for neither the room's nor the fingerprint's LEDs.
+    InvalidFields
+        No LED detected among the fingerprint's (every amplitude None).
     """
     now = registry.clock.now()
     record = registry.epochs.get(room_id=room_id, epoch_id=epoch_id)
@@ -101,6 +107,14 @@ def post_to_epoch(
             room_id=room_id, version=pinned.fingerprint_version
         ).masked_leds
         fitted = fit_to_fingerprint(amplitudes, masked, pinned.leds, field="amplitudes")
+        errors = nothing_detected(fitted, field="amplitudes")  # as localize's terminals
+        if errors:
+            raise InvalidFields(errors)
     return registry.epochs.post_measurement(
-        room_id=room_id, epoch_id=epoch_id, terminal_id=terminal_id, amplitudes=fitted, now=now
+        room_id=room_id,
+        epoch_id=epoch_id,
+        terminal_id=terminal_id,
+        amplitudes=fitted,
+        detection_floor=detection_floor,
+        now=now,
     )

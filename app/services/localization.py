@@ -20,6 +20,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -49,11 +50,13 @@ __all__ = [
     "WAITLESS_TARGETS",
     "WAITLESS_WORK",
     "TerminalSet",
+    "censored_terminal_set",
     "check_work",
     "input_form",
     "localize_in_memory",
     "localize_measurement",
     "localize_terminals",
+    "nothing_detected",
     "task_work",
 ]
 
@@ -271,22 +274,54 @@ def _terminal_set(sent: list[TerminalAmplitudes]) -> TerminalSet:
             )
             continue
         normals.append(vector / length)
-    errors += [
-        (f"terminals[{index}].amplitudes", "at least one LED must be detected (not null)")
-        for index, terminal in enumerate(sent)
-        if all(value is None for value in terminal.amplitudes)
-    ]
+    for index, terminal in enumerate(sent):
+        errors += nothing_detected(terminal.amplitudes, field=f"terminals[{index}].amplitudes")
     if errors:
         raise InvalidFields(errors)
     heights = [np.nan if t.height is None else t.height for t in sent]
-    floors = [np.nan if t.detection_floor is None else t.detection_floor for t in sent]
-    amplitudes = [[np.nan if a is None else a for a in t.amplitudes] for t in sent]
-    return TerminalSet(
-        ids=tuple(ids),
-        amplitudes=np.array(amplitudes, dtype=np.float64),
+    return censored_terminal_set(
+        ids,
+        [t.amplitudes for t in sent],
+        [t.detection_floor for t in sent],
         heights=None if all(t.height is None for t in sent) else np.array(heights),
         normals=None if all(t.normal is None for t in sent) else np.array(normals),
-        floors=None if all(t.detection_floor is None for t in sent) else np.array(floors),
+    )
+
+
+def nothing_detected(amplitudes: Sequence[float | None], *, field: str) -> list[tuple[str, str]]:
+    """The error for ``field`` when a terminal detected no LED (all its amplitudes null),
+    else none: such a terminal says nothing about where it is."""
+    if all(value is None for value in amplitudes):
+        return [(field, "at least one LED must be detected (not null)")]
+    return []
+
+
+def censored_terminal_set(
+    ids: Sequence[str],
+    amplitudes: Sequence[Sequence[float | None]],
+    floors: Sequence[float | None],
+    *,
+    heights: FloatArray | None = None,
+    normals: FloatArray | None = None,
+) -> TerminalSet:
+    """Terminals' amplitudes as sent (None: an LED not detected) and their own detection
+    floors (None: not sent) as a :class:`TerminalSet`, undetected LEDs as NaN.
+
+    Parameters
+    ----------
+    ids : sequence of str, length K
+    amplitudes : K sequences of M floats or None
+    floors : K floats or None
+    heights, normals : (K,), (K, 3) arrays or None
+    """
+    values = [[np.nan if a is None else a for a in row] for row in amplitudes]
+    floor_values = [np.nan if floor is None else floor for floor in floors]
+    return TerminalSet(
+        ids=tuple(ids),
+        amplitudes=np.array(values, dtype=np.float64),
+        heights=heights,
+        normals=normals,
+        floors=None if all(floor is None for floor in floors) else np.array(floor_values),
     )
 
 

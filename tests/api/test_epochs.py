@@ -250,8 +250,17 @@ def test_create_validation_names_the_field(
         ({"terminal_id": "t1", "amplitudes": []}, "body.amplitudes"),
         ({"terminal_id": "t 1", "amplitudes": [1.0] * 16}, "body.terminal_id"),
         ({"amplitudes": [1.0] * 16}, "body.terminal_id"),
+        ({"terminal_id": "t1", "amplitudes": [None] * 16}, "body.amplitudes"),
+        (
+            {"terminal_id": "t1", "amplitudes": [1.0] * 16, "detection_floor": -1.0},
+            "body.detection_floor",
+        ),
+        (
+            {"terminal_id": "t1", "amplitudes": [1.0] * 16, "detection_floor": 0.0},
+            "body.detection_floor",
+        ),
     ],
-    ids=["short", "empty", "bad-id", "no-id"],
+    ids=["short", "empty", "bad-id", "no-id", "nothing-detected", "floor-negative", "floor-zero"],
 )
 def test_post_validation_names_the_field(
     client: TestClient, body: dict[str, Any], field: str
@@ -489,3 +498,54 @@ def test_an_epoch_above_the_work_limit_fails_naming_the_limit(
         assert "VLP_MAX_LOCALIZE_WORK" in failed["error"] and "19200" in failed["error"]
     finally:
         client.__exit__(None, None, None)
+
+
+def test_undetected_leds_post_as_null_and_solve_as_localize_censors_them(
+    client: TestClient,
+) -> None:
+    """Null amplitudes and a terminal's own floor reach the epoch's solve unchanged: it
+    answers what localize answers for the same terminals (the same censored fit)."""
+    clean = true_amplitudes(paper_layout(), TRUTH)
+    floor = 0.25 * float(clean.max())
+    sent = np.where(clean < floor, np.nan, clean)
+    assert np.isnan(sent).sum(axis=1).min() >= 6  # most LEDs are not detected
+    names = ["t1", "t2", "t3"]
+    floors: list[float | None] = [floor, None, floor]  # t2 leaves its floor to the service
+    terminals = [
+        {
+            "id": name,
+            "amplitudes": [None if np.isnan(a) else float(a) for a in row],
+            **({} if own is None else {"detection_floor": own}),
+        }
+        for name, row, own in zip(names, sent, floors, strict=True)
+    ]
+    room_id = room_of(client)
+    epoch = create(client, room_id, window_s=60, track=False)
+    for terminal in terminals:
+        body = {"terminal_id": terminal["id"], **{k: v for k, v in terminal.items() if k != "id"}}
+        response = client.post(
+            f"/v1/rooms/{room_id}/epochs/{epoch['id']}/measurements", json=body, headers=TERMINAL
+        )
+        assert response.status_code == 202, response.text
+    solved = solve(client, epoch)
+    assert solved["status"] == "solved", solved
+    assert_labelled_near_truth(solved, names)
+
+    def positions(terminals: list[dict[str, Any]]) -> dict[str, tuple[float, float]]:
+        response = client.post(
+            f"/v1/rooms/{room_id}/localize", json={"terminals": terminals}, headers=TERMINAL
+        )
+        assert response.status_code == 200, response.text
+        return {e["terminal_id"]: (e["x"], e["y"]) for e in response.json()["estimates"]}
+
+    by_epoch = {e["terminal_id"]: (e["x"], e["y"]) for e in solved["localization"]["estimates"]}
+    by_localize = positions(terminals)
+    for name in names:
+        assert by_epoch[name] == pytest.approx(by_localize[name], abs=1e-6)
+    # The floors sent matter (without them localize answers otherwise), so the epoch kept them.
+    floorless = positions(
+        [{k: v for k, v in t.items() if k != "detection_floor"} for t in terminals]
+    )
+    assert max(math.dist(floorless[name], by_localize[name]) for name in ("t1", "t3")) > 1e-4, (
+        "the floors sent should change the fit; the comparison above would not see them"
+    )

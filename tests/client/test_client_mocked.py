@@ -83,17 +83,25 @@ def test_epoch_round_trip_sends_the_agreed_bodies() -> None:
     with _client(handler) as vlp:
         opened = vlp.create_epoch(ROOM, min_terminals=1, window_s=5.0)
         vlp.post_epoch_measurement(ROOM, "e1", terminal_id="t7", amplitudes=[0.1] * 16)
+        vlp.post_epoch_measurement(
+            ROOM, "e1", terminal_id="t8", amplitudes=[None, *[0.1] * 15], detection_floor=0.05
+        )
         solved = vlp.solve_epoch(ROOM, "e1")
         again = vlp.get_epoch(ROOM, "e1")
     assert isinstance(opened, Epoch) and opened.status == "open" and again.id == "e1"
     assert solved.localization is not None
     assert solved.localization.estimates[0].terminal_id == "t7"
-    assert sent[:3] == [
+    assert sent[:4] == [
         ("POST", f"/v1/rooms/{ROOM}/epochs", {"min_terminals": 1, "window_s": 5.0}),
         (
             "POST",
             f"/v1/rooms/{ROOM}/epochs/e1/measurements",
             {"terminal_id": "t7", "amplitudes": [0.1] * 16},
+        ),
+        (
+            "POST",
+            f"/v1/rooms/{ROOM}/epochs/e1/measurements",
+            {"terminal_id": "t8", "amplitudes": [None, *[0.1] * 15], "detection_floor": 0.05},
         ),
         ("POST", f"/v1/rooms/{ROOM}/epochs/e1/solve", None),
     ]

@@ -9,10 +9,12 @@ from __future__ import annotations
 import threading
 from datetime import timedelta
 from functools import partial
+from typing import Any
 
 import pytest
 
 from app.clock import FakeClock
+from app.errors import InvalidFields
 from app.registry import Registry
 from app.registry.errors import (
     EpochClosed,
@@ -116,11 +118,44 @@ def test_a_terminal_posting_again_replaces_its_amplitudes(
     }
 
 
+def test_undetected_leds_and_floors_are_stored_as_sent(
+    registry: Registry, epoch: EpochRecord
+) -> None:
+    post = partial(post_to_epoch, registry, room_id=epoch.room_id, epoch_id=epoch.id)
+    post(terminal_id="t1", amplitudes=[None, 2.0, None], detection_floor=0.5)
+    post(terminal_id="t2", amplitudes=[4.0, None, 6.0])
+    post(terminal_id="t3", amplitudes=[1.0, 1.0, 1.0], detection_floor=0.25)
+    post(terminal_id="t3", amplitudes=[None, 3.0, 3.0])  # a repost without a floor drops it
+    claimed = claim(registry, epoch, "solver-a")
+    assert claimed is not None
+    stored = zip(claimed.terminal_ids, claimed.amplitudes, claimed.detection_floors, strict=True)
+    assert {tid: (amplitudes, floor) for tid, amplitudes, floor in stored} == {
+        "t1": ((None, 2.0, None), 0.5),
+        "t2": ((4.0, None, 6.0), None),
+        "t3": ((None, 3.0, 3.0), None),
+    }
+
+
+def test_a_post_that_detected_no_led_is_refused_naming_its_amplitudes(
+    registry: Registry, epoch: EpochRecord
+) -> None:
+    with pytest.raises(InvalidFields) as info:
+        post_to_epoch(
+            registry,
+            room_id=epoch.room_id,
+            epoch_id=epoch.id,
+            terminal_id="t1",
+            amplitudes=[None, None, None],
+        )
+    assert [field for field, _ in info.value.errors] == ["amplitudes"]
+    assert registry.epochs.get(room_id=epoch.room_id, epoch_id=epoch.id).terminals == 0
+
+
 def test_posts_are_refused_when_wrong_closed_full_or_unknown(
     registry: Registry, room_id: str
 ) -> None:
     epoch = open_epoch(registry, room_id=room_id, settings=wanted(max_terminals=2))
-    ids = {"room_id": room_id, "epoch_id": epoch.id}
+    ids: dict[str, Any] = {"room_id": room_id, "epoch_id": epoch.id}
     with pytest.raises(MeasurementError, match="expected 3 amplitudes") as info:
         post_to_epoch(registry, **ids, terminal_id="t1", amplitudes=[1.0, 2.0])
     assert info.value.field == "amplitudes"
