@@ -1,5 +1,6 @@
-"""An API process holds what serving needs: the plotting stack (pictures) and PostgreSQL's
-driver (a SQLite registry) load only when a request or the registry asks for them. Each
+"""An API process holds what serving needs: the plotting stack (pictures), PostgreSQL's
+driver (a SQLite registry) and cvxpy (the l1 solver) load only when a request or the
+registry asks for them. Each
 check runs in a fresh interpreter, since this test process has long imported everything."""
 
 from __future__ import annotations
@@ -10,7 +11,7 @@ import sys
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[2]
-ON_DEMAND = ("matplotlib", "PIL", "psycopg")
+ON_DEMAND = ("matplotlib", "PIL", "psycopg", "cvxpy")
 
 _STARTED_APP = """
 import warnings
@@ -56,3 +57,12 @@ def test_the_first_picture_loads_the_plotting_stack(tmp_path: Path) -> None:
     then = "from app.pictures import room_map_png"
     code = _STARTED_APP.format(data_dir=str(tmp_path), then=then)
     assert "matplotlib" in _loaded_after(code)
+
+
+def test_the_first_l1_problem_loads_cvxpy(tmp_path: Path) -> None:
+    then = (
+        "import numpy as np; from app.vlp.solvers.l1 import build_l1_problem; "
+        "build_l1_problem(np.eye(3), np.ones(3))"
+    )
+    code = _STARTED_APP.format(data_dir=str(tmp_path), then=then)
+    assert "cvxpy" in _loaded_after(code)

@@ -15,11 +15,9 @@ from __future__ import annotations
 
 import threading
 import warnings
+from typing import TYPE_CHECKING
 
-import cvxpy as cp
 import numpy as np
-from cvxpy.atoms.affine.sum import sum as cvx_sum
-from cvxpy.atoms.norm import norm as cvx_norm
 
 from ..errors import SolverError, SolverFailed
 from ..fingerprints import Fingerprint
@@ -36,12 +34,17 @@ from ._grid import (
 from .base import MAX_TARGETS, Solution, Solver, register_solver
 from .nnls import select_support
 
+if TYPE_CHECKING:
+    import cvxpy as cp
+
 __all__ = ["DEFAULT_RESIDUAL_SLACK", "L1Problem", "L1Solver", "build_l1_problem", "solve_l1_fresh"]
 
 # eps = (1 + slack) * (the smallest residual any nonnegative fit reaches) + floor * ||y||.
 DEFAULT_RESIDUAL_SLACK = 0.1
 _RESIDUAL_FLOOR = 1e-6
-_SOLVER_OPTIONS: dict[str, object] = {"solver": cp.CLARABEL, "direct_solve_method": "qdldl"}
+# cvxpy (with the scipy.stats it pulls in) is imported where a problem is built, not with this
+# module: an API process that never serves the l1 solver does not hold it.
+_SOLVER_OPTIONS: dict[str, object] = {"solver": "CLARABEL", "direct_solve_method": "qdldl"}
 
 
 class L1Problem:
@@ -59,6 +62,10 @@ class L1Problem:
     """
 
     def __init__(self, dictionary: FloatArray, noise_unit: FloatArray) -> None:
+        import cvxpy as cp
+        from cvxpy.atoms.affine.sum import sum as cvx_sum
+        from cvxpy.atoms.norm import norm as cvx_norm
+
         n_rows, n_cells = dictionary.shape
         self._lock = threading.Lock()
         self.coefficients = cp.Variable(n_cells, nonneg=True)
@@ -103,6 +110,10 @@ def solve_l1_fresh(
     coefficients : ndarray of shape (N,)
     noise : float
     """
+    import cvxpy as cp
+    from cvxpy.atoms.affine.sum import sum as cvx_sum
+    from cvxpy.atoms.norm import norm as cvx_norm
+
     coefficients = cp.Variable(dictionary.shape[1], nonneg=True)
     noise = cp.Variable(nonneg=True)
     residual = dictionary @ coefficients + noise * noise_unit - target
@@ -113,6 +124,8 @@ def solve_l1_fresh(
 def _run(
     problem: cp.Problem, coefficients: cp.Variable, noise: cp.Variable
 ) -> tuple[FloatArray, float]:
+    import cvxpy as cp
+
     with warnings.catch_warnings():
         # cvxpy warns "Solution may be inaccurate" on OPTIMAL_INACCURATE; such a solution
         # still ranks the occupancies well, and the K-term NNLS refit fixes the weights.
