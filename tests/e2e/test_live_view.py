@@ -30,6 +30,8 @@ from tests.live_server import TERMINAL_KEY, VLP, LiveServer, live_server, server
 
 from .test_swagger_ui import _FLAGS, CHROMEDRIVER, CHROMIUM, REPO
 
+pytestmark = pytest.mark.slow
+
 WALKERS = 50
 WAIT_S = 120.0
 FRAMES_PER_S = 20

@@ -1,0 +1,40 @@
+"""The fast lane (``./test --fast``, every test not marked ``slow``) holds unit tests only:
+each module of the folders that start servers, browsers, process faults or benchmark runs
+marks all its tests ``slow`` (docs/explanation/architecture.md, "Tests and their lanes")."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+TESTS = Path(__file__).resolve().parent
+SLOW_FOLDERS = ("e2e", "faults", "bench")
+# Pure functions of the benchmarks' own code (no process, no run), or such unit tests beside
+# a run that is marked slow on its own.
+UNIT_MODULES = {"bench/test_tracking_switches.py", "bench/test_measured_smoke.py"}
+
+
+def _marks_module_slow(path: Path) -> bool:
+    """Whether the module assigns ``pytestmark`` to ``pytest.mark.slow`` (or a list holding it)."""
+    for node in ast.parse(path.read_text(encoding="utf-8")).body:
+        if isinstance(node, ast.Assign) and any(
+            isinstance(target, ast.Name) and target.id == "pytestmark" for target in node.targets
+        ):
+            return "pytest.mark.slow" in ast.unparse(node.value)
+    return False
+
+
+@pytest.mark.parametrize(
+    "module",
+    sorted(
+        str(path.relative_to(TESTS))
+        for folder in SLOW_FOLDERS
+        for path in (TESTS / folder).glob("test_*.py")
+    ),
+)
+def test_modules_that_start_processes_or_run_benchmarks_are_slow(module: str) -> None:
+    if module in UNIT_MODULES:
+        return
+    assert _marks_module_slow(TESTS / module), f"{module} lacks pytestmark = pytest.mark.slow"
