@@ -10,11 +10,15 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 REPO = Path(__file__).resolve().parents[2]
 ON_DEMAND = ("matplotlib", "PIL", "psycopg", "cvxpy")
 
-_STARTED_APP = """
-import warnings
+# One fresh interpreter starts the app, then asks for a picture's renderer, then builds an l1
+# problem; it prints the modules it holds after each step (a line of JSON each).
+_PROBE = """
+import json, sys, warnings
 from pathlib import Path
 from app.main import create_app
 from app.settings import Settings
@@ -26,15 +30,23 @@ settings = Settings(
 )
 with TestClient(create_app(settings)) as client:
     assert client.get("/healthz").status_code == 200
-    {then}
+    print(json.dumps(sorted(sys.modules)))
+    from app.pictures import room_map_png
+    print(json.dumps(sorted(sys.modules)))
+    import numpy as np
+    from app.vlp.solvers.l1 import build_l1_problem
+    build_l1_problem(np.eye(3), np.ones(3))
+    print(json.dumps(sorted(sys.modules)))
 """
 
 
-def _loaded_after(code: str) -> list[str]:
-    """The on-demand packages a fresh interpreter holds after running ``code``."""
-    script = f"{code}\nimport json, sys\nprint(json.dumps(sorted(sys.modules)))\n"
+@pytest.fixture(scope="module")
+def loaded(tmp_path_factory: pytest.TempPathFactory) -> dict[str, list[str]]:
+    """The on-demand packages the probe holds once started, after the picture renderer's
+    import and after the first l1 problem."""
+    data_dir = tmp_path_factory.mktemp("probe")
     completed = subprocess.run(
-        [sys.executable, "-c", script],
+        [sys.executable, "-c", _PROBE.format(data_dir=str(data_dir))],
         cwd=REPO,
         capture_output=True,
         text=True,
@@ -42,27 +54,25 @@ def _loaded_after(code: str) -> list[str]:
         check=False,
     )
     assert completed.returncode == 0, completed.stderr[-3000:]
-    loaded = set(json.loads(completed.stdout.splitlines()[-1]))
-    return [name for name in ON_DEMAND if name in loaded]
+    steps = [set(json.loads(line)) for line in completed.stdout.splitlines()[-3:]]
+    return {
+        step: [name for name in ON_DEMAND if name in modules]
+        for step, modules in zip(("started", "picture", "l1"), steps, strict=True)
+    }
 
 
-def test_a_started_api_process_holds_no_plotting_and_no_postgres_driver(tmp_path: Path) -> None:
-    code = _STARTED_APP.format(data_dir=str(tmp_path), then="pass")
-    assert _loaded_after(code) == []
+def test_a_started_api_process_holds_no_plotting_and_no_postgres_driver(
+    loaded: dict[str, list[str]],
+) -> None:
+    assert loaded["started"] == []
 
 
-def test_the_first_picture_loads_the_plotting_stack(tmp_path: Path) -> None:
+def test_the_first_picture_loads_the_plotting_stack(loaded: dict[str, list[str]]) -> None:
     # The same probe must see matplotlib once a picture is drawn, or the check above
     # proves nothing.
-    then = "from app.pictures import room_map_png"
-    code = _STARTED_APP.format(data_dir=str(tmp_path), then=then)
-    assert "matplotlib" in _loaded_after(code)
+    assert "matplotlib" in loaded["picture"]
 
 
-def test_the_first_l1_problem_loads_cvxpy(tmp_path: Path) -> None:
-    then = (
-        "import numpy as np; from app.vlp.solvers.l1 import build_l1_problem; "
-        "build_l1_problem(np.eye(3), np.ones(3))"
-    )
-    code = _STARTED_APP.format(data_dir=str(tmp_path), then=then)
-    assert "cvxpy" in _loaded_after(code)
+def test_the_first_l1_problem_loads_cvxpy(loaded: dict[str, list[str]]) -> None:
+    assert "cvxpy" in loaded["l1"]
+    assert "cvxpy" not in loaded["picture"]
