@@ -1,7 +1,7 @@
 """Power solves in a large room with local refinements against full ones, in-process.
 
 The ``gridless`` solver refines, after each insertion or relocation in a large room, only
-the targets near the change (``GridlessSolver._fit_near``); switched off (its reach set to
+the targets near the change (``gridless.fitting.lm_fit_near``); switched off (its reach set to
 None) it refines all of them, as in small rooms. For each seed: K random terminals at
 ``--snr`` dB (the API's ``/simulate`` draws: positions, then noisy amplitudes), the power
 measurement solved both ways; reported per way: misplaced targets (error above 0.5 m), the
@@ -67,7 +67,7 @@ def run(room: str, targets: int, seeds: range, snr_db: float) -> dict[str, Any]:
     layout = million_point_hall() if room == "hall" else medium_hall()
     fingerprint = build_fingerprint(layout)
     solver = GridlessSolver(fingerprint, "power")
-    reach = solver._near_reach
+    reach = solver.room.near_reach
     if reach is None:
         raise SystemExit(f"the {room} room is not large by the solver's rule")
     problems = _problems(layout, noise_std_for_snr(fingerprint, snr_db), targets, seeds)
@@ -75,7 +75,7 @@ def run(room: str, targets: int, seeds: range, snr_db: float) -> dict[str, Any]:
     report: dict[str, Any] = {"room": room, "targets": targets, "snr_db": snr_db}
     report["seeds"] = f"{seeds.start}-{seeds.stop - 1}"
     for way, way_reach in (("local", reach), ("full", None)):
-        solver._near_reach = way_reach
+        solver.room.near_reach = way_reach
         misplaced, means, times = 0, [], []
         for truth, measurement in problems:
             started = time.perf_counter()
@@ -91,7 +91,7 @@ def run(room: str, targets: int, seeds: range, snr_db: float) -> dict[str, Any]:
             "median_solve_s": round(statistics.median(times), 3),
             "max_solve_s": round(max(times), 3),
         }
-    solver._near_reach = reach
+    solver.room.near_reach = reach
     report["machine"] = machine_record()
     return report
 

@@ -118,10 +118,10 @@ def test_rooms_without_twins_anywhere_skip_the_check(paper_fingerprint: Fingerpr
     """The check is skipped only where no grid point has a twin even under looser limits."""
     paper = paper_fingerprint.layout
     assert not twins_possible(paper.cell_centres(), led_xy(paper), gains_of(paper), (4.0, 4.0))
-    assert not GridlessSolver(paper_fingerprint, "correlation")._twins_possible
+    assert not GridlessSolver(paper_fingerprint, "correlation").room.twins_possible
     row = corridor()
     assert twins_possible(row.cell_centres(), led_xy(row), gains_of(row), (6.0, 2.5))
-    assert GridlessSolver(build_fingerprint(row), "correlation")._twins_possible
+    assert GridlessSolver(build_fingerprint(row), "correlation").room.twins_possible
 
 
 def test_far_optima_finds_the_other_side_of_a_row() -> None:

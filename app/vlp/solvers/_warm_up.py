@@ -82,13 +82,13 @@ def exercise() -> None:
         gram(objective, theta, state)
         objective.residual(theta, state)
         levenberg_marquardt(objective, state, max_iter=1, initial_damping=1e-3, tol=1e-6)
-        # an answer's covariances (GridlessSolver._covariances)
+        # an answer's covariances (gridless.uncertainty.sandwich_covariances)
         problem = objective.compiled_problem()
         assert problem is not None
         uncertainty_kernel(*problem, theta, *objective.compiled_state(state), 1.0, False)
         if model == "correlation":
             correlation_scores_kernel(white.compiled(), values, np.ones((kernel.n_leds, 3)))
-            # an answer's far places (GridlessSolver._profiles)
+            # an answer's far places (gridless.report.profiles)
             correlation_profiles_kernel(
                 white.compiled(),
                 values,
@@ -96,7 +96,7 @@ def exercise() -> None:
                 np.ones((kernel.n_leds, 2)),
                 np.ones(2),
             )
-    # the joint fit under the room's tolerances (GridlessSolver._with_room_tolerances): its
+    # the joint fit under the room's tolerances (gridless.stages.with_room_tolerances): its
     # metric evaluates the gains; its score test the residual and Jacobian; then its LM
     joint = _JointModel(kernel, state.heights, (0.1, 0.5), RoomTolerances(0.05, 3.0, 0.07))
     theta = joint.pack(state)
@@ -111,7 +111,7 @@ def exercise() -> None:
     point = np.array([1.0])
     channel_rows(*constants, point, point.copy(), np.array([height]), False)
     # the correlation search's growth (a step, and the steps to K targets) and whitened
-    # refinement (GridlessSolver._grow_compiled, _refine_compiled)
+    # refinement (gridless.search.grow_compiled, _refine_compiled)
     identity = Whitening.identity("correlation", kernel.n_leds)
     search = Objective(
         kernel, identity, np.zeros(identity.weights.shape[0]), False, Priors(height_mean=height)

@@ -43,6 +43,7 @@ from app.vlp.solvers.gridless._compiled.uncertainty import (
     nnls_kernel,
 )
 from app.vlp.solvers.gridless.channel import ChannelKernel
+from app.vlp.solvers.gridless.fitting import Run, grid_correlations
 from app.vlp.solvers.gridless.model import (
     FitState,
     Objective,
@@ -52,12 +53,15 @@ from app.vlp.solvers.gridless.model import (
     gram_reference,
     levenberg_marquardt,
 )
-from app.vlp.solvers.gridless.solver import GridlessOptions, GridlessSolver, _Run
+from app.vlp.solvers.gridless.report import profiles
+from app.vlp.solvers.gridless.search import compiled_search, grow, grow_compiled, refine
+from app.vlp.solvers.gridless.solver import GridlessOptions, GridlessSolver
 from app.vlp.solvers.gridless.tolerances import (
     RoomTolerances,
     _JointModel,
     _levenberg_marquardt,
 )
+from app.vlp.solvers.gridless.uncertainty import sandwich_covariances, shape_gradients
 from app.vlp.typing import FloatArray
 from app.vlp.uncertainty import MisfitDesign, fit_misfit, misfit_design
 
@@ -312,7 +316,7 @@ def paper_solvers() -> dict[bool, GridlessSolver]:
 @pytest.fixture(scope="module")
 def joint_kernels(paper_solvers: dict[bool, GridlessSolver]) -> dict[bool, ChannelKernel]:
     """Their channel kernels."""
-    return {reflecting: solver._kernel for reflecting, solver in paper_solvers.items()}
+    return {reflecting: solver.room.kernel for reflecting, solver in paper_solvers.items()}
 
 
 @pytest.mark.parametrize("reflecting", [False, True])
@@ -322,13 +326,13 @@ def test_shape_gradients_match_reference(
     """The height and tilt derivatives behind the model-error radii (the height's from the
     compiled channel, reflections included), against the reference kernels."""
     solver = paper_solvers[reflecting]
-    assert channel_constants(solver._kernel) is not None  # so the compiled channel runs
+    assert channel_constants(solver.room.kernel) is not None  # so the compiled channel runs
     rng = np.random.default_rng(13)
     positions = rng.uniform(0.0, 4.0, (5, 2))
     heights = 0.85 + rng.uniform(-0.3, 0.3, 5)
     with use_kernels("reference"):
-        want = solver._shape_gradients(positions, heights)
-    got = solver._shape_gradients(positions, heights)
+        want = shape_gradients(solver.room, positions, heights)
+    got = shape_gradients(solver.room, positions, heights)
     assert_same(got, want)
     assert np.abs(got[:, :, 0]).max() > 0.0  # the heights' column is there
 
@@ -468,38 +472,36 @@ def test_insertion_scores_match_reference(layout_name: str) -> None:
     layout = LAYOUTS[layout_name]()
     solver = GridlessSolver(build_fingerprint(layout), "correlation")
     rng = np.random.default_rng(11)
-    state = random_state(solver._kernel, 2, rng, on_plane=True)
+    state = random_state(solver.room.kernel, 2, rng, on_plane=True)
     for white in (
         Whitening.identity("correlation", layout.n_leds),
-        Whitening._from_state_reference("correlation", solver._kernel, state, 2.0),
+        Whitening._from_state_reference("correlation", solver.room.kernel, state, 2.0),
     ):
         residual = normal(rng, white.weights.shape[0])
         with use_kernels("reference"):
-            want = solver._correlations(white, residual)
-        got = correlation_scores_kernel(white.compiled(), residual, solver._gains)
+            want = grid_correlations(solver.room, white, residual)
+        got = correlation_scores_kernel(white.compiled(), residual, solver.room.gains)
         for got_part, want_part in zip(got, want, strict=True):
             assert_same(got_part, want_part)
 
 
 def _grown(
     solver: GridlessSolver,
-    run: _Run,
+    run: Run,
     state: FitState,
     inner_iter: int,
     avoid: FloatArray | None,
 ) -> tuple[FitState, int]:
     """A growth step's new state and the LM iterations it used."""
     before = run.iterations
-    grown = solver._grow(run, copy.deepcopy(state), inner_iter, avoid)
+    grown = grow(solver.room, run, copy.deepcopy(state), inner_iter, avoid)
     return grown, run.iterations - before
 
 
 @pytest.mark.parametrize("layout_name", list(LAYOUTS))
 @pytest.mark.parametrize("ceiling", ["none", "zero"])
-def test_growth_step_is_the_python_step(
-    layout_name: str, ceiling: str, monkeypatch: pytest.MonkeyPatch
-) -> None:
-    """The compiled growth step (GridlessSolver._grow_compiled) gives the state of the
+def test_growth_step_is_the_python_step(layout_name: str, ceiling: str) -> None:
+    """The compiled growth step (gridless.search.grow_compiled) gives the state of the
     Python step (insertion, then a short LM) to the bit with the compiled kernels it calls,
     and that of the NumPy reference kernels to 1e-10: from K = 0 to 3 targets (random
     weights, gains, scale, heights), refined or only inserted, with points to avoid
@@ -510,27 +512,27 @@ def test_growth_step_is_the_python_step(
     options = dataclasses.replace(GridlessOptions(), grow_without_noise=ceiling == "zero")
     solver = GridlessSolver(fingerprint, "correlation", options)
     python = GridlessSolver(fingerprint, "correlation", options)
-    monkeypatch.setattr(python, "_compiled_search", lambda _run: False)
+    python.room.search_constants = None  # its steps run in Python
     rng = np.random.default_rng(21)
-    centres = solver._centres
+    centres = solver.room.centres
     checked = 0
     for k in range(4):
         for on_plane in (True, False):
-            state = random_state(solver._kernel, k, rng, on_plane) if k else FitState.empty()
-            truth = random_points(solver._kernel, 3, rng).clip(0.1, 2.0)
+            state = random_state(solver.room.kernel, k, rng, on_plane) if k else FitState.empty()
+            truth = random_points(solver.room.kernel, 3, rng).clip(0.1, 2.0)
             values = np.asarray(
                 measurement_from_amplitudes(
                     true_amplitudes(layout, truth), "correlation", layout.n_leds
                 ).values
-                / solver._scale**2
+                / solver.room.scale**2
                 + 1e-3 * normal(rng, layout.n_leds * (layout.n_leds + 1) // 2),
                 dtype=np.float64,
             )
             for inner_iter in (0, 2):
                 for avoid in (None, centres[rng.choice(len(centres), 2)], centres):
-                    run = _Run(values=values, priors=solver._growth_priors)
-                    want_run = _Run(values=values, priors=python._growth_priors)
-                    assert solver._compiled_search(run)
+                    run = Run(values=values, priors=solver.room.growth_priors)
+                    want_run = Run(values=values, priors=python.room.growth_priors)
+                    assert compiled_search(solver.room, run)
                     got, got_used = _grown(solver, run, state, inner_iter, avoid)
                     want, want_used = _grown(python, want_run, state, inner_iter, avoid)
                     assert np.array_equal(got.positions, want.positions)
@@ -545,17 +547,17 @@ def test_growth_step_is_the_python_step(
                     assert_same(got.noise, reference.noise)
                     checked += 1
     assert checked == 4 * 2 * 2 * 3
-    # Growth to K targets in one call (GridlessSolver._fit_known), the first insertion away
+    # Growth to K targets in one call (gridless.search.fit_known), the first insertion away
     # from the points to avoid: the states of the Python steps one by one.
     for n_targets in (1, 3, 6):
         for avoid in (np.zeros((0, 2)), centres[rng.choice(len(centres), 2)]):
-            run = _Run(values=values, priors=solver._growth_priors)
-            want_run = _Run(values=values, priors=python._growth_priors)
-            got = solver._grow_compiled(run, FitState.empty(), 2, avoid, n_targets)
+            run = Run(values=values, priors=solver.room.growth_priors)
+            want_run = Run(values=values, priors=python.room.growth_priors)
+            got = grow_compiled(solver.room, run, FitState.empty(), 2, avoid, n_targets)
             want = FitState.empty()
             while want.n_targets < n_targets:
                 first = want.n_targets == 0
-                want = python._grow(want_run, want, 2, avoid if first else None)
+                want = grow(python.room, want_run, want, 2, avoid if first else None)
             assert np.array_equal(got.positions, want.positions)
             assert got.noise == want.noise
             assert (run.iterations, got.converged) == (want_run.iterations, want.converged)
@@ -564,10 +566,8 @@ def test_growth_step_is_the_python_step(
 
 
 @pytest.mark.parametrize("layout_name", list(LAYOUTS))
-def test_refinement_is_the_python_refinement(
-    layout_name: str, monkeypatch: pytest.MonkeyPatch
-) -> None:
-    """The compiled whitened refinement (GridlessSolver._refine_compiled) gives the state of
+def test_refinement_is_the_python_refinement(layout_name: str) -> None:
+    """The compiled whitened refinement (gridless.search.refine_compiled) gives the state of
     the Python rounds (a plug-in whitening, then LM, until a round barely moves) to the bit
     with the compiled kernels, and that of the NumPy reference kernels to 1e-10 where the
     rounds use the same iterations: K = 1 to 3 targets, one to three rounds, with the
@@ -580,34 +580,36 @@ def test_refinement_is_the_python_refinement(
         options = dataclasses.replace(GridlessOptions(), whiten=whiten)
         solver = GridlessSolver(fingerprint, "correlation", options)
         python = GridlessSolver(fingerprint, "correlation", options)
-        monkeypatch.setattr(python, "_compiled_search", lambda _run: False)
+        python.room.search_constants = None  # its steps run in Python
         for k in (1, 2, 3):
             for on_plane in (True, False):
-                state = random_state(solver._kernel, k, rng, on_plane)
+                state = random_state(solver.room.kernel, k, rng, on_plane)
                 truth = state.positions + rng.normal(0.0, 0.1, state.positions.shape)
                 values = np.asarray(
                     measurement_from_amplitudes(
                         true_amplitudes(layout, truth.clip(0.1, 2.0)), "correlation", layout.n_leds
                     ).values
-                    / solver._scale**2
+                    / solver.room.scale**2
                     + 1e-3 * normal(rng, layout.n_leds * (layout.n_leds + 1) // 2),
                     dtype=np.float64,
                 )
                 for rounds in (1, 3):
-                    run = _Run(values=values, priors=solver._growth_priors)
-                    want_run = _Run(values=values, priors=python._growth_priors)
-                    assert solver._compiled_search(run)
-                    got = solver._refine(run, copy.deepcopy(state), 50, rounds)
-                    want = python._refine(want_run, copy.deepcopy(state), 50, rounds)
+                    run = Run(values=values, priors=solver.room.growth_priors)
+                    want_run = Run(values=values, priors=python.room.growth_priors)
+                    assert compiled_search(solver.room, run)
+                    got = refine(solver.room, run, copy.deepcopy(state), 50, rounds)
+                    want = refine(python.room, want_run, copy.deepcopy(state), 50, rounds)
                     assert np.array_equal(got.positions, want.positions)
                     assert got.noise == want.noise
                     assert (run.iterations, got.converged) == (want_run.iterations, want.converged)
                     for name in ("weights", "heights", "log_gains"):
                         assert np.array_equal(getattr(got, name), getattr(want, name))
                     assert got.log_scale == want.log_scale
-                    reference_run = _Run(values=values, priors=python._growth_priors)
+                    reference_run = Run(values=values, priors=python.room.growth_priors)
                     with use_kernels("reference"):
-                        reference = python._refine(reference_run, copy.deepcopy(state), 50, rounds)
+                        reference = refine(
+                            python.room, reference_run, copy.deepcopy(state), 50, rounds
+                        )
                     if reference_run.iterations == run.iterations:
                         assert_same(got.positions, reference.positions)
                         assert_same(got.noise, reference.noise)
@@ -993,10 +995,10 @@ def test_uncertainty_matches_reference(
     layout = paper_layout()
     solver = GridlessSolver(build_fingerprint(layout), model)
     # The solver's normalisation (gains of order one), diffuse gains a tenth of the direct.
-    scale = solver._scale
+    scale = solver.room.scale
     magnitude = 0.1 * scale / layout.leds[0].pilot_amplitude
     table = synthetic_table(layout, True, seed=k, magnitude=magnitude)
-    kernel = solver._kernel = ChannelKernel(layout, scale, table)
+    kernel = solver.room.kernel = ChannelKernel(layout, scale, table)
     priors, free_weights = PRIORS[priors_name]
     if priors.fits_heights:
         priors = dataclasses.replace(priors, height_mean=kernel.receiver_height)
@@ -1011,13 +1013,13 @@ def test_uncertainty_matches_reference(
         ),
         (False, True),
     ):
-        solver._receivers_level = level
+        solver.room.receivers_level = level
         values = normal(rng, white.weights.shape[0])
         objective = Objective(kernel, white, values, free_weights, priors)
         assert objective.compiled_problem() is not None
         with use_kernels("reference"):
-            want, want_fit = solver._covariances(objective, state)
-        got, got_fit = solver._covariances(objective, state)
+            want, want_fit = sandwich_covariances(solver.room, objective, state)
+        got, got_fit = sandwich_covariances(solver.room, objective, state)
         assert got.shape == (k, 2, 2)
         # Each kernel of the chain agrees to 1e-10 on the same inputs (tests below), but
         # the chain amplifies round-off: in the whitened K = 3 free-weights state the two
@@ -1122,17 +1124,17 @@ def test_fit_misfit_matches_reference(max_noise: float) -> None:
 
 @pytest.mark.parametrize("layout_name", list(LAYOUTS))
 def test_aggregated_profiles_match_reference(layout_name: str) -> None:
-    """An answer's far-place profiles (GridlessSolver._profiles, correlation model)."""
+    """An answer's far-place profiles (gridless.report.profiles, correlation model)."""
     layout = LAYOUTS[layout_name]()
     solver = GridlessSolver(build_fingerprint(layout), "correlation")
     rng = np.random.default_rng(12)
-    state = random_state(solver._kernel, 3, rng, on_plane=False)
+    state = random_state(solver.room.kernel, 3, rng, on_plane=False)
     values = normal(rng, layout.n_leds * (layout.n_leds + 1) // 2)
-    run = _Run(values=values, priors=solver._priors)
+    run = Run(values=values, priors=solver.room.priors)
     # Each mode whitens on its own: the eigenbasis of the unlit directions' repeated
     # eigenvalue is round-off's choice, and the metric must not depend on it.
     with use_kernels("reference"):
-        want = solver._profiles(run, state)
-    got = solver._profiles(run, state)
+        want = profiles(solver.room, run, state)
+    got = profiles(solver.room, run, state)
     for got_part, want_part in zip(got, want, strict=True):
         assert_same(got_part, want_part)

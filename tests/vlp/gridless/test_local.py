@@ -15,9 +15,16 @@ from app.vlp.layout import Grid, Layout, Led, Receiver, Reflectance, Room
 from app.vlp.measurements import Measurement, measurement_from_amplitudes
 from app.vlp.metrics import matched_errors
 from app.vlp.simulation import noise_std_for_snr, noisy_amplitudes, random_positions
+from app.vlp.solvers.gridless.fitting import (
+    Run,
+    grid_correlations,
+    lm_fit,
+    run_objective,
+    whitening_of,
+)
 from app.vlp.solvers.gridless.local import TerminalWindows, _best_of_tiles
 from app.vlp.solvers.gridless.model import FitState, Whitening
-from app.vlp.solvers.gridless.solver import GridlessOptions, GridlessSolver, _Run
+from app.vlp.solvers.gridless.solver import GridlessOptions, GridlessSolver
 from app.vlp.solvers.gridless.terminals import starting_cells
 from app.vlp.typing import FloatArray
 
@@ -64,12 +71,12 @@ def test_large_room_terminals_are_found_as_with_the_whole_grid(hall: Fingerprint
     """Same answers as the whole-grid start (the solver with its windows switched off), and
     within a few centimetres of the truth at 30 dB."""
     solver = GridlessSolver(hall, "correlation")
-    assert solver._windows is not None
+    assert solver.room.windows is not None
     rng = np.random.default_rng(3)
     truth = random_positions(hall.layout, 20, rng=rng)
     amplitudes = noisy_amplitudes(hall.layout, truth, noise_std_for_snr(hall, 30.0), rng=rng)
     local = solver.solve_terminals(amplitudes)
-    solver._windows = None
+    solver.room.windows = None
     whole = solver.solve_terminals(amplitudes)
     np.testing.assert_allclose(local.positions, whole.positions, rtol=0, atol=1e-9)
     assert np.max(np.linalg.norm(local.positions - truth, axis=1)) < 0.1
@@ -98,7 +105,7 @@ def test_terminals_low_above_the_floor_that_send_their_height(hall: Fingerprint)
     heights = np.full(truth.shape[0], 0.2)
     solver = GridlessSolver(hall, "correlation")
     local = solver.solve_terminals(amplitudes, heights)
-    solver._windows = None
+    solver.room.windows = None
     whole = solver.solve_terminals(amplitudes, heights)
     np.testing.assert_allclose(local.positions, whole.positions, rtol=0, atol=1e-9)
     assert np.max(np.linalg.norm(local.positions - truth, axis=1)) < 0.1
@@ -108,19 +115,19 @@ def test_power_scan_finds_the_whole_grid_argmax(hall: Fingerprint) -> None:
     """The tiled scan returns the index, score and norm that scoring every grid point gives
     (the solver's own whole-grid scores), for measured and random residuals."""
     solver = GridlessSolver(hall, "power")
-    scan = solver._power_scan
+    scan = solver.room.power_scan
     assert scan is not None
     layout = hall.layout
     rng = np.random.default_rng(5)
     white = Whitening.identity("power", layout.n_leds)
     truth = random_positions(layout, 6, rng=rng)
     amplitudes = noisy_amplitudes(layout, truth, noise_std_for_snr(hall, 30.0), rng=rng)
-    measured = (amplitudes**2).sum(axis=0) / solver._scale**2
+    measured = (amplitudes**2).sum(axis=0) / solver.room.scale**2
     residuals = [measured, measured - rng.random(layout.n_leds) * measured.max()]
     residuals += [rng.standard_normal(layout.n_leds) * measured.max() for _ in range(3)]
     for residual in residuals:
         for weight in (1.0, 0.3):
-            num, norms = solver._correlations(white, residual)
+            num, norms = grid_correlations(solver.room, white, residual)
             scores = 2.0 * weight * num - weight**2 * norms
             expected = int(np.argmax(scores))
             for kernels in KERNELS:
@@ -133,7 +140,7 @@ def test_power_scan_finds_the_whole_grid_argmax(hall: Fingerprint) -> None:
 def test_compiled_tile_scores_are_the_numpy_ones(hall: Fingerprint) -> None:
     """The compiled best point of a batch of tiles is the NumPy reference's, bit for bit
     (random tiles, residuals of both signs, ties broken to the lowest index)."""
-    scan = GridlessSolver(hall, "power")._power_scan
+    scan = GridlessSolver(hall, "power").room.power_scan
     assert scan is not None
     rng = np.random.default_rng(21)
     n_tiles = int(scan.bounds.shape[0])
@@ -178,7 +185,7 @@ def test_power_solves_in_large_rooms_are_those_of_the_whole_grid_scan(hall: Fing
     measurement = measurement_from_amplitudes(amplitudes, "power", layout.n_leds)
     solver = GridlessSolver(hall, "power")
     tiled = solver.solve(measurement, 6)
-    solver._power_scan = None
+    solver.room.power_scan = None
     whole = solver.solve(measurement, 6)
     np.testing.assert_array_equal(tiled.positions, whole.positions)
     assert tiled.residual_norm == whole.residual_norm
@@ -186,7 +193,7 @@ def test_power_solves_in_large_rooms_are_those_of_the_whole_grid_scan(hall: Fing
 
 def _power_problem(
     hall: Fingerprint, n_targets: int, seed: int
-) -> tuple[GridlessSolver, FloatArray, Measurement, _Run]:
+) -> tuple[GridlessSolver, FloatArray, Measurement, Run]:
     """The power solver of the hall, K true positions, their measurement (30 dB) and a run
     on it."""
     layout = hall.layout
@@ -195,14 +202,14 @@ def _power_problem(
     amplitudes = noisy_amplitudes(layout, truth, noise_std_for_snr(hall, 30.0), rng=rng)
     measurement = measurement_from_amplitudes(amplitudes, "power", layout.n_leds)
     solver = GridlessSolver(hall, "power")
-    run = _Run(values=measurement.values / solver._scale**2, priors=solver._growth_priors)
+    run = Run(values=measurement.values / solver.room.scale**2, priors=solver.room.growth_priors)
     return solver, truth, measurement, run
 
 
 def _state_at(solver: GridlessSolver, positions: FloatArray) -> FitState:
     state = FitState.empty()
     for position in positions:
-        state = state.with_target(position, solver._priors.height_mean)
+        state = state.with_target(position, solver.room.priors.height_mean)
     return state
 
 
@@ -210,16 +217,16 @@ def test_local_refinement_minimises_the_whole_rooms_cost(hall: Fingerprint) -> N
     """A refinement around one target reports the whole-room cost of the state it returns,
     moves only the targets within reach and lowers the cost."""
     solver, truth, _, run = _power_problem(hall, 10, seed=4)
-    assert solver._near_reach is not None
+    assert solver.room.near_reach is not None
     # Every target 5 cm off in x: all can improve, only the near ones may move.
     state = _state_at(solver, truth + np.array([0.05, 0.0]))
-    white = solver._whitening(state)
+    white = whitening_of(solver.room, state)
     around = state.positions[:1]
-    before = solver._objective(run, white).cost(state)[0]
-    fitted, cost = solver._fit(run, white, state, 50, around=around)
+    before = run_objective(solver.room, run, white).cost(state)[0]
+    fitted, cost = lm_fit(solver.room, run, white, state, 50, around=around)
     assert cost < before
-    assert cost == pytest.approx(solver._objective(run, white).cost(fitted)[0], rel=1e-12)
-    near = np.linalg.norm(state.positions - around, axis=1) <= solver._near_reach
+    assert cost == pytest.approx(run_objective(solver.room, run, white).cost(fitted)[0], rel=1e-12)
+    near = np.linalg.norm(state.positions - around, axis=1) <= solver.room.near_reach
     assert 1 <= int(near.sum()) < state.n_targets
     np.testing.assert_array_equal(fitted.positions[~near], state.positions[~near])
     assert np.linalg.norm(fitted.positions[0] - truth[0]) < 0.02
@@ -230,16 +237,16 @@ def test_local_refinement_after_a_move_matches_the_full_one(hall: Fingerprint) -
     on a grid point): refining only the targets near it finds the optimum that refining all
     of them finds, whichever target moved."""
     solver, truth, _, run = _power_problem(hall, 10, seed=5)
-    plain, _ = solver._fit(run, solver._identity, _state_at(solver, truth), 100)
-    white = solver._whitening(plain)
-    converged, converged_cost = solver._fit(run, white, plain, 100)
+    plain, _ = lm_fit(solver.room, run, solver.room.identity, _state_at(solver, truth), 100)
+    white = whitening_of(solver.room, plain)
+    converged, converged_cost = lm_fit(solver.room, run, white, plain, 100)
     assert np.max(np.linalg.norm(converged.positions - truth, axis=1)) < 0.05
     for index in (0, 9):
         moved = converged.subset(np.arange(10))
         moved.positions[index] += np.array([0.24, -0.18])
         around = moved.positions[index : index + 1]
-        local, local_cost = solver._fit(run, white, moved, 100, around=around)
-        full, full_cost = solver._fit(run, white, moved, 100)
+        local, local_cost = lm_fit(solver.room, run, white, moved, 100, around=around)
+        full, full_cost = lm_fit(solver.room, run, white, moved, 100)
         assert local_cost == pytest.approx(full_cost, rel=1e-6)
         assert local_cost == pytest.approx(converged_cost, rel=1e-6)
         np.testing.assert_allclose(local.positions, full.positions, rtol=0, atol=1e-5)
@@ -250,7 +257,7 @@ def test_power_solves_with_local_refinements_match_full_ones(hall: Fingerprint) 
     the same targets found, a fraction of a centimetre apart."""
     solver, truth, measurement, _ = _power_problem(hall, 6, seed=2)
     local = solver.solve(measurement, 6)
-    solver._near_reach = None
+    solver.room.near_reach = None
     full = solver.solve(measurement, 6)
     assert np.max(matched_errors(local.positions, full.positions)) < 0.005
     assert np.max(matched_errors(local.positions, truth)) < 0.05
@@ -261,7 +268,7 @@ def test_relocation_to_where_a_target_is_missing_misplaces_fewer(hall: Fingerpri
     relocation's move to the best point of the whole residual escapes that (on by default in
     rooms too large for the dense dictionary). Counted over 30 placements of 12 targets
     (power, 30 dB): a single placement may end worse, the total must drop clearly."""
-    assert GridlessSolver(hall, "power")._relocate_to_missing
+    assert GridlessSolver(hall, "power").room.relocate_to_missing
     layout = hall.layout
     noise = noise_std_for_snr(hall, 30.0)
     misplaced = {False: 0, True: 0}
@@ -279,6 +286,6 @@ def test_relocation_to_where_a_target_is_missing_misplaces_fewer(hall: Fingerpri
 
 
 def test_small_rooms_relocate_as_before_unless_asked(paper_fingerprint: Fingerprint) -> None:
-    assert not GridlessSolver(paper_fingerprint, "correlation")._relocate_to_missing
+    assert not GridlessSolver(paper_fingerprint, "correlation").room.relocate_to_missing
     options = GridlessOptions(relocate_to_missing=True)
-    assert GridlessSolver(paper_fingerprint, "correlation", options)._relocate_to_missing
+    assert GridlessSolver(paper_fingerprint, "correlation", options).room.relocate_to_missing

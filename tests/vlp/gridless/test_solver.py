@@ -132,12 +132,16 @@ def test_far_relocation_is_the_power_models_default_in_small_rooms(
     paper_fingerprint: Fingerprint,
 ) -> None:
     power = GridlessSolver(paper_fingerprint, "power")
-    assert (power._relocate_far, power._grow_without_noise, power._restarts) == (True, True, 0)
+    assert (power.room.relocate_far, power.room.grow_without_noise, power.room.restarts) == (
+        True,
+        True,
+        0,
+    )
     correlation = GridlessSolver(paper_fingerprint, "correlation")
-    assert (correlation._relocate_far, correlation._grow_without_noise) == (False, False)
-    assert correlation._restarts == 1
+    assert (correlation.room.relocate_far, correlation.room.grow_without_noise) == (False, False)
+    assert correlation.room.restarts == 1
     options = GridlessOptions(relocate_far=False)
-    assert GridlessSolver(paper_fingerprint, "power", options)._restarts == 1
+    assert GridlessSolver(paper_fingerprint, "power", options).room.restarts == 1
 
 
 def _power_trials(

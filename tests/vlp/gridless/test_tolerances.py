@@ -14,8 +14,11 @@ from app.vlp.layout import Layout, Reflectance
 from app.vlp.measurements import measurement_from_amplitudes
 from app.vlp.metrics import mean_position_error
 from app.vlp.simulation import Impairments, random_positions, simulate_terminals
+from app.vlp.solvers.gridless.fitting import Run
 from app.vlp.solvers.gridless.model import FitState, Whitening, target_gains
-from app.vlp.solvers.gridless.solver import GridlessOptions, GridlessSolver, _Run
+from app.vlp.solvers.gridless.search import refine
+from app.vlp.solvers.gridless.solver import GridlessOptions, GridlessSolver
+from app.vlp.solvers.gridless.stages import tolerance_tilt_sd, with_room_tolerances
 from app.vlp.solvers.gridless.tolerances import (
     GridMoves,
     RoomTolerances,
@@ -53,7 +56,7 @@ def test_jacobian_matches_central_differences(
 ) -> None:
     rng = np.random.default_rng(0)
     k = 3
-    kernel = reflecting_solver._kernel
+    kernel = reflecting_solver.room.kernel
     state = _state(rng, k, kernel.receiver_height)
     tolerances = dataclasses.replace(_TOLERANCES, tilt_sd=tilt_sd)
     model = _JointModel(kernel, state.heights, (0.1, 0.5), tolerances)
@@ -76,7 +79,7 @@ def test_jacobian_matches_central_differences(
 
 def test_without_tolerances_the_model_is_the_solver_s(reflecting_solver: GridlessSolver) -> None:
     rng = np.random.default_rng(1)
-    kernel = reflecting_solver._kernel
+    kernel = reflecting_solver.room.kernel
     state = _state(rng, 4, kernel.receiver_height)
     model = _JointModel(kernel, state.heights, (0.1, 0.5), _TOLERANCES)
     theta = model.pack(state)
@@ -208,7 +211,7 @@ STUCK_SEEDS = 20
 
 def _stuck_fit(
     fingerprint: Fingerprint, seed: int, jumps: bool
-) -> tuple[GridlessSolver, _Run, FitState, np.ndarray]:
+) -> tuple[GridlessSolver, Run, FitState, np.ndarray]:
     """Six terminals under LED tolerances, and the nominal fit refined (no escapes) from a
     start that puts the first estimate next to the terminal farthest from the first's."""
     layout = fingerprint.layout
@@ -218,13 +221,13 @@ def _stuck_fit(
     )
     measurement = measurement_from_amplitudes(simulated.amplitudes, "correlation", 16)
     solver = GridlessSolver(fingerprint, "correlation", GridlessOptions(tolerance_jumps=jumps))
-    run = _Run(values=measurement.values / solver._scale**2, priors=solver._growth_priors)
+    run = Run(values=measurement.values / solver.room.scale**2, priors=solver.room.growth_priors)
     farthest = int(np.argmax(np.linalg.norm(truth - truth[0], axis=1)))
     start = truth.copy()
     start[0] = truth[farthest] + np.array([0.15 if truth[farthest, 0] < 3.5 else -0.15, 0.0])
     heights = np.full(6, layout.grid.receiver_height)
     state = FitState(start, np.ones(6), 0.0, heights, np.zeros(6), 0.0)
-    return solver, run, solver._refine(run, state, 50, 3), truth
+    return solver, run, refine(solver.room, run, state, 50, 3), truth
 
 
 def _matched_errors(estimates: np.ndarray, truth: np.ndarray) -> np.ndarray:
@@ -251,7 +254,7 @@ def test_a_target_on_another_s_terminal_jumps_to_the_one_left_without(
         worst = {}
         for jumps in (False, True):
             solver, run, state, truth = _stuck_fit(paper_fingerprint, seed, jumps)
-            fitted = solver._with_room_tolerances(run, state)
+            fitted = with_room_tolerances(solver.room, run, state)
             assert fitted is not None  # the wrong optimum shows a misfit
             worst[jumps] = float(_matched_errors(fitted.state.positions, truth).max())
         if worst[False] > 1.0:
@@ -271,13 +274,13 @@ def test_the_joint_fit_takes_another_placement_only_when_it_fits_better(
 ) -> None:
     def fit(start: FitState, alternatives: tuple[np.ndarray, ...]) -> np.ndarray:
         # No long moves of single targets (nothing is that far): only the placements.
-        kernel, opts = solver._kernel, solver.options
+        kernel, opts = solver.room.kernel, solver.options
         tolerances = RoomTolerances(
             opts.led_log_amplitude_sd or 0.0, opts.led_half_power_sd_deg, 0.0
         )
         priors = (opts.log_gain_sd or 0.0, opts.log_scale_sd or 0.0)
-        height = solver._priors.height_mean
-        moves = GridMoves(solver._gains, solver._centres, np.inf, height, alternatives)
+        height = solver.room.priors.height_mean
+        moves = GridMoves(solver.room.gains, solver.room.centres, np.inf, height, alternatives)
         fitted = fit_room_tolerances(kernel, run.values, start, priors, tolerances, 3.0, moves)
         assert fitted is not None
         return fitted.state.positions
@@ -294,14 +297,14 @@ def test_the_joint_fit_takes_another_placement_only_when_it_fits_better(
     right = fit(state, (truth,))
     assert _matched_errors(right, truth).max() < 0.25
     # From the right optimum, the wrong placement is tried and left.
-    good_start = solver._refine(run, dataclasses.replace(state, positions=truth.copy()), 50, 3)
+    good_start = refine(solver.room, run, dataclasses.replace(state, positions=truth.copy()), 50, 3)
     from_good = fit(good_start, ())
     np.testing.assert_array_equal(fit(good_start, (state.positions,)), from_good)
 
 
 def _merged_pair_fit(
     fingerprint: Fingerprint, seed: int
-) -> tuple[GridlessSolver, _Run, FitState, np.ndarray]:
+) -> tuple[GridlessSolver, Run, FitState, np.ndarray]:
     """Six terminals under LED tolerances, two of them 25 cm apart, and the nominal fit
     refined (no escapes) from a start with one estimate between the two and another next to
     a third terminal: the pair fitted as one bright estimate, a spare one elsewhere."""
@@ -315,13 +318,13 @@ def _merged_pair_fit(
     )
     measurement = measurement_from_amplitudes(simulated.amplitudes, "correlation", 16)
     solver = GridlessSolver(fingerprint, "correlation")
-    run = _Run(values=measurement.values / solver._scale**2, priors=solver._growth_priors)
+    run = Run(values=measurement.values / solver.room.scale**2, priors=solver.room.growth_priors)
     start = truth.copy()
     start[0] = 0.5 * (truth[0] + truth[1])
     start[1] = truth[2] + np.array([0.15 if truth[2, 0] < 3.5 else -0.15, 0.0])
     heights = np.full(6, layout.grid.receiver_height)
     state = FitState(start, np.ones(6), 0.0, heights, np.zeros(6), 0.0)
-    return solver, run, solver._refine(run, state, 50, 3), truth
+    return solver, run, refine(solver.room, run, state, 50, 3), truth
 
 
 def test_a_close_pair_fitted_as_one_bright_estimate_is_split(
@@ -341,10 +344,15 @@ def test_a_close_pair_fitted_as_one_bright_estimate_is_split(
         priors = (opts.log_gain_sd or 0.0, opts.log_scale_sd or 0.0)
         for offset in worst:
             moves = GridMoves(
-                solver._gains, solver._centres, np.inf, solver._priors.height_mean, (), offset
+                solver.room.gains,
+                solver.room.centres,
+                np.inf,
+                solver.room.priors.height_mean,
+                (),
+                offset,
             )
             fitted = fit_room_tolerances(
-                solver._kernel, run.values, state, priors, tolerances, 3.0, moves
+                solver.room.kernel, run.values, state, priors, tolerances, 3.0, moves
             )
             assert fitted is not None  # a merged pair shows a misfit
             worst[offset].append(float(_matched_errors(fitted.state.positions, truth).max()))
@@ -410,7 +418,7 @@ def test_the_tilts_prior_is_the_layout_s_spread_else_the_hand_held_default(
     paper_room: Layout, paper_fingerprint: Fingerprint
 ) -> None:
     def prior(fingerprint: Fingerprint, options: GridlessOptions) -> float:
-        return GridlessSolver(fingerprint, "correlation", options)._tolerance_tilt_sd()
+        return tolerance_tilt_sd(GridlessSolver(fingerprint, "correlation", options).room)
 
     spread = dataclasses.replace(paper_room.grid, receiver_tilt_sd=4.0)
     declared = build_fingerprint(dataclasses.replace(paper_room, grid=spread))

@@ -13,6 +13,7 @@ from app.vlp.measurements import measurement_from_amplitudes
 from app.vlp.presets import paper_layout
 from app.vlp.simulation import noise_std_for_snr, noisy_amplitudes, random_positions
 from app.vlp.solvers.gridless import GridlessSolver
+from app.vlp.solvers.gridless.fitting import plug_in_whitening, whitening_of
 from app.vlp.solvers.gridless.model import FitState, Whitening
 from app.vlp.solvers.gridless.whitening_memo import MAX_KEPT_VALUES, WhiteningMemo
 
@@ -26,11 +27,11 @@ def _state() -> FitState:
 def test_a_whitening_is_reused_only_for_the_same_values() -> None:
     solver = GridlessSolver(build_fingerprint(paper_layout()), "correlation")
     state = _state()
-    first = solver._whitening(state)
+    first = whitening_of(solver.room, state)
     # Another object with the same values: the same whitening, which is the one computed.
     # (``facts`` describe the values they were computed from: a changed copy starts without.)
-    assert solver._whitening(dataclasses.replace(state, facts=None)) is first
-    fresh = solver._plug_in(state)
+    assert whitening_of(solver.room, dataclasses.replace(state, facts=None)) is first
+    fresh = plug_in_whitening(solver.room, state)
     np.testing.assert_array_equal(first.weights, fresh.weights)
     assert first.rotation is not None and fresh.rotation is not None
     np.testing.assert_array_equal(first.rotation, fresh.rotation)
@@ -45,13 +46,13 @@ def test_a_whitening_is_reused_only_for_the_same_values() -> None:
         dataclasses.replace(state, heights=np.array([0.85, 0.9]), facts=None),
         dataclasses.replace(state, weights=np.array([1.0, 2.0]), facts=None),
     ):
-        assert solver._whitening(changed) is not first
+        assert whitening_of(solver.room, changed) is not first
     # The kernels in use are part of the key (their eigenbases may differ).
     with use_kernels("reference"):
-        assert solver._whitening(state) is not first
+        assert whitening_of(solver.room, state) is not first
     # Each thread keeps its own.
     other: list[Whitening] = []
-    thread = threading.Thread(target=lambda: other.append(solver._whitening(state)))
+    thread = threading.Thread(target=lambda: other.append(whitening_of(solver.room, state)))
     thread.start()
     thread.join()
     assert other[0] is not first
@@ -86,7 +87,7 @@ def test_large_whitenings_are_not_kept() -> None:
 
 def test_whitened_data_is_kept_for_the_same_array() -> None:
     solver = GridlessSolver(build_fingerprint(paper_layout()), "correlation")
-    white = solver._whitening(_state())
+    white = whitening_of(solver.room, _state())
     values = np.linspace(0.0, 1.0, white.weights.shape[0])
     first = white.data(values)
     assert white.data(values) is first

@@ -43,7 +43,7 @@ class GridlessOptions:
     whiten_rounds: int = 3
     # K read off the rank of R: a search whose fit shows a common scale more than this far
     # (relative) from the one it ran at is repeated at that scale
-    # (GridlessSolver._search_at_scale; None: never).
+    # (gridless.search.search_at_scale; None: never).
     rescale_search: float | None = 0.05
     # K unknown: read it off the correlation matrix's rank where its spectrum says
     # (app.vlp.measurements.summed_terminals), else count by energy (count_threshold).
@@ -103,7 +103,7 @@ class GridlessOptions:
     # of freedom is
     # above ``tolerance_misfit_ratio`` and a score test promises enough; kept only when it
     # lowers that cost by more than its extra parameters' chi-square mean plus
-    # ``tolerance_significance`` standard deviations (GridlessSolver._with_room_tolerances).
+    # ``tolerance_significance`` standard deviations (gridless.stages.with_room_tolerances).
     led_log_amplitude_sd: float | None = 0.05
     led_half_power_sd_deg: float = 3.0
     room_tilt_sd: float = 0.0

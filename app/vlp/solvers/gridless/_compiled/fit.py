@@ -515,7 +515,7 @@ def correlation_scores_kernel(
     white: Problem, residual: FloatArray, gains: FloatArray
 ) -> tuple[FloatArray, FloatArray]:
     """``<c psi_j, r>`` and ``||c psi_j||^2`` of every grid point (dense correlation model,
-    gains (M, N)), the reference being ``GridlessSolver._correlations``.
+    gains (M, N)), the reference being ``gridless.fitting.grid_correlations``.
 
     With ``rot = U^T G``: ``<c psi_j, r> = rot_j^T Q rot_j`` for ``Q`` the symmetrised
     weighted residual in the rotated basis, and ``||c psi_j||^2 = sq_j^T C sq_j`` for
@@ -566,7 +566,7 @@ def correlation_profiles_kernel(
     targets: FloatArray,
     multipliers: FloatArray,
 ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
-    """The inner products behind ``GridlessSolver._profiles`` (dense correlation model), its
+    """The inner products behind ``gridless.report.profiles`` (dense correlation model), its
     NumPy code being the reference: with ``a_j`` the whitened unit atom of grid point j
     (gains (M, N)) and ``a_k`` that of estimate k (its gains ``targets[:, k]``, (M, K), and
     effective weight ``multipliers[k]``), returns ``<a_j, r + w_k a_k>`` (K, N),

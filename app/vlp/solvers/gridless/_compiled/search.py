@@ -1,8 +1,8 @@
 """Compiled steps of the ``gridless`` search: an ADCG growth step and whitened refinement.
 
-Stand-ins for :meth:`GridlessSolver._grow` and :meth:`GridlessSolver._refine` in dense
+Stand-ins for :func:`.gridless.search.grow` and :func:`.gridless.search.refine` in dense
 rooms with the correlation model during the search (positions and noise only;
-:meth:`GridlessSolver._compiled_search` says when):
+:func:`.gridless.search.compiled_search` says when):
 
 - :func:`growth_kernel`: growth steps (:func:`_growth_step`: the plug-in whitening of the
   current state, its whitened residual, the insertion scores of every grid point, the best

@@ -1,8 +1,8 @@
 """Compiled covariance of a ``gridless`` answer: the model-error sandwich in one call.
 
-Stands in for the NumPy path of :meth:`GridlessSolver._uncertainty` (its reference, with
-:meth:`GridlessSolver._misfit_columns`, :meth:`GridlessSolver._perturbation_columns`,
-:meth:`GridlessSolver._shape_gradients` and, in :mod:`app.vlp.uncertainty`,
+Stands in for the NumPy path of :func:`.gridless.uncertainty.fit_uncertainty` (its reference, with
+:func:`.gridless.uncertainty.misfit_columns`, :func:`.gridless.uncertainty.perturbation_columns`,
+:func:`.gridless.uncertainty.shape_gradients` and, in :mod:`app.vlp.uncertainty`,
 :func:`misfit_design`, :func:`fit_misfit` and :func:`predictive_covariances`, whose
 docstrings give the method). Every answer pays for it, and in NumPy it is some forty small
 calls. Arguments are the tuples of :mod:`.gridless._compiled.fit`. Private: callers validate.
@@ -78,7 +78,7 @@ def misfit_columns_kernel(
     layout: Problem,
     level: bool,
 ) -> tuple[FloatArray, IntArray]:
-    """``GridlessSolver._misfit_columns`` side by side: each target's relative error per LED
+    """``gridless.uncertainty.misfit_columns`` side by side: each target's relative error per LED
     (K M columns), its photodiode's tilt (2 K; zeros when ``level``, the layout's
     photodiodes facing straight up), and its height (K) unless heights are fitted; and the
     number of columns of each kind."""
@@ -481,7 +481,7 @@ def uncertainty_kernel(
     max_noise: float,
     level: bool,
 ) -> tuple[FloatArray, float]:
-    """``GridlessSolver._uncertainty`` at ``theta``: the position covariances (K, 2, 2)
+    """``gridless.uncertainty.fit_uncertainty`` at ``theta``: the position covariances (K, 2, 2)
     and the whitened data cost at the optimum (``level``: as
     :func:`misfit_columns_kernel`)."""
     augmented = _augmented(channel, table, white, data, theta, fixed, layout, priors)

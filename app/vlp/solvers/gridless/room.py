@@ -1,0 +1,243 @@
+"""The frozen per-room precomputation of the default solver (:class:`PreparedRoom`).
+
+Everything that depends only on the fingerprint, the model and the options -- the channel
+kernel, the grid's gains and their energies, the nuisance priors and stages, the resolved
+``auto`` policies, the large rooms' scans and windows, the compiled search's constants -- is
+computed once when the solver is built; solves only read it (solver objects are shared
+between threads).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+from typing import Any
+
+import numpy as np
+
+from ...ambiguity import (
+    twins_possible,
+)
+from ...fingerprints import Fingerprint
+from ...measurements import Model
+from ...simulation import mean_signal_power
+from ...typing import FloatArray
+from ..base import MAX_TARGETS
+from ._compiled.channel import channel_constants
+from .channel import ChannelKernel
+from .local import PowerScan, TerminalWindows
+from .model import (
+    FitState,
+    Objective,
+    Priors,
+    Whitening,
+    _Slots,
+    compiled_indices,
+)
+from .options import (
+    LM_DEFAULTS,
+    GridlessOptions,
+    LevenbergMarquardtSettings,
+    diffuse_table,
+    nuisance_priors,
+    pick,
+)
+from .whitening_memo import WhiteningMemo
+
+# Largest model-error design (observations x targets x LEDs) held for the covariance; a
+# larger room falls back to the reduced chi-square's inflation.
+MAX_MISFIT_ENTRIES = 4_000_000
+# Largest gains matrix (M x N entries) whose grid the far-optimum scans read per answer
+# (gridless.report.terminal_far_optima and _aggregated_far_optima; K x M x N per answer, M^2 N per
+# target for the correlation).
+_MAX_PROFILE_ENTRIES = 1_000_000
+# Grid steps added to the reach of a local refinement (targets move a little while fitted).
+_NEAR_MARGIN_STEPS = 4.0
+
+
+class PreparedRoom:
+    """The default solver's per-room precomputation: built once per solver, read by every
+    solve (attributes documented where they are set)."""
+
+    def __init__(self, fingerprint: Fingerprint, model: Model, options: GridlessOptions) -> None:
+        self.fingerprint = fingerprint
+        self.model: Model = model
+        self.options = options
+        defaults = LM_DEFAULTS[model]
+        self.lm = LevenbergMarquardtSettings(
+            inner_iter=pick(self.options.inner_iter, defaults.inner_iter),
+            initial_damping=pick(self.options.initial_damping, defaults.initial_damping),
+            tol=pick(self.options.lm_tol, defaults.tol),
+        )
+        layout = fingerprint.layout
+        self.scale = float(np.sqrt(mean_signal_power(fingerprint)))
+        self.kernel = ChannelKernel(layout, self.scale, diffuse_table(fingerprint))
+        # The power model has M values for 2K + 1 unknowns and a poorly identified noise
+        # level (its noise atom is nearly a signal direction): its whitened statistics cannot
+        # tell a freed nuisance from noise (an ideal room freed the scale in many K = 1 solves
+        # and lost accuracy), so nuisances are fitted for correlation (and terminals).
+        self.priors = nuisance_priors(
+            layout,
+            self.options if model == "correlation" else replace(self.options, log_gain_sd=None),
+        )
+        self.growth_priors = Priors(height_mean=self.priors.height_mean)
+        # The covariance's noise variance, whitened: at most the whitening's own (1) where
+        # the noise atom measures the noise (correlation: the diagonal of R); free for the
+        # power model, whose noise atom (ones) is nearly a signal direction, so its fitted
+        # noise level says nothing (0 in a third of ideal-room fits, several times the
+        # truth in others) and only the residuals' scatter measures the noise.
+        self.noise_identified = model == "correlation"
+        self.max_noise = 1.0 if self.noise_identified else math.inf
+        # Nuisances are freed in stages: the common scale and the heights, then the gains.
+        full = self.priors
+        scale_and_heights = replace(full, log_gain_sd=None)
+        self.stages = [
+            stage
+            for stage in (scale_and_heights, full)
+            if _Slots.make(1, stage, self.options.free_weights).size
+            > _Slots.make(1, self.growth_priors, self.options.free_weights).size
+        ]
+        if len(self.stages) == 2 and self.stages[0] == self.stages[1]:
+            self.stages.pop()
+        # Whitenings already computed, by state values (.gridless.whitening_memo).
+        self.whitenings = WhiteningMemo()
+        # Plain least squares (one object: the compiled kernels keep their view of it).
+        self.identity = Whitening.identity(model, fingerprint.n_leds)
+        self.centres = layout.cell_centres()
+        self.led_xy = np.ascontiguousarray(layout.led_positions[:, :2])
+        self.dense = fingerprint.is_dense
+        # Photodiodes the layout says face straight up: no tilt to fit or allow for.
+        self.receivers_level = layout.grid.receivers_level
+        # Most rooms have no mirror twins anywhere: their answers skip the check (decided
+        # here, once, in dense rooms; large ones check every answer).
+        floor = layout.room
+        self.twins_possible = not self.dense or twins_possible(
+            self.centres, self.led_xy, self.gains_at, (floor.length, floor.width)
+        )
+        self.relocate_to_missing = (
+            not self.dense
+            if self.options.relocate_to_missing is None
+            else self.options.relocate_to_missing
+        )
+        self.relocate_far = (
+            model == "power" and self.dense
+            if self.options.relocate_far is None
+            else self.options.relocate_far
+        )
+        self.grow_without_noise = (
+            model == "power" and self.dense
+            if self.options.grow_without_noise is None
+            else self.options.grow_without_noise
+        )
+        self.restarts = pick(self.options.restarts, 0 if self.relocate_far else 1)
+        # Restarts begin away from earlier first insertions, by half the mean LED height
+        # above the receivers (about the size of one LED's bright spot).
+        heights = layout.led_positions[:, 2] - layout.grid.receiver_height
+        self.avoid_radius = 0.5 * float(np.mean(heights))
+        n_obs = (
+            fingerprint.n_leds
+            if model == "power"
+            else fingerprint.n_leds * (fingerprint.n_leds + 1) // 2
+        )
+        self.upper_lower = (
+            (
+                np.arange(fingerprint.n_leds),
+                np.arange(fingerprint.n_leds),
+            )
+            if model == "power"
+            else np.triu_indices(fingerprint.n_leds)
+        )
+        # Each target costs 2 coordinates and the noise power one more unknown.
+        self.max_count = max(1, min(MAX_TARGETS, fingerprint.n_cells, (n_obs - 1) // 2))
+        # The far-place scans read every grid point per answer: dense rooms small enough.
+        self.scans_profiles = (
+            self.dense and fingerprint.n_leds * fingerprint.n_cells <= _MAX_PROFILE_ENTRIES
+        )
+        self.relocate_ambiguous = self.scans_profiles and (
+            model == "correlation"
+            if self.options.relocate_ambiguous is None
+            else self.options.relocate_ambiguous
+        )
+        if self.dense:
+            self.gains = np.ascontiguousarray(
+                fingerprint.dense_scaled_gains() / self.scale, dtype=np.float64
+            )
+            self.gains_sq = self.gains**2
+            self.gains_fourth = self.gains_sq**2
+            self.column_energy = np.maximum(self.gains_sq.sum(axis=0), 1e-300)
+        else:
+            self.gains_sparse = fingerprint.scaled_gains() / self.scale
+            if model == "power":  # the correlation model scans through the operator
+                self.gains_sq_sparse = self.gains_sparse.power(2)
+            self.operator = fingerprint.correlation_operator()
+            total = np.asarray(self.gains_sparse.power(2).sum(axis=0)).ravel()
+            fourth = np.asarray(self.gains_sparse.power(4).sum(axis=0)).ravel()
+            self.psi_norms = np.sqrt(0.5 * (total**2 + fourth))
+            self.fourth_sums = fourth
+            self.column_energy = np.maximum(total, 1e-300)
+        self.mean_column_energy = float(np.mean(self.column_energy))
+        # Large rooms: terminals are started near their own footprint (see ._local), as wide
+        # as on the floor (a terminal may send its own height, down to 0).
+        self.windows = None if self.dense else TerminalWindows.build(fingerprint, 0.0)
+        if self.windows is not None and not self.windows.is_useful():
+            self.windows = None
+        # Large rooms (the terminals' rule: windows much smaller than the room), power model:
+        # a refinement after an insertion or a relocation moves only the targets that can
+        # share an LED with the changed ones (see :func:`.fitting.lm_fit_near`). Two
+        # receivers on the plane share an LED only within twice the footprint radius of each
+        # other.
+        self.near_reach: float | None = None
+        if self.windows is not None and model == "power":
+            drop = float(layout.led_positions[:, 2].max()) - layout.grid.receiver_height
+            radius = drop * math.tan(math.radians(layout.receiver.fov_deg))
+            self.near_reach = 2.0 * radius + _NEAR_MARGIN_STEPS * layout.grid.step
+        # Large rooms, power model: insertion scans score only the tiles that can hold the
+        # best point (see ._local.PowerScan; the same argmax as scoring all N).
+        self.power_scan = (
+            PowerScan.build(fingerprint, self.scale, self.fourth_sums)
+            if not self.dense and model == "power" and not self.options.free_weights
+            else None
+        )
+        # The search's growth and refinement steps as one compiled call each
+        # (:func:`.search.grow_compiled`, :func:`.search.refine_compiled`): their constants
+        # (the channel's, the search priors' tuples, the entries' diagonal indicator), and
+        # their bounds per noise ceiling and K.
+        self.search_constants: tuple[Any, ...] | None = None
+        self.search_objectives: dict[float, Objective] = {}
+        constants = channel_constants(self.kernel)
+        if (
+            model == "correlation"
+            and self.dense
+            and self.near_reach is None
+            and not self.options.free_weights
+            and constants is not None
+        ):
+            search = self.search_objective(math.inf)
+            one = FitState.empty().with_target(np.zeros(2), self.growth_priors.height_mean)
+            _, search_layout, search_priors = search.compiled_state(one)
+            _, _, is_diag = compiled_indices(model, fingerprint.n_leds)
+            self.search_constants = (*constants, search_layout, search_priors, is_diag)
+        # The faintest (5th percentile: corners out of view aside) and brightest grid points.
+        self.energy_band = (
+            float(np.percentile(self.column_energy, 5.0)),
+            float(np.max(self.column_energy)),
+        )
+
+    def gains_at(self, points: FloatArray) -> FloatArray:
+        """The channel gains (M, P) at ``points`` (P, 2) on the receivers' plane."""
+        return self.kernel.gains_xy(points[:, 0], points[:, 1])
+
+    def search_objective(self, ceiling: float) -> Objective:
+        """An objective of the search priors with the noise at most ``ceiling``, for its
+        parameter layout and bounds (its data are never read)."""
+        found = self.search_objectives.get(ceiling)
+        if found is None:
+            found = self.search_objectives[ceiling] = Objective(
+                self.kernel,
+                self.identity,
+                np.zeros(self.identity.weights.shape[0]),
+                self.options.free_weights,
+                self.growth_priors,
+                ceiling,
+            )
+        return found

@@ -1,0 +1,297 @@
+"""Terminals that send their own amplitudes (docs/explanation/solver.md, "Terminals"): each
+located by its own fit (:func:`.terminals.fit_terminal`), the noise and the model errors'
+variances pooled over all of them, the LEDs' errors weighted in when they explain a
+significant share of the residuals, and the answer's radii and sentences.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import numpy as np
+
+from ...scale import check_amplitude_scale
+from ...typing import FloatArray
+from ...uncertainty import (
+    FITS_TO_NOISE,
+    Misfit,
+    MisfitDesign,
+    assess_fit,
+    fit_misfit,
+    own_excess_widening,
+    predictive_covariances,
+)
+from .._censored import censored_substitutes, with_censored_variance
+from ..base import Solution
+from .report import (
+    reported,
+    terminal_far_optima,
+)
+from .room import PreparedRoom
+from .terminals import TerminalFit, fit_terminal, starting_cells
+from .uncertainty import (
+    compiled_misfit_design,
+    response_covariances,
+    shape_gradients,
+)
+
+# Share of the terminals' residual sum of squares that the LEDs' relative errors must
+# explain, in standard deviations of the noise's chi-square, for the terminals to be
+# refitted with the LEDs' errors in their weights.
+_LED_WEIGHT_SIGNIFICANCE = 3.0
+# ... and the largest relative sd of an LED's error taken for one: data sheets bin flux
+# within +-10-15 %; a larger estimate is a fit that does not hold (a terminal placed far
+# off in a badly lit room), which the weights would make worse
+# (docs/decisions/led-errors-in-terminal-weights.md).
+_MAX_LED_ERROR_SD = 0.25
+
+
+def solve_terminals(
+    room: PreparedRoom,
+    amplitudes: FloatArray,
+    heights: FloatArray | None = None,
+    normals: FloatArray | None = None,
+    floors: FloatArray | None = None,
+) -> Solution:
+    """Locate each terminal from its own amplitudes; estimate k belongs to terminal k.
+
+    Parameters
+    ----------
+    amplitudes : ndarray of shape (K, M)
+        Each terminal's received pilot amplitudes (validated by the caller); NaN where
+        the LED was not detected (censored below the terminal's floor: :mod:`._censored`).
+    heights : ndarray of shape (K,) or None, metres
+        Terminals' own heights; NaN (or None for all) where unknown.
+    normals : ndarray of shape (K, 3) or None
+        Terminals' photodiode unit normals; None for straight up.
+    floors : ndarray of shape (K,) or None
+        Terminals' detection floors (amplitude units); NaN (or None for all): the
+        weakest amplitude each detected.
+
+    Notes
+    -----
+    See :mod:`.gridless.terminals`. Two passes: without priors, to estimate the amplitude
+    noise variance pooled over the terminals (its residual sum of squares over its
+    degrees of freedom), then with the gain and height priors weighted by it (each
+    terminal's gain held at 1 and its photodiode level unless freeing them lowers the
+    cost significantly, or its tilt fitted with the layout's ``receiver_tilt_sd`` as
+    the prior when it declares one: :func:`.terminals.fit_terminal`). The covariance of
+    each position is the sandwich of its whitened fit with the noise and
+    the model errors the fit does not fit (:func:`terminal_misfit_columns`), their
+    variances estimated from all terminals' residuals together (the first pass's noise
+    level holds part of the misfit, so the noise variance is re-estimated with them)
+    and widened for their degrees of freedom (:mod:`app.vlp.uncertainty`). When the
+    LEDs' relative errors explain a significant share of the residuals
+    (:func:`_led_errors_seen`; option ``terminal_led_weights``), a third pass refits each
+    terminal with each amplitude's variance the noise's plus that error's, and the
+    variances are estimated again from its residuals.
+    """
+    # [censored hook] LEDs not detected enter as their interval below the floor.
+    amplitudes, censored_var = censored_substitutes(
+        np.asarray(amplitudes, dtype=np.float64), floors
+    )
+    check_amplitude_scale(room.fingerprint, amplitudes)
+    values = amplitudes / room.scale
+    censored_var = censored_var / room.scale**2
+    n_terminals, n_leds = values.shape
+    windows = room.windows
+    if windows is None:
+        if room.dense:
+            correlations = values @ room.gains
+        else:
+            correlations = np.asarray((room.gains_sparse.T @ values.T).T)
+        scores = np.where(correlations > 0.0, correlations**2 / room.column_energy, 0.0)
+    spacing = 2.0 * room.fingerprint.layout.grid.step
+    own_heights = [
+        None if heights is None or not np.isfinite(heights[k]) else float(heights[k])
+        for k in range(n_terminals)
+    ]
+    own_normals = [None if normals is None else normals[k] for k in range(n_terminals)]
+    # The layout's tilt spread, when it declares one, is each unknown tilt's prior; a
+    # layout whose photodiodes are level has no tilt to fit.
+    declared_tilt_sd = math.radians(room.fingerprint.layout.grid.receiver_tilt_sd)
+    tilt_spread_known = room.options.tilt_sd is not None and declared_tilt_sd > 0
+    tilt_sd = declared_tilt_sd if tilt_spread_known else room.options.tilt_sd
+    if room.receivers_level:
+        tilt_sd = None
+    first = []
+    for k in range(n_terminals):
+        kernel, seen, unseen_energy = room.kernel, values[k], 0.0
+        if windows is None:
+            cells = starting_cells(scores[k], room.centres, spacing)
+        else:
+            # Large rooms: the first pass (starts and the noise estimate) fits the LEDs
+            # near the terminal; the second pass below fits all of them.
+            cells = windows.starting_cells(values[k], room.centres, spacing)
+            kernel, inside = windows.near_kernel(values[k], room.scale)
+            seen = values[k][inside]
+            unseen_energy = float(values[k] @ values[k] - seen @ seen)
+        fit = fit_terminal(
+            kernel,
+            seen,
+            room.centres[cells],
+            priors=room.priors,
+            sigma2=None,
+            height=own_heights[k],
+            normal=own_normals[k],
+            tilt_sd=tilt_sd,
+            tilt_spread_known=tilt_spread_known,
+        )
+        first.append(replace(fit, rss=fit.rss + unseen_energy))
+    dof = np.array([max(n_leds - fit.n_params, 1) for fit in first])
+    sigma2 = sum(fit.rss for fit in first) / float(dof.sum())
+    fits = [
+        fit_terminal(
+            room.kernel,
+            values[k],
+            first[k].position[None, :],
+            priors=room.priors,
+            sigma2=with_censored_variance(sigma2, censored_var[k]),  # [censored hook]
+            height=own_heights[k],
+            normal=own_normals[k],
+            tilt_sd=tilt_sd,
+            tilt_spread_known=tilt_spread_known,
+        )
+        for k in range(n_terminals)
+    ]
+
+    def misfit_of(
+        fits: list[TerminalFit], led_errors: bool = True
+    ) -> tuple[list[MisfitDesign], Misfit]:
+        designs = [
+            compiled_misfit_design(
+                fit.jacobian,
+                fit.normal,
+                terminal_misfit_columns(
+                    room, fit, own_heights[k] is not None, own_normals[k] is not None, led_errors
+                ),
+            )
+            for k, fit in enumerate(fits)
+        ]
+        return designs, fit_misfit(designs, [fit.residual for fit in fits])
+
+    designs, misfit = misfit_of(fits)
+    # The goodness of fit is the layout's own, with one weight for all amplitudes: the
+    # reweighted fit below explains its residuals by construction.
+    chi2 = np.array([fit.rss for fit in fits]) / max(sigma2, 1e-300)
+    led_error = float(misfit.model_errors[0]) if misfit.model_errors.size else 0.0
+    reweighted = room.options.terminal_led_weights and _led_errors_seen(designs, led_error)
+    if reweighted:
+        fits = [
+            fit_terminal(
+                room.kernel,
+                values[k],
+                fit.position[None, :],
+                priors=room.priors,
+                sigma2=with_censored_variance(  # [censored hook]
+                    misfit.noise * sigma2
+                    + led_error * (fit.jacobian[:, -1] / fit.data_weight) ** 2,
+                    censored_var[k],
+                ),
+                height=own_heights[k],
+                normal=own_normals[k],
+                tilt_sd=tilt_sd,
+                tilt_spread_known=tilt_spread_known,
+            )
+            for k, fit in enumerate(fits)
+        ]
+        # The LEDs' errors are in the weights now: a model error along them as well
+        # would count them twice (radii too wide).
+        designs, misfit = misfit_of(fits, led_errors=False)
+    covariances = np.array(
+        [
+            predictive_covariances(design, misfit, np.array([[0, 1]]))[0]
+            # A terminal whose own residual the pooled variances do not explain: its radius
+            # says so (a terminal at a wrong optimum, or more impaired than the rest).
+            * own_excess_widening(design, fit.residual, misfit)
+            for design, fit in zip(designs, fits, strict=True)
+        ]
+    )
+    if declared_tilt_sd > 0:
+        for k, fit in enumerate(fits):
+            if not (fit.free_tilt or own_normals[k] is not None):
+                covariances[k] += terminal_tilt_covariance(room, fit, declared_tilt_sd)
+    log_gains = np.array([fit.log_gain for fit in fits])
+    positions = np.array([fit.position for fit in fits])
+    fit_quality = assess_fit(
+        float(chi2.sum()), int(dof.sum()), math.exp(float(np.median(log_gains)))
+    )
+    if reweighted and fit_quality.quality != "scale_mismatch":
+        seen = (
+            f"the residuals grow with the amplitudes as if the LEDs were about "
+            f"{100.0 * math.sqrt(led_error):.0f} % off their data sheet, and the brightest "
+            "were weighted down for it (a survey calibration measures them)"
+        )
+        # The noise level was estimated from the same residuals: "to its noise" would
+        # hide what they show.
+        detail = seen if fit_quality.detail == FITS_TO_NOISE else f"{fit_quality.detail}; {seen}"
+        fit_quality = replace(fit_quality, detail=detail)
+    far = terminal_far_optima(room, values, positions, covariances, sigma2)
+    covariances, fit_quality = reported(room, positions, covariances, fit_quality, far)
+    return Solution(
+        positions=positions,
+        grid_indices=room.fingerprint.layout.nearest_cell(positions),
+        weights=np.ones(n_terminals),
+        noise_power=n_terminals * sigma2 * room.scale**2,
+        residual_norm=math.sqrt(sum(fit.rss for fit in fits)) * room.scale,
+        n_iter=len(fits),
+        converged=True,
+        covariances=covariances,
+        gains=np.exp(log_gains),
+        heights=np.array([fit.height for fit in fits])
+        if room.priors.fits_heights or heights is not None
+        else None,
+        fit=fit_quality,
+    )
+
+
+def terminal_tilt_covariance(room: PreparedRoom, fit: TerminalFit, tilt_sd: float) -> FloatArray:
+    """A terminal's position covariance from a photodiode tilt of the layout's spread
+    that its fit holds level, shape (2, 2): as :func:`.uncertainty.tilt_covariances`, with the
+    terminal's own whitened Jacobian (position first)."""
+    gradient = shape_gradients(room, fit.position[np.newaxis, :], np.array([fit.height]))[0]
+    weight = np.reshape(fit.data_weight, (-1, 1))
+    columns = weight * math.exp(fit.log_gain) * gradient[:, 1:3]  # (M, 2)
+    position = np.array([[0, 1]])
+    covariances = response_covariances(fit.normal, fit.jacobian.T, columns, position, tilt_sd)
+    return np.asarray(covariances[0])
+
+
+def terminal_misfit_columns(
+    room: PreparedRoom,
+    fit: TerminalFit,
+    height_known: bool,
+    normal_known: bool,
+    led_errors: bool = True,
+) -> list[FloatArray]:
+    """Whitened derivatives of a terminal's amplitudes along the errors its fit does not
+    fit, as :func:`.uncertainty.misfit_columns`: each LED's relative error, (M, M), then the
+    photodiode's tilt, (M, 2), and its height, (M, 1), unless fitted or sent by the
+    terminal (or, for the tilt, the layout's photodiodes are level), or for the LEDs'
+    errors ``led_errors`` False (their variance already in the fit's weights) (then
+    (M, 0): every terminal keeps the same components)."""
+    whitened = fit.jacobian[:, -1]  # the log gain's column: the whitened amplitudes
+    # LEDs out of view give zero columns: left out (a large room has hundreds).
+    seen = (whitened != 0.0) & led_errors
+    columns = [np.diag(whitened)[:, seen]]
+    gradient = shape_gradients(room, fit.position[np.newaxis, :], np.array([fit.height]))[0]
+    scale = np.reshape(fit.data_weight, (-1, 1)) * math.exp(fit.log_gain)
+    unknown_tilt = not (fit.free_tilt or normal_known or room.receivers_level)
+    unknown_height = not (fit.free_height or height_known)
+    columns.append(scale * gradient[:, 1:3] if unknown_tilt else gradient[:, :0])
+    columns.append(scale * gradient[:, 0:1] if unknown_height else gradient[:, :0])
+    return columns
+
+
+def _led_errors_seen(designs: list[MisfitDesign], led_error: float) -> bool:
+    """Whether the LEDs' relative errors, variance ``led_error`` (the first model error of
+    each design), explain more of the residuals' sum of squares than the noise's chi-square
+    scatters (``_LED_WEIGHT_SIGNIFICANCE`` standard deviations): where the room's LEDs are
+    as modelled, a moment estimate of ``led_error`` above 0 is the noise's chance; and
+    whether it is an LED's error at all (relative sd at most ``_MAX_LED_ERROR_SD``)."""
+    if not 0.0 < led_error <= _MAX_LED_ERROR_SD**2:
+        return False
+    seen = led_error * sum(float(design.error_leverages[:, 0].sum()) for design in designs)
+    noise_dof = sum(float(design.noise_leverage.sum()) for design in designs)
+    return seen > _LED_WEIGHT_SIGNIFICANCE * math.sqrt(2.0 * noise_dof)
