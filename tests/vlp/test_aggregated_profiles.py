@@ -19,10 +19,15 @@ from app.vlp.solvers.gridless.fitting import (
     residual_of,
     whitening_of,
 )
-from app.vlp.solvers.gridless.model import FitState, Whitening
 from app.vlp.solvers.gridless.report import profiles
 from app.vlp.solvers.gridless.room import PreparedRoom
 from app.vlp.solvers.gridless.solver import GridlessSolver
+from app.vlp.solvers.gridless.state import (
+    FitState,
+)
+from app.vlp.solvers.gridless.whitening import (
+    Whitening,
+)
 
 
 @pytest.mark.parametrize("model", ["correlation", "power"])

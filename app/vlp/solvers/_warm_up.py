@@ -17,24 +17,24 @@ from .._kernels import kernel_mode
 from ..presets import paper_layout
 from ..uncertainty import confidence_radii
 from .gridless._compiled.channel import channel_constants, channel_rows
-from .gridless._compiled.fit import correlation_profiles_kernel, correlation_scores_kernel
+from .gridless._compiled.scores import correlation_profiles_kernel, correlation_scores_kernel
 from .gridless._compiled.search import growth_kernel, refine_kernel
 from .gridless._compiled.uncertainty import uncertainty_kernel
 from .gridless.channel import ChannelKernel
+from .gridless.joint_model import (
+    JointModel,
+    RoomTolerances,
+)
 from .gridless.lm import STEP_TOL_M
 from .gridless.local import _best_of_tiles
-from .gridless.model import (
-    FitState,
-    Objective,
-    Priors,
-    Whitening,
-    compiled_indices,
-    gram,
-    levenberg_marquardt,
-)
+from .gridless.model import Objective, gram, levenberg_marquardt
 from .gridless.options import LM_DEFAULTS
+from .gridless.state import FitState, Priors
 from .gridless.terminals import _levenberg_marquardt as terminal_fit
-from .gridless.tolerances import RoomTolerances, _JointModel, _levenberg_marquardt
+from .gridless.tolerances import (
+    _levenberg_marquardt,
+)
+from .gridless.whitening import Whitening, compiled_indices
 
 __all__ = ["exercise", "warm_up"]
 
@@ -98,7 +98,7 @@ def exercise() -> None:
             )
     # the joint fit under the room's tolerances (gridless.stages.with_room_tolerances): its
     # metric evaluates the gains; its score test the residual and Jacobian; then its LM
-    joint = _JointModel(kernel, state.heights, (0.1, 0.5), RoomTolerances(0.05, 3.0, 0.07))
+    joint = JointModel(kernel, state.heights, (0.1, 0.5), RoomTolerances(0.05, 3.0, 0.07))
     theta = joint.pack(state)
     white = joint.whitening(theta, state.noise)
     data = white.data(np.ones(white.weights.shape[0]))

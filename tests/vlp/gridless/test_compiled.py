@@ -34,6 +34,8 @@ from app.vlp.solvers import warm_up
 from app.vlp.solvers.gridless._compiled.channel import channel_constants, channel_rows, diffuse_rows
 from app.vlp.solvers.gridless._compiled.fit import (
     _sparse_symmetric_product,
+)
+from app.vlp.solvers.gridless._compiled.scores import (
     correlation_scores_kernel,
 )
 from app.vlp.solvers.gridless._compiled.tolerance import _damped_solve
@@ -44,11 +46,12 @@ from app.vlp.solvers.gridless._compiled.uncertainty import (
 )
 from app.vlp.solvers.gridless.channel import ChannelKernel
 from app.vlp.solvers.gridless.fitting import Run, grid_correlations
+from app.vlp.solvers.gridless.joint_model import (
+    JointModel,
+    RoomTolerances,
+)
 from app.vlp.solvers.gridless.model import (
-    FitState,
     Objective,
-    Priors,
-    Whitening,
     gram,
     gram_reference,
     levenberg_marquardt,
@@ -56,12 +59,17 @@ from app.vlp.solvers.gridless.model import (
 from app.vlp.solvers.gridless.report import profiles
 from app.vlp.solvers.gridless.search import compiled_search, grow, grow_compiled, refine
 from app.vlp.solvers.gridless.solver import GridlessOptions, GridlessSolver
+from app.vlp.solvers.gridless.state import (
+    FitState,
+    Priors,
+)
 from app.vlp.solvers.gridless.tolerances import (
-    RoomTolerances,
-    _JointModel,
     _levenberg_marquardt,
 )
 from app.vlp.solvers.gridless.uncertainty import sandwich_covariances, shape_gradients
+from app.vlp.solvers.gridless.whitening import (
+    Whitening,
+)
 from app.vlp.typing import FloatArray
 from app.vlp.uncertainty import MisfitDesign, fit_misfit, misfit_design
 
@@ -351,7 +359,7 @@ def test_joint_tolerance_model_matches_reference(
     rng = np.random.default_rng(100 * k + 10 * reflecting + (tilt_sd > 0))
     for on_plane in (True, False, False):
         state = random_state(kernel, k, rng, on_plane)
-        model = _JointModel(kernel, state.heights, (0.1, 0.5), RoomTolerances(0.05, 3.0, tilt_sd))
+        model = JointModel(kernel, state.heights, (0.1, 0.5), RoomTolerances(0.05, 3.0, tilt_sd))
         assert model._compiled() is not None
         theta = model.pack(state)
         m = kernel.n_leds
@@ -390,7 +398,7 @@ def test_joint_levenberg_marquardt_matches_reference(
     kernel = joint_kernels[reflecting]
     rng = np.random.default_rng(200 * k + 10 * reflecting + (tilt_sd > 0))
     state = random_state(kernel, k, rng, on_plane=True)
-    model = _JointModel(kernel, state.heights, (0.1, 0.5), RoomTolerances(0.05, 3.0, tilt_sd))
+    model = JointModel(kernel, state.heights, (0.1, 0.5), RoomTolerances(0.05, 3.0, tilt_sd))
     truth = model.pack(state)
     m, at = kernel.n_leds, 3 * k + 1
     truth[at : at + m] = rng.normal(0.0, 0.05, m)
@@ -831,6 +839,7 @@ _NO_CACHE_SCRIPT = textwrap.dedent(
     from app.vlp.presets import paper_layout
     from app.vlp.simulation import true_amplitudes
     from app.vlp.solvers.gridless._compiled import fit
+    from app.vlp.solvers.gridless._compiled.scores import correlation_scores_kernel
     from app.vlp.solvers import warm_up
     from app.vlp.solvers.gridless import GridlessSolver
 
@@ -843,7 +852,7 @@ _NO_CACHE_SCRIPT = textwrap.dedent(
     from app.vlp.simulation import noisy_amplitudes
 
     kernels = [fit.lm_kernel, fit.gram_kernel, fit.residual_kernel, fit.whitening_kernel,
-               fit.whiten_kernel, fit.correlation_scores_kernel, channel_rows,
+               fit.whiten_kernel, correlation_scores_kernel, channel_rows,
                uncertainty_kernel, joint.joint_gains_kernel, joint.joint_residual_kernel,
                joint.joint_lm_kernel, terminal_lm_kernel, radial_roots_kernel,
                growth_kernel, refine_kernel]

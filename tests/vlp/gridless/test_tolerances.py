@@ -15,15 +15,23 @@ from app.vlp.measurements import measurement_from_amplitudes
 from app.vlp.metrics import mean_position_error
 from app.vlp.simulation import Impairments, random_positions, simulate_terminals
 from app.vlp.solvers.gridless.fitting import Run
-from app.vlp.solvers.gridless.model import FitState, Whitening, target_gains
+from app.vlp.solvers.gridless.joint_model import (
+    JointModel,
+    RoomTolerances,
+)
 from app.vlp.solvers.gridless.search import refine
 from app.vlp.solvers.gridless.solver import GridlessOptions, GridlessSolver
 from app.vlp.solvers.gridless.stages import tolerance_tilt_sd, with_room_tolerances
+from app.vlp.solvers.gridless.state import (
+    FitState,
+)
 from app.vlp.solvers.gridless.tolerances import (
     GridMoves,
-    RoomTolerances,
-    _JointModel,
     fit_room_tolerances,
+)
+from app.vlp.solvers.gridless.whitening import (
+    Whitening,
+    target_gains,
 )
 from app.vlp.uncertainty import confidence_radii
 
@@ -59,7 +67,7 @@ def test_jacobian_matches_central_differences(
     kernel = reflecting_solver.room.kernel
     state = _state(rng, k, kernel.receiver_height)
     tolerances = dataclasses.replace(_TOLERANCES, tilt_sd=tilt_sd)
-    model = _JointModel(kernel, state.heights, (0.1, 0.5), tolerances)
+    model = JointModel(kernel, state.heights, (0.1, 0.5), tolerances)
     assert model.size() == 3 * k + 2 * 16 + (2 * k if tilt_sd else 0) + 2
     theta = model.pack(state)
     theta[3 * k + 1 : -1] = 0.05 * rng.standard_normal(theta.shape[0] - 3 * k - 2)
@@ -81,7 +89,7 @@ def test_without_tolerances_the_model_is_the_solver_s(reflecting_solver: Gridles
     rng = np.random.default_rng(1)
     kernel = reflecting_solver.room.kernel
     state = _state(rng, 4, kernel.receiver_height)
-    model = _JointModel(kernel, state.heights, (0.1, 0.5), _TOLERANCES)
+    model = JointModel(kernel, state.heights, (0.1, 0.5), _TOLERANCES)
     theta = model.pack(state)
     gains, multipliers, _ = model.gains(theta)
     np.testing.assert_allclose(gains, target_gains(kernel, state), rtol=1e-12)

@@ -14,16 +14,22 @@ import numpy as np
 
 from ..._kernels import kernel_mode
 from ...typing import FloatArray
-from ._compiled.fit import correlation_scores_kernel
+from ._compiled.scores import (
+    correlation_scores_kernel,
+)
 from .model import (
-    FitState,
     Objective,
-    Priors,
-    Whitening,
     _Slots,
     levenberg_marquardt,
 )
 from .room import PreparedRoom
+from .state import (
+    FitState,
+    Priors,
+)
+from .whitening import (
+    Whitening,
+)
 from .whitening_memo import MAX_KEPT_VALUES, state_key
 
 

@@ -9,7 +9,9 @@ from ...fingerprints import Fingerprint
 from ...layout import Layout
 from ...measurements import Model
 from .channel import DiffuseTable
-from .model import Priors
+from .state import (
+    Priors,
+)
 
 __all__ = [
     "LM_DEFAULTS",

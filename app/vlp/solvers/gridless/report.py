@@ -23,18 +23,22 @@ from ...uncertainty import (
     FitQuality,
     bounded_covariances,
 )
-from ._compiled.fit import correlation_profiles_kernel
+from ._compiled.scores import (
+    correlation_profiles_kernel,
+)
 from .fitting import (
     Run,
     grid_correlations,
     whitened_residual,
 )
-from .model import (
+from .room import PreparedRoom
+from .state import (
     FitState,
+)
+from .tolerances import ToleranceFit
+from .whitening import (
     target_gains,
 )
-from .room import PreparedRoom
-from .tolerances import ToleranceFit
 from .whitening_memo import state_key
 
 NO_FIT_TEST = (
@@ -154,7 +158,7 @@ def profiles(room: PreparedRoom, run: Run, state: FitState) -> tuple[FloatArray,
     itself ``||r_k||^2 - ||r||^2``. In the rotated basis (``rho = U^T g``) every inner
     product of atoms is a quadratic form in ``rho_j o rho_k`` with the squared weights,
     so all K profiles cost one pass over the grid each, without forming any ``r_k``
-    (compiled: :func:`.gridless._compiled.fit.correlation_profiles_kernel`, this NumPy code its
+    (compiled: :func:`._compiled.scores.correlation_profiles_kernel`, this NumPy code its
     reference). Kept per run, state values and priors.
     """
     key = (state_key(state), run.priors)

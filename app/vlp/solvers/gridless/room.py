@@ -27,12 +27,8 @@ from ._compiled.channel import channel_constants
 from .channel import ChannelKernel
 from .local import PowerScan, TerminalWindows
 from .model import (
-    FitState,
     Objective,
-    Priors,
-    Whitening,
     _Slots,
-    compiled_indices,
 )
 from .options import (
     LM_DEFAULTS,
@@ -41,6 +37,14 @@ from .options import (
     diffuse_table,
     nuisance_priors,
     pick,
+)
+from .state import (
+    FitState,
+    Priors,
+)
+from .whitening import (
+    Whitening,
+    compiled_indices,
 )
 from .whitening_memo import WhiteningMemo
 

@@ -33,15 +33,17 @@ from .fitting import (
     whitening_of,
 )
 from .lm import STEP_TOL_M
-from .model import (
-    MAX_LOG_SCALE,
-    FitState,
-    Whitening,
-)
 from .report import (
     profiles,
 )
 from .room import PreparedRoom
+from .state import (
+    MAX_LOG_SCALE,
+    FitState,
+)
+from .whitening import (
+    Whitening,
+)
 
 # A count read off the rank of R replaces a smaller count by energy only when its fit's
 # variance ratio against that one is above this (gridless.search.explains_more).

@@ -17,8 +17,10 @@ from .fitting import (
     run_objective,
     whitening_of,
 )
+from .joint_model import (
+    RoomTolerances,
+)
 from .model import (
-    FitState,
     _Slots,
     gram,
 )
@@ -26,7 +28,14 @@ from .room import MAX_MISFIT_ENTRIES, PreparedRoom
 from .search import (
     polish,
 )
-from .tolerances import GridMoves, RoomTolerances, ToleranceFit, fit_room_tolerances
+from .state import (
+    FitState,
+)
+from .tolerances import (
+    GridMoves,
+    ToleranceFit,
+    fit_room_tolerances,
+)
 
 
 def with_nuisances(room: PreparedRoom, run: Run, fixed: FitState) -> FitState:

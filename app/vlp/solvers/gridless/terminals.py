@@ -33,7 +33,10 @@ from .lm import (
     TERMINAL_STEP_TOL_M,
     projected_levenberg_marquardt,
 )
-from .model import MAX_LOG_GAIN, Priors
+from .state import (
+    MAX_LOG_GAIN,
+    Priors,
+)
 
 __all__ = ["TerminalFit", "fit_terminal", "los_with_normal", "starting_cells", "terminal_model"]
 

@@ -28,13 +28,17 @@ from .fitting import (
     whitening_of,
 )
 from .model import (
-    FitState,
     Objective,
     gram,
-    target_gains,
 )
 from .room import MAX_MISFIT_ENTRIES, PreparedRoom
+from .state import (
+    FitState,
+)
 from .tolerances import ToleranceFit
+from .whitening import (
+    target_gains,
+)
 
 
 def response_covariances(

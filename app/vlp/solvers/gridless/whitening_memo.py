@@ -17,7 +17,12 @@ from collections.abc import Callable
 import numpy as np
 
 from ..._kernels import kernel_mode
-from .model import FitState, Whitening
+from .state import (
+    FitState,
+)
+from .whitening import (
+    Whitening,
+)
 
 __all__ = ["MAX_KEPT_VALUES", "WhiteningMemo", "state_key"]
 

@@ -28,11 +28,13 @@ from ....typing import FloatArray
 from .channel import ChannelConstants, TableConstants
 from .fit import (
     Problem,
-    correlation_scores_kernel,
     lm_kernel,
     residual_kernel,
     whiten_kernel,
     whitening_kernel,
+)
+from .scores import (
+    correlation_scores_kernel,
 )
 
 __all__ = ["growth_kernel", "refine_kernel"]

@@ -1,8 +1,8 @@
 """Compiled gains, residual and Jacobian, and LM loop of the joint fit under the room's
 tolerances.
 
-Stand-ins for :meth:`.gridless.tolerances._JointModel.gains`,
-:meth:`~.gridless.tolerances._JointModel.residual_and_jacobian` and the joint fit's
+Stand-ins for :meth:`.gridless.tolerances.JointModel.gains`,
+:meth:`~.gridless.tolerances.JointModel.residual_and_jacobian` and the joint fit's
 ``_levenberg_marquardt`` (:func:`.gridless.lm.projected_levenberg_marquardt`); their NumPy
 code is the reference and documents the model. A 16-LED, 8-target evaluation is a few
 hundred small NumPy operations there, bound by their overhead; a whole LM run is one call
@@ -67,7 +67,7 @@ def joint_gains_kernel(
     heights: FloatArray,
     has_tilts: bool,
 ) -> tuple[FloatArray, FloatArray]:
-    """:meth:`_JointModel.gains`: the pieces (6, M, K) (rows named by the module's
+    """:meth:`JointModel.gains`: the pieces (6, M, K) (rows named by the module's
     constants) and the multipliers ``e^(v + 2 u)`` (K,)."""
     led_x, led_y, led_z = channel[0], channel[1], channel[2]
     free_height_factor, orders, half_exponent = channel[5], channel[6], channel[7]
@@ -152,7 +152,7 @@ def joint_residual_kernel(
     has_tilts: bool,
     prior_inverse_sd: FloatArray,
 ) -> tuple[FloatArray, FloatArray]:
-    """:meth:`_JointModel.residual_and_jacobian`: the residual ``[data - c mu; prior]``
+    """:meth:`JointModel.residual_and_jacobian`: the residual ``[data - c mu; prior]``
     (L + n_prior,) and ``J = d(c mu)/d theta`` with the priors' rows (L + n_prior, P)."""
     pieces, multipliers, rotated = _joint_model(channel, table, white, theta, heights, has_tilts)
     residual = _joint_residual(white, data, theta, rotated, multipliers, prior_inverse_sd)

@@ -1,0 +1,226 @@
+"""The plug-in whitening of the aggregated measurements (docs/explanation/solver.md,
+"Whitening"): the entries' indices, their variances under a state, the whitening itself and
+the targets' gains it is computed from.
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import Any
+
+import numpy as np
+
+from ..._kernels import kernel_mode
+from ...measurements import Model
+from ...typing import FloatArray, IntArray
+from ._compiled.channel import channel_constants
+from ._compiled.fit import (
+    whiten_kernel,
+    whitening_kernel,
+)
+from .channel import ChannelKernel
+from .lm import (
+    EIG_FLOOR,
+    SIGMA2_FLOOR,
+)
+from .state import FitState
+
+# Smallest noise variance assumed when whitening relative to the mean received power (1e-4:
+# an SNR of 40 dB; the absolute floor is SIGMA2_FLOOR).
+_SIGMA2_REL_FLOOR = 1e-4
+
+
+# Whitened measurements of at most this many values are kept by their Whitening.
+_KEPT_DATA_MAX = 4096
+
+
+@functools.lru_cache(maxsize=64)
+def compiled_indices(model: Model, n_leds: int) -> tuple[IntArray, IntArray, FloatArray]:
+    """:func:`_vech_indices` as the compiled kernels take them (writable int64 copies)."""
+    upper, lower, is_diag = _vech_indices(model, n_leds)
+    return (
+        np.array(upper, dtype=np.int64),
+        np.array(lower, dtype=np.int64),
+        np.array(is_diag, dtype=np.float64),
+    )
+
+
+def fixed_tuple(kernel: ChannelKernel, state: FitState) -> tuple[Any, ...]:
+    """The compiled kernels' ``fixed`` tuple of a state (no parameters in theta)."""
+    heights = np.ascontiguousarray(state.heights, dtype=np.float64)
+    facts = state.facts  # as Objective._state_facts: the same kernel's plane
+    if facts is None:
+        unit = (
+            state.log_scale == 0.0
+            and not state.log_gains.any()
+            and bool((state.weights == 1.0).all())
+        )
+        facts = state.facts = (bool((heights == kernel.receiver_height).all()), bool(unit))
+    return (
+        heights,
+        np.ascontiguousarray(state.weights, dtype=np.float64),
+        np.ascontiguousarray(state.log_gains, dtype=np.float64),
+        float(state.log_scale),
+        facts[0],
+        facts[1],
+    )
+
+
+@functools.lru_cache(maxsize=64)
+def _vech_indices(model: Model, n_leds: int) -> tuple[IntArray, IntArray, FloatArray]:
+    """Row and column of each measurement entry and its diagonal indicator (read-only)."""
+    if model == "correlation":
+        upper, lower = np.triu_indices(n_leds)
+    else:
+        upper = lower = np.arange(n_leds)
+    is_diag = (upper == lower).astype(np.float64)
+    for array in (upper, lower, is_diag):
+        array.setflags(write=False)
+    return upper, lower, is_diag
+
+
+def entry_variances(
+    sigma2: float, lam: FloatArray, upper: IntArray, lower: IntArray, is_diag: FloatArray
+) -> FloatArray:
+    """Noise variance of each entry of ``vech(U^T E U)``: ``sigma^2 (lam_a + lam_b)`` off the
+    diagonal, ``4 sigma^2 lam_a`` on it (see :class:`Whitening`), shape (L,).
+
+    Weighting each entry by ``1 / sqrt`` of it is the Gaussian (generalised least-squares)
+    metric, and within a block of equal eigenvalues it is that block's Frobenius norm, so
+    the metric does not depend on which eigenbasis the eigen-solver returns there.
+    """
+    return np.asarray(sigma2 * (lam[upper] + lam[lower]) * (1.0 + is_diag))
+
+
+class Whitening:
+    """Fixed linear whitening ``r -> c * vech(U^T E U)`` (correlation) or ``c * e`` (power).
+
+    The aggregated noise of ``R = sum_k (g_k + n_k)(g_k + n_k)^T`` with i.i.d.
+    ``n ~ N(0, sigma^2 I)`` has, for any symmetric test matrix ``A``,
+    ``Var <A, R> = 4 sigma^2 tr(A M0 A)`` with ``M0 = S + K sigma^2 / 2 I`` and
+    ``S = sum_k g_k g_k^T``. In the eigenbasis ``M0 = U diag(lam) U^T`` the entries of
+    ``U^T E U`` are uncorrelated with variance ``sigma^2 (lam_a + lam_b)`` (``A`` the
+    symmetrised unit pair) and ``4 sigma^2 lam_a`` on the diagonal (:func:`entry_variances`),
+    and ``c`` is one over their square roots. For power the
+    entries are independent with variance ``4 sigma^2 (S_ii + K sigma^2 / 2)``. The noise
+    atom ``vech(I)`` is unchanged by the rotation (``U^T I U = I``).
+    """
+
+    def __init__(
+        self, model: Model, n_leds: int, rotation: FloatArray | None, weights: FloatArray
+    ) -> None:
+        self.model = model
+        self.n_leds = n_leds
+        self.rotation = rotation
+        self.rotation_t = None if rotation is None else np.ascontiguousarray(rotation.T)
+        self.weights = weights
+        self.upper, self.lower, self.is_diag = _vech_indices(model, n_leds)
+        self.weighted_diag = weights * self.is_diag
+        self._compiled: tuple[Any, ...] | None = None
+        self._data: tuple[FloatArray, str, FloatArray] | None = None
+
+    def compiled(self) -> tuple[Any, ...]:
+        """This whitening as the compiled kernels take it (built once)."""
+        if self._compiled is None:
+            upper, lower, _ = compiled_indices(self.model, self.n_leds)
+            # Without a rotation the kernels never read it: empty, not an M x M identity.
+            rotation = np.zeros((0, 0)) if self.rotation is None else self.rotation
+            self._compiled = (
+                self.rotation is not None,
+                np.ascontiguousarray(rotation, dtype=np.float64),
+                np.ascontiguousarray(self.weights, dtype=np.float64),
+                upper,
+                lower,
+                np.ascontiguousarray(self.weighted_diag, dtype=np.float64),
+            )
+        return self._compiled
+
+    @classmethod
+    def identity(cls, model: Model, n_leds: int) -> Whitening:
+        """Plain least squares."""
+        length = n_leds * (n_leds + 1) // 2 if model == "correlation" else n_leds
+        return cls(model, n_leds, None, np.ones(length))
+
+    @classmethod
+    def from_state(
+        cls, model: Model, kernel: ChannelKernel, state: FitState, n_terminals: float
+    ) -> Whitening:
+        """Plug-in whitening from the current fit (sigma^2 = s / K)."""
+        constants = channel_constants(kernel) if kernel_mode() == "compiled" else None
+        if constants is not None and state.n_targets > 0:
+            upper, lower, is_diag = compiled_indices(model, kernel.n_leds)
+            rotation, weights = whitening_kernel(
+                *constants,
+                np.ascontiguousarray(state.positions, dtype=np.float64),
+                fixed_tuple(kernel, state),
+                float(state.noise),
+                float(n_terminals),
+                model == "correlation",
+                upper,
+                lower,
+                is_diag,
+            )
+            return cls(model, kernel.n_leds, rotation if model == "correlation" else None, weights)
+        return cls._from_state_reference(model, kernel, state, n_terminals)
+
+    @classmethod
+    def _from_state_reference(
+        cls, model: Model, kernel: ChannelKernel, state: FitState, n_terminals: float
+    ) -> Whitening:
+        """:meth:`from_state` in plain NumPy (the compiled kernel's reference)."""
+        gains = target_gains(kernel, state)
+        weights = state.effective_weights()
+        # Floor sigma^2 at a fraction of the mean received power per LED and terminal: a
+        # near-zero noise estimate would make the metric singular off the fitted signal.
+        power = float(np.sum(gains**2 * weights)) / (kernel.n_leds * max(n_terminals, 1.0))
+        sigma2 = max(state.noise / max(n_terminals, 1.0), _SIGMA2_REL_FLOOR * power, SIGMA2_FLOOR)
+        half_noise = 0.5 * max(n_terminals, 1.0) * sigma2
+        if model == "power":
+            var = 4.0 * sigma2 * ((gains**2) @ weights + half_noise)
+            return cls(model, kernel.n_leds, None, 1.0 / np.sqrt(var))
+        signal = (gains * weights) @ gains.T
+        signal.flat[:: kernel.n_leds + 1] += half_noise
+        lam, rot = np.linalg.eigh(signal)
+        lam = np.maximum(lam, EIG_FLOOR * max(float(lam[-1]), SIGMA2_FLOOR))
+        upper, lower, is_diag = _vech_indices(model, kernel.n_leds)
+        weights = 1.0 / np.sqrt(entry_variances(sigma2, lam, upper, lower, is_diag))
+        return cls(model, kernel.n_leds, rot, weights)
+
+    def data(self, values: FloatArray) -> FloatArray:
+        """Whitened measurement. The last one is kept (a solve whitens its measurement in
+        one metric many times): callers must not write into it (nor into ``values``). Not
+        flagged read-only: the compiled kernels take writable arrays."""
+        last = self._data
+        if last is not None and last[0] is values and last[1] == kernel_mode():
+            return last[2]
+        whitened = self._data_of(values)
+        if whitened.shape[0] <= _KEPT_DATA_MAX:  # a large room's whitening keeps none
+            self._data = (values, kernel_mode(), whitened)
+        return whitened
+
+    def _data_of(self, values: FloatArray) -> FloatArray:
+        if kernel_mode() == "compiled":
+            return np.asarray(
+                whiten_kernel(self.compiled(), np.ascontiguousarray(values, dtype=np.float64))
+            )
+        if self.rotation is None or self.rotation_t is None:
+            return np.asarray(self.weights * values)
+        full = np.zeros((self.n_leds, self.n_leds))
+        full[self.upper, self.lower] = values
+        full[self.lower, self.upper] = values
+        rotated = self.rotation_t @ full @ self.rotation
+        return np.asarray(self.weights * rotated[self.upper, self.lower])
+
+    def rotate(self, vectors: FloatArray) -> FloatArray:
+        """``U^T V`` for V of shape (M, n)."""
+        if self.rotation_t is None:
+            return vectors
+        return np.asarray(self.rotation_t @ vectors)
+
+
+def target_gains(kernel: ChannelKernel, state: FitState) -> FloatArray:
+    """``g`` of every target of a state (at its height), shape (M, K)."""
+    xs, ys = state.positions[:, 0], state.positions[:, 1]
+    if np.all(state.heights == kernel.receiver_height):
+        return kernel.gains_xy(xs, ys)
+    return kernel.gains_xyz(xs, ys, state.heights)
