@@ -10,7 +10,9 @@ The compiled kernels (the ``*_compiled.py`` modules of :mod:`app.vlp.solvers` an
 (``tests/vlp/gridless/test_compiled.py`` compares them); they exist because a 16-LED problem
 is bound by the per-call overhead of NumPy, not by its arithmetic. The environment variable
 ``VLP_KERNELS`` picks the default (``compiled``, or ``reference``); :func:`use_kernels`
-switches within a process (the benchmarks time both side by side).
+switches within a process (the benchmarks time both side by side). Callers choose between a
+kernel and its reference only through :func:`dispatch` (the function to call) and
+:func:`compiled_only` (a kernel's constants or problem, None with the references).
 
 Compiled functions are cached on disk, in a folder named after a digest of every source file
 of :mod:`app.vlp` (:func:`kernel_cache_dir`) inside ``NUMBA_CACHE_DIR``, else next to the
@@ -28,7 +30,7 @@ import os
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, ParamSpec, TypeVar
 
 import numba
 
@@ -36,7 +38,9 @@ __all__ = [
     "KERNELS",
     "KernelMode",
     "compiled",
+    "compiled_only",
     "compiled_reassociating",
+    "dispatch",
     "kernel_cache_dir",
     "kernel_mode",
     "use_kernels",
@@ -45,6 +49,8 @@ __all__ = [
 KernelMode = Literal["compiled", "reference"]
 KERNELS: tuple[KernelMode, ...] = ("compiled", "reference")
 _ENV = "VLP_KERNELS"
+_P = ParamSpec("_P")
+_R = TypeVar("_R")
 
 
 def _mode_from_env() -> KernelMode:
@@ -104,6 +110,23 @@ _use_keyed_cache()
 def kernel_mode() -> KernelMode:
     """The kernels in use in this process."""
     return _mode
+
+
+def dispatch(kernel: Callable[_P, _R], reference: Callable[_P, _R]) -> Callable[_P, _R]:
+    """The function to call: ``kernel`` (a function of the reference's arguments that runs the
+    compiled code) while the compiled kernels are in use, else its NumPy ``reference``.
+
+    With :func:`compiled_only`, the one place where the science package chooses between a
+    compiled kernel and its reference (the kernel engine's mode is read nowhere else, but as
+    part of a cache key)."""
+    return kernel if _mode == "compiled" else reference
+
+
+def compiled_only(factory: Callable[_P, _R], *args: _P.args, **kwargs: _P.kwargs) -> _R | None:
+    """``factory(*args, **kwargs)`` -- the compiled form of something (a kernel's constants,
+    a problem's tuples) -- while the compiled kernels are in use, else None: the caller then
+    runs the NumPy reference (see :func:`dispatch`)."""
+    return factory(*args, **kwargs) if _mode == "compiled" else None
 
 
 @contextmanager

@@ -262,10 +262,13 @@ def _compiled_radial_roots() -> Callable[..., FloatArray] | None:
     """The compiled Newton iteration of :func:`confidence_radii` while the compiled kernels
     are in use, else None (the NumPy code above is its reference). Imported here, not at the
     top: numba loads with the first radius, not with this module."""
-    from ._kernels import kernel_mode
+    from ._kernels import compiled_only
 
-    if kernel_mode() != "compiled":
-        return None
+    return compiled_only(_load_radial_roots)
+
+
+def _load_radial_roots() -> Callable[..., FloatArray]:
+    """The compiled Newton iteration of :func:`confidence_radii` (loads numba)."""
     from ._radii_compiled import radial_roots_kernel
 
     return cast("Callable[..., FloatArray]", radial_roots_kernel)

@@ -23,7 +23,13 @@ import numpy as np
 import pytest
 from scipy import optimize
 
-from app.vlp._kernels import kernel_cache_dir, kernel_mode, use_kernels
+from app.vlp._kernels import (
+    compiled_only,
+    dispatch,
+    kernel_cache_dir,
+    kernel_mode,
+    use_kernels,
+)
 from app.vlp._reflection_table import ReflectionTable
 from app.vlp.fingerprints import build_fingerprint
 from app.vlp.layout import Grid, Layout, Led, Receiver, Reflectance, Room
@@ -823,6 +829,30 @@ def test_switch_selects_the_reference() -> None:
     assert copy.copy(objective).compiled_problem() is not None
     with pytest.raises(ValueError, match="kernels"), use_kernels("fast"):  # type: ignore[arg-type]
         pass
+
+
+def test_dispatch_point_follows_the_switch() -> None:
+    """:func:`dispatch` and :func:`compiled_only`, the one place that chooses between a
+    compiled kernel and its reference, follow :func:`use_kernels` at every call (not when a
+    caller was built), and :func:`compiled_only` does not build the compiled form otherwise."""
+    built: list[int] = []
+
+    def compiled_form(value: int) -> int:
+        built.append(value)
+        return value + 1
+
+    def kernel(value: int) -> str:
+        return f"kernel {value}"
+
+    def reference(value: int) -> str:
+        return f"reference {value}"
+
+    assert dispatch(kernel, reference)(1) == "kernel 1"
+    assert compiled_only(compiled_form, 1) == 2
+    with use_kernels("reference"):
+        assert dispatch(kernel, reference)(2) == "reference 2"
+        assert compiled_only(compiled_form, 2) is None
+    assert built == [1]
 
 
 _NO_CACHE_SCRIPT = textwrap.dedent(

@@ -12,7 +12,7 @@ from functools import partial
 
 import numpy as np
 
-from ..._kernels import kernel_mode
+from ..._kernels import dispatch
 from ...typing import FloatArray
 from ._compiled.scores import (
     correlation_scores_kernel,
@@ -244,9 +244,8 @@ def grid_correlations(
     room: PreparedRoom, white: Whitening, residual: FloatArray
 ) -> tuple[FloatArray, FloatArray]:
     """``<c psi_j, r>`` and ``||c psi_j||^2`` for every grid point j, shapes (N,)."""
-    n_leds = room.fingerprint.n_leds
-    weighted = white.weights * residual
     if room.model == "power":
+        weighted = white.weights * residual
         if room.dense:
             num = weighted @ room.gains_sq
             norms = (white.weights**2) @ room.gains_fourth
@@ -259,11 +258,28 @@ def grid_correlations(
             else:
                 norms = g2.power(2).T @ white.weights**2
         return np.asarray(num), np.asarray(norms)
-    if room.dense and kernel_mode() == "compiled":
-        num, norms = correlation_scores_kernel(
-            white.compiled(), np.ascontiguousarray(residual, dtype=np.float64), room.gains
-        )
-        return num, norms
+    if room.dense:
+        return dispatch(_dense_scores_kernel, _correlation_scores)(room, white, residual)
+    return _correlation_scores(room, white, residual)
+
+
+def _dense_scores_kernel(
+    room: PreparedRoom, white: Whitening, residual: FloatArray
+) -> tuple[FloatArray, FloatArray]:
+    """:func:`_correlation_scores` of a dense room in one compiled call."""
+    num, norms = correlation_scores_kernel(
+        white.compiled(), np.ascontiguousarray(residual, dtype=np.float64), room.gains
+    )
+    return num, norms
+
+
+def _correlation_scores(
+    room: PreparedRoom, white: Whitening, residual: FloatArray
+) -> tuple[FloatArray, FloatArray]:
+    """:func:`grid_correlations` of the correlation model in NumPy (in a dense room, the
+    reference of :func:`._compiled.scores.correlation_scores_kernel`)."""
+    n_leds = room.fingerprint.n_leds
+    weighted = white.weights * residual
     half = np.zeros((n_leds, n_leds))
     half[white.upper, white.lower] = weighted
     sym = 0.5 * (half + half.T)

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..._kernels import kernel_mode
+from ..._kernels import compiled_only
 from ...typing import FloatArray
 from ._compiled.channel import ChannelConstants, TableConstants, channel_constants
 from ._compiled.tolerance import (
@@ -117,7 +117,7 @@ class JointModel:
 
     def _compiled(self) -> tuple[ChannelConstants, TableConstants] | None:
         """The channel's compiled constants when the compiled kernels are in use, else None."""
-        return self._constants if kernel_mode() == "compiled" else None
+        return compiled_only(lambda: self._constants)
 
     def size(self) -> int:
         return int(3 * self.n_targets + 2 * self.n_leds + self.n_tilts + 2)

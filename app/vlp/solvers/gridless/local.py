@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sp
 
-from ..._kernels import compiled, kernel_mode
+from ..._kernels import compiled, dispatch
 from ...channel import channel_gains
 from ...fingerprints import Fingerprint
 from ...layout import Layout
@@ -295,24 +295,28 @@ class PowerScan:
             tiles = order[done : done + batch]
             done += tiles.shape[0]
             batch *= 2
-            if kernel_mode() == "compiled":
-                by_cell = self.gains_by_cell
-                cell, score, norm = _best_of_tiles(
-                    np.ascontiguousarray(tiles, dtype=np.int64),
-                    (self.n_x, self.n_y, self.tile),
-                    (by_cell.indptr, by_cell.indices, by_cell.data),
-                    self.inverse_scale,
-                    np.ascontiguousarray(residual, dtype=np.float64),
-                    self.fourth_sums,
-                    (2.0 * weight, weight**2, norm_scale),
-                )
-            else:
-                cell, score, norm = self._best_of_tiles_reference(
-                    tiles, residual, weight, norm_scale
-                )
+            cell, score, norm = dispatch(self._best_of_tiles_kernel, self._best_of_tiles_reference)(
+                tiles, residual, weight, norm_scale
+            )
             if score > best_score or (score == best_score and cell < best_cell):
                 best_cell, best_score, best_norm = cell, score, norm
         return best_cell, best_score, best_norm
+
+    def _best_of_tiles_kernel(
+        self, tiles: IntArray, residual: FloatArray, weight: float, norm_scale: float
+    ) -> tuple[int, float, float]:
+        """:meth:`_best_of_tiles_reference` in one compiled call (:func:`_best_of_tiles`)."""
+        by_cell = self.gains_by_cell
+        cell, score, norm = _best_of_tiles(
+            np.ascontiguousarray(tiles, dtype=np.int64),
+            (self.n_x, self.n_y, self.tile),
+            (by_cell.indptr, by_cell.indices, by_cell.data),
+            self.inverse_scale,
+            np.ascontiguousarray(residual, dtype=np.float64),
+            self.fourth_sums,
+            (2.0 * weight, weight**2, norm_scale),
+        )
+        return int(cell), float(score), float(norm)
 
     def _best_of_tiles_reference(
         self, tiles: IntArray, residual: FloatArray, weight: float, norm_scale: float

@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 from scipy.linalg import lapack
 
-from ..._kernels import kernel_mode
+from ..._kernels import compiled_only
 from ...typing import FloatArray
 from ._compiled.channel import channel_constants
 from ._compiled.fit import (
@@ -126,8 +126,9 @@ class Objective:
     def compiled_problem(self) -> tuple[Any, ...] | None:
         """``(channel, table, white, data)`` for the compiled kernels; None when the
         reference kernels are in use (or the channel has no compiled form)."""
-        if kernel_mode() != "compiled":
-            return None
+        return compiled_only(self._compiled_problem)
+
+    def _compiled_problem(self) -> tuple[Any, ...] | None:
         if self._problem is False:
             constants = channel_constants(self.kernel)
             self._problem = (

@@ -1,5 +1,5 @@
 """What an answer of the default solver reports beyond its fit (docs/explanation/solver.md,
-"Far optima and twins"): each estimate's far optima (:func:`aggregated_far_optima`,
+"Report"): each estimate's far optima (:func:`aggregated_far_optima`,
 :func:`terminal_far_optima`) and mirror twins held in its radius, radii bounded by the
 floor's diagonal (:func:`reported`), and every sentence of ``fit.detail`` the solver adds.
 """
@@ -11,7 +11,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from ..._kernels import kernel_mode
+from ..._kernels import dispatch
 from ...ambiguity import (
     covering_twins,
     far_optima,
@@ -37,6 +37,7 @@ from .state import (
 )
 from .tolerances import ToleranceFit
 from .whitening import (
+    Whitening,
     target_gains,
 )
 from .whitening_memo import state_key
@@ -174,7 +175,6 @@ def computed_profiles(
     """:func:`profiles`, computed."""
     white, residual = whitened_residual(room, run, state)
     weights = white.weights
-    n_leds = room.fingerprint.n_leds
     targets = target_gains(room.kernel, state)  # (M, K)
     multipliers = state.effective_weights()
     if room.model == "power":
@@ -186,38 +186,66 @@ def computed_profiles(
         without = num[np.newaxis, :] + multipliers[:, np.newaxis] * cross
         own_num = (weights * residual) @ target_sq
         own_norm = squared @ target_sq**2
-    elif kernel_mode() == "compiled":
-        without, norms, own_num, own_norm = correlation_profiles_kernel(
-            white.compiled(),
-            np.ascontiguousarray(residual, dtype=np.float64),
-            room.gains,
-            np.ascontiguousarray(targets, dtype=np.float64),
-            np.ascontiguousarray(multipliers, dtype=np.float64),
-        )
     else:
-        # Symmetric M x M forms of the whitened entries (each off-diagonal entry split
-        # over its two places): r's, and the squared weights'.
-        quadratic = np.zeros((n_leds, n_leds))
-        quadratic[white.upper, white.lower] = 0.5 * weights * residual
-        quadratic = quadratic + quadratic.T
-        squared = np.zeros((n_leds, n_leds))
-        squared[white.upper, white.lower] = 0.5 * weights**2
-        squared = squared + squared.T
-        grid = white.rotate(room.gains)  # (M, N)
-        rotated = white.rotate(targets)  # (M, K)
-        # r_k's form: r's plus w_k times the squared weights on rho_k rho_k^T.
-        forms = quadratic + multipliers[:, np.newaxis, np.newaxis] * squared * (
-            rotated.T[:, :, np.newaxis] * rotated.T[:, np.newaxis, :]
-        )
-        without = np.sum(np.matmul(forms, grid) * grid, axis=1)  # (K, N)
-        grid_sq = grid * grid
-        norms = np.sum((squared @ grid_sq) * grid_sq, axis=0)
-        own_num = np.sum((quadratic @ rotated) * rotated, axis=0)
-        rotated_sq = rotated * rotated
-        own_norm = np.sum((squared @ rotated_sq) * rotated_sq, axis=0)
+        without, norms, own_num, own_norm = dispatch(
+            _correlation_products_kernel, _correlation_products
+        )(white, residual, room.gains, targets, multipliers)
     explained = np.maximum(without, 0.0) ** 2 / np.maximum(norms, 1e-300)
     own = 2.0 * multipliers * own_num + multipliers**2 * own_norm
     return explained, np.maximum(explained.max(axis=1), own)
+
+
+def _correlation_products_kernel(
+    white: Whitening,
+    residual: FloatArray,
+    gains: FloatArray,
+    targets: FloatArray,
+    multipliers: FloatArray,
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """:func:`_correlation_products` in one compiled call."""
+    without, norms, own_num, own_norm = correlation_profiles_kernel(
+        white.compiled(),
+        np.ascontiguousarray(residual, dtype=np.float64),
+        gains,
+        np.ascontiguousarray(targets, dtype=np.float64),
+        np.ascontiguousarray(multipliers, dtype=np.float64),
+    )
+    return without, norms, own_num, own_norm
+
+
+def _correlation_products(
+    white: Whitening,
+    residual: FloatArray,
+    gains: FloatArray,
+    targets: FloatArray,
+    multipliers: FloatArray,
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """The inner products behind the correlation model's profiles, shapes (K, N), (N,), (K,)
+    and (K,), in NumPy (the reference of
+    :func:`._compiled.scores.correlation_profiles_kernel`)."""
+    weights = white.weights
+    n_leds = gains.shape[0]
+    # Symmetric M x M forms of the whitened entries (each off-diagonal entry split
+    # over its two places): r's, and the squared weights'.
+    quadratic = np.zeros((n_leds, n_leds))
+    quadratic[white.upper, white.lower] = 0.5 * weights * residual
+    quadratic = quadratic + quadratic.T
+    squared = np.zeros((n_leds, n_leds))
+    squared[white.upper, white.lower] = 0.5 * weights**2
+    squared = squared + squared.T
+    grid = white.rotate(gains)  # (M, N)
+    rotated = white.rotate(targets)  # (M, K)
+    # r_k's form: r's plus w_k times the squared weights on rho_k rho_k^T.
+    forms = quadratic + multipliers[:, np.newaxis, np.newaxis] * squared * (
+        rotated.T[:, :, np.newaxis] * rotated.T[:, np.newaxis, :]
+    )
+    without = np.sum(np.matmul(forms, grid) * grid, axis=1)  # (K, N)
+    grid_sq = grid * grid
+    norms = np.sum((squared @ grid_sq) * grid_sq, axis=0)
+    own_num = np.sum((quadratic @ rotated) * rotated, axis=0)
+    rotated_sq = rotated * rotated
+    own_norm = np.sum((squared @ rotated_sq) * rotated_sq, axis=0)
+    return without, norms, own_num, own_norm
 
 
 def aggregated_fit_detail(

@@ -1,4 +1,5 @@
-"""The frozen per-room precomputation of the default solver (:class:`PreparedRoom`).
+"""The frozen per-room precomputation of the default solver (:class:`PreparedRoom`;
+docs/explanation/solver.md, "Room").
 
 Everything that depends only on the fingerprint, the model and the options -- the channel
 kernel, the grid's gains and their energies, the nuisance priors and stages, the resolved

@@ -12,7 +12,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from ..._kernels import kernel_mode
+from ..._kernels import compiled_only
 from ...ambiguity import (
     reaching_beyond,
 )
@@ -136,7 +136,7 @@ def compiled_search(room: PreparedRoom, run: Run) -> bool:
     return (
         room.search_constants is not None
         and run.priors is room.growth_priors
-        and kernel_mode() == "compiled"
+        and compiled_only(lambda: room.search_constants) is not None
     )
 
 

@@ -150,7 +150,7 @@ class GridlessSolver(Solver):
         run, state, others, prescale = counted_search(room, measurement, values, n_targets)
         # "Nuisance stages": the common scale and heights, then the gains, each gated.
         state = with_nuisances(room, run, state)
-        # "PreparedRoom tolerances": the LEDs' amplitudes and beams, where the fit shows a misfit.
+        # "Room tolerances": the LEDs' amplitudes and beams, where the fit shows a misfit.
         tolerances = with_room_tolerances(room, run, state, tuple(others))
         if tolerances is not None:
             state = tolerances.state

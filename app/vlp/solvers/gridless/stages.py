@@ -87,7 +87,7 @@ def with_room_tolerances(
 ) -> ToleranceFit | None:
     """The fit with the room's tolerances (LED amplitudes and beams, optionally the
     photodiodes' tilts) as nuisance parameters (:mod:`.gridless.tolerances`; see
-    docs/explanation/solver.md, "PreparedRoom tolerances"); None where
+    docs/explanation/solver.md, "Room tolerances"); None where
     it is not tried or not kept.
 
     Tried only when the fit shows a misfit (whitened cost per degree of freedom above

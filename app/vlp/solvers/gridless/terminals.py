@@ -21,7 +21,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from ..._kernels import kernel_mode
+from ..._kernels import compiled_only
 from ...typing import FloatArray
 from .._data_support import detected_leds, leaves_dof, supports_nuisance
 from ._compiled.channel import channel_constants, channel_rows
@@ -267,7 +267,7 @@ def terminal_model(
     x, y = float(theta[0]), float(theta[1])
     z = float(theta[2]) if free_height else z0
     if normal is None and not free_tilt:
-        constants = channel_constants(kernel) if kernel_mode() == "compiled" else None
+        constants = compiled_only(channel_constants, kernel)
         if constants is not None:
             rows = channel_rows(*constants, np.array([x]), np.array([y]), np.array([z]), False)
             return np.asarray(rows[0, 0]), np.asarray(rows[1:, 0].T)
@@ -330,7 +330,7 @@ def _levenberg_marquardt(
         kernel, priors, free_height, free_tilt, with_priors and priors.log_gain_sd is not None
     )
     data_weight = weight if weight is not None else 1.0
-    constants = channel_constants(kernel) if kernel_mode() == "compiled" else None
+    constants = compiled_only(channel_constants, kernel)
     if constants is not None:
         theta, residual, jacobian, cost = terminal_lm_kernel(
             *constants,

@@ -10,7 +10,7 @@ import math
 
 import numpy as np
 
-from ..._kernels import kernel_mode
+from ..._kernels import compiled_only, dispatch
 from ...typing import FloatArray, IntArray
 from ...uncertainty import (
     FitQuality,
@@ -60,10 +60,14 @@ def response_covariances(
 def compiled_misfit_design(
     jacobian: FloatArray, normal: FloatArray, columns: list[FloatArray]
 ) -> MisfitDesign:
-    """:func:`app.vlp.uncertainty.misfit_design` (its reference), in one compiled call with
-    the compiled kernels."""
-    if kernel_mode() != "compiled":
-        return misfit_design(jacobian, normal, columns)
+    """:func:`app.vlp.uncertainty.misfit_design` (its reference) with the kernels in use."""
+    return dispatch(_misfit_design_kernel, misfit_design)(jacobian, normal, columns)
+
+
+def _misfit_design_kernel(
+    jacobian: FloatArray, normal: FloatArray, columns: list[FloatArray]
+) -> MisfitDesign:
+    """:func:`app.vlp.uncertainty.misfit_design` in one compiled call."""
     sizes = np.array([block.shape[1] for block in columns], dtype=np.int64)
     side_by_side = np.ascontiguousarray(np.hstack(columns), dtype=np.float64)
     return MisfitDesign(
@@ -209,7 +213,7 @@ def shape_gradients(room: PreparedRoom, positions: FloatArray, heights: FloatArr
     xs = np.ascontiguousarray(positions[:, 0], dtype=np.float64)
     ys = np.ascontiguousarray(positions[:, 1], dtype=np.float64)
     zs = np.ascontiguousarray(heights, dtype=np.float64)
-    constants = channel_constants(kernel) if kernel_mode() == "compiled" else None
+    constants = compiled_only(channel_constants, kernel)
     along_z: FloatArray
     if constants is not None:
         along_z = channel_rows(*constants, xs, ys, zs, False)[3]  # (K, M)

@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from ..._kernels import kernel_mode
+from ..._kernels import compiled_only, dispatch, kernel_mode
 from ...measurements import Model
 from ...typing import FloatArray, IntArray
 from ._compiled.channel import channel_constants
@@ -146,7 +146,7 @@ class Whitening:
         cls, model: Model, kernel: ChannelKernel, state: FitState, n_terminals: float
     ) -> Whitening:
         """Plug-in whitening from the current fit (sigma^2 = s / K)."""
-        constants = channel_constants(kernel) if kernel_mode() == "compiled" else None
+        constants = compiled_only(channel_constants, kernel)
         if constants is not None and state.n_targets > 0:
             upper, lower, is_diag = compiled_indices(model, kernel.n_leds)
             rotation, weights = whitening_kernel(
@@ -199,10 +199,16 @@ class Whitening:
         return whitened
 
     def _data_of(self, values: FloatArray) -> FloatArray:
-        if kernel_mode() == "compiled":
-            return np.asarray(
-                whiten_kernel(self.compiled(), np.ascontiguousarray(values, dtype=np.float64))
-            )
+        return dispatch(self._data_kernel, self._data_reference)(values)
+
+    def _data_kernel(self, values: FloatArray) -> FloatArray:
+        """:meth:`_data_reference` in one compiled call."""
+        return np.asarray(
+            whiten_kernel(self.compiled(), np.ascontiguousarray(values, dtype=np.float64))
+        )
+
+    def _data_reference(self, values: FloatArray) -> FloatArray:
+        """The whitened measurement in plain NumPy (the compiled kernel's reference)."""
         if self.rotation is None or self.rotation_t is None:
             return np.asarray(self.weights * values)
         full = np.zeros((self.n_leds, self.n_leds))
