@@ -12,9 +12,7 @@ from app.vlp.fingerprints import build_fingerprint
 from app.vlp.presets import paper_layout
 from app.vlp.simulation import mean_signal_power
 from app.vlp.solvers.gridless.channel import ChannelKernel
-from app.vlp.solvers.gridless.state import (
-    FitState,
-)
+from app.vlp.solvers.gridless.state import FitState
 from app.vlp.solvers.gridless.whitening import (
     Whitening,
     target_gains,

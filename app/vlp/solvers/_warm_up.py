@@ -31,9 +31,7 @@ from .gridless.model import Objective, gram, levenberg_marquardt
 from .gridless.options import LM_DEFAULTS
 from .gridless.state import FitState, Priors
 from .gridless.terminals import _levenberg_marquardt as terminal_fit
-from .gridless.tolerances import (
-    _levenberg_marquardt,
-)
+from .gridless.tolerances import _levenberg_marquardt
 from .gridless.whitening import Whitening, compiled_indices
 
 __all__ = ["exercise", "warm_up"]
@@ -111,7 +109,7 @@ def exercise() -> None:
     point = np.array([1.0])
     channel_rows(*constants, point, point.copy(), np.array([height]), False)
     # the correlation search's growth (a step, and the steps to K targets) and whitened
-    # refinement (gridless.search.grow_compiled, _refine_compiled)
+    # refinement (gridless.search.grow_compiled, refine_compiled)
     identity = Whitening.identity("correlation", kernel.n_leds)
     search = Objective(
         kernel, identity, np.zeros(identity.weights.shape[0]), False, Priors(height_mean=height)

@@ -38,12 +38,8 @@ from app.vlp.presets import paper_layout
 from app.vlp.simulation import true_amplitudes
 from app.vlp.solvers import warm_up
 from app.vlp.solvers.gridless._compiled.channel import channel_constants, channel_rows, diffuse_rows
-from app.vlp.solvers.gridless._compiled.fit import (
-    _sparse_symmetric_product,
-)
-from app.vlp.solvers.gridless._compiled.scores import (
-    correlation_scores_kernel,
-)
+from app.vlp.solvers.gridless._compiled.fit import _sparse_symmetric_product
+from app.vlp.solvers.gridless._compiled.scores import correlation_scores_kernel
 from app.vlp.solvers.gridless._compiled.tolerance import _damped_solve
 from app.vlp.solvers.gridless._compiled.uncertainty import (
     fit_misfit_kernel,
@@ -69,13 +65,9 @@ from app.vlp.solvers.gridless.state import (
     FitState,
     Priors,
 )
-from app.vlp.solvers.gridless.tolerances import (
-    _levenberg_marquardt,
-)
+from app.vlp.solvers.gridless.tolerances import _levenberg_marquardt
 from app.vlp.solvers.gridless.uncertainty import sandwich_covariances, shape_gradients
-from app.vlp.solvers.gridless.whitening import (
-    Whitening,
-)
+from app.vlp.solvers.gridless.whitening import Whitening
 from app.vlp.typing import FloatArray
 from app.vlp.uncertainty import MisfitDesign, fit_misfit, misfit_design
 

@@ -24,13 +24,9 @@ from app.vlp.solvers.gridless.fitting import (
 )
 from app.vlp.solvers.gridless.local import TerminalWindows, _best_of_tiles
 from app.vlp.solvers.gridless.solver import GridlessOptions, GridlessSolver
-from app.vlp.solvers.gridless.state import (
-    FitState,
-)
+from app.vlp.solvers.gridless.state import FitState
 from app.vlp.solvers.gridless.terminals import starting_cells
-from app.vlp.solvers.gridless.whitening import (
-    Whitening,
-)
+from app.vlp.solvers.gridless.whitening import Whitening
 from app.vlp.typing import FloatArray
 
 

@@ -22,12 +22,8 @@ from app.vlp.solvers.gridless.fitting import (
 from app.vlp.solvers.gridless.report import profiles
 from app.vlp.solvers.gridless.room import PreparedRoom
 from app.vlp.solvers.gridless.solver import GridlessSolver
-from app.vlp.solvers.gridless.state import (
-    FitState,
-)
-from app.vlp.solvers.gridless.whitening import (
-    Whitening,
-)
+from app.vlp.solvers.gridless.state import FitState
+from app.vlp.solvers.gridless.whitening import Whitening
 
 
 @pytest.mark.parametrize("model", ["correlation", "power"])

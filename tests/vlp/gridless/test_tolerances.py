@@ -22,9 +22,7 @@ from app.vlp.solvers.gridless.joint_model import (
 from app.vlp.solvers.gridless.search import refine
 from app.vlp.solvers.gridless.solver import GridlessOptions, GridlessSolver
 from app.vlp.solvers.gridless.stages import tolerance_tilt_sd, with_room_tolerances
-from app.vlp.solvers.gridless.state import (
-    FitState,
-)
+from app.vlp.solvers.gridless.state import FitState
 from app.vlp.solvers.gridless.tolerances import (
     GridMoves,
     fit_room_tolerances,

@@ -14,12 +14,8 @@ from app.vlp.presets import paper_layout
 from app.vlp.simulation import noise_std_for_snr, noisy_amplitudes, random_positions
 from app.vlp.solvers.gridless import GridlessSolver
 from app.vlp.solvers.gridless.fitting import plug_in_whitening, whitening_of
-from app.vlp.solvers.gridless.state import (
-    FitState,
-)
-from app.vlp.solvers.gridless.whitening import (
-    Whitening,
-)
+from app.vlp.solvers.gridless.state import FitState
+from app.vlp.solvers.gridless.whitening import Whitening
 from app.vlp.solvers.gridless.whitening_memo import MAX_KEPT_VALUES, WhiteningMemo
 
 

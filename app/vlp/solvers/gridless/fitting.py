@@ -14,9 +14,7 @@ import numpy as np
 
 from ..._kernels import dispatch
 from ...typing import FloatArray
-from ._compiled.scores import (
-    correlation_scores_kernel,
-)
+from ._compiled.scores import correlation_scores_kernel
 from .model import (
     Objective,
     _Slots,
@@ -27,9 +25,7 @@ from .state import (
     FitState,
     Priors,
 )
-from .whitening import (
-    Whitening,
-)
+from .whitening import Whitening
 from .whitening_memo import MAX_KEPT_VALUES, state_key
 
 

@@ -9,9 +9,7 @@ from ...fingerprints import Fingerprint
 from ...layout import Layout
 from ...measurements import Model
 from .channel import DiffuseTable
-from .state import (
-    Priors,
-)
+from .state import Priors
 
 __all__ = [
     "LM_DEFAULTS",

@@ -23,18 +23,14 @@ from ...uncertainty import (
     FitQuality,
     bounded_covariances,
 )
-from ._compiled.scores import (
-    correlation_profiles_kernel,
-)
+from ._compiled.scores import correlation_profiles_kernel
 from .fitting import (
     Run,
     grid_correlations,
     whitened_residual,
 )
 from .room import PreparedRoom
-from .state import (
-    FitState,
-)
+from .state import FitState
 from .tolerances import ToleranceFit
 from .whitening import (
     Whitening,

@@ -16,9 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from ...ambiguity import (
-    twins_possible,
-)
+from ...ambiguity import twins_possible
 from ...fingerprints import Fingerprint
 from ...measurements import Model
 from ...simulation import mean_signal_power

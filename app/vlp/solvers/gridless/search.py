@@ -13,9 +13,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from ..._kernels import compiled_only
-from ...ambiguity import (
-    reaching_beyond,
-)
+from ...ambiguity import reaching_beyond
 from ...measurements import Measurement, noise_atom, summed_terminals
 from ...typing import FloatArray, IntArray
 from ._compiled.search import growth_kernel, refine_kernel
@@ -33,17 +31,13 @@ from .fitting import (
     whitening_of,
 )
 from .lm import STEP_TOL_M
-from .report import (
-    profiles,
-)
+from .report import profiles
 from .room import PreparedRoom
 from .state import (
     MAX_LOG_SCALE,
     FitState,
 )
-from .whitening import (
-    Whitening,
-)
+from .whitening import Whitening
 
 # A count read off the rank of R replaces a smaller count by energy only when its fit's
 # variance ratio against that one is above this (gridless.search.explains_more).

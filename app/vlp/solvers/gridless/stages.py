@@ -17,20 +17,14 @@ from .fitting import (
     run_objective,
     whitening_of,
 )
-from .joint_model import (
-    RoomTolerances,
-)
+from .joint_model import RoomTolerances
 from .model import (
     _Slots,
     gram,
 )
 from .room import MAX_MISFIT_ENTRIES, PreparedRoom
-from .search import (
-    polish,
-)
-from .state import (
-    FitState,
-)
+from .search import polish
+from .state import FitState
 from .tolerances import (
     GridMoves,
     ToleranceFit,

@@ -42,12 +42,8 @@ from .lm import (
     TOLERANCE_INITIAL_DAMPING,
     projected_levenberg_marquardt,
 )
-from .state import (
-    FitState,
-)
-from .whitening import (
-    Whitening,
-)
+from .state import FitState
+from .whitening import Whitening
 
 __all__ = ["GridMoves", "RoomTolerances", "ToleranceFit", "fit_room_tolerances"]
 

@@ -32,13 +32,9 @@ from .model import (
     gram,
 )
 from .room import MAX_MISFIT_ENTRIES, PreparedRoom
-from .state import (
-    FitState,
-)
+from .state import FitState
 from .tolerances import ToleranceFit
-from .whitening import (
-    target_gains,
-)
+from .whitening import target_gains
 
 
 def response_covariances(

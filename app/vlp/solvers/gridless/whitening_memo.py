@@ -17,12 +17,8 @@ from collections.abc import Callable
 import numpy as np
 
 from ..._kernels import kernel_mode
-from .state import (
-    FitState,
-)
-from .whitening import (
-    Whitening,
-)
+from .state import FitState
+from .whitening import Whitening
 
 __all__ = ["MAX_KEPT_VALUES", "WhiteningMemo", "state_key"]
 

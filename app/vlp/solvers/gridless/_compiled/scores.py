@@ -9,9 +9,7 @@ import numpy as np
 
 from ...._kernels import compiled
 from ....typing import FloatArray
-from .fit import (
-    Problem,
-)
+from .fit import Problem
 
 
 @compiled

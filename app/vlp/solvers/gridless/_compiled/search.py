@@ -33,9 +33,7 @@ from .fit import (
     whiten_kernel,
     whitening_kernel,
 )
-from .scores import (
-    correlation_scores_kernel,
-)
+from .scores import correlation_scores_kernel
 
 __all__ = ["growth_kernel", "refine_kernel"]
 
