@@ -34,7 +34,7 @@ from app.vlp.tracking import (
     TrackerSettings,
     Tracks,
     age_tracks,
-    combined,
+    estimates,
     gospa,
     step_anonymous,
     step_labelled,
@@ -181,7 +181,7 @@ def run_scenario(
         next_id += new
         status, removed = age_tracks(tracks, float(time_s), settings)
         tracks = Tracks(tracks.bank, status, tracks.updates, tracks.misses)
-        mean, covariance = combined(tracks.bank)
+        mean, covariance = estimates(tracks.bank)
         radius = confidence_radii(covariance[:, :2, :2])
         if scenario.mode == "terminals":
             labelled_rows = result.fix_rows
@@ -247,8 +247,8 @@ def _score_anonymous(
     ids: IntArray,
     last_owner: dict[int, int],
 ) -> None:
-    for estimates, sink in ((raw, outcome.gospa_raw), (tracked, outcome.gospa_tracked)):
-        score = gospa(truth, estimates, cutoff_m=GOSPA_CUTOFF_M)
+    for found, sink in ((raw, outcome.gospa_raw), (tracked, outcome.gospa_tracked)):
+        score = gospa(truth, found, cutoff_m=GOSPA_CUTOFF_M)
         sink.append((score.distance, score.localisation, score.missed, score.false))
     if tracked.shape[0] == 0:
         return

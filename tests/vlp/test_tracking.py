@@ -28,8 +28,14 @@ from app.vlp.tracking import (
     update,
 )
 
-# Walking only: switching never happens and the gate never fires.
-CV_ONLY = TrackerSettings(mean_dwell_s=1e12, gate_probability=1.0 - 1e-15, max_speed_mps=50.0)
+# Walking only: switching never happens, the gate never fires and every fix is as wide as
+# it says (the steady hypothesis never weighs).
+CV_ONLY = TrackerSettings(
+    mean_dwell_s=1e12,
+    gate_probability=1.0 - 1e-15,
+    max_speed_mps=50.0,
+    steady_fix_probability=1e-300,
+)
 
 
 def _walking_only(bank: TrackBank) -> TrackBank:

@@ -25,6 +25,7 @@ __all__ = [
     "TrackBank",
     "Update",
     "combined",
+    "estimates",
     "floored_covariances",
     "inverse_2x2",
     "predict",
@@ -51,6 +52,15 @@ class TrackBank:
         Time of the state, seconds (any fixed origin, e.g. POSIX time).
     wild : ndarray of shape (n,), int
         Wild fixes in a row.
+    noise_var : ndarray of shape (n,), m^2
+        The track's learned variance (per axis) of the part of a fix's error that changes
+        from fix to fix: a fix is trusted down to it whatever its stated covariance says
+        (NaN: not learned yet, the next fix's stated covariance starts it).
+    stated_var : ndarray of shape (n,), m^2
+        The harmonic mean (same memory) of the fixes' stated variances per axis: what the
+        solver says a fix's whole error is, weighted as a filter weighs the fixes. Where it
+        exceeds ``noise_var`` the rest is error successive fixes share, which no filter
+        averages away (:func:`estimates`).
     """
 
     means: FloatArray
@@ -58,6 +68,8 @@ class TrackBank:
     model_probabilities: FloatArray
     times_s: FloatArray
     wild: IntArray
+    noise_var: FloatArray
+    stated_var: FloatArray
 
     @property
     def size(self) -> int:
@@ -72,6 +84,8 @@ class TrackBank:
             model_probabilities=self.model_probabilities[rows],
             times_s=self.times_s[rows],
             wild=self.wild[rows],
+            noise_var=self.noise_var[rows],
+            stated_var=self.stated_var[rows],
         )
 
     def put(self, rows: IntArray | BoolArray, other: TrackBank) -> TrackBank:
@@ -82,12 +96,16 @@ class TrackBank:
             model_probabilities=self.model_probabilities.copy(),
             times_s=self.times_s.copy(),
             wild=self.wild.copy(),
+            noise_var=self.noise_var.copy(),
+            stated_var=self.stated_var.copy(),
         )
         out.means[rows] = other.means
         out.covariances[rows] = other.covariances
         out.model_probabilities[rows] = other.model_probabilities
         out.times_s[rows] = other.times_s
         out.wild[rows] = other.wild
+        out.noise_var[rows] = other.noise_var
+        out.stated_var[rows] = other.stated_var
         return out
 
     @staticmethod
@@ -101,6 +119,8 @@ class TrackBank:
             ),
             times_s=np.concatenate((first.times_s, second.times_s)),
             wild=np.concatenate((first.wild, second.wild)),
+            noise_var=np.concatenate((first.noise_var, second.noise_var)),
+            stated_var=np.concatenate((first.stated_var, second.stated_var)),
         )
 
     @staticmethod
@@ -112,6 +132,8 @@ class TrackBank:
             model_probabilities=np.zeros((0, N_MODELS)),
             times_s=np.zeros(0),
             wild=np.zeros(0, dtype=np.intp),
+            noise_var=np.zeros(0),
+            stated_var=np.zeros(0),
         )
 
 
@@ -162,6 +184,8 @@ def start_tracks(
         model_probabilities=probabilities,
         times_s=np.asarray(times_s, dtype=np.float64).copy(),
         wild=np.zeros(count, dtype=np.intp),
+        noise_var=np.trace(covariance[:, 0, :2, :2], axis1=1, axis2=2) / 2.0,
+        stated_var=np.trace(covariance[:, 0, :2, :2], axis1=1, axis2=2) / 2.0,
     )
 
 
@@ -226,6 +250,8 @@ def predict(bank: TrackBank, times_s: FloatArray, settings: TrackerSettings) -> 
         model_probabilities=predicted_probabilities,
         times_s=np.maximum(np.asarray(times_s, dtype=np.float64), bank.times_s),
         wild=bank.wild,
+        noise_var=bank.noise_var,
+        stated_var=bank.stated_var,
     )
 
 
@@ -263,13 +289,23 @@ def update(
     positions: FloatArray,
     covariances: FloatArray,
     settings: TrackerSettings,
+    elapsed_s: FloatArray | None = None,
 ) -> Update:
     """Update each predicted track with its fix (row ``k`` with fix ``k``).
 
-    A fix whose squared Mahalanobis distance ``d2`` from the mixture's prediction exceeds
-    ``settings.gate_chi2`` gets the innovation covariance ``S (d2 / gate)``, i.e. its own
-    covariance becomes ``(d2 / gate) S - P``: it moves the track as a fix on the gate would.
-    After ``reset_after_wild`` wild fixes in a row the track restarts at the newest.
+    A fix's error is, with probability ``settings.steady_fix_probability``, the terminal's
+    usual noise (its stated covariance shrunk to the track's learned ``noise_var``), else as
+    wide as its stated covariance says (a shadowed LED, a far optimum); each model's update
+    weighs both by their likelihoods (a two-component Gaussian mixture, collapsed). The solver
+    widens a fix's covariance for what one fix cannot tell (its own few residual degrees of
+    freedom): a track sees many fixes of one terminal and learns the level the fixes really
+    scatter with, from the innovations.
+
+    A fix whose squared Mahalanobis distance ``d2`` from the mixture's prediction (with its
+    stated covariance) exceeds ``settings.gate_chi2`` gets the innovation covariance
+    ``S (d2 / gate)``, i.e. its own covariance becomes ``(d2 / gate) S - P``: it moves the
+    track as a fix on the gate would. After ``reset_after_wild`` wild fixes in a row the track
+    restarts at the newest.
 
     Parameters
     ----------
@@ -278,22 +314,35 @@ def update(
     positions : ndarray of shape (n, 2), metres
     covariances : ndarray of shape (n, 2, 2), m^2
     settings : TrackerSettings
+    elapsed_s : ndarray of shape (n,), seconds, default=None
+        Time since each track's previous fix (how much the noise level may have changed);
+        None: the learned levels move a share ``1 - 1/e`` of the way to the new fix's.
 
     Returns
     -------
     Update
     """
-    noise = floored_covariances(covariances, settings)
+    stated = floored_covariances(covariances, settings)
     mean, covariance = combined(predicted)
     prior = covariance[:, :2, :2]
     innovation = positions - mean[:, :2]
-    inverse, _ = inverse_2x2(prior + noise)
+    inverse, _ = inverse_2x2(prior + stated)
     distance2 = np.einsum("na,nab,nb->n", innovation, inverse, innovation)
     gate = settings.gate_chi2
     wild = distance2 > gate
     scale = np.where(wild, distance2 / gate, 1.0)
-    noise = np.where(wild[:, None, None], scale[:, None, None] * (prior + noise) - prior, noise)
-    means, covs, probabilities = _model_updates(predicted, positions, noise)
+    wide = np.where(wild[:, None, None], scale[:, None, None] * (prior + stated) - prior, stated)
+    stated_var = np.trace(stated, axis1=1, axis2=2) / 2.0
+    level = np.where(np.isfinite(predicted.noise_var), predicted.noise_var, stated_var)
+    shrink = np.minimum(1.0, level / stated_var)
+    noises = np.stack((stated * shrink[:, None, None], wide), axis=1)  # (n, 2, 2, 2)
+    means, covs, probabilities = _model_updates(
+        predicted, positions, noises, settings.steady_fix_probability
+    )
+    rate = _memory_rate(elapsed_s, level.shape[0], settings)
+    noise_var = _learned_level(level, innovation, prior, stated_var, rate, settings)
+    before = np.where(np.isfinite(predicted.stated_var), predicted.stated_var, stated_var)
+    stated_level = 1.0 / (1.0 / before + rate * (1.0 / stated_var - 1.0 / before))
     streak = np.where(wild, predicted.wild + 1, 0)
     bank = TrackBank(
         means=_capped_speed(means, settings.max_speed_mps),
@@ -301,6 +350,8 @@ def update(
         model_probabilities=probabilities,
         times_s=predicted.times_s,
         wild=streak,
+        noise_var=noise_var,
+        stated_var=stated_level,
     )
     restarted = streak >= settings.reset_after_wild
     if np.any(restarted):
@@ -311,23 +362,96 @@ def update(
     return Update(bank=bank, wild=wild, restarted=restarted)
 
 
+# E[ln X] for X exponential with mean 1: -Euler's gamma. Half the squared norm of a 2-D
+# Gaussian innovation of per-axis variance v is v X, so the mean of its logarithm is ln v
+# minus this.
+_EULER_GAMMA = 0.5772156649015329
+
+
+def _learned_level(
+    level: FloatArray,
+    innovation: FloatArray,
+    prior: FloatArray,
+    stated_var: FloatArray,
+    rate: FloatArray,
+    settings: TrackerSettings,
+) -> FloatArray:
+    """The tracks' noise levels after one more innovation (per-axis variance, m^2).
+
+    The innovation's per-axis variance is the prediction's ``tr(P) / 2`` plus the level;
+    half its squared norm (at most the gate's worth under the stated variance: a shadowed fix
+    says how wide it is) is averaged on a log scale, bias-corrected, with a memory of
+    ``noise_memory_s`` (the log keeps one wild fix from undoing many steady ones)."""
+    predicted_var = np.trace(prior, axis1=1, axis2=2) / 2.0
+    expected = level + predicted_var
+    # At most what the gate allows under the stated covariance: a fix that says it is wide
+    # (a shadowed LED) does not raise the level beyond its word.
+    most = 0.5 * settings.gate_chi2 * (stated_var + predicted_var)
+    seen = np.clip(0.5 * np.einsum("na,na->n", innovation, innovation), 1e-12, most)
+    log_expected = np.log(expected) + rate * (np.log(seen) + _EULER_GAMMA - np.log(expected))
+    floor = settings.min_measurement_sd_m**2
+    return np.asarray(np.maximum(np.exp(log_expected) - predicted_var, floor))
+
+
+def _memory_rate(elapsed_s: FloatArray | None, count: int, settings: TrackerSettings) -> FloatArray:
+    """The weight of a new fix in the learned levels: ``1 - exp(-dt / noise_memory_s)``
+    (``dt``: time since the track's previous fix; unknown: one fix in ``e``)."""
+    if elapsed_s is None:
+        return np.full(count, -np.expm1(-1.0))
+    return np.asarray(-np.expm1(-np.maximum(elapsed_s, 0.0) / settings.noise_memory_s))
+
+
+def estimates(bank: TrackBank) -> tuple[FloatArray, FloatArray]:
+    """What each track says: the mixture's mean ``(n, 4)`` and covariance ``(n, 4, 4)`` with,
+    on the position, the error successive fixes share (``stated_var - noise_var`` per axis,
+    at least 0): a filter averages the noise of its fixes, not an error they all carry, as a
+    layout that does not fit the room gives."""
+    mean, covariance = combined(bank)
+    shared = np.maximum(np.nan_to_num(bank.stated_var - bank.noise_var), 0.0)
+    covariance[:, 0, 0] += shared
+    covariance[:, 1, 1] += shared
+    return mean, covariance
+
+
 def _model_updates(
-    predicted: TrackBank, positions: FloatArray, noise: FloatArray
+    predicted: TrackBank, positions: FloatArray, noises: FloatArray, steady: float
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """Each model's Kalman update (Joseph form) and the models' new probabilities."""
-    prior = predicted.covariances
-    innovation = positions[:, None, :] - predicted.means[:, :, :2]  # (n, m, 2)
-    inverse, det = inverse_2x2(prior[:, :, :2, :2] + noise[:, None])
-    gain = prior[:, :, :, :2] @ inverse  # (n, m, 4, 2)
-    means = predicted.means + np.einsum("nmab,nmb->nma", gain, innovation)
-    identity = np.broadcast_to(np.eye(4), prior.shape).copy()
-    identity[:, :, :, :2] -= gain  # I - K H (H picks the position)
+    """Each model's Kalman update (Joseph form) under both noise hypotheses ``noises``
+    ``(n, 2, 2, 2)`` (steady, wide), collapsed by their likelihoods, and the models' new
+    probabilities."""
+    prior = predicted.covariances[:, :, None]  # (n, m, 1, 4, 4)
+    state = predicted.means[:, :, None]  # (n, m, 1, 4)
+    noise = noises[:, None]  # (n, 1, h, 2, 2)
+    innovation = positions[:, None, None, :] - state[..., :2]  # (n, m, 1, 2)
+    inverse, det = inverse_2x2(prior[..., :2, :2] + noise)  # (n, m, h, 2, 2)
+    gain = prior[..., :, :2] @ inverse  # (n, m, h, 4, 2)
+    means = state + np.einsum(
+        "nmhab,nmhb->nmha", gain, np.broadcast_to(innovation, (*gain.shape[:3], 2))
+    )
+    identity = np.broadcast_to(np.eye(4), (*gain.shape[:3], 4, 4)).copy()
+    identity[..., :, :2] -= gain  # I - K H (H picks the position)
     covariances = identity @ prior @ np.swapaxes(identity, -1, -2)
-    covariances += gain @ noise[:, None] @ np.swapaxes(gain, -1, -2)
-    distance2 = np.einsum("nma,nmab,nmb->nm", innovation, inverse, innovation)
+    covariances += gain @ noise @ np.swapaxes(gain, -1, -2)
+    distance2 = np.einsum(
+        "nmha,nmhab,nmhb->nmh",
+        np.broadcast_to(innovation, (*gain.shape[:3], 2)),
+        inverse,
+        np.broadcast_to(innovation, (*gain.shape[:3], 2)),
+    )
     log_likelihood = -0.5 * distance2 - 0.5 * np.log(det)
-    log_weight = log_likelihood + np.log(np.maximum(predicted.model_probabilities, 1e-300))
-    log_weight -= log_weight.max(axis=1, keepdims=True)
-    weight = np.exp(log_weight)
-    probabilities = weight / weight.sum(axis=1, keepdims=True)
-    return means, covariances, np.maximum(probabilities, 1e-9)
+    log_likelihood += np.log([steady, 1.0 - steady])
+    # Within each model: the hypotheses' weights; across: the models' (log-sum-exp).
+    top = log_likelihood.max(axis=2, keepdims=True)
+    weight = np.exp(log_likelihood - top)  # (n, m, h)
+    per_model = weight.sum(axis=2)
+    within = weight / per_model[:, :, None]
+    log_model = np.log(per_model) + top[:, :, 0]
+    log_model += np.log(np.maximum(predicted.model_probabilities, 1e-300))
+    model_weight = np.exp(log_model - log_model.max(axis=1, keepdims=True))
+    probabilities = model_weight / model_weight.sum(axis=1, keepdims=True)
+    mean = np.einsum("nmh,nmha->nma", within, means)
+    spread = means - mean[:, :, None]
+    covariance = np.einsum("nmh,nmhab->nmab", within, covariances) + np.einsum(
+        "nmh,nmha,nmhb->nmab", within, spread, spread
+    )
+    return mean, covariance, np.maximum(probabilities, 1e-9)

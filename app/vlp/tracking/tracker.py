@@ -166,7 +166,8 @@ def _apply(
     live = rows[moved]
     chosen = tracks.bank.take(live)
     predicted = predict(chosen, np.full(live.shape[0], time_s), settings)
-    result = filter_update(predicted, positions[moved], covariances[moved], settings)
+    elapsed = np.maximum(time_s - chosen.times_s, 0.0)
+    result = filter_update(predicted, positions[moved], covariances[moved], settings, elapsed)
     wild[moved] = result.wild
     updates = tracks.updates.copy()
     updates[live] += 1
