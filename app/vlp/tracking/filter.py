@@ -416,28 +416,27 @@ def estimates(bank: TrackBank) -> tuple[FloatArray, FloatArray]:
 def _model_updates(
     predicted: TrackBank, positions: FloatArray, noises: FloatArray, steady: float
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """Each model's Kalman update (Joseph form) under both noise hypotheses ``noises``
-    ``(n, 2, 2, 2)`` (steady, wide), collapsed by their likelihoods, and the models' new
-    probabilities."""
+    """Each model's Kalman update under both noise hypotheses ``noises`` ``(n, 2, 2, 2)``
+    (steady, wide), collapsed by their likelihoods, and the models' new probabilities."""
+    # Written out for 2 x 2 innovation covariances (elementwise: no batched small matmuls).
     prior = predicted.covariances[:, :, None]  # (n, m, 1, 4, 4)
     state = predicted.means[:, :, None]  # (n, m, 1, 4)
+    c0, c1 = prior[..., :, 0], prior[..., :, 1]  # columns of P H^T, (n, m, 1, 4)
     noise = noises[:, None]  # (n, 1, h, 2, 2)
-    innovation = positions[:, None, None, :] - state[..., :2]  # (n, m, 1, 2)
-    inverse, det = inverse_2x2(prior[..., :2, :2] + noise)  # (n, m, h, 2, 2)
-    gain = prior[..., :, :2] @ inverse  # (n, m, h, 4, 2)
-    means = state + np.einsum(
-        "nmhab,nmhb->nmha", gain, np.broadcast_to(innovation, (*gain.shape[:3], 2))
-    )
-    identity = np.broadcast_to(np.eye(4), (*gain.shape[:3], 4, 4)).copy()
-    identity[..., :, :2] -= gain  # I - K H (H picks the position)
-    covariances = identity @ prior @ np.swapaxes(identity, -1, -2)
-    covariances += gain @ noise @ np.swapaxes(gain, -1, -2)
-    distance2 = np.einsum(
-        "nmha,nmhab,nmhb->nmh",
-        np.broadcast_to(innovation, (*gain.shape[:3], 2)),
-        inverse,
-        np.broadcast_to(innovation, (*gain.shape[:3], 2)),
-    )
+    a = prior[..., 0, 0] + noise[..., 0, 0]  # S = H P H^T + R, (n, m, h)
+    b = prior[..., 0, 1] + noise[..., 0, 1]
+    d = prior[..., 1, 1] + noise[..., 1, 1]
+    det = a * d - b * b
+    nu0 = positions[:, None, None, 0] - state[..., 0]
+    nu1 = positions[:, None, None, 1] - state[..., 1]
+    u0 = (d * nu0 - b * nu1) / det  # S^-1 nu
+    u1 = (a * nu1 - b * nu0) / det
+    distance2 = nu0 * u0 + nu1 * u1
+    means = state + c0 * u0[..., None] + c1 * u1[..., None]
+    k0 = (c0 * d[..., None] - c1 * b[..., None]) / det[..., None]  # K = P H^T S^-1
+    k1 = (c1 * a[..., None] - c0 * b[..., None]) / det[..., None]
+    # P - K S K^T = P - K H P.
+    covariances = prior - k0[..., :, None] * c0[..., None, :] - k1[..., :, None] * c1[..., None, :]
     log_likelihood = -0.5 * distance2 - 0.5 * np.log(det)
     log_likelihood += np.log([steady, 1.0 - steady])
     # Within each model: the hypotheses' weights; across: the models' (log-sum-exp).
@@ -449,9 +448,13 @@ def _model_updates(
     log_model += np.log(np.maximum(predicted.model_probabilities, 1e-300))
     model_weight = np.exp(log_model - log_model.max(axis=1, keepdims=True))
     probabilities = model_weight / model_weight.sum(axis=1, keepdims=True)
-    mean = np.einsum("nmh,nmha->nma", within, means)
-    spread = means - mean[:, :, None]
-    covariance = np.einsum("nmh,nmhab->nmab", within, covariances) + np.einsum(
-        "nmh,nmha,nmhb->nmab", within, spread, spread
+    # Two components: the spread term of the collapse is w0 w1 d d^T, d their difference.
+    w0, w1 = within[..., 0], within[..., 1]
+    mean = w0[..., None] * means[:, :, 0] + w1[..., None] * means[:, :, 1]
+    apart = means[:, :, 0] - means[:, :, 1]
+    covariance = (
+        w0[..., None, None] * covariances[:, :, 0]
+        + w1[..., None, None] * covariances[:, :, 1]
+        + (w0 * w1)[..., None, None] * apart[..., :, None] * apart[..., None, :]
     )
     return mean, covariance, np.maximum(probabilities, 1e-9)
