@@ -290,6 +290,8 @@ def update(
     covariances: FloatArray,
     settings: TrackerSettings,
     elapsed_s: FloatArray | None = None,
+    *,
+    learn: bool = True,
 ) -> Update:
     """Update each predicted track with its fix (row ``k`` with fix ``k``).
 
@@ -317,6 +319,9 @@ def update(
     elapsed_s : ndarray of shape (n,), seconds, default=None
         Time since each track's previous fix (how much the noise level may have changed);
         None: the learned levels move a share ``1 - 1/e`` of the way to the new fix's.
+    learn : bool, default=True
+        False: every fix is as wide as it says (the level follows the stated one, so
+        :func:`estimates` adds nothing): for fixes that may be another terminal's.
 
     Returns
     -------
@@ -334,15 +339,18 @@ def update(
     wide = np.where(wild[:, None, None], scale[:, None, None] * (prior + stated) - prior, stated)
     stated_var = np.trace(stated, axis1=1, axis2=2) / 2.0
     level = np.where(np.isfinite(predicted.noise_var), predicted.noise_var, stated_var)
-    shrink = np.minimum(1.0, level / stated_var)
+    shrink = np.minimum(1.0, level / stated_var) if learn else np.ones_like(stated_var)
     noises = np.stack((stated * shrink[:, None, None], wide), axis=1)  # (n, 2, 2, 2)
     means, covs, probabilities = _model_updates(
         predicted, positions, noises, settings.steady_fix_probability
     )
     rate = _memory_rate(elapsed_s, level.shape[0], settings)
-    noise_var = _learned_level(level, innovation, prior, stated_var, rate, settings)
     before = np.where(np.isfinite(predicted.stated_var), predicted.stated_var, stated_var)
     stated_level = 1.0 / (1.0 / before + rate * (1.0 / stated_var - 1.0 / before))
+    if learn:
+        noise_var = _learned_level(level, innovation, prior, stated_var, rate, settings)
+    else:
+        noise_var = stated_level
     streak = np.where(wild, predicted.wild + 1, 0)
     bank = TrackBank(
         means=_capped_speed(means, settings.max_speed_mps),
