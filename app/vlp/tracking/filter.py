@@ -348,7 +348,15 @@ def update(
     before = np.where(np.isfinite(predicted.stated_var), predicted.stated_var, stated_var)
     stated_level = 1.0 / (1.0 / before + rate * (1.0 / stated_var - 1.0 / before))
     if learn:
-        noise_var = _learned_level(level, innovation, prior, stated_var, rate, settings)
+        weights = probabilities[:, :, None]
+        position = np.sum(weights * means[:, :, :2], axis=1)
+        apart = means[:, :, :2] - position[:, None]
+        posterior = np.sum(
+            weights[..., None] * (covs[:, :, :2, :2] + apart[..., :, None] * apart[..., None, :]),
+            axis=1,
+        )
+        residual = positions - position
+        noise_var = _learned_level(level, residual, posterior, stated_var, rate, settings)
     else:
         noise_var = stated_level
     streak = np.where(wild, predicted.wild + 1, 0)
@@ -371,34 +379,35 @@ def update(
 
 
 # E[ln X] for X exponential with mean 1: -Euler's gamma. Half the squared norm of a 2-D
-# Gaussian innovation of per-axis variance v is v X, so the mean of its logarithm is ln v
+# Gaussian residual of per-axis variance v is v X, so the mean of its logarithm is ln v
 # minus this.
 _EULER_GAMMA = 0.5772156649015329
 
 
 def _learned_level(
     level: FloatArray,
-    innovation: FloatArray,
-    prior: FloatArray,
+    residual: FloatArray,
+    posterior: FloatArray,
     stated_var: FloatArray,
     rate: FloatArray,
     settings: TrackerSettings,
 ) -> FloatArray:
-    """The tracks' noise levels after one more innovation (per-axis variance, m^2).
+    """The tracks' noise levels after one more fix (per-axis variance, m^2).
 
-    The innovation's per-axis variance is the prediction's ``tr(P) / 2`` plus the level;
-    half its squared norm (at most the gate's worth under the stated variance: a shadowed fix
-    says how wide it is) is averaged on a log scale, bias-corrected, with a memory of
-    ``noise_memory_s`` (the log keeps one wild fix from undoing many steady ones)."""
-    predicted_var = np.trace(prior, axis1=1, axis2=2) / 2.0
-    expected = level + predicted_var
-    # At most what the gate allows under the stated covariance: a fix that says it is wide
-    # (a shadowed LED) does not raise the level beyond its word.
-    most = 0.5 * settings.gate_chi2 * (stated_var + predicted_var)
-    seen = np.clip(0.5 * np.einsum("na,na->n", innovation, innovation), 1e-12, most)
-    log_expected = np.log(expected) + rate * (np.log(seen) + _EULER_GAMMA - np.log(expected))
-    floor = settings.min_measurement_sd_m**2
-    return np.asarray(np.maximum(np.exp(log_expected) - predicted_var, floor))
+    After the update, a fix's residual (fix minus the updated position) has the per-axis
+    variance ``level - tr(P+) / 2``, with ``P+`` the updated position's covariance: one more
+    sample of the level is half the residual's squared norm (bias-corrected for the log,
+    at most the gate's worth under the stated variance: a fix that says it is wide, as a
+    shadowed LED makes it, does not raise the level beyond its word) plus ``tr(P+) / 2``.
+    Samples are averaged on a log scale (one wild fix does not undo many steady ones) with a
+    memory of ``noise_memory_s``. A filter's ``P+`` errs on the wide side, and so does the
+    level: a fix is never trusted beyond what the track has seen."""
+    posterior_var = np.trace(posterior, axis1=1, axis2=2) / 2.0
+    most = 0.5 * settings.gate_chi2 * stated_var
+    seen = np.clip(0.5 * np.einsum("na,na->n", residual, residual), 1e-12, most)
+    sample = seen * np.exp(_EULER_GAMMA) + posterior_var
+    learned = np.exp(np.log(level) + rate * (np.log(sample) - np.log(level)))
+    return np.asarray(np.maximum(learned, settings.min_measurement_sd_m**2))
 
 
 def _memory_rate(elapsed_s: FloatArray | None, count: int, settings: TrackerSettings) -> FloatArray:
