@@ -434,27 +434,25 @@ def _model_updates(
     predicted: TrackBank, positions: FloatArray, noises: FloatArray, steady: float
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Each model's Kalman update under both noise hypotheses ``noises`` ``(n, 2, 2, 2)``
-    (steady, wide), collapsed by their likelihoods, and the models' new probabilities."""
-    # Written out for 2 x 2 innovation covariances (elementwise: no batched small matmuls).
-    prior = predicted.covariances[:, :, None]  # (n, m, 1, 4, 4)
-    state = predicted.means[:, :, None]  # (n, m, 1, 4)
-    c0, c1 = prior[..., :, 0], prior[..., :, 1]  # columns of P H^T, (n, m, 1, 4)
+    (steady, wide), collapsed by their likelihoods, and the models' new probabilities.
+
+    Written out for 2 x 2 innovation covariances. Both hypotheses share ``P H^T`` (columns
+    ``c0, c1``), so the collapse is taken on the 2 x 2 pieces first: the mixture's mean is
+    ``x + c0 E[u0] + c1 E[u1]`` (``u = S^-1 nu``), its covariance ``P - E[K] H P`` plus the
+    hypotheses' spread ``w0 w1 d d^T``."""
+    prior = predicted.covariances  # (n, m, 4, 4)
+    state = predicted.means  # (n, m, 4)
+    c0, c1 = prior[..., :, 0], prior[..., :, 1]  # columns of P H^T, (n, m, 4)
     noise = noises[:, None]  # (n, 1, h, 2, 2)
-    a = prior[..., 0, 0] + noise[..., 0, 0]  # S = H P H^T + R, (n, m, h)
-    b = prior[..., 0, 1] + noise[..., 0, 1]
-    d = prior[..., 1, 1] + noise[..., 1, 1]
+    a = prior[..., 0, 0, None] + noise[..., 0, 0]  # S = H P H^T + R, (n, m, h)
+    b = prior[..., 0, 1, None] + noise[..., 0, 1]
+    d = prior[..., 1, 1, None] + noise[..., 1, 1]
     det = a * d - b * b
-    nu0 = positions[:, None, None, 0] - state[..., 0]
-    nu1 = positions[:, None, None, 1] - state[..., 1]
-    u0 = (d * nu0 - b * nu1) / det  # S^-1 nu
+    nu0 = positions[:, None, None, 0] - state[..., 0, None]
+    nu1 = positions[:, None, None, 1] - state[..., 1, None]
+    u0 = (d * nu0 - b * nu1) / det
     u1 = (a * nu1 - b * nu0) / det
-    distance2 = nu0 * u0 + nu1 * u1
-    means = state + c0 * u0[..., None] + c1 * u1[..., None]
-    k0 = (c0 * d[..., None] - c1 * b[..., None]) / det[..., None]  # K = P H^T S^-1
-    k1 = (c1 * a[..., None] - c0 * b[..., None]) / det[..., None]
-    # P - K S K^T = P - K H P.
-    covariances = prior - k0[..., :, None] * c0[..., None, :] - k1[..., :, None] * c1[..., None, :]
-    log_likelihood = -0.5 * distance2 - 0.5 * np.log(det)
+    log_likelihood = -0.5 * (nu0 * u0 + nu1 * u1) - 0.5 * np.log(det)
     log_likelihood += np.log([steady, 1.0 - steady])
     # Within each model: the hypotheses' weights; across: the models' (log-sum-exp).
     top = log_likelihood.max(axis=2, keepdims=True)
@@ -465,13 +463,21 @@ def _model_updates(
     log_model += np.log(np.maximum(predicted.model_probabilities, 1e-300))
     model_weight = np.exp(log_model - log_model.max(axis=1, keepdims=True))
     probabilities = model_weight / model_weight.sum(axis=1, keepdims=True)
-    # Two components: the spread term of the collapse is w0 w1 d d^T, d their difference.
-    w0, w1 = within[..., 0], within[..., 1]
-    mean = w0[..., None] * means[:, :, 0] + w1[..., None] * means[:, :, 1]
-    apart = means[:, :, 0] - means[:, :, 1]
+    # E[S^-1] entries and E[u] over the hypotheses, (n, m) each.
+    inv_a = np.sum(within * d / det, axis=2)
+    inv_b = np.sum(within * b / det, axis=2)
+    inv_d = np.sum(within * a / det, axis=2)
+    mean_u0 = np.sum(within * u0, axis=2)
+    mean_u1 = np.sum(within * u1, axis=2)
+    mean = state + c0 * mean_u0[..., None] + c1 * mean_u1[..., None]
+    k0 = c0 * inv_a[..., None] - c1 * inv_b[..., None]  # E[K] = P H^T E[S^-1]
+    k1 = c1 * inv_d[..., None] - c0 * inv_b[..., None]
+    apart = c0 * (u0[..., 0] - u0[..., 1])[..., None] + c1 * (u1[..., 0] - u1[..., 1])[..., None]
+    spread = within[..., 0] * within[..., 1]
     covariance = (
-        w0[..., None, None] * covariances[:, :, 0]
-        + w1[..., None, None] * covariances[:, :, 1]
-        + (w0 * w1)[..., None, None] * apart[..., :, None] * apart[..., None, :]
+        prior
+        - k0[..., :, None] * c0[..., None, :]
+        - k1[..., :, None] * c1[..., None, :]
+        + (spread[..., None] * apart)[..., :, None] * apart[..., None, :]
     )
     return mean, covariance, np.maximum(probabilities, 1e-9)

@@ -241,13 +241,15 @@ def step_labelled(
     updated, moved_old, wild_old = _apply(
         tracks, rows[old], positions[old], covariances[old], time_s, settings, learn
     )
-    new = _started(positions[~old], covariances[~old], time_s, settings)
     fix_rows = rows.copy()
-    fix_rows[~old] = tracks.size + np.arange(new.size)
     moved = np.ones(rows.shape[0], dtype=bool)
     moved[old] = moved_old
     wild = np.zeros(rows.shape[0], dtype=bool)
     wild[old] = wild_old
+    if np.all(old):  # no new track: nothing to append
+        return Step(tracks=updated, fix_rows=fix_rows, moved=moved, wild=wild)
+    new = _started(positions[~old], covariances[~old], time_s, settings)
+    fix_rows[~old] = tracks.size + np.arange(new.size)
     return Step(tracks=_joined(updated, new), fix_rows=fix_rows, moved=moved, wild=wild)
 
 
