@@ -34,7 +34,7 @@ from app.vlp.tracking import (
     TrackerSettings,
     Tracks,
     age_tracks,
-    combined,
+    estimates,
     gospa,
     step_anonymous,
     step_labelled,
@@ -100,6 +100,7 @@ class Outcome:
     raw_standing: list[float] = field(default_factory=list)
     tracked_standing: list[float] = field(default_factory=list)
     averaged_standing: list[float] = field(default_factory=list)
+    unshadowed_standing: list[float] = field(default_factory=list)
     covered: list[bool] = field(default_factory=list)
     lags_s: list[float] = field(default_factory=list)
     gospa_raw: list[tuple[float, float, float, float]] = field(default_factory=list)
@@ -181,7 +182,7 @@ def run_scenario(
         next_id += new
         status, removed = age_tracks(tracks, float(time_s), settings)
         tracks = Tracks(tracks.bank, status, tracks.updates, tracks.misses)
-        mean, covariance = combined(tracks.bank)
+        mean, covariance = estimates(tracks.bank)
         radius = confidence_radii(covariance[:, :2, :2])
         if scenario.mode == "terminals":
             labelled_rows = result.fix_rows
@@ -200,6 +201,9 @@ def run_scenario(
     if scenario.mode == "terminals":
         outcome.lags_s = _lags(paths, tracked_path)
         outcome.averaged_standing = _averaged_standing(paths, raw_path, raw_cov_path)
+        outcome.unshadowed_standing = _averaged_standing(
+            paths, raw_path, raw_cov_path, ~walk.shadowed
+        )
     else:
         outcome.close_passes = _close_passes(paths)
     steps = np.linalg.norm(np.diff(paths.positions, axis=0), axis=2)
@@ -247,8 +251,8 @@ def _score_anonymous(
     ids: IntArray,
     last_owner: dict[int, int],
 ) -> None:
-    for estimates, sink in ((raw, outcome.gospa_raw), (tracked, outcome.gospa_tracked)):
-        score = gospa(truth, estimates, cutoff_m=GOSPA_CUTOFF_M)
+    for found, sink in ((raw, outcome.gospa_raw), (tracked, outcome.gospa_tracked)):
+        score = gospa(truth, found, cutoff_m=GOSPA_CUTOFF_M)
         sink.append((score.distance, score.localisation, score.missed, score.false))
     if tracked.shape[0] == 0:
         return
@@ -315,21 +319,29 @@ CLOSE_PASS_M = 0.3
 
 
 def _averaged_standing(
-    paths: WalkerPaths, raw: FloatArray, raw_covariances: FloatArray
+    paths: WalkerPaths,
+    raw: FloatArray,
+    raw_covariances: FloatArray,
+    kept: np.ndarray | None = None,
 ) -> list[float]:
     """Errors of the weighted mean (weights: the inverse of each fix's covariance) of every
     raw fix of each whole pause, at each instant of the pause: what averaging all of a
     pause's fixes, past and future, leaves (an error shared by successive fixes at one place,
-    as a layout that does not fit the room gives, does not average out)."""
+    as a layout that does not fit the room gives, does not average out). ``kept`` (T, K):
+    only these fixes are averaged (all of a pause where it keeps none), e.g. the unshadowed
+    ones, as an estimator that knew which fixes were shadowed could."""
     errors: list[float] = []
     for k in range(paths.positions.shape[1]):
         standing = np.nonzero(~paths.walking[:, k])[0]
         for pause in np.split(standing, np.nonzero(np.diff(standing) > 1)[0] + 1):
             if pause.size == 0:
                 continue
-            weights = np.linalg.inv(raw_covariances[pause, k])
+            used = pause
+            if kept is not None and np.any(kept[pause, k]):
+                used = pause[kept[pause, k]]
+            weights = np.linalg.inv(raw_covariances[used, k])
             mean = np.linalg.solve(
-                weights.sum(axis=0), np.einsum("tab,tb->a", weights, raw[pause, k])
+                weights.sum(axis=0), np.einsum("tab,tb->a", weights, raw[used, k])
             )
             errors += np.linalg.norm(mean - paths.positions[pause, k], axis=1).tolist()
     return errors

@@ -31,6 +31,8 @@ __all__ = ["stream_latencies_ms"]
 
 _PAUSE_S = 0.05
 _SILENCE_S = 30.0
+# How long a server may take to start (the first builds the demo room; a shared machine is slow).
+_START_S = 600.0
 
 
 def _schema_url(url: str, schema: str) -> str:
@@ -71,11 +73,17 @@ def _measure(database_url: str, posts: int) -> list[float]:
     with (
         tempfile.TemporaryDirectory() as first_dir,
         tempfile.TemporaryDirectory() as second_dir,
-        live_server(Path(first_dir), VLP_DATABASE_URL=database_url, VLP_DEMO="1") as first,
+        live_server(
+            Path(first_dir), timeout_s=_START_S, VLP_DATABASE_URL=database_url, VLP_DEMO="1"
+        ) as first,
     ):
         room_id = ready_demo_room(first.url)
         with live_server(
-            Path(second_dir), VLP_DATABASE_URL=database_url, VLP_DEMO="0", VLP_EMBEDDED_WORKERS="0"
+            Path(second_dir),
+            timeout_s=_START_S,
+            VLP_DATABASE_URL=database_url,
+            VLP_DEMO="0",
+            VLP_EMBEDDED_WORKERS="0",
         ) as second:
             received: queue.Queue[float] = queue.Queue()
 

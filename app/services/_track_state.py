@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 from datetime import UTC, datetime
 from typing import Any
 
@@ -60,6 +61,8 @@ def filter_json(bank: TrackBank, row: int) -> dict[str, Any]:
         "covariances": bank.covariances[row].tolist(),
         "model_probabilities": bank.model_probabilities[row].tolist(),
         "wild": int(bank.wild[row]),
+        "noise_var": float(bank.noise_var[row]),
+        "stated_var": float(bank.stated_var[row]),
     }
 
 
@@ -75,6 +78,9 @@ def tracks_of(records: list[TrackRecord]) -> Tracks:
         ),
         times_s=np.array([seconds(r.state_time) for r in records]),
         wild=np.array([int(r.filter["wild"]) for r in records], dtype=np.intp),
+        # Stored before the level was learned: the next fix starts it.
+        noise_var=np.array([float(r.filter.get("noise_var", math.nan)) for r in records]),
+        stated_var=np.array([float(r.filter.get("stated_var", math.nan)) for r in records]),
     )
     return Tracks(
         bank=bank,

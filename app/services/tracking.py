@@ -35,7 +35,7 @@ from app.vlp.tracking import (
     TrackerSettings,
     Tracks,
     age_tracks,
-    combined,
+    estimates,
     step_anonymous,
     step_labelled,
 )
@@ -245,7 +245,7 @@ class Tracking:
     ) -> dict[str, TrackRecord]:
         """The records of the tracks at ``rows`` (a mask) as they are now."""
         now = self._clock.now()
-        mean, covariance = combined(tracks.bank)
+        mean, covariance = estimates(tracks.bank)
         radii = confidence_radii(covariance[:, :2, :2])
         out = {}
         for row in np.nonzero(rows)[0]:

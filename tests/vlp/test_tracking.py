@@ -20,6 +20,7 @@ from app.vlp.tracking import (
     age_tracks,
     associate,
     combined,
+    estimates,
     gospa,
     predict,
     start_tracks,
@@ -28,8 +29,14 @@ from app.vlp.tracking import (
     update,
 )
 
-# Walking only: switching never happens and the gate never fires.
-CV_ONLY = TrackerSettings(mean_dwell_s=1e12, gate_probability=1.0 - 1e-15, max_speed_mps=50.0)
+# Walking only: switching never happens, the gate never fires and every fix is as wide as
+# it says (the steady hypothesis never weighs).
+CV_ONLY = TrackerSettings(
+    mean_dwell_s=1e12,
+    gate_probability=1.0 - 1e-15,
+    max_speed_mps=50.0,
+    steady_fix_probability=1e-300,
+)
 
 
 def _walking_only(bank: TrackBank) -> TrackBank:
@@ -80,6 +87,83 @@ def test_walking_model_alone_is_the_textbook_kalman_filter(rng: np.random.Genera
         bank = update(bank, fixes[k : k + 1], noise[k : k + 1], CV_ONLY).bank
         mean, _ = combined(_walking_only(bank))
         assert_allclose(mean[0], expected[k - 1], rtol=1e-9, atol=1e-9)
+
+
+def _gaussian(innovation: np.ndarray, spread: np.ndarray) -> float:
+    return float(
+        np.exp(-0.5 * innovation @ np.linalg.solve(spread, innovation))
+        / (2.0 * np.pi * np.sqrt(np.linalg.det(spread)))
+    )
+
+
+def test_a_fix_is_steady_noise_or_as_wide_as_it_says_weighed_by_likelihood() -> None:
+    """The two-hypothesis update against a Gaussian-sum update written out plainly."""
+    settings = dataclasses.replace(CV_ONLY, steady_fix_probability=0.3)
+    level = 0.01**2  # the track's learned noise level, per axis
+    stated = np.array([[[0.04, 0.01], [0.01, 0.02]]])  # what the fix says, m^2
+    start = start_tracks(np.array([[1.0, 2.0]]), 1e-3 * np.eye(2)[None], np.zeros(1), settings)
+    bank = _walking_only(dataclasses.replace(start, noise_var=np.array([level])))
+    predicted = _walking_only(predict(bank, np.array([0.3]), settings))
+    for fix in (np.array([[1.03, 2.02]]), np.array([[1.4, 1.7]])):  # near, then far
+        result = update(predicted, fix, stated, settings)
+        x, p = predicted.means[0, 1], predicted.covariances[0, 1]
+        h = np.hstack((np.eye(2), np.zeros((2, 2))))
+        floored = stated[0] + settings.min_measurement_sd_m**2 * np.eye(2)
+        steady = floored * min(1.0, level / (np.trace(floored) / 2.0))
+        parts = []
+        for noise, prior in ((steady, 0.3), (floored, 0.7)):
+            s = h @ p @ h.T + noise
+            gain = p @ h.T @ np.linalg.inv(s)
+            nu = fix[0] - h @ x
+            parts.append((prior * _gaussian(nu, s), x + gain @ nu, p - gain @ s @ gain.T))
+        total = sum(w for w, _, _ in parts)
+        mean = sum(w * m for w, m, _ in parts) / total
+        cov = sum(w * (c + np.outer(m - mean, m - mean)) for w, m, c in parts) / total
+        assert_allclose(result.bank.means[0, 1], mean, rtol=1e-9, atol=1e-12)
+        assert_allclose(result.bank.covariances[0, 1], cov, rtol=1e-7, atol=1e-12)
+
+
+def test_a_track_learns_how_widely_its_fixes_really_scatter(rng: np.random.Generator) -> None:
+    """Fixes that say 20 cm but scatter by 2 cm: the track learns about 2 cm, and its
+    reported covariance adds back what the stated spread says beyond it."""
+    settings = TrackerSettings()
+    stated = np.tile(0.2**2 * np.eye(2), (1, 1, 1))
+    truth = np.array([[2.0, 1.5]])
+    tracks, rows = Tracks.empty(), np.array([-1])
+    for k in range(150):
+        fix = truth + 0.02 * rng.standard_normal((1, 2))
+        step = step_labelled(tracks, rows, fix, stated, 0.2 * k, settings)
+        tracks, rows = step.tracks, step.fix_rows
+    learned = float(np.sqrt(tracks.bank.noise_var[0]))
+    assert 0.01 < learned < 0.04, learned
+    mean, covariance = combined(tracks.bank)
+    shown_mean, shown = estimates(tracks.bank)
+    assert_allclose(shown_mean, mean)
+    shared = tracks.bank.stated_var[0] - tracks.bank.noise_var[0]
+    assert_allclose(shown[0, :2, :2], covariance[0, :2, :2] + shared * np.eye(2))
+    assert_allclose(tracks.bank.stated_var[0], 0.2**2 + settings.min_measurement_sd_m**2)
+    # Anonymous fixes (maybe another terminal's) teach nothing: nothing is added.
+    anonymous = step_anonymous(Tracks.empty(), truth, stated, 0.0, settings).tracks
+    for k in range(1, 20):
+        fix = truth + 0.02 * rng.standard_normal((1, 2))
+        anonymous = step_anonymous(anonymous, fix, stated, 0.2 * k, settings).tracks
+    assert_allclose(estimates(anonymous.bank)[1], combined(anonymous.bank)[1])
+
+
+def test_a_track_stored_before_it_learned_starts_from_the_next_fix() -> None:
+    settings = TrackerSettings()
+    noise = np.array([[[0.01, 0.0], [0.0, 0.02]]])
+    bank = start_tracks(np.array([[1.0, 1.0]]), noise, np.zeros(1), settings)
+    predicted = predict(bank, np.array([0.2]), settings)
+    unknown = dataclasses.replace(
+        predicted, noise_var=np.array([np.nan]), stated_var=np.array([np.nan])
+    )
+    fix = np.array([[1.05, 0.97]])
+    fresh = update(predicted, fix, noise, settings).bank
+    resumed = update(unknown, fix, noise, settings).bank
+    assert_allclose(resumed.means, fresh.means)
+    assert_allclose(resumed.noise_var, fresh.noise_var)
+    assert_allclose(resumed.stated_var, fresh.stated_var)
 
 
 def test_a_wild_fix_moves_the_track_as_a_fix_on_the_gate() -> None:

@@ -6,7 +6,16 @@ No web or database imports; time is always passed in (seconds), never read from 
 
 from __future__ import annotations
 
-from .filter import N_MODELS, TrackBank, Update, combined, predict, start_tracks, update
+from .filter import (
+    N_MODELS,
+    TrackBank,
+    Update,
+    combined,
+    estimates,
+    predict,
+    start_tracks,
+    update,
+)
 from .metrics import Gospa, gospa
 from .settings import TrackerSettings
 from .tracker import (
@@ -37,6 +46,7 @@ __all__ = [
     "age_tracks",
     "associate",
     "combined",
+    "estimates",
     "gospa",
     "predict",
     "start_tracks",

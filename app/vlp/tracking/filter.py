@@ -25,6 +25,7 @@ __all__ = [
     "TrackBank",
     "Update",
     "combined",
+    "estimates",
     "floored_covariances",
     "inverse_2x2",
     "predict",
@@ -51,6 +52,15 @@ class TrackBank:
         Time of the state, seconds (any fixed origin, e.g. POSIX time).
     wild : ndarray of shape (n,), int
         Wild fixes in a row.
+    noise_var : ndarray of shape (n,), m^2
+        The track's learned variance (per axis) of the part of a fix's error that changes
+        from fix to fix: a fix is trusted down to it whatever its stated covariance says
+        (NaN: not learned yet, the next fix's stated covariance starts it).
+    stated_var : ndarray of shape (n,), m^2
+        The harmonic mean (same memory) of the fixes' stated variances per axis: what the
+        solver says a fix's whole error is, weighted as a filter weighs the fixes. Where it
+        exceeds ``noise_var`` the rest is error successive fixes share, which no filter
+        averages away (:func:`estimates`).
     """
 
     means: FloatArray
@@ -58,6 +68,8 @@ class TrackBank:
     model_probabilities: FloatArray
     times_s: FloatArray
     wild: IntArray
+    noise_var: FloatArray
+    stated_var: FloatArray
 
     @property
     def size(self) -> int:
@@ -72,6 +84,8 @@ class TrackBank:
             model_probabilities=self.model_probabilities[rows],
             times_s=self.times_s[rows],
             wild=self.wild[rows],
+            noise_var=self.noise_var[rows],
+            stated_var=self.stated_var[rows],
         )
 
     def put(self, rows: IntArray | BoolArray, other: TrackBank) -> TrackBank:
@@ -82,12 +96,16 @@ class TrackBank:
             model_probabilities=self.model_probabilities.copy(),
             times_s=self.times_s.copy(),
             wild=self.wild.copy(),
+            noise_var=self.noise_var.copy(),
+            stated_var=self.stated_var.copy(),
         )
         out.means[rows] = other.means
         out.covariances[rows] = other.covariances
         out.model_probabilities[rows] = other.model_probabilities
         out.times_s[rows] = other.times_s
         out.wild[rows] = other.wild
+        out.noise_var[rows] = other.noise_var
+        out.stated_var[rows] = other.stated_var
         return out
 
     @staticmethod
@@ -101,6 +119,8 @@ class TrackBank:
             ),
             times_s=np.concatenate((first.times_s, second.times_s)),
             wild=np.concatenate((first.wild, second.wild)),
+            noise_var=np.concatenate((first.noise_var, second.noise_var)),
+            stated_var=np.concatenate((first.stated_var, second.stated_var)),
         )
 
     @staticmethod
@@ -112,6 +132,8 @@ class TrackBank:
             model_probabilities=np.zeros((0, N_MODELS)),
             times_s=np.zeros(0),
             wild=np.zeros(0, dtype=np.intp),
+            noise_var=np.zeros(0),
+            stated_var=np.zeros(0),
         )
 
 
@@ -162,6 +184,8 @@ def start_tracks(
         model_probabilities=probabilities,
         times_s=np.asarray(times_s, dtype=np.float64).copy(),
         wild=np.zeros(count, dtype=np.intp),
+        noise_var=np.trace(covariance[:, 0, :2, :2], axis1=1, axis2=2) / 2.0,
+        stated_var=np.trace(covariance[:, 0, :2, :2], axis1=1, axis2=2) / 2.0,
     )
 
 
@@ -226,6 +250,8 @@ def predict(bank: TrackBank, times_s: FloatArray, settings: TrackerSettings) -> 
         model_probabilities=predicted_probabilities,
         times_s=np.maximum(np.asarray(times_s, dtype=np.float64), bank.times_s),
         wild=bank.wild,
+        noise_var=bank.noise_var,
+        stated_var=bank.stated_var,
     )
 
 
@@ -263,13 +289,25 @@ def update(
     positions: FloatArray,
     covariances: FloatArray,
     settings: TrackerSettings,
+    elapsed_s: FloatArray | None = None,
+    *,
+    learn: bool = True,
 ) -> Update:
     """Update each predicted track with its fix (row ``k`` with fix ``k``).
 
-    A fix whose squared Mahalanobis distance ``d2`` from the mixture's prediction exceeds
-    ``settings.gate_chi2`` gets the innovation covariance ``S (d2 / gate)``, i.e. its own
-    covariance becomes ``(d2 / gate) S - P``: it moves the track as a fix on the gate would.
-    After ``reset_after_wild`` wild fixes in a row the track restarts at the newest.
+    A fix's error is, with probability ``settings.steady_fix_probability``, the terminal's
+    usual noise (its stated covariance shrunk to the track's learned ``noise_var``), else as
+    wide as its stated covariance says (a shadowed LED, a far optimum); each model's update
+    weighs both by their likelihoods (a two-component Gaussian mixture, collapsed). The solver
+    widens a fix's covariance for what one fix cannot tell (its own few residual degrees of
+    freedom): a track sees many fixes of one terminal and learns the level the fixes really
+    scatter with, from the innovations.
+
+    A fix whose squared Mahalanobis distance ``d2`` from the mixture's prediction (with its
+    stated covariance) exceeds ``settings.gate_chi2`` gets the innovation covariance
+    ``S (d2 / gate)``, i.e. its own covariance becomes ``(d2 / gate) S - P``: it moves the
+    track as a fix on the gate would. After ``reset_after_wild`` wild fixes in a row the track
+    restarts at the newest.
 
     Parameters
     ----------
@@ -278,22 +316,49 @@ def update(
     positions : ndarray of shape (n, 2), metres
     covariances : ndarray of shape (n, 2, 2), m^2
     settings : TrackerSettings
+    elapsed_s : ndarray of shape (n,), seconds, default=None
+        Time since each track's previous fix (how much the noise level may have changed);
+        None: the learned levels move a share ``1 - 1/e`` of the way to the new fix's.
+    learn : bool, default=True
+        False: every fix is as wide as it says (the level follows the stated one, so
+        :func:`estimates` adds nothing): for fixes that may be another terminal's.
 
     Returns
     -------
     Update
     """
-    noise = floored_covariances(covariances, settings)
+    stated = floored_covariances(covariances, settings)
     mean, covariance = combined(predicted)
     prior = covariance[:, :2, :2]
     innovation = positions - mean[:, :2]
-    inverse, _ = inverse_2x2(prior + noise)
+    inverse, _ = inverse_2x2(prior + stated)
     distance2 = np.einsum("na,nab,nb->n", innovation, inverse, innovation)
     gate = settings.gate_chi2
     wild = distance2 > gate
     scale = np.where(wild, distance2 / gate, 1.0)
-    noise = np.where(wild[:, None, None], scale[:, None, None] * (prior + noise) - prior, noise)
-    means, covs, probabilities = _model_updates(predicted, positions, noise)
+    wide = np.where(wild[:, None, None], scale[:, None, None] * (prior + stated) - prior, stated)
+    stated_var = np.trace(stated, axis1=1, axis2=2) / 2.0
+    level = np.where(np.isfinite(predicted.noise_var), predicted.noise_var, stated_var)
+    shrink = np.minimum(1.0, level / stated_var) if learn else np.ones_like(stated_var)
+    noises = np.stack((stated * shrink[:, None, None], wide), axis=1)  # (n, 2, 2, 2)
+    means, covs, probabilities = _model_updates(
+        predicted, positions, noises, settings.steady_fix_probability
+    )
+    rate = _memory_rate(elapsed_s, level.shape[0], settings)
+    before = np.where(np.isfinite(predicted.stated_var), predicted.stated_var, stated_var)
+    stated_level = 1.0 / (1.0 / before + rate * (1.0 / stated_var - 1.0 / before))
+    if learn:
+        weights = probabilities[:, :, None]
+        position = np.sum(weights * means[:, :, :2], axis=1)
+        apart = means[:, :, :2] - position[:, None]
+        posterior = np.sum(
+            weights[..., None] * (covs[:, :, :2, :2] + apart[..., :, None] * apart[..., None, :]),
+            axis=1,
+        )
+        residual = positions - position
+        noise_var = _learned_level(level, residual, posterior, stated_var, rate, settings)
+    else:
+        noise_var = stated_level
     streak = np.where(wild, predicted.wild + 1, 0)
     bank = TrackBank(
         means=_capped_speed(means, settings.max_speed_mps),
@@ -301,6 +366,8 @@ def update(
         model_probabilities=probabilities,
         times_s=predicted.times_s,
         wild=streak,
+        noise_var=noise_var,
+        stated_var=stated_level,
     )
     restarted = streak >= settings.reset_after_wild
     if np.any(restarted):
@@ -311,23 +378,106 @@ def update(
     return Update(bank=bank, wild=wild, restarted=restarted)
 
 
+# E[ln X] for X exponential with mean 1: -Euler's gamma. Half the squared norm of a 2-D
+# Gaussian residual of per-axis variance v is v X, so the mean of its logarithm is ln v
+# minus this.
+_EULER_GAMMA = 0.5772156649015329
+
+
+def _learned_level(
+    level: FloatArray,
+    residual: FloatArray,
+    posterior: FloatArray,
+    stated_var: FloatArray,
+    rate: FloatArray,
+    settings: TrackerSettings,
+) -> FloatArray:
+    """The tracks' noise levels after one more fix (per-axis variance, m^2).
+
+    After the update, a fix's residual (fix minus the updated position) has the per-axis
+    variance ``level - tr(P+) / 2``, with ``P+`` the updated position's covariance: one more
+    sample of the level is half the residual's squared norm (bias-corrected for the log,
+    at most the gate's worth under the stated variance: a fix that says it is wide, as a
+    shadowed LED makes it, does not raise the level beyond its word) plus ``tr(P+) / 2``.
+    Samples are averaged on a log scale (one wild fix does not undo many steady ones) with a
+    memory of ``noise_memory_s``. A filter's ``P+`` errs on the wide side, and so does the
+    level: a fix is never trusted beyond what the track has seen."""
+    posterior_var = np.trace(posterior, axis1=1, axis2=2) / 2.0
+    most = 0.5 * settings.gate_chi2 * stated_var
+    seen = np.clip(0.5 * np.einsum("na,na->n", residual, residual), 1e-12, most)
+    sample = seen * np.exp(_EULER_GAMMA) + posterior_var
+    learned = np.exp(np.log(level) + rate * (np.log(sample) - np.log(level)))
+    return np.asarray(np.maximum(learned, settings.min_measurement_sd_m**2))
+
+
+def _memory_rate(elapsed_s: FloatArray | None, count: int, settings: TrackerSettings) -> FloatArray:
+    """The weight of a new fix in the learned levels: ``1 - exp(-dt / noise_memory_s)``
+    (``dt``: time since the track's previous fix; unknown: one fix in ``e``)."""
+    if elapsed_s is None:
+        return np.full(count, -np.expm1(-1.0))
+    return np.asarray(-np.expm1(-np.maximum(elapsed_s, 0.0) / settings.noise_memory_s))
+
+
+def estimates(bank: TrackBank) -> tuple[FloatArray, FloatArray]:
+    """What each track says: the mixture's mean ``(n, 4)`` and covariance ``(n, 4, 4)`` with,
+    on the position, the error successive fixes share (``stated_var - noise_var`` per axis,
+    at least 0): a filter averages the noise of its fixes, not an error they all carry, as a
+    layout that does not fit the room gives."""
+    mean, covariance = combined(bank)
+    shared = np.maximum(np.nan_to_num(bank.stated_var - bank.noise_var), 0.0)
+    covariance[:, 0, 0] += shared
+    covariance[:, 1, 1] += shared
+    return mean, covariance
+
+
 def _model_updates(
-    predicted: TrackBank, positions: FloatArray, noise: FloatArray
+    predicted: TrackBank, positions: FloatArray, noises: FloatArray, steady: float
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """Each model's Kalman update (Joseph form) and the models' new probabilities."""
-    prior = predicted.covariances
-    innovation = positions[:, None, :] - predicted.means[:, :, :2]  # (n, m, 2)
-    inverse, det = inverse_2x2(prior[:, :, :2, :2] + noise[:, None])
-    gain = prior[:, :, :, :2] @ inverse  # (n, m, 4, 2)
-    means = predicted.means + np.einsum("nmab,nmb->nma", gain, innovation)
-    identity = np.broadcast_to(np.eye(4), prior.shape).copy()
-    identity[:, :, :, :2] -= gain  # I - K H (H picks the position)
-    covariances = identity @ prior @ np.swapaxes(identity, -1, -2)
-    covariances += gain @ noise[:, None] @ np.swapaxes(gain, -1, -2)
-    distance2 = np.einsum("nma,nmab,nmb->nm", innovation, inverse, innovation)
-    log_likelihood = -0.5 * distance2 - 0.5 * np.log(det)
-    log_weight = log_likelihood + np.log(np.maximum(predicted.model_probabilities, 1e-300))
-    log_weight -= log_weight.max(axis=1, keepdims=True)
-    weight = np.exp(log_weight)
-    probabilities = weight / weight.sum(axis=1, keepdims=True)
-    return means, covariances, np.maximum(probabilities, 1e-9)
+    """Each model's Kalman update under both noise hypotheses ``noises`` ``(n, 2, 2, 2)``
+    (steady, wide), collapsed by their likelihoods, and the models' new probabilities.
+
+    Written out for 2 x 2 innovation covariances. Both hypotheses share ``P H^T`` (columns
+    ``c0, c1``), so the collapse is taken on the 2 x 2 pieces first: the mixture's mean is
+    ``x + c0 E[u0] + c1 E[u1]`` (``u = S^-1 nu``), its covariance ``P - E[K] H P`` plus the
+    hypotheses' spread ``w0 w1 d d^T``."""
+    prior = predicted.covariances  # (n, m, 4, 4)
+    state = predicted.means  # (n, m, 4)
+    c0, c1 = prior[..., :, 0], prior[..., :, 1]  # columns of P H^T, (n, m, 4)
+    noise = noises[:, None]  # (n, 1, h, 2, 2)
+    a = prior[..., 0, 0, None] + noise[..., 0, 0]  # S = H P H^T + R, (n, m, h)
+    b = prior[..., 0, 1, None] + noise[..., 0, 1]
+    d = prior[..., 1, 1, None] + noise[..., 1, 1]
+    det = a * d - b * b
+    nu0 = positions[:, None, None, 0] - state[..., 0, None]
+    nu1 = positions[:, None, None, 1] - state[..., 1, None]
+    u0 = (d * nu0 - b * nu1) / det
+    u1 = (a * nu1 - b * nu0) / det
+    log_likelihood = -0.5 * (nu0 * u0 + nu1 * u1) - 0.5 * np.log(det)
+    log_likelihood += np.log([steady, 1.0 - steady])
+    # Within each model: the hypotheses' weights; across: the models' (log-sum-exp).
+    top = log_likelihood.max(axis=2, keepdims=True)
+    weight = np.exp(log_likelihood - top)  # (n, m, h)
+    per_model = weight.sum(axis=2)
+    within = weight / per_model[:, :, None]
+    log_model = np.log(per_model) + top[:, :, 0]
+    log_model += np.log(np.maximum(predicted.model_probabilities, 1e-300))
+    model_weight = np.exp(log_model - log_model.max(axis=1, keepdims=True))
+    probabilities = model_weight / model_weight.sum(axis=1, keepdims=True)
+    # E[S^-1] entries and E[u] over the hypotheses, (n, m) each.
+    inv_a = np.sum(within * d / det, axis=2)
+    inv_b = np.sum(within * b / det, axis=2)
+    inv_d = np.sum(within * a / det, axis=2)
+    mean_u0 = np.sum(within * u0, axis=2)
+    mean_u1 = np.sum(within * u1, axis=2)
+    mean = state + c0 * mean_u0[..., None] + c1 * mean_u1[..., None]
+    k0 = c0 * inv_a[..., None] - c1 * inv_b[..., None]  # E[K] = P H^T E[S^-1]
+    k1 = c1 * inv_d[..., None] - c0 * inv_b[..., None]
+    apart = c0 * (u0[..., 0] - u0[..., 1])[..., None] + c1 * (u1[..., 0] - u1[..., 1])[..., None]
+    spread = within[..., 0] * within[..., 1]
+    covariance = (
+        prior
+        - k0[..., :, None] * c0[..., None, :]
+        - k1[..., :, None] * c1[..., None, :]
+        + (spread[..., None] * apart)[..., :, None] * apart[..., None, :]
+    )
+    return mean, covariance, np.maximum(probabilities, 1e-9)

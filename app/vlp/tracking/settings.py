@@ -57,6 +57,12 @@ class TrackerSettings:
         How long a track's points and the room's stream events are kept, seconds.
     standing_prior : float
         Probability that a new track stands (the rest: walks).
+    steady_fix_probability : float
+        Probability that a fix's error is the terminal's usual noise (the track's learned
+        level) rather than as wide as the fix's stated covariance.
+    noise_memory_s : float
+        How long the learned noise level remembers, seconds (the time a terminal takes to
+        walk into another part of the room, where the LEDs it sees differ).
     """
 
     walking_accel_sd_mps2: float = 1.5
@@ -74,6 +80,8 @@ class TrackerSettings:
     drop_after_s: float = 60.0
     history_s: float = 300.0
     standing_prior: float = 0.5
+    steady_fix_probability: float = 0.5
+    noise_memory_s: float = 2.0
 
     def __post_init__(self) -> None:
         for item in fields(self):
@@ -86,6 +94,11 @@ class TrackerSettings:
             raise VLPError(
                 f"standing_prior must be below 1, got {self.standing_prior!r}",
                 field="standing_prior",
+            )
+        if not self.steady_fix_probability < 1.0:
+            raise VLPError(
+                f"steady_fix_probability must be below 1, got {self.steady_fix_probability!r}",
+                field="steady_fix_probability",
             )
         if not self.gate_probability < 1.0:
             raise VLPError(

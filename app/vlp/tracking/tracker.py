@@ -156,6 +156,7 @@ def _apply(
     covariances: FloatArray,
     time_s: float,
     settings: TrackerSettings,
+    learn: bool,
 ) -> tuple[Tracks, BoolArray, BoolArray]:
     """Predict and update the tracks at ``rows`` with their fixes (in order); a fix older than
     its track's state does not move it. Returns the tracks, ``moved`` and ``wild`` per fix."""
@@ -166,7 +167,10 @@ def _apply(
     live = rows[moved]
     chosen = tracks.bank.take(live)
     predicted = predict(chosen, np.full(live.shape[0], time_s), settings)
-    result = filter_update(predicted, positions[moved], covariances[moved], settings)
+    elapsed = np.maximum(time_s - chosen.times_s, 0.0)
+    result = filter_update(
+        predicted, positions[moved], covariances[moved], settings, elapsed, learn=learn
+    )
     wild[moved] = result.wild
     updates = tracks.updates.copy()
     updates[live] += 1
@@ -210,6 +214,8 @@ def step_labelled(
     covariances: FloatArray,
     time_s: float,
     settings: TrackerSettings,
+    *,
+    learn: bool = True,
 ) -> Step:
     """Fixes whose terminals are known: fix ``k`` updates track ``rows[k]``, or starts a new
     track where ``rows[k]`` is -1.
@@ -224,6 +230,8 @@ def step_labelled(
     time_s : float
         The fixes' time, seconds.
     settings : TrackerSettings
+    learn : bool, default=True
+        Whether the tracks learn their fixes' noise level (:func:`.filter.update`).
 
     Returns
     -------
@@ -231,15 +239,17 @@ def step_labelled(
     """
     old = rows >= 0
     updated, moved_old, wild_old = _apply(
-        tracks, rows[old], positions[old], covariances[old], time_s, settings
+        tracks, rows[old], positions[old], covariances[old], time_s, settings, learn
     )
-    new = _started(positions[~old], covariances[~old], time_s, settings)
     fix_rows = rows.copy()
-    fix_rows[~old] = tracks.size + np.arange(new.size)
     moved = np.ones(rows.shape[0], dtype=bool)
     moved[old] = moved_old
     wild = np.zeros(rows.shape[0], dtype=bool)
     wild[old] = wild_old
+    if np.all(old):  # no new track: nothing to append
+        return Step(tracks=updated, fix_rows=fix_rows, moved=moved, wild=wild)
+    new = _started(positions[~old], covariances[~old], time_s, settings)
+    fix_rows[~old] = tracks.size + np.arange(new.size)
     return Step(tracks=_joined(updated, new), fix_rows=fix_rows, moved=moved, wild=wild)
 
 
@@ -275,7 +285,9 @@ def step_anonymous(
     track_rows, fix_cols = associate(predicted, positions, covariances, settings, elapsed)
     rows = np.full(positions.shape[0], -1, dtype=np.intp)
     rows[fix_cols] = track_rows
-    step = step_labelled(tracks, rows, positions, covariances, time_s, settings)
+    # A fix of an aggregated solve may be another terminal's: its track does not learn a
+    # noise level from it.
+    step = step_labelled(tracks, rows, positions, covariances, time_s, settings, learn=False)
     claimed = np.zeros(step.tracks.size, dtype=bool)
     claimed[step.fix_rows] = True
     misses = np.where(claimed, step.tracks.misses, step.tracks.misses + 1)
