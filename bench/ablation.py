@@ -239,7 +239,12 @@ def _markdown(header: Sequence[str], table: Sequence[Sequence[object]]) -> str:
 
 
 def write_page(
-    header: Sequence[str], table: Sequence[Sequence[object]], command: str, out: Path, csv: Path
+    variants: Sequence[Variant],
+    header: Sequence[str],
+    table: Sequence[Sequence[object]],
+    command: str,
+    out: Path,
+    csv: Path,
 ) -> None:
     """The results page and its CSV."""
     write_csv(csv, header, table)
@@ -247,7 +252,7 @@ def write_page(
     shown = csv.relative_to(REPO_ROOT) if csv.is_relative_to(REPO_ROOT) else csv
     options = "\n".join(
         f"- {v.name}: `{', '.join(f'{k}={val!r}' for k, val in v.options.items()) or 'defaults'}`"
-        for v in VARIANTS
+        for v in variants
     )
     text = f"""# Ablation: each stage of the default solver on and off
 
@@ -308,7 +313,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     out = args.out or REPO_ROOT / "docs" / "results"
     csv_path = (args.out or REPO_ROOT / "docs" / "data") / "ablation.csv"
-    write_page(header, table, command, out / "ablation.md", csv_path)
+    write_page(variants, header, table, command, out / "ablation.md", csv_path)
     print(_markdown(header, table))
     return 0
 
