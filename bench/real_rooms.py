@@ -74,7 +74,15 @@ from ._real_rooms_extra import (
 )
 from .rooms import make_room
 
-__all__ = ["CONDITIONS", "Condition", "Localizer", "gridless_localizer", "main", "run"]
+__all__ = [
+    "CONDITIONS",
+    "Condition",
+    "Localizer",
+    "gridless_localizer",
+    "main",
+    "run",
+    "set_options",
+]
 
 SEED = 20261123
 SNR_DB = 30.0
@@ -144,6 +152,13 @@ def gridless_localizer(
 _SOLVERS: dict[tuple[int, Model, tuple[tuple[str, object], ...]], Solver] = {}
 # GridlessOptions fields the default solver is built with (``--option``; empty: defaults).
 _OPTIONS: dict[str, object] = {}
+
+
+def set_options(options: dict[str, object]) -> None:
+    """Build the default solver with these GridlessOptions fields from now on (empty: the
+    defaults); solvers already built with other options are kept under their own key."""
+    _OPTIONS.clear()
+    _OPTIONS.update(options)
 
 
 def _solver(fingerprint: Fingerprint, model: Model) -> Solver:
@@ -483,7 +498,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         conditions = tuple(c for c in CONDITIONS if c.name in wanted)
         if len(conditions) != len(wanted):
             raise SystemExit(f"unknown condition in {wanted}")
-    _OPTIONS.update(dict(args.option))
+    set_options(dict(args.option))
     with threadpool_limits(limits=1):
         rows = run(rooms, conditions, trials, snr_db=args.snr)
     elapsed = time.perf_counter() - started
