@@ -13,7 +13,11 @@ TESTS = Path(__file__).resolve().parent
 SLOW_FOLDERS = ("e2e", "faults", "bench")
 # Pure functions of the benchmarks' own code (no process, no run), or such unit tests beside
 # a run that is marked slow on its own.
-UNIT_MODULES = {"bench/test_tracking_switches.py", "bench/test_measured_smoke.py"}
+UNIT_MODULES = {
+    "bench/test_ablation_options.py",
+    "bench/test_tracking_switches.py",
+    "bench/test_measured_smoke.py",
+}
 
 
 def _marks_module_slow(path: Path) -> bool:
