@@ -324,3 +324,20 @@ def test_survey_refuses_rows_that_are_all_censored() -> None:
     assert caught.value.field == "amplitudes"
     with pytest.raises(MeasurementError):
         Survey(np.zeros((1, 2)), np.array([0]), np.array([np.inf]))
+
+
+def test_simulator_tilts_leds_after_every_other_tolerance() -> None:
+    from app.vlp.simulation import Impairments
+    from app.vlp.simulation.terminals import _true_layout
+
+    room = with_tilts(paper_layout(), {2: (7.0, 45.0)})
+    base = Impairments(led_amplitude_sd=0.05, led_half_power_sd_deg=3.0, led_position_sd_m=0.02)
+    plain = _true_layout(room, base, np.random.default_rng(4))
+    tilted = _true_layout(room, replace(base, led_tilt_max_deg=10.0), np.random.default_rng(4))
+    assert plain.leds[2].normal == room.leds[2].normal  # the layout's own tilt is kept
+    assert_allclose(tilted.led_positions, plain.led_positions)
+    assert_allclose(tilted.half_power_angles_deg, plain.half_power_angles_deg)
+    turned = np.degrees(np.arccos(np.sum(tilted.led_normals * room.led_normals, axis=1)))
+    assert np.all(turned <= 10.0 + 1e-9) and np.ptp(turned) > 3.0
+    with pytest.raises(GeometryError):
+        Impairments(led_tilt_max_deg=90.0)
