@@ -200,15 +200,15 @@ def _tilted_normals(
     """Each normal turned by a polar angle uniform in [0, largest_deg] towards a uniform
     azimuth (around two unit vectors across it)."""
     count = normals.shape[0]
-    polar = math.radians(largest_deg) * gen.uniform(0.0, 1.0, count)
-    azimuth = gen.uniform(0.0, 2.0 * math.pi, count)
+    polar = math.radians(largest_deg) * np.asarray(gen.uniform(0.0, 1.0, (count,)))
+    azimuth = np.asarray(gen.uniform(0.0, 2.0 * math.pi, (count,)))
     out = np.empty_like(normals)
     for i, n in enumerate(normals):
         across = np.array([1.0, 0.0, 0.0]) - n[0] * n
         across /= np.linalg.norm(across)
         other = np.cross(across, n)
-        side = math.cos(azimuth[i]) * across + math.sin(azimuth[i]) * other
-        out[i] = math.cos(polar[i]) * n + math.sin(polar[i]) * side
+        side = math.cos(float(azimuth[i])) * across + math.sin(float(azimuth[i])) * other
+        out[i] = math.cos(float(polar[i])) * n + math.sin(float(polar[i])) * side
     return out
 
 
