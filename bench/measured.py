@@ -209,9 +209,16 @@ def _amplitudes(readings: FloatArray, undetected: str, floor: float) -> list[flo
 
 
 def calibrate(
-    client: TestClient, room_id: str, survey: MasseySurvey, indices: np.ndarray, undetected: str
+    client: TestClient,
+    room_id: str,
+    survey: MasseySurvey,
+    indices: np.ndarray,
+    undetected: str,
+    tilt_bound_deg: float | None = None,
 ) -> dict[str, Any]:
-    """Send the survey points' readings; wait for the calibrated fingerprint; the report."""
+    """Send the survey points' readings; wait for the calibrated fingerprint; the report.
+
+    ``tilt_bound_deg``: the request's ``led_tilt_bound_deg`` (None: the API's default)."""
     # Without "null" a survey cannot say "not detected": those rows are left out.
     rows = [
         {"x": float(x), "y": float(y), "led": led, "amplitude": amp}
@@ -219,9 +226,10 @@ def calibrate(
         for led, amp in enumerate(_amplitudes(readings, "null", survey.floor))
         if amp is not None or undetected == "null"
     ]
-    response = client.post(
-        f"/v1/rooms/{room_id}/calibrations", json={"survey": rows}, headers=HEADERS
-    )
+    body: dict[str, Any] = {"survey": rows}
+    if tilt_bound_deg is not None:
+        body["led_tilt_bound_deg"] = tilt_bound_deg
+    response = client.post(f"/v1/rooms/{room_id}/calibrations", json=body, headers=HEADERS)
     response.raise_for_status()
     job = _job(client, response.json()["id"])
     calibration_id = job["result"]["calibration_id"]
@@ -415,6 +423,19 @@ def run(
             rows += service_rows(
                 client, calibrated_id, survey, split.test, "calibrated" + tag, undetected, seed
             )
+            if not level:
+                # The same calibration with every LED's normal kept straight down.
+                untilted_id = create_room(client, body)
+                calibrate(client, untilted_id, survey, split.survey, undetected, 0.0)
+                rows += service_rows(
+                    client,
+                    untilted_id,
+                    survey,
+                    split.test,
+                    "calibrated, led_tilt_bound_deg 0",
+                    undetected,
+                    seed,
+                )
     rows += baseline_rows(survey, split.survey, split.test, receiver_z, scale, report)
     info = {
         "survey_points": len(split.survey),
@@ -465,6 +486,17 @@ def _height_lines(info: dict[str, Any]) -> str:
     )
 
 
+def _tilt_note(tilts: list[float], angles: list[int]) -> str:
+    """What the fitted tilts say about beams fitted far wider than specified."""
+    wide = sum(a > NOMINAL_HALF_POWER_DEG + 15 for a in angles)
+    if any(t > 0 for t in tilts) or not wide:
+        return ""
+    return (
+        f" The {wide} beams fitted more than 15 degrees wider than the specified "
+        f"{NOMINAL_HALF_POWER_DEG:g} are thus not explained by tilted fittings on this survey."
+    )
+
+
 def write_page(
     rows: Sequence[Row], info: dict[str, Any], command: str, out: Path, csv_path: Path
 ) -> None:
@@ -473,6 +505,8 @@ def write_page(
     leds = info["report"].get("leds") or []
     hpa = [round(led["half_power_angle_deg"]) for led in leds]
     rel = [round(led["relative_amplitude"], 2) for led in leds]
+    tilts = [round(led.get("tilt_deg") or 0.0, 1) for led in leds]
+    azimuths = [round(led.get("tilt_azimuth_deg") or 0.0) for led in leds]
     length, width = info["room"]
     shown_csv = csv_path.relative_to(REPO_ROOT) if csv_path.is_relative_to(REPO_ROOT) else csv_path
     text = f"""# Measured survey: the Massey University lobby
@@ -492,7 +526,10 @@ readings), a survey of {info["survey_points"]} points (about one per square metr
 `POST .../calibrations`, then {info["test_points"]} other points localized through
 `POST .../localize/batch`: K = 1 as `terminals`, K = 2 and 4 as the aggregated correlation of
 disjoint groups of test points. Errors for K > 1 are after optimal matching. Coverage: how often
-the truth lies inside the answer's 95 % radius `accuracy_m`.
+the truth lies inside the answer's 95 % radius `accuracy_m`. "calibrated" rows use the API's
+default calibration (each LED's normal fitted within 15 degrees, the survey's undetected
+readings sent as `null`); "led_tilt_bound_deg 0" rows the same survey with every LED's normal
+kept straight down.
 
 {_table(rows)}
 
@@ -514,9 +551,14 @@ at 0.2 m would need every luminaire's beam to be narrower and is far less likely
 
 ## Calibration on the survey
 
-Fitted half-power angles (degrees, per LED): {hpa}; relative amplitudes: {rel}; receiver
-gain {info["report"].get("receiver_gain", float("nan")):.3g}; noise sd
-{info["report"].get("noise_std", float("nan")):.3g}.
+Fitted half-power angles (degrees, per LED): {hpa}; relative amplitudes: {rel}; tilts
+(degrees from straight down): {tilts}, towards azimuths (degrees from +x): {azimuths};
+receiver gain {info["report"].get("receiver_gain", float("nan")):.3g}; noise sd
+{info["report"].get("noise_std", float("nan")):.3g}. A fitted tilt is kept only where it lowers
+that LED's residual sum of squares by more than 8 noise variances (more than chance would for
+its two parameters): {sum(t > 0 for t in tilts)} of {len(tilts)} LEDs here, which is why the
+`led_tilt_bound_deg 0` rows {"equal" if not any(t > 0 for t in tilts) else "differ from"} the
+calibrated ones.{_tilt_note(tilts, hpa)}
 
 Machine:
 

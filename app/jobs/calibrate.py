@@ -39,9 +39,10 @@ def apply_calibration(nominal: Layout, payload: dict[str, Any]) -> dict[str, Any
         ``{"request": {...}, "base": None | {"id", "calibrated_layout", "report"}}``; the
         request has ``survey`` (rows ``[x, y, led, amplitude]``, may be empty),
         ``masked_leds``, ``mask_dead_leds``, ``dimmed_below``, ``dead_below`` and, in
-        requests stored since they exist, ``led_position_bound_m``, ``fit_reflectance``
-        and ``apply_receiver_gain`` (absent: no position fit, no reflectance fit, gain
-        folded in, as the requests stored before them were fitted).
+        requests stored since they exist, ``led_position_bound_m``, ``led_tilt_bound_deg``,
+        ``fit_reflectance`` and ``apply_receiver_gain`` (absent: no position fit, no normal
+        fit, no reflectance fit, gain folded in, as the requests stored before them were
+        fitted). A survey amplitude None (JSON null) is a row whose LED was not detected.
 
     Returns
     -------
@@ -64,6 +65,7 @@ def apply_calibration(nominal: Layout, payload: dict[str, Any]) -> dict[str, Any
             dimmed_below=float(request.get("dimmed_below", 0.75)),
             dead_below=float(request.get("dead_below", 0.1)),
             led_position_bound_m=float(request.get("led_position_bound_m", 0.0)),
+            led_tilt_bound_deg=float(request.get("led_tilt_bound_deg", 0.0)),
             fit_reflectance=bool(request.get("fit_reflectance", False)),
         )
         calibrated = calibrated_layout(
@@ -120,6 +122,9 @@ def _report(nominal: Layout, result: CalibrationResult, n_rows: int) -> dict[str
             "nominal_x": float(nominal.leds[i].x),
             "nominal_y": float(nominal.leds[i].y),
             "shift_m": float(np.hypot(*result.led_shifts_m[i])),
+            "normal": [float(v) for v in result.led_normals[i]],
+            "tilt_deg": float(result.tilts_deg[i]),
+            "tilt_azimuth_deg": float(result.tilt_azimuths_deg[i]),
         }
         for i in range(nominal.n_leds)
     ]
@@ -139,6 +144,17 @@ def _report(nominal: Layout, result: CalibrationResult, n_rows: int) -> dict[str
             if fitted.any()
             else None
         ),
+    }
+
+
+def _normal_report(normal: tuple[float, float, float]) -> dict[str, Any]:
+    """``normal``, ``tilt_deg`` and ``tilt_azimuth_deg`` of a layout's LED normal."""
+    nx, ny, nz = normal
+    flat = math.hypot(nx, ny) <= 1e-12
+    return {
+        "normal": [nx, ny, nz],
+        "tilt_deg": math.degrees(math.acos(max(-1.0, min(1.0, -nz)))),
+        "tilt_azimuth_deg": 0.0 if flat else math.degrees(math.atan2(ny, nx)) % 360.0,
     }
 
 
@@ -166,6 +182,7 @@ def _nominal_report(nominal: Layout) -> dict[str, Any]:
             "nominal_x": float(led.x),
             "nominal_y": float(led.y),
             "shift_m": 0.0,
+            **_normal_report(led.normal),
         }
         for i, led in enumerate(nominal.leds)
     ]

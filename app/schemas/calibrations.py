@@ -14,6 +14,10 @@ from .statuses import JobStatus
 # Same value as app.vlp.calibration.DEFAULT_LED_POSITION_BOUND_M (a test checks); not
 # imported so that importing the schemas does not load numpy.
 DEFAULT_LED_POSITION_BOUND_M = 0.3
+# Same value as app.vlp.calibration.DEFAULT_LED_TILT_BOUND_DEG and MAX_LED_TILT_BOUND_DEG
+# (a test checks).
+DEFAULT_LED_TILT_BOUND_DEG = 15.0
+MAX_LED_TILT_BOUND_DEG = 45.0
 # No layout has more LEDs than this (the schema's own cap; the service's limit is lower).
 MAX_LED_INDEX = 1_000_000
 
@@ -77,17 +81,19 @@ class SurveyRow(RequestModel):
     led: RequestInt = Field(ge=0, le=MAX_LED_INDEX, description="LED index (0-based, layout order)")
     amplitude: FiniteFloat | None = Field(
         description="received pilot amplitude a = h x (+ noise); null: the LED was not "
-        "detected at this point (such rows are never taken as a number; the fit leaves them "
-        "out)"
+        "detected at this point (never taken as a number: the fit takes it as below the "
+        "survey's detection floor, the weakest amplitude detected in the survey)"
     )
 
 
 class CalibrationCreate(RequestModel):
     """A survey to fit, and/or LEDs to mask.
 
-    - With `survey`: fit each LED's pilot amplitude, Lambertian order and `x`, `y` (within
-      `led_position_bound_m`), the receiver gain and, with `fit_reflectance`, the surfaces'
-      reflectances, by least squares; build the fingerprint from the calibrated model.
+    - With `survey`: fit each LED's pilot amplitude, Lambertian order, `x`, `y` (within
+      `led_position_bound_m`) and normal (within `led_tilt_bound_deg`), the receiver gain
+      and, with `fit_reflectance`, the surfaces' reflectances, by least squares (rows with a
+      null amplitude censored below the detection floor); build the fingerprint from the
+      calibrated model.
     - Without `survey` (only `masked_leds`): re-use the room's active calibration (or the
       nominal layout when it has none) and only change which LEDs are masked.
 
@@ -124,6 +130,13 @@ class CalibrationCreate(RequestModel):
         le=1,
         description="fit each LED's x and y within this many metres of the layout's (0: keep "
         "the layout's positions); needs 8 survey points in the LED's view",
+    )
+    led_tilt_bound_deg: FiniteFloat = Field(
+        default=DEFAULT_LED_TILT_BOUND_DEG,
+        ge=0,
+        le=MAX_LED_TILT_BOUND_DEG,
+        description="fit each LED's normal within this many degrees of the layout's (0: keep "
+        "the layout's normals); needs 12 detected survey points in the LED's view",
     )
     fit_reflectance: bool = Field(
         default=False,
@@ -164,6 +177,17 @@ class LedCalibration(ResponseModel):
     nominal_y: float | None = Field(default=None, description="the layout's y, m")
     shift_m: float | None = Field(
         default=None, description="distance between the fitted and the layout's (x, y), m"
+    )
+    normal: list[float] | None = Field(
+        default=None, description="fitted unit normal [nx, ny, nz] of the LED's face"
+    )
+    tilt_deg: float | None = Field(
+        default=None, description="angle between the fitted normal and straight down, degrees"
+    )
+    tilt_azimuth_deg: float | None = Field(
+        default=None,
+        description="direction the face turns to, degrees counter-clockwise from +x in "
+        "[0, 360) (0 when not tilted)",
     )
 
 
@@ -207,6 +231,9 @@ class Calibration(ResponseModel):
     leds: list[LedCalibration] | None
     led_position_bound_m: float = Field(
         default=0.0, description="the requested bound of the LEDs' position fit, m"
+    )
+    led_tilt_bound_deg: float = Field(
+        default=0.0, description="the requested bound of the LEDs' normal fit, degrees"
     )
     fit_reflectance: bool = Field(default=False, description="reflectances were requested")
     apply_receiver_gain: bool = Field(

@@ -2,15 +2,17 @@
 
 from __future__ import annotations
 
+import math
 from datetime import datetime
 from typing import Any
 
-from pydantic import ConfigDict, Field, StrictBool
+from pydantic import ConfigDict, Field, StrictBool, field_validator
 
 from app.vlp.constants import (
     DEFAULT_FILTER_GAIN,
     DEFAULT_FOV_DEG,
     DEFAULT_HALF_POWER_ANGLE_DEG,
+    DEFAULT_LED_NORMAL,
     DEFAULT_PILOT_AMPLITUDE,
     DEFAULT_RECEIVER_AREA_M2,
     DEFAULT_REFRACTIVE_INDEX,
@@ -152,7 +154,7 @@ class ReceiverSpec(RequestModel):
 
 
 class LedSpec(RequestModel):
-    """A ceiling LED pointing straight down."""
+    """A ceiling LED: where it is, its beam, its pilot and which way its emitting face looks."""
 
     x: FiniteFloat = Field(ge=0, le=_MAX_EXTENT_M, description="m, in [0, room.length]")
     y: FiniteFloat = Field(ge=0, le=_MAX_EXTENT_M, description="m, in [0, room.width]")
@@ -174,6 +176,26 @@ class LedSpec(RequestModel):
         le=_MAX_AMPLITUDE,
         description="pilot amplitude x_i",
     )
+    normal: list[FiniteFloat] = Field(
+        default_factory=lambda: list(DEFAULT_LED_NORMAL),
+        min_length=3,
+        max_length=3,
+        description="unit normal [nx, ny, nz] of the emitting face in room coordinates, "
+        "nz < 0 (stored normalised); default [0, 0, -1], straight down. The channel takes "
+        "cos(alpha) = n . (r - s) / d for the angle of emission towards a receiver at r",
+    )
+
+    @field_validator("normal")
+    @classmethod
+    def _facing_down(cls, value: list[float]) -> list[float]:
+        length = math.sqrt(sum(v * v for v in value))
+        if not length > 0 or not math.isfinite(length):
+            raise ValueError("normal must be a non-zero vector [nx, ny, nz]")
+        if value[2] >= 0:
+            raise ValueError("normal must point down (nz < 0): LEDs light the room below them")
+        if value == list(DEFAULT_LED_NORMAL):
+            return value
+        return [v / length for v in value]
 
 
 class RoomLayout(RequestModel):

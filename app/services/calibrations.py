@@ -65,20 +65,21 @@ def _checked_request(body: CalibrationCreate, layout: Layout) -> dict[str, Any]:
         errors.append(("masked_leds", f"at least one of the {n_leds} LEDs must stay"))
     if body.dead_below > body.dimmed_below:
         errors.append(("dead_below", "dead_below must not exceed dimmed_below"))
-    # "Not detected" rows say only that the amplitude is below the receiver's floor: the
-    # least-squares fit cannot take them as a number, so it leaves them out.
+    # "Not detected" rows say only that the amplitude is below the receiver's floor: the fit
+    # takes them as censored, which needs at least one detected row to set the floor.
     detected = [row for row in body.survey if row.amplitude is not None]
     if body.survey and not detected:
         errors.append(("survey", "every row is null (not detected): nothing to fit"))
     if errors:
         raise InvalidFields(errors)
     return {
-        "survey": [[row.x, row.y, row.led, row.amplitude] for row in detected],
+        "survey": [[row.x, row.y, row.led, row.amplitude] for row in body.survey],
         "masked_leds": sorted(set(body.masked_leds)),
         "mask_dead_leds": body.mask_dead_leds,
         "dimmed_below": body.dimmed_below,
         "dead_below": body.dead_below,
         "led_position_bound_m": body.led_position_bound_m,
+        "led_tilt_bound_deg": body.led_tilt_bound_deg,
         "fit_reflectance": body.fit_reflectance,
         "apply_receiver_gain": body.apply_receiver_gain,
     }

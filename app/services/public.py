@@ -126,6 +126,7 @@ def calibration_public(record: CalibrationRecord) -> Calibration:
         converged=report.get("converged"),
         leds=None if leds is None else [LedCalibration(**led) for led in leds],
         led_position_bound_m=float(record.request.get("led_position_bound_m", 0.0)),
+        led_tilt_bound_deg=float(record.request.get("led_tilt_bound_deg", 0.0)),
         fit_reflectance=bool(record.request.get("fit_reflectance", False)),
         apply_receiver_gain=bool(record.request.get("apply_receiver_gain", True)),
         reflectance=_optional(CalibratedReflectance, report.get("reflectance")),

@@ -7,7 +7,7 @@ model; these functions trust their input.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -15,6 +15,7 @@ import scipy.sparse as sp
 from scipy.optimize import least_squares
 
 from .channel import lambertian_order, led_constants
+from .constants import DEFAULT_LED_NORMAL
 from .layout import Layout, Reflectance
 from .reflections import diffuse_gains
 from .typing import BoolArray, FloatArray, IntArray
@@ -27,6 +28,7 @@ __all__ = [
     "MAX_REFLECTANCE",
     "MIN_ORDER",
     "MIN_ROWS_FOR_POSITION",
+    "MIN_ROWS_FOR_TILT",
     "SURFACE_NAMES",
     "LedFit",
     "LedRows",
@@ -36,6 +38,7 @@ __all__ = [
     "fit_led",
     "led_rows",
     "rms_per_led",
+    "tilt_frame",
 ]
 
 # Lambertian orders allowed in the fit: half-power angles between 89.5 and 0.5 degrees.
@@ -43,8 +46,13 @@ MIN_ORDER = float(lambertian_order(89.5))
 MAX_ORDER = float(lambertian_order(0.5))
 # In-view survey rows needed to fit the order as well as the amplitude ...
 MIN_ROWS_FOR_ORDER = 3
-# ... and the LED's x, y as well (4 parameters from fewer rows would fit the noise).
+# ... and the LED's x, y as well (4 parameters from fewer rows would fit the noise) ...
 MIN_ROWS_FOR_POSITION = 8
+# ... and the tilt of its normal too (6 parameters).
+MIN_ROWS_FOR_TILT = 12
+# Cost decrease (in noise variances) a fitted LED tilt must bring to be kept: 2 + 3 sqrt(2 * 2)
+# for its two parameters (chi-squared with 2 degrees of freedom, 3 sd above its mean).
+TILT_SIGNIFICANCE = 8.0
 # Fitted reflectances stay in [0, MAX_REFLECTANCE] (a Reflectance must be below 1).
 MAX_REFLECTANCE = 0.99
 SURFACE_NAMES = ("walls", "floor", "ceiling")
@@ -62,35 +70,78 @@ _PROBE_REFLECTANCE = 0.5
 
 @dataclass(frozen=True)
 class LedRows:
-    """All survey rows of one LED and its model ``r (x0 h_los(p; m, s + shift) + d . rho)``.
+    """All survey rows of one LED and its model ``r (x0 h_los(p; m, s + shift, n) + d . rho)``.
 
     ``offsets`` are the points minus the LED's NOMINAL ``(x, y)``; ``diffuse`` the reflected
     amplitude per unit reflectance of each surface (nominal LED, ratio 1), shape (n, 3).
+    The LED's normal is ``n(u, v)``: the layout's ``normal`` tilted by ``t = tan(bound)
+    disc(u, v)`` along ``frame`` (two unit vectors across it), ``(u, v)`` in the unit square
+    and ``disc`` the smooth map of the square onto the unit disc, so that any ``(u, v)`` is
+    within ``bound`` of the layout's normal. Rows that are ``censored`` (not detected) say
+    only that the amplitude is below ``floor``: their residual is the model's excess over
+    the floor (0 below it), the least-squares form of the censored Gaussian likelihood.
     """
 
     offsets: FloatArray  # (n, 2), m
     dz: float  # LED height above the receivers' plane, m
-    amplitudes: FloatArray  # (n,)
+    amplitudes: FloatArray  # (n,), 0 where censored
     base: float  # x_i^nominal A G_f G_c / (2 pi)
     cos_fov: float
     diffuse: FloatArray = field(default_factory=lambda: np.zeros((0, 3)))
+    normal: FloatArray = field(default_factory=lambda: np.array(DEFAULT_LED_NORMAL))
+    frame: FloatArray = field(default_factory=lambda: np.eye(3)[:2].copy())
+    tilt_scale: float = 0.0  # tan(bound); 0: the normal is the layout's
+    censored: BoolArray = field(default_factory=lambda: np.zeros(0, dtype=bool))
+    floor: float = 0.0
 
     @property
     def size(self) -> int:
         return int(self.amplitudes.size)
 
-    def geometry(self, shift: FloatArray) -> tuple[FloatArray, FloatArray, BoolArray]:
-        """``ln cos`` of the incidence angle, ``d^2`` and the field-of-view mask."""
-        rel = self.offsets - shift[None, :]
-        dist_sq = rel[:, 0] ** 2 + rel[:, 1] ** 2 + self.dz**2
-        log_cos = math.log(self.dz) - 0.5 * np.log(dist_sq)
-        view = np.exp(log_cos) >= self.cos_fov - 1e-15
-        return log_cos, dist_sq, view
+    @property
+    def is_censored(self) -> BoolArray:
+        if self.censored.size == 0:
+            return np.zeros(self.size, dtype=bool)
+        return self.censored
 
-    def line_of_sight(self, order: float, shift: FloatArray) -> FloatArray:
-        """``x0 h_los`` at ratio 1 (0 outside the FOV)."""
-        log_cos, dist_sq, view = self.geometry(shift)
-        gain = self.base * (order + 1.0) * np.exp((order + 1.0) * log_cos) / dist_sq
+    def normal_at(self, tilt: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """The unit normal (3,) at ``tilt = (u, v)`` and its derivatives (2, 3) along u, v."""
+        u, v = float(tilt[0]), float(tilt[1])
+        root_u, root_v = math.sqrt(1.0 - 0.5 * u * u), math.sqrt(1.0 - 0.5 * v * v)
+        t = self.tilt_scale * np.array([u * root_v, v * root_u])
+        # d t / d(u, v): rows t_x, t_y.
+        dt = self.tilt_scale * np.array(
+            [[root_v, -0.5 * u * v / root_v], [-0.5 * u * v / root_u, root_u]]
+        )
+        w = self.normal + t @ self.frame
+        length = float(np.linalg.norm(w))
+        unit = w / length
+        # d unit / d t_j = (e_j - unit (unit . e_j)) / |w|
+        along_t = (self.frame - np.outer(self.frame @ unit, unit)) / length  # (2, 3)
+        return unit, dt.T @ along_t
+
+    def geometry(
+        self, shift: FloatArray, tilt: FloatArray | None = None
+    ) -> tuple[FloatArray, FloatArray, FloatArray, BoolArray, FloatArray, FloatArray]:
+        """``ln cos`` of the emission and incidence angles, ``d^2``, the mask of rows in the
+        receiver's view and ahead of the LED, ``c = n . (r - s)`` and ``r - s`` (n, 3)."""
+        rel = self.offsets - shift[None, :]
+        to_rx = np.column_stack((rel, np.full(rel.shape[0], -self.dz)))
+        unit = self.normal if tilt is None else self.normal_at(tilt)[0]
+        facing = to_rx @ unit
+        dist_sq = rel[:, 0] ** 2 + rel[:, 1] ** 2 + self.dz**2
+        half_log_d2 = 0.5 * np.log(dist_sq)
+        log_cos_phi = math.log(self.dz) - half_log_d2
+        view = (np.exp(log_cos_phi) >= self.cos_fov - 1e-15) & (facing > 0)
+        log_cos_alpha = np.log(np.where(facing > 0, facing, 1.0)) - half_log_d2
+        return log_cos_alpha, log_cos_phi, dist_sq, view, facing, to_rx
+
+    def line_of_sight(
+        self, order: float, shift: FloatArray, tilt: FloatArray | None = None
+    ) -> FloatArray:
+        """``x0 h_los`` at ratio 1 (0 outside the FOV and behind the LED's face)."""
+        log_alpha, log_phi, dist_sq, view, _, _ = self.geometry(shift, tilt)
+        gain = self.base * (order + 1.0) * np.exp(order * log_alpha + log_phi) / dist_sq
         return np.asarray(np.where(view, gain, 0.0))
 
     def reflected(self, rho: FloatArray) -> FloatArray:
@@ -98,50 +149,107 @@ class LedRows:
             return np.zeros(self.size)
         return np.asarray(self.diffuse @ rho)
 
-    def model(self, ratio: float, order: float, shift: FloatArray, rho: FloatArray) -> FloatArray:
-        return np.asarray(ratio * (self.line_of_sight(order, shift) + self.reflected(rho)))
+    def model(
+        self,
+        ratio: float,
+        order: float,
+        shift: FloatArray,
+        rho: FloatArray,
+        tilt: FloatArray | None = None,
+    ) -> FloatArray:
+        return np.asarray(ratio * (self.line_of_sight(order, shift, tilt) + self.reflected(rho)))
+
+    def residuals(self, fit: LedFit, rho: FloatArray) -> FloatArray:
+        """Model minus measurement; for censored rows the model's excess over the floor."""
+        modelled = self.model(fit.ratio, fit.order, fit.shift, rho, fit.tilt)
+        censored = self.is_censored
+        return np.asarray(
+            np.where(censored, np.maximum(modelled - self.floor, 0.0), modelled - self.amplitudes)
+        )
 
     def jacobian(
-        self, ratio: float, order: float, shift: FloatArray, rho: FloatArray
+        self,
+        ratio: float,
+        order: float,
+        shift: FloatArray,
+        rho: FloatArray,
+        tilt: FloatArray | None = None,
     ) -> tuple[FloatArray, FloatArray]:
-        """Columns d/d(ratio, order, shift_x, shift_y), shape (n, 4), and d/d rho, (n, 3)."""
-        log_cos, dist_sq, _ = self.geometry(shift)
-        los = self.line_of_sight(order, shift)
-        rel = self.offsets - shift[None, :]
-        d_shift = ((order + 3.0) * ratio * los / dist_sq)[:, None] * rel
+        """Columns d/d(ratio, order, shift_x, shift_y, u, v), shape (n, 6), and d/d rho, (n, 3)."""
+        tilt = np.zeros(2) if tilt is None else tilt
+        unit, along_uv = self.normal_at(tilt)
+        log_alpha, _, dist_sq, view, facing, to_rx = self.geometry(shift, tilt)
+        los = self.line_of_sight(order, shift, tilt)
+        safe = np.where(view, facing, 1.0)
+        rel = to_rx[:, :2]
+        d_shift = (
+            ratio
+            * los[:, None]
+            * (((order + 3.0) / dist_sq)[:, None] * rel - order * unit[None, :2] / safe[:, None])
+        )
+        d_tilt = ratio * los[:, None] * order * (to_rx @ along_uv.T) / safe[:, None]
         columns = np.column_stack(
             (
                 los + self.reflected(rho),
-                ratio * los * (1.0 / (order + 1.0) + log_cos),
+                ratio * los * (1.0 / (order + 1.0) + log_alpha),
                 d_shift,
+                d_tilt,
             )
         )
         d_rho = ratio * self.diffuse if self.diffuse.shape[0] else np.zeros((self.size, 3))
         return columns, d_rho
 
+    def residual_jacobian(self, fit: LedFit, rho: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """:meth:`jacobian` of :meth:`residuals` (censored rows below the floor: zero rows)."""
+        columns, d_rho = self.jacobian(fit.ratio, fit.order, fit.shift, rho, fit.tilt)
+        censored = self.is_censored
+        if censored.any():
+            modelled = self.model(fit.ratio, fit.order, fit.shift, rho, fit.tilt)
+            quiet = censored & (modelled <= self.floor)
+            columns = np.where(quiet[:, None], 0.0, columns)
+            d_rho = np.where(quiet[:, None], 0.0, d_rho)
+        return columns, d_rho
+
     def in_view(self) -> BoolArray:
-        """Rows inside the field of view at the nominal position."""
-        return self.geometry(np.zeros(2))[2]
+        """Rows inside the field of view at the nominal position and normal."""
+        return self.geometry(np.zeros(2))[3]
+
+    def detected_in_view(self) -> int:
+        """Rows in view whose LED was detected (those that carry a number)."""
+        return int(np.count_nonzero(self.in_view() & ~self.is_censored))
 
 
 @dataclass(frozen=True)
 class LedFit:
-    """One LED's fitted ``ratio = r_i``, order, shift of ``(x, y)`` and which were free."""
+    """One LED's fitted ``ratio = r_i``, order, shift of ``(x, y)``, tilt ``(u, v)`` of its
+    normal (:class:`LedRows`) and which were free."""
 
     ratio: float
     order: float
     shift: FloatArray
-    free: tuple[bool, bool, bool, bool]  # ratio, order, shift x, shift y
+    free: tuple[bool, bool, bool, bool, bool, bool]  # ratio, order, shift x, y, tilt u, v
     converged: bool = True
+    tilt: FloatArray = field(default_factory=lambda: np.zeros(2))
+
+    def _full(self) -> FloatArray:
+        return np.array([self.ratio, self.order, *self.shift, *self.tilt], dtype=np.float64)
 
     def params(self) -> FloatArray:
-        full = np.array([self.ratio, self.order, self.shift[0], self.shift[1]])
-        return np.asarray(full[np.array(self.free)])
+        return np.asarray(self._full()[np.array(self.free)])
 
     def with_params(self, values: FloatArray, converged: bool = True) -> LedFit:
-        full = np.array([self.ratio, self.order, self.shift[0], self.shift[1]])
+        full = self._full()
         full[np.array(self.free)] = values
-        return LedFit(float(full[0]), float(full[1]), full[2:].copy(), self.free, converged)
+        return LedFit(
+            float(full[0]), float(full[1]), full[2:4].copy(), self.free, converged, full[4:].copy()
+        )
+
+
+def tilt_frame(normal: FloatArray) -> FloatArray:
+    """Two unit vectors across ``normal`` (2, 3): for straight down, +x and +y."""
+    e1 = np.array([1.0, 0.0, 0.0]) - normal[0] * normal
+    e1 = e1 / np.linalg.norm(e1)
+    return np.array([e1, np.cross(e1, normal)])
 
 
 def led_rows(
@@ -150,18 +258,29 @@ def led_rows(
     points: FloatArray,
     amplitudes: FloatArray,
     diffuse: FloatArray | None = None,
+    *,
+    tilt_bound_deg: float = 0.0,
+    floor: float = 0.0,
 ) -> LedRows:
-    """The rows of LED ``index`` (``diffuse``: its per-surface reflected amplitudes, (n, 3))."""
+    """The rows of LED ``index`` (``diffuse``: its per-surface reflected amplitudes, (n, 3));
+    NaN amplitudes are censored below ``floor``."""
     led = layout.leds[index]
     orders, prefactors = led_constants(layout)
     base = float(layout.pilot_amplitudes[index] * prefactors[index] / (orders[index] + 1.0))
+    normal = np.array(led.normal, dtype=np.float64)
+    censored = np.isnan(amplitudes)
     return LedRows(
         offsets=points - np.array([led.x, led.y])[None, :],
         dz=led.z - layout.grid.receiver_height,
-        amplitudes=amplitudes,
+        amplitudes=np.where(censored, 0.0, amplitudes),
         base=base,
         cos_fov=math.cos(math.radians(layout.receiver.fov_deg)),
         diffuse=np.zeros((0, 3)) if diffuse is None else diffuse,
+        normal=normal,
+        frame=tilt_frame(normal),
+        tilt_scale=math.tan(math.radians(tilt_bound_deg)),
+        censored=censored,
+        floor=floor,
     )
 
 
@@ -195,39 +314,64 @@ def identifiable_surfaces(rows: list[LedRows]) -> BoolArray:
 
 
 def _bounds(fit: LedFit, shift_bound: float) -> tuple[FloatArray, FloatArray]:
-    lower = np.array([0.0, MIN_ORDER, -shift_bound, -shift_bound])[np.array(fit.free)]
-    upper = np.array([np.inf, MAX_ORDER, shift_bound, shift_bound])[np.array(fit.free)]
-    return lower, upper
+    lower = np.array([0.0, MIN_ORDER, -shift_bound, -shift_bound, -1.0, -1.0])
+    upper = np.array([np.inf, MAX_ORDER, shift_bound, shift_bound, 1.0, 1.0])
+    return lower[np.array(fit.free)], upper[np.array(fit.free)]
 
 
 def fit_led(rows: LedRows, nominal_order: float, rho: FloatArray, shift_bound: float) -> LedFit:
-    """Least-squares ``(r_i, m_i, shift_i)`` of one LED with the reflectances ``rho`` fixed.
+    """Least-squares ``(r_i, m_i, shift_i, tilt_i)`` of one LED with the reflectances ``rho``
+    fixed.
 
-    ``m_i`` stays nominal with fewer than :data:`MIN_ROWS_FOR_ORDER` rows in view, the shift
-    0 with fewer than :data:`MIN_ROWS_FOR_POSITION` or ``shift_bound == 0``.
+    Counting only detected rows in view, ``m_i`` stays nominal with fewer than
+    :data:`MIN_ROWS_FOR_ORDER` of them, the shift 0 with fewer than
+    :data:`MIN_ROWS_FOR_POSITION` or ``shift_bound == 0``, the normal the layout's with fewer
+    than :data:`MIN_ROWS_FOR_TILT` or a tilt bound of 0. A tilt and a shift move the beam
+    alike near its foot, so the tilt is kept only when it lowers the cost by more than
+    chance would (:data:`TILT_SIGNIFICANCE` noise variances, the noise taken from the fit
+    without it): a level LED is not given the noise's tilt and the shift's spread with it.
     """
-    n_view = int(np.count_nonzero(rows.in_view()))
+    n_view = rows.detected_in_view()
     free_shift = shift_bound > 0 and n_view >= MIN_ROWS_FOR_POSITION
-    free = (True, n_view >= MIN_ROWS_FOR_ORDER, free_shift, free_shift)
-    start = LedFit(1.0, nominal_order, np.zeros(2), free)
+    level = (True, n_view >= MIN_ROWS_FOR_ORDER, free_shift, free_shift, False, False)
+    fit, cost = _fit_led_with(
+        rows, LedFit(1.0, nominal_order, np.zeros(2), level), rho, shift_bound
+    )
+    if not (rows.tilt_scale > 0 and n_view >= MIN_ROWS_FOR_TILT):
+        return fit
+    tilted_free = (*level[:4], True, True)
+    tilted, tilted_cost = _fit_led_with(
+        rows, replace(fit, free=tilted_free), rho, shift_bound, from_start=False
+    )
+    dof = max(n_view - int(np.count_nonzero(level)), 1)
+    noise_var = 2.0 * cost / dof
+    if noise_var > 0 and 2.0 * (cost - tilted_cost) > TILT_SIGNIFICANCE * noise_var:
+        return tilted
+    return fit
+
+
+def _fit_led_with(
+    rows: LedRows, start: LedFit, rho: FloatArray, shift_bound: float, *, from_start: bool = True
+) -> tuple[LedFit, float]:
+    """The bounded least squares of the free parameters of ``start`` and its cost (in the
+    amplitudes' unit squared, halved); also from the log-linear start unless only
+    ``from_start`` is False (then from ``start`` alone)."""
     scale = max(
         float(np.max(np.abs(rows.amplitudes))),
-        float(np.max(rows.model(1.0, nominal_order, np.zeros(2), rho))),
+        float(np.max(rows.model(1.0, start.order, np.zeros(2), rho))),
     )
-    mask = np.array(free)
+    mask = np.array(start.free)
 
     def residuals(params: FloatArray) -> FloatArray:
-        f = start.with_params(params)
-        return np.asarray((rows.model(f.ratio, f.order, f.shift, rho) - rows.amplitudes) / scale)
+        return np.asarray(rows.residuals(start.with_params(params), rho) / scale)
 
     def jacobian(params: FloatArray) -> FloatArray:
-        f = start.with_params(params)
-        columns, _ = rows.jacobian(f.ratio, f.order, f.shift, rho)
+        columns, _ = rows.residual_jacobian(start.with_params(params), rho)
         return np.asarray(columns[:, mask] / scale)
 
     lower, upper = _bounds(start, shift_bound)
     starts = [start.params()]
-    log_start = log_linear_start(rows)
+    log_start = log_linear_start(rows) if from_start else None
     if log_start is not None:
         starts.append(
             LedFit(float(log_start[0]), float(log_start[1]), np.zeros(2), start.free).params()
@@ -249,19 +393,22 @@ def fit_led(rows: LedRows, nominal_order: float, rho: FloatArray, shift_bound: f
         if best is None or sol.cost < best.cost:
             best = sol
     assert best is not None
-    return start.with_params(best.x, bool(best.status > 0))
+    return start.with_params(best.x, bool(best.status > 0)), float(best.cost) * scale**2
 
 
 def log_linear_start(rows: LedRows) -> FloatArray | None:
-    """Start ``(ratio, m)`` from ``ln a = ln(r base (m+1)) + (m+1) ln cos - ln d^2``."""
-    log_cos_all, dist_sq_all, view = rows.geometry(np.zeros(2))
-    log_cos, dist_sq, meas = log_cos_all[view], dist_sq_all[view], rows.amplitudes[view]
+    """Start ``(ratio, m)`` from ``ln a = ln(r base (m+1)) + m ln cos(alpha) + ln cos(phi) -
+    ln d^2`` over the detected rows in view."""
+    alpha_all, phi_all, dist_sq_all, view, _, _ = rows.geometry(np.zeros(2))
+    view = view & ~rows.is_censored
+    log_cos, dist_sq, meas = alpha_all[view], dist_sq_all[view], rows.amplitudes[view]
+    log_phi = np.broadcast_to(phi_all, view.shape)[view]
     if meas.size == 0:
         return None
     positive = meas > 0.05 * float(np.max(meas)) if np.max(meas) > 0 else meas > 0
     if positive.sum() < 2 or np.ptp(log_cos[positive]) <= 1e-9:
         return None
-    target = np.log(meas[positive]) + np.log(dist_sq[positive]) - log_cos[positive]
+    target = np.log(meas[positive]) + np.log(dist_sq[positive]) - log_phi[positive]
     design = np.column_stack((np.ones(int(positive.sum())), log_cos[positive]))
     weights = meas[positive] / np.max(meas[positive])  # var(ln a) ~ sigma^2 / a^2
     coef, *_ = np.linalg.lstsq(design * weights[:, None], target * weights, rcond=None)
@@ -307,10 +454,7 @@ def fit_jointly(
 
     def residuals(params: FloatArray) -> FloatArray:
         leds, current = unpack(params)
-        parts = [
-            r.model(f.ratio, f.order, f.shift, current) - r.amplitudes
-            for r, f in zip(rows, leds, strict=True)
-        ]
+        parts = [r.residuals(f, current) for r, f in zip(rows, leds, strict=True)]
         return np.asarray(np.concatenate(parts) / scale)
 
     n_rows = sum(r.size for r in rows)
@@ -320,7 +464,7 @@ def fit_jointly(
         leds, current = unpack(params)
         blocks, shared = [], []
         for r, f in zip(rows, leds, strict=True):
-            columns, d_rho = r.jacobian(f.ratio, f.order, f.shift, current)
+            columns, d_rho = r.residual_jacobian(f, current)
             blocks.append(columns[:, np.array(f.free)])
             shared.append(d_rho[:, surfaces])
         led_part = sp.block_diag(blocks, format="csr")
@@ -346,7 +490,7 @@ def fit_jointly(
         max_nfev=200,
     )
     leds, fitted = unpack(sol.x)
-    dof = max(sum(r.size for r in rows) - sol.x.size, 1)
+    dof = max(sum(int(np.count_nonzero(~r.is_censored)) for r in rows) - sol.x.size, 1)
     noise_var = float(2.0 * sol.cost) * scale**2 / dof
     sd = np.full(len(SURFACE_NAMES), np.nan)
     sd[surfaces] = _shared_sd(rows, leds, fitted, surfaces, noise_var)
@@ -363,7 +507,7 @@ def _shared_sd(
     """sd of the shared parameters: ``sigma^2 (C - sum_i B_i^T A_i^+ B_i)^-1``."""
     schur = np.zeros((surfaces.size, surfaces.size))
     for r, f in zip(rows, leds, strict=True):
-        columns, d_rho = r.jacobian(f.ratio, f.order, f.shift, rho)
+        columns, d_rho = r.residual_jacobian(f, rho)
         own, shared = columns[:, np.array(f.free)], d_rho[:, surfaces]
         cross = own.T @ shared
         schur += shared.T @ shared - cross.T @ np.linalg.pinv(own.T @ own) @ cross

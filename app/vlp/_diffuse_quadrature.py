@@ -13,7 +13,7 @@ import numpy as np
 
 from .errors import GeometryError
 from .layout import Layout, Reflectance
-from .typing import FloatArray, IntArray
+from .typing import BoolArray, FloatArray, IntArray
 
 # Largest quadrature cell (metres). Each cell carries a 3 x 3 Gauss rule, so the far field of
 # a smooth integrand is resolved far below this; near-field accuracy comes from GRADING.
@@ -114,6 +114,10 @@ class LedFrame:
     orders: FloatArray
     v_is_z: bool  # walls: v runs along z from the floor; floor/ceiling: z is constant
     plane_z: float
+    # The LEDs' normals along (axis_u, axis_v, normal) of the surface, (M, 3), and which of
+    # them are tilted (their irradiance is then computed on the whole mesh, not factored).
+    led_normals: FloatArray
+    tilted: BoolArray
     feet_u: tuple[tuple[float, float], ...]
     feet_v: tuple[tuple[float, float], ...]
 
@@ -128,8 +132,11 @@ class LedFrame:
         only_led: int | None = None,
     ) -> LedFrame:
         leds = layout.led_positions
+        normals = layout.led_normals
+        tilted = np.array([led.tilted for led in layout.leds], dtype=bool)
         if only_led is not None:
             leds, orders = leds[only_led : only_led + 1], orders[only_led : only_led + 1]
+            normals, tilted = normals[only_led : only_led + 1], tilted[only_led : only_led + 1]
         offsets = leds - surface.origin
         lowest_z = float(surface.origin[2]) if surface.axis_v[2] == 0 else 0.0
         active = np.flatnonzero(
@@ -137,6 +144,8 @@ class LedFrame:
         )
         n_leds = leds.shape[0]
         leds, orders, offsets = leds[active], orders[active], offsets[active]
+        normals, tilted = normals[active], tilted[active]
+        frame = np.array([surface.axis_u, surface.axis_v, surface.normal])
         led_u, led_v = offsets @ surface.axis_u, offsets @ surface.axis_v
         led_height = offsets @ surface.normal
         # Grade towards an LED's foot only where it is close enough to need finer cells.
@@ -153,6 +162,8 @@ class LedFrame:
             plane_z=float(surface.origin[2]),
             feet_u=tuple(zip(led_u[near].tolist(), led_height[near].tolist(), strict=True)),
             feet_v=tuple(zip(led_v[near].tolist(), led_height[near].tolist(), strict=True)),
+            led_normals=normals @ frame.T,
+            tilted=tilted,
         )
 
     def contract(self, nodes_u: FloatArray, nodes_v: FloatArray, weights: FloatArray) -> FloatArray:
@@ -188,7 +199,41 @@ class LedFrame:
             dist_sq = across[group][:, :, None] + along[group][:, None, :]  # (G, n_u, n_v)
             falloff = _inverse_power(dist_sq, (float(order) + 3.0) / 2.0)
             inner[group] = np.einsum("guv,uv->gv", falloff, weights)
-        return np.asarray(np.einsum("mv,mv->m", inner, v_factor))
+        flux = np.einsum("mv,mv->m", inner, v_factor)
+        for i in np.flatnonzero(self.tilted):
+            flux[i] = self._tilted_flux(int(i), nodes_u, nodes_v, weights, across[i], along[i])
+        return np.asarray(flux)
+
+    def _tilted_flux(
+        self,
+        i: int,
+        nodes_u: FloatArray,
+        nodes_v: FloatArray,
+        weights: FloatArray,
+        across: FloatArray,
+        along: FloatArray,
+    ) -> float:
+        """``sum E w`` of a tilted LED: ``E = (m+1)/(2 pi) b c^m / d^(m+3)`` with
+        ``c = n . (node - s)`` (0 where ``c <= 0``, behind its face), on the whole mesh."""
+        n_u, n_v, n_n = self.led_normals[i]
+        facing = (
+            n_u * (nodes_u[:, None] - self.led_u[i])
+            + n_v * (nodes_v[None, :] - self.led_v[i])
+            - n_n * self.led_height[i]
+        )
+        order = float(self.orders[i])
+        dist_sq = across[:, None] + along[None, :]
+        lit = facing > 0
+        irradiance = np.where(
+            lit,
+            (order + 1.0)
+            / (2.0 * math.pi)
+            * self.led_height[i]
+            * np.where(lit, facing, 1.0) ** order
+            * _inverse_power(dist_sq, (order + 3.0) / 2.0),
+            0.0,
+        )
+        return float(np.sum(irradiance * weights))
 
 
 def graded_rule(

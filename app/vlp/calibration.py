@@ -1,5 +1,5 @@
-"""Survey calibration: fit each LED's pilot amplitude, Lambertian order and x, y (and the
-surfaces' reflectances) to measured amplitudes.
+"""Survey calibration: fit each LED's pilot amplitude, Lambertian order, x, y and normal (and
+the surfaces' reflectances) to measured amplitudes.
 
 The paper assumes the channel information is "collected via beforehand channel estimation
 indoors". An admin walks a receiver over surveyed points ``p_k`` (on the receivers' plane) and
@@ -12,18 +12,22 @@ records, per LED ``i``, the received pilot amplitude ``a_k``. The model (``chann
     h(p; m, s) = \\frac{(m+1) A G_f G_c}{2 \\pi} \\frac{dz^{m+1}}{d^{m+3}} \\ (\\phi \\le FOV),
 
 with ``x_i`` the pilot amplitude, ``m_i`` the Lambertian order, ``s_i`` the LED's ``(x, y)``
-(``d`` its distance to ``p``), ``g`` the receiver's gain relative to the nominal receiver of
-the layout, and ``D_ij`` the first diffuse bounce off surface ``j`` (walls, floor, ceiling)
-per unit reflectance ``rho_j``, computed once with the nominal LEDs (a shift of a few
-centimetres or degrees changes the reflected part, a fraction of the signal, to second
-order). Without ``room.reflectance`` and without ``fit_reflectance`` the sum is absent.
+(``d`` its distance to ``p``; for a tilted LED of normal ``n_i`` the factor ``dz^m`` becomes
+``(n_i . (p - s_i))^m``, :mod:`app.vlp.channel`), ``g`` the receiver's gain relative to the
+nominal receiver of the layout, and ``D_ij`` the first diffuse bounce off surface ``j``
+(walls, floor, ceiling) per unit reflectance ``rho_j``, computed once with the nominal LEDs (a
+shift of a few centimetres or degrees changes the reflected part, a fraction of the signal,
+to second order). Without ``room.reflectance`` and without ``fit_reflectance`` the sum is absent.
 
 Identifiability and the choice made here: only the products ``r_i = g x_i / x_i^nominal``
-can be told apart from amplitudes, so the fit is done on ``(r_i, m_i, s_i)``. With the
-reflectances fixed (the layout's) it separates into M independent problems of up to four
+can be told apart from amplitudes, so the fit is done on ``(r_i, m_i, s_i, n_i)``. With the
+reflectances fixed (the layout's) it separates into M independent problems of up to six
 parameters (each LED's rows depend only on its own), solved by
 ``scipy.optimize.least_squares`` with bounds (``s_i`` within ``led_position_bound_m`` of the
-layout's), started from a log-linear fit and from the nominal values (the lower cost wins).
+layout's, ``n_i`` within ``led_tilt_bound_deg`` of the layout's normal), started from a
+log-linear fit and from the nominal values (the lower cost wins). Rows whose LED was not
+detected (NaN amplitudes, ``null`` in the API) are censored below the survey's detection
+floor: they cost the model's excess over the floor, nothing while the model stays below it.
 With ``fit_reflectance`` the reflectances that the survey can see are then fitted jointly with
 every LED (sparse Jacobian), and their standard deviations come from the Schur complement of
 the Fisher information. The products are split into one receiver gain ``g`` and per-LED
@@ -45,6 +49,7 @@ import numpy as np
 
 from ._calibration_fit import (
     MIN_ROWS_FOR_POSITION,
+    MIN_ROWS_FOR_TILT,
     SURFACE_NAMES,
     LedFit,
     LedRows,
@@ -64,7 +69,9 @@ from .typing import BoolArray, FloatArray, IntArray
 
 __all__ = [
     "DEFAULT_LED_POSITION_BOUND_M",
+    "DEFAULT_LED_TILT_BOUND_DEG",
     "MIN_ROWS_FOR_POSITION",
+    "MIN_ROWS_FOR_TILT",
     "SURFACE_NAMES",
     "CalibrationResult",
     "Survey",
@@ -83,6 +90,10 @@ _DETECTION_SNR = 25.0
 # How far (metres, in x and in y) a fitted LED may move from the layout's position: fittings
 # are placed to a few centimetres, a wrong drawing or a swapped fitting is further off.
 DEFAULT_LED_POSITION_BOUND_M = 0.3
+# How far (degrees) a fitted LED normal may turn from the layout's: fixtures hang within a few
+# degrees of their drawing; a face turned further is no longer a small tilt of the same beam.
+DEFAULT_LED_TILT_BOUND_DEG = 15.0
+MAX_LED_TILT_BOUND_DEG = 45.0
 # Where a fitted reflectance starts when the layout gives none (the lighting-design default
 # for walls, docs/explanation/real-rooms.md#the-simulators-true-channel).
 _REFLECTANCE_START = 0.5
@@ -130,6 +141,12 @@ class CalibrationResult:
     reflectance_sd : ndarray of shape (3,)
         Standard deviation of each fitted reflectance (walls, floor, ceiling) from the fit's
         Fisher information with every LED parameter free; NaN where not fitted.
+    led_normals : ndarray of shape (M, 3)
+        Fitted unit normal of each LED's face (the layout's where not fitted).
+    tilts_deg : ndarray of shape (M,), degrees
+        Angle between each fitted normal and straight down.
+    tilt_azimuths_deg : ndarray of shape (M,), degrees in [0, 360)
+        Direction its face turns to, counter-clockwise from +x (0 for an untilted LED).
     """
 
     pilot_amplitudes: FloatArray
@@ -150,6 +167,9 @@ class CalibrationResult:
     led_shifts_m: FloatArray
     reflectance: Reflectance | None
     reflectance_sd: FloatArray
+    led_normals: FloatArray
+    tilts_deg: FloatArray
+    tilt_azimuths_deg: FloatArray
 
     def to_mapping(self) -> dict[str, Any]:
         """The result as JSON-ready plain values (NaN residuals become None)."""
@@ -177,9 +197,10 @@ def calibrate(
     dead_below: float = 0.1,
     led_position_bound_m: float = DEFAULT_LED_POSITION_BOUND_M,
     fit_reflectance: bool = False,
+    led_tilt_bound_deg: float = DEFAULT_LED_TILT_BOUND_DEG,
 ) -> CalibrationResult:
-    """Fit per-LED pilot amplitudes, Lambertian orders and ``x, y`` (and the receiver gain,
-    and optionally the surfaces' reflectances) to a survey.
+    """Fit per-LED pilot amplitudes, Lambertian orders, ``x, y`` and normals (and the receiver
+    gain, and optionally the surfaces' reflectances) to a survey.
 
     Parameters
     ----------
@@ -198,6 +219,9 @@ def calibrate(
     fit_reflectance : bool, default=False
         Also fit the reflectance of every surface whose first-bounce reflection reaches the
         survey's receivers (others keep the layout's value, or 0), jointly with all LEDs.
+    led_tilt_bound_deg : float, default=15
+        Each LED's normal is fitted within this many degrees of the layout's (0: kept as in
+        the layout). Needs :data:`MIN_ROWS_FOR_TILT` detected rows in the LED's view.
 
     Returns
     -------
@@ -208,7 +232,8 @@ def calibrate(
     MeasurementError
         When an LED index is out of range (``field="led_indices"``), a point lies outside
         the room (``field="points"``), the thresholds are not
-        ``0 <= dead_below <= dimmed_below <= 1`` or the position bound is not in [0, 1] m.
+        ``0 <= dead_below <= dimmed_below <= 1``, the position bound is not in [0, 1] m or
+        the tilt bound not in [0, 45] degrees.
 
     Notes
     -----
@@ -240,6 +265,14 @@ def calibrate(
             f"led_position_bound_m must be in [0, 1] m, got {led_position_bound_m!r}",
             field="led_position_bound_m",
         )
+    if not (
+        math.isfinite(led_tilt_bound_deg) and 0.0 <= led_tilt_bound_deg <= MAX_LED_TILT_BOUND_DEG
+    ):
+        raise MeasurementError(
+            f"led_tilt_bound_deg must be in [0, {MAX_LED_TILT_BOUND_DEG:g}] degrees, got "
+            f"{led_tilt_bound_deg!r}",
+            field="led_tilt_bound_deg",
+        )
     check_survey(layout, survey)
     n_leds = layout.n_leds
     orders_nominal, _ = led_constants(layout)
@@ -251,24 +284,25 @@ def calibrate(
     per_row = diffuse_rows(layout, survey) if reflected else None
     fitted_surfaces = np.zeros(len(SURFACE_NAMES), dtype=bool)
     if fit_reflectance:
-        fitted_surfaces = identifiable_surfaces(_rows(layout, survey, groups, per_row))
+        fitted_surfaces = identifiable_surfaces(_rows(layout, survey, groups, per_row, 0.0))
         rho = np.where(fitted_surfaces & (rho == 0.0), _REFLECTANCE_START, rho)
     before = _model(
-        _rows(layout, survey, groups, per_row),
+        _rows(layout, survey, groups, per_row, 0.0),
         groups,
         survey.n_rows,
         _nominal_fits(orders_nominal),
         rho,
     )
+    bounds = (led_position_bound_m, led_tilt_bound_deg)
     rows, fits, rho_fit, rho_sd, converged = _fit_all(
-        layout, survey, groups, per_row, rho, fitted_surfaces, led_position_bound_m
+        layout, survey, groups, per_row, rho, fitted_surfaces, bounds
     )
     if per_row is not None and any(np.any(f.free) for f in fits):
         # The reflected part was computed with the nominal LEDs: once more with the fitted
         # positions and beams (a displaced LED lights the walls differently).
-        per_row = diffuse_rows(_refreshed(layout, fits), survey)
+        per_row = diffuse_rows(_refreshed(layout, rows, fits), survey)
         rows, fits, rho_fit, rho_sd, converged = _fit_all(
-            layout, survey, groups, per_row, rho_fit, fitted_surfaces, led_position_bound_m
+            layout, survey, groups, per_row, rho_fit, fitted_surfaces, bounds
         )
     rho = rho_fit
     in_view = np.array([int(np.count_nonzero(r.in_view())) for r in rows], dtype=np.intp)
@@ -276,22 +310,25 @@ def calibrate(
     orders = np.array([f.order for f in fits])
     shifts = np.array([f.shift for f in fits]).reshape(n_leds, 2)
     modelled = _model(rows, groups, survey.n_rows, fits, rho)
-    residuals = survey.amplitudes - modelled
+    residuals = _measured_minus_model(survey, modelled)
     n_params = sum(int(np.count_nonzero(f.free)) for f, v in zip(fits, in_view, strict=True) if v)
-    dof = max(survey.n_rows - n_params - int(fitted_surfaces.sum()), 1)
+    n_detected = int(np.count_nonzero(survey.detected))
+    dof = max(n_detected - n_params - int(fitted_surfaces.sum()), 1)
     noise_var = float(residuals @ residuals) / dof
     energy = np.bincount(survey.led_indices, weights=modelled**2, minlength=n_leds)
     detected = (energy > 0) & (energy > _DETECTION_SNR * noise_var)
     gain, relative, dead, dimmed = classify(ratios, in_view > 0, detected, dimmed_below, dead_below)
     orders = np.where(dead, orders_nominal, orders)
     shifts = np.where(dead[:, None], 0.0, shifts)
+    normals = np.array([r.normal_at(f.tilt)[0] for r, f in zip(rows, fits, strict=True)])
+    normals = np.where(dead[:, None], layout.led_normals, normals)
     return CalibrationResult(
         pilot_amplitudes=np.where(dead, nominal, relative * nominal),
         lambertian_orders=orders,
         half_power_angles_deg=half_power_angle_deg(orders),
         receiver_gain=gain,
         relative_amplitudes=relative,
-        residual_rms_before=rms_per_led(survey, survey.amplitudes - before, n_leds),
+        residual_rms_before=rms_per_led(survey, _measured_minus_model(survey, before), n_leds),
         residual_rms_after=rms_per_led(survey, residuals, n_leds),
         noise_std=math.sqrt(noise_var),
         points_per_led=np.bincount(survey.led_indices, minlength=n_leds).astype(np.intp),
@@ -308,13 +345,16 @@ def calibrate(
             else Reflectance(**{n: float(rho[s]) for s, n in enumerate(SURFACE_NAMES)})
         ),
         reflectance_sd=rho_sd,
+        led_normals=normals,
+        tilts_deg=np.rad2deg(np.arccos(np.clip(-normals[:, 2], -1.0, 1.0))),
+        tilt_azimuths_deg=_azimuths_deg(normals),
     )
 
 
 def calibrated_layout(
     layout: Layout, result: CalibrationResult, *, apply_receiver_gain: bool = True
 ) -> Layout:
-    """The layout with fitted pilot amplitudes, half-power angles, LED ``x, y`` and
+    """The layout with fitted pilot amplitudes, half-power angles, LED ``x, y``, normals and
     reflectances, receiver gain folded in.
 
     LED indices are kept: dead LEDs stay with their nominal parameters (drop them with
@@ -346,6 +386,7 @@ def calibrated_layout(
             y=float(where[i, 1]),
             pilot_amplitude=float(result.pilot_amplitudes[i]),
             half_power_angle_deg=float(result.half_power_angles_deg[i]),
+            normal=_normal_tuple(result.led_normals[i]),
         )
         for i, led in enumerate(layout.leds)
     )
@@ -396,8 +437,13 @@ def _indices(mask: BoolArray) -> tuple[int, ...]:
 
 
 def _rows(
-    layout: Layout, survey: Survey, groups: list[IntArray], per_row: FloatArray | None
+    layout: Layout,
+    survey: Survey,
+    groups: list[IntArray],
+    per_row: FloatArray | None,
+    tilt_bound_deg: float,
 ) -> list[LedRows]:
+    floor = survey.floor
     return [
         led_rows(
             layout,
@@ -405,9 +451,35 @@ def _rows(
             survey.points[g],
             survey.amplitudes[g],
             None if per_row is None else per_row[g],
+            tilt_bound_deg=tilt_bound_deg,
+            floor=floor,
         )
         for i, g in enumerate(groups)
     ]
+
+
+def _measured_minus_model(survey: Survey, modelled: FloatArray) -> FloatArray:
+    """Residuals per row; a censored row's is minus the model's excess over the floor."""
+    detected = survey.detected
+    return np.where(
+        detected,
+        np.where(detected, survey.amplitudes, 0.0) - modelled,
+        -np.maximum(modelled - survey.floor, 0.0),
+    )
+
+
+def _azimuths_deg(normals: FloatArray) -> FloatArray:
+    """Direction of each normal's horizontal part, degrees in [0, 360) (0 when vertical)."""
+    flat = np.hypot(normals[:, 0], normals[:, 1]) <= 1e-12
+    angles = np.rad2deg(np.arctan2(normals[:, 1], normals[:, 0])) % 360.0
+    return np.asarray(np.where(flat, 0.0, angles))
+
+
+def _normal_tuple(normal: FloatArray) -> tuple[float, float, float]:
+    """A normal as the layout keeps it (exactly straight down when it is, to the last bit)."""
+    if np.hypot(normal[0], normal[1]) <= 1e-15:
+        return (0.0, 0.0, -1.0)
+    return (float(normal[0]), float(normal[1]), float(normal[2]))
 
 
 def _fit_all(
@@ -417,11 +489,13 @@ def _fit_all(
     per_row: FloatArray | None,
     rho: FloatArray,
     fitted_surfaces: BoolArray,
-    bound: float,
+    bounds: tuple[float, float],
 ) -> tuple[list[LedRows], list[LedFit], FloatArray, FloatArray, bool]:
-    """Each LED alone with ``rho`` fixed, then (when surfaces are fitted) all jointly."""
+    """Each LED alone with ``rho`` fixed, then (when surfaces are fitted) all jointly;
+    ``bounds``: the position's (m) and the tilt's (degrees)."""
+    bound, tilt_bound = bounds
     orders_nominal, _ = led_constants(layout)
-    rows = _rows(layout, survey, groups, per_row)
+    rows = _rows(layout, survey, groups, per_row, tilt_bound)
     fits = _nominal_fits(orders_nominal)
     live = [i for i, r in enumerate(rows) if np.any(r.in_view())]
     for i in live:
@@ -438,21 +512,25 @@ def _fit_all(
     return rows, fits, rho, rho_sd, converged
 
 
-def _refreshed(layout: Layout, fits: list[LedFit]) -> Layout:
-    """The layout with the fitted LED positions and beams (nominal pilots: the ratios
-    multiply the reflected part as they do the direct one)."""
+def _refreshed(layout: Layout, rows: list[LedRows], fits: list[LedFit]) -> Layout:
+    """The layout with the fitted LED positions, beams and normals (nominal pilots: the
+    ratios multiply the reflected part as they do the direct one)."""
     upper = np.array([layout.room.length, layout.room.width])
     leds = []
-    for led, fit in zip(layout.leds, fits, strict=True):
+    for led, r, fit in zip(layout.leds, rows, fits, strict=True):
         usable = fit.ratio > 0 and math.isfinite(fit.order)
-        x, y = np.clip(np.array([led.x, led.y]) + (fit.shift if usable else 0.0), 0.0, upper)
-        angle = float(half_power_angle_deg(fit.order)) if usable else led.half_power_angle_deg
-        leds.append(replace(led, x=float(x), y=float(y), half_power_angle_deg=angle))
+        if not usable:
+            leds.append(led)
+            continue
+        x, y = np.clip(np.array([led.x, led.y]) + fit.shift, 0.0, upper)
+        angle = float(half_power_angle_deg(fit.order))
+        normal = _normal_tuple(r.normal_at(fit.tilt)[0])
+        leds.append(replace(led, x=float(x), y=float(y), half_power_angle_deg=angle, normal=normal))
     return replace(layout, leds=tuple(leds))
 
 
 def _nominal_fits(orders: FloatArray) -> list[LedFit]:
-    return [LedFit(1.0, float(m), np.zeros(2), (False,) * 4) for m in orders]
+    return [LedFit(1.0, float(m), np.zeros(2), (False,) * 6) for m in orders]
 
 
 def _model(
@@ -461,5 +539,5 @@ def _model(
     """The modelled amplitude of every survey row (survey order)."""
     out = np.zeros(n_rows)
     for r, g, f in zip(rows, groups, fits, strict=True):
-        out[g] = r.model(f.ratio, f.order, f.shift, rho)
+        out[g] = r.model(f.ratio, f.order, f.shift, rho, f.tilt)
     return out

@@ -9,6 +9,13 @@ For an LED pointing down and a detector pointing up, ``cos(alpha) = cos(phi) = d
 and 0 outside the field of view. Its gradient with respect to the receiver's horizontal
 position ``p`` is ``-(m+3) h (p - s) / d^2`` (``s`` the LED's horizontal position), the
 expression behind both the Cramér-Rao bound and the continuous solvers.
+
+A tilted LED (layout ``normal`` ``n`` other than straight down) emits at
+``cos(alpha) = n . (r - s) / d`` towards a receiver at ``r``: with ``c = n . (r - s)`` and
+``D = z_led - z`` the gain is the straight-down one times ``(c / D)^m`` (0 where ``c <= 0``,
+behind the LED's face), and its gradient gains ``m h n / c`` from that factor (``n_xy`` on
+the receivers' plane; ``n + e_z c / D`` in 3-D, the ``e_z`` part cancelling the straight-down
+factor's own). For ``n = (0, 0, -1)``, ``c = D`` and nothing changes.
 """
 
 from __future__ import annotations
@@ -27,6 +34,7 @@ __all__ = [
     "concentrator_gain",
     "lambertian_order",
     "led_constants",
+    "led_tilt_factors",
     "los_gain_gradients",
     "los_gains",
 ]
@@ -120,7 +128,49 @@ def channel_gain_gradients(layout: Layout, points: FloatArray) -> tuple[FloatArr
     """
     gains, (offsets, dist_sq, orders) = _gains_and_offsets(layout, points)
     scale = -(orders[:, None] + 3.0) * gains / dist_sq
-    return gains, scale[:, :, None] * offsets
+    gradients = scale[:, :, None] * offsets
+    if layout.has_tilted_leds:
+        dz = layout.led_positions[:, 2] - layout.grid.receiver_height
+        to_rx = np.concatenate(
+            (offsets, np.broadcast_to(-dz[:, None, None], (*offsets.shape[:2], 1))), axis=2
+        )
+        _, facing = led_tilt_factors(layout, to_rx)
+        normals = layout.led_normals
+        safe = np.where(gains > 0, facing, 1.0)
+        gradients += (orders[:, None] * gains / safe)[:, :, None] * normals[:, None, :2]
+    return gains, gradients
+
+
+def led_tilt_factors(layout: Layout, to_receiver: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """What each LED's tilt does to its straight-down gain towards receivers.
+
+    Parameters
+    ----------
+    layout : Layout
+    to_receiver : ndarray of shape (M, P, 3)
+        ``r - s``: receiver minus LED, metres.
+
+    Returns
+    -------
+    factors : ndarray of shape (M, P)
+        ``(c / D)^m`` with ``c = n . (r - s)``, ``D = z_led - z``: exactly 1 for LEDs that
+        point straight down, 0 where the receiver is behind the LED's face (``c <= 0``).
+    facing : ndarray of shape (M, P)
+        ``c`` (``D`` for LEDs pointing straight down).
+    """
+    normals = layout.led_normals
+    drop = -to_receiver[:, :, 2]
+    facing = np.einsum("mpk,mk->mp", to_receiver, normals)
+    factors = np.ones(drop.shape)
+    orders = np.atleast_1d(lambertian_order(layout.half_power_angles_deg))
+    for i, led in enumerate(layout.leds):
+        if not led.tilted:
+            facing[i] = drop[i]
+            continue
+        ahead = (facing[i] > 0) & (drop[i] > 0)
+        ratio = np.where(ahead, facing[i], 1.0) / np.where(ahead, drop[i], 1.0)
+        factors[i] = np.where(ahead, ratio ** orders[i], 0.0)
+    return factors, facing
 
 
 def _gains_and_offsets(
@@ -136,6 +186,11 @@ def _gains_and_offsets(
     in_view = cos_incidence >= math.cos(math.radians(layout.receiver.fov_deg)) - 1e-15
     gains = prefactors[:, None] * cos_incidence ** (orders[:, None] + 1.0) / dist_sq
     gains = np.where(in_view, gains, 0.0)
+    if layout.has_tilted_leds:
+        to_rx = np.concatenate(
+            (offsets, np.broadcast_to(-dz[:, None, None], (*offsets.shape[:2], 1))), axis=2
+        )
+        gains = gains * led_tilt_factors(layout, to_rx)[0]
     return gains, (offsets, dist_sq, orders)
 
 
@@ -156,8 +211,9 @@ def los_gains(
     -------
     gains : ndarray of shape (M, P)
         ``h = (m+1)/(2 pi d^2) cos^m(alpha) A G_f G_c cos(phi)`` with ``cos(alpha) =
-        (z_led - z) / d`` (LEDs point down) and ``cos(phi) = n . (s - r) / d``; 0 when
-        ``phi > FOV``, ``cos(phi) <= 0`` or the LED is not above the receiver.
+        n_led . (r - s) / d`` (``(z_led - z) / d`` for an LED pointing down) and
+        ``cos(phi) = n . (s - r) / d``; 0 when ``phi > FOV``, ``cos(phi) <= 0``, the LED is
+        not above the receiver or the receiver is behind the LED's face.
 
     Notes
     -----
@@ -207,6 +263,16 @@ def los_gain_gradients(
         + nrm[None, :, :] / safe_num[:, :, None]
         - (orders[:, None, None] + 3.0) * to_led / dist_sq[:, :, None]
     )
+    if layout.has_tilted_leds:
+        # d ln (c / D)^m / dr = m (n_led / c + e_z / D); 0 for LEDs pointing straight down.
+        _, facing = led_tilt_factors(layout, -to_led)
+        safe_facing = np.where(visible, facing, 1.0)
+        normals = layout.led_normals
+        tilt = orders[:, None, None] * (
+            normals[:, None, :] / safe_facing[:, :, None]
+            + np.array([0.0, 0.0, 1.0]) / safe_height[:, :, None]
+        )
+        bracket = bracket - tilt
     return gains, np.asarray(-gains[:, :, None] * bracket)
 
 
@@ -240,4 +306,6 @@ def _los_parts(
     visible = (cos_alpha > 0) & (cos_phi > 0) & (cos_phi >= cos_fov - 1e-15)
     safe_alpha = np.where(visible, cos_alpha, 1.0)
     gains = prefactors[:, None] * safe_alpha ** orders[:, None] * cos_phi / dist_sq
+    if layout.has_tilted_leds:
+        gains = gains * led_tilt_factors(layout, -to_led)[0]
     return np.where(visible, gains, 0.0), (to_led, dist_sq, cos_phi_num, orders)

@@ -10,6 +10,7 @@ __all__ = [
     "DEFAULT_FILTER_GAIN",
     "DEFAULT_FOV_DEG",
     "DEFAULT_HALF_POWER_ANGLE_DEG",
+    "DEFAULT_LED_NORMAL",
     "DEFAULT_PILOT_AMPLITUDE",
     "DEFAULT_RECEIVER_AREA_M2",
     "DEFAULT_REFRACTIVE_INDEX",
@@ -23,6 +24,8 @@ DEFAULT_FILTER_GAIN = 1.0
 DEFAULT_REFRACTIVE_INDEX = 1.5
 DEFAULT_HALF_POWER_ANGLE_DEG = 60.0
 DEFAULT_PILOT_AMPLITUDE = 1.0
+# The unit normal of an LED's emitting face when the layout gives none: straight down.
+DEFAULT_LED_NORMAL = (0.0, 0.0, -1.0)
 # Largest spread of the photodiodes' tilt components (``grid.receiver_tilt_sd``), degrees:
 # beyond it a tilt is no small perturbation of a level photodiode (the radii's linearisation).
 MAX_RECEIVER_TILT_SD_DEG = 30.0

@@ -19,6 +19,7 @@ from .constants import (
     DEFAULT_FILTER_GAIN,
     DEFAULT_FOV_DEG,
     DEFAULT_HALF_POWER_ANGLE_DEG,
+    DEFAULT_LED_NORMAL,
     DEFAULT_PILOT_AMPLITUDE,
     DEFAULT_RECEIVER_AREA_M2,
     DEFAULT_REFRACTIVE_INDEX,
@@ -31,6 +32,7 @@ __all__ = [
     "DEFAULT_FILTER_GAIN",
     "DEFAULT_FOV_DEG",
     "DEFAULT_HALF_POWER_ANGLE_DEG",
+    "DEFAULT_LED_NORMAL",
     "DEFAULT_PILOT_AMPLITUDE",
     "DEFAULT_RECEIVER_AREA_M2",
     "DEFAULT_REFRACTIVE_INDEX",
@@ -183,13 +185,32 @@ class Receiver:
 
 @dataclass(frozen=True)
 class Led:
-    """A ceiling LED pointing straight down: position (m), half-power angle, pilot amplitude."""
+    """A ceiling LED: position (m), half-power angle, pilot amplitude and the unit normal of
+    its emitting face in room coordinates (default straight down, ``(0, 0, -1)``).
+
+    A finite non-zero ``normal`` is stored normalised; that it points down (``nz < 0``) is
+    checked by :class:`Layout`, which names the field.
+    """
 
     x: float
     y: float
     z: float
     half_power_angle_deg: float = DEFAULT_HALF_POWER_ANGLE_DEG
     pilot_amplitude: float = DEFAULT_PILOT_AMPLITUDE
+    normal: tuple[float, float, float] = DEFAULT_LED_NORMAL
+
+    def __post_init__(self) -> None:
+        values = tuple(float(v) for v in self.normal)
+        length = math.sqrt(sum(v * v for v in values)) if len(values) == 3 else math.nan
+        if math.isfinite(length) and length > 0 and values != DEFAULT_LED_NORMAL:
+            object.__setattr__(self, "normal", tuple(v / length for v in values))
+        elif values != self.normal:
+            object.__setattr__(self, "normal", values)
+
+    @property
+    def tilted(self) -> bool:
+        """The LED does not point straight down."""
+        return self.normal != DEFAULT_LED_NORMAL
 
 
 @dataclass(frozen=True)
@@ -250,6 +271,18 @@ class Layout:
             raise GeometryError(
                 f"{where}.pilot_amplitude must be positive, got {led.pilot_amplitude!r}",
                 field=f"{where}.pilot_amplitude",
+            )
+        normal = led.normal
+        if not (
+            len(normal) == 3
+            and all(math.isfinite(v) for v in normal)
+            and abs(math.hypot(*normal) - 1.0) <= 1e-9
+            and normal[2] < 0
+        ):
+            raise GeometryError(
+                f"{where}.normal must be a finite non-zero vector [nx, ny, nz] with nz < 0 "
+                f"(the LED faces down), got {list(normal)!r}",
+                field=f"{where}.normal",
             )
 
     # -- grid -----------------------------------------------------------------------------
@@ -326,6 +359,16 @@ class Layout:
         """Pilot amplitudes x_i, ndarray of shape (M,)."""
         return np.array([led.pilot_amplitude for led in self.leds], dtype=np.float64)
 
+    @property
+    def led_normals(self) -> FloatArray:
+        """Unit normals of the LEDs' emitting faces, ndarray of shape (M, 3)."""
+        return np.array([led.normal for led in self.leds], dtype=np.float64)
+
+    @property
+    def has_tilted_leds(self) -> bool:
+        """Some LED does not point straight down."""
+        return any(led.tilted for led in self.leds)
+
     def to_mapping(self) -> dict[str, Any]:
         """The layout as the JSON-like mapping of the public ``RoomLayout`` body.
 
@@ -360,17 +403,22 @@ class Layout:
                 "filter_gain": self.receiver.filter_gain,
                 "refractive_index": self.receiver.refractive_index,
             },
-            "leds": [
-                {
-                    "x": led.x,
-                    "y": led.y,
-                    "z": led.z,
-                    "half_power_angle_deg": led.half_power_angle_deg,
-                    "pilot_amplitude": led.pilot_amplitude,
-                }
-                for led in self.leds
-            ],
+            "leds": [_led_mapping(led) for led in self.leds],
         }
+
+
+def _led_mapping(led: Led) -> dict[str, Any]:
+    """One LED of :meth:`Layout.to_mapping`; ``normal`` only when it is not straight down."""
+    out: dict[str, Any] = {
+        "x": led.x,
+        "y": led.y,
+        "z": led.z,
+        "half_power_angle_deg": led.half_power_angle_deg,
+        "pilot_amplitude": led.pilot_amplitude,
+    }
+    if led.tilted:
+        out["normal"] = list(led.normal)
+    return out
 
 
 def layout_from_mapping(data: Mapping[str, Any]) -> Layout:
@@ -410,8 +458,9 @@ def layout_from_mapping(data: Mapping[str, Any]) -> Layout:
                     led.get("half_power_angle_deg", DEFAULT_HALF_POWER_ANGLE_DEG)
                 ),
                 pilot_amplitude=float(led.get("pilot_amplitude", DEFAULT_PILOT_AMPLITUDE)),
+                normal=_normal_field(led.get("normal"), index),
             )
-            for led in leds_in
+            for index, led in enumerate(leds_in)
         )
     except (KeyError, TypeError) as exc:
         raise GeometryError(f"incomplete layout: missing or invalid {exc}", field=None) from exc
@@ -454,3 +503,14 @@ def _reflectance_from_mapping(value: object) -> Reflectance | None:
             raise GeometryError(f"{where} is missing", field=where)
         parts[name] = _float_field(value[name], where)
     return Reflectance(**parts)
+
+
+def _normal_field(value: object, index: int) -> tuple[float, float, float]:
+    """An LED's ``normal``: absent or null is straight down; else three numbers."""
+    if value is None:
+        return DEFAULT_LED_NORMAL
+    name = f"leds[{index}].normal"
+    if isinstance(value, str | bytes) or not isinstance(value, Sequence) or len(value) != 3:
+        raise GeometryError(f"{name} must be three numbers [nx, ny, nz], got {value!r}", field=name)
+    nx, ny, nz = (_float_field(v, name) for v in value)
+    return (nx, ny, nz)

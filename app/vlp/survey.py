@@ -35,18 +35,22 @@ class Survey:
         Index ``i`` of the LED each amplitude belongs to (0-based, layout order).
     amplitudes : ndarray of shape (S,)
         Measured pilot amplitude ``a`` (same unit as ``h x``; may be slightly negative from
-        noise).
+        noise); NaN where the LED was not detected (below the receiver's detection floor).
+    detection_floor : float, default=None
+        The survey receiver's detection floor (same unit); None: the weakest detected
+        amplitude of the survey (one receiver walks the whole survey).
 
     Raises
     ------
     MeasurementError
-        On wrong shapes, non-finite values or non-integer LED indices; ``field`` names the
-        input (``"points"``, ``"led_indices"``, ``"amplitudes"``).
+        On wrong shapes, infinite values, no detected row at all or non-integer LED indices;
+        ``field`` names the input (``"points"``, ``"led_indices"``, ``"amplitudes"``).
     """
 
     points: FloatArray
     led_indices: IntArray
     amplitudes: FloatArray
+    detection_floor: float | None = None
 
     def __post_init__(self) -> None:
         points = np.asarray(self.points, dtype=np.float64)
@@ -63,7 +67,11 @@ class Survey:
                     f"{name} must have shape ({n_rows},) like points, got {array.shape}", field=name
                 )
         _require_finite(points, "points")
-        _require_finite(amplitudes, "amplitudes")
+        _require_finite(np.where(np.isnan(amplitudes), 0.0, amplitudes), "amplitudes")
+        if np.all(np.isnan(amplitudes)):
+            raise MeasurementError(
+                "every amplitude is not detected (NaN): nothing to fit", field="amplitudes"
+            )
         object.__setattr__(self, "points", points)
         object.__setattr__(self, "led_indices", _as_indices(raw_indices))
         object.__setattr__(self, "amplitudes", amplitudes)
@@ -73,9 +81,22 @@ class Survey:
         """Number of survey rows S."""
         return int(self.amplitudes.shape[0])
 
+    @property
+    def detected(self) -> npt.NDArray[np.bool_]:
+        """(S,) bool: the row's LED was detected (its amplitude is a number)."""
+        return np.asarray(~np.isnan(self.amplitudes))
+
+    @property
+    def floor(self) -> float:
+        """The detection floor: :attr:`detection_floor`, else the weakest detected amplitude."""
+        if self.detection_floor is not None:
+            return float(self.detection_floor)
+        return float(np.min(self.amplitudes[self.detected]))
+
 
 def survey_from_rows(rows: FloatArray) -> Survey:
-    """A :class:`Survey` from rows ``(x, y, led_index, amplitude)``, ndarray of shape (S, 4)."""
+    """A :class:`Survey` from rows ``(x, y, led_index, amplitude)``, ndarray of shape (S, 4)
+    (amplitude NaN: not detected)."""
     table = np.asarray(rows, dtype=np.float64)
     if table.ndim != 2 or table.shape[1] != 4:
         raise MeasurementError(

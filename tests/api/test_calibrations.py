@@ -253,6 +253,8 @@ def test_calibration_fits_led_positions_and_walls(worker_app: TestClient) -> Non
         ({"led_position_bound_m": 1.5}, ["body.led_position_bound_m"]),
         ({"fit_reflectance": "yes"}, ["body.fit_reflectance"]),
         ({"survey": [{"x": 1.0, "y": 1.0, "led": 0, "amplitude": None}]}, ["body.survey"]),
+        ({"led_tilt_bound_deg": 46}, ["body.led_tilt_bound_deg"]),
+        ({"led_tilt_bound_deg": -1}, ["body.led_tilt_bound_deg"]),
     ],
     ids=[
         "led-range",
@@ -265,6 +267,8 @@ def test_calibration_fits_led_positions_and_walls(worker_app: TestClient) -> Non
         "position-bound",
         "reflectance-flag",
         "nothing-detected",
+        "tilt-bound-high",
+        "tilt-bound-negative",
     ],
 )
 def test_bad_requests_name_the_field(
@@ -330,24 +334,39 @@ def test_epoch_posts_on_a_masked_room_send_one_amplitude_per_room_led(
     assert np.hypot(*(np.array(found["t2"]) - truth[1])) < 0.02
 
 
-def test_rows_not_detected_are_left_out_of_the_fit(worker_app: TestClient) -> None:
-    # The same survey with extra "not detected" rows fits exactly as without them: a null
-    # is never taken as a number (zero or the floor).
+def test_rows_not_detected_enter_the_fit_as_censored(worker_app: TestClient) -> None:
+    # The weak rows of an exact survey sent as "not detected": the fit takes them as below
+    # the survey's floor (its weakest detected amplitude), never as a number, and finds the
+    # same LEDs as from the exact values. Nulls where a strong amplitude is due (the model far
+    # above the floor) do pull the fit.
     client = worker_app
     nominal = paper_layout()
     body = _survey_body(_perturbed(nominal), 0.0)
-    with_nulls = {
-        "survey": body["survey"]
-        + [{"x": 0.25, "y": 0.25, "led": led, "amplitude": None} for led in range(16)]
-    }
+    strongest = max(row["amplitude"] for row in body["survey"])
+    weak = [
+        {**row, "amplitude": None} if row["amplitude"] < 0.05 * strongest else row
+        for row in body["survey"]
+    ]
+    assert sum(row["amplitude"] is None for row in weak) > 50
+    contradicting = [
+        {**row, "amplitude": None}
+        if row["led"] == 0 and row["amplitude"] > 0.5 * strongest
+        else row
+        for row in body["survey"]
+    ]
     reports = []
-    for sent in (body, with_nulls):
+    for survey in (body["survey"], weak, contradicting):
         room_id = _paper_room(client)
+        sent = {"survey": survey, "led_tilt_bound_deg": 0.0}
         response = client.post(f"/v1/rooms/{room_id}/calibrations", json=sent, headers=ADMIN)
         assert response.status_code == 202, response.text
         result = wait_for_job(client, response.json()["id"])["result"]
         url = f"/v1/rooms/{room_id}/calibrations/{result['calibration_id']}"
         reports.append(client.get(url, headers=ADMIN).json())
-    plain, nulls = ([led["pilot_amplitude"] for led in r["leds"]] for r in reports)
-    assert nulls == pytest.approx(plain, rel=1e-9)
+    plain, censored, pulled = (
+        [led["pilot_amplitude"] for i, led in enumerate(r["leds"]) if i != DEAD] for r in reports
+    )
+    assert censored == pytest.approx(plain, rel=1e-5)
     assert [led["flag"] for led in reports[1]["leds"]][DEAD] == "dead"
+    assert reports[1]["survey_rows"] == len(weak) and reports[1]["led_tilt_bound_deg"] == 0.0
+    assert pulled[0] < 0.9 * plain[0]

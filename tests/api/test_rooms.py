@@ -38,11 +38,13 @@ def test_create_applies_defaults_and_answers_location_and_etag(client: TestClien
         "z": 2.5,
         "half_power_angle_deg": 60.0,
         "pilot_amplitude": 1.0,
+        "normal": [0.0, 0.0, -1.0],
     }
     stored = layout_from_mapping(small_room()).to_mapping()
     # The answer also shows the optional real-room fields with their defaults (line of
     # sight only, every receiver on the plane); the stored mapping leaves them out.
     stored["room"] = {**stored["room"], "reflectance": None}
+    stored["leds"] = [{**led, "normal": [0.0, 0.0, -1.0]} for led in stored["leds"]]
     stored["grid"] = {
         **stored["grid"],
         "receiver_height_sd": 0.0,
@@ -78,7 +80,14 @@ def test_replace_needs_current_etag(client: TestClient) -> None:
     body = replaced.json()
     assert body["layout_version"] == 2 and body["name"] == "Renamed"
     assert body["layout"]["leds"] == [
-        {"x": 1.0, "y": 0.5, "z": 2.0, "half_power_angle_deg": 60.0, "pilot_amplitude": 1.0}
+        {
+            "x": 1.0,
+            "y": 0.5,
+            "z": 2.0,
+            "half_power_angle_deg": 60.0,
+            "pilot_amplitude": 1.0,
+            "normal": [0.0, 0.0, -1.0],
+        }
     ]
     assert replaced.headers["etag"] == f'"{room_id}-2"' != etag
     # The old ETag is now stale.
@@ -236,3 +245,18 @@ def test_led_and_grid_limits_come_from_settings(tmp_path: Any) -> None:
         )
         coarse = small_room(leds=[{"x": 1.0, "y": 0.5}], grid={"step": 0.5, "receiver_height": 0.8})
         assert limited.post("/v1/rooms", json=coarse, headers=ADMIN).status_code == 201
+
+
+def test_led_normal_is_stored_normalised_and_bad_normals_name_the_field(
+    client: TestClient,
+) -> None:
+    tilted = small_room(leds=[{"x": 1.0, "y": 0.5, "z": 2.0, "normal": [0.0, 0.5, -1.0]}])
+    response = client.post("/v1/rooms", json=tilted, headers=ADMIN)
+    assert response.status_code == 201, response.text
+    normal = response.json()["layout"]["leds"][0]["normal"]
+    assert normal == pytest.approx([0.0, 0.5 / 1.25**0.5, -1.0 / 1.25**0.5])
+    for bad in ([0.0, 0.0, 1.0], [0.3, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, -1.0], None):
+        body = small_room(leds=[{"x": 1.0, "y": 0.5, "z": 2.0, "normal": bad}])
+        assert_problem(
+            client.post("/v1/rooms", json=body, headers=ADMIN), 422, ["body.leds.0.normal"]
+        )

@@ -132,7 +132,14 @@ def test_fit_matches_an_independent_joint_least_squares(paper_room: Layout, boun
     keep = survey.led_indices < 2
     sub = replace(paper_room, leds=paper_room.leds[:2])
     small = Survey(survey.points[keep], survey.led_indices[keep], survey.amplitudes[keep])
-    result = calibrate(sub, small, dimmed_below=0.0, dead_below=0.0, led_position_bound_m=bound)
+    result = calibrate(
+        sub,
+        small,
+        dimmed_below=0.0,
+        dead_below=0.0,
+        led_position_bound_m=bound,
+        led_tilt_bound_deg=0.0,
+    )
     free = bound > 0
 
     def residuals(params: FloatArray) -> FloatArray:

@@ -96,8 +96,9 @@ def test_fitted_led_positions_recover_a_known_displacement(room: Layout, sigma: 
     # 64 points at 30 dB: a few centimetres of noise per LED (3 cm covers them here).
     np.testing.assert_allclose(result.led_shifts_m, expected, atol=0.03)
     np.testing.assert_allclose(result.led_positions, true.led_positions[:, :2], atol=0.03)
-    # Without the position fit the moved LEDs are mis-modelled: residuals far above the noise.
-    fixed = calibrate(given, survey, led_position_bound_m=0.0)
+    # Without the position fit (nor a tilt, which would mimic part of a shift near the LED's
+    # foot) the moved LEDs are mis-modelled: residuals far above the noise.
+    fixed = calibrate(given, survey, led_position_bound_m=0.0, led_tilt_bound_deg=0.0)
     moved = list(MOVED)
     assert np.all(fixed.residual_rms_after[moved] > 1.5 * result.residual_rms_after[moved])
     assert np.all(result.residual_rms_after[moved] < 1.3 * sigma)

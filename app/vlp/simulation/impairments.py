@@ -45,6 +45,9 @@ class Impairments:
         Sd of each LED's half-power angle, degrees.
     led_position_sd_m : float
         Sd of each LED's x and y, metres.
+    led_tilt_max_deg : float
+        Tilt of each LED's face from the layout's normal: polar angle uniform in
+        [0, led_tilt_max_deg], azimuth uniform (a fixture hung slightly askew).
     common_scale : float
         One factor on every amplitude (e.g. a calibration gone stale).
     """
@@ -57,6 +60,7 @@ class Impairments:
     led_half_power_sd_deg: float = 0.0
     led_position_sd_m: float = 0.0
     common_scale: float = 1.0
+    led_tilt_max_deg: float = 0.0
 
     def __post_init__(self) -> None:
         for name in (
@@ -66,6 +70,7 @@ class Impairments:
             "led_amplitude_sd",
             "led_half_power_sd_deg",
             "led_position_sd_m",
+            "led_tilt_max_deg",
         ):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
@@ -73,11 +78,12 @@ class Impairments:
                     f"impairments.{name} must be a finite number >= 0, got {value!r}",
                     field=f"impairments.{name}",
                 )
-        if self.tilt_max_deg >= 90:
-            raise GeometryError(
-                f"impairments.tilt_max_deg must be below 90, got {self.tilt_max_deg!r}",
-                field="impairments.tilt_max_deg",
-            )
+        for name in ("tilt_max_deg", "led_tilt_max_deg"):
+            if getattr(self, name) >= 90:
+                raise GeometryError(
+                    f"impairments.{name} must be below 90, got {getattr(self, name)!r}",
+                    field=f"impairments.{name}",
+                )
         if not (math.isfinite(self.common_scale) and self.common_scale > 0):
             raise GeometryError(
                 f"impairments.common_scale must be positive, got {self.common_scale!r}",

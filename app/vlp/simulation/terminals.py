@@ -173,6 +173,10 @@ def _true_layout(layout: Layout, impairments: Impairments, gen: np.random.Genera
         where = np.clip(
             where + impairments.led_position_sd_m * gen.standard_normal((count, 2)), 0, upper
         )
+    normals = layout.led_normals
+    if impairments.led_tilt_max_deg > 0:
+        # Drawn after every other LED tolerance: rooms without it draw as before it existed.
+        normals = _tilted_normals(normals, impairments.led_tilt_max_deg, gen)
     leds = tuple(
         Led(
             x=float(where[i, 0]),
@@ -180,11 +184,32 @@ def _true_layout(layout: Layout, impairments: Impairments, gen: np.random.Genera
             z=led.z,
             half_power_angle_deg=float(angles[i]),
             pilot_amplitude=led.pilot_amplitude * float(amplitude[i]),
+            normal=led.normal
+            if impairments.led_tilt_max_deg == 0
+            else (float(normals[i, 0]), float(normals[i, 1]), float(normals[i, 2])),
         )
         for i, led in enumerate(layout.leds)
     )
     room = dataclasses.replace(layout.room, reflectance=impairments.reflectance)
     return dataclasses.replace(layout, room=room, leds=leds)
+
+
+def _tilted_normals(
+    normals: FloatArray, largest_deg: float, gen: np.random.Generator
+) -> FloatArray:
+    """Each normal turned by a polar angle uniform in [0, largest_deg] towards a uniform
+    azimuth (around two unit vectors across it)."""
+    count = normals.shape[0]
+    polar = math.radians(largest_deg) * np.asarray(gen.uniform(0.0, 1.0, (count,)))
+    azimuth = np.asarray(gen.uniform(0.0, 2.0 * math.pi, (count,)))
+    out = np.empty_like(normals)
+    for i, n in enumerate(normals):
+        across = np.array([1.0, 0.0, 0.0]) - n[0] * n
+        across /= np.linalg.norm(across)
+        other = np.cross(across, n)
+        side = math.cos(float(azimuth[i])) * across + math.sin(float(azimuth[i])) * other
+        out[i] = math.cos(float(polar[i])) * n + math.sin(float(polar[i])) * side
+    return out
 
 
 def _heights(layout: Layout, sd_m: float, count: int, gen: np.random.Generator) -> FloatArray:

@@ -13,6 +13,7 @@ import copy
 import dataclasses
 import importlib
 import itertools
+import math
 import os
 import subprocess
 import sys
@@ -117,7 +118,24 @@ def synthetic_table(
     return ReflectionTable(x_nodes, y_nodes, z_nodes, coefficients, z)
 
 
-LAYOUTS = {"paper": paper_layout, "one_led": one_led_layout}
+def tilted_layout() -> Layout:
+    """The paper room with every other LED tilted (10 to 20 degrees, various azimuths)."""
+    base = paper_layout()
+    leds = []
+    for i, led in enumerate(base.leds):
+        if i % 2:
+            tilt, azimuth = math.radians(10.0 + 2.5 * (i % 5)), 0.9 * i
+            normal = (
+                math.sin(tilt) * math.cos(azimuth),
+                math.sin(tilt) * math.sin(azimuth),
+                -math.cos(tilt),
+            )
+            led = dataclasses.replace(led, normal=normal)
+        leds.append(led)
+    return dataclasses.replace(base, leds=tuple(leds))
+
+
+LAYOUTS = {"paper": paper_layout, "one_led": one_led_layout, "tilted": tilted_layout}
 TABLES = ("none", "flat", "heights")
 
 
@@ -658,10 +676,11 @@ def _tilted(rng: np.random.Generator, largest: float = 0.45) -> FloatArray:
     return np.asarray(raw / np.linalg.norm(raw), dtype=np.float64)
 
 
+@pytest.mark.parametrize("layout_name", ["paper", "tilted"])
 @pytest.mark.parametrize("table", TABLES)
 @pytest.mark.parametrize(("free_height", "sent_normal", "free_tilt"), _TERMINAL_SHAPES)
 def test_terminal_model_kernel_matches_reference(
-    table: str, free_height: bool, sent_normal: bool, free_tilt: bool
+    layout_name: str, table: str, free_height: bool, sent_normal: bool, free_tilt: bool
 ) -> None:
     """Gains and gradient of every branch (straight up, a sent normal, a fitted tilt), against
     :func:`terminal_model` with the reference kernels; the tilt's columns are zero when the
@@ -669,7 +688,7 @@ def test_terminal_model_kernel_matches_reference(
     from app.vlp.solvers.gridless._compiled.terminal import terminal_model_kernel
     from app.vlp.solvers.gridless.terminals import terminal_model
 
-    kernel = make_kernel("paper", table, seed=3)
+    kernel = make_kernel(layout_name, table, seed=3)
     constants = channel_constants(kernel)
     assert constants is not None
     rng = np.random.default_rng(8)

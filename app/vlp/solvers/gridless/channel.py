@@ -4,6 +4,12 @@
 LED at a receiver looking straight up at ``p = (x, y, z)``, plus the diffuse reflections when
 the layout has a reflectance (interpolated from a :class:`DiffuseTable`), times the pilot
 amplitudes, divided by the solver's ``scale``. Private: callers validate.
+
+A tilted LED (layout ``normal`` ``n``) multiplies its straight-down line of sight by
+``(c / D)^m``, ``c = n . (r - s)``, ``D = z_led - z`` (:mod:`app.vlp.channel`); the gradient
+then gains ``m n_x / c``, ``m n_y / c`` and ``m (n_z / c + 1 / D)`` times the gain along x, y
+and z. For LEDs pointing down these are exactly 1 and 0, and a layout without tilted LEDs
+never computes them.
 """
 
 from __future__ import annotations
@@ -64,6 +70,12 @@ class ChannelKernel:
         self.cos_fov2 = max(cos_fov, 0.0) ** 2 * (1.0 - 1e-12)
         self.max_d2 = self.dz2 / max(cos_fov, 1e-300) ** 2 * (1.0 + 1e-12)
         self.bounds = np.array([layout.room.length, layout.room.width])
+        self.normals = np.ascontiguousarray(layout.led_normals)
+        self.has_tilt = layout.has_tilted_leds
+        self._normal_x = self.normals[:, :1]
+        self._normal_y = self.normals[:, 1:2]
+        self._normal_z = self.normals[:, 2:]
+        self._orders = orders[:, None]
         # Column vectors (M, 1) for broadcasting against (M, P) in the hot path.
         self._led_x = self.led_xy[:, :1]
         self._led_y = self.led_xy[:, 1:]
@@ -90,10 +102,12 @@ class ChannelKernel:
 
     def gains_xy(self, xs: FloatArray, ys: FloatArray) -> FloatArray:
         """``g`` at the points ``(xs, ys)`` (shapes (P,)) on the receivers' plane, (M, P)."""
-        d2 = self._distances_squared(xs, ys)[2]
+        dx, dy, d2 = self._distances_squared(xs, ys)
         gains = np.power(d2, self._minus_half_exponent)
         gains *= self._factor
         gains *= d2 <= self._max_d2
+        if self.has_tilt:
+            gains *= self._tilt(dx, dy, np.sqrt(self._dz2))[0]
         if self.diffuse is not None:
             gains += self.diffuse.evaluate(xs, ys)[0] * self._pilot_over_scale
         return gains
@@ -111,10 +125,16 @@ class ChannelKernel:
         np.power(d2, self._minus_half_exponent, out=gains)
         gains *= self._factor
         gains *= d2 <= self._max_d2
+        if self.has_tilt:
+            factor, per_x, per_y, _ = self._tilt(dx, dy, np.sqrt(self._dz2))
+            gains *= factor
         slope = self._minus_twice_half_exponent * gains
         slope /= d2
         np.multiply(slope, dx, out=out[:, :n_points])
         np.multiply(slope, dy, out=out[:, n_points : 2 * n_points])
+        if self.has_tilt:
+            out[:, :n_points] += gains * per_x
+            out[:, n_points : 2 * n_points] += gains * per_y
         if self.diffuse is not None:
             values, along_x, along_y, _ = self.diffuse.evaluate(xs, ys)
             gains += values * self._pilot_over_scale
@@ -145,6 +165,9 @@ class ChannelKernel:
         gains *= np.power(drop, self._orders_plus_one)
         gains *= self._free_height_factor
         gains *= drop * drop >= self.cos_fov2 * d2
+        if self.has_tilt:
+            factor, per_x, per_y, per_z = self._tilt(dx, dy, drop)
+            gains *= factor
         slope = -self._orders_plus_three * gains / d2
         np.multiply(slope, dx, out=out[:, :n_points])
         np.multiply(slope, dy, out=out[:, n_points : 2 * n_points])
@@ -153,6 +176,10 @@ class ChannelKernel:
             self._orders_plus_three * drop / d2 - self._orders_plus_one / drop,
             out=out[:, 2 * n_points : 3 * n_points],
         )
+        if self.has_tilt:
+            out[:, :n_points] += gains * per_x
+            out[:, n_points : 2 * n_points] += gains * per_y
+            out[:, 2 * n_points : 3 * n_points] += gains * per_z
         if self.diffuse is not None:
             values, along_x, along_y, along_z = self.diffuse.evaluate(xs, ys, zs)
             gains += values * self._pilot_over_scale
@@ -162,6 +189,20 @@ class ChannelKernel:
         out[:, 4 * n_points : 5 * n_points] = gains
         out[:, 5 * n_points :] = gains
         return out
+
+    def _tilt(
+        self, dx: FloatArray, dy: FloatArray, drop: FloatArray
+    ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+        """The tilted LEDs' factor ``(c / D)^m`` (0 behind the face) and the log-derivatives
+        it adds along x, y, z, each (M, P); ``drop`` is ``D``, (M, 1) or (M, P)."""
+        facing = self._normal_x * dx + self._normal_y * dy - self._normal_z * drop
+        ahead = facing > 0
+        safe = np.where(ahead, facing, 1.0)
+        factor = np.where(ahead, np.power(safe / drop, self._orders), 0.0)
+        per_x = self._orders * self._normal_x / safe
+        per_y = self._orders * self._normal_y / safe
+        per_z = self._orders * (self._normal_z / safe + 1.0 / drop)
+        return factor, per_x, per_y, per_z
 
     def _distances_squared(
         self, xs: FloatArray, ys: FloatArray

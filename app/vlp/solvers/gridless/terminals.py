@@ -109,6 +109,17 @@ def los_with_normal(
         - normal[None, :] / safe_facing[:, None]
         + ((orders + 3.0) / dist2)[:, None] * offsets
     )
+    if kernel.has_tilt:
+        # A tilted LED: times (c / D)^m, c = n_led . (r - s) (ChannelKernel's module notes).
+        emitting = -np.einsum("ij,ij->i", offsets, kernel.normals)
+        ahead = emitting > 0
+        safe = np.where(ahead, emitting, 1.0)
+        factor = np.where(ahead, (safe / drop) ** orders, 0.0)
+        gains = gains * factor
+        extra = orders[:, None] * (
+            kernel.normals / safe[:, None] + np.array([0.0, 0.0, 1.0]) / drop[:, None]
+        )
+        gradient = gradient * factor[:, None] + gains[:, None] * extra
     return gains, gradient
 
 

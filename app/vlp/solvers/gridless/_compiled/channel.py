@@ -21,7 +21,7 @@ from ..channel import ChannelKernel, DiffuseTable
 __all__ = ["ChannelConstants", "TableConstants", "channel_constants", "channel_rows"]
 
 # (led_x, led_y, led_z, dz2, factor, free_height_factor, orders, half_exponent, max_d2,
-#  pilot_over_scale, cos_fov2, receiver_height)
+#  pilot_over_scale, cos_fov2, receiver_height, normals (M, 3), tilted (M,) bool)
 ChannelConstants = tuple[Any, ...]
 # (n_axes (0: no reflections), nodes, scales, lows, highs, shifts, strides, offsets,
 #  coefficients (rows, M), receiver_height)
@@ -90,6 +90,8 @@ def channel_constants(kernel: ChannelKernel) -> tuple[ChannelConstants, TableCon
         _floats(kernel.pilot_over_scale),
         float(kernel.cos_fov2),
         float(kernel.receiver_height),
+        np.ascontiguousarray(kernel.normals, dtype=np.float64),
+        np.array([bool(n[2] != -1.0 or n[0] != 0.0 or n[1] != 0.0) for n in kernel.normals]),
     )
     kernel._compiled = (channel, table)  # type: ignore[attr-defined]
     return channel, table
@@ -182,6 +184,8 @@ def channel_rows(
         pilot,
         cos_fov2,
         _,
+        normals,
+        tilted,
     ) = channel
     n_points = xs.shape[0]
     n_leds = led_x.shape[0]
@@ -199,10 +203,20 @@ def channel_rows(
                 gain = math.pow(d2, -half_exponent[m]) * factor[m]
                 if not d2 <= max_d2[m]:
                     gain = 0.0
+                per_x = 0.0
+                per_y = 0.0
+                if tilted[m]:
+                    drop = math.sqrt(dz2[m])
+                    facing = normals[m, 0] * dx + normals[m, 1] * dy - normals[m, 2] * drop
+                    if not facing > 0.0:
+                        continue  # behind the LED's face: zeros
+                    gain *= math.pow(facing / drop, orders[m])
+                    per_x = orders[m] * normals[m, 0] / facing
+                    per_y = orders[m] * normals[m, 1] / facing
                 slope = -2.0 * half_exponent[m] * gain / d2
                 out[0, p, m] = gain
-                out[1, p, m] = slope * dx
-                out[2, p, m] = slope * dy
+                out[1, p, m] = slope * dx + gain * per_x
+                out[2, p, m] = slope * dy + gain * per_y
             else:
                 drop = max(led_z[m] - zs[p], 1e-9)
                 d2 = dx * dx + dy * dy + drop * drop
@@ -213,11 +227,24 @@ def channel_rows(
                 gain *= free_height_factor[m]
                 if not drop * drop >= cos_fov2 * d2:
                     gain = 0.0
+                per_x = 0.0
+                per_y = 0.0
+                per_z = 0.0
+                if tilted[m]:
+                    facing = normals[m, 0] * dx + normals[m, 1] * dy - normals[m, 2] * drop
+                    if not facing > 0.0:
+                        continue  # behind the LED's face: zeros
+                    gain *= math.pow(facing / drop, orders[m])
+                    per_x = orders[m] * normals[m, 0] / facing
+                    per_y = orders[m] * normals[m, 1] / facing
+                    per_z = orders[m] * (normals[m, 2] / facing + 1.0 / drop)
                 slope = -(orders[m] + 3.0) * gain / d2
                 out[0, p, m] = gain
-                out[1, p, m] = slope * dx
-                out[2, p, m] = slope * dy
-                out[3, p, m] = gain * ((orders[m] + 3.0) * drop / d2 - (orders[m] + 1.0) / drop)
+                out[1, p, m] = slope * dx + gain * per_x
+                out[2, p, m] = slope * dy + gain * per_y
+                out[3, p, m] = (
+                    gain * ((orders[m] + 3.0) * drop / d2 - (orders[m] + 1.0) / drop) + gain * per_z
+                )
     if table[0] != 0:
         diffuse = diffuse_rows(table, xs, ys, zs, not on_plane)
         last = 3 if on_plane else 4

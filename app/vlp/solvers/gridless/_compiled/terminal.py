@@ -54,7 +54,9 @@ def terminal_model_kernel(
     """:func:`terminal_model`: gains (M,) and their gradient (M, 5) along x, y, z, tx, ty
     (the tilt's columns zero unless the tilt is free)."""
     free_height, has_normal, free_tilt, z0 = shape
-    led_x, led_y, led_z, _, _, free_height_factor, orders, _, _, pilot, cos_fov2, _ = channel
+    led_x, led_y, led_z = channel[0], channel[1], channel[2]
+    free_height_factor, orders, pilot, cos_fov2 = channel[5], channel[6], channel[9], channel[10]
+    normals, tilted = channel[12], channel[13]
     n_leds = led_x.shape[0]
     x, y = theta[0], theta[1]
     z = theta[2] if free_height else z0
@@ -95,11 +97,22 @@ def terminal_model_kernel(
             * max(facing, 1e-300)
             * math.pow(dist2, -(order + 3.0) / 2.0)
         )
+        per_x = 0.0
+        per_y = 0.0
+        per_z = 0.0
+        if tilted[m]:
+            emitting = -(ox * normals[m, 0] + oy * normals[m, 1] + oz * normals[m, 2])
+            if not emitting > 0.0:
+                continue  # behind the LED's face: gain and gradient zero
+            gain *= math.pow(emitting / drop, order)
+            per_x = order * normals[m, 0] / emitting
+            per_y = order * normals[m, 1] / emitting
+            per_z = order * (normals[m, 2] / emitting + 1.0 / drop)
         gains[m] = gain
         along = (order + 3.0) / dist2
-        gradient[m, 0] = gain * (-unit[0] / facing + along * ox)
-        gradient[m, 1] = gain * (-unit[1] / facing + along * oy)
-        gradient[m, 2] = gain * (-(order / drop) - unit[2] / facing + along * oz)
+        gradient[m, 0] = gain * (-unit[0] / facing + along * ox + per_x)
+        gradient[m, 1] = gain * (-unit[1] / facing + along * oy + per_y)
+        gradient[m, 2] = gain * (-(order / drop) - unit[2] / facing + along * oz + per_z)
         if free_tilt:
             along_normal = gain / facing
             for j in range(2):

@@ -82,8 +82,18 @@ def misfit_columns_kernel(
     (K M columns), its photodiode's tilt (2 K; zeros when ``level``, the layout's
     photodiodes facing straight up), and its height (K) unless heights are fitted; and the
     number of columns of each kind."""
-    led_x, led_y, led_z, _, _, free_height_factor, orders, half_exponent, _, _, cos_fov2, _ = (
-        channel
+    (led_x, led_y, led_z, _, _, free_height_factor, orders, half_exponent, _, _, cos_fov2) = (
+        channel[0],
+        channel[1],
+        channel[2],
+        channel[3],
+        channel[4],
+        channel[5],
+        channel[6],
+        channel[7],
+        channel[8],
+        channel[9],
+        channel[10],
     )
     heights, _, _, _, on_plane, _ = fixed
     has_rotation, rotation = white[0], white[1]
