@@ -1,8 +1,15 @@
-"""A small room for the benchmarks' smoke runs (tests/bench)."""
+"""A small room for the benchmarks' smoke runs (tests/bench), and its fixture (a plugin of
+tests/conftest.py: tests/bench is no package, and a conftest.py there would clash with
+tests/conftest.py by module name)."""
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+
+import pytest
+
 from app.vlp.layout import Grid, Layout, Led, Receiver, Room
+from bench import rooms
 
 SMALL_ROOM = "small"
 # The small room's size (m): a smoke run's errors are checked against a fraction of it.
@@ -35,3 +42,12 @@ def small_room_layout() -> Layout:
         receiver=Receiver(area=1e-4, fov_deg=70.0, filter_gain=1.0, refractive_index=1.5),
         name="Small room (2.4 x 2.4 m, 4 LEDs)",
     )
+
+
+@pytest.fixture
+def small_room() -> Iterator[str]:
+    """:func:`small_room_layout` registered among the benchmarks' rooms for one test: its
+    name, for a benchmark's ``--rooms``."""
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setitem(rooms.ROOMS, SMALL_ROOM, small_room_layout)
+        yield SMALL_ROOM
