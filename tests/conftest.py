@@ -12,8 +12,9 @@ from app.vlp.fingerprints import Fingerprint, build_fingerprint
 from app.vlp.layout import Layout
 from app.vlp.presets import paper_layout
 
-# database_url, postgres_url, sqlite_url, clock and registry, for every test directory.
-pytest_plugins = ["tests.db_fixtures"]
+# database_url, postgres_url, sqlite_url, clock and registry, for every test directory;
+# small_room for the benchmarks' smoke runs.
+pytest_plugins = ["tests.db_fixtures", "tests.bench_rooms"]
 
 
 @pytest.fixture

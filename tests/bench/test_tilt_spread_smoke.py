@@ -12,10 +12,11 @@ from bench import tilt_spread
 pytestmark = pytest.mark.slow
 
 
-def test_one_placement_per_case_writes_the_section(tmp_path: Path) -> None:
-    assert tilt_spread.main(["--trials", "1", "--rooms", "paper", "--out", str(tmp_path)]) == 0
+def test_one_placement_per_case_writes_the_section(tmp_path: Path, small_room: str) -> None:
+    argv = ["--trials", "1", "--rooms", small_room, "--out", str(tmp_path)]
+    assert tilt_spread.main(argv) == 0
     text = (tmp_path / "results" / "tilt-spread.md").read_text(encoding="utf-8")
-    rows = [line for line in text.splitlines() if line.startswith("| paper |")]
+    rows = [line for line in text.splitlines() if line.startswith(f"| {small_room} |")]
     assert [row.split(" | ")[1] for row in rows] == [case.name for case in tilt_spread.CASES]
 
 

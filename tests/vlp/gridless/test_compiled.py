@@ -866,6 +866,24 @@ def test_dispatch_point_follows_the_switch() -> None:
     assert built == [1]
 
 
+# The solver's kernels, by the modules that hold them (both scripts below import them fresh).
+_KERNELS_OF_A_SOLVE = """
+    from app.vlp.solvers.gridless._compiled import fit
+    from app.vlp.solvers.gridless._compiled.scores import correlation_scores_kernel
+    from app.vlp.solvers.gridless._compiled.channel import channel_rows
+    from app.vlp.solvers.gridless._compiled.uncertainty import uncertainty_kernel
+    from app.vlp.solvers.gridless._compiled import tolerance as joint
+    from app.vlp.solvers.gridless._compiled.terminal import terminal_lm_kernel
+    from app.vlp._radii_compiled import radial_roots_kernel
+    from app.vlp.solvers.gridless._compiled.search import growth_kernel, refine_kernel
+
+    kernels = [fit.lm_kernel, fit.gram_kernel, fit.residual_kernel, fit.whitening_kernel,
+               fit.whiten_kernel, correlation_scores_kernel, channel_rows,
+               uncertainty_kernel, joint.joint_gains_kernel, joint.joint_residual_kernel,
+               joint.joint_lm_kernel, terminal_lm_kernel, radial_roots_kernel,
+               growth_kernel, refine_kernel]
+"""
+
 _NO_CACHE_SCRIPT = textwrap.dedent(
     """
     import numpy as np
@@ -874,31 +892,40 @@ _NO_CACHE_SCRIPT = textwrap.dedent(
     # No writable cache anywhere (as a read-only install whose home is read-only too):
     # only the NUMBA_CACHE_DIR locator is tried, and that folder cannot be created.
     caching.CacheImpl._locator_classes = [caching.UserProvidedCacheLocator]
+    """
+    + _KERNELS_OF_A_SOLVE
+    + """
+    from app.vlp._kernels import use_kernels
+    from app.vlp.uncertainty import confidence_radii
+
+    # the fallback: every kernel is compiled without a disk cache
+    assert all(type(k._cache).__name__ == "NullCache" for k in kernels)
+    assert all(len(k.signatures) == 0 for k in kernels)
+    # one compiled in memory here gives its reference's numbers
+    covariances = np.array([[[0.01, 0.002], [0.002, 0.004]], [[2e-4, 0.0], [0.0, 3e-3]]])
+    got = confidence_radii(covariances)
+    with use_kernels("reference"):
+        want = confidence_radii(covariances)
+    assert len(radial_roots_kernel.signatures) == 1
+    np.testing.assert_allclose(got, want, rtol=1e-10, atol=0.0)
+    print("ok")
+    """
+)
+
+_WARM_UP_SCRIPT = textwrap.dedent(
+    """
+    import numpy as np
 
     from app.vlp.fingerprints import build_fingerprint
     from app.vlp.measurements import measurement_from_amplitudes
     from app.vlp.presets import paper_layout
-    from app.vlp.simulation import true_amplitudes
-    from app.vlp.solvers.gridless._compiled import fit
-    from app.vlp.solvers.gridless._compiled.scores import correlation_scores_kernel
+    from app.vlp.simulation import noisy_amplitudes, true_amplitudes
     from app.vlp.solvers import warm_up
     from app.vlp.solvers.gridless import GridlessSolver
-
-    from app.vlp.solvers.gridless._compiled.channel import channel_rows
-    from app.vlp.solvers.gridless._compiled.uncertainty import uncertainty_kernel
-    from app.vlp.solvers.gridless._compiled import tolerance as joint
-    from app.vlp.solvers.gridless._compiled.terminal import terminal_lm_kernel
-    from app.vlp._radii_compiled import radial_roots_kernel
-    from app.vlp.solvers.gridless._compiled.search import growth_kernel, refine_kernel
-    from app.vlp.simulation import noisy_amplitudes
-
-    kernels = [fit.lm_kernel, fit.gram_kernel, fit.residual_kernel, fit.whitening_kernel,
-               fit.whiten_kernel, correlation_scores_kernel, channel_rows,
-               uncertainty_kernel, joint.joint_gains_kernel, joint.joint_residual_kernel,
-               joint.joint_lm_kernel, terminal_lm_kernel, radial_roots_kernel,
-               growth_kernel, refine_kernel]
-    # the fallback: compiled without a disk cache
-    assert all(type(k._cache).__name__ == "NullCache" for k in kernels)
+    """
+    + _KERNELS_OF_A_SOLVE
+    + """
+    assert all(len(k.signatures) == 0 for k in kernels)
     warm_up()
     before = [len(k.signatures) for k in kernels]
     assert all(count >= 1 for count in before), before
@@ -915,23 +942,17 @@ _NO_CACHE_SCRIPT = textwrap.dedent(
     found = GridlessSolver(fingerprint, "correlation").solve_terminals(amplitudes)
     assert np.allclose(found.positions, truth, atol=1e-3), found.positions
     after = [len(k.signatures) for k in kernels]
-    # warm_up compiled every signature a solve uses: nothing was compiled during the solves
+    # warm_up compiled (or loaded) every signature a solve uses: nothing was compiled during
+    # the solves
     assert after == before, (before, after)
     print("ok")
     """
 )
 
 
-@pytest.mark.slow
-def test_works_without_a_writable_cache(tmp_path: Path) -> None:
-    """Pointing NUMBA_CACHE_DIR at a place that cannot be written (below a regular file:
-    not even root can make that folder) still solves, compiling in memory; and warm_up
-    compiles everything a solve needs."""
-    blocker = tmp_path / "file"
-    blocker.write_text("not a folder")
-    env = dict(os.environ, NUMBA_CACHE_DIR=str(blocker / "cache"), VLP_KERNELS="compiled")
+def _run_script(script: str, env: dict[str, str]) -> None:
     done = subprocess.run(
-        [sys.executable, "-c", _NO_CACHE_SCRIPT],
+        [sys.executable, "-c", script],
         cwd=REPO,
         env=env,
         capture_output=True,
@@ -941,7 +962,27 @@ def test_works_without_a_writable_cache(tmp_path: Path) -> None:
     )
     assert done.returncode == 0, done.stderr[-3000:]
     assert done.stdout.strip().endswith("ok")
+
+
+@pytest.mark.slow
+def test_works_without_a_writable_cache(tmp_path: Path) -> None:
+    """Pointing NUMBA_CACHE_DIR at a place that cannot be written (below a regular file:
+    not even root can make that folder): every kernel falls back to compiling in memory, and
+    one compiled so gives its reference's numbers. (Compiling the others in memory too would
+    take a minute and check numba, not this fallback.)"""
+    blocker = tmp_path / "file"
+    blocker.write_text("not a folder")
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(blocker / "cache"), VLP_KERNELS="compiled")
+    _run_script(_NO_CACHE_SCRIPT, env)
     assert not (blocker / "cache").exists()
+
+
+@pytest.mark.slow
+def test_warm_up_compiles_every_signature_a_solve_uses() -> None:
+    """In a fresh interpreter (its kernels from the disk cache that ./test's warm-up fills),
+    warm_up gives every kernel the signatures that the solves of both models and a
+    terminals' solve then use: none is compiled at a request."""
+    _run_script(_WARM_UP_SCRIPT, dict(os.environ, VLP_KERNELS="compiled"))
 
 
 def test_the_disk_cache_is_keyed_by_every_science_source(tmp_path: Path) -> None:
