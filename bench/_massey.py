@@ -22,6 +22,7 @@ import csv
 import io
 import math
 import subprocess
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -41,6 +42,7 @@ __all__ = [
     "facility_split",
     "load_survey",
     "multilateration",
+    "shown_command",
     "weighted_knn",
 ]
 
@@ -92,6 +94,12 @@ def _read_text(source: Path, name: str, commit: str | None) -> str:
         check=True,
         timeout=120,
     ).stdout
+
+
+def shown_command(prog: str, given: Sequence[str], data: Path) -> str:
+    """The command line a results page prints: ``prog`` and the arguments ``given``, with the
+    fetched copy's path (the reader's own) shown as ``DATA``."""
+    return " ".join([prog] + ["DATA" if arg == str(data) else arg for arg in given])
 
 
 def load_survey(source: Path, commit: str | None = None) -> MasseySurvey:

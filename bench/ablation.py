@@ -44,6 +44,7 @@ from ._massey import (
     estimate_receiver_height,
     facility_split,
     load_survey,
+    shown_command,
 )
 from .measured import (
     HEIGHT_CANDIDATES_M,
@@ -313,10 +314,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             progress=lambda text: print(text, file=sys.stderr, flush=True),
         )
     header = ["variant", *MEASURED_COLUMNS, *simulated_columns()]
-    given = list(sys.argv[1:] if argv is None else argv)
-    command = " ".join(
-        ["python -m bench.ablation"] + ["DATA" if a == str(args.data) else a for a in given]
-    )
+    given = sys.argv[1:] if argv is None else argv
+    command = shown_command("python -m bench.ablation", given, args.data)
     out = args.out or REPO_ROOT / "docs" / "results"
     csv_path = (args.out or REPO_ROOT / "docs" / "data") / "ablation.csv"
     write_page(variants, header, table, command, out / "ablation.md", csv_path)

@@ -57,6 +57,7 @@ from ._massey import (
     facility_split,
     load_survey,
     multilateration,
+    shown_command,
     weighted_knn,
 )
 
@@ -599,11 +600,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             levels=levels,
             data_dir=Path(tmp),
         )
-    # The data's path is the reader's own: shown as DATA.
-    given = list(sys.argv[1:] if argv is None else argv)
-    command = " ".join(
-        ["python -m bench.measured"] + ["DATA" if a == str(args.data) else a for a in given]
-    )
+    given = sys.argv[1:] if argv is None else argv
+    command = shown_command("python -m bench.measured", given, args.data)
     out = args.out or REPO_ROOT / "docs" / "results"
     csv_path = (args.out or REPO_ROOT / "docs" / "data") / "measured.csv"
     write_page(rows, info, command, out / "measured.md", csv_path)

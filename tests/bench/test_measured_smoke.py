@@ -118,3 +118,11 @@ def test_the_protocol_runs_through_the_api_and_writes_its_page(
     assert float(calibrated["median_cm"]) < 30 and not math.isnan(float(calibrated["coverage"]))
     page = (out / "measured.md").read_text(encoding="utf-8")
     assert page.startswith("# Measured survey") and "python -m bench.measured DATA" in page
+
+
+def test_the_shown_command_hides_the_readers_path_to_the_data() -> None:
+    given = ["/home/someone/Public-VLP-Dataset", "--max-test", "50", "--commit", "abc"]
+    assert (
+        _massey.shown_command("python -m bench.measured", given, Path(given[0]))
+        == "python -m bench.measured DATA --max-test 50 --commit abc"
+    )
