@@ -15,8 +15,9 @@ memory (``VmHWM``), its anonymous and file-backed parts, after importing:
 4. ``+ app``: and ``app.main`` (the service's own modules);
 5. ``+ warm-up``: and the solver kernels' warm-up the service runs before it serves.
 
-Step 3 is a floor for any process that answers with compiled kernels; step 5 against `vlp serve`'s
-own figure (``bench.http``) shows what serving adds.
+Step 3's anonymous memory is a floor for any process that answers with compiled kernels; the
+file-backed part (shared libraries mapped from the page cache) varies with what the cache holds.
+Step 5 against `vlp serve`'s own figure (``bench.http``) shows what serving adds.
 """
 
 from __future__ import annotations
