@@ -6,7 +6,9 @@ in turn (the order alternating between rounds), three blocks of requests over on
 keep-alive connection: ``/healthz``, localize with the ``omp`` solver (the path with a
 nearly free solve) and localize with the default solver; the server's CPU time
 (``/proc/<pid>/stat``) per request of each block. Medians over the rounds. CPU time is what a
-shared, loaded machine stretches least, where latency ratios swing from run to run.
+shared, loaded machine stretches least, where latency ratios swing from run to run. The
+kernel counts CPU time in clock ticks (10 ms), so a short block can show 0 and a ratio over it
+is reported as null: use blocks of 100 or more for figures.
 
     python -m bench.http_cpu BEFORE_TREE [AFTER_TREE] [--block 100] [--rounds 6]
 
@@ -29,7 +31,7 @@ import httpx
 
 from bench._common import REPO_ROOT
 from bench._server import TERMINAL_KEY, LiveServer, live_server, ready_demo_room
-from bench.http import _cpu_seconds, _measurements
+from bench.http import _cpu_seconds, _measurements, _ratio
 
 __all__ = ["main", "run"]
 
@@ -95,7 +97,8 @@ def run(trees: dict[str, Path], block: int, rounds: int) -> dict[str, Any]:
             "tree": str(tree),
             **{f"cpu_ms_{kind}": round(value, 3) for kind, value in medians.items()},
             "solver_mean_ms_default": round(statistics.median(solver[name]), 3),
-            "localize_omp_over_healthz": round(medians["localize_omp"] / medians["healthz"], 2),
+            # None when a block of /healthz took less than one clock tick of CPU time
+            "localize_omp_over_healthz": _ratio(medians["localize_omp"], medians["healthz"]),
         }
     return report
 
