@@ -17,6 +17,7 @@ UNIT_MODULES = {
     "bench/test_ablation_options.py",
     "bench/test_tracking_switches.py",
     "bench/test_measured_smoke.py",
+    "bench/test_measured_floor.py",
 }
 
 
