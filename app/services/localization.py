@@ -40,7 +40,6 @@ from app.vlp.measurements import (
 from app.vlp.solvers import Solution, TerminalSolver
 from app.vlp.solvers._censored import censored_substitutes
 from app.vlp.typing import FloatArray
-from app.vlp.uncertainty import confidence_radii
 from app.vlp.workload import LocalizeWork, localize_work
 
 from .fingerprint_cache import FingerprintCache, PreparedVersion
@@ -449,7 +448,7 @@ def _estimates(solution: Solution, owners: list[str | None]) -> list[Estimate]:
     """The answer's estimates, with their uncertainty, gain and height when the solver
     gives them."""
     estimates = []
-    radii = None if solution.covariances is None else confidence_radii(solution.covariances)
+    radii = solution.radii
     for k in range(solution.n_targets):
         covariance = None if solution.covariances is None else solution.covariances[k]
         estimates.append(

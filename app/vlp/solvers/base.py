@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import math
 from abc import ABC, abstractmethod
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import ClassVar, Protocol, runtime_checkable
 
 import numpy as np
@@ -26,7 +26,7 @@ from ..fingerprints import Fingerprint
 from ..measurements import Measurement, Model
 from ..scale import check_measurement_scale
 from ..typing import FloatArray, IntArray
-from ..uncertainty import FitQuality
+from ..uncertainty import FitQuality, confidence_radii
 
 __all__ = [
     "MAX_TARGETS",
@@ -37,6 +37,7 @@ __all__ = [
     "make_solver",
     "register_solver",
     "solver_names",
+    "with_radii",
 ]
 
 
@@ -68,6 +69,10 @@ class Solution:
         Each target's height, when heights were fitted or given.
     fit : FitQuality or None
         Goodness of the fit and the measurement's fitted scale.
+    radii : ndarray of shape (K,) or None, metres
+        Each estimate's 95 % radius (:func:`app.vlp.uncertainty.confidence_radii` of
+        ``covariances``); set by :meth:`Solver.solve` (:func:`with_radii`) whenever the
+        covariances are.
     """
 
     positions: FloatArray
@@ -81,11 +86,20 @@ class Solution:
     gains: FloatArray | None = None
     heights: FloatArray | None = None
     fit: FitQuality | None = None
+    radii: FloatArray | None = None
 
     @property
     def n_targets(self) -> int:
         """K, the number of estimates."""
         return int(self.positions.shape[0])
+
+
+def with_radii(solution: Solution) -> Solution:
+    """``solution`` with the 95 % radii of its covariances (part of the answer a solve
+    gives, so timed with it); unchanged without covariances or with radii already set."""
+    if solution.covariances is None or solution.radii is not None:
+        return solution
+    return replace(solution, radii=confidence_radii(solution.covariances))
 
 
 class Solver(ABC):
@@ -151,7 +165,7 @@ class Solver(ABC):
                 "does not fit this room's fingerprint: the fit is not finite",
                 field=measurement.model,
             )
-        return solution
+        return with_radii(solution)
 
     @abstractmethod
     def _solve(self, measurement: Measurement, n_targets: int | None) -> Solution:

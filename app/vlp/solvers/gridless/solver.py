@@ -25,7 +25,7 @@ import numpy as np
 from ...fingerprints import Fingerprint
 from ...measurements import Measurement, Model
 from ...typing import FloatArray
-from ..base import Solution, Solver, register_solver
+from ..base import Solution, Solver, register_solver, with_radii
 from .fitting import residual_of
 from .options import LM_DEFAULTS, GridlessOptions
 from .report import aggregated_far_optima, aggregated_fit_detail, reported
@@ -191,4 +191,4 @@ class GridlessSolver(Solver):
     ) -> Solution:
         """Locate each terminal from its own amplitudes; estimate k belongs to terminal k
         (:func:`.terminal_solve.solve_terminals`, which documents the parameters)."""
-        return solve_terminals(self.room, amplitudes, heights, normals, floors)
+        return with_radii(solve_terminals(self.room, amplitudes, heights, normals, floors))
