@@ -11,6 +11,7 @@ from dataclasses import replace
 
 import numpy as np
 
+from ...layout import AmplitudeError
 from ...scale import check_amplitude_scale
 from ...typing import FloatArray
 from ...uncertainty import (
@@ -177,7 +178,31 @@ def solve_terminals(
     chi2 = np.array([fit.rss for fit in fits]) / max(sigma2, 1e-300)
     led_error = float(misfit.model_errors[0]) if misfit.model_errors.size else 0.0
     reweighted = room.options.terminal_led_weights and _led_errors_seen(designs, led_error)
-    if reweighted:
+    measured = room.fingerprint.layout.amplitude_error
+    if measured is not None:
+        # The room's own scatter, measured by its survey calibration on many degrees of
+        # freedom, weights every terminal and is its covariance's variance: one request's
+        # few residuals would estimate it on next to nothing (docs/decisions/measured-radii.md).
+        fits = [
+            fit_terminal(
+                room.kernel,
+                values[k],
+                fit.position[None, :],
+                priors=room.priors,
+                sigma2=with_censored_variance(  # [censored hook]
+                    measured_variances(measured, room.scale, fit), censored_var[k]
+                ),
+                height=own_heights[k],
+                normal=own_normals[k],
+                tilt_sd=tilt_sd,
+                tilt_spread_known=tilt_spread_known,
+            )
+            for k, fit in enumerate(fits)
+        ]
+        designs, misfit = misfit_of(fits, led_errors=False)
+        misfit = measured_misfit(measured, misfit.model_errors.shape[0])
+        reweighted = False
+    elif reweighted:
         fits = [
             fit_terminal(
                 room.kernel,
@@ -244,6 +269,24 @@ def solve_terminals(
         else None,
         fit=fit_quality,
     )
+
+
+def measured_variances(measured: AmplitudeError, scale: float, fit: TerminalFit) -> FloatArray:
+    """Each of a terminal's amplitudes' variance (M,), in the solver's units (amplitudes
+    over ``scale``), from the room's measured scatter at the fit's modelled amplitudes:
+    ``noise_sd^2 + (relative_sd f_i)^2``."""
+    modelled = fit.jacobian[:, -1] / fit.data_weight  # the log gain's column, unwhitened
+    return np.asarray(
+        (measured.noise_sd / scale) ** 2 + (measured.relative_sd * modelled) ** 2,
+        dtype=np.float64,
+    )
+
+
+def measured_misfit(measured: AmplitudeError, n_components: int) -> Misfit:
+    """The variances of a fit weighted by the room's measured scatter: its whitened noise is
+    1, resting on the survey's degrees of freedom, and no other model error is estimated
+    (the survey's residuals held them all: ``n_components`` zeros, known)."""
+    return Misfit(1.0, np.zeros(n_components), np.r_[measured.dof, np.full(n_components, np.inf)])
 
 
 def terminal_tilt_covariance(room: PreparedRoom, fit: TerminalFit, tilt_sd: float) -> FloatArray:
