@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 from scipy import integrate, stats
 
+from app.vlp import uncertainty
 from app.vlp.calibration import calibrate, calibrated_layout
 from app.vlp.errors import GeometryError
 from app.vlp.fingerprints import build_fingerprint
@@ -38,7 +39,7 @@ def test_a_scatter_on_many_degrees_of_freedom_gives_the_chi_square_radius(
     paper_room: Layout,
 ) -> None:
     # A level receiver in the middle of the paper room, its amplitudes with a noise of the
-    # room's measured sd: the covariance is the inverse of the whitened fit's information
+    # room's measured sd: the covariance is the inverse of the weighted fit's information
     # (the gain's 10 % prior included), not widened, and its 95 % circle holds 95 % of
     # that Gaussian (a quadrature of the density, not the radius code).
     noise_sd = 3e-7
@@ -51,14 +52,16 @@ def test_a_scatter_on_many_degrees_of_freedom_gives_the_chi_square_radius(
     truth = np.array([[1.9, 2.2]])
     clean = true_amplitudes(layout, truth)
     amplitudes = clean + noise_sd * np.random.default_rng(3).standard_normal(clean.shape)
-    solution = solver.solve_terminals(amplitudes)
+    # Its height sent and its photodiode level: no error of its own is left to estimate.
+    height = np.array([layout.grid.receiver_height])
+    solution = solver.solve_terminals(amplitudes, heights=height)
     assert solution.covariances is not None
     position = solution.positions[0]
     gain = float(solution.gains[0]) if solution.gains is not None else 1.0
 
     # The information of (x, y, log gain) by central differences of the simulator's channel.
     def model(theta: np.ndarray) -> np.ndarray:
-        return math.exp(theta[2]) * true_amplitudes(layout, theta[None, :2])[0]
+        return np.asarray(math.exp(theta[2]) * true_amplitudes(layout, theta[None, :2])[0])
 
     theta = np.r_[position, math.log(gain)]
     step = 1e-6
@@ -90,7 +93,7 @@ def test_a_scatter_on_few_degrees_of_freedom_widens_the_radius(paper_room: Layou
             amplitude_error=AmplitudeError(noise_sd=3e-7, relative_sd=0.0, dof=dof),
         )
         solution = GridlessSolver(build_fingerprint(layout), "correlation").solve_terminals(
-            amplitudes
+            amplitudes, heights=np.array([layout.grid.receiver_height])
         )
         assert solution.covariances is not None
         radii.append(confidence_radius(solution.covariances[0]))
@@ -106,7 +109,7 @@ def test_without_a_calibration_the_radius_rests_on_the_requests_own_residuals(
     assert paper_room.amplitude_error is None
     pooled: list[Misfit] = []
     used: list[Misfit] = []
-    fit_pooled, covariances_of = terminal_solve.fit_misfit, terminal_solve.predictive_covariances
+    fit_pooled, covariances_of = uncertainty.fit_misfit, uncertainty.predictive_covariances
 
     def fitting(designs, residuals, *args, **kwargs):  # type: ignore[no-untyped-def]
         pooled.append(fit_pooled(designs, residuals, *args, **kwargs))

@@ -199,8 +199,8 @@ def solve_terminals(
             )
             for k, fit in enumerate(fits)
         ]
-        designs, misfit = misfit_of(fits, led_errors=False)
-        misfit = measured_misfit(measured, misfit.model_errors.shape[0])
+        designs, _ = misfit_of(fits, led_errors=False)
+        misfit = measured_misfit(measured, designs, [fit.residual for fit in fits])
         reweighted = False
     elif reweighted:
         fits = [
@@ -282,11 +282,14 @@ def measured_variances(measured: AmplitudeError, scale: float, fit: TerminalFit)
     )
 
 
-def measured_misfit(measured: AmplitudeError, n_components: int) -> Misfit:
-    """The variances of a fit weighted by the room's measured scatter: its whitened noise is
-    1, resting on the survey's degrees of freedom, and no other model error is estimated
-    (the survey's residuals held them all: ``n_components`` zeros, known)."""
-    return Misfit(1.0, np.zeros(n_components), np.r_[measured.dof, np.full(n_components, np.inf)])
+def measured_misfit(
+    measured: AmplitudeError, designs: list[MisfitDesign], residuals: list[FloatArray]
+) -> Misfit:
+    """The variances of fits weighted by the room's measured scatter: their whitened noise
+    is 1, resting on the survey's degrees of freedom; the terminals' own tilts and heights
+    (not the survey receiver's) are still fitted to the request's residuals."""
+    misfit = fit_misfit(designs, residuals, noise=1.0)
+    return replace(misfit, dofs=np.r_[measured.dof, misfit.dofs[1:]])
 
 
 def terminal_tilt_covariance(room: PreparedRoom, fit: TerminalFit, tilt_sd: float) -> FloatArray:
