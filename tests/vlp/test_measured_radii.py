@@ -101,12 +101,17 @@ def test_a_scatter_on_few_degrees_of_freedom_widens_the_radius(paper_room: Layou
     assert radii[1] == pytest.approx(radii[0] * math.sqrt(widening), rel=1e-3)
 
 
+@pytest.mark.parametrize("measured", [False, True], ids=["uncalibrated", "not-level"])
 def test_without_a_calibration_the_radius_rests_on_the_requests_own_residuals(
-    paper_room: Layout, monkeypatch: pytest.MonkeyPatch
+    paper_room: Layout, monkeypatch: pytest.MonkeyPatch, measured: bool
 ) -> None:
-    # No measured scatter: the covariances use the variances fitted to the request's own
-    # residuals (pooled over its terminals), on their few degrees of freedom.
-    assert paper_room.amplitude_error is None
+    # No measured scatter, or one whose layout does not say the receivers are level (hand-held
+    # terminals are not like the survey receiver): the covariances use the variances fitted to
+    # the request's own residuals (pooled over its terminals), on their few degrees of freedom.
+    assert paper_room.amplitude_error is None and not paper_room.grid.receivers_level
+    if measured:
+        scatter = AmplitudeError(noise_sd=1e-7, relative_sd=0.03, dof=1e9)
+        paper_room = replace(paper_room, amplitude_error=scatter)
     pooled: list[Misfit] = []
     used: list[Misfit] = []
     fit_pooled, covariances_of = uncertainty.fit_misfit, uncertainty.predictive_covariances

@@ -178,11 +178,13 @@ def solve_terminals(
     chi2 = np.array([fit.rss for fit in fits]) / max(sigma2, 1e-300)
     led_error = float(misfit.model_errors[0]) if misfit.model_errors.size else 0.0
     reweighted = room.options.terminal_led_weights and _led_errors_seen(designs, led_error)
-    measured = room.fingerprint.layout.amplitude_error
+    # The room's own scatter, measured by its survey calibration on many degrees of freedom,
+    # weights every terminal and is its covariance's variance: one request's few residuals
+    # would estimate it on next to nothing. Only for terminals like the survey receiver
+    # (level, the layout says): a hand-held one's tilt and gain are not in the survey's
+    # scatter, and under-covered with it (docs/decisions/measured-radii.md).
+    measured = room.fingerprint.layout.amplitude_error if room.receivers_level else None
     if measured is not None:
-        # The room's own scatter, measured by its survey calibration on many degrees of
-        # freedom, weights every terminal and is its covariance's variance: one request's
-        # few residuals would estimate it on next to nothing (docs/decisions/measured-radii.md).
         fits = [
             fit_terminal(
                 room.kernel,
