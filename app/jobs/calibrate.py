@@ -78,6 +78,9 @@ def apply_calibration(nominal: Layout, payload: dict[str, Any]) -> dict[str, Any
     else:
         calibrated = nominal
         report = _nominal_report(nominal)
+    if survey_rows:
+        error = calibrated.amplitude_error
+        report["amplitude_error"] = None if error is None else error.to_mapping()
     masked = set(int(i) for i in request.get("masked_leds") or ())
     if request.get("mask_dead_leds", True):
         masked |= {led["index"] for led in report["leds"] if led["flag"] == "dead"}

@@ -23,6 +23,7 @@ MAX_LED_INDEX = 1_000_000
 
 __all__ = [
     "MAX_SURVEY_ROWS",
+    "AmplitudeErrorReport",
     "CalibratedReflectance",
     "Calibration",
     "CalibrationCreate",
@@ -207,6 +208,16 @@ class ReflectanceSd(ResponseModel):
     ceiling: float | None
 
 
+class AmplitudeErrorReport(ResponseModel):
+    """How the survey's detected amplitudes scatter around the calibrated model: variance
+    `noise_sd^2 + (relative_sd * model)^2`; terminals that send their own amplitudes in this
+    room are weighted by it and their `accuracy_m` rests on it."""
+
+    noise_sd: float = Field(description="the amplitude noise's sd (the terminals' units)")
+    relative_sd: float = Field(description="sd of the model's error relative to the signal")
+    dof: float = Field(description="degrees of freedom the two rest on")
+
+
 class Calibration(ResponseModel):
     """A calibration and, once its job succeeded, its report."""
 
@@ -246,6 +257,11 @@ class Calibration(ResponseModel):
     )
     reflectance_sd: ReflectanceSd | None = Field(
         default=None, description="sd of the fitted reflectances (null when none was fitted)"
+    )
+    amplitude_error: AmplitudeErrorReport | None = Field(
+        default=None,
+        description="how the survey's amplitudes scatter around the calibrated model (null "
+        "without a survey, or when it leaves no degree of freedom for it)",
     )
 
 

@@ -24,7 +24,7 @@ from app.schemas import (
     MatrixMeta,
     Room,
 )
-from app.schemas.calibrations import CalibratedReflectance, ReflectanceSd
+from app.schemas.calibrations import AmplitudeErrorReport, CalibratedReflectance, ReflectanceSd
 
 __all__ = [
     "calibration_public",
@@ -36,7 +36,7 @@ __all__ = [
     "room_public",
 ]
 
-_Model = TypeVar("_Model", CalibratedReflectance, ReflectanceSd)
+_Model = TypeVar("_Model", AmplitudeErrorReport, CalibratedReflectance, ReflectanceSd)
 
 
 def room_public(record: RoomRecord) -> Room:
@@ -131,6 +131,7 @@ def calibration_public(record: CalibrationRecord) -> Calibration:
         apply_receiver_gain=bool(record.request.get("apply_receiver_gain", True)),
         reflectance=_optional(CalibratedReflectance, report.get("reflectance")),
         reflectance_sd=_optional(ReflectanceSd, report.get("reflectance_sd")),
+        amplitude_error=_optional(AmplitudeErrorReport, report.get("amplitude_error")),
     )
 
 

@@ -46,6 +46,7 @@ from dataclasses import dataclass, fields, replace
 from typing import Any
 
 import numpy as np
+from scipy import optimize
 
 from ._calibration_fit import (
     MIN_ROWS_FOR_POSITION,
@@ -63,7 +64,7 @@ from ._calibration_fit import (
 )
 from .channel import led_constants
 from .errors import MeasurementError
-from .layout import Layout, Led, Reflectance
+from .layout import AmplitudeError, Layout, Led, Reflectance
 from .survey import Survey, check_survey, simulate_survey, survey_from_rows
 from .typing import BoolArray, FloatArray, IntArray
 
@@ -94,6 +95,9 @@ DEFAULT_LED_POSITION_BOUND_M = 0.3
 # degrees of their drawing; a face turned further is no longer a small tilt of the same beam.
 DEFAULT_LED_TILT_BOUND_DEG = 15.0
 MAX_LED_TILT_BOUND_DEG = 45.0
+# Rounds of reweighting the moment fit of the survey's scatter (:func:`_amplitude_error`);
+# the weights settle within a few, as in app.vlp.uncertainty.fit_misfit.
+_MOMENT_REWEIGHTS = 6
 # Where a fitted reflectance starts when the layout gives none (the lighting-design default
 # for walls, docs/explanation/real-rooms.md#the-simulators-true-channel).
 _REFLECTANCE_START = 0.5
@@ -147,6 +151,10 @@ class CalibrationResult:
         Angle between each fitted normal and straight down.
     tilt_azimuths_deg : ndarray of shape (M,), degrees in [0, 360)
         Direction its face turns to, counter-clockwise from +x (0 for an untilted LED).
+    amplitude_error : AmplitudeError or None
+        How the survey's detected amplitudes scatter around the calibrated model (its noise
+        and its relative error, :func:`_amplitude_error`); None when the survey leaves no
+        degree of freedom for it.
     """
 
     pilot_amplitudes: FloatArray
@@ -170,6 +178,7 @@ class CalibrationResult:
     led_normals: FloatArray
     tilts_deg: FloatArray
     tilt_azimuths_deg: FloatArray
+    amplitude_error: AmplitudeError | None = None
 
     def to_mapping(self) -> dict[str, Any]:
         """The result as JSON-ready plain values (NaN residuals become None)."""
@@ -348,6 +357,7 @@ def calibrate(
         led_normals=normals,
         tilts_deg=np.rad2deg(np.arccos(np.clip(-normals[:, 2], -1.0, 1.0))),
         tilt_azimuths_deg=_azimuths_deg(normals),
+        amplitude_error=_amplitude_error(survey, modelled, n_params),
     )
 
 
@@ -393,7 +403,11 @@ def calibrated_layout(
     gain = result.receiver_gain if apply_receiver_gain else 1.0
     receiver = replace(layout.receiver, filter_gain=layout.receiver.filter_gain * gain)
     room = replace(layout.room, reflectance=result.reflectance)
-    return replace(layout, room=room, leds=leds, receiver=receiver)
+    error = result.amplitude_error
+    if error is not None and not apply_receiver_gain:
+        # The survey's noise in the units of a model without the survey receiver's gain.
+        error = replace(error, noise_sd=error.noise_sd / result.receiver_gain)
+    return replace(layout, room=room, leds=leds, receiver=receiver, amplitude_error=error)
 
 
 def masked_layout(layout: Layout, dead_led_indices: tuple[int, ...] | list[int]) -> Layout:
@@ -421,7 +435,7 @@ def masked_layout(layout: Layout, dead_led_indices: tuple[int, ...] | list[int])
 # -- private kernels (inputs already validated) -------------------------------------------------
 def _plain(value: object) -> object:
     """Arrays and tuples as lists, non-finite floats as None."""
-    if isinstance(value, Reflectance):
+    if isinstance(value, Reflectance | AmplitudeError):
         return value.to_mapping()
     if isinstance(value, np.ndarray | tuple):
         return [_plain(v) for v in value]
@@ -466,6 +480,31 @@ def _measured_minus_model(survey: Survey, modelled: FloatArray) -> FloatArray:
         np.where(detected, survey.amplitudes, 0.0) - modelled,
         -np.maximum(modelled - survey.floor, 0.0),
     )
+
+
+def _amplitude_error(survey: Survey, modelled: FloatArray, n_params: int) -> AmplitudeError | None:
+    """How the survey's detected amplitudes scatter around the calibrated model at their
+    known points: ``E[(a - f)^2] = s^2 + (b f)^2`` fitted to the squared residuals
+    (non-negative least squares, reweighted by each square's expected scatter, ``2 E^2``),
+    over the rows the model sees (``f > 0``). The fit of the LEDs' ``n_params`` parameters
+    absorbed part of those squares: ``s^2, b^2`` are scaled by ``n / (n - n_params)``, the
+    ``n - n_params`` degrees of freedom they rest on. None when none is left."""
+    used = survey.detected & (modelled > 0.0)
+    n_used = int(np.count_nonzero(used))
+    dof = n_used - n_params
+    if dof < 1:
+        return None
+    model = modelled[used]
+    squares = (survey.amplitudes[used] - model) ** 2
+    design = np.column_stack((np.ones(n_used), model**2))
+    weights = np.ones(n_used)
+    solution = np.zeros(2)
+    for _ in range(_MOMENT_REWEIGHTS):
+        solution, _ = optimize.nnls(design * weights[:, None], squares * weights)
+        expected = design @ solution
+        weights = 1.0 / np.maximum(expected, 1e-3 * max(float(np.mean(expected)), 1e-300))
+    noise_var, relative_var = solution * (n_used / dof)
+    return AmplitudeError(math.sqrt(noise_var), math.sqrt(relative_var), float(dof))
 
 
 def _azimuths_deg(normals: FloatArray) -> FloatArray:

@@ -37,6 +37,7 @@ __all__ = [
     "DEFAULT_RECEIVER_AREA_M2",
     "DEFAULT_REFRACTIVE_INDEX",
     "GRID_RELATIVE_TOLERANCE",
+    "AmplitudeError",
     "Grid",
     "Layout",
     "Led",
@@ -104,6 +105,33 @@ class Room:
     def __post_init__(self) -> None:
         for name in ("length", "width", "height"):
             _check_positive(getattr(self, name), f"room.{name}")
+
+
+@dataclass(frozen=True)
+class AmplitudeError:
+    """How far measured amplitudes scatter around this room's model, measured by a survey
+    calibration at known points: each amplitude ``a`` of model value ``f`` has the variance
+    ``noise_sd^2 + (relative_sd f)^2`` (the receiver's noise, and what the model misses in
+    proportion to the signal: beams that are not Lambertian, reflections), both estimated
+    from ``dof`` degrees of freedom. Amplitudes in the layout's units (the terminals').
+    """
+
+    noise_sd: float
+    relative_sd: float
+    dof: float
+
+    def __post_init__(self) -> None:
+        for name in ("noise_sd", "relative_sd"):
+            value = getattr(self, name)
+            if not (isinstance(value, int | float) and math.isfinite(value) and value >= 0):
+                raise GeometryError(
+                    f"amplitude_error.{name} must be a finite number >= 0, got {value!r}",
+                    field=f"amplitude_error.{name}",
+                )
+        _check_positive(self.dof, "amplitude_error.dof")
+
+    def to_mapping(self) -> dict[str, float]:
+        return {"noise_sd": self.noise_sd, "relative_sd": self.relative_sd, "dof": self.dof}
 
 
 @dataclass(frozen=True)
@@ -230,6 +258,9 @@ class Layout:
     leds: tuple[Led, ...]
     receiver: Receiver = field(default_factory=Receiver)
     name: str = ""
+    # Set by a survey calibration (:func:`app.vlp.calibration.calibrated_layout`), not by
+    # the room's admin: the radii of terminals that send their own amplitudes rest on it.
+    amplitude_error: AmplitudeError | None = None
 
     def __post_init__(self) -> None:
         room, grid = self.room, self.grid
@@ -374,7 +405,8 @@ class Layout:
 
         ``room.reflectance``, ``grid.receiver_height_sd``, ``grid.receiver_tilt_sd`` and
         ``grid.receivers_level`` appear only when set (not None, not 0, not False), so a layout
-        without them maps exactly as before they existed.
+        without them maps exactly as before they existed; so does ``amplitude_error``, which
+        only a calibrated layout carries.
         """
         room: dict[str, Any] = {
             "length": self.room.length,
@@ -393,7 +425,7 @@ class Layout:
             grid["receiver_tilt_sd"] = self.grid.receiver_tilt_sd
         if self.grid.receivers_level:
             grid["receivers_level"] = True
-        return {
+        mapping: dict[str, Any] = {
             "name": self.name,
             "room": room,
             "grid": grid,
@@ -405,6 +437,9 @@ class Layout:
             },
             "leds": [_led_mapping(led) for led in self.leds],
         }
+        if self.amplitude_error is not None:
+            mapping["amplitude_error"] = self.amplitude_error.to_mapping()
+        return mapping
 
 
 def _led_mapping(led: Led) -> dict[str, Any]:
@@ -465,7 +500,28 @@ def layout_from_mapping(data: Mapping[str, Any]) -> Layout:
     except (KeyError, TypeError) as exc:
         raise GeometryError(f"incomplete layout: missing or invalid {exc}", field=None) from exc
     return Layout(
-        room=room, grid=grid, leds=leds, receiver=receiver, name=str(data.get("name", ""))
+        room=room,
+        grid=grid,
+        leds=leds,
+        receiver=receiver,
+        name=str(data.get("name", "")),
+        amplitude_error=_amplitude_error_from_mapping(data.get("amplitude_error")),
+    )
+
+
+def _amplitude_error_from_mapping(value: object) -> AmplitudeError | None:
+    if value is None:
+        return None
+    if not isinstance(value, Mapping):
+        raise GeometryError(
+            f"amplitude_error must be an object with noise_sd, relative_sd and dof, got {value!r}",
+            field="amplitude_error",
+        )
+    return AmplitudeError(
+        **{
+            name: _float_field(value.get(name), f"amplitude_error.{name}")
+            for name in ("noise_sd", "relative_sd", "dof")
+        }
     )
 
 

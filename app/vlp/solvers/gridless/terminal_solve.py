@@ -11,6 +11,7 @@ from dataclasses import replace
 
 import numpy as np
 
+from ...layout import AmplitudeError
 from ...scale import check_amplitude_scale
 from ...typing import FloatArray
 from ...uncertainty import (
@@ -177,7 +178,33 @@ def solve_terminals(
     chi2 = np.array([fit.rss for fit in fits]) / max(sigma2, 1e-300)
     led_error = float(misfit.model_errors[0]) if misfit.model_errors.size else 0.0
     reweighted = room.options.terminal_led_weights and _led_errors_seen(designs, led_error)
-    if reweighted:
+    # The room's own scatter, measured by its survey calibration on many degrees of freedom,
+    # weights every terminal and is its covariance's variance: one request's few residuals
+    # would estimate it on next to nothing. Only for terminals like the survey receiver
+    # (level, the layout says): a hand-held one's tilt and gain are not in the survey's
+    # scatter, and under-covered with it (docs/decisions/measured-radii.md).
+    measured = room.fingerprint.layout.amplitude_error if room.receivers_level else None
+    if measured is not None:
+        fits = [
+            fit_terminal(
+                room.kernel,
+                values[k],
+                fit.position[None, :],
+                priors=room.priors,
+                sigma2=with_censored_variance(  # [censored hook]
+                    measured_variances(measured, room.scale, fit), censored_var[k]
+                ),
+                height=own_heights[k],
+                normal=own_normals[k],
+                tilt_sd=tilt_sd,
+                tilt_spread_known=tilt_spread_known,
+            )
+            for k, fit in enumerate(fits)
+        ]
+        designs, _ = misfit_of(fits, led_errors=False)
+        misfit = measured_misfit(measured, designs, [fit.residual for fit in fits])
+        reweighted = False
+    elif reweighted:
         fits = [
             fit_terminal(
                 room.kernel,
@@ -244,6 +271,27 @@ def solve_terminals(
         else None,
         fit=fit_quality,
     )
+
+
+def measured_variances(measured: AmplitudeError, scale: float, fit: TerminalFit) -> FloatArray:
+    """Each of a terminal's amplitudes' variance (M,), in the solver's units (amplitudes
+    over ``scale``), from the room's measured scatter at the fit's modelled amplitudes:
+    ``noise_sd^2 + (relative_sd f_i)^2``."""
+    modelled = fit.jacobian[:, -1] / fit.data_weight  # the log gain's column, unwhitened
+    return np.asarray(
+        (measured.noise_sd / scale) ** 2 + (measured.relative_sd * modelled) ** 2,
+        dtype=np.float64,
+    )
+
+
+def measured_misfit(
+    measured: AmplitudeError, designs: list[MisfitDesign], residuals: list[FloatArray]
+) -> Misfit:
+    """The variances of fits weighted by the room's measured scatter: their whitened noise
+    is 1, resting on the survey's degrees of freedom; the terminals' own tilts and heights
+    (not the survey receiver's) are still fitted to the request's residuals."""
+    misfit = fit_misfit(designs, residuals, noise=1.0)
+    return replace(misfit, dofs=np.r_[measured.dof, misfit.dofs[1:]])
 
 
 def terminal_tilt_covariance(room: PreparedRoom, fit: TerminalFit, tilt_sd: float) -> FloatArray:

@@ -1,0 +1,184 @@
+"""Radii of terminals in a calibrated room: the room's amplitude scatter, measured by its
+survey calibration, weights each terminal and is its covariance's variance."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from scipy import integrate, stats
+
+from app.vlp import uncertainty
+from app.vlp.calibration import calibrate, calibrated_layout
+from app.vlp.errors import GeometryError
+from app.vlp.fingerprints import build_fingerprint
+from app.vlp.layout import AmplitudeError, Layout, layout_from_mapping
+from app.vlp.simulation import true_amplitudes
+from app.vlp.solvers.gridless import GridlessOptions, GridlessSolver, terminal_solve
+from app.vlp.survey import survey_from_rows
+from app.vlp.uncertainty import Misfit, confidence_radius
+
+
+def _mass_inside(covariance: np.ndarray, radius: float) -> float:
+    """P(|e| <= radius) for e ~ N(0, covariance), by 2-D quadrature in polar coordinates
+    (independent of the solver's radial root finding)."""
+    precision = np.linalg.inv(covariance)
+    norm = 1.0 / (2.0 * math.pi * math.sqrt(np.linalg.det(covariance)))
+
+    def density(r: float, angle: float) -> float:
+        u = np.array([math.cos(angle), math.sin(angle)])
+        return float(norm * math.exp(-0.5 * r * r * (u @ precision @ u)) * r)
+
+    mass, _ = integrate.dblquad(density, 0.0, 2.0 * math.pi, 0.0, radius, epsabs=1e-10)
+    return float(mass)
+
+
+def test_a_scatter_on_many_degrees_of_freedom_gives_the_chi_square_radius(
+    paper_room: Layout,
+) -> None:
+    # A level receiver in the middle of the paper room, its amplitudes with a noise of the
+    # room's measured sd: the covariance is the inverse of the weighted fit's information
+    # (the gain's 10 % prior included), not widened, and its 95 % circle holds 95 % of
+    # that Gaussian (a quadrature of the density, not the radius code).
+    noise_sd = 3e-7
+    layout = replace(
+        paper_room,
+        grid=replace(paper_room.grid, receivers_level=True),
+        amplitude_error=AmplitudeError(noise_sd=noise_sd, relative_sd=0.0, dof=1e9),
+    )
+    solver = GridlessSolver(build_fingerprint(layout), "correlation")
+    truth = np.array([[1.9, 2.2]])
+    clean = true_amplitudes(layout, truth)
+    amplitudes = clean + noise_sd * np.random.default_rng(3).standard_normal(clean.shape)
+    # Its height sent and its photodiode level: no error of its own is left to estimate.
+    height = np.array([layout.grid.receiver_height])
+    solution = solver.solve_terminals(amplitudes, heights=height)
+    assert solution.covariances is not None
+    position = solution.positions[0]
+    gain = float(solution.gains[0]) if solution.gains is not None else 1.0
+
+    # The information of (x, y, log gain) by central differences of the simulator's channel.
+    def model(theta: np.ndarray) -> np.ndarray:
+        return np.asarray(math.exp(theta[2]) * true_amplitudes(layout, theta[None, :2])[0])
+
+    theta = np.r_[position, math.log(gain)]
+    step = 1e-6
+    jacobian = np.column_stack(
+        [(model(theta + step * e) - model(theta - step * e)) / (2 * step) for e in np.eye(3)]
+    )
+    gain_sd = GridlessOptions().log_gain_sd
+    assert gain_sd is not None
+    information = jacobian.T @ jacobian / noise_sd**2 + np.diag([0.0, 0.0, 1.0 / gain_sd**2])
+    expected = np.linalg.inv(information)[:2, :2]
+    np.testing.assert_allclose(solution.covariances[0], expected, rtol=2e-3)
+    radius = confidence_radius(solution.covariances[0])
+    assert _mass_inside(expected, radius) == pytest.approx(0.95, abs=2e-3)
+    # Round enough here that the radius is close to the chi-square(2) one of its trace.
+    round_sd = math.sqrt(np.trace(expected) / 2.0)
+    assert radius == pytest.approx(math.sqrt(stats.chi2.ppf(0.95, 2)) * round_sd, rel=0.1)
+
+
+def test_a_scatter_on_few_degrees_of_freedom_widens_the_radius(paper_room: Layout) -> None:
+    # The same terminal, the scatter estimated from 4 degrees of freedom: F(2, 4) instead of
+    # chi-square(2), 2 F^-1(0.95; 2, 4) / chi2^-1(0.95; 2) = 2.31 times the covariance.
+    amplitudes = true_amplitudes(paper_room, np.array([[1.9, 2.2]]))
+    amplitudes = amplitudes + 3e-7 * np.random.default_rng(3).standard_normal(amplitudes.shape)
+    radii = []
+    for dof in (1e9, 4.0):
+        layout = replace(
+            paper_room,
+            grid=replace(paper_room.grid, receivers_level=True),
+            amplitude_error=AmplitudeError(noise_sd=3e-7, relative_sd=0.0, dof=dof),
+        )
+        solution = GridlessSolver(build_fingerprint(layout), "correlation").solve_terminals(
+            amplitudes, heights=np.array([layout.grid.receiver_height])
+        )
+        assert solution.covariances is not None
+        radii.append(confidence_radius(solution.covariances[0]))
+    widening = 2.0 * stats.f.ppf(0.95, 2, 4) / stats.chi2.ppf(0.95, 2)
+    assert radii[1] == pytest.approx(radii[0] * math.sqrt(widening), rel=1e-3)
+
+
+@pytest.mark.parametrize("measured", [False, True], ids=["uncalibrated", "not-level"])
+def test_without_a_calibration_the_radius_rests_on_the_requests_own_residuals(
+    paper_room: Layout, monkeypatch: pytest.MonkeyPatch, measured: bool
+) -> None:
+    # No measured scatter, or one whose layout does not say the receivers are level (hand-held
+    # terminals are not like the survey receiver): the covariances use the variances fitted to
+    # the request's own residuals (pooled over its terminals), on their few degrees of freedom.
+    assert paper_room.amplitude_error is None and not paper_room.grid.receivers_level
+    if measured:
+        scatter = AmplitudeError(noise_sd=1e-7, relative_sd=0.03, dof=1e9)
+        paper_room = replace(paper_room, amplitude_error=scatter)
+    pooled: list[Misfit] = []
+    used: list[Misfit] = []
+    fit_pooled, covariances_of = uncertainty.fit_misfit, uncertainty.predictive_covariances
+
+    def fitting(designs, residuals, *args, **kwargs):  # type: ignore[no-untyped-def]
+        pooled.append(fit_pooled(designs, residuals, *args, **kwargs))
+        return pooled[-1]
+
+    def covariances(design, misfit, blocks, level=0.95):  # type: ignore[no-untyped-def]
+        used.append(misfit)
+        return covariances_of(design, misfit, blocks, level)
+
+    monkeypatch.setattr(terminal_solve, "fit_misfit", fitting)
+    monkeypatch.setattr(terminal_solve, "predictive_covariances", covariances)
+    clean = true_amplitudes(paper_room, np.array([[1.3, 2.6], [2.9, 0.8]]))
+    rng = np.random.default_rng(8)
+    amplitudes = clean * (1.0 + 0.03 * rng.standard_normal(clean.shape))
+    amplitudes = amplitudes + 0.01 * float(np.mean(clean)) * rng.standard_normal(clean.shape)
+    solver = GridlessSolver(build_fingerprint(paper_room), "correlation")
+    solver.solve_terminals(amplitudes)
+    assert len(used) == 2 and all(misfit is pooled[-1] for misfit in used)
+    assert 0 < pooled[-1].dofs[0] < 2 * paper_room.n_leds
+
+
+def test_a_calibration_measures_the_surveys_noise_and_relative_error(paper_room: Layout) -> None:
+    # A dense survey of a room exactly as laid out, every amplitude off by 5 % (relative)
+    # and by a noise of 3 % of the mean amplitude: the calibration finds both.
+    ticks = np.arange(0.1, 4.0, 0.2)
+    points = np.array([(x, y) for x in ticks for y in ticks])
+    clean = true_amplitudes(paper_room, points)
+    noise_sd = 0.03 * float(np.mean(clean))
+    rng = np.random.default_rng(11)
+    measured = clean * (1.0 + 0.05 * rng.standard_normal(clean.shape))
+    measured = measured + noise_sd * rng.standard_normal(clean.shape)
+    leds = np.broadcast_to(np.arange(paper_room.n_leds), clean.shape)
+    rows = np.column_stack(
+        (
+            np.repeat(points, paper_room.n_leds, axis=0),
+            leds.reshape(-1),
+            measured.reshape(-1),
+        )
+    )
+    result = calibrate(paper_room, survey_from_rows(rows), led_tilt_bound_deg=0.0)
+    error = result.amplitude_error
+    assert error is not None
+    assert error.relative_sd == pytest.approx(0.05, rel=0.1)
+    assert error.noise_sd == pytest.approx(noise_sd, rel=0.1)
+    in_view = int(np.count_nonzero(clean > 0))
+    assert 0.8 * in_view < error.dof < in_view
+    # It travels with the calibrated layout (and its mapping) to the solver.
+    layout = calibrated_layout(paper_room, result)
+    assert layout.amplitude_error == error
+    assert layout_from_mapping(layout.to_mapping()).amplitude_error == error
+
+
+def test_a_layout_without_a_calibration_maps_as_before(paper_room: Layout) -> None:
+    assert "amplitude_error" not in paper_room.to_mapping()
+    assert layout_from_mapping(paper_room.to_mapping()).amplitude_error is None
+
+
+def test_a_bad_amplitude_error_names_its_field(paper_room: Layout) -> None:
+    mapping = paper_room.to_mapping()
+    mapping["amplitude_error"] = {"noise_sd": 1.0, "relative_sd": -0.1, "dof": 10}
+    with pytest.raises(GeometryError) as caught:
+        layout_from_mapping(mapping)
+    assert caught.value.field == "amplitude_error.relative_sd"
+    mapping["amplitude_error"] = {"noise_sd": 1.0, "relative_sd": 0.1, "dof": 0}
+    with pytest.raises(GeometryError) as caught:
+        layout_from_mapping(mapping)
+    assert caught.value.field == "amplitude_error.dof"
