@@ -47,6 +47,8 @@ import numpy as np
 from bench._server import TERMINAL_KEY, LiveServer, live_server, ready_demo_room
 
 _HEADERS = {"X-API-Key": TERMINAL_KEY}
+# Seconds of load that warm each server before its throughput phases (at most a phase).
+_WARM_S = 2.0
 
 
 def _measurements(url: str, room_id: str, count: int) -> list[dict[str, Any]]:
@@ -201,7 +203,8 @@ def _scaling(
     rates: dict[int, list[float]] = {workers: [] for workers in servers}
     errors = 0
     for server, room_id, bodies in servers.values():  # warm every process
-        asyncio.run(_throughput(server.url, _path(room_id), bodies, 2.0, concurrency))
+        warm_s = min(_WARM_S, seconds)
+        asyncio.run(_throughput(server.url, _path(room_id), bodies, warm_s, concurrency))
     for round_index in range(rounds):
         order = sorted(servers) if round_index % 2 == 0 else sorted(servers, reverse=True)
         for workers in order:

@@ -5,6 +5,7 @@ marks all its tests ``slow`` (docs/explanation/architecture.md, "Tests and their
 from __future__ import annotations
 
 import ast
+import re
 from pathlib import Path
 
 import pytest
@@ -21,13 +22,14 @@ UNIT_MODULES = {
 }
 
 
-def _marks_module_slow(path: Path) -> bool:
-    """Whether the module assigns ``pytestmark`` to ``pytest.mark.slow`` (or a list holding it)."""
+def _marks_module(path: Path, mark: str) -> bool:
+    """Whether the module assigns ``pytestmark`` to ``pytest.mark.<mark>`` (or a list holding
+    it)."""
     for node in ast.parse(path.read_text(encoding="utf-8")).body:
         if isinstance(node, ast.Assign) and any(
             isinstance(target, ast.Name) and target.id == "pytestmark" for target in node.targets
         ):
-            return "pytest.mark.slow" in ast.unparse(node.value)
+            return f"pytest.mark.{mark}" in ast.unparse(node.value).replace(" ", "")
     return False
 
 
@@ -42,4 +44,14 @@ def _marks_module_slow(path: Path) -> bool:
 def test_modules_that_start_processes_or_run_benchmarks_are_slow(module: str) -> None:
     if module in UNIT_MODULES:
         return
-    assert _marks_module_slow(TESTS / module), f"{module} lacks pytestmark = pytest.mark.slow"
+    assert _marks_module(TESTS / module, "slow"), f"{module} lacks pytestmark = pytest.mark.slow"
+
+
+def test_the_modules_the_workers_do_not_collect_are_serial() -> None:
+    """``./test`` keeps modules from its xdist workers' collection (``--ignore``) only when the
+    serial pass runs them: marked ``serial`` whole, else no pass would run their tests."""
+    script = (TESTS.parent / "test").read_text(encoding="utf-8")
+    ignored = re.findall(r"--ignore=(\S+)", script)
+    assert ignored, "the check below would check nothing"
+    for module in ignored:
+        assert _marks_module(TESTS.parent / module, "serial"), f"{module} is not marked serial"
