@@ -304,7 +304,56 @@ def step_anonymous(
         updates=step.tracks.updates,
         misses=misses.astype(np.intp),
     )
-    return Step(tracks=after, fix_rows=step.fix_rows, moved=step.moved, wild=step.wild)
+    was_tentative = np.concatenate(
+        (tracks.status == TENTATIVE, np.ones(after.size - tracks.size, dtype=bool))
+    )
+    after, moved_to = _in_lost_places(after, was_tentative, time_s, settings)
+    return Step(tracks=after, fix_rows=moved_to[step.fix_rows], moved=step.moved, wild=step.wild)
+
+
+def _in_lost_places(
+    tracks: Tracks, was_tentative: BoolArray, time_s: float, settings: TrackerSettings
+) -> tuple[Tracks, IntArray]:
+    """Tracks confirmed by this solve that take the places of tracks it missed.
+
+    A wild fix can pull a track away from its terminal; the terminal's next fixes then start
+    a tentative track while the old one coasts, and the terminal's id would change when the
+    new one is confirmed. A track just confirmed instead continues a confirmed or lost track
+    that no solve claimed since it started (misses at least its updates), from which it lies
+    within reach (``max_speed_mps`` times the time since that track's last update, plus the
+    95 % spread of both positions); pairs of least total distance. The coasting track's row
+    takes the new state (so keeps its id), and the new track's row is left tentative and
+    missed out, for :func:`age_tracks` to remove.
+
+    Returns
+    -------
+    tracks : Tracks
+    moved_to : ndarray of shape (n,), int
+        The row that now holds each row's track.
+    """
+    moved_to = np.arange(tracks.size)
+    fresh = np.nonzero(was_tentative & (tracks.status == CONFIRMED))[0]
+    coasting = np.nonzero(~was_tentative & (tracks.status != TENTATIVE) & (tracks.misses > 0))[0]
+    if fresh.size == 0 or coasting.size == 0:
+        return tracks, moved_to
+    mean, covariance = combined(tracks.bank)
+    gap = np.linalg.norm(mean[fresh, None, :2] - mean[None, coasting, :2], axis=2)
+    position_var = np.trace(covariance[:, :2, :2], axis1=1, axis2=2)
+    spread = 2.448 * np.sqrt(position_var[fresh, None] + position_var[None, coasting])
+    idle = np.maximum(time_s - tracks.bank.times_s[coasting], 0.0)
+    allowed = gap <= settings.max_speed_mps * idle[None, :] + spread
+    allowed &= tracks.misses[None, coasting] >= tracks.updates[fresh, None]
+    if not np.any(allowed):
+        return tracks, moved_to
+    rows, cols = linear_sum_assignment(np.where(allowed, gap, _INFEASIBLE))
+    keep = allowed[rows, cols]
+    new, old = fresh[rows[keep]], coasting[cols[keep]]
+    status, updates, misses = tracks.status.copy(), tracks.updates.copy(), tracks.misses.copy()
+    status[old], updates[old], misses[old] = CONFIRMED, updates[old] + updates[new], 0
+    status[new], misses[new] = TENTATIVE, settings.tentative_max_misses
+    moved_to[new] = old
+    bank = tracks.bank.put(old, tracks.bank.take(new))
+    return Tracks(bank=bank, status=status, updates=updates, misses=misses), moved_to
 
 
 def age_tracks(
