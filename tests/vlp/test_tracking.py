@@ -333,7 +333,7 @@ def test_gospa_against_its_closed_form() -> None:
     assert (far.missed, far.false, far.localisation) == (0.5, 0.5, 0.0)
 
 
-def _crossing(rng: np.random.Generator, gap_m: float) -> tuple[np.ndarray, np.ndarray]:
+def _crossing(gap_m: float) -> tuple[np.ndarray, np.ndarray]:
     """Two walkers on parallel lines ``gap_m`` apart, walking towards each other at 1.4 m/s
     and passing mid-way, at 5 Hz: times (T,) and true positions (T, 2, 2)."""
     times = np.arange(40) * 0.2
@@ -345,7 +345,7 @@ def _crossing(rng: np.random.Generator, gap_m: float) -> tuple[np.ndarray, np.nd
 
 def test_walkers_who_cross_keep_their_tracks(rng: np.random.Generator) -> None:
     settings = TrackerSettings()
-    times, truth = _crossing(rng, 0.3)
+    times, truth = _crossing(0.3)
     noise = np.tile(0.02**2 * np.eye(2), (2, 1, 1))
     tracks, owners = Tracks.empty(), []
     for k, time_s in enumerate(times):

@@ -3,7 +3,8 @@
 A room's tracks are one :class:`Tracks` batch. A labelled fix (its terminal is known) updates
 its terminal's track; anonymous fixes (aggregated measurements say where targets are, not
 who) are associated with the anonymous tracks by gated assignment of least total cost
-(Mahalanobis distance plus the log-determinant of the innovation covariance,
+(the negative log-likelihood of the fix under the track's two models, each with its
+Mahalanobis distance and the log-determinant of its innovation covariance,
 :func:`scipy.optimize.linear_sum_assignment`). A fix no track claims starts a tentative
 track; tentative tracks are confirmed after ``confirm_after_updates`` updates and dropped
 after ``tentative_max_misses`` missed solves; a track not updated for ``lost_after_s`` is
@@ -125,25 +126,43 @@ def associate(
 
     Notes
     -----
-    The cost of a pair is ``d2 + ln det S``, the negative log-likelihood of the fix under the
-    track's prediction up to a constant, with ``S = P + R`` and ``d2`` the squared
-    Mahalanobis distance; pairs with ``d2 > gate_chi2`` are allowed only within reach (their
-    larger ``d2`` makes the assignment prefer pairs within the gate).
+    The cost of a pair is ``-2 ln sum_k mu_k N(z; x_k, S_k)`` up to a constant: the negative
+    log-likelihood of the fix under the track's mixture, each model ``k`` (probability
+    ``mu_k``) with its own prediction ``x_k`` and ``S_k = P_k + R``, i.e. ``d2_k + ln det S_k``
+    weighed across the models. One Gaussian in place of the mixture would be as wide as the
+    two models apart: a standing track that may set off would claim a fix beside it as
+    readily as a walking track that predicts the fix exactly. A pair is allowed where its
+    squared Mahalanobis distance is within ``gate_chi2`` under some model or under the
+    mixture taken as one Gaussian, or within reach (its larger cost makes the assignment
+    prefer pairs within the gate).
     """
     if predicted.size == 0 or positions.shape[0] == 0:
         return np.zeros(0, dtype=np.intp), np.zeros(0, dtype=np.intp)
-    mean, covariance = combined(predicted)
-    innovation = positions[None, :, :] - mean[:, None, :2]  # (n, m, 2)
-    spread = covariance[:, None, :2, :2] + floored_covariances(covariances, settings)[None]
+    # Each model's innovation and its covariance, (n, models, m, ...).
+    innovation = positions[None, None, :, :] - predicted.means[:, :, None, :2]
+    fix_covariances = floored_covariances(covariances, settings)
+    spread = predicted.covariances[:, :, None, :2, :2] + fix_covariances[None, None]
     inverse, det = inverse_2x2(spread)
-    distance2 = np.einsum("nma,nmab,nmb->nm", innovation, inverse, innovation)
-    allowed = distance2 <= settings.gate_chi2
+    a, b, d = inverse[..., 0, 0], inverse[..., 0, 1], inverse[..., 1, 1]
+    nu0, nu1 = innovation[..., 0], innovation[..., 1]
+    distance2 = a * nu0 * nu0 + 2.0 * b * nu0 * nu1 + d * nu1 * nu1
+    # The gate: on some model, or on the mixture as one Gaussian (wider than either where
+    # the models disagree, as when a track may have set off).
+    mean, covariance = combined(predicted)
+    apart = positions[None, :, :] - mean[:, None, :2]
+    whole, _ = inverse_2x2(covariance[:, None, :2, :2] + fix_covariances[None])
+    whole2 = np.einsum("nma,nmab,nmb->nm", apart, whole, apart)
+    allowed = np.minimum(np.min(distance2, axis=1), whole2) <= settings.gate_chi2
     if elapsed_s is not None:
         # Reach: how far the terminal can have gone, plus the 95 % spread of the fix.
+        gap = np.linalg.norm(apart, axis=2)
         fix_spread = np.sqrt(np.trace(covariances, axis1=1, axis2=2))
-        reach = settings.max_speed_mps * elapsed_s[:, None] + 2.448 * fix_spread[None, :]
-        allowed |= np.linalg.norm(innovation, axis=2) <= reach
-    cost = np.where(allowed, distance2 + np.log(det), _INFEASIBLE)
+        allowed |= gap <= settings.max_speed_mps * elapsed_s[:, None] + 2.448 * fix_spread[None, :]
+    weight = np.log(np.maximum(predicted.model_probabilities, 1e-300))[:, :, None]
+    log_likelihood = weight - 0.5 * (distance2 + np.log(det))
+    top = log_likelihood.max(axis=1)
+    mixture = top + np.log(np.exp(log_likelihood - top[:, None]).sum(axis=1))
+    cost = np.where(allowed, -2.0 * mixture, _INFEASIBLE)
     rows, cols = linear_sum_assignment(cost)
     keep = allowed[rows, cols]
     return rows[keep].astype(np.intp), cols[keep].astype(np.intp)
