@@ -20,7 +20,7 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from ..typing import BoolArray, FloatArray, IntArray
-from .filter import TrackBank, combined, floored_covariances, inverse_2x2, predict, start_tracks
+from .filter import TrackBank, combined, floored_covariances, predict, start_tracks
 from .filter import update as filter_update
 from .settings import TrackerSettings
 
@@ -138,34 +138,44 @@ def associate(
     """
     if predicted.size == 0 or positions.shape[0] == 0:
         return np.zeros(0, dtype=np.intp), np.zeros(0, dtype=np.intp)
-    # Each model's innovation and its covariance, (n, models, m, ...).
-    innovation = positions[None, None, :, :] - predicted.means[:, :, None, :2]
-    fix_covariances = floored_covariances(covariances, settings)
-    spread = predicted.covariances[:, :, None, :2, :2] + fix_covariances[None, None]
-    inverse, det = inverse_2x2(spread)
-    a, b, d = inverse[..., 0, 0], inverse[..., 0, 1], inverse[..., 1, 1]
-    nu0, nu1 = innovation[..., 0], innovation[..., 1]
-    distance2 = a * nu0 * nu0 + 2.0 * b * nu0 * nu1 + d * nu1 * nu1
+    fix = floored_covariances(covariances, settings)
+    # Each model's squared Mahalanobis distance and log-determinant, (n, models, m).
+    distance2, log_det = _distances(
+        predicted.means[:, :, :2], predicted.covariances[:, :, :2, :2], positions, fix
+    )
     # The gate: on some model, or on the mixture as one Gaussian (wider than either where
     # the models disagree, as when a track may have set off).
     mean, covariance = combined(predicted)
-    apart = positions[None, :, :] - mean[:, None, :2]
-    whole, _ = inverse_2x2(covariance[:, None, :2, :2] + fix_covariances[None])
-    whole2 = np.einsum("nma,nmab,nmb->nm", apart, whole, apart)
-    allowed = np.minimum(np.min(distance2, axis=1), whole2) <= settings.gate_chi2
+    whole2, _ = _distances(mean[:, None, :2], covariance[:, None, :2, :2], positions, fix)
+    allowed = np.minimum(np.min(distance2, axis=1), whole2[:, 0]) <= settings.gate_chi2
     if elapsed_s is not None:
         # Reach: how far the terminal can have gone, plus the 95 % spread of the fix.
-        gap = np.linalg.norm(apart, axis=2)
+        gap = np.hypot(
+            positions[None, :, 0] - mean[:, None, 0], positions[None, :, 1] - mean[:, None, 1]
+        )
         fix_spread = np.sqrt(np.trace(covariances, axis1=1, axis2=2))
         allowed |= gap <= settings.max_speed_mps * elapsed_s[:, None] + 2.448 * fix_spread[None, :]
     weight = np.log(np.maximum(predicted.model_probabilities, 1e-300))[:, :, None]
-    log_likelihood = weight - 0.5 * (distance2 + np.log(det))
-    top = log_likelihood.max(axis=1)
-    mixture = top + np.log(np.exp(log_likelihood - top[:, None]).sum(axis=1))
-    cost = np.where(allowed, -2.0 * mixture, _INFEASIBLE)
+    log_likelihood = weight - 0.5 * (distance2 + log_det)
+    cost = np.where(allowed, -2.0 * np.logaddexp.reduce(log_likelihood, axis=1), _INFEASIBLE)
     rows, cols = linear_sum_assignment(cost)
     keep = allowed[rows, cols]
     return rows[keep].astype(np.intp), cols[keep].astype(np.intp)
+
+
+def _distances(
+    means: FloatArray, covariances: FloatArray, positions: FloatArray, fixes: FloatArray
+) -> tuple[FloatArray, FloatArray]:
+    """Squared Mahalanobis distances and log-determinants ``(n, k, m)`` of ``m`` fixes
+    (positions ``(m, 2)``, covariances ``(m, 2, 2)``) from ``n x k`` predictions (means
+    ``(n, k, 2)``, covariances ``(n, k, 2, 2)``): ``S = P + R``, closed form for 2 x 2."""
+    a = covariances[:, :, 0, 0, None] + fixes[None, None, :, 0, 0]
+    b = covariances[:, :, 0, 1, None] + fixes[None, None, :, 0, 1]
+    d = covariances[:, :, 1, 1, None] + fixes[None, None, :, 1, 1]
+    nu0 = positions[None, None, :, 0] - means[:, :, 0, None]
+    nu1 = positions[None, None, :, 1] - means[:, :, 1, None]
+    det = a * d - b * b
+    return (d * nu0 * nu0 - 2.0 * b * nu0 * nu1 + a * nu1 * nu1) / det, np.log(det)
 
 
 def _apply(
