@@ -194,12 +194,14 @@ def _apply(
     if not np.any(moved):
         return tracks, moved, wild
     live = rows[moved]
-    chosen = tracks.bank.take(live)
+    # Every track, in its order (a labelled room's usual step): no copy in and out.
+    whole = live.shape[0] == tracks.size and bool(np.all(live == np.arange(tracks.size)))
+    chosen = tracks.bank if whole else tracks.bank.take(live)
     predicted = predict(chosen, np.full(live.shape[0], time_s), settings)
     elapsed = np.maximum(time_s - chosen.times_s, 0.0)
-    result = filter_update(
-        predicted, positions[moved], covariances[moved], settings, elapsed, learn=learn
-    )
+    if not np.all(moved):
+        positions, covariances = positions[moved], covariances[moved]
+    result = filter_update(predicted, positions, covariances, settings, elapsed, learn=learn)
     wild[moved] = result.wild
     updates = tracks.updates.copy()
     updates[live] += 1
@@ -208,7 +210,7 @@ def _apply(
     status[live] = np.where(confirmed | (status[live] != TENTATIVE), CONFIRMED, TENTATIVE)
     misses = tracks.misses.copy()
     misses[live] = 0
-    bank = tracks.bank.put(live, result.bank)
+    bank = result.bank if whole else tracks.bank.put(live, result.bank)
     return Tracks(bank=bank, status=status, updates=updates, misses=misses), moved, wild
 
 
