@@ -13,6 +13,7 @@ from app.vlp.errors import VLPError
 from app.vlp.tracking import (
     CONFIRMED,
     LOST,
+    N_MODELS,
     TENTATIVE,
     TrackBank,
     TrackerSettings,
@@ -394,3 +395,48 @@ def test_a_track_confirmed_where_one_was_lost_takes_its_place() -> None:
     assert status.tolist() == [CONFIRMED, TENTATIVE, CONFIRMED]
     mean, _ = combined(tracks.bank)
     assert_allclose(mean[0, :2], here[0], atol=0.02)
+
+
+def test_association_weighs_each_model_by_its_own_likelihood(rng: np.random.Generator) -> None:
+    # Every pair within the gate: the assignment is the permutation of greatest likelihood,
+    # each fix's likelihood being the models' densities weighed by their probabilities.
+    from itertools import permutations
+
+    from scipy.stats import multivariate_normal
+
+    settings = TrackerSettings(gate_probability=1.0 - 1e-15)
+    for _ in range(20):
+        n = 3
+        roots = rng.normal(0.0, 0.15, (n, N_MODELS, 4, 4))
+        bank = TrackBank(
+            means=rng.uniform(0.0, 1.0, (n, N_MODELS, 4)),
+            covariances=roots @ np.swapaxes(roots, -1, -2) + 1e-3 * np.eye(4),
+            model_probabilities=rng.dirichlet([1.0, 1.0], n),
+            times_s=np.zeros(n),
+            wild=np.zeros(n, dtype=np.intp),
+            noise_var=np.full(n, np.nan),
+            stated_var=np.full(n, np.nan),
+        )
+        fixes = rng.uniform(0.0, 1.0, (n, 2))
+        noise = np.tile(0.01 * np.eye(2), (n, 1, 1))
+        floored = noise + settings.min_measurement_sd_m**2 * np.eye(2)
+        density = np.array(
+            [
+                [
+                    sum(
+                        bank.model_probabilities[t, k]
+                        * multivariate_normal.pdf(
+                            fixes[f],
+                            bank.means[t, k, :2],
+                            bank.covariances[t, k, :2, :2] + floored[f],
+                        )
+                        for k in range(N_MODELS)
+                    )
+                    for f in range(n)
+                ]
+                for t in range(n)
+            ]
+        )
+        best = max(permutations(range(n)), key=lambda p: np.prod(density[range(n), p]))
+        rows, cols = associate(bank, fixes, noise, settings)
+        assert rows.tolist() == [0, 1, 2] and cols.tolist() == list(best)
