@@ -13,6 +13,7 @@ from app.vlp.errors import VLPError
 from app.vlp.tracking import (
     CONFIRMED,
     LOST,
+    N_MODELS,
     TENTATIVE,
     TrackBank,
     TrackerSettings,
@@ -331,3 +332,111 @@ def test_gospa_against_its_closed_form() -> None:
     assert_allclose(score.distance, np.sqrt(0.25 + 0.36 + 0.5))
     far = gospa(truth[:1], np.array([[3.0, 0.0]]), cutoff_m=1.0)
     assert (far.missed, far.false, far.localisation) == (0.5, 0.5, 0.0)
+
+
+def _crossing(gap_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """Two walkers on parallel lines ``gap_m`` apart, walking towards each other at 1.4 m/s
+    and passing mid-way, at 5 Hz: times (T,) and true positions (T, 2, 2)."""
+    times = np.arange(40) * 0.2
+    along = 0.5 + 1.4 * times
+    first = np.column_stack((along, np.full(times.size, 2.0)))
+    second = np.column_stack((along[::-1], np.full(times.size, 2.0 + gap_m)))
+    return times, np.stack((first, second), axis=1)
+
+
+def test_walkers_who_cross_keep_their_tracks(rng: np.random.Generator) -> None:
+    settings = TrackerSettings()
+    times, truth = _crossing(0.3)
+    noise = np.tile(0.02**2 * np.eye(2), (2, 1, 1))
+    tracks, owners = Tracks.empty(), []
+    for k, time_s in enumerate(times):
+        order = rng.permutation(2)  # an aggregated solve's order means nothing
+        fixes = truth[k, order] + 0.02 * rng.standard_normal((2, 2))
+        step = step_anonymous(tracks, fixes, noise, float(time_s), settings)
+        tracks = step.tracks
+        rows = np.empty(2, dtype=np.intp)
+        rows[order] = step.fix_rows  # each walker's track at this instant
+        owners.append(rows)
+    # The expectation is the truth's own identities: each walker keeps the track it started.
+    assert tracks.size == 2
+    assert np.all(np.array(owners) == owners[0])
+    mean, _ = combined(tracks.bank)
+    assert_allclose(mean[owners[0], :2], truth[-1], atol=0.08)
+
+
+def test_a_track_confirmed_where_one_was_lost_takes_its_place() -> None:
+    settings = TrackerSettings(confirm_after_updates=3)
+    noise = 1e-4 * np.eye(2)[None]
+    here, there = np.array([[1.0, 1.0]]), np.array([[1.5, 1.0]])
+    tracks, time_s = Tracks.empty(), 0.0
+    for _ in range(5):  # a standing terminal, confirmed
+        time_s += 0.2
+        tracks = step_anonymous(tracks, here, noise, time_s, settings).tracks
+    for _ in range(6):  # fixes half a metre off pull its track there
+        time_s += 0.2
+        tracks = step_anonymous(tracks, there, noise, time_s, settings).tracks
+    mean, _ = combined(tracks.bank)
+    assert tracks.size == 1 and tracks.status[0] == CONFIRMED
+    assert_allclose(mean[0, :2], there[0], atol=0.02)
+    # The terminal's own fixes again, 0.1 s apart: beyond reach of the pulled track
+    # (3 m/s x 0.1 s), they start a tentative track, which on confirmation continues the
+    # coasting one in its row (0.3 s without a fix: within reach). A second terminal that
+    # appears 5 m away at the same time could not have come from it and stays new.
+    both = np.vstack((here, [[1.0, 6.0]]))
+    for k in range(settings.confirm_after_updates):
+        time_s += 0.1
+        step = step_anonymous(tracks, both, np.tile(noise, (2, 1, 1)), time_s, settings)
+        tracks = step.tracks
+        status, removed = age_tracks(tracks, time_s, settings)
+        if k < settings.confirm_after_updates - 1:
+            assert step.fix_rows.tolist() == [1, 2] and not np.any(removed)
+    assert step.fix_rows.tolist() == [0, 2]
+    assert removed.tolist() == [False, True, False]
+    assert status.tolist() == [CONFIRMED, TENTATIVE, CONFIRMED]
+    mean, _ = combined(tracks.bank)
+    assert_allclose(mean[0, :2], here[0], atol=0.02)
+
+
+def test_association_weighs_each_model_by_its_own_likelihood(rng: np.random.Generator) -> None:
+    # Every pair within the gate: the assignment is the permutation of greatest likelihood,
+    # each fix's likelihood being the models' densities weighed by their probabilities.
+    from itertools import permutations
+
+    from scipy.stats import multivariate_normal
+
+    settings = TrackerSettings(gate_probability=1.0 - 1e-15)
+    for _ in range(20):
+        n = 3
+        roots = rng.normal(0.0, 0.15, (n, N_MODELS, 4, 4))
+        bank = TrackBank(
+            means=rng.uniform(0.0, 1.0, (n, N_MODELS, 4)),
+            covariances=roots @ np.swapaxes(roots, -1, -2) + 1e-3 * np.eye(4),
+            model_probabilities=rng.dirichlet([1.0, 1.0], n),
+            times_s=np.zeros(n),
+            wild=np.zeros(n, dtype=np.intp),
+            noise_var=np.full(n, np.nan),
+            stated_var=np.full(n, np.nan),
+        )
+        fixes = rng.uniform(0.0, 1.0, (n, 2))
+        noise = np.tile(0.01 * np.eye(2), (n, 1, 1))
+        floored = noise + settings.min_measurement_sd_m**2 * np.eye(2)
+        density = np.array(
+            [
+                [
+                    sum(
+                        bank.model_probabilities[t, k]
+                        * multivariate_normal.pdf(
+                            fixes[f],
+                            bank.means[t, k, :2],
+                            bank.covariances[t, k, :2, :2] + floored[f],
+                        )
+                        for k in range(N_MODELS)
+                    )
+                    for f in range(n)
+                ]
+                for t in range(n)
+            ]
+        )
+        best = max(permutations(range(n)), key=lambda p: np.prod(density[range(n), p]))
+        rows, cols = associate(bank, fixes, noise, settings)
+        assert rows.tolist() == [0, 1, 2] and cols.tolist() == list(best)

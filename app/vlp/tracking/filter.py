@@ -189,13 +189,10 @@ def start_tracks(
     )
 
 
-def _motion(dt: FloatArray, settings: TrackerSettings) -> tuple[FloatArray, FloatArray]:
-    """Transition matrices and process noise ``(n, 2, 4, 4)`` of both models over ``dt``."""
+def _process_noise(dt: FloatArray, settings: TrackerSettings) -> FloatArray:
+    """Process noise ``(n, 2, 4, 4)`` of both models over ``dt``: standing, a slow drift of
+    the position and the velocity it may set off with; walking, white-noise acceleration."""
     count = dt.shape[0]
-    transition = np.zeros((count, N_MODELS, 4, 4))
-    transition[:, 0, 0, 0] = transition[:, 0, 1, 1] = 1.0  # standing: velocity falls to 0
-    transition[:, 1] = np.eye(4)
-    transition[:, 1, 0, 2] = transition[:, 1, 1, 3] = dt
     noise = np.zeros((count, N_MODELS, 4, 4))
     drift = settings.standing_drift_mps**2 * dt
     noise[:, 0, 0, 0] = noise[:, 0, 1, 1] = drift
@@ -206,14 +203,39 @@ def _motion(dt: FloatArray, settings: TrackerSettings) -> tuple[FloatArray, Floa
         accel * dt**2 / 2.0
     )
     noise[:, 1, 2, 2] = noise[:, 1, 3, 3] = accel * dt
-    return transition, noise
+    return noise
+
+
+def _moved(
+    means: FloatArray, covariances: FloatArray, dt: FloatArray, settings: TrackerSettings
+) -> tuple[FloatArray, FloatArray]:
+    """``F x`` and ``F P F^T + Q`` of both models over ``dt``, written out by 2 x 2 blocks
+    (position, velocity): standing (``F = [[I, 0], [0, 0]]``) keeps the position and its
+    velocity is the noise alone; walking (``F = [[I, dt I], [0, I]]``) moves the position by
+    ``dt`` times the velocity. ``Q``: :func:`_process_noise`."""
+    out_means = means.copy()
+    out_means[:, 0, 2:] = 0.0
+    out_means[:, 1, :2] += dt[:, None] * means[:, 1, 2:]
+    out = _process_noise(dt, settings)  # every block below adds to its noise
+    standing, walking = covariances[:, 0], covariances[:, 1]
+    out[:, 0, :2, :2] += standing[:, :2, :2]
+    t = dt[:, None, None]
+    pp, pv = walking[:, :2, :2], walking[:, :2, 2:]
+    vp, vv = walking[:, 2:, :2], walking[:, 2:, 2:]
+    out[:, 1, :2, :2] += pp + t * (pv + vp) + (t * t) * vv
+    out[:, 1, :2, 2:] += pv + t * vv
+    out[:, 1, 2:, :2] += vp + t * vv
+    out[:, 1, 2:, 2:] += vv
+    return out_means, out
 
 
 def _switching(dt: FloatArray, settings: TrackerSettings) -> FloatArray:
     """Model transition probabilities ``(n, 2, 2)`` (row: from, column: to) over ``dt``."""
     switch = -np.expm1(-dt / settings.mean_dwell_s)
-    stay = 1.0 - switch
-    return np.stack((np.stack((stay, switch), -1), np.stack((switch, stay), -1)), -2)
+    out = np.empty((dt.shape[0], N_MODELS, N_MODELS))
+    out[:, 0, 0] = out[:, 1, 1] = 1.0 - switch
+    out[:, 0, 1] = out[:, 1, 0] = switch
+    return out
 
 
 def predict(bank: TrackBank, times_s: FloatArray, settings: TrackerSettings) -> TrackBank:
@@ -238,12 +260,13 @@ def predict(bank: TrackBank, times_s: FloatArray, settings: TrackerSettings) -> 
     weights = mixing / predicted_probabilities[:, None, :]
     mixed = np.einsum("nij,nia->nja", weights, bank.means)
     spread = bank.means[:, :, None, :] - mixed[:, None, :, :]  # (n, i, j, 4)
-    mixed_cov = np.einsum("nij,niab->njab", weights, bank.covariances) + np.einsum(
-        "nij,nija,nijb->njab", weights, spread, spread
+    weighted = weights[..., None] * spread
+    mixed_cov = (
+        weights[:, 0, :, None, None] * bank.covariances[:, 0, None]
+        + weights[:, 1, :, None, None] * bank.covariances[:, 1, None]
+        + (weighted[..., :, None] * spread[..., None, :]).sum(axis=1)
     )
-    transition, noise = _motion(dt, settings)
-    means = np.einsum("nmab,nmb->nma", transition, mixed)
-    covariances = transition @ mixed_cov @ np.swapaxes(transition, -1, -2) + noise
+    means, covariances = _moved(mixed, mixed_cov, dt, settings)
     return TrackBank(
         means=_capped_speed(means, settings.max_speed_mps),
         covariances=covariances,
@@ -272,6 +295,17 @@ def combined(bank: TrackBank) -> tuple[FloatArray, FloatArray]:
         "nm,nma,nmb->nab", weights, spread, spread
     )
     return mean, covariance
+
+
+def _combined_position(bank: TrackBank) -> FloatArray:
+    """The position block ``(n, 2, 2)`` of :func:`combined`'s covariance."""
+    weights = bank.model_probabilities
+    position = bank.means[:, :, :2]
+    spread = position - np.einsum("nm,nma->na", weights, position)[:, None, :]
+    weighted = weights[:, :, None, None] * (
+        bank.covariances[:, :, :2, :2] + spread[..., :, None] * spread[..., None, :]
+    )
+    return np.asarray(weighted.sum(axis=1))
 
 
 @dataclass(frozen=True)
@@ -328,16 +362,19 @@ def update(
     Update
     """
     stated = floored_covariances(covariances, settings)
-    mean, covariance = combined(predicted)
-    prior = covariance[:, :2, :2]
-    innovation = positions - mean[:, :2]
-    inverse, _ = inverse_2x2(prior + stated)
-    distance2 = np.einsum("na,nab,nb->n", innovation, inverse, innovation)
+    prior = _combined_position(predicted)
+    innovation = positions - np.einsum(
+        "nm,nma->na", predicted.model_probabilities, predicted.means[:, :, :2]
+    )
+    whole = prior + stated
+    a, b, d = whole[:, 0, 0], whole[:, 0, 1], whole[:, 1, 1]
+    nu0, nu1 = innovation[:, 0], innovation[:, 1]
+    distance2 = (d * nu0 * nu0 - 2.0 * b * nu0 * nu1 + a * nu1 * nu1) / (a * d - b * b)
     gate = settings.gate_chi2
     wild = distance2 > gate
     scale = np.where(wild, distance2 / gate, 1.0)
     wide = np.where(wild[:, None, None], scale[:, None, None] * (prior + stated) - prior, stated)
-    stated_var = np.trace(stated, axis1=1, axis2=2) / 2.0
+    stated_var = (stated[:, 0, 0] + stated[:, 1, 1]) / 2.0
     level = np.where(np.isfinite(predicted.noise_var), predicted.noise_var, stated_var)
     shrink = np.minimum(1.0, level / stated_var) if learn else np.ones_like(stated_var)
     noises = np.stack((stated * shrink[:, None, None], wide), axis=1)  # (n, 2, 2, 2)
@@ -348,15 +385,13 @@ def update(
     before = np.where(np.isfinite(predicted.stated_var), predicted.stated_var, stated_var)
     stated_level = 1.0 / (1.0 / before + rate * (1.0 / stated_var - 1.0 / before))
     if learn:
-        weights = probabilities[:, :, None]
-        position = np.sum(weights * means[:, :, :2], axis=1)
+        position = np.einsum("nm,nma->na", probabilities, means[:, :, :2])
         apart = means[:, :, :2] - position[:, None]
-        posterior = np.sum(
-            weights[..., None] * (covs[:, :, :2, :2] + apart[..., :, None] * apart[..., None, :]),
-            axis=1,
-        )
+        # The trace of the updated mixture's position covariance.
+        spread = covs[:, :, 0, 0] + covs[:, :, 1, 1] + np.einsum("nma,nma->nm", apart, apart)
+        posterior_var = np.einsum("nm,nm->n", probabilities, spread) / 2.0
         residual = positions - position
-        noise_var = _learned_level(level, residual, posterior, stated_var, rate, settings)
+        noise_var = _learned_level(level, residual, posterior_var, stated_var, rate, settings)
     else:
         noise_var = stated_level
     streak = np.where(wild, predicted.wild + 1, 0)
@@ -387,7 +422,7 @@ _EULER_GAMMA = 0.5772156649015329
 def _learned_level(
     level: FloatArray,
     residual: FloatArray,
-    posterior: FloatArray,
+    posterior_var: FloatArray,
     stated_var: FloatArray,
     rate: FloatArray,
     settings: TrackerSettings,
@@ -395,14 +430,14 @@ def _learned_level(
     """The tracks' noise levels after one more fix (per-axis variance, m^2).
 
     After the update, a fix's residual (fix minus the updated position) has the per-axis
-    variance ``level - tr(P+) / 2``, with ``P+`` the updated position's covariance: one more
+    variance ``level - tr(P+) / 2``, with ``P+`` the updated position's covariance
+    (``posterior_var`` is ``tr(P+) / 2``): one more
     sample of the level is half the residual's squared norm (bias-corrected for the log,
     at most the gate's worth under the stated variance: a fix that says it is wide, as a
     shadowed LED makes it, does not raise the level beyond its word) plus ``tr(P+) / 2``.
     Samples are averaged on a log scale (one wild fix does not undo many steady ones) with a
     memory of ``noise_memory_s``. A filter's ``P+`` errs on the wide side, and so does the
     level: a fix is never trusted beyond what the track has seen."""
-    posterior_var = np.trace(posterior, axis1=1, axis2=2) / 2.0
     most = 0.5 * settings.gate_chi2 * stated_var
     seen = np.clip(0.5 * np.einsum("na,na->n", residual, residual), 1e-12, most)
     sample = seen * np.exp(_EULER_GAMMA) + posterior_var

@@ -3,7 +3,8 @@
 A room's tracks are one :class:`Tracks` batch. A labelled fix (its terminal is known) updates
 its terminal's track; anonymous fixes (aggregated measurements say where targets are, not
 who) are associated with the anonymous tracks by gated assignment of least total cost
-(Mahalanobis distance plus the log-determinant of the innovation covariance,
+(the negative log-likelihood of the fix under the track's two models, each with its
+Mahalanobis distance and the log-determinant of its innovation covariance,
 :func:`scipy.optimize.linear_sum_assignment`). A fix no track claims starts a tentative
 track; tentative tracks are confirmed after ``confirm_after_updates`` updates and dropped
 after ``tentative_max_misses`` missed solves; a track not updated for ``lost_after_s`` is
@@ -19,7 +20,7 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from ..typing import BoolArray, FloatArray, IntArray
-from .filter import TrackBank, combined, floored_covariances, inverse_2x2, predict, start_tracks
+from .filter import TrackBank, combined, floored_covariances, predict, start_tracks
 from .filter import update as filter_update
 from .settings import TrackerSettings
 
@@ -125,28 +126,56 @@ def associate(
 
     Notes
     -----
-    The cost of a pair is ``d2 + ln det S``, the negative log-likelihood of the fix under the
-    track's prediction up to a constant, with ``S = P + R`` and ``d2`` the squared
-    Mahalanobis distance; pairs with ``d2 > gate_chi2`` are allowed only within reach (their
-    larger ``d2`` makes the assignment prefer pairs within the gate).
+    The cost of a pair is ``-2 ln sum_k mu_k N(z; x_k, S_k)`` up to a constant: the negative
+    log-likelihood of the fix under the track's mixture, each model ``k`` (probability
+    ``mu_k``) with its own prediction ``x_k`` and ``S_k = P_k + R``, i.e. ``d2_k + ln det S_k``
+    weighed across the models. One Gaussian in place of the mixture would be as wide as the
+    two models apart: a standing track that may set off would claim a fix beside it as
+    readily as a walking track that predicts the fix exactly. A pair is allowed where its
+    squared Mahalanobis distance is within ``gate_chi2`` under some model or under the
+    mixture taken as one Gaussian, or within reach (its larger cost makes the assignment
+    prefer pairs within the gate).
     """
     if predicted.size == 0 or positions.shape[0] == 0:
         return np.zeros(0, dtype=np.intp), np.zeros(0, dtype=np.intp)
+    fix = floored_covariances(covariances, settings)
+    # Each model's squared Mahalanobis distance and log-determinant, (n, models, m).
+    distance2, log_det = _distances(
+        predicted.means[:, :, :2], predicted.covariances[:, :, :2, :2], positions, fix
+    )
+    # The gate: on some model, or on the mixture as one Gaussian (wider than either where
+    # the models disagree, as when a track may have set off).
     mean, covariance = combined(predicted)
-    innovation = positions[None, :, :] - mean[:, None, :2]  # (n, m, 2)
-    spread = covariance[:, None, :2, :2] + floored_covariances(covariances, settings)[None]
-    inverse, det = inverse_2x2(spread)
-    distance2 = np.einsum("nma,nmab,nmb->nm", innovation, inverse, innovation)
-    allowed = distance2 <= settings.gate_chi2
+    whole2, _ = _distances(mean[:, None, :2], covariance[:, None, :2, :2], positions, fix)
+    allowed = np.minimum(np.min(distance2, axis=1), whole2[:, 0]) <= settings.gate_chi2
     if elapsed_s is not None:
         # Reach: how far the terminal can have gone, plus the 95 % spread of the fix.
+        gap = np.hypot(
+            positions[None, :, 0] - mean[:, None, 0], positions[None, :, 1] - mean[:, None, 1]
+        )
         fix_spread = np.sqrt(np.trace(covariances, axis1=1, axis2=2))
-        reach = settings.max_speed_mps * elapsed_s[:, None] + 2.448 * fix_spread[None, :]
-        allowed |= np.linalg.norm(innovation, axis=2) <= reach
-    cost = np.where(allowed, distance2 + np.log(det), _INFEASIBLE)
+        allowed |= gap <= settings.max_speed_mps * elapsed_s[:, None] + 2.448 * fix_spread[None, :]
+    weight = np.log(np.maximum(predicted.model_probabilities, 1e-300))[:, :, None]
+    log_likelihood = weight - 0.5 * (distance2 + log_det)
+    cost = np.where(allowed, -2.0 * np.logaddexp.reduce(log_likelihood, axis=1), _INFEASIBLE)
     rows, cols = linear_sum_assignment(cost)
     keep = allowed[rows, cols]
     return rows[keep].astype(np.intp), cols[keep].astype(np.intp)
+
+
+def _distances(
+    means: FloatArray, covariances: FloatArray, positions: FloatArray, fixes: FloatArray
+) -> tuple[FloatArray, FloatArray]:
+    """Squared Mahalanobis distances and log-determinants ``(n, k, m)`` of ``m`` fixes
+    (positions ``(m, 2)``, covariances ``(m, 2, 2)``) from ``n x k`` predictions (means
+    ``(n, k, 2)``, covariances ``(n, k, 2, 2)``): ``S = P + R``, closed form for 2 x 2."""
+    a = covariances[:, :, 0, 0, None] + fixes[None, None, :, 0, 0]
+    b = covariances[:, :, 0, 1, None] + fixes[None, None, :, 0, 1]
+    d = covariances[:, :, 1, 1, None] + fixes[None, None, :, 1, 1]
+    nu0 = positions[None, None, :, 0] - means[:, :, 0, None]
+    nu1 = positions[None, None, :, 1] - means[:, :, 1, None]
+    det = a * d - b * b
+    return (d * nu0 * nu0 - 2.0 * b * nu0 * nu1 + a * nu1 * nu1) / det, np.log(det)
 
 
 def _apply(
@@ -165,12 +194,14 @@ def _apply(
     if not np.any(moved):
         return tracks, moved, wild
     live = rows[moved]
-    chosen = tracks.bank.take(live)
+    # Every track, in its order (a labelled room's usual step): no copy in and out.
+    whole = live.shape[0] == tracks.size and bool(np.all(live == np.arange(tracks.size)))
+    chosen = tracks.bank if whole else tracks.bank.take(live)
     predicted = predict(chosen, np.full(live.shape[0], time_s), settings)
     elapsed = np.maximum(time_s - chosen.times_s, 0.0)
-    result = filter_update(
-        predicted, positions[moved], covariances[moved], settings, elapsed, learn=learn
-    )
+    if not np.all(moved):
+        positions, covariances = positions[moved], covariances[moved]
+    result = filter_update(predicted, positions, covariances, settings, elapsed, learn=learn)
     wild[moved] = result.wild
     updates = tracks.updates.copy()
     updates[live] += 1
@@ -179,7 +210,7 @@ def _apply(
     status[live] = np.where(confirmed | (status[live] != TENTATIVE), CONFIRMED, TENTATIVE)
     misses = tracks.misses.copy()
     misses[live] = 0
-    bank = tracks.bank.put(live, result.bank)
+    bank = result.bank if whole else tracks.bank.put(live, result.bank)
     return Tracks(bank=bank, status=status, updates=updates, misses=misses), moved, wild
 
 
@@ -304,7 +335,56 @@ def step_anonymous(
         updates=step.tracks.updates,
         misses=misses.astype(np.intp),
     )
-    return Step(tracks=after, fix_rows=step.fix_rows, moved=step.moved, wild=step.wild)
+    was_tentative = np.concatenate(
+        (tracks.status == TENTATIVE, np.ones(after.size - tracks.size, dtype=bool))
+    )
+    after, moved_to = _in_lost_places(after, was_tentative, time_s, settings)
+    return Step(tracks=after, fix_rows=moved_to[step.fix_rows], moved=step.moved, wild=step.wild)
+
+
+def _in_lost_places(
+    tracks: Tracks, was_tentative: BoolArray, time_s: float, settings: TrackerSettings
+) -> tuple[Tracks, IntArray]:
+    """Tracks confirmed by this solve that take the places of tracks it missed.
+
+    A wild fix can pull a track away from its terminal; the terminal's next fixes then start
+    a tentative track while the old one coasts, and the terminal's id would change when the
+    new one is confirmed. A track just confirmed instead continues a confirmed or lost track
+    that no solve claimed since it started (misses at least its updates), from which it lies
+    within reach (``max_speed_mps`` times the time since that track's last update, plus the
+    95 % spread of both positions); pairs of least total distance. The coasting track's row
+    takes the new state (so keeps its id), and the new track's row is left tentative and
+    missed out, for :func:`age_tracks` to remove.
+
+    Returns
+    -------
+    tracks : Tracks
+    moved_to : ndarray of shape (n,), int
+        The row that now holds each row's track.
+    """
+    moved_to = np.arange(tracks.size)
+    fresh = np.nonzero(was_tentative & (tracks.status == CONFIRMED))[0]
+    coasting = np.nonzero(~was_tentative & (tracks.status != TENTATIVE) & (tracks.misses > 0))[0]
+    if fresh.size == 0 or coasting.size == 0:
+        return tracks, moved_to
+    mean, covariance = combined(tracks.bank)
+    gap = np.linalg.norm(mean[fresh, None, :2] - mean[None, coasting, :2], axis=2)
+    position_var = np.trace(covariance[:, :2, :2], axis1=1, axis2=2)
+    spread = 2.448 * np.sqrt(position_var[fresh, None] + position_var[None, coasting])
+    idle = np.maximum(time_s - tracks.bank.times_s[coasting], 0.0)
+    allowed = gap <= settings.max_speed_mps * idle[None, :] + spread
+    allowed &= tracks.misses[None, coasting] >= tracks.updates[fresh, None]
+    if not np.any(allowed):
+        return tracks, moved_to
+    rows, cols = linear_sum_assignment(np.where(allowed, gap, _INFEASIBLE))
+    keep = allowed[rows, cols]
+    new, old = fresh[rows[keep]], coasting[cols[keep]]
+    status, updates, misses = tracks.status.copy(), tracks.updates.copy(), tracks.misses.copy()
+    status[old], updates[old], misses[old] = CONFIRMED, updates[old] + updates[new], 0
+    status[new], misses[new] = TENTATIVE, settings.tentative_max_misses
+    moved_to[new] = old
+    bank = tracks.bank.put(old, tracks.bank.take(new))
+    return Tracks(bank=bank, status=status, updates=updates, misses=misses), moved_to
 
 
 def age_tracks(
