@@ -27,7 +27,7 @@ from .gridless.joint_model import (
 )
 from .gridless.lm import STEP_TOL_M
 from .gridless.local import _best_of_tiles
-from .gridless.model import Objective, gram, levenberg_marquardt
+from .gridless.model import Objective, fit_objective, gram
 from .gridless.options import LM_DEFAULTS
 from .gridless.state import FitState, Priors
 from .gridless.terminals import _levenberg_marquardt as terminal_fit
@@ -79,7 +79,7 @@ def exercise() -> None:
         theta = objective.pack(state)
         gram(objective, theta, state)
         objective.residual(theta, state)
-        levenberg_marquardt(objective, state, max_iter=1, initial_damping=1e-3, tol=1e-6)
+        fit_objective(objective, state, max_iter=1, initial_damping=1e-3, tol=1e-6)
         # an answer's covariances (gridless.uncertainty.sandwich_covariances)
         problem = objective.compiled_problem()
         assert problem is not None

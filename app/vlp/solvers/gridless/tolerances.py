@@ -33,26 +33,34 @@ import numpy as np
 
 from ...metrics import matched_errors
 from ...typing import FloatArray
+from ._compiled.lm import lm_kernel
 from .channel import ChannelKernel
 from .joint_model import (
     JointModel,
     RoomTolerances,
 )
 from .lm import (
+    PROJECTED_MAX_REJECTIONS,
     TOLERANCE_INITIAL_DAMPING,
-    projected_levenberg_marquardt,
+    LMSettings,
+    levenberg_marquardt,
 )
 from .state import FitState
 from .whitening import Whitening
 
 __all__ = ["GridMoves", "RoomTolerances", "ToleranceFit", "fit_room_tolerances"]
 
-# LM for the joint fit (one compiled call, gridless._compiled.tolerance.joint_lm_kernel; the NumPy
-# reference is gridless.lm.projected_levenberg_marquardt). It runs only on
-# measurements that show a misfit.
-_MAX_ITER = 30
-# Stop at this relative decrease (the aggregated LM's tolerance, LM_DEFAULTS).
-_REL_TOL = 1e-4
+# LM for the joint fit (it runs only on measurements that show a misfit): stopped at a
+# relative decrease of 1e-4 (the aggregated correlation LM's tolerance, LM_DEFAULTS).
+_LM = LMSettings(
+    max_iter=30,
+    damping=TOLERANCE_INITIAL_DAMPING,
+    max_rejections=PROJECTED_MAX_REJECTIONS,
+    cost_tol=1e-4,
+    step_tol=0.0,
+    n_positions=0,
+    before_trial=False,
+)
 # Re-whitening rounds: each refit uses the metric of the previous one's gains.
 _ROUNDS = 2
 # Iterations before a jumped fit is checked for having walked back.
@@ -302,21 +310,34 @@ def _levenberg_marquardt(
     theta: FloatArray,
     white: Whitening,
     data: FloatArray,
-    max_iter: int = _MAX_ITER,
+    max_iter: int = _LM.max_iter,
 ) -> tuple[FloatArray, float]:
-    damping = TOLERANCE_INITIAL_DAMPING
-    fitted = model.compiled_fit(theta, white, data, max_iter, damping, _REL_TOL)
-    if fitted is not None:
-        return fitted
+    """The joint fit from ``theta``: its fitted theta and cost."""
+    settings = _LM._replace(max_iter=max_iter)
     lower, upper = model.bounds()
-    theta, _, _, cost = projected_levenberg_marquardt(
-        lambda params: model.residual_and_jacobian(params, white, data),
-        theta,
-        lower,
-        upper,
-        max_iter=max_iter,
-        damping=damping,
-        stop=lambda _step, cost, trial_cost: cost - trial_cost < _REL_TOL * cost,
+    compiled_model = model.compiled_model(white, data)
+    if compiled_model is not None:
+        theta, cost, _, _ = lm_kernel(
+            compiled_model,
+            np.array(theta, dtype=np.float64, order="C", copy=True),
+            lower,
+            upper,
+            settings,
+        )
+        return theta, float(cost)
+
+    def evaluate(params: FloatArray) -> tuple[float, tuple[FloatArray, FloatArray]]:
+        residual, jacobian = model.residual_and_jacobian(params, white, data)
+        return float(residual @ residual), (residual, jacobian)
+
+    def normal_equations(
+        _params: FloatArray, point: tuple[FloatArray, FloatArray]
+    ) -> tuple[FloatArray, FloatArray]:
+        residual, jacobian = point
+        return jacobian.T @ jacobian, jacobian.T @ residual
+
+    theta, cost, _, _ = levenberg_marquardt(
+        evaluate, normal_equations, theta, lower, upper, settings
     )
     return theta, cost
 
