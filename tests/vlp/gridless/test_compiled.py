@@ -65,7 +65,7 @@ from app.vlp.solvers.gridless.state import (
     FitState,
     Priors,
 )
-from app.vlp.solvers.gridless.tolerances import _levenberg_marquardt
+from app.vlp.solvers.gridless.tolerances import _fit_joint
 from app.vlp.solvers.gridless.uncertainty import sandwich_covariances, shape_gradients
 from app.vlp.solvers.gridless.whitening import Whitening
 from app.vlp.typing import FloatArray
@@ -270,7 +270,7 @@ _LM_CASES = [
 
 
 @pytest.mark.parametrize(("model", "k", "priors_name"), _LM_CASES)
-def test_levenberg_marquardt_matches_reference(model: Model, k: int, priors_name: str) -> None:
+def test_aggregated_fit_matches_reference(model: Model, k: int, priors_name: str) -> None:
     """A whole compiled LM run ends where the NumPy one does, after as many iterations."""
     kernel = make_kernel("paper", "heights", seed=5)
     priors, free_weights = PRIORS[priors_name]
@@ -404,7 +404,7 @@ def test_joint_tolerance_model_matches_reference(
 @pytest.mark.parametrize("reflecting", [False, True])
 @pytest.mark.parametrize("tilt_sd", [0.07, 0.0])
 @pytest.mark.parametrize("k", [2, 8])
-def test_joint_levenberg_marquardt_matches_reference(
+def test_joint_fit_matches_reference(
     joint_kernels: dict[bool, ChannelKernel], reflecting: bool, tilt_sd: float, k: int
 ) -> None:
     """A whole compiled joint LM run (``lm_kernel`` on ``joint_evaluate``) ends where the
@@ -430,9 +430,9 @@ def test_joint_levenberg_marquardt_matches_reference(
     start[at:-1] = 0.0
     for max_iter in (30, 2):
         with use_kernels("reference"):
-            want, want_cost = _levenberg_marquardt(model, start, white, data, max_iter)
+            want, want_cost = _fit_joint(model, start, white, data, max_iter)
         assert model.compiled_model(white, data) is not None
-        got, got_cost = _levenberg_marquardt(model, start, white, data, max_iter)
+        got, got_cost = _fit_joint(model, start, white, data, max_iter)
         assert_same(got[: 2 * k], want[: 2 * k])
         assert_same(got, want)  # every parameter, normwise
         assert got_cost == pytest.approx(want_cost, rel=1e-10)
@@ -721,7 +721,7 @@ def test_terminal_fit_matches_reference(
     evaluation and :func:`levenberg_marquardt`): every field of the result, with
     and without priors (the gain, height and tilt pseudo-residuals), scalar and per-value
     weights; the paper room without and with reflections."""
-    from app.vlp.solvers.gridless.terminals import _levenberg_marquardt, terminal_model
+    from app.vlp.solvers.gridless.terminals import _fit_from, terminal_model
 
     kernel = joint_kernels[reflecting]
     assert channel_constants(kernel) is not None  # so the compiled LM runs
@@ -755,8 +755,8 @@ def test_terminal_fit_matches_reference(
         arguments = (kernel, amplitudes, start, z0, free_height, priors, weight, sent)
         tilt_sd = 0.2 if free_tilt else None
         with use_kernels("reference"):
-            want = _levenberg_marquardt(*arguments, tilt_sd)
-        got = _levenberg_marquardt(*arguments, tilt_sd)
+            want = _fit_from(*arguments, tilt_sd)
+        got = _fit_from(*arguments, tilt_sd)
         assert got.n_params == want.n_params
         assert (got.free_height, got.free_tilt) == (want.free_height, want.free_tilt)
         # every parameter, normwise, as the aggregated LM's test
@@ -859,14 +859,13 @@ _KERNELS_OF_A_SOLVE = """
     from app.vlp.solvers.gridless._compiled.uncertainty import uncertainty_kernel
     from app.vlp.solvers.gridless._compiled import tolerance as joint
     from app.vlp.solvers.gridless._compiled.terminal import terminal_fit_kernel
-    from app.vlp.solvers.gridless._compiled.lm import lm_kernel
     from app.vlp._radii_compiled import radial_roots_kernel
     from app.vlp.solvers.gridless._compiled.search import growth_kernel, refine_kernel
 
-    kernels = [lm_kernel, fit.gram_kernel, fit.residual_kernel, fit.whitening_kernel,
+    kernels = [fit.fit_kernel, fit.gram_kernel, fit.residual_kernel, fit.whitening_kernel,
                fit.whiten_kernel, correlation_scores_kernel, channel_rows,
                uncertainty_kernel, joint.joint_gains_kernel, joint.joint_residual_kernel,
-               terminal_fit_kernel, radial_roots_kernel,
+               joint.joint_fit_kernel, terminal_fit_kernel, radial_roots_kernel,
                growth_kernel, refine_kernel]
 """
 

@@ -7,7 +7,7 @@ solver's models (aggregated, terminal, room tolerances) are compared with their 
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Any, NamedTuple, cast
 
 import numba
 import numpy as np
@@ -15,7 +15,12 @@ import pytest
 from scipy import optimize
 from scipy.linalg import lapack
 
-from app.vlp.solvers.gridless._compiled.lm import cholesky_solve, lm_kernel, register_model
+from app.vlp.solvers.gridless._compiled.lm import (
+    cholesky_solve,
+    lapack_cholesky_solve,
+    lm_kernel,
+    register_model,
+)
 from app.vlp.solvers.gridless.lm import LMSettings, levenberg_marquardt
 from app.vlp.typing import FloatArray
 
@@ -39,8 +44,7 @@ class RangesModel(NamedTuple):
     data: FloatArray
 
 
-@numba.njit
-def _ranges_evaluate(
+def ranges_evaluate(
     model: RangesModel, theta: FloatArray
 ) -> tuple[float, tuple[FloatArray, FloatArray]]:
     anchors, data = model
@@ -55,29 +59,27 @@ def _ranges_evaluate(
     return float(residual @ residual), (residual, jacobian)
 
 
-@numba.njit
-def _ranges_normal_equations(
+def ranges_normal_equations(
     _model: RangesModel, _theta: FloatArray, point: tuple[FloatArray, FloatArray]
 ) -> tuple[FloatArray, FloatArray]:
     residual, jacobian = point
     return jacobian.T @ jacobian, jacobian.T @ residual
 
 
-register_model(RangesModel, _ranges_evaluate, _ranges_normal_equations)
-# The compiled loop's code, compiled here without the disk cache (which keeps the solver's
-# models only).
-_lm_loop = numba.njit(lm_kernel.py_func)
+# Compiled here without the disk cache (which keeps the solver's models only): the ranges
+# model, and the compiled loop's own code.
+_njit: Any = numba.njit
+register_model(RangesModel, _njit(ranges_evaluate), _njit(ranges_normal_equations))
+_lm_loop = _njit(cast(Any, lm_kernel).py_func)
 
 
 def fit_reference(
     data: FloatArray, settings: LMSettings, upper: FloatArray = UPPER
 ) -> tuple[FloatArray, float, int, tuple[FloatArray, FloatArray]]:
-    """The NumPy loop on the ranges model (its ``evaluate`` is the compiled one's code)."""
+    """The NumPy loop on the ranges model (the same functions the compiled loop runs)."""
     return levenberg_marquardt(
-        lambda theta: _ranges_evaluate.py_func(RangesModel(ANCHORS, data), theta),
-        lambda theta, point: _ranges_normal_equations.py_func(
-            RangesModel(ANCHORS, data), theta, point
-        ),
+        lambda theta: ranges_evaluate(RangesModel(ANCHORS, data), theta),
+        lambda theta, point: ranges_normal_equations(RangesModel(ANCHORS, data), theta, point),
         START.copy(),
         LOWER,
         upper,
@@ -165,16 +167,18 @@ def test_kernel_matches_reference(before_trial: bool, max_iter: int, seed: int) 
         np.testing.assert_allclose(got_part, want_part, rtol=0.0, atol=1e-10)
 
 
-def test_cholesky_solve_as_lapack_posv() -> None:
-    """The compiled loop's solve: LAPACK's ``posv`` (the reference's) numbers for a positive
-    definite matrix, and a failure where ``posv`` fails (indefinite, singular)."""
+@pytest.mark.parametrize("solve", [cholesky_solve, lapack_cholesky_solve])
+def test_cholesky_solves_as_lapack_posv(solve: Any) -> None:
+    """The compiled loop's solves: LAPACK's ``posv`` (the reference's) numbers for a
+    positive definite matrix, and a failure where ``posv`` fails (indefinite, singular)."""
     rng = np.random.default_rng(43)
     square = rng.standard_normal((7, 7))
     rhs = rng.standard_normal(7)
-    step, solved = cholesky_solve(square @ square.T + 0.1 * np.eye(7), rhs)
-    _, want, info = lapack.dposv(square @ square.T + 0.1 * np.eye(7), rhs)
+    definite = square @ square.T + 0.1 * np.eye(7)
+    step, solved = solve(definite, rhs)
+    _, want, info = lapack.dposv(definite, rhs)
     assert solved and info == 0
     np.testing.assert_allclose(step, want, rtol=1e-10, atol=0.0)
     for matrix in (square + square.T - 10.0 * np.eye(7), np.zeros((7, 7))):
         assert lapack.dposv(matrix, rhs)[2] != 0
-        assert not cholesky_solve(matrix, rhs)[1]
+        assert not solve(matrix, rhs)[1]

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -21,7 +22,6 @@ from ._compiled.tolerance import (
     SLOPE_Y,
     TILT_X,
     TILT_Y,
-    JointFitModel,
     joint_gains_kernel,
     joint_residual_kernel,
 )
@@ -288,13 +288,14 @@ class JointModel:
         )
         return residual, jacobian
 
-    def compiled_model(self, white: Whitening, data: FloatArray) -> JointFitModel | None:
-        """The compiled joint fit for ``white`` and ``data`` (whitened), or None when the
-        compiled kernels are not in use."""
+    def compiled_model(self, white: Whitening, data: FloatArray) -> tuple[Any, ...] | None:
+        """The fields of the compiled joint fit (:class:`._compiled.tolerance.JointFitModel`)
+        for ``white`` and ``data`` (whitened), or None when the compiled kernels are not in
+        use."""
         constants = self._compiled()
         if constants is None:
             return None
-        return JointFitModel(
+        return (
             *constants,
             white.compiled(),
             np.ascontiguousarray(data, dtype=np.float64),

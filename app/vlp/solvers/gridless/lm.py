@@ -151,8 +151,7 @@ def levenberg_marquardt(
                 converged = small or predicted < settings.cost_tol * cost
             trial = np.clip(theta + step, lower, upper)
             # A wild trial may overflow: its cost is then inf (or nan) and it is rejected.
-            with np.errstate(over="ignore", invalid="ignore"):
-                trial_cost, trial_point = evaluate(trial)
+            trial_cost, trial_point = evaluate(trial)
             if trial_cost < cost:
                 converged = converged or small or (cost - trial_cost) < settings.cost_tol * cost
                 theta, cost, point = trial, trial_cost, trial_point

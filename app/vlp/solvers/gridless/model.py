@@ -31,11 +31,10 @@ from ..._kernels import compiled_only
 from ...typing import FloatArray
 from ._compiled.channel import channel_constants
 from ._compiled.fit import (
-    FitModel,
+    fit_kernel,
     gram_kernel,
     residual_kernel,
 )
-from ._compiled.lm import lm_kernel
 from .channel import ChannelKernel
 from .lm import MAX_REJECTIONS, STEP_TOL_M, LMSettings, levenberg_marquardt
 from .state import MAX_LOG_GAIN, MAX_LOG_SCALE, FitState, Priors
@@ -418,12 +417,8 @@ def fit_objective(
     )
     problem = objective.compiled_problem()
     if problem is not None and n_targets > 0:
-        theta, cost, used, _ = lm_kernel(
-            FitModel(*problem, *objective.compiled_state(state)),
-            theta,
-            lower,
-            upper,
-            settings,
+        theta, cost, used = fit_kernel(
+            (*problem, *objective.compiled_state(state)), theta, lower, upper, tuple(settings)
         )
     else:
         theta, cost, used, _ = levenberg_marquardt(

@@ -200,7 +200,7 @@ def fit_terminal(
     free_height = height is None and priors.fits_heights
     z0 = priors.height_mean if height is None else float(height)
     for start in starts:
-        fit = _levenberg_marquardt(
+        fit = _fit_from(
             kernel,
             amplitudes,
             start,
@@ -221,7 +221,7 @@ def fit_terminal(
         # trades against the distance to the brightest LEDs and costs a terminal exactly as
         # modelled accuracy (docs/decisions/terminal-gain-gate.md).
         held_priors = replace(priors, log_gain_sd=_HELD_LOG_GAIN_SD)
-        held = _levenberg_marquardt(
+        held = _fit_from(
             kernel, amplitudes, best.position, z0, free_height, held_priors, weight, normal, None
         )
         # [data-support hook] a free gain also needs the detected LEDs to leave room for it.
@@ -234,7 +234,7 @@ def fit_terminal(
     if sigma2 is None:
         # The noise estimate comes from a fit that may tilt (no prior): a tilted room's
         # residuals would otherwise count its tilts as noise.
-        return _levenberg_marquardt(
+        return _fit_from(
             kernel, amplitudes, best.position, z0, free_height, priors, None, None, tilt_sd
         )
     # An unknown tilt is fitted too, and kept only when it lowers the cost by more than its
@@ -244,7 +244,7 @@ def fit_terminal(
     # room declares
     # is kept always: a tilt is nearly a shift, its cost decrease mostly too small for the
     # test, and the prior is then the room's own (docs/decisions/declared-tilt-spread.md).
-    tilted = _levenberg_marquardt(
+    tilted = _fit_from(
         kernel, amplitudes, best.position, z0, free_height, priors, weight, None, tilt_sd
     )
     # [data-support hook] the count rule and a BIC-type price next to the chance level.
@@ -321,7 +321,7 @@ def terminal_model(
     return los, gradient
 
 
-def _levenberg_marquardt(
+def _fit_from(
     kernel: ChannelKernel,
     amplitudes: FloatArray,
     start: FloatArray,
@@ -374,7 +374,7 @@ def _levenberg_marquardt(
                 float(priors.height_sd),
                 -1.0 if tilt_sd is None else float(tilt_sd),
             ),
-            _LM,
+            tuple(_LM),
         )
     else:
         theta, residual, jacobian, cost = _reference_lm(
@@ -500,7 +500,10 @@ def _reference_lm(
         if rows_r:
             residual = np.concatenate((residual, rows_r))
             jacobian = np.vstack((jacobian, np.array(rows_j)))
-        return float(residual @ residual), (residual, jacobian)
+        # A wild trial may overflow: its cost is then inf (or nan), and LM rejects it.
+        with np.errstate(over="ignore", invalid="ignore"):
+            cost = float(residual @ residual)
+        return cost, (residual, jacobian)
 
     def normal_equations(
         _params: FloatArray, point: tuple[FloatArray, FloatArray]

@@ -33,7 +33,7 @@ import numpy as np
 
 from ...metrics import matched_errors
 from ...typing import FloatArray
-from ._compiled.lm import lm_kernel
+from ._compiled.tolerance import joint_fit_kernel
 from .channel import ChannelKernel
 from .joint_model import (
     JointModel,
@@ -239,7 +239,7 @@ def _jumps(
             positions = model.split(theta)[0]
     if cost < start_cost:  # moved: one more round in the new fit's metric
         white = model.whitening(theta, noise)
-        theta, _ = _levenberg_marquardt(model, theta, white, white.data(values))
+        theta, _ = _fit_joint(model, theta, white, white.data(values))
     return theta, white, model
 
 
@@ -297,15 +297,15 @@ def _try_move(
     closer to the current placement than to where it started is dropped: most moves walk
     back into the basin already fitted."""
     start = model.split(moved)[0]
-    moved, _ = _levenberg_marquardt(model, moved, white, data, _JUMP_PROBE_ITER)
+    moved, _ = _fit_joint(model, moved, white, data, _JUMP_PROBE_ITER)
     probe = model.split(moved)[0]
     if matched_errors(probe, positions).max() < matched_errors(probe, start).max():
         return None
-    moved, moved_cost = _levenberg_marquardt(model, moved, white, data)
+    moved, moved_cost = _fit_joint(model, moved, white, data)
     return (moved, moved_cost) if moved_cost < cost else None
 
 
-def _levenberg_marquardt(
+def _fit_joint(
     model: JointModel,
     theta: FloatArray,
     white: Whitening,
@@ -317,18 +317,21 @@ def _levenberg_marquardt(
     lower, upper = model.bounds()
     compiled_model = model.compiled_model(white, data)
     if compiled_model is not None:
-        theta, cost, _, _ = lm_kernel(
+        theta, cost = joint_fit_kernel(
             compiled_model,
             np.array(theta, dtype=np.float64, order="C", copy=True),
             lower,
             upper,
-            settings,
+            tuple(settings),
         )
         return theta, float(cost)
 
     def evaluate(params: FloatArray) -> tuple[float, tuple[FloatArray, FloatArray]]:
         residual, jacobian = model.residual_and_jacobian(params, white, data)
-        return float(residual @ residual), (residual, jacobian)
+        # A wild trial may overflow: its cost is then inf (or nan), and LM rejects it.
+        with np.errstate(over="ignore", invalid="ignore"):
+            cost = float(residual @ residual)
+        return cost, (residual, jacobian)
 
     def normal_equations(
         _params: FloatArray, point: tuple[FloatArray, FloatArray]
@@ -415,12 +418,12 @@ def fit_room_tolerances(
         promised = math.inf
     if not promised > score_ratio * extra:
         return None
-    theta, cost = _levenberg_marquardt(model, start, white, data)
+    theta, cost = _fit_joint(model, start, white, data)
     if not base_cost - cost > extra + significance * math.sqrt(2.0 * extra):
         return None
     for _ in range(_ROUNDS - 1):
         white = model.whitening(theta, noise)
-        theta, _ = _levenberg_marquardt(model, theta, white, white.data(values))
+        theta, _ = _fit_joint(model, theta, white, white.data(values))
     if moves is not None:
         theta, white, model = _jumps(model, theta, noise, values, white, moves)
     if tilt_stage_sd > 0 and model.n_tilts == 0:
@@ -436,7 +439,7 @@ def fit_room_tolerances(
         theta = np.concatenate((theta[:-1], np.zeros(model.n_tilts), theta[-1:]))
         for _ in range(_ROUNDS):
             white = model.whitening(theta, noise)
-            theta, _ = _levenberg_marquardt(model, theta, white, white.data(values))
+            theta, _ = _fit_joint(model, theta, white, white.data(values))
     residual, jacobian = model.residual_and_jacobian(theta, white, white.data(values))
     n_data, k = white.weights.shape[0], model.n_targets
     chi2 = float(residual[:n_data] @ residual[:n_data])

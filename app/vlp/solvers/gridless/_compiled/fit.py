@@ -27,12 +27,13 @@ import numpy as np
 
 from ...._kernels import compiled, compiled_reassociating
 from ....typing import FloatArray, IntArray
-from ..lm import EIG_FLOOR, SIGMA2_FLOOR
+from ..lm import EIG_FLOOR, SIGMA2_FLOOR, LMSettings
 from .channel import ChannelConstants, TableConstants, channel_rows
-from .lm import register_model
+from .lm import lm_kernel, register_model
 
 __all__ = [
     "FitModel",
+    "fit_kernel",
     "gram_kernel",
     "residual_kernel",
     "whiten_kernel",
@@ -345,6 +346,17 @@ def fit_normal_equations(
 
 
 register_model(FitModel, fit_evaluate, fit_normal_equations)
+
+
+@compiled
+def fit_kernel(
+    fields: Problem, theta0: FloatArray, lower: FloatArray, upper: FloatArray, settings: Problem
+) -> tuple[FloatArray, float, int]:
+    """:func:`.gridless._compiled.lm.lm_kernel` on ``FitModel(*fields)`` with
+    ``LMSettings(*settings)``: theta, cost and iterations. (Plain tuples cross from Python
+    faster than named ones: numba types a named tuple's every field in Python.)"""
+    theta, cost, used, _ = lm_kernel(FitModel(*fields), theta0, lower, upper, LMSettings(*settings))
+    return theta, cost, used
 
 
 @compiled

@@ -4,11 +4,11 @@ it and the covariances use. Private: callers validate.
 
 A model is a ``NamedTuple`` class of its arguments and two compiled functions of it,
 ``evaluate(model, theta) -> (cost, point)`` and ``normal_equations(model, theta, point) ->
-(J^T J, J^T r)`` (:func:`register_model`). :func:`lm_kernel` finds them by the class of the
-model it is given, when it is compiled: numba compiles the loop once per model, with the
-model's functions called directly, as if written in the loop. (Passing the functions
-themselves would do the same, but a compiled caller that passes one cannot be cached on
-disk.)
+(J^T J, J^T r)``, with the Cholesky solve of its damped normal equations
+(:func:`register_model`). :func:`lm_kernel` finds them by the class of the model it is given,
+when it is compiled: numba compiles the loop once per model, with the model's functions called
+directly, as if written in the loop. (Passing the functions themselves would do the same, but
+a compiled caller that passes one cannot be cached on disk.)
 """
 
 from __future__ import annotations
@@ -31,20 +31,32 @@ from ..lm import (
     LMSettings,
 )
 
-__all__ = ["cholesky_solve", "cholesky_substitution", "lm_kernel", "register_model"]
+__all__ = [
+    "cholesky_solve",
+    "cholesky_substitution",
+    "lapack_cholesky_solve",
+    "lm_kernel",
+    "register_model",
+]
 
-# Each model class's (evaluate, normal_equations).
-_MODELS: dict[type, tuple[Callable[..., Any], Callable[..., Any]]] = {}
+Solve = Callable[[FloatArray, FloatArray], tuple[FloatArray, bool]]
+# Each model class's (evaluate, normal_equations, solve).
+_MODELS: dict[
+    type,
+    tuple[Callable[..., tuple[float, Any]], Callable[..., tuple[FloatArray, FloatArray]], Solve],
+] = {}
 
 
 def register_model(
     model: type,
     evaluate: Callable[..., tuple[float, Any]],
     normal_equations: Callable[..., tuple[FloatArray, FloatArray]],
+    solve: Solve | None = None,
 ) -> None:
     """Let :func:`lm_kernel` fit instances of ``model`` (a ``NamedTuple`` class) with the
-    compiled ``evaluate`` and ``normal_equations``."""
-    _MODELS[model] = (evaluate, normal_equations)
+    compiled ``evaluate`` and ``normal_equations``, its damped normal equations solved by
+    ``solve`` (:func:`cholesky_solve` when None)."""
+    _MODELS[model] = (evaluate, normal_equations, cholesky_solve if solve is None else solve)
 
 
 def _evaluate(model: Any, theta: FloatArray) -> tuple[float, Any]:
@@ -54,6 +66,11 @@ def _evaluate(model: Any, theta: FloatArray) -> tuple[float, Any]:
 
 def _normal_equations(model: Any, theta: FloatArray, point: Any) -> tuple[FloatArray, FloatArray]:
     """The model's ``normal_equations`` (compiled code only)."""
+    raise NotImplementedError
+
+
+def _solve(model: Any, matrix: FloatArray, rhs: FloatArray) -> tuple[FloatArray, bool]:
+    """The model's ``solve`` (compiled code only)."""
     raise NotImplementedError
 
 
@@ -77,6 +94,16 @@ def _normal_equations_of(
 
     def implementation(model: Any, _theta: Any, _point: Any) -> tuple[FloatArray, FloatArray]:
         return normal_equations(model, _theta, _point)
+
+    return implementation
+
+
+@overload(_solve)
+def _solve_of(_model: Any, _matrix: Any, _rhs: Any) -> Callable[..., tuple[FloatArray, bool]]:
+    solve = _MODELS[_model.instance_class][2]
+
+    def implementation(_model: Any, _matrix: Any, _rhs: Any) -> tuple[FloatArray, bool]:
+        return solve(_matrix, _rhs)
 
     return implementation
 
@@ -109,7 +136,7 @@ def lm_kernel(
             damped = normal.copy()
             for i in range(n):
                 damped[i, i] += damping * scaling[i]
-            step, ok = cholesky_solve(damped, gradient)
+            step, ok = _solve(model, damped, gradient)
             if not ok:
                 damping *= DAMPING_SINGULAR
                 continue
@@ -161,6 +188,17 @@ def cholesky_solve(matrix: FloatArray, rhs: FloatArray) -> tuple[FloatArray, boo
             for p in range(j):
                 total -= factor[i, p] * factor[j, p]
             factor[i, j] = total / pivot
+    return cholesky_substitution(factor, rhs), True
+
+
+@compiled
+def lapack_cholesky_solve(matrix: FloatArray, rhs: FloatArray) -> tuple[FloatArray, bool]:
+    """:func:`cholesky_solve` with LAPACK's factorisation (its blocked code: faster on the
+    joint fit's larger systems, round-off in another order)."""
+    try:
+        factor = np.linalg.cholesky(matrix)
+    except Exception:  # not positive definite
+        return rhs.copy(), False
     return cholesky_substitution(factor, rhs), True
 
 

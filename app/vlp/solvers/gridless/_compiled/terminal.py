@@ -2,7 +2,7 @@
 
 Stand-ins for :func:`.gridless.terminals.terminal_model` (all its branches: looking straight up,
 a photodiode normal the terminal sent, a fitted tilt) and for the evaluation of
-:func:`.gridless.terminals._levenberg_marquardt` (their NumPy code is the reference and documents
+:func:`.gridless.terminals._fit_from` (their NumPy code is the reference and documents
 the model) as a :class:`TerminalModel` that :func:`.gridless._compiled.lm.lm_kernel` fits; a
 whole fit from one start is one call here. Private: callers validate.
 
@@ -220,12 +220,13 @@ def terminal_fit_kernel(
     shape: Shape,
     normal: FloatArray,
     priors: TerminalPriors,
-    settings: LMSettings,
+    settings: tuple[Any, ...],
 ) -> tuple[FloatArray, FloatArray, FloatArray, float]:
     """One start's fit (the reference's start, then :func:`.gridless._compiled.lm.lm_kernel`
     on a :class:`TerminalModel`): theta, whitened residual, Jacobian and cost at the last
     accepted point. ``theta0``'s last entry (the log gain) is replaced by the least-squares
-    gain of the start's gains, as the reference starts."""
+    gain of the start's gains, as the reference starts. ``settings``: the fields of its
+    :class:`.gridless.lm.LMSettings` (a plain tuple crosses from Python faster)."""
     free_height, has_normal, _, z0 = shape
     theta = theta0.copy()
     start = np.empty(3)
@@ -246,7 +247,7 @@ def terminal_fit_kernel(
         theta,
         lower,
         upper,
-        settings,
+        LMSettings(*settings),
     )
     residual, jacobian = point
     return theta, residual, jacobian, cost

@@ -27,8 +27,9 @@ import numpy as np
 
 from ...._kernels import compiled
 from ....typing import FloatArray
+from ..lm import LMSettings
 from .channel import ChannelConstants, TableConstants, diffuse_rows
-from .lm import register_model
+from .lm import lapack_cholesky_solve, lm_kernel, register_model
 
 __all__ = [
     "GAINS",
@@ -39,6 +40,7 @@ __all__ = [
     "TILT_Y",
     "JointFitModel",
     "joint_evaluate",
+    "joint_fit_kernel",
     "joint_gains_kernel",
     "joint_residual_kernel",
 ]
@@ -332,7 +334,22 @@ def joint_normal_equations(
     pieces, multipliers, rotated, residual = point
     n_data = data.shape[0]
     jacobian = _joint_jacobian(white, n_data, theta, pieces, rotated, multipliers, prior_inverse_sd)
-    return _normal_equations(residual, jacobian, n_data, 2 * heights.shape[0], prior_inverse_sd)
+    normal, gradient = _normal_equations(
+        residual, jacobian, n_data, 2 * heights.shape[0], prior_inverse_sd
+    )
+    return normal, gradient
 
 
-register_model(JointFitModel, joint_evaluate, joint_normal_equations)
+register_model(JointFitModel, joint_evaluate, joint_normal_equations, lapack_cholesky_solve)
+
+
+@compiled
+def joint_fit_kernel(
+    fields: Problem, theta0: FloatArray, lower: FloatArray, upper: FloatArray, settings: Problem
+) -> tuple[FloatArray, float]:
+    """:func:`.gridless._compiled.lm.lm_kernel` on ``JointFitModel(*fields)`` with
+    ``LMSettings(*settings)``: theta and cost (plain tuples cross from Python faster)."""
+    theta, cost, _, _ = lm_kernel(
+        JointFitModel(*fields), theta0, lower, upper, LMSettings(*settings)
+    )
+    return theta, cost
