@@ -27,11 +27,11 @@ from .gridless.joint_model import (
 )
 from .gridless.lm import STEP_TOL_M
 from .gridless.local import _best_of_tiles
-from .gridless.model import Objective, gram, levenberg_marquardt
+from .gridless.model import Objective, fit_objective, gram
 from .gridless.options import LM_DEFAULTS
 from .gridless.state import FitState, Priors
-from .gridless.terminals import _levenberg_marquardt as terminal_fit
-from .gridless.tolerances import _levenberg_marquardt
+from .gridless.terminals import _fit_from as terminal_fit
+from .gridless.tolerances import _fit_joint
 from .gridless.whitening import Whitening, compiled_indices
 
 __all__ = ["exercise", "warm_up"]
@@ -79,7 +79,7 @@ def exercise() -> None:
         theta = objective.pack(state)
         gram(objective, theta, state)
         objective.residual(theta, state)
-        levenberg_marquardt(objective, state, max_iter=1, initial_damping=1e-3, tol=1e-6)
+        fit_objective(objective, state, max_iter=1, initial_damping=1e-3, tol=1e-6)
         # an answer's covariances (gridless.uncertainty.sandwich_covariances)
         problem = objective.compiled_problem()
         assert problem is not None
@@ -101,7 +101,7 @@ def exercise() -> None:
     white = joint.whitening(theta, state.noise)
     data = white.data(np.ones(white.weights.shape[0]))
     joint.residual_and_jacobian(theta, white, data)
-    _levenberg_marquardt(joint, theta, white, data, 1)
+    _fit_joint(joint, theta, white, data, 1)
     # a terminal's own fit evaluates the channel at one point, and runs its own LM (one
     # signature for every branch: straight up, a sent normal, a fitted tilt)
     constants = channel_constants(kernel)

@@ -41,7 +41,6 @@ from app.vlp.solvers import warm_up
 from app.vlp.solvers.gridless._compiled.channel import channel_constants, channel_rows, diffuse_rows
 from app.vlp.solvers.gridless._compiled.fit import _sparse_symmetric_product
 from app.vlp.solvers.gridless._compiled.scores import correlation_scores_kernel
-from app.vlp.solvers.gridless._compiled.tolerance import _damped_solve
 from app.vlp.solvers.gridless._compiled.uncertainty import (
     fit_misfit_kernel,
     misfit_design_kernel,
@@ -55,9 +54,9 @@ from app.vlp.solvers.gridless.joint_model import (
 )
 from app.vlp.solvers.gridless.model import (
     Objective,
+    fit_objective,
     gram,
     gram_reference,
-    levenberg_marquardt,
 )
 from app.vlp.solvers.gridless.report import profiles
 from app.vlp.solvers.gridless.search import compiled_search, grow, grow_compiled, refine
@@ -66,7 +65,7 @@ from app.vlp.solvers.gridless.state import (
     FitState,
     Priors,
 )
-from app.vlp.solvers.gridless.tolerances import _levenberg_marquardt
+from app.vlp.solvers.gridless.tolerances import _fit_joint
 from app.vlp.solvers.gridless.uncertainty import sandwich_covariances, shape_gradients
 from app.vlp.solvers.gridless.whitening import Whitening
 from app.vlp.typing import FloatArray
@@ -271,7 +270,7 @@ _LM_CASES = [
 
 
 @pytest.mark.parametrize(("model", "k", "priors_name"), _LM_CASES)
-def test_levenberg_marquardt_matches_reference(model: Model, k: int, priors_name: str) -> None:
+def test_aggregated_fit_matches_reference(model: Model, k: int, priors_name: str) -> None:
     """A whole compiled LM run ends where the NumPy one does, after as many iterations."""
     kernel = make_kernel("paper", "heights", seed=5)
     priors, free_weights = PRIORS[priors_name]
@@ -288,7 +287,7 @@ def test_levenberg_marquardt_matches_reference(model: Model, k: int, priors_name
     start = dataclasses.replace(truth, positions=truth.positions + rng.uniform(-0.15, 0.15, (k, 2)))
     for damping, tol, iterations in ((1e-3, 1e-7, 40), (1e-1, 1e-4, 3)):
         with use_kernels("reference"):
-            want_state, want_cost, want_used = levenberg_marquardt(
+            want_state, want_cost, want_used = fit_objective(
                 Objective(kernel, white, values, free_weights, priors),
                 start,
                 max_iter=iterations,
@@ -297,7 +296,7 @@ def test_levenberg_marquardt_matches_reference(model: Model, k: int, priors_name
             )
         objective = Objective(kernel, white, values, free_weights, priors)
         assert objective.compiled_problem() is not None
-        got_state, got_cost, got_used = levenberg_marquardt(
+        got_state, got_cost, got_used = fit_objective(
             objective, start, max_iter=iterations, initial_damping=damping, tol=tol
         )
         assert got_used == want_used
@@ -405,11 +404,11 @@ def test_joint_tolerance_model_matches_reference(
 @pytest.mark.parametrize("reflecting", [False, True])
 @pytest.mark.parametrize("tilt_sd", [0.07, 0.0])
 @pytest.mark.parametrize("k", [2, 8])
-def test_joint_levenberg_marquardt_matches_reference(
+def test_joint_fit_matches_reference(
     joint_kernels: dict[bool, ChannelKernel], reflecting: bool, tilt_sd: float, k: int
 ) -> None:
-    """A whole compiled joint LM run (``joint_lm_kernel``) ends where the NumPy one
-    (``projected_levenberg_marquardt``) does: noisy data of tolerances the priors do not
+    """A whole compiled joint LM run (``lm_kernel`` on ``joint_evaluate``) ends where the
+    NumPy one (``levenberg_marquardt``) does: noisy data of tolerances the priors do not
     expect, from a start a few decimetres off, run to its stop and for two iterations."""
     kernel = joint_kernels[reflecting]
     rng = np.random.default_rng(200 * k + 10 * reflecting + (tilt_sd > 0))
@@ -431,26 +430,12 @@ def test_joint_levenberg_marquardt_matches_reference(
     start[at:-1] = 0.0
     for max_iter in (30, 2):
         with use_kernels("reference"):
-            want, want_cost = _levenberg_marquardt(model, start, white, data, max_iter)
-        assert model.compiled_fit(start, white, data, max_iter, 1e-2, 1e-4) is not None
-        got, got_cost = _levenberg_marquardt(model, start, white, data, max_iter)
+            want, want_cost = _fit_joint(model, start, white, data, max_iter)
+        assert model.compiled_model(white, data) is not None
+        got, got_cost = _fit_joint(model, start, white, data, max_iter)
         assert_same(got[: 2 * k], want[: 2 * k])
         assert_same(got, want)  # every parameter, normwise
         assert got_cost == pytest.approx(want_cost, rel=1e-10)
-
-
-def test_joint_lm_solves_as_the_reference() -> None:
-    """The joint LM's step: Cholesky for a positive definite matrix, LU (the reference's
-    ``np.linalg.solve``) for one that is not, and a failure, as LinAlgError there, for a
-    singular one."""
-    rng = np.random.default_rng(43)
-    square = rng.standard_normal((7, 7))
-    rhs = normal(rng, 7)
-    for matrix in (square @ square.T + 0.1 * np.eye(7), square + square.T):
-        step, solved = _damped_solve(matrix, rhs)
-        assert solved
-        assert_same(step, np.linalg.solve(matrix, rhs))
-    assert not _damped_solve(np.zeros((7, 7)), rhs)[1]
 
 
 @pytest.mark.parametrize("model", ["correlation", "power"])
@@ -733,10 +718,10 @@ def test_terminal_fit_matches_reference(
     weighting: str,
 ) -> None:
     """One terminal's whole fit from one start (the compiled LM loop against the NumPy
-    evaluation and :func:`projected_levenberg_marquardt`): every field of the result, with
+    evaluation and :func:`levenberg_marquardt`): every field of the result, with
     and without priors (the gain, height and tilt pseudo-residuals), scalar and per-value
     weights; the paper room without and with reflections."""
-    from app.vlp.solvers.gridless.terminals import _levenberg_marquardt, terminal_model
+    from app.vlp.solvers.gridless.terminals import _fit_from, terminal_model
 
     kernel = joint_kernels[reflecting]
     assert channel_constants(kernel) is not None  # so the compiled LM runs
@@ -770,8 +755,8 @@ def test_terminal_fit_matches_reference(
         arguments = (kernel, amplitudes, start, z0, free_height, priors, weight, sent)
         tilt_sd = 0.2 if free_tilt else None
         with use_kernels("reference"):
-            want = _levenberg_marquardt(*arguments, tilt_sd)
-        got = _levenberg_marquardt(*arguments, tilt_sd)
+            want = _fit_from(*arguments, tilt_sd)
+        got = _fit_from(*arguments, tilt_sd)
         assert got.n_params == want.n_params
         assert (got.free_height, got.free_tilt) == (want.free_height, want.free_tilt)
         # every parameter, normwise, as the aggregated LM's test
@@ -873,14 +858,14 @@ _KERNELS_OF_A_SOLVE = """
     from app.vlp.solvers.gridless._compiled.channel import channel_rows
     from app.vlp.solvers.gridless._compiled.uncertainty import uncertainty_kernel
     from app.vlp.solvers.gridless._compiled import tolerance as joint
-    from app.vlp.solvers.gridless._compiled.terminal import terminal_lm_kernel
+    from app.vlp.solvers.gridless._compiled.terminal import terminal_fit_kernel
     from app.vlp._radii_compiled import radial_roots_kernel
     from app.vlp.solvers.gridless._compiled.search import growth_kernel, refine_kernel
 
-    kernels = [fit.lm_kernel, fit.gram_kernel, fit.residual_kernel, fit.whitening_kernel,
+    kernels = [fit.fit_kernel, fit.gram_kernel, fit.residual_kernel, fit.whitening_kernel,
                fit.whiten_kernel, correlation_scores_kernel, channel_rows,
                uncertainty_kernel, joint.joint_gains_kernel, joint.joint_residual_kernel,
-               joint.joint_lm_kernel, terminal_lm_kernel, radial_roots_kernel,
+               joint.joint_fit_kernel, terminal_fit_kernel, radial_roots_kernel,
                growth_kernel, refine_kernel]
 """
 

@@ -18,7 +18,7 @@ from ._compiled.scores import correlation_scores_kernel
 from .model import (
     Objective,
     _Slots,
-    levenberg_marquardt,
+    fit_objective,
 )
 from .room import PreparedRoom
 from .state import (
@@ -104,7 +104,7 @@ def lm_fit(
         near = lm_fit_near(room, run, white, state, max_iter, nuisance, around, ceiling)
         if near is not None:
             return near
-    state, cost, used = levenberg_marquardt(
+    state, cost, used = fit_objective(
         run_objective(room, run, white, nuisance, ceiling),
         state,
         max_iter=max_iter,
@@ -164,7 +164,7 @@ def lm_fit_near(
         priors,
         ceiling,
     )
-    fitted, cost, used = levenberg_marquardt(
+    fitted, cost, used = fit_objective(
         objective,
         state.subset(active),
         max_iter=max_iter,

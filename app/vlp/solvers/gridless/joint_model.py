@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -22,7 +23,6 @@ from ._compiled.tolerance import (
     TILT_X,
     TILT_Y,
     joint_gains_kernel,
-    joint_lm_kernel,
     joint_residual_kernel,
 )
 from .channel import ChannelKernel
@@ -288,36 +288,21 @@ class JointModel:
         )
         return residual, jacobian
 
-    def compiled_fit(
-        self,
-        theta: FloatArray,
-        white: Whitening,
-        data: FloatArray,
-        max_iter: int,
-        damping: float,
-        rel_tol: float,
-    ) -> tuple[FloatArray, float] | None:
-        """The compiled :func:`_levenberg_marquardt` (its fitted theta and cost), or None
-        when the compiled kernels are not in use."""
+    def compiled_model(self, white: Whitening, data: FloatArray) -> tuple[Any, ...] | None:
+        """The fields of the compiled joint fit (:class:`._compiled.tolerance.JointFitModel`)
+        for ``white`` and ``data`` (whitened), or None when the compiled kernels are not in
+        use."""
         constants = self._compiled()
         if constants is None:
             return None
-        lower, upper = self.bounds()
-        theta, cost, _ = joint_lm_kernel(
+        return (
             *constants,
             white.compiled(),
             np.ascontiguousarray(data, dtype=np.float64),
-            np.array(theta, dtype=np.float64, order="C", copy=True),
             self._heights,
             self.n_tilts > 0,
             self._prior_inverse_sd,
-            lower,
-            upper,
-            int(max_iter),
-            float(damping),
-            float(rel_tol),
         )
-        return theta, float(cost)
 
     def _residual_and_jacobian_reference(
         self, theta: FloatArray, white: Whitening, data: FloatArray

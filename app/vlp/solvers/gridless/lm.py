@@ -1,20 +1,29 @@
-"""Levenberg-Marquardt: the constants every fit of the default solver uses, and a small
-projected loop in NumPy for fits whose residual and Jacobian come from one callback (the
-terminal fit, the room-tolerance fit). Private: callers validate.
+"""Levenberg-Marquardt: the one loop every fit of the default solver runs (NumPy reference
+here, its compiled twin :func:`.gridless._compiled.lm.lm_kernel`), its settings and all its
+constants. Private: callers validate.
 
-Every LM loop -- the aggregated fit's NumPy reference (``gridless.model.levenberg_marquardt``)
-and its compiled twin (``gridless._compiled.fit.lm_kernel``), the terminal fit's
-(``gridless._compiled.terminal.terminal_lm_kernel``, this loop its reference) and the joint
-room-tolerance fit's (``gridless._compiled.tolerance.joint_lm_kernel``, this loop its reference) --
-imports its damping schedule and floors from here: one source for each constant. The
-compiled kernels read them as compile-time constants.
+A fit hands the loop two functions of its model (docs/explanation/solver.md,
+"Levenberg-Marquardt"):
+
+- ``evaluate(theta) -> (cost, point)``: the cost at ``theta`` and whatever the model keeps of
+  that evaluation (``point``), enough to accept or reject a trial step;
+- ``normal_equations(theta, point) -> (J^T J, J^T r)``: asked once per iteration, at the
+  accepted point (a model may delay its Jacobian to here: a rejected trial never needs it).
+
+The aggregated fit (``gridless.model.fit_objective``) evaluates ``J^T J`` with every trial
+(one product gives it with the cost); the terminal fit (``gridless.terminals``) keeps its
+residual and Jacobian, which it reports; the joint room-tolerance fit
+(``gridless.tolerances``) keeps its residual and computes its Jacobian only at accepted
+points. The compiled kernels read the constants below as compile-time constants.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import NamedTuple, TypeVar
 
 import numpy as np
+from scipy.linalg import lapack
 
 from ...typing import FloatArray
 
@@ -33,11 +42,13 @@ __all__ = [
     "TERMINAL_INITIAL_DAMPING",
     "TERMINAL_STEP_TOL_M",
     "TOLERANCE_INITIAL_DAMPING",
-    "projected_levenberg_marquardt",
+    "LMSettings",
+    "levenberg_marquardt",
 ]
 
 # Damping increases tried per iteration before the point is taken as a local minimum: the
-# aggregated fit (positions, weights, heights, gains, noise) and the projected loops below.
+# aggregated fit (positions, weights, heights, gains, noise), and the terminal and joint
+# room-tolerance fits.
 MAX_REJECTIONS = 12
 PROJECTED_MAX_REJECTIONS = 10
 # Marquardt damping factors after a rejected / accepted step (the start is the caller's).
@@ -45,7 +56,7 @@ PROJECTED_MAX_REJECTIONS = 10
 # irregular rooms (measured in docs/decisions/gridless-defaults.md).
 DAMPING_UP = 4.0
 DAMPING_DOWN = 5.0
-# Damping factor when the damped normal equations cannot be solved (singular).
+# Damping factor when the damped normal equations cannot be solved (not positive definite).
 DAMPING_SINGULAR = 10.0
 # The damping never falls below this.
 MIN_DAMPING = 1e-9
@@ -66,66 +77,96 @@ TERMINAL_STEP_TOL_M = 1e-6
 # The joint room-tolerance fit's starting damping.
 TOLERANCE_INITIAL_DAMPING = 1e-2
 
-Evaluate = Callable[[FloatArray], tuple[FloatArray, FloatArray]]
-Stop = Callable[[FloatArray, float, float], bool]
+
+class LMSettings(NamedTuple):
+    """One fit's iterations, damping and stop rule (a plain tuple for the compiled loop).
+
+    Besides ``max_iter`` iterations, a fit ends at a point that no damping of
+    ``max_rejections`` improves, and after a step that is small: one that moves none of the
+    first ``n_positions`` entries of theta (the positions, metres) by ``step_tol`` or more,
+    or an accepted one that lowers the cost by less than ``cost_tol`` of it.
+
+    With ``before_trial`` (the aggregated fit), a step is tested before it is tried, both for
+    its size and for the decrease its linearised model predicts (below ``cost_tol`` of the
+    cost is small): it is still tried, and then ends the fit, accepted or not. Without it,
+    only an accepted step is tested, for its size and its actual decrease.
+    """
+
+    max_iter: int
+    damping: float  # the starting damping, relative to the normal matrix's diagonal
+    max_rejections: int
+    cost_tol: float
+    step_tol: float  # 0: no such rule
+    n_positions: int
+    before_trial: bool
 
 
-def projected_levenberg_marquardt(
-    evaluate: Evaluate,
+_Point = TypeVar("_Point")
+
+
+def levenberg_marquardt(
+    evaluate: Callable[[FloatArray], tuple[float, _Point]],
+    normal_equations: Callable[[FloatArray, _Point], tuple[FloatArray, FloatArray]],
     theta: FloatArray,
     lower: FloatArray,
     upper: FloatArray,
-    *,
-    max_iter: int,
-    damping: float,
-    stop: Stop,
-) -> tuple[FloatArray, FloatArray, FloatArray, float]:
-    """Minimise ``||r(theta)||^2`` with ``theta`` kept within ``[lower, upper]``.
+    settings: LMSettings,
+) -> tuple[FloatArray, float, int, _Point]:
+    """Minimise the cost ``||r(theta)||^2`` with ``theta`` kept within ``[lower, upper]``
+    (each trial is clipped to them).
 
     Parameters
     ----------
     evaluate : callable
-        ``theta -> (r, J)``, shapes (L,) and (L, P), with ``J = -dr/dtheta`` (the model's
-        derivative when ``r`` is data minus model).
+        ``theta -> (cost, point)``.
+    normal_equations : callable
+        ``(theta, point) -> (J^T J, J^T r)``, with ``J = -dr/dtheta`` (the model's
+        derivative when ``r`` is data minus model), ``point`` the one ``evaluate`` gave.
     theta : ndarray of shape (P,)
-        Start.
+        Start, within the bounds.
     lower, upper : ndarrays of shape (P,)
-    max_iter : int
-    damping : float
-        Initial Marquardt damping (relative to the normal matrix's diagonal).
-    stop : callable
-        ``(step, cost, trial_cost) -> bool``, asked after an accepted step: True ends the fit.
+    settings : LMSettings
 
     Returns
     -------
-    theta, residual, jacobian, cost
-        At the last accepted point.
+    theta, cost, iterations, point
+        At the last accepted point, and the iterations begun.
     """
-    residual, jacobian = evaluate(theta)
-    cost = float(residual @ residual)
-    for _ in range(max_iter):
-        normal = jacobian.T @ jacobian
-        gradient = jacobian.T @ residual
-        improved = finished = False
-        for _ in range(PROJECTED_MAX_REJECTIONS):
-            scaled = normal + damping * np.diag(np.maximum(normal.diagonal(), DIAGONAL_FLOOR))
-            try:
-                step = np.asarray(np.linalg.solve(scaled, gradient), dtype=np.float64)
-            except np.linalg.LinAlgError:
+    cost, point = evaluate(theta)
+    damping = settings.damping
+    used = 0
+    converged = False
+    while used < settings.max_iter and not converged:
+        used += 1
+        normal, gradient = normal_equations(theta, point)
+        scaling = np.diag(np.maximum(normal.diagonal(), DIAGONAL_FLOOR))
+        for _ in range(settings.max_rejections):
+            _, step, info = lapack.dposv(normal + damping * scaling, gradient)
+            if info != 0:
                 damping *= DAMPING_SINGULAR
                 continue
+            small = _small_step(step, settings)
+            if settings.before_trial:
+                predicted = float(step @ (2.0 * gradient - normal @ step))
+                converged = small or predicted < settings.cost_tol * cost
             trial = np.clip(theta + step, lower, upper)
-            trial_residual, trial_jacobian = evaluate(trial)
             # A wild trial may overflow: its cost is then inf (or nan) and it is rejected.
-            with np.errstate(over="ignore", invalid="ignore"):
-                trial_cost = float(trial_residual @ trial_residual)
+            trial_cost, trial_point = evaluate(trial)
             if trial_cost < cost:
-                finished = stop(step, cost, trial_cost)
-                theta, residual, jacobian, cost = trial, trial_residual, trial_jacobian, trial_cost
+                converged = converged or small or (cost - trial_cost) < settings.cost_tol * cost
+                theta, cost, point = trial, trial_cost, trial_point
                 damping = max(damping / DAMPING_DOWN, MIN_DAMPING)
-                improved = True
+                break
+            if converged:
                 break
             damping *= DAMPING_UP
-        if not improved or finished:
-            break
-    return theta, residual, jacobian, cost
+        else:
+            converged = True  # no decrease found along any damping: a local minimum
+    return theta, cost, used, point
+
+
+def _small_step(step: FloatArray, settings: LMSettings) -> bool:
+    """Whether ``step`` moves no position by ``settings.step_tol`` or more."""
+    n = settings.n_positions
+    largest = float(np.abs(step[:n]).max()) if n else 0.0
+    return largest < settings.step_tol

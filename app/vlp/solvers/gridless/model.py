@@ -12,10 +12,10 @@ is ``10^(-SNR/10)``. The model of one measurement with targets at ``p_k`` is
 
 with ``a`` the noise atom (``vech(I)`` or ones). Private: callers validate.
 
-Speed: the solver spends its time in :meth:`Objective.augmented` and the LM loop, a few
-dozen small NumPy calls each, so the code below keeps the call count low (one evaluation
-gives residual and Jacobian together, in-place kernels, LAPACK's ``posv`` for the damped
-normal equations) rather than the flop count.
+Speed: the solver spends its time in :meth:`Objective.augmented` and the LM loop
+(:func:`.gridless.lm.levenberg_marquardt`), a few dozen small NumPy calls each, so the code
+below keeps the call count low (one evaluation gives residual and Jacobian together, in-place
+kernels) rather than the flop count.
 """
 
 from __future__ import annotations
@@ -26,26 +26,17 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from scipy.linalg import lapack
 
 from ..._kernels import compiled_only
 from ...typing import FloatArray
 from ._compiled.channel import channel_constants
 from ._compiled.fit import (
+    fit_kernel,
     gram_kernel,
-    lm_kernel,
     residual_kernel,
 )
 from .channel import ChannelKernel
-from .lm import (
-    DAMPING_DOWN,
-    DAMPING_SINGULAR,
-    DAMPING_UP,
-    DIAGONAL_FLOOR,
-    MAX_REJECTIONS,
-    MIN_DAMPING,
-    STEP_TOL_M,
-)
+from .lm import MAX_REJECTIONS, STEP_TOL_M, LMSettings, levenberg_marquardt
 from .state import MAX_LOG_GAIN, MAX_LOG_SCALE, FitState, Priors
 from .whitening import Whitening
 
@@ -391,7 +382,7 @@ class Objective:
         return float(full @ full), full[: self.data.shape[0]]
 
 
-def levenberg_marquardt(
+def fit_objective(
     objective: Objective,
     state: FitState,
     *,
@@ -400,10 +391,12 @@ def levenberg_marquardt(
     tol: float,
     step_tol_m: float = STEP_TOL_M,
 ) -> tuple[FitState, float, int]:
-    """Projected LM on an :class:`Objective` (parameters kept within their bounds).
+    """Projected LM on an :class:`Objective` (parameters kept within their bounds): it ends
+    when no target moves by ``step_tol_m`` or more, or when a step lowers, or is predicted
+    to lower, the cost by less than ``tol`` of it (:class:`.gridless.lm.LMSettings`).
 
-    Every trial computes residual and Jacobian together: most steps are accepted, and a
-    second call for the Jacobian would cost more than the wasted one on a rejection.
+    Every trial computes ``J^T J`` with its cost: most steps are accepted, and a second
+    call for the Jacobian would cost more than the wasted one on a rejection.
 
     Returns the refined state, its cost and the number of iterations used.
     """
@@ -413,52 +406,39 @@ def levenberg_marquardt(
     if objective.noise_ceiling < math.inf:
         # The state's noise may be above this objective's ceiling: start within the bounds.
         theta = np.clip(theta, lower, upper)
+    settings = LMSettings(
+        int(max_iter),
+        float(initial_damping),
+        MAX_REJECTIONS,
+        float(tol),
+        float(step_tol_m),
+        2 * n_targets,
+        True,
+    )
     problem = objective.compiled_problem()
     if problem is not None and n_targets > 0:
-        theta, cost, used = lm_kernel(
-            *problem,
+        theta, cost, used = fit_kernel(
+            (*problem, *objective.compiled_state(state)), theta, lower, upper, tuple(settings)
+        )
+    else:
+        theta, cost, used, _ = levenberg_marquardt(
+            lambda params: _gram_point(objective, params, state),
+            lambda _params, point: point,
             theta,
-            *objective.compiled_state(state),
             lower,
             upper,
-            int(max_iter),
-            float(initial_damping),
-            float(tol),
-            float(step_tol_m),
+            settings,
         )
-        return objective.unpack(theta, state), float(cost), int(used)
-    normal, gradient, cost = gram(objective, theta, state)
-    damping = initial_damping
-    used = 0
-    n_pos = 2 * n_targets
-    converged = False
-    while used < max_iter and not converged:
-        used += 1
-        scaling = np.diag(np.maximum(normal.diagonal(), DIAGONAL_FLOOR))
-        for _ in range(MAX_REJECTIONS):
-            _, step, info = lapack.dposv(normal + damping * scaling, gradient)
-            if info != 0:
-                damping *= DAMPING_SINGULAR
-                continue
-            # Converged when the step no longer moves any target or the linearised model
-            # promises (almost) no decrease; the step is still tried.
-            predicted = float(step @ (2.0 * gradient - normal @ step))
-            converged = (
-                n_pos == 0 or float(np.abs(step[:n_pos]).max()) < step_tol_m
-            ) or predicted < tol * cost
-            trial = np.clip(theta + step, lower, upper)
-            trial_normal, trial_gradient, trial_cost = gram(objective, trial, state)
-            if trial_cost < cost:
-                converged = converged or (cost - trial_cost) < tol * cost
-                theta, normal, gradient, cost = trial, trial_normal, trial_gradient, trial_cost
-                damping = max(damping / DAMPING_DOWN, MIN_DAMPING)
-                break
-            if converged:
-                break
-            damping *= DAMPING_UP
-        else:
-            converged = True  # no decrease found along any damping: a local minimum
-    return objective.unpack(theta, state), cost, used
+    return objective.unpack(theta, state), float(cost), int(used)
+
+
+def _gram_point(
+    objective: Objective, theta: FloatArray, fixed: FitState
+) -> tuple[float, tuple[FloatArray, FloatArray]]:
+    """The aggregated fit's ``evaluate``: the cost, and ``J^T J`` and ``J^T r`` as the
+    point."""
+    normal, gradient, cost = gram(objective, theta, fixed)
+    return cost, (normal, gradient)
 
 
 def gram(

@@ -25,13 +25,15 @@ from ..._kernels import compiled_only
 from ...typing import FloatArray
 from .._data_support import detected_leds, leaves_dof, supports_nuisance
 from ._compiled.channel import channel_constants, channel_rows
-from ._compiled.terminal import terminal_lm_kernel
+from ._compiled.terminal import terminal_fit_kernel
 from .channel import ChannelKernel
 from .lm import (
+    PROJECTED_MAX_REJECTIONS,
     TERMINAL_COST_TOL,
     TERMINAL_INITIAL_DAMPING,
     TERMINAL_STEP_TOL_M,
-    projected_levenberg_marquardt,
+    LMSettings,
+    levenberg_marquardt,
 )
 from .state import (
     MAX_LOG_GAIN,
@@ -42,7 +44,17 @@ __all__ = ["TerminalFit", "fit_terminal", "los_with_normal", "starting_cells", "
 
 # Candidate starts per terminal (the best grid points of its own correlation, kept apart).
 _STARTS = 3
-_MAX_ITER = 30
+# Each start's LM: stopped when its position moves by less than TERMINAL_STEP_TOL_M or an
+# accepted step lowers the cost by less than TERMINAL_COST_TOL of it.
+_LM = LMSettings(
+    max_iter=30,
+    damping=TERMINAL_INITIAL_DAMPING,
+    max_rejections=PROJECTED_MAX_REJECTIONS,
+    cost_tol=TERMINAL_COST_TOL,
+    step_tol=TERMINAL_STEP_TOL_M,
+    n_positions=2,
+    before_trial=False,
+)
 # Smallest noise variance assumed, relative to a terminal's mean squared amplitude (40 dB).
 _SIGMA2_REL_FLOOR = 1e-4
 # A fitted tilt (tangent of its components) stays within +-45 degrees.
@@ -188,7 +200,7 @@ def fit_terminal(
     free_height = height is None and priors.fits_heights
     z0 = priors.height_mean if height is None else float(height)
     for start in starts:
-        fit = _levenberg_marquardt(
+        fit = _fit_from(
             kernel,
             amplitudes,
             start,
@@ -209,7 +221,7 @@ def fit_terminal(
         # trades against the distance to the brightest LEDs and costs a terminal exactly as
         # modelled accuracy (docs/decisions/terminal-gain-gate.md).
         held_priors = replace(priors, log_gain_sd=_HELD_LOG_GAIN_SD)
-        held = _levenberg_marquardt(
+        held = _fit_from(
             kernel, amplitudes, best.position, z0, free_height, held_priors, weight, normal, None
         )
         # [data-support hook] a free gain also needs the detected LEDs to leave room for it.
@@ -222,7 +234,7 @@ def fit_terminal(
     if sigma2 is None:
         # The noise estimate comes from a fit that may tilt (no prior): a tilted room's
         # residuals would otherwise count its tilts as noise.
-        return _levenberg_marquardt(
+        return _fit_from(
             kernel, amplitudes, best.position, z0, free_height, priors, None, None, tilt_sd
         )
     # An unknown tilt is fitted too, and kept only when it lowers the cost by more than its
@@ -232,7 +244,7 @@ def fit_terminal(
     # room declares
     # is kept always: a tilt is nearly a shift, its cost decrease mostly too small for the
     # test, and the prior is then the room's own (docs/decisions/declared-tilt-spread.md).
-    tilted = _levenberg_marquardt(
+    tilted = _fit_from(
         kernel, amplitudes, best.position, z0, free_height, priors, weight, None, tilt_sd
     )
     # [data-support hook] the count rule and a BIC-type price next to the chance level.
@@ -309,7 +321,7 @@ def terminal_model(
     return los, gradient
 
 
-def _levenberg_marquardt(
+def _fit_from(
     kernel: ChannelKernel,
     amplitudes: FloatArray,
     start: FloatArray,
@@ -343,7 +355,7 @@ def _levenberg_marquardt(
     data_weight = weight if weight is not None else 1.0
     constants = compiled_only(channel_constants, kernel)
     if constants is not None:
-        theta, residual, jacobian, cost = terminal_lm_kernel(
+        theta, residual, jacobian, cost = terminal_fit_kernel(
             *constants,
             np.ascontiguousarray(amplitudes, dtype=np.float64),
             # fresh writable arrays: one compiled signature for all (warm_up compiles it)
@@ -362,8 +374,7 @@ def _levenberg_marquardt(
                 float(priors.height_sd),
                 -1.0 if tilt_sd is None else float(tilt_sd),
             ),
-            _MAX_ITER,
-            TERMINAL_INITIAL_DAMPING,
+            tuple(_LM),
         )
     else:
         theta, residual, jacobian, cost = _reference_lm(
@@ -449,7 +460,7 @@ def _reference_lm(
     data_weight: float | FloatArray,
     tilt_sd: float | None,
 ) -> tuple[FloatArray, FloatArray, FloatArray, float]:
-    """The NumPy fit (:func:`terminal_lm_kernel`'s reference): theta, whitened residual,
+    """The NumPy fit (:func:`terminal_fit_kernel`'s reference): theta, whitened residual,
     Jacobian and cost at LM's last accepted point; ``priors`` None fits without them."""
     lower, upper = bounds
     axes = (3 if free_height else 2) + (2 if free_tilt else 0)
@@ -461,7 +472,7 @@ def _reference_lm(
     row_weight = data_weight[:, None] if isinstance(data_weight, np.ndarray) else data_weight
     tilt_at = 3 if free_height else 2
 
-    def evaluate(params: FloatArray) -> tuple[FloatArray, FloatArray]:
+    def evaluate(params: FloatArray) -> tuple[float, tuple[FloatArray, FloatArray]]:
         gains, gradient = terminal_model(kernel, params, free_height, z0, normal, free_tilt)
         amp = math.exp(float(params[-1]))
         residual = data_weight * (amplitudes - amp * gains)
@@ -489,20 +500,21 @@ def _reference_lm(
         if rows_r:
             residual = np.concatenate((residual, rows_r))
             jacobian = np.vstack((jacobian, np.array(rows_j)))
-        return residual, jacobian
+        # A wild trial may overflow: its cost is then inf (or nan), and LM rejects it.
+        with np.errstate(over="ignore", invalid="ignore"):
+            cost = float(residual @ residual)
+        return cost, (residual, jacobian)
 
-    return projected_levenberg_marquardt(
-        evaluate,
-        theta,
-        lower,
-        upper,
-        max_iter=_MAX_ITER,
-        damping=TERMINAL_INITIAL_DAMPING,
-        stop=lambda step, cost, trial_cost: (
-            cost - trial_cost < TERMINAL_COST_TOL * cost
-            or float(np.abs(step[:2]).max()) < TERMINAL_STEP_TOL_M
-        ),
+    def normal_equations(
+        _params: FloatArray, point: tuple[FloatArray, FloatArray]
+    ) -> tuple[FloatArray, FloatArray]:
+        residual, jacobian = point
+        return jacobian.T @ jacobian, jacobian.T @ residual
+
+    theta, cost, _, (residual, jacobian) = levenberg_marquardt(
+        evaluate, normal_equations, theta, lower, upper, _LM
     )
+    return theta, residual, jacobian, cost
 
 
 def _terminal_fit(

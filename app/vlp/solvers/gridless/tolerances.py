@@ -33,26 +33,34 @@ import numpy as np
 
 from ...metrics import matched_errors
 from ...typing import FloatArray
+from ._compiled.tolerance import joint_fit_kernel
 from .channel import ChannelKernel
 from .joint_model import (
     JointModel,
     RoomTolerances,
 )
 from .lm import (
+    PROJECTED_MAX_REJECTIONS,
     TOLERANCE_INITIAL_DAMPING,
-    projected_levenberg_marquardt,
+    LMSettings,
+    levenberg_marquardt,
 )
 from .state import FitState
 from .whitening import Whitening
 
 __all__ = ["GridMoves", "RoomTolerances", "ToleranceFit", "fit_room_tolerances"]
 
-# LM for the joint fit (one compiled call, gridless._compiled.tolerance.joint_lm_kernel; the NumPy
-# reference is gridless.lm.projected_levenberg_marquardt). It runs only on
-# measurements that show a misfit.
-_MAX_ITER = 30
-# Stop at this relative decrease (the aggregated LM's tolerance, LM_DEFAULTS).
-_REL_TOL = 1e-4
+# LM for the joint fit (it runs only on measurements that show a misfit): stopped at a
+# relative decrease of 1e-4 (the aggregated correlation LM's tolerance, LM_DEFAULTS).
+_LM = LMSettings(
+    max_iter=30,
+    damping=TOLERANCE_INITIAL_DAMPING,
+    max_rejections=PROJECTED_MAX_REJECTIONS,
+    cost_tol=1e-4,
+    step_tol=0.0,
+    n_positions=0,
+    before_trial=False,
+)
 # Re-whitening rounds: each refit uses the metric of the previous one's gains.
 _ROUNDS = 2
 # Iterations before a jumped fit is checked for having walked back.
@@ -231,7 +239,7 @@ def _jumps(
             positions = model.split(theta)[0]
     if cost < start_cost:  # moved: one more round in the new fit's metric
         white = model.whitening(theta, noise)
-        theta, _ = _levenberg_marquardt(model, theta, white, white.data(values))
+        theta, _ = _fit_joint(model, theta, white, white.data(values))
     return theta, white, model
 
 
@@ -289,34 +297,50 @@ def _try_move(
     closer to the current placement than to where it started is dropped: most moves walk
     back into the basin already fitted."""
     start = model.split(moved)[0]
-    moved, _ = _levenberg_marquardt(model, moved, white, data, _JUMP_PROBE_ITER)
+    moved, _ = _fit_joint(model, moved, white, data, _JUMP_PROBE_ITER)
     probe = model.split(moved)[0]
     if matched_errors(probe, positions).max() < matched_errors(probe, start).max():
         return None
-    moved, moved_cost = _levenberg_marquardt(model, moved, white, data)
+    moved, moved_cost = _fit_joint(model, moved, white, data)
     return (moved, moved_cost) if moved_cost < cost else None
 
 
-def _levenberg_marquardt(
+def _fit_joint(
     model: JointModel,
     theta: FloatArray,
     white: Whitening,
     data: FloatArray,
-    max_iter: int = _MAX_ITER,
+    max_iter: int = _LM.max_iter,
 ) -> tuple[FloatArray, float]:
-    damping = TOLERANCE_INITIAL_DAMPING
-    fitted = model.compiled_fit(theta, white, data, max_iter, damping, _REL_TOL)
-    if fitted is not None:
-        return fitted
+    """The joint fit from ``theta``: its fitted theta and cost."""
+    settings = _LM._replace(max_iter=max_iter)
     lower, upper = model.bounds()
-    theta, _, _, cost = projected_levenberg_marquardt(
-        lambda params: model.residual_and_jacobian(params, white, data),
-        theta,
-        lower,
-        upper,
-        max_iter=max_iter,
-        damping=damping,
-        stop=lambda _step, cost, trial_cost: cost - trial_cost < _REL_TOL * cost,
+    compiled_model = model.compiled_model(white, data)
+    if compiled_model is not None:
+        theta, cost = joint_fit_kernel(
+            compiled_model,
+            np.array(theta, dtype=np.float64, order="C", copy=True),
+            lower,
+            upper,
+            tuple(settings),
+        )
+        return theta, float(cost)
+
+    def evaluate(params: FloatArray) -> tuple[float, tuple[FloatArray, FloatArray]]:
+        residual, jacobian = model.residual_and_jacobian(params, white, data)
+        # A wild trial may overflow: its cost is then inf (or nan), and LM rejects it.
+        with np.errstate(over="ignore", invalid="ignore"):
+            cost = float(residual @ residual)
+        return cost, (residual, jacobian)
+
+    def normal_equations(
+        _params: FloatArray, point: tuple[FloatArray, FloatArray]
+    ) -> tuple[FloatArray, FloatArray]:
+        residual, jacobian = point
+        return jacobian.T @ jacobian, jacobian.T @ residual
+
+    theta, cost, _, _ = levenberg_marquardt(
+        evaluate, normal_equations, theta, lower, upper, settings
     )
     return theta, cost
 
@@ -394,12 +418,12 @@ def fit_room_tolerances(
         promised = math.inf
     if not promised > score_ratio * extra:
         return None
-    theta, cost = _levenberg_marquardt(model, start, white, data)
+    theta, cost = _fit_joint(model, start, white, data)
     if not base_cost - cost > extra + significance * math.sqrt(2.0 * extra):
         return None
     for _ in range(_ROUNDS - 1):
         white = model.whitening(theta, noise)
-        theta, _ = _levenberg_marquardt(model, theta, white, white.data(values))
+        theta, _ = _fit_joint(model, theta, white, white.data(values))
     if moves is not None:
         theta, white, model = _jumps(model, theta, noise, values, white, moves)
     if tilt_stage_sd > 0 and model.n_tilts == 0:
@@ -415,7 +439,7 @@ def fit_room_tolerances(
         theta = np.concatenate((theta[:-1], np.zeros(model.n_tilts), theta[-1:]))
         for _ in range(_ROUNDS):
             white = model.whitening(theta, noise)
-            theta, _ = _levenberg_marquardt(model, theta, white, white.data(values))
+            theta, _ = _fit_joint(model, theta, white, white.data(values))
     residual, jacobian = model.residual_and_jacobian(theta, white, white.data(values))
     n_data, k = white.weights.shape[0], model.n_targets
     chi2 = float(residual[:n_data] @ residual[:n_data])

@@ -1,11 +1,14 @@
-"""Compiled evaluation and Levenberg-Marquardt loop of the ``gridless`` objective.
+"""Compiled evaluation of the ``gridless`` objective, and its model for the compiled
+Levenberg-Marquardt loop.
 
-Stand-ins for :meth:`Objective.augmented` / :func:`gram`, :meth:`Objective.residual`,
-:func:`levenberg_marquardt` and :meth:`Whitening.from_state` of :mod:`.gridless.model` (their
-NumPy code is the reference and documents the model); a whole LM run is one call here.
-Private: callers validate.
+Stand-ins for :meth:`Objective.augmented` / :func:`gram`, :meth:`Objective.residual` and
+:meth:`Whitening.from_state` of :mod:`.gridless.model` (their NumPy code is the reference and
+documents the model); :class:`FitModel` is the model :func:`.gridless._compiled.lm.lm_kernel`
+fits for :func:`.gridless.model.fit_objective` (a whole LM run is one call). Private: callers
+validate.
 
-Arguments come as tuples of plain arrays and numbers (see :func:`problem_of`):
+Arguments come as tuples of plain arrays and numbers (:meth:`Objective.compiled_problem`,
+:meth:`Objective.compiled_state`):
 
 - ``white``: ``(has_rotation, rotation (M, M), or (0, 0) when has_rotation is False,
   weights (L,), upper (L,), lower (L,), weighted_diag (L,))``
@@ -18,27 +21,20 @@ Arguments come as tuples of plain arrays and numbers (see :func:`problem_of`):
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
 from ...._kernels import compiled, compiled_reassociating
 from ....typing import FloatArray, IntArray
-from ..lm import (
-    DAMPING_DOWN,
-    DAMPING_SINGULAR,
-    DAMPING_UP,
-    DIAGONAL_FLOOR,
-    EIG_FLOOR,
-    MAX_REJECTIONS,
-    MIN_DAMPING,
-    SIGMA2_FLOOR,
-)
+from ..lm import EIG_FLOOR, SIGMA2_FLOOR, LMSettings
 from .channel import ChannelConstants, TableConstants, channel_rows
+from .lm import lm_kernel, register_model
 
 __all__ = [
+    "FitModel",
+    "fit_kernel",
     "gram_kernel",
-    "lm_kernel",
     "residual_kernel",
     "whiten_kernel",
     "whitening_kernel",
@@ -319,112 +315,47 @@ def gram_kernel(
     return product[:n, :n].copy(), product[:n, n].copy(), float(product[n, n])
 
 
-@compiled
-def _cholesky_solve(matrix: FloatArray, rhs: FloatArray) -> tuple[FloatArray, bool]:
-    """Solve ``matrix x = rhs`` for a symmetric positive definite matrix (LAPACK's posv
-    fails, and so does this, when a pivot is not positive)."""
-    n = rhs.shape[0]
-    factor = np.zeros((n, n))
-    for j in range(n):
-        total = matrix[j, j]
-        for p in range(j):
-            total -= factor[j, p] * factor[j, p]
-        if not total > 0.0:
-            return rhs.copy(), False
-        pivot = math.sqrt(total)
-        factor[j, j] = pivot
-        for i in range(j + 1, n):
-            total = matrix[i, j]
-            for p in range(j):
-                total -= factor[i, p] * factor[j, p]
-            factor[i, j] = total / pivot
-    return cholesky_substitution(factor, rhs), True
+class FitModel(NamedTuple):
+    """The aggregated fit's model for :func:`.gridless._compiled.lm.lm_kernel`: the
+    :meth:`Objective.compiled_problem` and :meth:`Objective.compiled_state` tuples."""
+
+    channel: ChannelConstants
+    table: TableConstants
+    white: Problem
+    data: FloatArray
+    fixed: Problem
+    layout: Problem
+    priors: Problem
 
 
 @compiled
-def cholesky_substitution(factor: FloatArray, rhs: FloatArray) -> FloatArray:
-    """``x`` with ``L L^T x = rhs`` for the lower Cholesky factor ``L`` (forward, then back
-    substitution)."""
-    n = rhs.shape[0]
-    x = rhs.copy()
-    for i in range(n):
-        total = x[i]
-        for p in range(i):
-            total -= factor[i, p] * x[p]
-        x[i] = total / factor[i, i]
-    for i in range(n - 1, -1, -1):
-        total = x[i]
-        for p in range(i + 1, n):
-            total -= factor[p, i] * x[p]
-        x[i] = total / factor[i, i]
-    return x
-
-
-@compiled
-def lm_kernel(
-    channel: ChannelConstants,
-    table: TableConstants,
-    white: Problem,
-    data: FloatArray,
-    theta0: FloatArray,
-    fixed: Problem,
-    layout: Problem,
-    priors: Problem,
-    lower: FloatArray,
-    upper: FloatArray,
-    max_iter: int,
-    initial_damping: float,
-    tol: float,
-    step_tol: float,
-) -> tuple[FloatArray, float, int]:
-    """:func:`levenberg_marquardt`: refined theta, its cost and the iterations used."""
-    theta = theta0.copy()
+def fit_evaluate(model: FitModel, theta: FloatArray) -> tuple[float, tuple[FloatArray, FloatArray]]:
+    """The aggregated fit's ``evaluate``: the cost and, as the point, ``J^T J`` and
+    ``J^T r`` (one product gives all three)."""
+    channel, table, white, data, fixed, layout, priors = model
     normal, gradient, cost = gram_kernel(channel, table, white, data, theta, fixed, layout, priors)
-    n = theta.shape[0]
-    n_pos = 2 * fixed[0].shape[0]
-    damping = initial_damping
-    used = 0
-    converged = False
-    while used < max_iter and not converged:
-        used += 1
-        scaling = np.empty(n)
-        for i in range(n):
-            scaling[i] = max(normal[i, i], DIAGONAL_FLOOR)
-        found = False
-        for _ in range(MAX_REJECTIONS):
-            damped = normal.copy()
-            for i in range(n):
-                damped[i, i] += damping * scaling[i]
-            step, ok = _cholesky_solve(damped, gradient)
-            if not ok:
-                damping *= DAMPING_SINGULAR
-                continue
-            predicted = 0.0
-            for i in range(n):
-                curvature = 0.0
-                for j in range(n):
-                    curvature += normal[i, j] * step[j]
-                predicted += step[i] * (2.0 * gradient[i] - curvature)
-            largest = 0.0
-            for i in range(n_pos):
-                largest = max(largest, abs(step[i]))
-            converged = (n_pos == 0 or largest < step_tol) or predicted < tol * cost
-            trial = np.minimum(np.maximum(theta + step, lower), upper)
-            trial_normal, trial_gradient, trial_cost = gram_kernel(
-                channel, table, white, data, trial, fixed, layout, priors
-            )
-            if trial_cost < cost:
-                converged = converged or (cost - trial_cost) < tol * cost
-                theta, normal, gradient, cost = trial, trial_normal, trial_gradient, trial_cost
-                damping = max(damping / DAMPING_DOWN, MIN_DAMPING)
-                found = True
-                break
-            if converged:
-                found = True
-                break
-            damping *= DAMPING_UP
-        if not found:
-            converged = True  # no decrease found along any damping: a local minimum
+    return cost, (normal, gradient)
+
+
+@compiled
+def fit_normal_equations(
+    _model: FitModel, _theta: FloatArray, point: tuple[FloatArray, FloatArray]
+) -> tuple[FloatArray, FloatArray]:
+    """The aggregated fit's ``normal_equations``: those :func:`fit_evaluate` kept."""
+    return point
+
+
+register_model(FitModel, fit_evaluate, fit_normal_equations)
+
+
+@compiled
+def fit_kernel(
+    fields: Problem, theta0: FloatArray, lower: FloatArray, upper: FloatArray, settings: Problem
+) -> tuple[FloatArray, float, int]:
+    """:func:`.gridless._compiled.lm.lm_kernel` on ``FitModel(*fields)`` with
+    ``LMSettings(*settings)``: theta, cost and iterations. (Plain tuples cross from Python
+    faster than named ones: numba types a named tuple's every field in Python.)"""
+    theta, cost, used, _ = lm_kernel(FitModel(*fields), theta0, lower, upper, LMSettings(*settings))
     return theta, cost, used
 
 

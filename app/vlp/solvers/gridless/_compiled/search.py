@@ -25,14 +25,16 @@ import numpy as np
 
 from ...._kernels import compiled
 from ....typing import FloatArray
+from ..lm import MAX_REJECTIONS, LMSettings
 from .channel import ChannelConstants, TableConstants
 from .fit import (
+    FitModel,
     Problem,
-    lm_kernel,
     residual_kernel,
     whiten_kernel,
     whitening_kernel,
 )
+from .lm import lm_kernel
 from .scores import correlation_scores_kernel
 
 __all__ = ["growth_kernel", "refine_kernel"]
@@ -208,21 +210,15 @@ def _growth_step(
             grown_heights, grown_weights, grown_gains, log_scale, receiver_height
         )
         fixed = (grown_heights, grown_weights, grown_gains, log_scale, on_plane, unit)
-        theta, _, used = lm_kernel(
-            channel,
-            table,
-            white,
-            data,
+        settings = LMSettings(
+            inner_iter, initial_damping, MAX_REJECTIONS, tol, step_tol, 2 * n, True
+        )
+        theta, _, used, _ = lm_kernel(
+            FitModel(channel, table, white, data, fixed, layout, priors),
             theta,
-            fixed,
-            layout,
-            priors,
             lower,
             upper,
-            inner_iter,
-            initial_damping,
-            tol,
-            step_tol,
+            settings,
         )
     return _positions(theta, n), theta[2 * n], used
 
@@ -334,21 +330,13 @@ def refine_kernel(
             metric = _plug_in(channel, table, white, current, fixed, theta[2 * k], is_diag)
         data = whiten_kernel(metric, values)
         _clip(theta, lower, upper)
-        theta, _, used = lm_kernel(
-            channel,
-            table,
-            metric,
-            data,
+        settings = LMSettings(max_iter, initial_damping, MAX_REJECTIONS, tol, step_tol, 2 * k, True)
+        theta, _, used, _ = lm_kernel(
+            FitModel(channel, table, metric, data, fixed, layout, priors),
             theta,
-            fixed,
-            layout,
-            priors,
             lower,
             upper,
-            max_iter,
-            initial_damping,
-            tol,
-            step_tol,
+            settings,
         )
         total += used
         current = _positions(theta, k)

@@ -1,10 +1,10 @@
-"""Compiled model and Levenberg-Marquardt loop of one terminal's own fit.
+"""Compiled model of one terminal's own fit, and the fit from one start.
 
 Stand-ins for :func:`.gridless.terminals.terminal_model` (all its branches: looking straight up,
-a photodiode normal the terminal sent, a fitted tilt) and for the evaluation and
-:func:`.gridless.lm.projected_levenberg_marquardt` loop of
-:func:`.gridless.terminals._levenberg_marquardt` (their NumPy code is the reference and documents
-the model); a whole fit from one start is one call here. Private: callers validate.
+a photodiode normal the terminal sent, a fitted tilt) and for the evaluation of
+:func:`.gridless.terminals._fit_from` (their NumPy code is the reference and documents
+the model) as a :class:`TerminalModel` that :func:`.gridless._compiled.lm.lm_kernel` fits; a
+whole fit from one start is one call here. Private: callers validate.
 
 Parameters are ``theta = [x, y, (z), (tx, ty), u]``. Arguments beyond the channel's
 constants (:func:`.gridless._compiled.channel.channel_constants`):
@@ -18,26 +18,17 @@ constants (:func:`.gridless._compiled.channel.channel_constants`):
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
 from ...._kernels import compiled
 from ....typing import FloatArray
-from ..lm import (
-    DAMPING_DOWN,
-    DAMPING_SINGULAR,
-    DAMPING_UP,
-    DIAGONAL_FLOOR,
-    MIN_DAMPING,
-    PROJECTED_MAX_REJECTIONS,
-    TERMINAL_COST_TOL,
-    TERMINAL_STEP_TOL_M,
-)
+from ..lm import LMSettings
 from .channel import ChannelConstants, TableConstants, channel_rows, diffuse_rows
-from .fit import _cholesky_solve
+from .lm import lm_kernel, register_model
 
-__all__ = ["terminal_lm_kernel", "terminal_model_kernel"]
+__all__ = ["TerminalModel", "terminal_fit_kernel", "terminal_model_kernel"]
 
 Shape = tuple[Any, ...]
 TerminalPriors = tuple[Any, ...]
@@ -130,18 +121,26 @@ def terminal_model_kernel(
     return gains, gradient
 
 
+class TerminalModel(NamedTuple):
+    """One terminal's fit, the model :func:`.gridless._compiled.lm.lm_kernel` fits for
+    :func:`terminal_fit_kernel`."""
+
+    channel: ChannelConstants
+    table: TableConstants
+    amplitudes: FloatArray
+    weights: FloatArray
+    shape: Shape
+    normal: FloatArray
+    priors: TerminalPriors
+
+
 @compiled
-def _evaluate(
-    channel: ChannelConstants,
-    table: TableConstants,
-    amplitudes: FloatArray,
-    weights: FloatArray,
-    theta: FloatArray,
-    shape: Shape,
-    normal: FloatArray,
-    priors: TerminalPriors,
-) -> tuple[FloatArray, FloatArray]:
-    """The reference's ``evaluate``: whitened residual (data, then priors) and Jacobian."""
+def terminal_evaluate(
+    model: TerminalModel, theta: FloatArray
+) -> tuple[float, tuple[FloatArray, FloatArray]]:
+    """The terminal fit's ``evaluate``: the cost and, as the point, the whitened residual
+    (data, then priors) and Jacobian (the reference's ``evaluate``)."""
+    channel, table, amplitudes, weights, shape, normal, priors = model
     free_height, _, free_tilt, _ = shape
     with_priors, log_gain_sd, height_mean, height_sd, tilt_sd = priors
     gains, gradient = terminal_model_kernel(channel, table, theta, shape, normal)
@@ -186,7 +185,19 @@ def _evaluate(
             residual[row] = -theta[tilt_at + offset] / tilt_sd
             jacobian[row, tilt_at + offset] = 1.0 / tilt_sd
             row += 1
-    return residual, jacobian
+    return _squared_norm(residual), (residual, jacobian)
+
+
+@compiled
+def terminal_normal_equations(
+    _model: TerminalModel, _theta: FloatArray, point: tuple[FloatArray, FloatArray]
+) -> tuple[FloatArray, FloatArray]:
+    """The terminal fit's ``normal_equations``: ``J^T J`` and ``J^T r`` of the point."""
+    residual, jacobian = point
+    return jacobian.T @ jacobian, jacobian.T @ residual
+
+
+register_model(TerminalModel, terminal_evaluate, terminal_normal_equations)
 
 
 @compiled
@@ -198,7 +209,7 @@ def _squared_norm(values: FloatArray) -> float:
 
 
 @compiled
-def terminal_lm_kernel(
+def terminal_fit_kernel(
     channel: ChannelConstants,
     table: TableConstants,
     amplitudes: FloatArray,
@@ -209,13 +220,13 @@ def terminal_lm_kernel(
     shape: Shape,
     normal: FloatArray,
     priors: TerminalPriors,
-    max_iter: int,
-    damping: float,
+    settings: tuple[Any, ...],
 ) -> tuple[FloatArray, FloatArray, FloatArray, float]:
-    """One start's projected LM (:func:`projected_levenberg_marquardt` with the reference's
-    ``evaluate`` and stop rule): theta, whitened residual, Jacobian and cost at the last
+    """One start's fit (the reference's start, then :func:`.gridless._compiled.lm.lm_kernel`
+    on a :class:`TerminalModel`): theta, whitened residual, Jacobian and cost at the last
     accepted point. ``theta0``'s last entry (the log gain) is replaced by the least-squares
-    gain of the start's gains, as the reference starts."""
+    gain of the start's gains, as the reference starts. ``settings``: the fields of its
+    :class:`.gridless.lm.LMSettings` (a plain tuple crosses from Python faster)."""
     free_height, has_normal, _, z0 = shape
     theta = theta0.copy()
     start = np.empty(3)
@@ -231,37 +242,12 @@ def terminal_lm_kernel(
         theta[theta.shape[0] - 1] = math.log(max(projection / norm, 1e-6))
     else:
         theta[theta.shape[0] - 1] = 0.0
-    residual, jacobian = _evaluate(
-        channel, table, amplitudes, weights, theta, shape, normal, priors
+    theta, cost, _, point = lm_kernel(
+        TerminalModel(channel, table, amplitudes, weights, shape, normal, priors),
+        theta,
+        lower,
+        upper,
+        LMSettings(*settings),
     )
-    cost = _squared_norm(residual)
-    n = theta.shape[0]
-    for _ in range(max_iter):
-        normal_matrix = jacobian.T @ jacobian
-        gradient = jacobian.T @ residual
-        improved = finished = False
-        for _ in range(PROJECTED_MAX_REJECTIONS):
-            scaled = normal_matrix.copy()
-            for i in range(n):
-                scaled[i, i] += damping * max(normal_matrix[i, i], DIAGONAL_FLOOR)
-            step, ok = _cholesky_solve(scaled, gradient)
-            if not ok:
-                damping *= DAMPING_SINGULAR
-                continue
-            trial = np.minimum(np.maximum(theta + step, lower), upper)
-            trial_residual, trial_jacobian = _evaluate(
-                channel, table, amplitudes, weights, trial, shape, normal, priors
-            )
-            trial_cost = _squared_norm(trial_residual)
-            if trial_cost < cost:
-                finished = cost - trial_cost < TERMINAL_COST_TOL * cost or (
-                    max(abs(step[0]), abs(step[1])) < TERMINAL_STEP_TOL_M
-                )
-                theta, residual, jacobian, cost = trial, trial_residual, trial_jacobian, trial_cost
-                damping = max(damping / DAMPING_DOWN, MIN_DAMPING)
-                improved = True
-                break
-            damping *= DAMPING_UP
-        if not improved or finished:
-            break
+    residual, jacobian = point
     return theta, residual, jacobian, cost

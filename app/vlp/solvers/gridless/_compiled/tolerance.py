@@ -1,12 +1,11 @@
-"""Compiled gains, residual and Jacobian, and LM loop of the joint fit under the room's
-tolerances.
+"""Compiled gains, residual and Jacobian of the joint fit under the room's tolerances, and
+its model for the compiled Levenberg-Marquardt loop.
 
-Stand-ins for :meth:`.gridless.tolerances.JointModel.gains`,
-:meth:`~.gridless.tolerances.JointModel.residual_and_jacobian` and the joint fit's
-``_levenberg_marquardt`` (:func:`.gridless.lm.projected_levenberg_marquardt`); their NumPy
-code is the reference and documents the model. A 16-LED, 8-target evaluation is a few
-hundred small NumPy operations there, bound by their overhead; a whole LM run is one call
-here. Private: callers validate.
+Stand-ins for :meth:`.gridless.joint_model.JointModel.gains` and
+:meth:`~.gridless.joint_model.JointModel.residual_and_jacobian`; their NumPy code is the
+reference and documents the model. A 16-LED, 8-target evaluation is a few hundred small NumPy
+operations there, bound by their overhead; as a :class:`JointFitModel`,
+:func:`.gridless._compiled.lm.lm_kernel` fits it in one call. Private: callers validate.
 
 Arguments come as plain arrays and numbers:
 
@@ -22,22 +21,15 @@ Arguments come as plain arrays and numbers:
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
 from ...._kernels import compiled
 from ....typing import FloatArray
-from ..lm import (
-    DAMPING_DOWN,
-    DAMPING_SINGULAR,
-    DAMPING_UP,
-    DIAGONAL_FLOOR,
-    MIN_DAMPING,
-    PROJECTED_MAX_REJECTIONS,
-)
+from ..lm import LMSettings
 from .channel import ChannelConstants, TableConstants, diffuse_rows
-from .fit import cholesky_substitution
+from .lm import lapack_cholesky_solve, lm_kernel, register_model
 
 __all__ = [
     "GAINS",
@@ -46,8 +38,10 @@ __all__ = [
     "SLOPE_Y",
     "TILT_X",
     "TILT_Y",
+    "JointFitModel",
+    "joint_evaluate",
+    "joint_fit_kernel",
     "joint_gains_kernel",
-    "joint_lm_kernel",
     "joint_residual_kernel",
 ]
 
@@ -286,20 +280,6 @@ def _joint_jacobian(
 
 
 @compiled
-def _damped_solve(normal: FloatArray, gradient: FloatArray) -> tuple[FloatArray, bool]:
-    """Solve ``normal x = gradient`` (symmetric, positive definite once damped): Cholesky,
-    else LU as the reference's ``np.linalg.solve``; False when both fail."""
-    try:
-        factor = np.linalg.cholesky(normal)
-    except Exception:  # not positive definite in round-off: LU, as the reference
-        try:
-            return np.linalg.solve(normal, gradient).astype(np.float64), True
-        except Exception:  # singular
-            return gradient.copy(), False
-    return cholesky_substitution(factor, gradient), True
-
-
-@compiled
 def _normal_equations(
     residual: FloatArray,
     jacobian: FloatArray,
@@ -320,67 +300,56 @@ def _normal_equations(
     return normal, gradient
 
 
+class JointFitModel(NamedTuple):
+    """The joint fit, as :func:`.gridless._compiled.lm.lm_kernel` fits it (``data``
+    whitened by ``white``)."""
+
+    channel: ChannelConstants
+    table: TableConstants
+    white: Problem
+    data: FloatArray
+    heights: FloatArray
+    has_tilts: bool
+    prior_inverse_sd: FloatArray
+
+
 @compiled
-def joint_lm_kernel(
-    channel: ChannelConstants,
-    table: TableConstants,
-    white: Problem,
-    data: FloatArray,
-    theta0: FloatArray,
-    heights: FloatArray,
-    has_tilts: bool,
-    prior_inverse_sd: FloatArray,
-    lower: FloatArray,
-    upper: FloatArray,
-    max_iter: int,
-    damping: float,
-    rel_tol: float,
-) -> tuple[FloatArray, float, int]:
-    """``_levenberg_marquardt`` of :mod:`.gridless.tolerances`, i.e.
-    :func:`.gridless.lm.projected_levenberg_marquardt` on :func:`joint_residual_kernel`
-    stopped at a relative decrease below ``rel_tol``: the fitted theta, its cost and the
-    iterations used."""
+def joint_evaluate(model: JointFitModel, theta: FloatArray) -> tuple[float, Problem]:
+    """The joint fit's ``evaluate``: the cost and, as the point, :func:`_joint_model`'s
+    pieces and the residual (the Jacobian waits for :func:`joint_normal_equations`: about
+    half of the trials are rejected)."""
+    channel, table, white, data, heights, has_tilts, prior_inverse_sd = model
+    pieces, multipliers, rotated = _joint_model(channel, table, white, theta, heights, has_tilts)
+    residual = _joint_residual(white, data, theta, rotated, multipliers, prior_inverse_sd)
+    return np.dot(residual, residual), (pieces, multipliers, rotated, residual)
+
+
+@compiled
+def joint_normal_equations(
+    model: JointFitModel, theta: FloatArray, point: Problem
+) -> tuple[FloatArray, FloatArray]:
+    """The joint fit's ``normal_equations``: the Jacobian at the point, then ``J^T J`` and
+    ``J^T r``."""
+    _, _, white, data, heights, _, prior_inverse_sd = model
+    pieces, multipliers, rotated, residual = point
     n_data = data.shape[0]
-    prior_at = 2 * heights.shape[0]
-    theta = theta0.copy()
-    residual, jacobian = joint_residual_kernel(
-        channel, table, white, data, theta, heights, has_tilts, prior_inverse_sd
+    jacobian = _joint_jacobian(white, n_data, theta, pieces, rotated, multipliers, prior_inverse_sd)
+    normal, gradient = _normal_equations(
+        residual, jacobian, n_data, 2 * heights.shape[0], prior_inverse_sd
     )
-    cost = np.dot(residual, residual)
-    used = 0
-    for _ in range(max_iter):
-        used += 1
-        normal, gradient = _normal_equations(residual, jacobian, n_data, prior_at, prior_inverse_sd)
-        n = gradient.shape[0]
-        improved = finished = False
-        for _ in range(PROJECTED_MAX_REJECTIONS):
-            scaled = normal.copy()
-            for i in range(n):
-                scaled[i, i] += damping * max(normal[i, i], DIAGONAL_FLOOR)
-            step, ok = _damped_solve(scaled, gradient)
-            if not ok:
-                damping *= DAMPING_SINGULAR
-                continue
-            trial = np.minimum(np.maximum(theta + step, lower), upper)
-            # The Jacobian only once the step is taken: about half of the trials are not.
-            pieces, multipliers, rotated = _joint_model(
-                channel, table, white, trial, heights, has_tilts
-            )
-            trial_residual = _joint_residual(
-                white, data, trial, rotated, multipliers, prior_inverse_sd
-            )
-            # A wild trial may overflow: its cost is then inf (or nan) and it is rejected.
-            trial_cost = np.dot(trial_residual, trial_residual)
-            if trial_cost < cost:
-                finished = cost - trial_cost < rel_tol * cost
-                jacobian = _joint_jacobian(
-                    white, n_data, trial, pieces, rotated, multipliers, prior_inverse_sd
-                )
-                theta, residual, cost = trial, trial_residual, trial_cost
-                damping = max(damping / DAMPING_DOWN, MIN_DAMPING)
-                improved = True
-                break
-            damping *= DAMPING_UP
-        if not improved or finished:
-            break
-    return theta, float(cost), used
+    return normal, gradient
+
+
+register_model(JointFitModel, joint_evaluate, joint_normal_equations, lapack_cholesky_solve)
+
+
+@compiled
+def joint_fit_kernel(
+    fields: Problem, theta0: FloatArray, lower: FloatArray, upper: FloatArray, settings: Problem
+) -> tuple[FloatArray, float]:
+    """:func:`.gridless._compiled.lm.lm_kernel` on ``JointFitModel(*fields)`` with
+    ``LMSettings(*settings)``: theta and cost (plain tuples cross from Python faster)."""
+    theta, cost, _, _ = lm_kernel(
+        JointFitModel(*fields), theta0, lower, upper, LMSettings(*settings)
+    )
+    return theta, cost
