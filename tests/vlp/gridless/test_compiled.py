@@ -621,7 +621,13 @@ def test_refinement_is_the_python_refinement(layout_name: str) -> None:
                         )
                     if reference_run.iterations == run.iterations:
                         assert_same(got.positions, reference.positions)
-                        assert_same(got.noise, reference.noise)
+                        # The noise is what is left of the data's energy after the model:
+                        # its round-off is relative to that energy (BLAS kernels differ
+                        # between CPUs), not to the small remainder.
+                        energy = float(values @ values) / values.size
+                        np.testing.assert_allclose(
+                            got.noise, reference.noise, rtol=0.0, atol=RTOL * energy
+                        )
                         checked += 1
     # Round-off may end a reference round one iteration apart; most must agree.
     assert checked >= 20
