@@ -7,6 +7,7 @@ significant share of the residuals, and the answer's radii and sentences.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import replace
 
 import numpy as np
@@ -142,20 +143,28 @@ def solve_terminals(
         first.append(replace(fit, rss=fit.rss + unseen_energy))
     dof = np.array([max(n_leds - fit.n_params, 1) for fit in first])
     sigma2 = sum(fit.rss for fit in first) / float(dof.sum())
-    fits = [
-        fit_terminal(
-            room.kernel,
-            values[k],
-            first[k].position[None, :],
-            priors=room.priors,
-            sigma2=with_censored_variance(sigma2, censored_var[k]),  # [censored hook]
-            height=own_heights[k],
-            normal=own_normals[k],
-            tilt_sd=tilt_sd,
-            tilt_spread_known=tilt_spread_known,
-        )
-        for k in range(n_terminals)
-    ]
+
+    def refitted(
+        starts: list[TerminalFit], variances: Callable[[TerminalFit], float | FloatArray]
+    ) -> list[TerminalFit]:
+        """Every terminal fitted on all the LEDs from ``starts``, its amplitudes weighted by
+        ``variances`` of its start (plus, where censored, their interval's own)."""
+        return [
+            fit_terminal(
+                room.kernel,
+                values[k],
+                start.position[None, :],
+                priors=room.priors,
+                sigma2=with_censored_variance(variances(start), censored_var[k]),  # [censored hook]
+                height=own_heights[k],
+                normal=own_normals[k],
+                tilt_sd=tilt_sd,
+                tilt_spread_known=tilt_spread_known,
+            )
+            for k, start in enumerate(starts)
+        ]
+
+    fits = refitted(first, lambda _: sigma2)
 
     def misfit_of(
         fits: list[TerminalFit], led_errors: bool = True
@@ -185,44 +194,17 @@ def solve_terminals(
     # scatter, and under-covered with it (docs/decisions/measured-radii.md).
     measured = room.fingerprint.layout.amplitude_error if room.receivers_level else None
     if measured is not None:
-        fits = [
-            fit_terminal(
-                room.kernel,
-                values[k],
-                fit.position[None, :],
-                priors=room.priors,
-                sigma2=with_censored_variance(  # [censored hook]
-                    measured_variances(measured, room.scale, fit), censored_var[k]
-                ),
-                height=own_heights[k],
-                normal=own_normals[k],
-                tilt_sd=tilt_sd,
-                tilt_spread_known=tilt_spread_known,
-            )
-            for k, fit in enumerate(fits)
-        ]
+        fits = refitted(fits, lambda fit: measured_variances(measured, room.scale, fit))
         designs, _ = misfit_of(fits, led_errors=False)
         misfit = measured_misfit(measured, designs, [fit.residual for fit in fits])
         reweighted = False
     elif reweighted:
-        fits = [
-            fit_terminal(
-                room.kernel,
-                values[k],
-                fit.position[None, :],
-                priors=room.priors,
-                sigma2=with_censored_variance(  # [censored hook]
-                    misfit.noise * sigma2
-                    + led_error * (fit.jacobian[:, -1] / fit.data_weight) ** 2,
-                    censored_var[k],
-                ),
-                height=own_heights[k],
-                normal=own_normals[k],
-                tilt_sd=tilt_sd,
-                tilt_spread_known=tilt_spread_known,
-            )
-            for k, fit in enumerate(fits)
-        ]
+        fits = refitted(
+            fits,
+            lambda fit: (
+                misfit.noise * sigma2 + led_error * (fit.jacobian[:, -1] / fit.data_weight) ** 2
+            ),
+        )
         # The LEDs' errors are in the weights now: a model error along them as well
         # would count them twice (radii too wide).
         designs, misfit = misfit_of(fits, led_errors=False)
