@@ -43,6 +43,8 @@ __all__ = [
     "TERMINAL_STEP_TOL_M",
     "TOLERANCE_INITIAL_DAMPING",
     "LMSettings",
+    "least_squares_normal_equations",
+    "least_squares_point",
     "levenberg_marquardt",
 ]
 
@@ -102,6 +104,25 @@ class LMSettings(NamedTuple):
 
 
 _Point = TypeVar("_Point")
+# A least-squares model's point: its residual (L,) and Jacobian (L, P).
+ResidualPoint = tuple[FloatArray, FloatArray]
+
+
+def least_squares_point(residual: FloatArray, jacobian: FloatArray) -> tuple[float, ResidualPoint]:
+    """``evaluate``'s answer for a model that gives its residual and Jacobian: the cost
+    ``r^T r`` and the point. A wild trial may overflow: its cost is then inf (or nan), and
+    :func:`levenberg_marquardt` rejects it."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        cost = float(residual @ residual)
+    return cost, (residual, jacobian)
+
+
+def least_squares_normal_equations(
+    _theta: FloatArray, point: ResidualPoint
+) -> tuple[FloatArray, FloatArray]:
+    """``normal_equations`` of such a model: ``J^T J`` and ``J^T r`` at its point."""
+    residual, jacobian = point
+    return jacobian.T @ jacobian, jacobian.T @ residual
 
 
 def levenberg_marquardt(

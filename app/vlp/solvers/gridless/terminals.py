@@ -33,6 +33,8 @@ from .lm import (
     TERMINAL_INITIAL_DAMPING,
     TERMINAL_STEP_TOL_M,
     LMSettings,
+    least_squares_normal_equations,
+    least_squares_point,
     levenberg_marquardt,
 )
 from .state import (
@@ -500,19 +502,10 @@ def _reference_lm(
         if rows_r:
             residual = np.concatenate((residual, rows_r))
             jacobian = np.vstack((jacobian, np.array(rows_j)))
-        # A wild trial may overflow: its cost is then inf (or nan), and LM rejects it.
-        with np.errstate(over="ignore", invalid="ignore"):
-            cost = float(residual @ residual)
-        return cost, (residual, jacobian)
-
-    def normal_equations(
-        _params: FloatArray, point: tuple[FloatArray, FloatArray]
-    ) -> tuple[FloatArray, FloatArray]:
-        residual, jacobian = point
-        return jacobian.T @ jacobian, jacobian.T @ residual
+        return least_squares_point(residual, jacobian)
 
     theta, cost, _, (residual, jacobian) = levenberg_marquardt(
-        evaluate, normal_equations, theta, lower, upper, _LM
+        evaluate, least_squares_normal_equations, theta, lower, upper, _LM
     )
     return theta, residual, jacobian, cost
 

@@ -43,6 +43,8 @@ from .lm import (
     PROJECTED_MAX_REJECTIONS,
     TOLERANCE_INITIAL_DAMPING,
     LMSettings,
+    least_squares_normal_equations,
+    least_squares_point,
     levenberg_marquardt,
 )
 from .state import FitState
@@ -328,19 +330,10 @@ def _fit_joint(
 
     def evaluate(params: FloatArray) -> tuple[float, tuple[FloatArray, FloatArray]]:
         residual, jacobian = model.residual_and_jacobian(params, white, data)
-        # A wild trial may overflow: its cost is then inf (or nan), and LM rejects it.
-        with np.errstate(over="ignore", invalid="ignore"):
-            cost = float(residual @ residual)
-        return cost, (residual, jacobian)
-
-    def normal_equations(
-        _params: FloatArray, point: tuple[FloatArray, FloatArray]
-    ) -> tuple[FloatArray, FloatArray]:
-        residual, jacobian = point
-        return jacobian.T @ jacobian, jacobian.T @ residual
+        return least_squares_point(residual, jacobian)
 
     theta, cost, _, _ = levenberg_marquardt(
-        evaluate, normal_equations, theta, lower, upper, settings
+        evaluate, least_squares_normal_equations, theta, lower, upper, settings
     )
     return theta, cost
 
