@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 from datetime import datetime
 from typing import Any
 
-from pydantic import ConfigDict, Field, StrictBool, field_validator
+from pydantic import ConfigDict, Field, StrictBool, field_validator, model_validator
 
 from app.vlp.constants import (
     DEFAULT_FILTER_GAIN,
@@ -16,6 +17,7 @@ from app.vlp.constants import (
     DEFAULT_PILOT_AMPLITUDE,
     DEFAULT_RECEIVER_AREA_M2,
     DEFAULT_REFRACTIVE_INDEX,
+    MAX_BEAM_ANGLES,
     MAX_RECEIVER_TILT_SD_DEG,
 )
 
@@ -153,6 +155,62 @@ class ReceiverSpec(RequestModel):
     )
 
 
+class BeamSpec(RequestModel):
+    """An LED's emission pattern as a photometric table: relative intensity by the angle off
+    its axis. Any scale (candela or relative); the service normalises it so that the LED
+    emits its pilot amplitude. Between angles the intensity is interpolated smoothly and
+    monotonically; beyond the last angle it is 0."""
+
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [
+                {
+                    "angles_deg": [0, 15, 30, 45, 60, 75, 90],
+                    "relative_intensity": [1.0, 1.04, 1.1, 1.08, 0.75, 0.3, 0.0],
+                }
+            ]
+        }
+    )
+
+    angles_deg: list[FiniteFloat] = Field(
+        min_length=2,
+        max_length=MAX_BEAM_ANGLES,
+        description="degrees off the LED's axis, from 0, increasing, at most 90",
+    )
+    relative_intensity: list[FiniteFloat] = Field(
+        min_length=2,
+        max_length=MAX_BEAM_ANGLES,
+        description="intensity at each angle, >= 0 and positive at 0 degrees",
+    )
+
+    @field_validator("angles_deg")
+    @classmethod
+    def _angles(cls, value: list[float]) -> list[float]:
+        if value[0] != 0:
+            raise ValueError("angles_deg must start at 0 (the LED's axis)")
+        if any(b <= a for a, b in itertools.pairwise(value)):
+            raise ValueError("angles_deg must increase")
+        if value[-1] > 90:
+            raise ValueError("angles_deg must be at most 90")
+        return value
+
+    @field_validator("relative_intensity")
+    @classmethod
+    def _intensities(cls, value: list[float]) -> list[float]:
+        if any(v < 0 for v in value) or value[0] <= 0:
+            raise ValueError("relative_intensity must be >= 0, and positive at 0 degrees")
+        return value
+
+    @model_validator(mode="after")
+    def _same_length(self) -> BeamSpec:
+        if len(self.angles_deg) != len(self.relative_intensity):
+            raise ValueError(
+                f"relative_intensity needs one value per angle: {len(self.angles_deg)} angles, "
+                f"{len(self.relative_intensity)} values"
+            )
+        return self
+
+
 class LedSpec(RequestModel):
     """A ceiling LED: where it is, its beam, its pilot and which way its emitting face looks."""
 
@@ -183,6 +241,13 @@ class LedSpec(RequestModel):
         description="unit normal [nx, ny, nz] of the emitting face in room coordinates, "
         "nz < 0 (stored normalised); default [0, 0, -1], straight down. The channel takes "
         "cos(alpha) = n . (r - s) / d for the angle of emission towards a receiver at r",
+    )
+
+    beam: BeamSpec | None = Field(
+        default=None,
+        description="the LED's emission pattern as a photometric table (intensity by angle "
+        "off its axis); default none: a Lambertian beam of half_power_angle_deg. A survey "
+        "calibration can measure it",
     )
 
     @field_validator("normal")

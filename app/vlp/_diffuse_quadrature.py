@@ -11,6 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .beams import Beam, beam_arrays, evaluate_beams
 from .errors import GeometryError
 from .layout import Layout, Reflectance
 from .typing import BoolArray, FloatArray, IntArray
@@ -120,6 +121,7 @@ class LedFrame:
     tilted: BoolArray
     feet_u: tuple[tuple[float, float], ...]
     feet_v: tuple[tuple[float, float], ...]
+    beams: tuple[Beam | None, ...] = ()
 
     @classmethod
     def of(
@@ -133,8 +135,12 @@ class LedFrame:
     ) -> LedFrame:
         leds = layout.led_positions
         normals = layout.led_normals
-        tilted = np.array([led.tilted for led in layout.leds], dtype=bool)
+        # LEDs with a tabulated beam take the whole-mesh path too (order 0 there, times
+        # their beam's intensity: _tilted_flux).
+        tilted = np.array([led.tilted or led.beam is not None for led in layout.leds], dtype=bool)
+        beams = layout.beams
         if only_led is not None:
+            beams = beams[only_led : only_led + 1]
             leds, orders = leds[only_led : only_led + 1], orders[only_led : only_led + 1]
             normals, tilted = normals[only_led : only_led + 1], tilted[only_led : only_led + 1]
         offsets = leds - surface.origin
@@ -145,6 +151,7 @@ class LedFrame:
         n_leds = leds.shape[0]
         leds, orders, offsets = leds[active], orders[active], offsets[active]
         normals, tilted = normals[active], tilted[active]
+        beams = tuple(beams[i] for i in active)
         frame = np.array([surface.axis_u, surface.axis_v, surface.normal])
         led_u, led_v = offsets @ surface.axis_u, offsets @ surface.axis_v
         led_height = offsets @ surface.normal
@@ -164,6 +171,7 @@ class LedFrame:
             feet_v=tuple(zip(led_v[near].tolist(), led_height[near].tolist(), strict=True)),
             led_normals=normals @ frame.T,
             tilted=tilted,
+            beams=beams,
         )
 
     def contract(self, nodes_u: FloatArray, nodes_v: FloatArray, weights: FloatArray) -> FloatArray:
@@ -214,7 +222,8 @@ class LedFrame:
         along: FloatArray,
     ) -> float:
         """``sum E w`` of a tilted LED: ``E = (m+1)/(2 pi) b c^m / d^(m+3)`` with
-        ``c = n . (node - s)`` (0 where ``c <= 0``, behind its face), on the whole mesh."""
+        ``c = n . (node - s)`` (0 where ``c <= 0``, behind its face), on the whole mesh; for
+        an LED with a tabulated beam (order 0) times ``I(c / d) / int_0^1 I``."""
         n_u, n_v, n_n = self.led_normals[i]
         facing = (
             n_u * (nodes_u[:, None] - self.led_u[i])
@@ -223,6 +232,7 @@ class LedFrame:
         )
         order = float(self.orders[i])
         dist_sq = across[:, None] + along[None, :]
+        cosines = facing / np.sqrt(dist_sq)  # before _inverse_power overwrites dist_sq
         lit = facing > 0
         irradiance = np.where(
             lit,
@@ -233,6 +243,10 @@ class LedFrame:
             * _inverse_power(dist_sq, (order + 3.0) / 2.0),
             0.0,
         )
+        beam = self.beams[i] if self.beams else None
+        if beam is not None:
+            intensity, _ = evaluate_beams(beam_arrays([beam]), cosines.reshape(1, -1))
+            irradiance = irradiance * intensity.reshape(cosines.shape) / beam.hemisphere_integral()
         return float(np.sum(irradiance * weights))
 
 

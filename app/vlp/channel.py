@@ -16,6 +16,11 @@ A tilted LED (layout ``normal`` ``n`` other than straight down) emits at
 behind the LED's face), and its gradient gains ``m h n / c`` from that factor (``n_xy`` on
 the receivers' plane; ``n + e_z c / D`` in 3-D, the ``e_z`` part cancelling the straight-down
 factor's own). For ``n = (0, 0, -1)``, ``c = D`` and nothing changes.
+
+An LED with a tabulated beam (layout ``beam``, :mod:`app.vlp.beams`) has order ``m = 0`` here,
+so the expressions above give ``cos(phi) / d^2`` times its prefactor, and the gain is then
+multiplied by the beam's intensity ``I(cos alpha)``, ``cos(alpha) = n . (r - s) / d``; the
+gradient gains ``h I'(c) / I(c)`` times ``dc/dr = n / d - c (r - s) / d^2``.
 """
 
 from __future__ import annotations
@@ -24,6 +29,7 @@ import math
 
 import numpy as np
 
+from .beams import beam_arrays, evaluate_beams
 from .errors import GeometryError
 from .layout import Layout
 from .typing import FloatArray
@@ -33,6 +39,7 @@ __all__ = [
     "channel_gains",
     "concentrator_gain",
     "lambertian_order",
+    "led_beam_factors",
     "led_constants",
     "led_tilt_factors",
     "los_gain_gradients",
@@ -80,6 +87,10 @@ def concentrator_gain(refractive_index: float, fov_deg: float) -> float:
 def led_constants(layout: Layout) -> tuple[FloatArray, FloatArray]:
     """Per-LED Lambertian order ``m`` and prefactor ``(m+1) A G_f G_c / (2 pi)``.
 
+    An LED with a tabulated beam has ``m = 0`` and the prefactor
+    ``A G_f G_c / (2 pi int_0^1 I dc)`` (its beam's intensity, on the axis 1, multiplies
+    the gain: :func:`led_beam_factors`).
+
     Returns
     -------
     orders : ndarray of shape (M,)
@@ -88,7 +99,37 @@ def led_constants(layout: Layout) -> tuple[FloatArray, FloatArray]:
     rx = layout.receiver
     orders = np.atleast_1d(lambertian_order(layout.half_power_angles_deg))
     gain = rx.area * rx.filter_gain * concentrator_gain(rx.refractive_index, rx.fov_deg)
-    return orders, (orders + 1.0) * gain / (2.0 * math.pi)
+    prefactors = (orders + 1.0) * gain / (2.0 * math.pi)
+    for i, beam in enumerate(layout.beams):
+        if beam is not None:
+            orders[i] = 0.0
+            prefactors[i] = gain / (2.0 * math.pi * beam.hemisphere_integral())
+    return orders, prefactors
+
+
+def led_beam_factors(layout: Layout, to_receiver: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Each LED's tabulated beam towards receivers, and its gradient.
+
+    Parameters
+    ----------
+    layout : Layout
+    to_receiver : ndarray of shape (M, P, 3)
+        ``r - s``: receiver minus LED, metres.
+
+    Returns
+    -------
+    factors : ndarray of shape (M, P)
+        ``I(c)``, ``c = n . (r - s) / d``; exactly 1 for Lambertian LEDs.
+    gradients : ndarray of shape (M, P, 3), per metre
+        ``dI/dr = I'(c) (n / d - c (r - s) / d^2)``; 0 for Lambertian LEDs.
+    """
+    normals = layout.led_normals
+    dist_sq = np.einsum("mpk,mpk->mp", to_receiver, to_receiver)
+    dist = np.sqrt(dist_sq)
+    cosines = np.einsum("mpk,mk->mp", to_receiver, normals) / dist
+    factors, slopes = evaluate_beams(beam_arrays(layout.beams), cosines)
+    along = normals[:, None, :] / dist[:, :, None] - (cosines / dist_sq)[:, :, None] * to_receiver
+    return factors, slopes[:, :, None] * along
 
 
 def channel_gains(layout: Layout, points: FloatArray) -> FloatArray:
@@ -129,12 +170,12 @@ def channel_gain_gradients(layout: Layout, points: FloatArray) -> tuple[FloatArr
     gains, (offsets, dist_sq, orders) = _gains_and_offsets(layout, points)
     scale = -(orders[:, None] + 3.0) * gains / dist_sq
     gradients = scale[:, :, None] * offsets
+    if layout.has_beams:
+        beam, beam_gradients = led_beam_factors(layout, _to_receiver(layout, offsets))
+        lambertian = gains / np.where(beam > 0, beam, 1.0)
+        gradients += lambertian[:, :, None] * beam_gradients[:, :, :2]
     if layout.has_tilted_leds:
-        dz = layout.led_positions[:, 2] - layout.grid.receiver_height
-        to_rx = np.concatenate(
-            (offsets, np.broadcast_to(-dz[:, None, None], (*offsets.shape[:2], 1))), axis=2
-        )
-        _, facing = led_tilt_factors(layout, to_rx)
+        _, facing = led_tilt_factors(layout, _to_receiver(layout, offsets))
         normals = layout.led_normals
         safe = np.where(gains > 0, facing, 1.0)
         gradients += (orders[:, None] * gains / safe)[:, :, None] * normals[:, None, :2]
@@ -162,9 +203,9 @@ def led_tilt_factors(layout: Layout, to_receiver: FloatArray) -> tuple[FloatArra
     drop = -to_receiver[:, :, 2]
     facing = np.einsum("mpk,mk->mp", to_receiver, normals)
     factors = np.ones(drop.shape)
-    orders = np.atleast_1d(lambertian_order(layout.half_power_angles_deg))
+    orders, _ = led_constants(layout)
     for i, led in enumerate(layout.leds):
-        if not led.tilted:
+        if not led.tilted or led.beam is not None:
             facing[i] = drop[i]
             continue
         ahead = (facing[i] > 0) & (drop[i] > 0)
@@ -187,11 +228,18 @@ def _gains_and_offsets(
     gains = prefactors[:, None] * cos_incidence ** (orders[:, None] + 1.0) / dist_sq
     gains = np.where(in_view, gains, 0.0)
     if layout.has_tilted_leds:
-        to_rx = np.concatenate(
-            (offsets, np.broadcast_to(-dz[:, None, None], (*offsets.shape[:2], 1))), axis=2
-        )
-        gains = gains * led_tilt_factors(layout, to_rx)[0]
+        gains = gains * led_tilt_factors(layout, _to_receiver(layout, offsets))[0]
+    if layout.has_beams:
+        gains = gains * led_beam_factors(layout, _to_receiver(layout, offsets))[0]
     return gains, (offsets, dist_sq, orders)
+
+
+def _to_receiver(layout: Layout, offsets: FloatArray) -> FloatArray:
+    """``r - s`` (M, P, 3) for receivers on the plane at horizontal ``offsets`` (M, P, 2)."""
+    dz = layout.led_positions[:, 2] - layout.grid.receiver_height
+    return np.concatenate(
+        (offsets, np.broadcast_to(-dz[:, None, None], (*offsets.shape[:2], 1))), axis=2
+    )
 
 
 def los_gains(
@@ -273,7 +321,12 @@ def los_gain_gradients(
             + np.array([0.0, 0.0, 1.0]) / safe_height[:, :, None]
         )
         bracket = bracket - tilt
-    return gains, np.asarray(-gains[:, :, None] * bracket)
+    gradients = -gains[:, :, None] * bracket
+    if layout.has_beams:
+        beam, beam_gradients = led_beam_factors(layout, -to_led)
+        lambertian = gains / np.where(beam > 0, beam, 1.0)
+        gradients += lambertian[:, :, None] * beam_gradients
+    return gains, np.asarray(gradients)
 
 
 def _normals(normals: FloatArray | None, count: int) -> FloatArray:
@@ -308,4 +361,6 @@ def _los_parts(
     gains = prefactors[:, None] * safe_alpha ** orders[:, None] * cos_phi / dist_sq
     if layout.has_tilted_leds:
         gains = gains * led_tilt_factors(layout, -to_led)[0]
+    if layout.has_beams:
+        gains = gains * led_beam_factors(layout, -to_led)[0]
     return np.where(visible, gains, 0.0), (to_led, dist_sq, cos_phi_num, orders)

@@ -14,6 +14,7 @@ __all__ = [
     "DEFAULT_PILOT_AMPLITUDE",
     "DEFAULT_RECEIVER_AREA_M2",
     "DEFAULT_REFRACTIVE_INDEX",
+    "MAX_BEAM_ANGLES",
     "MAX_TARGETS",
 ]
 
@@ -29,6 +30,9 @@ DEFAULT_LED_NORMAL = (0.0, 0.0, -1.0)
 # Largest spread of the photodiodes' tilt components (``grid.receiver_tilt_sd``), degrees:
 # beyond it a tilt is no small perturbation of a level photodiode (the radii's linearisation).
 MAX_RECEIVER_TILT_SD_DEG = 30.0
+
+# Angles an LED's photometric table (``beam``) may hold: 0-90 degrees in half-degree steps.
+MAX_BEAM_ANGLES = 181
 
 # Upper bound on K accepted by any solver (and on the estimated count when K is unknown).
 MAX_TARGETS = 64

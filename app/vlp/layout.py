@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from .beams import Beam
 from .constants import (
     DEFAULT_FILTER_GAIN,
     DEFAULT_FOV_DEG,
@@ -38,6 +39,7 @@ __all__ = [
     "DEFAULT_REFRACTIVE_INDEX",
     "GRID_RELATIVE_TOLERANCE",
     "AmplitudeError",
+    "Beam",
     "Grid",
     "Layout",
     "Led",
@@ -216,6 +218,9 @@ class Led:
     """A ceiling LED: position (m), half-power angle, pilot amplitude and the unit normal of
     its emitting face in room coordinates (default straight down, ``(0, 0, -1)``).
 
+    ``beam``, when given, is the LED's emission pattern (a photometric table,
+    :class:`~app.vlp.beams.Beam`) and the half-power angle is then only informative.
+
     A finite non-zero ``normal`` is stored normalised; that it points down (``nz < 0``) is
     checked by :class:`Layout`, which names the field.
     """
@@ -226,6 +231,7 @@ class Led:
     half_power_angle_deg: float = DEFAULT_HALF_POWER_ANGLE_DEG
     pilot_amplitude: float = DEFAULT_PILOT_AMPLITUDE
     normal: tuple[float, float, float] = DEFAULT_LED_NORMAL
+    beam: Beam | None = None
 
     def __post_init__(self) -> None:
         values = tuple(float(v) for v in self.normal)
@@ -400,6 +406,16 @@ class Layout:
         """Some LED does not point straight down."""
         return any(led.tilted for led in self.leds)
 
+    @property
+    def has_beams(self) -> bool:
+        """Some LED has a tabulated beam instead of a Lambertian one."""
+        return any(led.beam is not None for led in self.leds)
+
+    @property
+    def beams(self) -> tuple[Beam | None, ...]:
+        """Each LED's tabulated beam, None for a Lambertian one."""
+        return tuple(led.beam for led in self.leds)
+
     def to_mapping(self) -> dict[str, Any]:
         """The layout as the JSON-like mapping of the public ``RoomLayout`` body.
 
@@ -453,6 +469,8 @@ def _led_mapping(led: Led) -> dict[str, Any]:
     }
     if led.tilted:
         out["normal"] = list(led.normal)
+    if led.beam is not None:
+        out["beam"] = led.beam.to_mapping()
     return out
 
 
@@ -494,6 +512,7 @@ def layout_from_mapping(data: Mapping[str, Any]) -> Layout:
                 ),
                 pilot_amplitude=float(led.get("pilot_amplitude", DEFAULT_PILOT_AMPLITUDE)),
                 normal=_normal_field(led.get("normal"), index),
+                beam=_beam_field(led.get("beam"), index),
             )
             for index, led in enumerate(leds_in)
         )
@@ -570,3 +589,25 @@ def _normal_field(value: object, index: int) -> tuple[float, float, float]:
         raise GeometryError(f"{name} must be three numbers [nx, ny, nz], got {value!r}", field=name)
     nx, ny, nz = (_float_field(v, name) for v in value)
     return (nx, ny, nz)
+
+
+def _beam_field(value: object, index: int) -> Beam | None:
+    """An LED's ``beam``: absent or null is Lambertian; else angles and intensities."""
+    if value is None:
+        return None
+    name = f"leds[{index}].beam"
+    if not isinstance(value, Mapping):
+        raise GeometryError(
+            f"{name} must be an object with angles_deg and relative_intensity, got {value!r}",
+            field=name,
+        )
+    parts: dict[str, tuple[float, ...]] = {}
+    for key in ("angles_deg", "relative_intensity"):
+        items = value.get(key)
+        if isinstance(items, str | bytes) or not isinstance(items, Sequence):
+            raise GeometryError(f"{name}.{key} must be a list of numbers", field=f"{name}.{key}")
+        parts[key] = tuple(_float_field(v, f"{name}.{key}") for v in items)
+    try:
+        return Beam(**parts)
+    except GeometryError as exc:
+        raise GeometryError(str(exc), field=f"{name}.{exc.field}") from exc

@@ -39,12 +39,13 @@ def test_create_applies_defaults_and_answers_location_and_etag(client: TestClien
         "half_power_angle_deg": 60.0,
         "pilot_amplitude": 1.0,
         "normal": [0.0, 0.0, -1.0],
+        "beam": None,
     }
     stored = layout_from_mapping(small_room()).to_mapping()
     # The answer also shows the optional real-room fields with their defaults (line of
     # sight only, every receiver on the plane); the stored mapping leaves them out.
     stored["room"] = {**stored["room"], "reflectance": None}
-    stored["leds"] = [{**led, "normal": [0.0, 0.0, -1.0]} for led in stored["leds"]]
+    stored["leds"] = [{**led, "normal": [0.0, 0.0, -1.0], "beam": None} for led in stored["leds"]]
     stored["grid"] = {
         **stored["grid"],
         "receiver_height_sd": 0.0,
@@ -87,6 +88,7 @@ def test_replace_needs_current_etag(client: TestClient) -> None:
             "half_power_angle_deg": 60.0,
             "pilot_amplitude": 1.0,
             "normal": [0.0, 0.0, -1.0],
+            "beam": None,
         }
     ]
     assert replaced.headers["etag"] == f'"{room_id}-2"' != etag
@@ -260,3 +262,26 @@ def test_led_normal_is_stored_normalised_and_bad_normals_name_the_field(
         assert_problem(
             client.post("/v1/rooms", json=body, headers=ADMIN), 422, ["body.leds.0.normal"]
         )
+
+
+def test_led_beam_is_stored_and_bad_beams_name_the_field(client: TestClient) -> None:
+    beam = {"angles_deg": [0, 30, 60, 90], "relative_intensity": [10.0, 11.0, 6.0, 0.0]}
+    body = small_room(leds=[{"x": 1.0, "y": 0.5, "z": 2.0, "beam": beam}])
+    response = client.post("/v1/rooms", json=body, headers=ADMIN)
+    assert response.status_code == 201, response.text
+    assert response.json()["layout"]["leds"][0]["beam"] == {
+        "angles_deg": [0.0, 30.0, 60.0, 90.0],
+        "relative_intensity": [10.0, 11.0, 6.0, 0.0],
+    }
+    bad_beams = (
+        ({"angles_deg": [5, 30], "relative_intensity": [1, 1]}, "angles_deg"),
+        ({"angles_deg": [0, 30, 20], "relative_intensity": [1, 1, 1]}, "angles_deg"),
+        ({"angles_deg": [0, 95], "relative_intensity": [1, 1]}, "angles_deg"),
+        ({"angles_deg": [0, 30], "relative_intensity": [0, 1]}, "relative_intensity"),
+        ({"angles_deg": [0, 30], "relative_intensity": [1, -1]}, "relative_intensity"),
+        ({"angles_deg": [0, 30, 60], "relative_intensity": [1, 1]}, None),
+    )
+    for bad, name in bad_beams:
+        body = small_room(leds=[{"x": 1.0, "y": 0.5, "z": 2.0, "beam": bad}])
+        where = "body.leds.0.beam" + (f".{name}" if name else "")
+        assert_problem(client.post("/v1/rooms", json=body, headers=ADMIN), 422, [where])

@@ -33,7 +33,7 @@ from app.vlp._kernels import (
 )
 from app.vlp._reflection_table import ReflectionTable
 from app.vlp.fingerprints import build_fingerprint
-from app.vlp.layout import Grid, Layout, Led, Receiver, Reflectance, Room
+from app.vlp.layout import Beam, Grid, Layout, Led, Receiver, Reflectance, Room
 from app.vlp.measurements import Model, measurement_from_amplitudes
 from app.vlp.presets import paper_layout
 from app.vlp.simulation import true_amplitudes
@@ -134,7 +134,24 @@ def tilted_layout() -> Layout:
     return dataclasses.replace(base, leds=tuple(leds))
 
 
-LAYOUTS = {"paper": paper_layout, "one_led": one_led_layout, "tilted": tilted_layout}
+def beamed_layout() -> Layout:
+    """The tilted room with batwing beams (photometric tables) on all but one LED."""
+    base = tilted_layout()
+    batwing = Beam(
+        (0.0, 15.0, 30.0, 45.0, 60.0, 75.0, 90.0), (1.0, 1.05, 1.12, 1.1, 0.7, 0.3, 0.05)
+    )
+    leds = tuple(
+        dataclasses.replace(led, beam=batwing if i else None) for i, led in enumerate(base.leds)
+    )
+    return dataclasses.replace(base, leds=leds)
+
+
+LAYOUTS = {
+    "paper": paper_layout,
+    "one_led": one_led_layout,
+    "tilted": tilted_layout,
+    "beamed": beamed_layout,
+}
 TABLES = ("none", "flat", "heights")
 
 
@@ -667,7 +684,7 @@ def _tilted(rng: np.random.Generator, largest: float = 0.45) -> FloatArray:
     return np.asarray(raw / np.linalg.norm(raw), dtype=np.float64)
 
 
-@pytest.mark.parametrize("layout_name", ["paper", "tilted"])
+@pytest.mark.parametrize("layout_name", ["paper", "tilted", "beamed"])
 @pytest.mark.parametrize("table", TABLES)
 @pytest.mark.parametrize(("free_height", "sent_normal", "free_tilt"), _TERMINAL_SHAPES)
 def test_terminal_model_kernel_matches_reference(

@@ -10,6 +10,11 @@ A tilted LED (layout ``normal`` ``n``) multiplies its straight-down line of sigh
 then gains ``m n_x / c``, ``m n_y / c`` and ``m (n_z / c + 1 / D)`` times the gain along x, y
 and z. For LEDs pointing down these are exactly 1 and 0, and a layout without tilted LEDs
 never computes them.
+
+An LED with a tabulated beam (:mod:`app.vlp.beams`) has order 0 here and its gain is then
+multiplied by ``I(c)``, ``c = n . (r - s) / d``; its gradient gains ``h I'(c) dc/dr`` with
+``dc/dr = n / d - c (r - s) / d^2`` (:mod:`app.vlp.channel`). A layout without beams never
+computes them.
 """
 
 from __future__ import annotations
@@ -19,6 +24,7 @@ from typing import Protocol
 
 import numpy as np
 
+from ...beams import beam_arrays, evaluate_beams
 from ...channel import led_constants
 from ...layout import Layout
 from ...typing import FloatArray
@@ -72,6 +78,8 @@ class ChannelKernel:
         self.bounds = np.array([layout.room.length, layout.room.width])
         self.normals = np.ascontiguousarray(layout.led_normals)
         self.has_tilt = layout.has_tilted_leds
+        self.beams = beam_arrays(layout.beams)
+        self.has_beams = layout.has_beams
         self._normal_x = self.normals[:, :1]
         self._normal_y = self.normals[:, 1:2]
         self._normal_z = self.normals[:, 2:]
@@ -108,6 +116,8 @@ class ChannelKernel:
         gains *= d2 <= self._max_d2
         if self.has_tilt:
             gains *= self._tilt(dx, dy, np.sqrt(self._dz2))[0]
+        if self.has_beams:
+            gains *= self._beam(dx, dy, np.sqrt(self._dz2), d2)[0]
         if self.diffuse is not None:
             gains += self.diffuse.evaluate(xs, ys)[0] * self._pilot_over_scale
         return gains
@@ -135,6 +145,13 @@ class ChannelKernel:
         if self.has_tilt:
             out[:, :n_points] += gains * per_x
             out[:, n_points : 2 * n_points] += gains * per_y
+        if self.has_beams:
+            beam, along_x, along_y, _ = self._beam(dx, dy, np.sqrt(self._dz2), d2)
+            out[:, :n_points] *= beam
+            out[:, :n_points] += gains * along_x
+            out[:, n_points : 2 * n_points] *= beam
+            out[:, n_points : 2 * n_points] += gains * along_y
+            gains *= beam
         if self.diffuse is not None:
             values, along_x, along_y, _ = self.diffuse.evaluate(xs, ys)
             gains += values * self._pilot_over_scale
@@ -180,6 +197,13 @@ class ChannelKernel:
             out[:, :n_points] += gains * per_x
             out[:, n_points : 2 * n_points] += gains * per_y
             out[:, 2 * n_points : 3 * n_points] += gains * per_z
+        if self.has_beams:
+            beam, along_x, along_y, along_z = self._beam(dx, dy, drop, d2)
+            for block, along in enumerate((along_x, along_y, along_z)):
+                part = out[:, block * n_points : (block + 1) * n_points]
+                part *= beam
+                part += gains * along
+            gains *= beam
         if self.diffuse is not None:
             values, along_x, along_y, along_z = self.diffuse.evaluate(xs, ys, zs)
             gains += values * self._pilot_over_scale
@@ -203,6 +227,31 @@ class ChannelKernel:
         per_y = self._orders * self._normal_y / safe
         per_z = self._orders * (self._normal_z / safe + 1.0 / drop)
         return factor, per_x, per_y, per_z
+
+    def beam_towards(self, to_receiver: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """The beams' intensity (M, P) and its gradient (M, P, 3) w.r.t. the receiver at
+        ``r - s = to_receiver`` (M, P, 3); rows of Lambertian LEDs 1 and 0."""
+        beam, along_x, along_y, along_z = self._beam(
+            to_receiver[:, :, 0],
+            to_receiver[:, :, 1],
+            -to_receiver[:, :, 2],
+            np.einsum("mpk,mpk->mp", to_receiver, to_receiver),
+        )
+        return beam, np.stack((along_x, along_y, along_z), axis=-1)
+
+    def _beam(
+        self, dx: FloatArray, dy: FloatArray, drop: FloatArray, d2: FloatArray
+    ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+        """The beams' intensity ``I(c)`` and its derivatives along x, y, z, each (M, P);
+        ``drop`` is ``D``, (M, 1) or (M, P). Rows of Lambertian LEDs are 1 and 0."""
+        dist = np.sqrt(d2)
+        cosines = (self._normal_x * dx + self._normal_y * dy - self._normal_z * drop) / dist
+        beam, slope = evaluate_beams(self.beams, cosines)
+        slope = slope / dist
+        along_x = slope * (self._normal_x - cosines * dx / dist)
+        along_y = slope * (self._normal_y - cosines * dy / dist)
+        along_z = slope * (self._normal_z + cosines * drop / dist)
+        return beam, along_x, along_y, along_z
 
     def _distances_squared(
         self, xs: FloatArray, ys: FloatArray

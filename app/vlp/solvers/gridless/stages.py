@@ -95,7 +95,9 @@ def with_room_tolerances(
     and last each photodiode's tilt (:func:`tolerance_tilt_sd`).
 
     Correlation model, K >= 2 (one target's LED errors cannot be told from its
-    position), fixed unit weights and rooms whose Jacobian stays small (dense rooms).
+    position), fixed unit weights, rooms whose Jacobian stays small (dense rooms) and
+    Lambertian LEDs: the stage's beam tolerance is a change of the Lambertian order, which
+    a tabulated beam (a photometric table, or one a survey measured) does not have.
     """
     opts = room.options
     k = state.n_targets
@@ -107,6 +109,7 @@ def with_room_tolerances(
         or gain_sd is None
         or scale_sd is None
         or opts.free_weights
+        or room.kernel.has_beams
         or k < 2
         or not room.dense
         or run.values.shape[0] * (5 * k + 2 * n_leds + 2) > MAX_MISFIT_ENTRIES

@@ -134,6 +134,10 @@ def los_with_normal(
             kernel.normals / safe[:, None] + np.array([0.0, 0.0, 1.0]) / drop[:, None]
         )
         gradient = gradient * factor[:, None] + gains[:, None] * extra
+    if kernel.has_beams:
+        beam, along = kernel.beam_towards(-offsets[:, None, :])
+        gradient = gradient * beam + gains[:, None] * along[:, 0, :]
+        gains = gains * beam[:, 0]
     return gains, gradient
 
 

@@ -225,6 +225,8 @@ def shape_gradients(room: PreparedRoom, positions: FloatArray, heights: FloatArr
         * dist2 ** (-(orders + 3.0) / 2.0)
         * (drop * drop >= kernel.cos_fov2 * dist2)
     )
+    if kernel.has_beams:
+        los = los * kernel.beam_towards(-offsets)[0]
     out = np.empty((k, kernel.n_leds, 3))
     out[:, :, 0] = along_z
     out[:, :, 1:] = ((los / drop)[:, :, np.newaxis] * offsets[:, :, :2]).transpose(1, 0, 2)

@@ -18,10 +18,17 @@ from ...._reflection_table import _UNIT_BASIS, ReflectionTable
 from ....typing import FloatArray
 from ..channel import ChannelKernel, DiffuseTable
 
-__all__ = ["ChannelConstants", "TableConstants", "channel_constants", "channel_rows"]
+__all__ = [
+    "ChannelConstants",
+    "TableConstants",
+    "beam_at",
+    "channel_constants",
+    "channel_rows",
+]
 
 # (led_x, led_y, led_z, dz2, factor, free_height_factor, orders, half_exponent, max_d2,
-#  pilot_over_scale, cos_fov2, receiver_height, normals (M, 3), tilted (M,) bool)
+#  pilot_over_scale, cos_fov2, receiver_height, normals (M, 3), tilted (M,) bool,
+#  beamed (M,) bool, beam knots, values, slopes (M, W), beam counts (M,) int: BeamArrays)
 ChannelConstants = tuple[Any, ...]
 # (n_axes (0: no reflections), nodes, scales, lows, highs, shifts, strides, offsets,
 #  coefficients (rows, M), receiver_height)
@@ -92,9 +99,40 @@ def channel_constants(kernel: ChannelKernel) -> tuple[ChannelConstants, TableCon
         float(kernel.receiver_height),
         np.ascontiguousarray(kernel.normals, dtype=np.float64),
         np.array([bool(n[2] != -1.0 or n[0] != 0.0 or n[1] != 0.0) for n in kernel.normals]),
+        np.ascontiguousarray(kernel.beams.beamed, dtype=np.bool_),
+        np.ascontiguousarray(kernel.beams.knots, dtype=np.float64),
+        np.ascontiguousarray(kernel.beams.values, dtype=np.float64),
+        np.ascontiguousarray(kernel.beams.slopes, dtype=np.float64),
+        np.ascontiguousarray(kernel.beams.counts, dtype=np.int64),
     )
     kernel._compiled = (channel, table)  # type: ignore[attr-defined]
     return channel, table
+
+
+@compiled
+def beam_at(
+    knots: FloatArray, values: FloatArray, slopes: FloatArray, count: int, cosine: float
+) -> tuple[float, float]:
+    """One beam's intensity ``I(c)`` and ``dI/dc`` (:func:`app.vlp.beams.evaluate_beams`:
+    the cubic Hermite interpolant on the last ``count`` knots of the padded row)."""
+    start = knots.shape[0] - count
+    c = min(cosine, 1.0)
+    if c < knots[start]:
+        return 0.0, 0.0
+    cell = start
+    while cell < knots.shape[0] - 2 and knots[cell + 1] <= c:
+        cell += 1
+    h = knots[cell + 1] - knots[cell]
+    t = (c - knots[cell]) / h
+    y0, y1 = values[cell], values[cell + 1]
+    m0, m1 = slopes[cell] * h, slopes[cell + 1] * h
+    t2 = t * t
+    t3 = t2 * t
+    value = (2.0 * t3 - 3.0 * t2 + 1.0) * y0 + (t3 - 2.0 * t2 + t) * m0
+    value += (-2.0 * t3 + 3.0 * t2) * y1 + (t3 - t2) * m1
+    derivative = ((6.0 * t2 - 6.0 * t) * y0 + (3.0 * t2 - 4.0 * t + 1.0) * m0) / h
+    derivative += ((-6.0 * t2 + 6.0 * t) * y1 + (3.0 * t2 - 2.0 * t) * m1) / h
+    return max(value, 0.0), derivative
 
 
 @compiled
@@ -186,6 +224,11 @@ def channel_rows(
         _,
         normals,
         tilted,
+        beamed,
+        beam_knots,
+        beam_values,
+        beam_slopes,
+        beam_counts,
     ) = channel
     n_points = xs.shape[0]
     n_leds = led_x.shape[0]
@@ -214,9 +257,22 @@ def channel_rows(
                     per_x = orders[m] * normals[m, 0] / facing
                     per_y = orders[m] * normals[m, 1] / facing
                 slope = -2.0 * half_exponent[m] * gain / d2
+                along_x = slope * dx + gain * per_x
+                along_y = slope * dy + gain * per_y
+                if beamed[m]:
+                    drop = math.sqrt(dz2[m])
+                    dist = math.sqrt(d2)
+                    c = (normals[m, 0] * dx + normals[m, 1] * dy - normals[m, 2] * drop) / dist
+                    beam, beam_slope = beam_at(
+                        beam_knots[m], beam_values[m], beam_slopes[m], beam_counts[m], c
+                    )
+                    beam_slope /= dist
+                    along_x = along_x * beam + gain * beam_slope * (normals[m, 0] - c * dx / dist)
+                    along_y = along_y * beam + gain * beam_slope * (normals[m, 1] - c * dy / dist)
+                    gain *= beam
                 out[0, p, m] = gain
-                out[1, p, m] = slope * dx + gain * per_x
-                out[2, p, m] = slope * dy + gain * per_y
+                out[1, p, m] = along_x
+                out[2, p, m] = along_y
             else:
                 drop = max(led_z[m] - zs[p], 1e-9)
                 d2 = dx * dx + dy * dy + drop * drop
@@ -239,12 +295,26 @@ def channel_rows(
                     per_y = orders[m] * normals[m, 1] / facing
                     per_z = orders[m] * (normals[m, 2] / facing + 1.0 / drop)
                 slope = -(orders[m] + 3.0) * gain / d2
-                out[0, p, m] = gain
-                out[1, p, m] = slope * dx + gain * per_x
-                out[2, p, m] = slope * dy + gain * per_y
-                out[3, p, m] = (
+                along_x = slope * dx + gain * per_x
+                along_y = slope * dy + gain * per_y
+                along_z = (
                     gain * ((orders[m] + 3.0) * drop / d2 - (orders[m] + 1.0) / drop) + gain * per_z
                 )
+                if beamed[m]:
+                    dist = math.sqrt(d2)
+                    c = (normals[m, 0] * dx + normals[m, 1] * dy - normals[m, 2] * drop) / dist
+                    beam, beam_slope = beam_at(
+                        beam_knots[m], beam_values[m], beam_slopes[m], beam_counts[m], c
+                    )
+                    beam_slope /= dist
+                    along_x = along_x * beam + gain * beam_slope * (normals[m, 0] - c * dx / dist)
+                    along_y = along_y * beam + gain * beam_slope * (normals[m, 1] - c * dy / dist)
+                    along_z = along_z * beam + gain * beam_slope * (normals[m, 2] + c * drop / dist)
+                    gain *= beam
+                out[0, p, m] = gain
+                out[1, p, m] = along_x
+                out[2, p, m] = along_y
+                out[3, p, m] = along_z
     if table[0] != 0:
         diffuse = diffuse_rows(table, xs, ys, zs, not on_plane)
         last = 3 if on_plane else 4

@@ -25,7 +25,7 @@ import numpy as np
 from ...._kernels import compiled
 from ....typing import FloatArray
 from ..lm import LMSettings
-from .channel import ChannelConstants, TableConstants, channel_rows, diffuse_rows
+from .channel import ChannelConstants, TableConstants, beam_at, channel_rows, diffuse_rows
 from .lm import lm_kernel, register_model
 
 __all__ = ["TerminalModel", "terminal_fit_kernel", "terminal_model_kernel"]
@@ -48,6 +48,13 @@ def terminal_model_kernel(
     led_x, led_y, led_z = channel[0], channel[1], channel[2]
     free_height_factor, orders, pilot, cos_fov2 = channel[5], channel[6], channel[9], channel[10]
     normals, tilted = channel[12], channel[13]
+    beamed, beam_knots, beam_values, beam_slopes, beam_counts = (
+        channel[14],
+        channel[15],
+        channel[16],
+        channel[17],
+        channel[18],
+    )
     n_leds = led_x.shape[0]
     x, y = theta[0], theta[1]
     z = theta[2] if free_height else z0
@@ -99,7 +106,6 @@ def terminal_model_kernel(
             per_x = order * normals[m, 0] / emitting
             per_y = order * normals[m, 1] / emitting
             per_z = order * (normals[m, 2] / emitting + 1.0 / drop)
-        gains[m] = gain
         along = (order + 3.0) / dist2
         gradient[m, 0] = gain * (-unit[0] / facing + along * ox + per_x)
         gradient[m, 1] = gain * (-unit[1] / facing + along * oy + per_y)
@@ -112,6 +118,27 @@ def terminal_model_kernel(
                     + along_normal * oy * derivative[1, j]
                     + along_normal * oz * derivative[2, j]
                 )
+        if beamed[m]:
+            # The beam's I(c), c = n_led . (r - s) / d, r - s = -(ox, oy, oz).
+            dist = math.sqrt(dist2)
+            c = -(ox * normals[m, 0] + oy * normals[m, 1] + oz * normals[m, 2]) / dist
+            beam, beam_slope = beam_at(
+                beam_knots[m], beam_values[m], beam_slopes[m], beam_counts[m], c
+            )
+            beam_slope /= dist
+            gradient[m, 0] = gradient[m, 0] * beam + gain * beam_slope * (
+                normals[m, 0] + c * ox / dist
+            )
+            gradient[m, 1] = gradient[m, 1] * beam + gain * beam_slope * (
+                normals[m, 1] + c * oy / dist
+            )
+            gradient[m, 2] = gradient[m, 2] * beam + gain * beam_slope * (
+                normals[m, 2] + c * oz / dist
+            )
+            gradient[m, 3] *= beam
+            gradient[m, 4] *= beam
+            gain *= beam
+        gains[m] = gain
     if table[0] != 0:
         diffuse = diffuse_rows(table, xs, ys, zs, True)
         for m in range(n_leds):
