@@ -216,10 +216,12 @@ def calibrate(
     indices: np.ndarray,
     undetected: str,
     tilt_bound_deg: float | None = None,
+    fit_beams: bool | None = None,
 ) -> dict[str, Any]:
     """Send the survey points' readings; wait for the calibrated fingerprint; the report.
 
-    ``tilt_bound_deg``: the request's ``led_tilt_bound_deg`` (None: the API's default)."""
+    ``tilt_bound_deg``, ``fit_beams``: the request's ``led_tilt_bound_deg`` and
+    ``fit_beams`` (None: the API's default)."""
     # Without "null" a survey cannot say "not detected": those rows are left out.
     rows = [
         {"x": float(x), "y": float(y), "led": led, "amplitude": amp}
@@ -230,6 +232,8 @@ def calibrate(
     body: dict[str, Any] = {"survey": rows}
     if tilt_bound_deg is not None:
         body["led_tilt_bound_deg"] = tilt_bound_deg
+    if fit_beams is not None:
+        body["fit_beams"] = fit_beams
     response = client.post(f"/v1/rooms/{room_id}/calibrations", json=body, headers=HEADERS)
     response.raise_for_status()
     job = _job(client, response.json()["id"])
@@ -437,6 +441,18 @@ def run(
                     undetected,
                     seed,
                 )
+                # ... and with every LED's beam kept Lambertian.
+                lambertian_id = create_room(client, body)
+                calibrate(client, lambertian_id, survey, split.survey, undetected, fit_beams=False)
+                rows += service_rows(
+                    client,
+                    lambertian_id,
+                    survey,
+                    split.test,
+                    "calibrated, fit_beams false",
+                    undetected,
+                    seed,
+                )
     rows += baseline_rows(survey, split.survey, split.test, receiver_z, scale, report)
     info = {
         "survey_points": len(split.survey),
@@ -498,6 +514,26 @@ def _tilt_note(tilts: list[float], angles: list[int]) -> str:
     )
 
 
+def _beam_note(report: dict[str, Any]) -> str:
+    """How many LEDs the survey gave a measured beam, and their median table."""
+    beams = [led["beam"] for led in report.get("leds", []) if led.get("beam")]
+    if not beams:
+        return "The survey told no LED's beam from a Lambertian one."
+    angles = beams[0]["angles_deg"]
+    relative = np.array(
+        [np.array(b["relative_intensity"]) / b["relative_intensity"][0] for b in beams]
+    )
+    median = np.median(relative, axis=0)
+    shown = [i for i, a in enumerate(angles) if a % 15 == 0]
+    header = " | ".join(f"{angles[i]:g}" for i in shown)
+    values = " | ".join(f"{median[i]:.2f}" for i in shown)
+    return (
+        f"The survey measured the beam of {len(beams)} of {len(report.get('leds', []))} LEDs "
+        "(`fit_beams`). Their median intensity, relative to the axis, by degrees off it:\n\n"
+        f"| degrees | {header} |\n|---|{'---|' * len(shown)}\n| intensity | {values} |"
+    )
+
+
 def write_page(
     rows: Sequence[Row], info: dict[str, Any], command: str, out: Path, csv_path: Path
 ) -> None:
@@ -529,8 +565,9 @@ readings), a survey of {info["survey_points"]} points (about one per square metr
 disjoint groups of test points. Errors for K > 1 are after optimal matching. Coverage: how often
 the truth lies inside the answer's 95 % radius `accuracy_m`. "calibrated" rows use the API's
 default calibration (each LED's normal fitted within 15 degrees, the survey's undetected
-readings sent as `null`); "led_tilt_bound_deg 0" rows the same survey with every LED's normal
-kept straight down.
+readings sent as `null`, each LED's beam measured where the survey tells it from a Lambertian
+one); "led_tilt_bound_deg 0" rows the same survey with every LED's normal kept straight down,
+"fit_beams false" rows with every beam kept Lambertian.
 
 {_table(rows)}
 
@@ -560,6 +597,8 @@ that LED's residual sum of squares by more than 8 noise variances (more than cha
 its two parameters): {sum(t > 0 for t in tilts)} of {len(tilts)} LEDs here, which is why the
 `led_tilt_bound_deg 0` rows {"equal" if not any(t > 0 for t in tilts) else "differ from"} the
 calibrated ones.{_tilt_note(tilts, hpa)}
+
+{_beam_note(info["report"])}
 
 Machine:
 

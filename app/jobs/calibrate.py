@@ -18,10 +18,9 @@ from app.vlp.calibration import (
     CalibrationResult,
     calibrate,
     calibrated_layout,
-    half_power_angle_deg,
     masked_layout,
 )
-from app.vlp.channel import led_constants
+from app.vlp.channel import lambertian_order
 from app.vlp.layout import Layout, layout_from_mapping
 from app.vlp.survey import survey_from_rows
 
@@ -40,9 +39,10 @@ def apply_calibration(nominal: Layout, payload: dict[str, Any]) -> dict[str, Any
         request has ``survey`` (rows ``[x, y, led, amplitude]``, may be empty),
         ``masked_leds``, ``mask_dead_leds``, ``dimmed_below``, ``dead_below`` and, in
         requests stored since they exist, ``led_position_bound_m``, ``led_tilt_bound_deg``,
-        ``fit_reflectance`` and ``apply_receiver_gain`` (absent: no position fit, no normal
-        fit, no reflectance fit, gain folded in, as the requests stored before them were
-        fitted). A survey amplitude None (JSON null) is a row whose LED was not detected.
+        ``fit_reflectance``, ``fit_beams`` and ``apply_receiver_gain`` (absent: no position
+        fit, no normal fit, no reflectance fit, no beam fit, gain folded in, as the requests
+        stored before them were fitted). A survey amplitude None (JSON null) is a row whose
+        LED was not detected.
 
     Returns
     -------
@@ -67,6 +67,7 @@ def apply_calibration(nominal: Layout, payload: dict[str, Any]) -> dict[str, Any
             led_position_bound_m=float(request.get("led_position_bound_m", 0.0)),
             led_tilt_bound_deg=float(request.get("led_tilt_bound_deg", 0.0)),
             fit_reflectance=bool(request.get("fit_reflectance", False)),
+            fit_beams=bool(request.get("fit_beams", False)),
         )
         calibrated = calibrated_layout(
             nominal, result, apply_receiver_gain=bool(request.get("apply_receiver_gain", True))
@@ -99,12 +100,17 @@ def _number(value: float) -> float | None:
     return float(value) if math.isfinite(value) else None
 
 
+def _beam(result: CalibrationResult, nominal: Layout, index: int) -> dict[str, Any] | None:
+    beam = result.beams[index] if result.beams else nominal.leds[index].beam
+    return None if beam is None else beam.to_mapping()
+
+
 def _report(nominal: Layout, result: CalibrationResult, n_rows: int) -> dict[str, Any]:
     """The fit per LED, with a flag ``ok``/``dimmed``/``dead``/``unsurveyed``."""
     flags = {i: "dimmed" for i in result.dimmed_leds}
     flags.update({i: "unsurveyed" for i in result.unsurveyed_leds})
     flags.update({i: "dead" for i in result.dead_leds})
-    orders_nominal, _ = led_constants(nominal)
+    orders_nominal = lambertian_order(nominal.half_power_angles_deg)
     leds = [
         {
             "index": i,
@@ -128,6 +134,7 @@ def _report(nominal: Layout, result: CalibrationResult, n_rows: int) -> dict[str
             "normal": [float(v) for v in result.led_normals[i]],
             "tilt_deg": float(result.tilts_deg[i]),
             "tilt_azimuth_deg": float(result.tilt_azimuths_deg[i]),
+            "beam": _beam(result, nominal, i),
         }
         for i in range(nominal.n_leds)
     ]
@@ -163,8 +170,9 @@ def _normal_report(normal: tuple[float, float, float]) -> dict[str, Any]:
 
 def _nominal_report(nominal: Layout) -> dict[str, Any]:
     """The report of a room never calibrated: its nominal model, every LED unsurveyed."""
-    orders, _ = led_constants(nominal)
-    angles = half_power_angle_deg(orders)
+    # The orders the layout states (an LED with a beam has order 0 in the channel).
+    angles = nominal.half_power_angles_deg
+    orders = lambertian_order(angles)
     leds = [
         {
             "index": i,
@@ -186,6 +194,7 @@ def _nominal_report(nominal: Layout) -> dict[str, Any]:
             "nominal_y": float(led.y),
             "shift_m": 0.0,
             **_normal_report(led.normal),
+            "beam": None if led.beam is None else led.beam.to_mapping(),
         }
         for i, led in enumerate(nominal.leds)
     ]

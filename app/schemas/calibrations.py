@@ -146,6 +146,14 @@ class CalibrationCreate(RequestModel):
         "surveyed points (walls for receivers facing up), reported with its sd; the others "
         "keep the layout's value (0 when the layout has none)",
     )
+    fit_beams: bool = Field(
+        default=True,
+        strict=True,
+        description="also measure each LED's beam (intensity by angle off its axis) where "
+        "the survey tells it from a Lambertian one (16 detected points in the LED's view, and "
+        "a fit better than chance); the calibrated layout then carries it as the LED's "
+        "`beam` table. LEDs whose layout gives a beam keep it",
+    )
     apply_receiver_gain: bool = Field(
         default=True,
         strict=True,
@@ -154,6 +162,13 @@ class CalibrationCreate(RequestModel):
         "false: keep the layout's receiver, so a survey receiver whose gain drifted does not "
         "move the fingerprint)",
     )
+
+
+class BeamTable(ResponseModel):
+    """An LED's beam: relative intensity by the angle off its axis (the layout's `beam`)."""
+
+    angles_deg: list[float]
+    relative_intensity: list[float]
 
 
 class LedCalibration(ResponseModel):
@@ -189,6 +204,12 @@ class LedCalibration(ResponseModel):
         default=None,
         description="direction the face turns to, degrees counter-clockwise from +x in "
         "[0, 360) (0 when not tilted)",
+    )
+    beam: BeamTable | None = Field(
+        default=None,
+        description="the LED's beam in the calibrated model when it is not Lambertian: "
+        "measured by the survey (`fit_beams`) or given by the layout; null: Lambertian of "
+        "`half_power_angle_deg`",
     )
 
 
@@ -247,6 +268,7 @@ class Calibration(ResponseModel):
         default=0.0, description="the requested bound of the LEDs' normal fit, degrees"
     )
     fit_reflectance: bool = Field(default=False, description="reflectances were requested")
+    fit_beams: bool = Field(default=False, description="beams were requested")
     apply_receiver_gain: bool = Field(
         default=True, description="the receiver gain was folded into the fingerprint"
     )

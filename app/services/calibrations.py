@@ -81,5 +81,6 @@ def _checked_request(body: CalibrationCreate, layout: Layout) -> dict[str, Any]:
         "led_position_bound_m": body.led_position_bound_m,
         "led_tilt_bound_deg": body.led_tilt_bound_deg,
         "fit_reflectance": body.fit_reflectance,
+        "fit_beams": body.fit_beams,
         "apply_receiver_gain": body.apply_receiver_gain,
     }

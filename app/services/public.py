@@ -128,6 +128,7 @@ def calibration_public(record: CalibrationRecord) -> Calibration:
         led_position_bound_m=float(record.request.get("led_position_bound_m", 0.0)),
         led_tilt_bound_deg=float(record.request.get("led_tilt_bound_deg", 0.0)),
         fit_reflectance=bool(record.request.get("fit_reflectance", False)),
+        fit_beams=bool(record.request.get("fit_beams", False)),
         apply_receiver_gain=bool(record.request.get("apply_receiver_gain", True)),
         reflectance=_optional(CalibratedReflectance, report.get("reflectance")),
         reflectance_sd=_optional(ReflectanceSd, report.get("reflectance_sd")),

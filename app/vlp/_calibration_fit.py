@@ -14,6 +14,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.optimize import least_squares
 
+from .beams import Beam, BeamArrays, beam_arrays, evaluate_beams
 from .channel import lambertian_order, led_constants
 from .constants import DEFAULT_LED_NORMAL
 from .layout import Layout, Reflectance
@@ -27,6 +28,7 @@ __all__ = [
     "MAX_ORDER",
     "MAX_REFLECTANCE",
     "MIN_ORDER",
+    "MIN_ROWS_FOR_BEAM",
     "MIN_ROWS_FOR_POSITION",
     "MIN_ROWS_FOR_TILT",
     "SURFACE_NAMES",
@@ -37,8 +39,10 @@ __all__ = [
     "fit_jointly",
     "fit_led",
     "led_rows",
+    "measured_beam",
     "rms_per_led",
     "tilt_frame",
+    "with_beam",
 ]
 
 # Lambertian orders allowed in the fit: half-power angles between 89.5 and 0.5 degrees.
@@ -50,6 +54,16 @@ MIN_ROWS_FOR_ORDER = 3
 MIN_ROWS_FOR_POSITION = 8
 # ... and the tilt of its normal too (6 parameters).
 MIN_ROWS_FOR_TILT = 12
+# ... and the shape of its beam (BEAM_TERMS parameters more than the Lambertian order).
+MIN_ROWS_FOR_BEAM = 16
+# A measured beam is the Lambertian one times exp(sum_k a_k u^k), u = 1 - cos(alpha), k = 1..3:
+# smooth, flat on the axis, and as many parameters as a survey's tens of rows per LED carry.
+BEAM_TERMS = 3
+# A measured beam that stays within this (log) fraction of the Lambertian one over the
+# surveyed angles is not kept: a survey without noise would otherwise fit its round-off.
+MIN_BEAM_CHANGE = 0.01
+# Its table: every 5 degrees from the axis to 90.
+BEAM_TABLE_STEP_DEG = 5.0
 # Cost decrease (in noise variances) a fitted LED tilt must bring to be kept: 2 + 3 sqrt(2 * 2)
 # for its two parameters (chi-squared with 2 degrees of freedom, 3 sd above its mean).
 TILT_SIGNIFICANCE = 8.0
@@ -93,6 +107,9 @@ class LedRows:
     tilt_scale: float = 0.0  # tan(bound); 0: the normal is the layout's
     censored: BoolArray = field(default_factory=lambda: np.zeros(0, dtype=bool))
     floor: float = 0.0
+    # The LED's tabulated beam (its order is then 0 and not fitted): the line of sight is
+    # multiplied by I(c), c = n . (r - s) / d.
+    beam: BeamArrays | None = None
 
     @property
     def size(self) -> int:
@@ -140,9 +157,20 @@ class LedRows:
         self, order: float, shift: FloatArray, tilt: FloatArray | None = None
     ) -> FloatArray:
         """``x0 h_los`` at ratio 1 (0 outside the FOV and behind the LED's face)."""
-        log_alpha, log_phi, dist_sq, view, _, _ = self.geometry(shift, tilt)
+        return self._line_of_sight(order, shift, tilt)[0]
+
+    def _line_of_sight(
+        self, order: float, shift: FloatArray, tilt: FloatArray | None = None
+    ) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """:meth:`line_of_sight`, the Lambertian part alone (the whole without a beam) and
+        ``dI/dc`` of the beam (zeros without one)."""
+        log_alpha, log_phi, dist_sq, view, facing, _ = self.geometry(shift, tilt)
         gain = self.base * (order + 1.0) * np.exp(order * log_alpha + log_phi) / dist_sq
-        return np.asarray(np.where(view, gain, 0.0))
+        lambertian = np.asarray(np.where(view, gain, 0.0))
+        if self.beam is None:
+            return lambertian, lambertian, np.zeros_like(lambertian)
+        intensity, slope = evaluate_beams(self.beam, (facing / np.sqrt(dist_sq))[None, :])
+        return lambertian * intensity[0], lambertian, slope[0]
 
     def reflected(self, rho: FloatArray) -> FloatArray:
         if self.diffuse.shape[0] == 0:
@@ -179,7 +207,7 @@ class LedRows:
         tilt = np.zeros(2) if tilt is None else tilt
         unit, along_uv = self.normal_at(tilt)
         log_alpha, _, dist_sq, view, facing, to_rx = self.geometry(shift, tilt)
-        los = self.line_of_sight(order, shift, tilt)
+        los, lambertian, beam_slope = self._line_of_sight(order, shift, tilt)
         safe = np.where(view, facing, 1.0)
         rel = to_rx[:, :2]
         d_shift = (
@@ -188,6 +216,14 @@ class LedRows:
             * (((order + 3.0) / dist_sq)[:, None] * rel - order * unit[None, :2] / safe[:, None])
         )
         d_tilt = ratio * los[:, None] * order * (to_rx @ along_uv.T) / safe[:, None]
+        if self.beam is not None:
+            # I(c), c = n . (r - s) / d: the shift moves s (dc = -(n / d - c (r - s) / d^2)),
+            # the tilt n (dc = (r - s) . dn / d).
+            dist = np.sqrt(dist_sq)
+            cosine = facing / dist
+            along = ratio * lambertian * beam_slope / dist
+            d_shift -= along[:, None] * (unit[None, :2] - (cosine / dist)[:, None] * rel)
+            d_tilt += along[:, None] * (to_rx @ along_uv.T)
         columns = np.column_stack(
             (
                 los + self.reflected(rho),
@@ -266,6 +302,7 @@ def led_rows(
     NaN amplitudes are censored below ``floor``."""
     led = layout.leds[index]
     orders, prefactors = led_constants(layout)
+    beam = None if led.beam is None else beam_arrays([led.beam])
     base = float(layout.pilot_amplitudes[index] * prefactors[index] / (orders[index] + 1.0))
     normal = np.array(led.normal, dtype=np.float64)
     censored = np.isnan(amplitudes)
@@ -281,6 +318,7 @@ def led_rows(
         tilt_scale=math.tan(math.radians(tilt_bound_deg)),
         censored=censored,
         floor=floor,
+        beam=beam,
     )
 
 
@@ -333,7 +371,8 @@ def fit_led(rows: LedRows, nominal_order: float, rho: FloatArray, shift_bound: f
     """
     n_view = rows.detected_in_view()
     free_shift = shift_bound > 0 and n_view >= MIN_ROWS_FOR_POSITION
-    level = (True, n_view >= MIN_ROWS_FOR_ORDER, free_shift, free_shift, False, False)
+    free_order = n_view >= MIN_ROWS_FOR_ORDER and rows.beam is None
+    level = (True, free_order, free_shift, free_shift, False, False)
     fit, cost = _fit_led_with(
         rows, LedFit(1.0, nominal_order, np.zeros(2), level), rho, shift_bound
     )
@@ -348,6 +387,61 @@ def fit_led(rows: LedRows, nominal_order: float, rho: FloatArray, shift_bound: f
     if noise_var > 0 and 2.0 * (cost - tilted_cost) > TILT_SIGNIFICANCE * noise_var:
         return tilted
     return fit
+
+
+def measured_beam(rows: LedRows, fit: LedFit, rho: FloatArray) -> Beam | None:
+    """The LED's beam as the survey shows it, or None when the survey cannot tell it from
+    the fitted Lambertian one.
+
+    The detected rows in view give ``ln(a / f)`` (measured over the fitted model) against
+    ``u = 1 - cos(alpha)`` of the fitted LED; a weighted least-squares polynomial
+    ``a_0 + sum_k a_k u^k`` (:data:`BEAM_TERMS`; weights ``a``, as ``var(ln a) ~ 1 / a^2``)
+    is the correction, ``a_0`` a change of amplitude. It is kept when it lowers the
+    amplitudes' squared misfit by more than chance would (``p + 3 sqrt(2 p)`` noise
+    variances, ``p = BEAM_TERMS + 1``, the noise from the fit without it, as the tilt's
+    gate), and when it moves the beam by more than :data:`MIN_BEAM_CHANGE` somewhere in the
+    surveyed angles. The table is ``cos^m(alpha) exp(sum_k a_k u^k)`` every
+    :data:`BEAM_TABLE_STEP_DEG`, the correction held at its value at the widest angle the
+    survey saw beyond it. Needs :data:`MIN_ROWS_FOR_BEAM` rows; an LED whose layout gives a
+    beam keeps it.
+    """
+    if rows.beam is not None or rows.detected_in_view() < MIN_ROWS_FOR_BEAM:
+        return None
+    modelled = rows.model(fit.ratio, fit.order, fit.shift, rho, fit.tilt)
+    _, _, dist_sq, view, facing, _ = rows.geometry(fit.shift, fit.tilt)
+    used = view & ~rows.is_censored & (modelled > 0) & (rows.amplitudes > 0)
+    n_used = int(np.count_nonzero(used))
+    n_terms = BEAM_TERMS + 1
+    if n_used < MIN_ROWS_FOR_BEAM:
+        return None
+    measured = rows.amplitudes[used]
+    u = 1.0 - facing[used] / np.sqrt(dist_sq[used])
+    design = u[:, None] ** np.arange(n_terms)[None, :]
+    weights = measured / float(np.max(measured))
+    target = np.log(measured / modelled[used])
+    coefficients, *_ = np.linalg.lstsq(design * weights[:, None], target * weights, rcond=None)
+    corrected = modelled[used] * np.exp(design @ coefficients)
+    cost_before = float(np.sum((measured - modelled[used]) ** 2))
+    cost_after = float(np.sum((measured - corrected) ** 2))
+    dof = max(n_used - int(np.count_nonzero(fit.free)), 1)
+    chance = n_terms + 3.0 * math.sqrt(2.0 * n_terms)
+    if not cost_before - cost_after > chance * cost_before / dof:
+        return None
+    if float(np.max(np.abs(design[:, 1:] @ coefficients[1:]))) < MIN_BEAM_CHANGE:
+        return None  # within a percent of the Lambertian beam: nothing worth a table
+    angles = np.arange(0.0, 90.0 + BEAM_TABLE_STEP_DEG / 2, BEAM_TABLE_STEP_DEG)
+    cosines = np.cos(np.radians(angles)).clip(0.0, 1.0)
+    held = np.minimum(1.0 - cosines, float(np.max(u)))
+    shape = np.exp((held[:, None] ** np.arange(1, n_terms)[None, :]) @ coefficients[1:])
+    values = cosines**fit.order * shape
+    values[-1] = 0.0  # cos(90 degrees)^m: exactly 0, not 1e-17^m
+    return Beam(tuple(float(a) for a in angles), tuple(float(v) for v in values))
+
+
+def with_beam(rows: LedRows, beam: Beam) -> LedRows:
+    """The rows of the LED with ``beam`` (order 0; its base divided by the beam's
+    hemisphere integral, as :func:`app.vlp.channel.led_constants` does)."""
+    return replace(rows, base=rows.base / beam.hemisphere_integral(), beam=beam_arrays([beam]))
 
 
 def _fit_led_with(
@@ -371,7 +465,7 @@ def _fit_led_with(
 
     lower, upper = _bounds(start, shift_bound)
     starts = [start.params()]
-    log_start = log_linear_start(rows) if from_start else None
+    log_start = log_linear_start(rows) if from_start and rows.beam is None else None
     if log_start is not None:
         starts.append(
             LedFit(float(log_start[0]), float(log_start[1]), np.zeros(2), start.free).params()

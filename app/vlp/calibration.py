@@ -49,6 +49,7 @@ import numpy as np
 from scipy import optimize
 
 from ._calibration_fit import (
+    MIN_ROWS_FOR_BEAM,
     MIN_ROWS_FOR_POSITION,
     MIN_ROWS_FOR_TILT,
     SURFACE_NAMES,
@@ -60,17 +61,20 @@ from ._calibration_fit import (
     fit_led,
     identifiable_surfaces,
     led_rows,
+    measured_beam,
     rms_per_led,
+    with_beam,
 )
-from .channel import led_constants
+from .channel import lambertian_order, led_constants
 from .errors import MeasurementError
-from .layout import AmplitudeError, Layout, Led, Reflectance
+from .layout import AmplitudeError, Beam, Layout, Led, Reflectance
 from .survey import Survey, check_survey, simulate_survey, survey_from_rows
 from .typing import BoolArray, FloatArray, IntArray
 
 __all__ = [
     "DEFAULT_LED_POSITION_BOUND_M",
     "DEFAULT_LED_TILT_BOUND_DEG",
+    "MIN_ROWS_FOR_BEAM",
     "MIN_ROWS_FOR_POSITION",
     "MIN_ROWS_FOR_TILT",
     "SURFACE_NAMES",
@@ -179,6 +183,7 @@ class CalibrationResult:
     tilts_deg: FloatArray
     tilt_azimuths_deg: FloatArray
     amplitude_error: AmplitudeError | None = None
+    beams: tuple[Beam | None, ...] = ()
 
     def to_mapping(self) -> dict[str, Any]:
         """The result as JSON-ready plain values (NaN residuals become None)."""
@@ -207,6 +212,7 @@ def calibrate(
     led_position_bound_m: float = DEFAULT_LED_POSITION_BOUND_M,
     fit_reflectance: bool = False,
     led_tilt_bound_deg: float = DEFAULT_LED_TILT_BOUND_DEG,
+    fit_beams: bool = False,
 ) -> CalibrationResult:
     """Fit per-LED pilot amplitudes, Lambertian orders, ``x, y`` and normals (and the receiver
     gain, and optionally the surfaces' reflectances) to a survey.
@@ -231,6 +237,11 @@ def calibrate(
     led_tilt_bound_deg : float, default=15
         Each LED's normal is fitted within this many degrees of the layout's (0: kept as in
         the layout). Needs :data:`MIN_ROWS_FOR_TILT` detected rows in the LED's view.
+    fit_beams : bool, default=False
+        Also measure each LED's beam where the survey tells it from a Lambertian one
+        (:func:`~app.vlp._calibration_fit.measured_beam`; needs
+        :data:`MIN_ROWS_FOR_BEAM` detected rows in view), then fit the LED again with it.
+        LEDs whose layout gives a beam keep it.
 
     Returns
     -------
@@ -314,9 +325,24 @@ def calibrate(
             layout, survey, groups, per_row, rho_fit, fitted_surfaces, bounds
         )
     rho = rho_fit
+    # LEDs whose layout gives a beam report the Lambertian order their layout states.
+    stated = np.atleast_1d(lambertian_order(layout.half_power_angles_deg))
+    beam_given = np.array([b is not None for b in layout.beams])
+    lambertian_orders = np.where(beam_given, stated, np.array([f.order for f in fits]))
+    beams = list(layout.beams)
+    if fit_beams:
+        for i, (r, f) in enumerate(zip(rows, fits, strict=True)):
+            beam = measured_beam(r, f, rho) if np.any(r.in_view()) else None
+            if beam is not None:
+                rows[i] = with_beam(r, beam)
+                fits[i] = fit_led(rows[i], 0.0, rho, led_position_bound_m)
+                beams[i] = beam
     in_view = np.array([int(np.count_nonzero(r.in_view())) for r in rows], dtype=np.intp)
     ratios = np.array([f.ratio for f in fits])
-    orders = np.array([f.order for f in fits])
+    # An LED given a beam reports the Lambertian order that its beam replaced.
+    beamed = np.array([b is not None for b in beams])
+    orders = np.where(beamed, lambertian_orders, np.array([f.order for f in fits]))
+    orders_nominal = np.where(beam_given, stated, orders_nominal)
     shifts = np.array([f.shift for f in fits]).reshape(n_leds, 2)
     modelled = _model(rows, groups, survey.n_rows, fits, rho)
     residuals = _measured_minus_model(survey, modelled)
@@ -331,6 +357,7 @@ def calibrate(
     shifts = np.where(dead[:, None], 0.0, shifts)
     normals = np.array([r.normal_at(f.tilt)[0] for r, f in zip(rows, fits, strict=True)])
     normals = np.where(dead[:, None], layout.led_normals, normals)
+    beams = [layout.leds[i].beam if dead[i] else b for i, b in enumerate(beams)]
     return CalibrationResult(
         pilot_amplitudes=np.where(dead, nominal, relative * nominal),
         lambertian_orders=orders,
@@ -358,6 +385,7 @@ def calibrate(
         tilts_deg=np.rad2deg(np.arccos(np.clip(-normals[:, 2], -1.0, 1.0))),
         tilt_azimuths_deg=_azimuths_deg(normals),
         amplitude_error=_amplitude_error(survey, modelled, n_params),
+        beams=tuple(beams),
     )
 
 
@@ -397,6 +425,7 @@ def calibrated_layout(
             pilot_amplitude=float(result.pilot_amplitudes[i]),
             half_power_angle_deg=float(result.half_power_angles_deg[i]),
             normal=_normal_tuple(result.led_normals[i]),
+            beam=result.beams[i] if result.beams else led.beam,
         )
         for i, led in enumerate(layout.leds)
     )
@@ -562,7 +591,8 @@ def _refreshed(layout: Layout, rows: list[LedRows], fits: list[LedFit]) -> Layou
             leds.append(led)
             continue
         x, y = np.clip(np.array([led.x, led.y]) + fit.shift, 0.0, upper)
-        angle = float(half_power_angle_deg(fit.order))
+        # An LED with a beam has order 0 in the fit: its stated angle stays.
+        angle = led.half_power_angle_deg if led.beam else float(half_power_angle_deg(fit.order))
         normal = _normal_tuple(r.normal_at(fit.tilt)[0])
         leds.append(replace(led, x=float(x), y=float(y), half_power_angle_deg=angle, normal=normal))
     return replace(layout, leds=tuple(leds))

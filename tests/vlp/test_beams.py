@@ -188,3 +188,77 @@ def test_a_layout_maps_its_beams_both_ways() -> None:
     with pytest.raises(GeometryError) as caught:
         layout_from_mapping(mapping)
     assert caught.value.field == "leds[2].beam.relative_intensity"
+
+
+def _survey_points(layout: Layout, step: float = 0.4) -> np.ndarray:
+    xs = np.arange(step / 2, layout.room.length, step)
+    ys = np.arange(step / 2, layout.room.width, step)
+    return np.array([(x, y) for x in xs for y in ys])
+
+
+def _model_error(truth: Layout, model: Layout) -> float:
+    """RMS of the amplitude model over the room, relative to the truth's (independent of
+    the calibration: the two layouts' channels at fresh points)."""
+    points = np.random.default_rng(5).uniform(0.2, 3.8, (300, 2))
+    want = channel_gains(truth, points) * truth.pilot_amplitudes[:, None]
+    got = channel_gains(model, points) * model.pilot_amplitudes[:, None]
+    return float(np.sqrt(np.mean((got - want) ** 2) / np.mean(want**2)))
+
+
+def test_a_survey_measures_a_batwing_beam_and_leaves_a_lambertian_one() -> None:
+    from app.vlp.calibration import calibrate, calibrated_layout
+    from app.vlp.survey import simulate_survey
+
+    room = paper_layout()
+    batwing_room = _with_beams(room, BATWING)
+    points = _survey_points(room)
+    lambertian_survey = simulate_survey(room, points, 1e-7, rng=0)
+    kept = calibrate(room, lambertian_survey, fit_beams=True)
+    assert all(beam is None for beam in kept.beams)  # nothing beyond chance to measure
+    survey = simulate_survey(batwing_room, points, 1e-7, rng=0)
+    plain = calibrated_layout(room, calibrate(room, survey))
+    result = calibrate(room, survey, fit_beams=True)
+    measured = calibrated_layout(room, result)
+    assert all(beam is not None for beam in result.beams)
+    assert all(led.beam is not None for led in measured.leds)
+    assert _model_error(batwing_room, measured) < 0.6 * _model_error(batwing_room, plain)
+    # The measured table rises off the axis as the batwing does (1.12 at 30 degrees).
+    beam = measured.leds[5].beam
+    assert beam is not None
+    at_30 = beam.relative_intensity[beam.angles_deg.index(30.0)] / beam.relative_intensity[0]
+    assert at_30 > 1.05
+
+
+def test_a_layout_beam_is_kept_and_its_amplitude_fitted() -> None:
+    from app.vlp.calibration import calibrate, calibrated_layout
+    from app.vlp.survey import simulate_survey
+
+    nominal = _with_beams(paper_layout(), BATWING)
+    brighter = replace(
+        nominal, leds=tuple(replace(led, pilot_amplitude=1.3) for led in nominal.leds)
+    )
+    survey = simulate_survey(brighter, _survey_points(nominal), 1e-8, rng=1)
+    result = calibrate(nominal, survey, fit_beams=True, led_tilt_bound_deg=0.0)
+    assert result.beams == nominal.beams
+    layout = calibrated_layout(nominal, result)
+    assert _model_error(brighter, layout) < 1e-3
+    # The report keeps the half-power angles the layout states (the beam replaces them).
+    np.testing.assert_allclose(result.half_power_angles_deg, nominal.half_power_angles_deg)
+
+
+def test_the_calibration_jacobian_of_a_beamed_led_is_its_model_s() -> None:
+    from app.vlp._calibration_fit import led_rows
+
+    layout = _with_beams(paper_layout(), BATWING)
+    points = _survey_points(layout, 0.5)
+    rows = led_rows(layout, 5, points, np.ones(points.shape[0]), tilt_bound_deg=10.0)
+    shift, tilt, rho = np.array([0.03, -0.02]), np.array([0.2, -0.3]), np.zeros(3)
+    columns, _ = rows.jacobian(1.2, 0.0, shift, rho, tilt)
+    step = 1e-7
+    for column, delta in ((2, (step, 0, 0, 0)), (3, (0, step, 0, 0)), (4, (0, 0, step, 0))):
+        move = np.array(delta)
+        up = rows.model(1.2, 0.0, shift + move[:2], rho, tilt + move[2:])
+        down = rows.model(1.2, 0.0, shift - move[:2], rho, tilt - move[2:])
+        np.testing.assert_allclose(
+            columns[:, column], (up - down) / (2 * step), rtol=1e-5, atol=1e-9
+        )
