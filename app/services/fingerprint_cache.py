@@ -15,6 +15,7 @@ from __future__ import annotations
 import threading
 from collections import OrderedDict
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 from app.clock import Clock
 from app.registry import Registry
@@ -22,9 +23,11 @@ from app.registry.errors import FingerprintNotReady
 from app.telemetry import Metrics
 from app.vlp.fingerprints import Fingerprint
 from app.vlp.measurements import Model
-from app.vlp.solvers import Solver, make_solver
 
 from .matrices import rebuilding_if_corrupt
+
+if TYPE_CHECKING:
+    from app.vlp.solvers import Solver
 
 __all__ = ["FingerprintCache", "PreparedVersion"]
 
@@ -111,7 +114,7 @@ class FingerprintCache:
             with self._lock:
                 prepared = entry.prepared.get(key)
             if prepared is None:
-                solver = make_solver(name, entry.fingerprint, model)
+                solver = _new_solver(name, entry.fingerprint, model)
                 prepared = PreparedVersion(entry.fingerprint, entry.masked_leds, solver)
                 with self._lock:
                     entry.prepared[key] = prepared
@@ -181,3 +184,20 @@ class FingerprintCache:
     def _key_lock(self, key: tuple[object, ...]) -> threading.Lock:
         with self._lock:
             return self._key_locks.setdefault(key, threading.Lock())
+
+
+def _new_solver(name: str, fingerprint: Fingerprint, model: Model) -> Solver:
+    """The solver ``name`` prepared for ``fingerprint`` and ``model``, its compiled kernels
+    loaded first.
+
+    The solvers (and numba, which their kernels load: LLVM and its typing contexts, about
+    200 MiB of an API process) are imported here, when a process first prepares a solver,
+    not when the app starts: a process that never solves never holds them. The first
+    preparation of a process loads every kernel from numba's disk cache
+    (:func:`app.vlp.solvers.warm_up`, idempotent), in the worker thread that prepares it,
+    so no solve on the event loop waits for a kernel.
+    """
+    from app.vlp.solvers import make_solver, warm_up
+
+    warm_up()
+    return make_solver(name, fingerprint, model)
