@@ -180,6 +180,7 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
         app.state.cache = FingerprintCache(
             registry=registry,
             size=settings.fingerprint_cache_size,
+            max_bytes=settings.fingerprint_cache_mib * 2**20,
             version_check_seconds=settings.version_check_seconds,
             metrics=metrics,
             clock=clock,
