@@ -35,7 +35,6 @@ from app.services.track_stream import TrackEventHub
 from app.services.tracking import Tracking
 from app.settings import Settings, get_settings
 from app.telemetry import Metrics
-from app.vlp.solvers import warm_up as warm_up_solvers
 
 __all__ = ["create_app"]
 
@@ -123,6 +122,16 @@ def _count_jobs(app: FastAPI) -> dict[str, int] | None:
     return dict(counter()) if callable(counter) else None
 
 
+def _warm_up_solvers() -> None:
+    """Load every solver kernel now, before serving (``VLP_WARM_KERNELS_AT_START``); by
+    default a process loads them when it first prepares a solver
+    (:class:`app.services.fingerprint_cache.FingerprintCache`), and one that never solves
+    never imports the solvers or numba."""
+    from app.vlp.solvers import warm_up
+
+    warm_up()
+
+
 def _epoch_sweeper(
     settler: EpochSettler, tracking: Tracking, settings: Settings
 ) -> EpochSweeper | None:
@@ -156,7 +165,8 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
             clock=clock,
         )
         await run_in_threadpool(registry.migrate)
-        await run_in_threadpool(warm_up_solvers)  # compile the solver kernels before serving
+        if settings.warm_kernels_at_start:
+            await run_in_threadpool(_warm_up_solvers)
         app.state.registry = registry
         credentials = await run_in_threadpool(
             lambda: provision_keys(registry=registry, settings=settings)
@@ -170,6 +180,7 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
         app.state.cache = FingerprintCache(
             registry=registry,
             size=settings.fingerprint_cache_size,
+            max_bytes=settings.fingerprint_cache_mib * 2**20,
             version_check_seconds=settings.version_check_seconds,
             metrics=metrics,
             clock=clock,

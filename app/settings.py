@@ -105,6 +105,20 @@ class Settings(BaseSettings):
     # Localization cache: how often an API process re-reads a room's current version.
     version_check_seconds: float = Field(default=1.0, ge=0)
     fingerprint_cache_size: int = Field(default=16, ge=1)
+    fingerprint_cache_mib: int = Field(
+        default=1024,
+        ge=1,
+        description="arrays an API process keeps of loaded rooms and their prepared solvers "
+        "(MiB); beyond it the least recently used rooms are dropped (the room in use is "
+        "always kept)",
+    )
+    # The solver kernels: loaded by the first solve of a process (default), or at start.
+    warm_kernels_at_start: bool = Field(
+        default=False,
+        description="load the solvers' compiled kernels (numba) before serving: the first "
+        "localize of a process no longer waits for them, and every process holds them "
+        "(about 150 MiB) whether it solves or not",
+    )
 
     @field_validator("admin_keys", "terminal_keys")
     @classmethod

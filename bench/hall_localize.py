@@ -9,7 +9,9 @@ and reports the median wall time of the request as the client sees it, the serve
 time (``elapsed_ms``), the mean position error against the simulation's truth and the server's
 extra peak resident memory during the form's requests (``VmHWM`` reset through
 ``/proc/<pid>/clear_refs`` after the first, cold request, which loads H and prepares the
-solver and is reported on its own).
+solver and is reported on its own); and how much larger all the requests left the server
+(``server_growth_from_requests_mib``: its resident size after them against before the first).
+The server runs with the environment's ``VLP_*`` settings (e.g. ``VLP_WARM_KERNELS_AT_START``).
 
     python -m bench.hall_localize [--targets 50] [--repeat 5] [--snr 30]
 """
@@ -100,6 +102,10 @@ def run(targets: int, repeat: int, snr_db: float) -> dict[str, Any]:
                 "job_build_and_store_s": round(float(record["build_seconds"]), 2),
                 "server_peak_extra_mib": round((_memory_kib(pid)["VmHWM"] - before) / 1024),
             }
+            # What the requests below leave the process holding: its resident size after
+            # them against before the first (the build ran in the worker's child process).
+            rss_before_requests = _memory_kib(pid)["VmRSS"]
+            report["server_rss_before_requests_mib"] = round(rss_before_requests / 1024)
             for form, options in _FORMS.items():
                 walls: list[float] = []
                 solves: list[float] = []
@@ -135,7 +141,11 @@ def run(targets: int, repeat: int, snr_db: float) -> dict[str, Any]:
                     "worst_mean_error_cm": round(100 * max(errors), 2),
                     "peak_extra_mib": round((peak - rss_before) / 1024),
                 }
-            report["server_rss_mib"] = round(_memory_kib(pid)["VmRSS"] / 1024)
+            rss_after = _memory_kib(pid)["VmRSS"]
+            report["server_rss_mib"] = round(rss_after / 1024)
+            report["server_growth_from_requests_mib"] = round(
+                (rss_after - rss_before_requests) / 1024
+            )
     report["machine"] = machine_record()
     return report
 

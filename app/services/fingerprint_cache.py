@@ -1,7 +1,11 @@
 """Per-process cache of loaded fingerprints and prepared solvers.
 
-Fingerprints are cached per (room, version) in an LRU of ``fingerprint_cache_size``; the
-solvers built from one are kept with it, per (model, solver name). One lookup
+Fingerprints are cached per (room, version) in an LRU of ``fingerprint_cache_size`` entries
+and ``fingerprint_cache_mib`` of arrays; the solvers built from one are kept with it, per
+(model, solver name). An entry's size (:func:`held_bytes`: the arrays its fingerprint and
+solvers hold, each buffer once) is measured when it is loaded and when a solver is prepared
+for it; beyond the budget the least recently used entries are dropped, never the one just
+used (a room larger than the budget is still served, alone). One lookup
 (:meth:`FingerprintCache.prepare`) answers a localize request with everything it needs: the
 fingerprint, the LEDs a calibration masked and the prepared solver; it counts one cache hit
 or miss. A room's current version
@@ -15,6 +19,9 @@ from __future__ import annotations
 import threading
 from collections import OrderedDict
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+import numpy as np
 
 from app.clock import Clock
 from app.registry import Registry
@@ -22,11 +29,13 @@ from app.registry.errors import FingerprintNotReady
 from app.telemetry import Metrics
 from app.vlp.fingerprints import Fingerprint
 from app.vlp.measurements import Model
-from app.vlp.solvers import Solver, make_solver
 
 from .matrices import rebuilding_if_corrupt
 
-__all__ = ["FingerprintCache", "PreparedVersion"]
+if TYPE_CHECKING:
+    from app.vlp.solvers import Solver
+
+__all__ = ["FingerprintCache", "PreparedVersion", "held_bytes"]
 
 
 @dataclass(frozen=True)
@@ -46,6 +55,7 @@ class _Entry:
     fingerprint: Fingerprint
     masked_leds: tuple[int, ...]
     prepared: dict[tuple[Model, str], PreparedVersion] = field(default_factory=dict)
+    held_bytes: int = 0
 
 
 class FingerprintCache:
@@ -62,9 +72,11 @@ class FingerprintCache:
         version_check_seconds: float,
         metrics: Metrics,
         clock: Clock | None = None,
+        max_bytes: int | None = None,
     ) -> None:
         self._registry = registry
         self._size = size
+        self._max_bytes = max_bytes
         self._interval = version_check_seconds
         self._metrics = metrics
         self._clock = registry.clock if clock is None else clock
@@ -111,11 +123,22 @@ class FingerprintCache:
             with self._lock:
                 prepared = entry.prepared.get(key)
             if prepared is None:
-                solver = make_solver(name, entry.fingerprint, model)
+                solver = _new_solver(name, entry.fingerprint, model)
                 prepared = PreparedVersion(entry.fingerprint, entry.masked_leds, solver)
                 with self._lock:
                     entry.prepared[key] = prepared
+                    solvers = list(entry.prepared.values())
+                size = held_bytes(entry.fingerprint, *(p.solver for p in solvers))
+                with self._lock:
+                    entry.held_bytes = size
+                    self._evict((room_id, version))
         return prepared
+
+    @property
+    def held_bytes(self) -> int:
+        """The arrays the cached entries hold, as last measured (bytes)."""
+        with self._lock:
+            return sum(entry.held_bytes for entry in self._entries.values())
 
     def prepared_in_memory(
         self, room_id: str, version: int | None, model: Model, name: str
@@ -163,14 +186,29 @@ class FingerprintCache:
                 self._metrics.cache.labels(result="miss").inc()
                 with rebuilding_if_corrupt(self._registry, room_id=room_id):
                     loaded = self._registry.load_version(room_id=room_id, version=version)
-                entry = _Entry(loaded.fingerprint, loaded.record.masked_leds)
+                entry = _Entry(
+                    loaded.fingerprint,
+                    loaded.record.masked_leds,
+                    held_bytes=held_bytes(loaded.fingerprint),
+                )
                 with self._lock:
                     self._entries[key] = entry
-                    while len(self._entries) > self._size:
-                        self._drop(next(iter(self._entries)))
+                    self._evict(key)
             else:
                 self._metrics.cache.labels(result="hit").inc()
         return entry
+
+    def _evict(self, used: tuple[str, int]) -> None:
+        # Caller holds self._lock: drop least recently used entries beyond the count and the
+        # byte budget, never ``used`` (the entry a request is being answered from).
+        while len(self._entries) > 1:
+            over_count = len(self._entries) > self._size
+            total = sum(entry.held_bytes for entry in self._entries.values())
+            over_bytes = self._max_bytes is not None and total > self._max_bytes
+            if not (over_count or over_bytes):
+                return
+            oldest = next(key for key in self._entries if key != used)
+            self._drop(oldest)
 
     def _drop(self, key: tuple[str, int]) -> None:
         # Caller holds self._lock: forget the entry and the load locks of its (room, version).
@@ -181,3 +219,57 @@ class FingerprintCache:
     def _key_lock(self, key: tuple[object, ...]) -> threading.Lock:
         with self._lock:
             return self._key_locks.setdefault(key, threading.Lock())
+
+
+def held_bytes(*roots: object) -> int:
+    """Bytes of the arrays reachable from ``roots``, each buffer counted once (views and
+    sparse arrays that share index arrays count what they share once).
+
+    Follows builtin containers, numpy arrays, scipy's sparse arrays and the attributes of the
+    service's own objects (classes of :mod:`app`), nothing else: a solver's references to
+    modules, functions or numba's compiled kernels are not its memory.
+    """
+    seen: set[int] = set()
+    buffers: set[int] = set()
+    total = 0
+    pending: list[object] = list(roots)
+    while pending:
+        obj = pending.pop()
+        if id(obj) in seen:
+            continue
+        seen.add(id(obj))
+        if isinstance(obj, np.ndarray):
+            owner = obj
+            while isinstance(owner.base, np.ndarray):
+                owner = owner.base
+            if id(owner) not in buffers:
+                buffers.add(id(owner))
+                total += owner.nbytes
+        elif isinstance(obj, dict):
+            pending.extend(obj.values())
+        elif isinstance(obj, list | tuple | set | frozenset):
+            pending.extend(obj)
+        elif type(obj).__module__.startswith(("app.", "scipy.sparse")):
+            pending.extend(getattr(obj, "__dict__", {}).values())
+            for cls in type(obj).__mro__:
+                for name in getattr(cls, "__slots__", ()):
+                    if hasattr(obj, name):
+                        pending.append(getattr(obj, name))
+    return total
+
+
+def _new_solver(name: str, fingerprint: Fingerprint, model: Model) -> Solver:
+    """The solver ``name`` prepared for ``fingerprint`` and ``model``, its compiled kernels
+    loaded first.
+
+    The solvers (and numba, which their kernels load: LLVM and its typing contexts, about
+    200 MiB of an API process) are imported here, when a process first prepares a solver,
+    not when the app starts: a process that never solves never holds them. The first
+    preparation of a process loads every kernel from numba's disk cache
+    (:func:`app.vlp.solvers.warm_up`, idempotent), in the worker thread that prepares it,
+    so no solve on the event loop waits for a kernel.
+    """
+    from app.vlp.solvers import make_solver, warm_up
+
+    warm_up()
+    return make_solver(name, fingerprint, model)

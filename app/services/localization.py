@@ -22,6 +22,7 @@ import dataclasses
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -37,13 +38,14 @@ from app.vlp.measurements import (
     measurement_from_correlation,
     measurement_from_power,
 )
-from app.vlp.solvers import Solution, TerminalSolver
-from app.vlp.solvers._censored import censored_substitutes
 from app.vlp.typing import FloatArray
 from app.vlp.workload import LocalizeWork, localize_work
 
 from .fingerprint_cache import FingerprintCache, PreparedVersion
 from .masking import drop_masked_leds
+
+if TYPE_CHECKING:
+    from app.vlp.solvers import Solution, Solver, TerminalSolver
 
 __all__ = [
     "WAITLESS_TARGETS",
@@ -88,6 +90,8 @@ class TerminalSet:
     def filled(self) -> FloatArray:
         """The amplitudes with each undetected LED at half its terminal's floor (for the
         aggregated forms, which cannot say "not detected")."""
+        from app.vlp.solvers._censored import censored_substitutes  # see _terminal_solver
+
         return censored_substitutes(self.amplitudes, self.floors)[0]
 
 
@@ -337,12 +341,25 @@ class _Task:
     form: str  # the body's field that carried the measurement
 
 
+def _terminal_solver(solver: Solver) -> TerminalSolver | None:
+    """``solver`` when it also fits each terminal from its own amplitudes, else None.
+
+    The solvers are imported where they are used, not with this module: an API process
+    imports them (and numba) when it first prepares a solver
+    (:class:`app.services.fingerprint_cache.FingerprintCache`), and one that never solves
+    does not hold them. Here they are already imported: a prepared solver exists.
+    """
+    from app.vlp.solvers import TerminalSolver
+
+    return solver if isinstance(solver, TerminalSolver) else None
+
+
 def _per_terminal(prepared: PreparedVersion, task: _Task) -> bool:
     """Whether each terminal is fitted from its own amplitudes (labels known, not guessed)."""
     terminals = task.terminals
     return (
         terminals is not None
-        and isinstance(prepared.solver, TerminalSolver)
+        and _terminal_solver(prepared.solver) is not None
         and task.targets in (None, len(terminals.ids))
     )
 
@@ -409,7 +426,7 @@ def _solve_and_label(
     measurement, terminals, targets = task.measurement, task.terminals, task.targets
     if terminals is not None and targets is None:
         targets = len(terminals.ids)  # the contract: one target per terminal sent
-    own = prepared.solver if isinstance(prepared.solver, TerminalSolver) else None
+    own = _terminal_solver(prepared.solver)
     per_terminal = _per_terminal(prepared, task)
     with contextlib.nullcontext() if lock_held else prepared.lock:
         started = time.perf_counter()

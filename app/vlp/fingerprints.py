@@ -91,10 +91,23 @@ class Fingerprint:
         return self.layout.pilot_amplitudes
 
     def scaled_gains(self) -> sp.csr_array:
-        """``G = diag(x) H``, sparse of shape (M, N)."""
-        return self._cached(
-            "G_sparse", lambda: sp.csr_array(sp.diags_array(self.pilot_amplitudes) @ self.gains)
-        )
+        """``G = diag(x) H``, sparse of shape (M, N); read-only.
+
+        ``G`` has H's sparsity, so it shares H's index arrays (in the million-point hall they
+        are 40 MiB), and with every pilot amplitude 1 it is H's values too.
+        """
+        return self._cached("G_sparse", self._scale_rows)
+
+    def _scale_rows(self) -> sp.csr_array:
+        gains = self.gains
+        amplitudes = self.pilot_amplitudes
+        if np.all(amplitudes == 1.0):
+            values = gains.data
+        else:  # each stored h_ij times its row's x_i: the product diag(x) @ H computes
+            values = gains.data * np.repeat(amplitudes, np.diff(gains.indptr))
+        scaled = sp.csr_array((values, gains.indices, gains.indptr), shape=gains.shape)
+        scaled.has_sorted_indices = gains.has_sorted_indices
+        return scaled
 
     def dense_scaled_gains(self) -> FloatArray:
         """``G`` as a dense ndarray of shape (M, N); refused above :data:`DENSE_GAINS_LIMIT`."""
@@ -111,6 +124,21 @@ class Fingerprint:
         if self.is_dense:
             return self._cached("J_dense", lambda: self.dense_scaled_gains() ** 2)
         return self._cached("J_sparse", lambda: sp.csr_array(self.scaled_gains().power(2)))
+
+    def received_power(self) -> tuple[FloatArray, float]:
+        """What the grid points receive: ``sum_i J[i, j]`` for each point j (N,), and the sum
+        of all of J.
+
+        The simulation's SNR convention and the scale check read only these sums, so they
+        are kept instead of J: a sparse J is as large as H (120 MiB in the million-point
+        hall), and only the grid solvers keep it (:meth:`power_matrix`).
+        """
+
+        def make() -> tuple[FloatArray, float]:
+            power = self.power_matrix() if self.is_dense else self.scaled_gains().power(2)
+            return np.asarray(power.sum(axis=0)).ravel(), float(power.sum())
+
+        return self._cached("received_power", make)
 
     def correlation_operator(self) -> CorrelationOperator:
         """Psi as a matrix-free operator of shape (M(M+1)/2, N)."""

@@ -28,11 +28,7 @@ MAX_SCALE_FACTOR = 100.0
 def brightest_energy(fingerprint: Fingerprint) -> float:
     """``max_j sum_i (h_ij x_i)^2``: the most received power any grid point gets (power units)."""
 
-    def make() -> float:
-        power = fingerprint.power_matrix()
-        return float(np.max(np.asarray(power.sum(axis=0)).ravel()))
-
-    return fingerprint._cached("brightest_energy", make)
+    return float(np.max(fingerprint.received_power()[0]))
 
 
 @functools.lru_cache(maxsize=64)

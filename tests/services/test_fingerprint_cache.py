@@ -5,14 +5,16 @@ from __future__ import annotations
 from collections.abc import Iterator
 from pathlib import Path
 
+import numpy as np
 import pytest
+import scipy.sparse as sp
 
 from app.clock import FakeClock
 from app.main import create_app
 from app.registry import Registry
 from app.registry.errors import FingerprintNotReady, RoomNotFound
 from app.schemas import Measurement
-from app.services.fingerprint_cache import FingerprintCache
+from app.services.fingerprint_cache import FingerprintCache, held_bytes
 from app.services.localization import (
     WAITLESS_TARGETS,
     localize_in_memory,
@@ -100,6 +102,67 @@ def test_lru_keeps_size_entries_and_solvers_with_them(
     hits, misses = _counts(metrics)
     assert cache.fingerprint(first, v_first) is not None
     assert _counts(metrics) == (hits, misses + 1)
+
+
+def test_held_bytes_counts_each_buffer_once() -> None:
+    values = np.arange(1000, dtype=np.float64)  # 8000 bytes
+    indices = np.arange(1000, dtype=np.int32)  # 4000
+    indptr = np.array([0, 500, 1000], dtype=np.int32)  # 12
+    matrix = sp.csr_array((values, indices, indptr), shape=(2, 1000))
+    # a second sparse array sharing the index arrays, with values of its own (8000)
+    scaled = sp.csr_array((values * 2.0, indices, indptr), shape=(2, 1000))
+    held = [matrix, scaled, values[:10], {"again": values}, (indices,)]
+    assert held_bytes(held) == 8000 + 4000 + 12 + 8000
+    assert held_bytes(values[::2]) == 8000  # a view holds its whole base
+    assert held_bytes(object(), "text", 3.0) == 0
+
+
+def test_entries_beyond_the_byte_budget_are_dropped_least_recent_first(
+    two_ready_rooms: tuple[TestClient, Registry, list[str]],
+) -> None:
+    _, registry, (first, second) = two_ready_rooms
+    metrics = Metrics()
+    sizes = {}
+    for room_id in (first, second):
+        alone = FingerprintCache(
+            registry=registry, size=4, version_check_seconds=1.0, metrics=Metrics()
+        )
+        alone.prepare(room_id, alone.current_version(room_id), "correlation", "nnls")
+        sizes[room_id] = alone.held_bytes
+        assert sizes[room_id] > 0
+    # Room to hold both: both stay.
+    roomy = FingerprintCache(
+        registry=registry,
+        size=4,
+        version_check_seconds=1.0,
+        metrics=metrics,
+        max_bytes=sizes[first] + sizes[second],
+    )
+    v_first, v_second = roomy.current_version(first), roomy.current_version(second)
+    kept = roomy.prepare(first, v_first, "correlation", "nnls")
+    roomy.prepare(second, v_second, "correlation", "nnls")
+    assert roomy.held_bytes == sizes[first] + sizes[second]
+    assert roomy.prepare(first, v_first, "correlation", "nnls") is kept
+    # One byte less: preparing the second room drops the first, the least recently used.
+    tight = FingerprintCache(
+        registry=registry,
+        size=4,
+        version_check_seconds=1.0,
+        metrics=metrics,
+        max_bytes=sizes[first] + sizes[second] - 1,
+    )
+    dropped = tight.prepare(first, v_first, "correlation", "nnls")
+    tight.prepare(second, v_second, "correlation", "nnls")
+    assert tight.held_bytes == sizes[second]
+    assert tight.prepare(first, v_first, "correlation", "nnls") is not dropped
+    # A room larger than the whole budget is still served, alone.
+    tiny = FingerprintCache(
+        registry=registry, size=4, version_check_seconds=1.0, metrics=metrics, max_bytes=1
+    )
+    tiny.prepare(first, v_first, "correlation", "nnls")
+    assert tiny.held_bytes == sizes[first]
+    tiny.prepare(second, v_second, "correlation", "nnls")
+    assert tiny.held_bytes == sizes[second]
 
 
 def _measurement(client: TestClient, room_id: str) -> Measurement:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import scipy.sparse as sp
@@ -90,3 +92,35 @@ def test_dense_limits(mixed_fingerprint: Fingerprint, monkeypatch: pytest.Monkey
     sparse_power = fresh.power_matrix()
     assert isinstance(sparse_power, sp.csr_array)
     assert_allclose(sparse_power.toarray(), dense_power)
+
+
+def test_sparse_scaled_gains_share_h_structure_and_keep_no_j(
+    mixed_room: Layout, mixed_fingerprint: Fingerprint, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    h, j_matrix, _ = _slow_matrices(mixed_room)
+    monkeypatch.setattr(fingerprints, "DENSE_GAINS_LIMIT", 10)  # the large rooms' path
+    fresh = Fingerprint(layout=mixed_room, gains=mixed_fingerprint.gains)
+    pilots = mixed_room.pilot_amplitudes
+    assert np.ptp(pilots) > 0  # G is not H here
+    scaled = fresh.scaled_gains()
+    assert_allclose(scaled.toarray(), pilots[:, None] * h, rtol=1e-12, atol=0)
+    assert np.shares_memory(scaled.indices, fresh.gains.indices)
+    assert np.shares_memory(scaled.indptr, fresh.gains.indptr)
+    assert not np.shares_memory(scaled.data, fresh.gains.data)
+    by_cell, total = fresh.received_power()
+    assert_allclose(by_cell, j_matrix.sum(axis=0), rtol=1e-12, atol=0)
+    assert total == pytest.approx(j_matrix.sum(), rel=1e-12)
+    # Only the sums are kept: no array as large as J stays with the fingerprint.
+    kept = [value for value in fresh._cache.values() if isinstance(value, sp.sparray)]
+    assert all(np.shares_memory(matrix.data, scaled.data) for matrix in kept)
+
+
+def test_scaled_gains_with_unit_pilots_are_h(mixed_room: Layout) -> None:
+    unit = dataclasses.replace(
+        mixed_room,
+        leds=tuple(dataclasses.replace(led, pilot_amplitude=1.0) for led in mixed_room.leds),
+    )
+    fingerprint = build_fingerprint(unit)
+    scaled = fingerprint.scaled_gains()
+    assert np.shares_memory(scaled.data, fingerprint.gains.data)
+    assert_allclose(scaled.toarray(), fingerprint.gains.toarray(), rtol=0, atol=0)

@@ -29,8 +29,7 @@ __all__ = [
 
 def mean_signal_power(fingerprint: Fingerprint) -> float:
     """Mean of ``(h_ij x_i)^2`` over all LEDs and grid points (zeros outside the FOV count)."""
-    power = fingerprint.power_matrix()
-    return float(power.sum() / (fingerprint.n_leds * fingerprint.n_cells))
+    return fingerprint.received_power()[1] / (fingerprint.n_leds * fingerprint.n_cells)
 
 
 def noise_std_for_snr(fingerprint: Fingerprint, snr_db: float) -> float:
