@@ -20,8 +20,14 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from ..typing import BoolArray, FloatArray, IntArray
-from .filter import TrackBank, combined, floored_covariances, predict, start_tracks
-from .filter import update as filter_update
+from .filter import (
+    TrackBank,
+    combined,
+    floored_covariances,
+    predict,
+    predict_update,
+    start_tracks,
+)
 from .settings import TrackerSettings
 
 __all__ = [
@@ -197,11 +203,9 @@ def _apply(
     # Every track, in its order (a labelled room's usual step): no copy in and out.
     whole = live.shape[0] == tracks.size and bool(np.all(live == np.arange(tracks.size)))
     chosen = tracks.bank if whole else tracks.bank.take(live)
-    predicted = predict(chosen, np.full(live.shape[0], time_s), settings)
-    elapsed = np.maximum(time_s - chosen.times_s, 0.0)
     if not np.all(moved):
         positions, covariances = positions[moved], covariances[moved]
-    result = filter_update(predicted, positions, covariances, settings, elapsed, learn=learn)
+    result = predict_update(chosen, positions, covariances, time_s, settings, learn=learn)
     wild[moved] = result.wild
     updates = tracks.updates.copy()
     updates[live] += 1
