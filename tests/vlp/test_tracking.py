@@ -440,3 +440,71 @@ def test_association_weighs_each_model_by_its_own_likelihood(rng: np.random.Gene
         best = max(permutations(range(n)), key=lambda p: np.prod(density[range(n), p]))
         rows, cols = associate(bank, fixes, noise, settings)
         assert rows.tolist() == [0, 1, 2] and cols.tolist() == list(best)
+
+
+def _side_by_side_with_a_shadowed_pair(
+    settings: TrackerSettings,
+) -> tuple[list[np.ndarray], Tracks]:
+    """Two walkers 0.6 m apart walking side by side at 1.4 m/s, fixes 2 cm off at 5 Hz; two
+    solves in a row (a shadowed terminal throws an aggregated solve's every estimate) put
+    both estimates 0.5 m across, saying 10 cm. Each walker's track row at every instant."""
+    rng = np.random.default_rng(3)
+    times = np.arange(30) * 0.2
+    along = 0.5 + 1.4 * times
+    truth = np.stack(
+        (np.column_stack((along, np.zeros(30))), np.column_stack((along, np.full(30, 0.6)))),
+        axis=1,
+    )
+    tracks, owners = Tracks.empty(), []
+    for k, time_s in enumerate(times):
+        order = rng.permutation(2)
+        if k in (15, 16):
+            fixes, sd = truth[k, order] + [0.0, 0.5], 0.1
+        else:
+            fixes, sd = truth[k, order] + 0.02 * rng.standard_normal((2, 2)), 0.03
+        noise = np.tile(sd**2 * np.eye(2), (2, 1, 1))
+        step = step_anonymous(tracks, fixes, noise, float(time_s), settings)
+        tracks = step.tracks
+        rows = np.empty(2, dtype=np.intp)
+        rows[order] = step.fix_rows
+        owners.append(rows)
+    return owners, tracks
+
+
+def test_wrong_estimates_of_a_shadowed_solve_do_not_swap_identities() -> None:
+    settings = TrackerSettings()
+    owners, tracks = _side_by_side_with_a_shadowed_pair(settings)
+    # Each walker keeps the track it had before the shadowed solves, to the end.
+    assert tracks.size == 2
+    assert all(rows.tolist() == owners[0].tolist() for rows in owners)
+    # The same estimates inflated only to the gate (as a labelled fix is) drag the first
+    # walker's track onto the second and the two trade identities: the expectation above is
+    # not met by any tracker.
+    at_gate = dataclasses.replace(settings, anonymous_inflate_probability=settings.gate_probability)
+    owners_at_gate, _ = _side_by_side_with_a_shadowed_pair(at_gate)
+    assert owners_at_gate[-1].tolist() != owners_at_gate[0].tolist()
+
+
+def test_anonymous_inflation_moves_a_track_as_an_estimate_on_its_bound() -> None:
+    # Closed form (walking model alone, no switching): a fix beyond the anonymous bound
+    # moves the track as the fix placed on the bound, along the same innovation, would
+    # under its stated covariance scaled to put it there.
+    settings = TrackerSettings(
+        mean_dwell_s=1e12, steady_fix_probability=1e-300, anonymous_inflate_probability=0.5
+    )
+    noise = 0.01 * np.eye(2)[None]
+    bank = _walking_only(start_tracks(np.zeros((1, 2)), noise, np.zeros(1), settings))
+    far = np.array([[0.8, 0.3]])
+    tracks = Tracks(bank, np.array([CONFIRMED]), np.array([3]), np.array([0]))
+    step = step_anonymous(tracks, far, noise, 0.2, settings)
+    predicted = predict(bank, np.array([0.2]), settings)
+    prior = predicted.covariances[0, 1, :2, :2]
+    whole = prior + noise[0] + settings.min_measurement_sd_m**2 * np.eye(2)
+    nu = far[0] - predicted.means[0, 1, :2]
+    d2 = float(nu @ np.linalg.solve(whole, nu))
+    assert settings.anonymous_inflate_chi2 < d2 < settings.gate_chi2
+    inflated = d2 / settings.anonymous_inflate_chi2 * whole
+    gain = predicted.covariances[0, 1, :, :2] @ np.linalg.inv(inflated)
+    expected = predicted.means[0, 1] + gain @ nu
+    assert not step.wild[0]  # within the gate: not counted as wild
+    assert_allclose(step.tracks.bank.means[0, 1], expected, rtol=1e-9, atol=1e-12)

@@ -31,13 +31,27 @@ def _random_bank(rng: np.random.Generator, n: int) -> TrackBank:
     )
 
 
-def _step(mode: str, bank: TrackBank, fixes: np.ndarray, noise: np.ndarray, learn: bool) -> Update:
+def _step(
+    mode: str,
+    bank: TrackBank,
+    fixes: np.ndarray,
+    noise: np.ndarray,
+    learn: bool,
+    inflate_chi2: float | None,
+) -> Update:
     with use_kernels(mode):  # type: ignore[arg-type]
-        return predict_update(bank, fixes, noise, 0.9, TrackerSettings(), learn=learn)
+        return predict_update(
+            bank, fixes, noise, 0.9, TrackerSettings(), learn=learn, inflate_chi2=inflate_chi2
+        )
 
 
-@pytest.mark.parametrize("learn", [True, False])
-def test_compiled_step_matches_the_numpy_reference(learn: bool) -> None:
+# A labelled step, and an anonymous one (no learning; inflation to the gate, or to the
+# anonymous bound below it).
+@pytest.mark.parametrize(
+    ("learn", "inflate_chi2"),
+    [(True, None), (False, None), (False, TrackerSettings().anonymous_inflate_chi2)],
+)
+def test_compiled_step_matches_the_numpy_reference(learn: bool, inflate_chi2: float | None) -> None:
     rng = np.random.default_rng(11)
     n = 60
     bank = _random_bank(rng, n)
@@ -47,8 +61,8 @@ def test_compiled_step_matches_the_numpy_reference(learn: bool) -> None:
     fixes[::5] += rng.uniform(1.0, 3.0, (fixes[::5].shape[0], 2))
     roots = rng.normal(0.0, 0.05, (n, 2, 2))
     noise = roots @ np.swapaxes(roots, -1, -2) + 1e-4 * np.eye(2)
-    reference = _step("reference", bank, fixes, noise, learn)
-    compiled = _step("compiled", bank, fixes, noise, learn)
+    reference = _step("reference", bank, fixes, noise, learn, inflate_chi2)
+    compiled = _step("compiled", bank, fixes, noise, learn, inflate_chi2)
     assert np.any(reference.wild) and np.any(reference.restarted)
     assert np.any(bank.times_s > 0.9) and np.any(bank.times_s < 0.9)
     assert_array_equal(compiled.wild, reference.wild)

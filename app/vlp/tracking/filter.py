@@ -330,6 +330,7 @@ def update(
     elapsed_s: FloatArray | None = None,
     *,
     learn: bool = True,
+    inflate_chi2: float | None = None,
 ) -> Update:
     """Update each predicted track with its fix (row ``k`` with fix ``k``).
 
@@ -344,8 +345,8 @@ def update(
     A fix whose squared Mahalanobis distance ``d2`` from the mixture's prediction (with its
     stated covariance) exceeds ``settings.gate_chi2`` gets the innovation covariance
     ``S (d2 / gate)``, i.e. its own covariance becomes ``(d2 / gate) S - P``: it moves the
-    track as a fix on the gate would. After ``reset_after_wild`` wild fixes in a row the track
-    restarts at the newest.
+    track as a fix on the gate would (``inflate_chi2`` in place of the gate, where given).
+    After ``reset_after_wild`` wild fixes in a row the track restarts at the newest.
 
     Parameters
     ----------
@@ -360,6 +361,10 @@ def update(
     learn : bool, default=True
         False: every fix is as wide as it says (the level follows the stated one, so
         :func:`estimates` adds nothing): for fixes that may be another terminal's.
+    inflate_chi2 : float, default=None
+        The squared Mahalanobis distance a fix beyond it is inflated to (None: the gate's,
+        ``settings.gate_chi2``); which fixes count as wild (and restart a track after
+        ``reset_after_wild`` in a row) is still decided by the gate.
 
     Returns
     -------
@@ -374,10 +379,11 @@ def update(
     a, b, d = whole[:, 0, 0], whole[:, 0, 1], whole[:, 1, 1]
     nu0, nu1 = innovation[:, 0], innovation[:, 1]
     distance2 = (d * nu0 * nu0 - 2.0 * b * nu0 * nu1 + a * nu1 * nu1) / (a * d - b * b)
-    gate = settings.gate_chi2
-    wild = distance2 > gate
-    scale = np.where(wild, distance2 / gate, 1.0)
-    wide = np.where(wild[:, None, None], scale[:, None, None] * (prior + stated) - prior, stated)
+    wild = distance2 > settings.gate_chi2
+    inflate = settings.gate_chi2 if inflate_chi2 is None else inflate_chi2
+    outside = distance2 > inflate
+    scale = np.where(outside, distance2 / inflate, 1.0)
+    wide = np.where(outside[:, None, None], scale[:, None, None] * (prior + stated) - prior, stated)
     stated_var = (stated[:, 0, 0] + stated[:, 1, 1]) / 2.0
     level = np.where(np.isfinite(predicted.noise_var), predicted.noise_var, stated_var)
     shrink = np.minimum(1.0, level / stated_var) if learn else np.ones_like(stated_var)
@@ -437,9 +443,11 @@ def predict_update(
     settings: TrackerSettings,
     *,
     learn: bool = True,
+    inflate_chi2: float | None = None,
 ) -> Update:
     """Every track predicted to ``time_s`` (:func:`predict`) and updated with its fix (row
-    ``k`` with fix ``k``, :func:`update`, the time since the track's state as ``elapsed_s``).
+    ``k`` with fix ``k``, :func:`update` with ``inflate_chi2``, the time since the track's
+    state as ``elapsed_s``).
 
     The compiled kernel (:mod:`._filter_compiled`) while the compiled kernels are in use, else
     the two NumPy functions, which are its reference.
@@ -448,7 +456,15 @@ def predict_update(
     if kernel is None:
         predicted = predict(bank, np.full(bank.size, time_s), settings)
         elapsed = np.maximum(time_s - bank.times_s, 0.0)
-        return update(predicted, positions, covariances, settings, elapsed, learn=learn)
+        return update(
+            predicted,
+            positions,
+            covariances,
+            settings,
+            elapsed,
+            learn=learn,
+            inflate_chi2=inflate_chi2,
+        )
     means, covs, probabilities, times, streak, noise_var, stated_var, wild = kernel(
         bank.means,
         bank.covariances,
@@ -468,6 +484,7 @@ def predict_update(
             settings.mean_dwell_s,
             settings.max_speed_mps,
             settings.gate_chi2,
+            settings.gate_chi2 if inflate_chi2 is None else inflate_chi2,
             settings.min_measurement_sd_m,
             settings.steady_fix_probability,
             settings.noise_memory_s,

@@ -192,6 +192,7 @@ def _apply(
     time_s: float,
     settings: TrackerSettings,
     learn: bool,
+    inflate_chi2: float | None = None,
 ) -> tuple[Tracks, BoolArray, BoolArray]:
     """Predict and update the tracks at ``rows`` with their fixes (in order); a fix older than
     its track's state does not move it. Returns the tracks, ``moved`` and ``wild`` per fix."""
@@ -205,7 +206,9 @@ def _apply(
     chosen = tracks.bank if whole else tracks.bank.take(live)
     if not np.all(moved):
         positions, covariances = positions[moved], covariances[moved]
-    result = predict_update(chosen, positions, covariances, time_s, settings, learn=learn)
+    result = predict_update(
+        chosen, positions, covariances, time_s, settings, learn=learn, inflate_chi2=inflate_chi2
+    )
     wild[moved] = result.wild
     updates = tracks.updates.copy()
     updates[live] += 1
@@ -251,6 +254,7 @@ def step_labelled(
     settings: TrackerSettings,
     *,
     learn: bool = True,
+    inflate_chi2: float | None = None,
 ) -> Step:
     """Fixes whose terminals are known: fix ``k`` updates track ``rows[k]``, or starts a new
     track where ``rows[k]`` is -1.
@@ -274,7 +278,7 @@ def step_labelled(
     """
     old = rows >= 0
     updated, moved_old, wild_old = _apply(
-        tracks, rows[old], positions[old], covariances[old], time_s, settings, learn
+        tracks, rows[old], positions[old], covariances[old], time_s, settings, learn, inflate_chi2
     )
     fix_rows = rows.copy()
     moved = np.ones(rows.shape[0], dtype=bool)
@@ -321,8 +325,20 @@ def step_anonymous(
     rows = np.full(positions.shape[0], -1, dtype=np.intp)
     rows[fix_cols] = track_rows
     # A fix of an aggregated solve may be another terminal's: its track does not learn a
-    # noise level from it.
-    step = step_labelled(tracks, rows, positions, covariances, time_s, settings, learn=False)
+    # noise level from it. One shadowed terminal can throw the whole solve's estimates off
+    # by more than their covariances say, and a wrong estimate that drags a track towards
+    # another walker makes the two trade identities on the next solves: an estimate beyond
+    # the anonymous inflation bound moves its track only as one on that bound would.
+    step = step_labelled(
+        tracks,
+        rows,
+        positions,
+        covariances,
+        time_s,
+        settings,
+        learn=False,
+        inflate_chi2=settings.anonymous_inflate_chi2,
+    )
     claimed = np.zeros(step.tracks.size, dtype=bool)
     claimed[step.fix_rows] = True
     misses = np.where(claimed, step.tracks.misses, step.tracks.misses + 1)
