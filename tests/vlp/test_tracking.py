@@ -485,26 +485,38 @@ def test_wrong_estimates_of_a_shadowed_solve_do_not_swap_identities() -> None:
     assert owners_at_gate[-1].tolist() != owners_at_gate[0].tolist()
 
 
-def test_anonymous_inflation_moves_a_track_as_an_estimate_on_its_bound() -> None:
-    # Closed form (walking model alone, no switching): a fix beyond the anonymous bound
-    # moves the track as the fix placed on the bound, along the same innovation, would
-    # under its stated covariance scaled to put it there.
+def test_a_doubtful_anonymous_fix_moves_its_track_as_one_on_the_anonymous_bound() -> None:
+    # Closed form (walking model alone, no switching, every fix as wide as it says): a fix
+    # another track explains better than its own (it was assigned to the first track only
+    # because the second has a fix of its own) and beyond the anonymous bound moves the first
+    # track as a Kalman update with its innovation covariance scaled to put it on the bound.
+    # Alone, with no other track to doubt it for, the same fix is a plain Kalman update.
     settings = TrackerSettings(
         mean_dwell_s=1e12, steady_fix_probability=1e-300, anonymous_inflate_probability=0.5
     )
-    noise = 0.01 * np.eye(2)[None]
-    bank = _walking_only(start_tracks(np.zeros((1, 2)), noise, np.zeros(1), settings))
-    far = np.array([[0.8, 0.3]])
-    tracks = Tracks(bank, np.array([CONFIRMED]), np.array([3]), np.array([0]))
-    step = step_anonymous(tracks, far, noise, 0.2, settings)
-    predicted = predict(bank, np.array([0.2]), settings)
-    prior = predicted.covariances[0, 1, :2, :2]
-    whole = prior + noise[0] + settings.min_measurement_sd_m**2 * np.eye(2)
-    nu = far[0] - predicted.means[0, 1, :2]
+    noise = np.tile(0.01 * np.eye(2), (2, 1, 1))
+    starts = np.array([[0.0, 0.0], [1.0, 0.6]])
+    fixes = np.array([[0.5, 0.2], [1.0, 0.6]])
+    bank = _walking_only(start_tracks(starts, noise, np.zeros(2), settings))
+    predicted = predict(bank, np.full(2, 0.2), settings)
+    prior = predicted.covariances[0, 1]
+    whole = prior[:2, :2] + noise[0] + settings.min_measurement_sd_m**2 * np.eye(2)
+    nu = fixes[0] - predicted.means[0, 1, :2]
     d2 = float(nu @ np.linalg.solve(whole, nu))
     assert settings.anonymous_inflate_chi2 < d2 < settings.gate_chi2
-    inflated = d2 / settings.anonymous_inflate_chi2 * whole
-    gain = predicted.covariances[0, 1, :, :2] @ np.linalg.inv(inflated)
-    expected = predicted.means[0, 1] + gain @ nu
-    assert not step.wild[0]  # within the gate: not counted as wild
-    assert_allclose(step.tracks.bank.means[0, 1], expected, rtol=1e-9, atol=1e-12)
+
+    def kalman(innovation_covariance: np.ndarray) -> np.ndarray:
+        gain = prior[:, :2] @ np.linalg.inv(innovation_covariance)
+        return np.asarray(predicted.means[0, 1] + gain @ nu)
+
+    confirmed = np.array([CONFIRMED, CONFIRMED])
+    both = Tracks(bank, confirmed, np.array([3, 3]), np.zeros(2, dtype=np.intp))
+    step = step_anonymous(both, fixes, noise, 0.2, settings)
+    assert step.fix_rows.tolist() == [0, 1]
+    assert not np.any(step.wild)  # within the gate: not counted towards a restart
+    inflated = kalman(d2 / settings.anonymous_inflate_chi2 * whole)
+    assert_allclose(step.tracks.bank.means[0, 1], inflated, rtol=1e-9, atol=1e-12)
+
+    alone = Tracks(bank.take(np.array([0])), confirmed[:1], np.array([3]), np.zeros(1, np.intp))
+    step = step_anonymous(alone, fixes[:1], noise[:1], 0.2, settings)
+    assert_allclose(step.tracks.bank.means[0, 1], kalman(whole), rtol=1e-9, atol=1e-12)

@@ -38,21 +38,20 @@ def predict_update_kernel(
     fix_covariances: FloatArray,
     time_s: float,
     learn: bool,
-    settings: tuple[float, float, float, float, float, float, float, float, float, float],
+    inflate_chi2: FloatArray,
+    settings: tuple[float, float, float, float, float, float, float, float, float],
 ) -> tuple[
     FloatArray, FloatArray, FloatArray, FloatArray, IntArray, FloatArray, FloatArray, BoolArray
 ]:
-    """Every track (row ``k``) predicted to ``time_s`` and updated with fix ``k``.
+    """Every track (row ``k``) predicted to ``time_s`` and updated with fix ``k`` (a fix beyond
+    ``inflate_chi2[k]`` inflated to it).
 
     ``settings``: (walking_accel_sd_mps2, standing_drift_mps, start_speed_sd_mps,
-    mean_dwell_s, max_speed_mps, gate_chi2, the squared distance a fix beyond it is inflated to,
-    min_measurement_sd_m, steady_fix_probability,
+    mean_dwell_s, max_speed_mps, gate_chi2, min_measurement_sd_m, steady_fix_probability,
     noise_memory_s). Returns the new bank's arrays (means, covariances, model probabilities,
     times, wild streaks, noise levels, stated levels) and which fixes were wild.
     """
-    accel_sd, drift_sd, start_sd, dwell, max_speed, gate, inflate, floor_sd, steady, memory = (
-        settings
-    )
+    accel_sd, drift_sd, start_sd, dwell, max_speed, gate, floor_sd, steady, memory = settings
     n = times_s.shape[0]
     out_means = np.empty((n, 2, 4))
     out_covs = np.empty((n, 2, 4, 4))
@@ -152,8 +151,8 @@ def predict_update_kernel(
         distance2 = (wd * nu0 * nu0 - 2.0 * wb * nu0 * nu1 + wa * nu1 * nu1) / (wa * wd - wb * wb)
         is_wild = distance2 > gate
         was_wild[k] = is_wild
-        if distance2 > inflate:
-            scale = distance2 / inflate
+        if distance2 > inflate_chi2[k]:
+            scale = distance2 / inflate_chi2[k]
             noises[1, 0] = scale * wa - p00
             noises[1, 1] = scale * wb - p01
             noises[1, 2] = scale * wd - p11

@@ -330,7 +330,7 @@ def update(
     elapsed_s: FloatArray | None = None,
     *,
     learn: bool = True,
-    inflate_chi2: float | None = None,
+    inflate_chi2: float | FloatArray | None = None,
 ) -> Update:
     """Update each predicted track with its fix (row ``k`` with fix ``k``).
 
@@ -361,8 +361,9 @@ def update(
     learn : bool, default=True
         False: every fix is as wide as it says (the level follows the stated one, so
         :func:`estimates` adds nothing): for fixes that may be another terminal's.
-    inflate_chi2 : float, default=None
-        The squared Mahalanobis distance a fix beyond it is inflated to (None: the gate's,
+    inflate_chi2 : float or ndarray of shape (n,), default=None
+        The squared Mahalanobis distance a fix beyond it is inflated to, per fix or for all
+        (None: the gate's,
         ``settings.gate_chi2``); which fixes count as wild (and restart a track after
         ``reset_after_wild`` in a row) is still decided by the gate.
 
@@ -380,7 +381,9 @@ def update(
     nu0, nu1 = innovation[:, 0], innovation[:, 1]
     distance2 = (d * nu0 * nu0 - 2.0 * b * nu0 * nu1 + a * nu1 * nu1) / (a * d - b * b)
     wild = distance2 > settings.gate_chi2
-    inflate = settings.gate_chi2 if inflate_chi2 is None else inflate_chi2
+    inflate = np.broadcast_to(
+        settings.gate_chi2 if inflate_chi2 is None else inflate_chi2, distance2.shape
+    )
     outside = distance2 > inflate
     scale = np.where(outside, distance2 / inflate, 1.0)
     wide = np.where(outside[:, None, None], scale[:, None, None] * (prior + stated) - prior, stated)
@@ -443,7 +446,7 @@ def predict_update(
     settings: TrackerSettings,
     *,
     learn: bool = True,
-    inflate_chi2: float | None = None,
+    inflate_chi2: float | FloatArray | None = None,
 ) -> Update:
     """Every track predicted to ``time_s`` (:func:`predict`) and updated with its fix (row
     ``k`` with fix ``k``, :func:`update` with ``inflate_chi2``, the time since the track's
@@ -477,6 +480,12 @@ def predict_update(
         np.ascontiguousarray(covariances, dtype=np.float64),
         float(time_s),
         learn,
+        np.ascontiguousarray(
+            np.broadcast_to(
+                settings.gate_chi2 if inflate_chi2 is None else inflate_chi2, bank.times_s.shape
+            ),
+            dtype=np.float64,
+        ),
         (
             settings.walking_accel_sd_mps2,
             settings.standing_drift_mps,
@@ -484,7 +493,6 @@ def predict_update(
             settings.mean_dwell_s,
             settings.max_speed_mps,
             settings.gate_chi2,
-            settings.gate_chi2 if inflate_chi2 is None else inflate_chi2,
             settings.min_measurement_sd_m,
             settings.steady_fix_probability,
             settings.noise_memory_s,

@@ -35,12 +35,17 @@ class TrackerSettings:
         "wild": its covariance is inflated until it lies on the gate (not dropped), and an
         anonymous fix beyond it is not associated with the track.
     anonymous_inflate_probability : float
-        An anonymous fix (of an aggregated solve) whose innovation lies beyond this
-        probability of the predicted spread has its covariance inflated until it lies there
-        (it still counts as wild only beyond ``gate_probability``). Lower than the gate: a
-        shadowed terminal throws every estimate of its solve off, often by more than their
-        covariances say, and one such estimate that pulls a track towards another walker
-        swaps their identities.
+        A doubtful anonymous fix (see ``anonymous_doubt_ratio``) whose innovation lies beyond
+        this probability of the predicted spread has its covariance inflated until it lies
+        there (it still counts as wild only beyond ``gate_probability``). Lower than the
+        gate: a shadowed terminal throws every estimate of an aggregated solve off, often by
+        more than their covariances say, and one such estimate that pulls a track towards
+        another walker swaps their identities.
+    anonymous_doubt_ratio : float
+        An anonymous fix is doubtful where another track explains it within this factor of
+        the likelihood under the track it was assigned to (elsewhere a wrong estimate can pull
+        its track away, but not onto another walker's, and the fix is inflated only beyond
+        the gate, as a labelled one).
     reset_after_wild : int
         This many wild fixes in a row restart the track at the newest fix (a track cannot
         lock out a terminal that really moved).
@@ -79,6 +84,7 @@ class TrackerSettings:
     max_speed_mps: float = 3.0
     gate_probability: float = 0.999
     anonymous_inflate_probability: float = 0.55
+    anonymous_doubt_ratio: float = 150.0
     reset_after_wild: int = 3
     min_measurement_sd_m: float = 0.005
     confirm_after_updates: int = 3
@@ -137,3 +143,9 @@ class TrackerSettings:
         """The squared Mahalanobis distance an anonymous fix beyond it is inflated to:
         ``-2 ln(1 - anonymous_inflate_probability)``."""
         return -2.0 * math.log1p(-self.anonymous_inflate_probability)
+
+    @property
+    def anonymous_doubt_margin(self) -> float:
+        """``anonymous_doubt_ratio`` as a difference of association costs (twice the negative
+        log-likelihood): ``2 ln(anonymous_doubt_ratio)``."""
+        return 2.0 * math.log(self.anonymous_doubt_ratio)
