@@ -36,7 +36,6 @@ from app.services.tracking import Tracking
 from app.settings import Settings, get_settings
 from app.telemetry import Metrics
 from app.vlp.solvers import warm_up as warm_up_solvers
-from app.vlp.tracking.filter import warm_up as warm_up_tracking
 
 __all__ = ["create_app"]
 
@@ -158,7 +157,6 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
         )
         await run_in_threadpool(registry.migrate)
         await run_in_threadpool(warm_up_solvers)  # compile the solver kernels before serving
-        await run_in_threadpool(warm_up_tracking)  # and the tracks' filter step
         app.state.registry = registry
         credentials = await run_in_threadpool(
             lambda: provision_keys(registry=registry, settings=settings)
