@@ -440,3 +440,83 @@ def test_association_weighs_each_model_by_its_own_likelihood(rng: np.random.Gene
         best = max(permutations(range(n)), key=lambda p: np.prod(density[range(n), p]))
         rows, cols = associate(bank, fixes, noise, settings)
         assert rows.tolist() == [0, 1, 2] and cols.tolist() == list(best)
+
+
+def _side_by_side_with_a_shadowed_pair(
+    settings: TrackerSettings,
+) -> tuple[list[np.ndarray], Tracks]:
+    """Two walkers 0.6 m apart walking side by side at 1.4 m/s, fixes 2 cm off at 5 Hz; two
+    solves in a row (a shadowed terminal throws an aggregated solve's every estimate) put
+    both estimates 0.5 m across, saying 10 cm. Each walker's track row at every instant."""
+    rng = np.random.default_rng(3)
+    times = np.arange(30) * 0.2
+    along = 0.5 + 1.4 * times
+    truth = np.stack(
+        (np.column_stack((along, np.zeros(30))), np.column_stack((along, np.full(30, 0.6)))),
+        axis=1,
+    )
+    tracks, owners = Tracks.empty(), []
+    for k, time_s in enumerate(times):
+        order = rng.permutation(2)
+        if k in (15, 16):
+            fixes, sd = truth[k, order] + [0.0, 0.5], 0.1
+        else:
+            fixes, sd = truth[k, order] + 0.02 * rng.standard_normal((2, 2)), 0.03
+        noise = np.tile(sd**2 * np.eye(2), (2, 1, 1))
+        step = step_anonymous(tracks, fixes, noise, float(time_s), settings)
+        tracks = step.tracks
+        rows = np.empty(2, dtype=np.intp)
+        rows[order] = step.fix_rows
+        owners.append(rows)
+    return owners, tracks
+
+
+def test_wrong_estimates_of_a_shadowed_solve_do_not_swap_identities() -> None:
+    settings = TrackerSettings()
+    owners, tracks = _side_by_side_with_a_shadowed_pair(settings)
+    # Each walker keeps the track it had before the shadowed solves, to the end.
+    assert tracks.size == 2
+    assert all(rows.tolist() == owners[0].tolist() for rows in owners)
+    # The same estimates inflated only to the gate (as a labelled fix is) drag the first
+    # walker's track onto the second and the two trade identities: the expectation above is
+    # not met by any tracker.
+    at_gate = dataclasses.replace(settings, anonymous_inflate_probability=settings.gate_probability)
+    owners_at_gate, _ = _side_by_side_with_a_shadowed_pair(at_gate)
+    assert owners_at_gate[-1].tolist() != owners_at_gate[0].tolist()
+
+
+def test_a_doubtful_anonymous_fix_moves_its_track_as_one_on_the_anonymous_bound() -> None:
+    # Closed form (walking model alone, no switching, every fix as wide as it says): a fix
+    # another track explains better than its own (it was assigned to the first track only
+    # because the second has a fix of its own) and beyond the anonymous bound moves the first
+    # track as a Kalman update with its innovation covariance scaled to put it on the bound.
+    # Alone, with no other track to doubt it for, the same fix is a plain Kalman update.
+    settings = TrackerSettings(
+        mean_dwell_s=1e12, steady_fix_probability=1e-300, anonymous_inflate_probability=0.5
+    )
+    noise = np.tile(0.01 * np.eye(2), (2, 1, 1))
+    starts = np.array([[0.0, 0.0], [1.0, 0.6]])
+    fixes = np.array([[0.5, 0.2], [1.0, 0.6]])
+    bank = _walking_only(start_tracks(starts, noise, np.zeros(2), settings))
+    predicted = predict(bank, np.full(2, 0.2), settings)
+    prior = predicted.covariances[0, 1]
+    whole = prior[:2, :2] + noise[0] + settings.min_measurement_sd_m**2 * np.eye(2)
+    nu = fixes[0] - predicted.means[0, 1, :2]
+    d2 = float(nu @ np.linalg.solve(whole, nu))
+    assert settings.anonymous_inflate_chi2 < d2 < settings.gate_chi2
+
+    def kalman(innovation_covariance: np.ndarray) -> np.ndarray:
+        gain = prior[:, :2] @ np.linalg.inv(innovation_covariance)
+        return np.asarray(predicted.means[0, 1] + gain @ nu)
+
+    confirmed = np.array([CONFIRMED, CONFIRMED])
+    both = Tracks(bank, confirmed, np.array([3, 3]), np.zeros(2, dtype=np.intp))
+    step = step_anonymous(both, fixes, noise, 0.2, settings)
+    assert step.fix_rows.tolist() == [0, 1]
+    assert not np.any(step.wild)  # within the gate: not counted towards a restart
+    inflated = kalman(d2 / settings.anonymous_inflate_chi2 * whole)
+    assert_allclose(step.tracks.bank.means[0, 1], inflated, rtol=1e-9, atol=1e-12)
+
+    alone = Tracks(bank.take(np.array([0])), confirmed[:1], np.array([3]), np.zeros(1, np.intp))
+    step = step_anonymous(alone, fixes[:1], noise[:1], 0.2, settings)
+    assert_allclose(step.tracks.bank.means[0, 1], kalman(whole), rtol=1e-9, atol=1e-12)

@@ -13,7 +13,9 @@ is not dropped: its covariance is inflated so that its innovation lies on the ga
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any, cast
 
 import numpy as np
 
@@ -29,8 +31,10 @@ __all__ = [
     "floored_covariances",
     "inverse_2x2",
     "predict",
+    "predict_update",
     "start_tracks",
     "update",
+    "warm_up",
 ]
 
 N_MODELS = 2  # 0: standing, 1: walking
@@ -326,6 +330,7 @@ def update(
     elapsed_s: FloatArray | None = None,
     *,
     learn: bool = True,
+    inflate_chi2: float | FloatArray | None = None,
 ) -> Update:
     """Update each predicted track with its fix (row ``k`` with fix ``k``).
 
@@ -340,8 +345,8 @@ def update(
     A fix whose squared Mahalanobis distance ``d2`` from the mixture's prediction (with its
     stated covariance) exceeds ``settings.gate_chi2`` gets the innovation covariance
     ``S (d2 / gate)``, i.e. its own covariance becomes ``(d2 / gate) S - P``: it moves the
-    track as a fix on the gate would. After ``reset_after_wild`` wild fixes in a row the track
-    restarts at the newest.
+    track as a fix on the gate would (``inflate_chi2`` in place of the gate, where given).
+    After ``reset_after_wild`` wild fixes in a row the track restarts at the newest.
 
     Parameters
     ----------
@@ -356,6 +361,11 @@ def update(
     learn : bool, default=True
         False: every fix is as wide as it says (the level follows the stated one, so
         :func:`estimates` adds nothing): for fixes that may be another terminal's.
+    inflate_chi2 : float or ndarray of shape (n,), default=None
+        The squared Mahalanobis distance a fix beyond it is inflated to, per fix or for all
+        (None: the gate's,
+        ``settings.gate_chi2``); which fixes count as wild (and restart a track after
+        ``reset_after_wild`` in a row) is still decided by the gate.
 
     Returns
     -------
@@ -370,10 +380,13 @@ def update(
     a, b, d = whole[:, 0, 0], whole[:, 0, 1], whole[:, 1, 1]
     nu0, nu1 = innovation[:, 0], innovation[:, 1]
     distance2 = (d * nu0 * nu0 - 2.0 * b * nu0 * nu1 + a * nu1 * nu1) / (a * d - b * b)
-    gate = settings.gate_chi2
-    wild = distance2 > gate
-    scale = np.where(wild, distance2 / gate, 1.0)
-    wide = np.where(wild[:, None, None], scale[:, None, None] * (prior + stated) - prior, stated)
+    wild = distance2 > settings.gate_chi2
+    inflate = np.broadcast_to(
+        settings.gate_chi2 if inflate_chi2 is None else inflate_chi2, distance2.shape
+    )
+    outside = distance2 > inflate
+    scale = np.where(outside, distance2 / inflate, 1.0)
+    wide = np.where(outside[:, None, None], scale[:, None, None] * (prior + stated) - prior, stated)
     stated_var = (stated[:, 0, 0] + stated[:, 1, 1]) / 2.0
     level = np.where(np.isfinite(predicted.noise_var), predicted.noise_var, stated_var)
     shrink = np.minimum(1.0, level / stated_var) if learn else np.ones_like(stated_var)
@@ -404,13 +417,125 @@ def update(
         noise_var=noise_var,
         stated_var=stated_level,
     )
-    restarted = streak >= settings.reset_after_wild
+    return _restarts(bank, wild, positions, covariances, settings)
+
+
+def _restarts(
+    bank: TrackBank,
+    wild: BoolArray,
+    positions: FloatArray,
+    covariances: FloatArray,
+    settings: TrackerSettings,
+) -> Update:
+    """The update's outcome, with the tracks that had ``reset_after_wild`` wild fixes in a row
+    restarted at their newest fix."""
+    restarted = bank.wild >= settings.reset_after_wild
     if np.any(restarted):
         fresh = start_tracks(
-            positions[restarted], covariances[restarted], predicted.times_s[restarted], settings
+            positions[restarted], covariances[restarted], bank.times_s[restarted], settings
         )
         bank = bank.put(restarted, fresh)
     return Update(bank=bank, wild=wild, restarted=restarted)
+
+
+def predict_update(
+    bank: TrackBank,
+    positions: FloatArray,
+    covariances: FloatArray,
+    time_s: float,
+    settings: TrackerSettings,
+    *,
+    learn: bool = True,
+    inflate_chi2: float | FloatArray | None = None,
+) -> Update:
+    """Every track predicted to ``time_s`` (:func:`predict`) and updated with its fix (row
+    ``k`` with fix ``k``, :func:`update` with ``inflate_chi2``, the time since the track's
+    state as ``elapsed_s``).
+
+    The compiled kernel (:mod:`._filter_compiled`) while the compiled kernels are in use, else
+    the two NumPy functions, which are its reference.
+    """
+    kernel = _compiled_predict_update()
+    if kernel is None:
+        predicted = predict(bank, np.full(bank.size, time_s), settings)
+        elapsed = np.maximum(time_s - bank.times_s, 0.0)
+        return update(
+            predicted,
+            positions,
+            covariances,
+            settings,
+            elapsed,
+            learn=learn,
+            inflate_chi2=inflate_chi2,
+        )
+    means, covs, probabilities, times, streak, noise_var, stated_var, wild = kernel(
+        bank.means,
+        bank.covariances,
+        bank.model_probabilities,
+        bank.times_s,
+        bank.wild,
+        bank.noise_var,
+        bank.stated_var,
+        np.ascontiguousarray(positions, dtype=np.float64),
+        np.ascontiguousarray(covariances, dtype=np.float64),
+        float(time_s),
+        learn,
+        np.ascontiguousarray(
+            np.broadcast_to(
+                settings.gate_chi2 if inflate_chi2 is None else inflate_chi2, bank.times_s.shape
+            ),
+            dtype=np.float64,
+        ),
+        (
+            settings.walking_accel_sd_mps2,
+            settings.standing_drift_mps,
+            settings.start_speed_sd_mps,
+            settings.mean_dwell_s,
+            settings.max_speed_mps,
+            settings.gate_chi2,
+            settings.min_measurement_sd_m,
+            settings.steady_fix_probability,
+            settings.noise_memory_s,
+        ),
+    )
+    updated = TrackBank(
+        means=means,
+        covariances=covs,
+        model_probabilities=probabilities,
+        times_s=times,
+        wild=streak,
+        noise_var=noise_var,
+        stated_var=stated_var,
+    )
+    return _restarts(updated, wild, positions, covariances, settings)
+
+
+def warm_up() -> None:
+    """Compile (or load from the disk cache) the filter's kernel: one step of two tracks, with
+    and without learning, so that no request waits for the compiler. A no-op with the
+    reference kernels."""
+    settings = TrackerSettings()
+    if _compiled_predict_update() is None:
+        return
+    positions = np.array([[1.0, 1.0], [2.0, 2.0]])
+    covariances = np.tile(1e-4 * np.eye(2), (2, 1, 1))
+    bank = start_tracks(positions, covariances, np.zeros(2), settings)
+    for learn in (True, False):
+        predict_update(bank, positions, covariances, 0.2, settings, learn=learn)
+
+
+def _compiled_predict_update() -> Callable[..., tuple[Any, ...]] | None:
+    """The compiled :func:`predict_update` while the compiled kernels are in use, else None.
+    Imported here, not at the top: numba loads with the first step, not with this module."""
+    from .._kernels import compiled_only
+
+    return compiled_only(_load_predict_update)
+
+
+def _load_predict_update() -> Callable[..., tuple[Any, ...]]:
+    from ._filter_compiled import predict_update_kernel
+
+    return cast("Callable[..., tuple[Any, ...]]", predict_update_kernel)
 
 
 # E[ln X] for X exponential with mean 1: -Euler's gamma. Half the squared norm of a 2-D

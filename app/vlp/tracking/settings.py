@@ -34,6 +34,18 @@ class TrackerSettings:
         A fix whose innovation lies beyond this probability of the predicted spread is
         "wild": its covariance is inflated until it lies on the gate (not dropped), and an
         anonymous fix beyond it is not associated with the track.
+    anonymous_inflate_probability : float
+        A doubtful anonymous fix (see ``anonymous_doubt_ratio``) whose innovation lies beyond
+        this probability of the predicted spread has its covariance inflated until it lies
+        there (it still counts as wild only beyond ``gate_probability``). Lower than the
+        gate: a shadowed terminal throws every estimate of an aggregated solve off, often by
+        more than their covariances say, and one such estimate that pulls a track towards
+        another walker swaps their identities.
+    anonymous_doubt_ratio : float
+        An anonymous fix is doubtful where another track explains it within this factor of
+        the likelihood under the track it was assigned to (elsewhere a wrong estimate can pull
+        its track away, but not onto another walker's, and the fix is inflated only beyond
+        the gate, as a labelled one).
     reset_after_wild : int
         This many wild fixes in a row restart the track at the newest fix (a track cannot
         lock out a terminal that really moved).
@@ -71,6 +83,8 @@ class TrackerSettings:
     mean_dwell_s: float = 2.0
     max_speed_mps: float = 3.0
     gate_probability: float = 0.999
+    anonymous_inflate_probability: float = 0.55
+    anonymous_doubt_ratio: float = 150.0
     reset_after_wild: int = 3
     min_measurement_sd_m: float = 0.005
     confirm_after_updates: int = 3
@@ -105,6 +119,12 @@ class TrackerSettings:
                 f"gate_probability must be below 1, got {self.gate_probability!r}",
                 field="gate_probability",
             )
+        if not self.anonymous_inflate_probability < 1.0:
+            raise VLPError(
+                "anonymous_inflate_probability must be below 1, got "
+                f"{self.anonymous_inflate_probability!r}",
+                field="anonymous_inflate_probability",
+            )
         if self.drop_after_s < self.lost_after_s:
             raise VLPError(
                 f"drop_after_s ({self.drop_after_s:g}) must be at least lost_after_s "
@@ -117,3 +137,15 @@ class TrackerSettings:
         """The gate on the squared Mahalanobis distance of a 2-D innovation:
         ``-2 ln(1 - gate_probability)`` (the chi-square quantile with 2 degrees of freedom)."""
         return -2.0 * math.log1p(-self.gate_probability)
+
+    @property
+    def anonymous_inflate_chi2(self) -> float:
+        """The squared Mahalanobis distance an anonymous fix beyond it is inflated to:
+        ``-2 ln(1 - anonymous_inflate_probability)``."""
+        return -2.0 * math.log1p(-self.anonymous_inflate_probability)
+
+    @property
+    def anonymous_doubt_margin(self) -> float:
+        """``anonymous_doubt_ratio`` as a difference of association costs (twice the negative
+        log-likelihood): ``2 ln(anonymous_doubt_ratio)``."""
+        return 2.0 * math.log(self.anonymous_doubt_ratio)

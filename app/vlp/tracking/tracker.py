@@ -20,8 +20,14 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from ..typing import BoolArray, FloatArray, IntArray
-from .filter import TrackBank, combined, floored_covariances, predict, start_tracks
-from .filter import update as filter_update
+from .filter import (
+    TrackBank,
+    combined,
+    floored_covariances,
+    predict,
+    predict_update,
+    start_tracks,
+)
 from .settings import TrackerSettings
 
 __all__ = [
@@ -138,6 +144,26 @@ def associate(
     """
     if predicted.size == 0 or positions.shape[0] == 0:
         return np.zeros(0, dtype=np.intp), np.zeros(0, dtype=np.intp)
+    cost = _costs(predicted, positions, covariances, settings, elapsed_s)
+    return _assigned(cost)
+
+
+def _assigned(cost: FloatArray) -> tuple[IntArray, IntArray]:
+    """The allowed pairs of the assignment of least total ``cost``."""
+    rows, cols = linear_sum_assignment(cost)
+    keep = cost[rows, cols] < _INFEASIBLE
+    return rows[keep].astype(np.intp), cols[keep].astype(np.intp)
+
+
+def _costs(
+    predicted: TrackBank,
+    positions: FloatArray,
+    covariances: FloatArray,
+    settings: TrackerSettings,
+    elapsed_s: FloatArray | None,
+) -> FloatArray:
+    """The cost ``(n, m)`` of each pair in :func:`associate` (:data:`_INFEASIBLE`: not
+    allowed)."""
     fix = floored_covariances(covariances, settings)
     # Each model's squared Mahalanobis distance and log-determinant, (n, models, m).
     distance2, log_det = _distances(
@@ -157,10 +183,7 @@ def associate(
         allowed |= gap <= settings.max_speed_mps * elapsed_s[:, None] + 2.448 * fix_spread[None, :]
     weight = np.log(np.maximum(predicted.model_probabilities, 1e-300))[:, :, None]
     log_likelihood = weight - 0.5 * (distance2 + log_det)
-    cost = np.where(allowed, -2.0 * np.logaddexp.reduce(log_likelihood, axis=1), _INFEASIBLE)
-    rows, cols = linear_sum_assignment(cost)
-    keep = allowed[rows, cols]
-    return rows[keep].astype(np.intp), cols[keep].astype(np.intp)
+    return np.where(allowed, -2.0 * np.logaddexp.reduce(log_likelihood, axis=1), _INFEASIBLE)
 
 
 def _distances(
@@ -186,6 +209,7 @@ def _apply(
     time_s: float,
     settings: TrackerSettings,
     learn: bool,
+    inflate_chi2: FloatArray | None = None,
 ) -> tuple[Tracks, BoolArray, BoolArray]:
     """Predict and update the tracks at ``rows`` with their fixes (in order); a fix older than
     its track's state does not move it. Returns the tracks, ``moved`` and ``wild`` per fix."""
@@ -197,11 +221,12 @@ def _apply(
     # Every track, in its order (a labelled room's usual step): no copy in and out.
     whole = live.shape[0] == tracks.size and bool(np.all(live == np.arange(tracks.size)))
     chosen = tracks.bank if whole else tracks.bank.take(live)
-    predicted = predict(chosen, np.full(live.shape[0], time_s), settings)
-    elapsed = np.maximum(time_s - chosen.times_s, 0.0)
     if not np.all(moved):
         positions, covariances = positions[moved], covariances[moved]
-    result = filter_update(predicted, positions, covariances, settings, elapsed, learn=learn)
+        inflate_chi2 = None if inflate_chi2 is None else inflate_chi2[moved]
+    result = predict_update(
+        chosen, positions, covariances, time_s, settings, learn=learn, inflate_chi2=inflate_chi2
+    )
     wild[moved] = result.wild
     updates = tracks.updates.copy()
     updates[live] += 1
@@ -247,6 +272,7 @@ def step_labelled(
     settings: TrackerSettings,
     *,
     learn: bool = True,
+    inflate_chi2: FloatArray | None = None,
 ) -> Step:
     """Fixes whose terminals are known: fix ``k`` updates track ``rows[k]``, or starts a new
     track where ``rows[k]`` is -1.
@@ -270,7 +296,14 @@ def step_labelled(
     """
     old = rows >= 0
     updated, moved_old, wild_old = _apply(
-        tracks, rows[old], positions[old], covariances[old], time_s, settings, learn
+        tracks,
+        rows[old],
+        positions[old],
+        covariances[old],
+        time_s,
+        settings,
+        learn,
+        None if inflate_chi2 is None else inflate_chi2[old],
     )
     fix_rows = rows.copy()
     moved = np.ones(rows.shape[0], dtype=bool)
@@ -292,7 +325,9 @@ def step_anonymous(
     settings: TrackerSettings,
 ) -> Step:
     """Anonymous fixes of one solve: associated with ``tracks`` (all anonymous), the rest
-    start tentative tracks; tracks no fix claimed count a miss.
+    start tentative tracks; tracks no fix claimed count a miss. A fix that another track
+    explains within ``anonymous_doubt_ratio`` of its own is inflated beyond
+    ``anonymous_inflate_probability`` of its track's spread, not only beyond the gate.
 
     Parameters
     ----------
@@ -313,12 +348,34 @@ def step_anonymous(
     """
     predicted = predict(tracks.bank, np.full(tracks.size, time_s), settings)
     elapsed = np.maximum(time_s - tracks.bank.times_s, 0.0)
-    track_rows, fix_cols = associate(predicted, positions, covariances, settings, elapsed)
     rows = np.full(positions.shape[0], -1, dtype=np.intp)
-    rows[fix_cols] = track_rows
+    inflate = np.full(positions.shape[0], settings.gate_chi2)
+    if tracks.size and positions.shape[0]:
+        cost = _costs(predicted, positions, covariances, settings, elapsed)
+        track_rows, fix_cols = _assigned(cost)
+        rows[fix_cols] = track_rows
+        # A fix another track explains almost as well is doubtful: if it is wrong (one
+        # shadowed terminal throws a whole aggregated solve off, often by more than its
+        # covariances say), pulling its track towards that other walker swaps their
+        # identities. Beyond the anonymous bound it moves its track only as a fix on the
+        # bound would.
+        others = cost.copy()
+        others[track_rows, fix_cols] = np.inf
+        second = np.min(others[:, fix_cols], axis=0)
+        doubtful = second - cost[track_rows, fix_cols] < settings.anonymous_doubt_margin
+        inflate[fix_cols[doubtful]] = settings.anonymous_inflate_chi2
     # A fix of an aggregated solve may be another terminal's: its track does not learn a
     # noise level from it.
-    step = step_labelled(tracks, rows, positions, covariances, time_s, settings, learn=False)
+    step = step_labelled(
+        tracks,
+        rows,
+        positions,
+        covariances,
+        time_s,
+        settings,
+        learn=False,
+        inflate_chi2=inflate,
+    )
     claimed = np.zeros(step.tracks.size, dtype=bool)
     claimed[step.fix_rows] = True
     misses = np.where(claimed, step.tracks.misses, step.tracks.misses + 1)
