@@ -157,15 +157,12 @@ class Calibration:
     height_sd_in_layout: bool = False
     # ... and how much their photodiodes tilt (grid.receiver_tilt_sd, the condition's own).
     tilt_sd_in_layout: bool = False
-    # Each LED's beam measured where the survey tells it from a Lambertian one.
-    fit_beams: bool = False
 
 
 CALIBRATIONS: tuple[Calibration, ...] = (
     Calibration("uncalibrated (layout as given)", survey=False),
     Calibration("survey, LED x/y fixed", survey=True, led_position_bound_m=0.0),
     Calibration("survey (default: LED x/y within 0.3 m)", survey=True),
-    Calibration("survey (default), beams measured", survey=True, fit_beams=True),
     Calibration("survey, reflectance fitted too", survey=True, fit_reflectance=True),
     Calibration("survey (default), receivers' height sd in layout", True, height_sd_in_layout=True),
     Calibration(
@@ -238,21 +235,16 @@ def run_calibrated(
                 rng=generator(room, "survey", trial),
                 element_size_m=TRUE_ELEMENT_SIZE_M,
             )
-            calibrated: dict[tuple[float, bool, bool], Layout] = {}
+            calibrated: dict[tuple[float, bool], Layout] = {}
             for calibration in CALIBRATIONS:
                 if calibration.survey:
-                    key = (
-                        calibration.led_position_bound_m,
-                        calibration.fit_reflectance,
-                        calibration.fit_beams,
-                    )
+                    key = (calibration.led_position_bound_m, calibration.fit_reflectance)
                     if key not in calibrated:  # one calibration per survey and settings
                         result = calibrate(
                             layout,
                             survey,
                             led_position_bound_m=key[0],
                             fit_reflectance=key[1],
-                            fit_beams=key[2],
                         )
                         calibrated[key] = calibrated_layout(layout, result)
                     fitted = calibrated[key]
