@@ -22,6 +22,7 @@ __all__ = [
     "ChannelConstants",
     "TableConstants",
     "beam_at",
+    "beam_towards",
     "channel_constants",
     "channel_rows",
 ]
@@ -136,6 +137,27 @@ def beam_at(
 
 
 @compiled
+def beam_towards(
+    channel: ChannelConstants, m: int, ux: float, uy: float, uz: float
+) -> tuple[float, float, float, float]:
+    """LED ``m``'s beam ``I(c)`` towards a receiver at ``r - s = (ux, uy, uz)`` and its
+    derivatives along the receiver's x, y, z: ``I'(c) (n / d - c (r - s) / d^2)`` with
+    ``c = n . (r - s) / d`` (:meth:`ChannelKernel.beam_towards`)."""
+    normals = channel[12]
+    nx, ny, nz = normals[m, 0], normals[m, 1], normals[m, 2]
+    dist = math.sqrt(ux * ux + uy * uy + uz * uz)
+    c = (nx * ux + ny * uy + nz * uz) / dist
+    beam, slope = beam_at(channel[15][m], channel[16][m], channel[17][m], channel[18][m], c)
+    slope /= dist
+    return (
+        beam,
+        slope * (nx - c * ux / dist),
+        slope * (ny - c * uy / dist),
+        slope * (nz - c * uz / dist),
+    )
+
+
+@compiled
 def diffuse_rows(
     table: TableConstants, xs: FloatArray, ys: FloatArray, zs: FloatArray, given_z: bool
 ) -> FloatArray:
@@ -225,10 +247,10 @@ def channel_rows(
         normals,
         tilted,
         beamed,
-        beam_knots,
-        beam_values,
-        beam_slopes,
-        beam_counts,
+        _,
+        _,
+        _,
+        _,
     ) = channel
     n_points = xs.shape[0]
     n_leds = led_x.shape[0]
@@ -260,15 +282,9 @@ def channel_rows(
                 along_x = slope * dx + gain * per_x
                 along_y = slope * dy + gain * per_y
                 if beamed[m]:
-                    drop = math.sqrt(dz2[m])
-                    dist = math.sqrt(d2)
-                    c = (normals[m, 0] * dx + normals[m, 1] * dy - normals[m, 2] * drop) / dist
-                    beam, beam_slope = beam_at(
-                        beam_knots[m], beam_values[m], beam_slopes[m], beam_counts[m], c
-                    )
-                    beam_slope /= dist
-                    along_x = along_x * beam + gain * beam_slope * (normals[m, 0] - c * dx / dist)
-                    along_y = along_y * beam + gain * beam_slope * (normals[m, 1] - c * dy / dist)
+                    beam, beam_x, beam_y, _ = beam_towards(channel, m, dx, dy, -math.sqrt(dz2[m]))
+                    along_x = along_x * beam + gain * beam_x
+                    along_y = along_y * beam + gain * beam_y
                     gain *= beam
                 out[0, p, m] = gain
                 out[1, p, m] = along_x
@@ -301,15 +317,10 @@ def channel_rows(
                     gain * ((orders[m] + 3.0) * drop / d2 - (orders[m] + 1.0) / drop) + gain * per_z
                 )
                 if beamed[m]:
-                    dist = math.sqrt(d2)
-                    c = (normals[m, 0] * dx + normals[m, 1] * dy - normals[m, 2] * drop) / dist
-                    beam, beam_slope = beam_at(
-                        beam_knots[m], beam_values[m], beam_slopes[m], beam_counts[m], c
-                    )
-                    beam_slope /= dist
-                    along_x = along_x * beam + gain * beam_slope * (normals[m, 0] - c * dx / dist)
-                    along_y = along_y * beam + gain * beam_slope * (normals[m, 1] - c * dy / dist)
-                    along_z = along_z * beam + gain * beam_slope * (normals[m, 2] + c * drop / dist)
+                    beam, beam_x, beam_y, beam_z = beam_towards(channel, m, dx, dy, -drop)
+                    along_x = along_x * beam + gain * beam_x
+                    along_y = along_y * beam + gain * beam_y
+                    along_z = along_z * beam + gain * beam_z
                     gain *= beam
                 out[0, p, m] = gain
                 out[1, p, m] = along_x

@@ -25,7 +25,7 @@ import numpy as np
 from ...._kernels import compiled
 from ....typing import FloatArray
 from ..lm import LMSettings
-from .channel import ChannelConstants, TableConstants, beam_at, channel_rows, diffuse_rows
+from .channel import ChannelConstants, TableConstants, beam_towards, channel_rows, diffuse_rows
 from .lm import lm_kernel, register_model
 
 __all__ = ["TerminalModel", "terminal_fit_kernel", "terminal_model_kernel"]
@@ -48,13 +48,7 @@ def terminal_model_kernel(
     led_x, led_y, led_z = channel[0], channel[1], channel[2]
     free_height_factor, orders, pilot, cos_fov2 = channel[5], channel[6], channel[9], channel[10]
     normals, tilted = channel[12], channel[13]
-    beamed, beam_knots, beam_values, beam_slopes, beam_counts = (
-        channel[14],
-        channel[15],
-        channel[16],
-        channel[17],
-        channel[18],
-    )
+    beamed = channel[14]
     n_leds = led_x.shape[0]
     x, y = theta[0], theta[1]
     z = theta[2] if free_height else z0
@@ -119,22 +113,11 @@ def terminal_model_kernel(
                     + along_normal * oz * derivative[2, j]
                 )
         if beamed[m]:
-            # The beam's I(c), c = n_led . (r - s) / d, r - s = -(ox, oy, oz).
-            dist = math.sqrt(dist2)
-            c = -(ox * normals[m, 0] + oy * normals[m, 1] + oz * normals[m, 2]) / dist
-            beam, beam_slope = beam_at(
-                beam_knots[m], beam_values[m], beam_slopes[m], beam_counts[m], c
-            )
-            beam_slope /= dist
-            gradient[m, 0] = gradient[m, 0] * beam + gain * beam_slope * (
-                normals[m, 0] + c * ox / dist
-            )
-            gradient[m, 1] = gradient[m, 1] * beam + gain * beam_slope * (
-                normals[m, 1] + c * oy / dist
-            )
-            gradient[m, 2] = gradient[m, 2] * beam + gain * beam_slope * (
-                normals[m, 2] + c * oz / dist
-            )
+            # r - s = -(ox, oy, oz)
+            beam, beam_x, beam_y, beam_z = beam_towards(channel, m, -ox, -oy, -oz)
+            gradient[m, 0] = gradient[m, 0] * beam + gain * beam_x
+            gradient[m, 1] = gradient[m, 1] * beam + gain * beam_y
+            gradient[m, 2] = gradient[m, 2] * beam + gain * beam_z
             gradient[m, 3] *= beam
             gradient[m, 4] *= beam
             gain *= beam

@@ -26,7 +26,7 @@ import numpy as np
 
 from ...._kernels import compiled
 from ....typing import FloatArray, IntArray
-from .channel import ChannelConstants, TableConstants, beam_at, channel_rows
+from .channel import ChannelConstants, TableConstants, beam_towards, channel_rows
 from .fit import Problem, _augmented, _multipliers, _symmetric_product
 
 __all__ = [
@@ -149,13 +149,7 @@ def misfit_columns_kernel(
                     * math.pow(dist2, -half_exponent[m])
                 )
                 if channel[14][m]:
-                    cosine = (
-                        -(off_x * channel[12][m, 0] + off_y * channel[12][m, 1])
-                        + drop * -channel[12][m, 2]
-                    ) / math.sqrt(dist2)
-                    los *= beam_at(
-                        channel[15][m], channel[16][m], channel[17][m], channel[18][m], cosine
-                    )[0]
+                    los *= beam_towards(channel, m, -off_x, -off_y, -drop)[0]
                 shape[m, i, 1] = los / drop * off_x
                 shape[m, i, 2] = los / drop * off_y
     for part in range(kinds - 1):
