@@ -464,7 +464,7 @@ def masked_layout(layout: Layout, dead_led_indices: tuple[int, ...] | list[int])
 # -- private kernels (inputs already validated) -------------------------------------------------
 def _plain(value: object) -> object:
     """Arrays and tuples as lists, non-finite floats as None."""
-    if isinstance(value, Reflectance | AmplitudeError):
+    if isinstance(value, Reflectance | AmplitudeError | Beam):
         return value.to_mapping()
     if isinstance(value, np.ndarray | tuple):
         return [_plain(v) for v in value]

@@ -7,6 +7,7 @@ quadrature of the interpolant, and the closed box's energy balance.
 
 from __future__ import annotations
 
+import json
 import math
 from dataclasses import replace
 
@@ -221,6 +222,7 @@ def test_a_survey_measures_a_batwing_beam_and_leaves_a_lambertian_one() -> None:
     measured = calibrated_layout(room, result)
     assert all(beam is not None for beam in result.beams)
     assert all(led.beam is not None for led in measured.leds)
+    assert json.loads(json.dumps(result.to_mapping()))["beams"][0]["angles_deg"][:2] == [0, 5]
     assert _model_error(batwing_room, measured) < 0.6 * _model_error(batwing_room, plain)
     # The measured table rises off the axis as the batwing does (1.12 at 30 degrees).
     beam = measured.leds[5].beam
