@@ -370,3 +370,33 @@ def test_rows_not_detected_enter_the_fit_as_censored(worker_app: TestClient) -> 
     assert [led["flag"] for led in reports[1]["leds"]][DEAD] == "dead"
     assert reports[1]["survey_rows"] == len(weak) and reports[1]["led_tilt_bound_deg"] == 0.0
     assert pulled[0] < 0.9 * plain[0]
+
+
+def test_a_survey_measures_batwing_beams_and_the_fingerprint_uses_them(
+    worker_app: TestClient,
+) -> None:
+    client = worker_app
+    from app.vlp.beams import Beam
+
+    batwing = Beam((0.0, 15.0, 30.0, 45.0, 60.0, 75.0, 90.0), (1.0, 1.05, 1.12, 1.1, 0.7, 0.3, 0.0))
+    errors, reports = {}, {}
+    for fit_beams in (True, False):
+        room_id = _paper_room(client)
+        nominal = layout_from_mapping(
+            client.get(f"/v1/rooms/{room_id}", headers=ADMIN).json()["layout"]
+        )
+        true = replace(nominal, leds=tuple(replace(led, beam=batwing) for led in nominal.leds))
+        noise_std = 0.005 * float(np.median(true_amplitudes(true, np.array([[2.0, 2.0]]))))
+        body = {**_survey_body(true, noise_std), "fit_beams": fit_beams}
+        response = client.post(f"/v1/rooms/{room_id}/calibrations", json=body, headers=ADMIN)
+        assert response.status_code == 202, response.text
+        result = wait_for_job(client, response.json()["id"])["result"]
+        url = f"/v1/rooms/{room_id}/calibrations/{result['calibration_id']}"
+        reports[fit_beams] = client.get(url, headers=ADMIN).json()
+        errors[fit_beams] = _mean_error_m(
+            client, room_id, result["fingerprint_version"], true, noise_std
+        )
+    assert reports[True]["fit_beams"] and not reports[False]["fit_beams"]
+    assert all(led["beam"] is not None for led in reports[True]["leds"])
+    assert all(led["beam"] is None for led in reports[False]["leds"])
+    assert errors[True] < 0.7 * errors[False], errors
