@@ -21,6 +21,7 @@ table; beyond the table's last angle it is 0.
 
 from __future__ import annotations
 
+import functools
 import itertools
 import math
 from collections.abc import Sequence
@@ -88,19 +89,26 @@ class Beam:
 
     def knots(self) -> tuple[FloatArray, FloatArray, FloatArray]:
         """The interpolant in ``c = cos(alpha)``: knots ``c`` (increasing), values and slopes
-        ``dI/dc`` there, each of shape (n,); intensities scaled to 1 on the axis."""
+        ``dI/dc`` there, each of shape (n,), read-only; intensities scaled to 1 on the axis."""
+        return self._interpolant
+
+    @functools.cached_property
+    def _interpolant(self) -> tuple[FloatArray, FloatArray, FloatArray]:
+        # Built once per beam: the reflections evaluate a beam for every receiver point.
         from scipy.interpolate import PchipInterpolator  # only layouts with beams need it
 
         cosines = np.cos(np.radians(np.asarray(self.angles_deg, dtype=np.float64)))[::-1]
         cosines[0] = max(cosines[0], 0.0)  # cos(90 degrees) is 6e-17
         values = np.asarray(self.relative_intensity, dtype=np.float64)[::-1]
         values = values / values[-1]
-        slopes = PchipInterpolator(cosines, values).derivative()(cosines)
-        return cosines, values, np.asarray(slopes, dtype=np.float64)
+        slopes = np.asarray(PchipInterpolator(cosines, values).derivative()(cosines), np.float64)
+        for array in (cosines, values, slopes):
+            array.setflags(write=False)
+        return cosines, values, slopes
 
     def hemisphere_integral(self) -> float:
         """``int_0^1 I(c) dc`` of the interpolant (its exact integral, segment by segment)."""
-        cosines, values, slopes = self.knots()
+        cosines, values, slopes = self._interpolant
         width = np.diff(cosines)
         trapezoids = width * (values[:-1] + values[1:]) / 2
         return float(np.sum(trapezoids + width**2 * (slopes[:-1] - slopes[1:]) / 12))

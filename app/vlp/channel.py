@@ -154,7 +154,9 @@ def channel_gains(layout: Layout, points: FloatArray) -> FloatArray:
     >>> float(channel_gains(lay, np.array([[2.0, 2.0]]))[0, 0])  # doctest: +ELLIPSIS
     1.70023...e-05
     """
-    gains, _ = _gains_and_offsets(layout, points)
+    gains, (offsets, _, _) = _gains_and_offsets(layout, points)
+    if layout.has_beams:
+        gains = gains * led_beam_factors(layout, _to_receiver(layout, offsets))[0]
     return gains
 
 
@@ -170,15 +172,13 @@ def channel_gain_gradients(layout: Layout, points: FloatArray) -> tuple[FloatArr
     gains, (offsets, dist_sq, orders) = _gains_and_offsets(layout, points)
     scale = -(orders[:, None] + 3.0) * gains / dist_sq
     gradients = scale[:, :, None] * offsets
-    if layout.has_beams:
-        beam, beam_gradients = led_beam_factors(layout, _to_receiver(layout, offsets))
-        lambertian = gains / np.where(beam > 0, beam, 1.0)
-        gradients += lambertian[:, :, None] * beam_gradients[:, :, :2]
     if layout.has_tilted_leds:
         _, facing = led_tilt_factors(layout, _to_receiver(layout, offsets))
         normals = layout.led_normals
         safe = np.where(gains > 0, facing, 1.0)
         gradients += (orders[:, None] * gains / safe)[:, :, None] * normals[:, None, :2]
+    if layout.has_beams:
+        return _times_beam(layout, gains, gradients, _to_receiver(layout, offsets))
     return gains, gradients
 
 
@@ -217,6 +217,8 @@ def led_tilt_factors(layout: Layout, to_receiver: FloatArray) -> tuple[FloatArra
 def _gains_and_offsets(
     layout: Layout, points: FloatArray
 ) -> tuple[FloatArray, tuple[FloatArray, FloatArray, FloatArray]]:
+    """Gains on the plane without the beams' factor (:func:`_times_beam` adds it) and the
+    offsets, squared distances and orders they came from."""
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
     leds = layout.led_positions
     orders, prefactors = led_constants(layout)
@@ -229,9 +231,17 @@ def _gains_and_offsets(
     gains = np.where(in_view, gains, 0.0)
     if layout.has_tilted_leds:
         gains = gains * led_tilt_factors(layout, _to_receiver(layout, offsets))[0]
-    if layout.has_beams:
-        gains = gains * led_beam_factors(layout, _to_receiver(layout, offsets))[0]
     return gains, (offsets, dist_sq, orders)
+
+
+def _times_beam(
+    layout: Layout, gains: FloatArray, gradients: FloatArray, to_receiver: FloatArray
+) -> tuple[FloatArray, FloatArray]:
+    """Gains ``h`` (M, P) and gradients (M, P, k) of the Lambertian part times the LEDs'
+    beams: ``h I`` and ``grad(h) I + h grad(I)`` (the first k of x, y, z)."""
+    beam, beam_gradients = led_beam_factors(layout, to_receiver)
+    k = gradients.shape[2]
+    return gains * beam, gradients * beam[:, :, None] + gains[:, :, None] * beam_gradients[..., :k]
 
 
 def _to_receiver(layout: Layout, offsets: FloatArray) -> FloatArray:
@@ -276,7 +286,9 @@ def los_gains(
     >>> bool(np.allclose(los_gains(lay, np.array([[1.1, 2.3, 0.85]])), flat))
     True
     """
-    gains, _ = _los_parts(layout, points_xyz, normals)
+    gains, (to_led, _, _, _) = _los_parts(layout, points_xyz, normals)
+    if layout.has_beams:
+        gains = gains * led_beam_factors(layout, -to_led)[0]
     return gains
 
 
@@ -321,12 +333,10 @@ def los_gain_gradients(
             + np.array([0.0, 0.0, 1.0]) / safe_height[:, :, None]
         )
         bracket = bracket - tilt
-    gradients = -gains[:, :, None] * bracket
+    gradients = np.asarray(-gains[:, :, None] * bracket)
     if layout.has_beams:
-        beam, beam_gradients = led_beam_factors(layout, -to_led)
-        lambertian = gains / np.where(beam > 0, beam, 1.0)
-        gradients += lambertian[:, :, None] * beam_gradients
-    return gains, np.asarray(gradients)
+        return _times_beam(layout, gains, gradients, -to_led)
+    return gains, gradients
 
 
 def _normals(normals: FloatArray | None, count: int) -> FloatArray:
@@ -346,6 +356,8 @@ def _normals(normals: FloatArray | None, count: int) -> FloatArray:
 def _los_parts(
     layout: Layout, points_xyz: FloatArray, normals: FloatArray | None
 ) -> tuple[FloatArray, tuple[FloatArray, FloatArray, FloatArray, FloatArray]]:
+    """Gains anywhere without the beams' factor (:func:`_times_beam` adds it), and the
+    vectors to the LEDs, squared distances, ``n . u`` and orders they came from."""
     pts = np.asarray(points_xyz, dtype=np.float64).reshape(-1, 3)
     nrm = _normals(normals, pts.shape[0])
     orders, prefactors = led_constants(layout)
@@ -361,6 +373,4 @@ def _los_parts(
     gains = prefactors[:, None] * safe_alpha ** orders[:, None] * cos_phi / dist_sq
     if layout.has_tilted_leds:
         gains = gains * led_tilt_factors(layout, -to_led)[0]
-    if layout.has_beams:
-        gains = gains * led_beam_factors(layout, -to_led)[0]
     return np.where(visible, gains, 0.0), (to_led, dist_sq, cos_phi_num, orders)
