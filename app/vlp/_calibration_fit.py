@@ -14,7 +14,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.optimize import least_squares
 
-from .beams import Beam, BeamArrays, beam_arrays, evaluate_beams
+from .beams import BeamArrays, beam_arrays, evaluate_beams
 from .channel import lambertian_order, led_constants
 from .constants import DEFAULT_LED_NORMAL
 from .layout import Layout, Reflectance
@@ -28,7 +28,6 @@ __all__ = [
     "MAX_ORDER",
     "MAX_REFLECTANCE",
     "MIN_ORDER",
-    "MIN_ROWS_FOR_BEAM",
     "MIN_ROWS_FOR_POSITION",
     "MIN_ROWS_FOR_TILT",
     "SURFACE_NAMES",
@@ -39,10 +38,8 @@ __all__ = [
     "fit_jointly",
     "fit_led",
     "led_rows",
-    "measured_beam",
     "rms_per_led",
     "tilt_frame",
-    "with_beam",
 ]
 
 # Lambertian orders allowed in the fit: half-power angles between 89.5 and 0.5 degrees.
@@ -54,16 +51,6 @@ MIN_ROWS_FOR_ORDER = 3
 MIN_ROWS_FOR_POSITION = 8
 # ... and the tilt of its normal too (6 parameters).
 MIN_ROWS_FOR_TILT = 12
-# ... and the shape of its beam (BEAM_TERMS parameters more than the Lambertian order).
-MIN_ROWS_FOR_BEAM = 16
-# A measured beam is the Lambertian one times exp(sum_k a_k u^k), u = 1 - cos(alpha), k = 1..3:
-# smooth, flat on the axis, and as many parameters as a survey's tens of rows per LED carry.
-BEAM_TERMS = 3
-# A measured beam that stays within this (log) fraction of the Lambertian one over the
-# surveyed angles is not kept: a survey without noise would otherwise fit its round-off.
-MIN_BEAM_CHANGE = 0.01
-# Its table: every 5 degrees from the axis to 90.
-BEAM_TABLE_STEP_DEG = 5.0
 # Cost decrease (in noise variances) a fitted LED tilt must bring to be kept: 2 + 3 sqrt(2 * 2)
 # for its two parameters (chi-squared with 2 degrees of freedom, 3 sd above its mean).
 TILT_SIGNIFICANCE = 8.0
@@ -387,61 +374,6 @@ def fit_led(rows: LedRows, nominal_order: float, rho: FloatArray, shift_bound: f
     if noise_var > 0 and 2.0 * (cost - tilted_cost) > TILT_SIGNIFICANCE * noise_var:
         return tilted
     return fit
-
-
-def measured_beam(rows: LedRows, fit: LedFit, rho: FloatArray) -> Beam | None:
-    """The LED's beam as the survey shows it, or None when the survey cannot tell it from
-    the fitted Lambertian one.
-
-    The detected rows in view give ``ln(a / f)`` (measured over the fitted model) against
-    ``u = 1 - cos(alpha)`` of the fitted LED; a weighted least-squares polynomial
-    ``a_0 + sum_k a_k u^k`` (:data:`BEAM_TERMS`; weights ``a``, as ``var(ln a) ~ 1 / a^2``)
-    is the correction, ``a_0`` a change of amplitude. It is kept when it lowers the
-    amplitudes' squared misfit by more than chance would (``p + 3 sqrt(2 p)`` noise
-    variances, ``p = BEAM_TERMS + 1``, the noise from the fit without it, as the tilt's
-    gate), and when it moves the beam by more than :data:`MIN_BEAM_CHANGE` somewhere in the
-    surveyed angles. The table is ``cos^m(alpha) exp(sum_k a_k u^k)`` every
-    :data:`BEAM_TABLE_STEP_DEG`, the correction held at its value at the widest angle the
-    survey saw beyond it. Needs :data:`MIN_ROWS_FOR_BEAM` rows; an LED whose layout gives a
-    beam keeps it.
-    """
-    if rows.beam is not None or rows.detected_in_view() < MIN_ROWS_FOR_BEAM:
-        return None
-    modelled = rows.model(fit.ratio, fit.order, fit.shift, rho, fit.tilt)
-    _, _, dist_sq, view, facing, _ = rows.geometry(fit.shift, fit.tilt)
-    used = view & ~rows.is_censored & (modelled > 0) & (rows.amplitudes > 0)
-    n_used = int(np.count_nonzero(used))
-    n_terms = BEAM_TERMS + 1
-    if n_used < MIN_ROWS_FOR_BEAM:
-        return None
-    measured = rows.amplitudes[used]
-    u = 1.0 - facing[used] / np.sqrt(dist_sq[used])
-    design = u[:, None] ** np.arange(n_terms)[None, :]
-    weights = measured / float(np.max(measured))
-    target = np.log(measured / modelled[used])
-    coefficients, *_ = np.linalg.lstsq(design * weights[:, None], target * weights, rcond=None)
-    corrected = modelled[used] * np.exp(design @ coefficients)
-    cost_before = float(np.sum((measured - modelled[used]) ** 2))
-    cost_after = float(np.sum((measured - corrected) ** 2))
-    dof = max(n_used - int(np.count_nonzero(fit.free)), 1)
-    chance = n_terms + 3.0 * math.sqrt(2.0 * n_terms)
-    if not cost_before - cost_after > chance * cost_before / dof:
-        return None
-    if float(np.max(np.abs(design[:, 1:] @ coefficients[1:]))) < MIN_BEAM_CHANGE:
-        return None  # within a percent of the Lambertian beam: nothing worth a table
-    angles = np.arange(0.0, 90.0 + BEAM_TABLE_STEP_DEG / 2, BEAM_TABLE_STEP_DEG)
-    cosines = np.cos(np.radians(angles)).clip(0.0, 1.0)
-    held = np.minimum(1.0 - cosines, float(np.max(u)))
-    shape = np.exp((held[:, None] ** np.arange(1, n_terms)[None, :]) @ coefficients[1:])
-    values = cosines**fit.order * shape
-    values[-1] = 0.0  # cos(90 degrees)^m: exactly 0, not 1e-17^m
-    return Beam(tuple(float(a) for a in angles), tuple(float(v) for v in values))
-
-
-def with_beam(rows: LedRows, beam: Beam) -> LedRows:
-    """The rows of the LED with ``beam`` (order 0; its base divided by the beam's
-    hemisphere integral, as :func:`app.vlp.channel.led_constants` does)."""
-    return replace(rows, base=rows.base / beam.hemisphere_integral(), beam=beam_arrays([beam]))
 
 
 def _fit_led_with(

@@ -48,8 +48,8 @@ from typing import Any
 import numpy as np
 from scipy import optimize
 
+from ._calibration_beams import MIN_ROWS_FOR_BEAM, measured_beam, with_beam
 from ._calibration_fit import (
-    MIN_ROWS_FOR_BEAM,
     MIN_ROWS_FOR_POSITION,
     MIN_ROWS_FOR_TILT,
     SURFACE_NAMES,
@@ -61,9 +61,7 @@ from ._calibration_fit import (
     fit_led,
     identifiable_surfaces,
     led_rows,
-    measured_beam,
     rms_per_led,
-    with_beam,
 )
 from .channel import lambertian_order, led_constants
 from .errors import MeasurementError
@@ -239,7 +237,7 @@ def calibrate(
         the layout). Needs :data:`MIN_ROWS_FOR_TILT` detected rows in the LED's view.
     fit_beams : bool, default=False
         Also measure each LED's beam where the survey tells it from a Lambertian one
-        (:func:`~app.vlp._calibration_fit.measured_beam`; needs
+        (:func:`~app.vlp._calibration_beams.measured_beam`; needs
         :data:`MIN_ROWS_FOR_BEAM` detected rows in view), then fit the LED again with it.
         LEDs whose layout gives a beam keep it.
 
