@@ -90,6 +90,12 @@ class Fingerprint:
         """x, ndarray of shape (M,)."""
         return self.layout.pilot_amplitudes
 
+    def cell_centres(self) -> FloatArray:
+        """Every grid point's centre, shape (N, 2) (:meth:`Layout.cell_centres`), made once:
+        the solvers of both models read the same array (16 MB in the million-point hall).
+        Callers must not write into it."""
+        return self._cached("centres", self.layout.cell_centres)
+
     def scaled_gains(self) -> sp.csr_array:
         """``G = diag(x) H``, sparse of shape (M, N); read-only.
 

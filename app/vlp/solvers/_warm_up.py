@@ -26,7 +26,7 @@ from .gridless.joint_model import (
     RoomTolerances,
 )
 from .gridless.lm import STEP_TOL_M
-from .gridless.local import _best_of_tiles
+from .gridless.local import _best_of_tiles, _squared_rows_dot
 from .gridless.model import Objective, fit_objective, gram
 from .gridless.options import LM_DEFAULTS
 from .gridless.state import FitState, Priors
@@ -150,4 +150,7 @@ def exercise() -> None:
         np.ones(kernel.n_leds),
         np.ones(4),
         (2.0, 1.0, 1.0),
+    )
+    _squared_rows_dot(
+        (by_cell.indptr, by_cell.indices, by_cell.data), 1.0, np.ones(kernel.n_leds), False
     )

@@ -246,13 +246,12 @@ def grid_correlations(
             num = weighted @ room.gains_sq
             norms = (white.weights**2) @ room.gains_fourth
         else:
-            g2 = room.gains_sq_sparse
-            num = g2.T @ weighted
+            num = room.squared_gains_dot(weighted)
             if white.rotation is None and np.all(white.weights == white.weights[0]):
                 # Plain metric (large rooms score this way): sum_i g_ij^4, kept once.
                 norms = white.weights[0] ** 2 * room.fourth_sums
             else:
-                norms = g2.power(2).T @ white.weights**2
+                norms = room.squared_gains_dot(white.weights**2, fourth=True)
         return np.asarray(num), np.asarray(norms)
     if room.dense:
         return dispatch(_dense_scores_kernel, _correlation_scores)(room, white, residual)

@@ -386,3 +386,68 @@ def _best_of_tiles(
                 if score > best_score or (score == best_score and cell < best_cell):
                     best_cell, best_score, best_norm = cell, score, norm
     return best_cell, best_score, best_norm
+
+
+def squared_gains_dot(
+    gains_by_cell: sp.csr_array, inverse_scale: float, vector: FloatArray, fourth: bool
+) -> FloatArray:
+    """``sum_i (g_ij / scale)^2 v_i`` (``fourth``: ``(g_ij / scale)^4 v_i``) for every grid
+    point j, shape (N,), from ``G^T`` (``gains_by_cell``, N x M): the power model's scans of a
+    large room, without a squared copy of G of their own (the same numbers as
+    ``((G / scale)^2)^T @ v``: each point's LEDs summed in increasing order)."""
+    return np.asarray(
+        dispatch(_squared_gains_dot_kernel, _squared_gains_dot_reference)(
+            gains_by_cell, inverse_scale, vector, fourth
+        )
+    )
+
+
+def _squared_gains_dot_kernel(
+    gains_by_cell: sp.csr_array, inverse_scale: float, vector: FloatArray, fourth: bool
+) -> FloatArray:
+    """:func:`_squared_gains_dot_reference` in one compiled call (:func:`_squared_rows_dot`)."""
+    return np.asarray(
+        _squared_rows_dot(
+            (gains_by_cell.indptr, gains_by_cell.indices, gains_by_cell.data),
+            inverse_scale,
+            np.ascontiguousarray(vector, dtype=np.float64),
+            fourth,
+        )
+    )
+
+
+def _squared_gains_dot_reference(
+    gains_by_cell: sp.csr_array, inverse_scale: float, vector: FloatArray, fourth: bool
+) -> FloatArray:
+    """:func:`squared_gains_dot` in NumPy (a transient squared copy of ``G^T``)."""
+    squared = (gains_by_cell.data * inverse_scale) ** 2
+    if fourth:
+        squared = squared**2
+    rows = sp.csr_array(
+        (squared, gains_by_cell.indices, gains_by_cell.indptr), shape=gains_by_cell.shape
+    )
+    return np.asarray(rows @ np.asarray(vector, dtype=np.float64))
+
+
+@compiled
+def _squared_rows_dot(
+    by_cell: tuple[IntArray, IntArray, FloatArray],
+    inverse_scale: float,
+    vector: FloatArray,
+    fourth: bool,
+) -> FloatArray:
+    """:func:`_squared_gains_dot_reference` without the squared copy: each row's entries in
+    stored order, as ``csr_matvec`` sums them (the same numbers)."""
+    indptr, indices, data = by_cell
+    n_cells = indptr.shape[0] - 1
+    out = np.zeros(n_cells)
+    for cell in range(n_cells):
+        total = 0.0
+        for at in range(indptr[cell], indptr[cell + 1]):
+            scaled = data[at] * inverse_scale
+            squared = scaled * scaled
+            if fourth:
+                squared = squared * squared
+            total += squared * vector[indices[at]]
+        out[cell] = total
+    return out

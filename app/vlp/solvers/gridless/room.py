@@ -10,11 +10,13 @@ between threads).
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import replace
 from typing import Any
 
 import numpy as np
+import scipy.sparse as sp
 
 from ...ambiguity import twins_possible
 from ...fingerprints import Fingerprint
@@ -24,7 +26,7 @@ from ...typing import FloatArray
 from ..base import MAX_TARGETS
 from ._compiled.channel import channel_constants
 from .channel import ChannelKernel
-from .local import PowerScan, TerminalWindows
+from .local import PowerScan, TerminalWindows, squared_gains_dot
 from .model import (
     Objective,
     _Slots,
@@ -106,7 +108,7 @@ class PreparedRoom:
         self.whitenings = WhiteningMemo()
         # Plain least squares (one object: the compiled kernels keep their view of it).
         self.identity = Whitening.identity(model, fingerprint.n_leds)
-        self.centres = layout.cell_centres()
+        self.centres = fingerprint.cell_centres()  # shared with the other model's room
         self.led_xy = np.ascontiguousarray(layout.led_positions[:, :2])
         self.dense = fingerprint.is_dense
         # Photodiodes the layout says face straight up: no tilt to fit or allow for.
@@ -169,14 +171,17 @@ class PreparedRoom:
             self.gains_fourth = self.gains_sq**2
             self.column_energy = np.maximum(self.gains_sq.sum(axis=0), 1e-300)
         else:
-            self.gains_sparse = fingerprint.scaled_gains() / self.scale
-            if model == "power":  # the correlation model scans through the operator
-                self.gains_sq_sparse = self.gains_sparse.power(2)
+            # Large rooms keep no scaled copy of G (nor of its square): their scans read
+            # G^T, which the fingerprint holds once for both models (the correlation
+            # operator's, also the windows' and the power scan's), and G / scale is made
+            # only where a room without windows scores terminals (:attr:`gains_sparse`).
             self.operator = fingerprint.correlation_operator()
-            total = np.asarray(self.gains_sparse.power(2).sum(axis=0)).ravel()
-            fourth = np.asarray(self.gains_sparse.power(4).sum(axis=0)).ravel()
-            self.psi_norms = np.sqrt(0.5 * (total**2 + fourth))
-            self.fourth_sums = fourth
+            self.gains_by_cell = self.operator.gains_by_cell
+            total, fourth = _column_power_sums(fingerprint.scaled_gains(), 1.0 / self.scale)
+            if model == "power":  # its scans' plain-metric norms; the power scan's too
+                self.fourth_sums = fourth
+            else:
+                self.psi_norms = np.sqrt(0.5 * (total**2 + fourth))
             self.column_energy = np.maximum(total, 1e-300)
         self.mean_column_energy = float(np.mean(self.column_energy))
         # Large rooms: terminals are started near their own footprint (see ._local), as wide
@@ -226,6 +231,17 @@ class PreparedRoom:
             float(np.max(self.column_energy)),
         )
 
+    @functools.cached_property
+    def gains_sparse(self) -> sp.csr_array:
+        """``G / scale`` of a large room, sparse (M, N): made on first use (only a room
+        without terminal windows scores terminals with it)."""
+        return sp.csr_array(self.fingerprint.scaled_gains() / self.scale)
+
+    def squared_gains_dot(self, vector: FloatArray, fourth: bool = False) -> FloatArray:
+        """``((G / scale)^2)^T @ vector`` (``fourth``: ``((G / scale)^4)^T @ vector``) of a
+        large room, shape (N,), read from G^T (:func:`.local.squared_gains_dot`)."""
+        return squared_gains_dot(self.gains_by_cell, 1.0 / self.scale, vector, fourth)
+
     def gains_at(self, points: FloatArray) -> FloatArray:
         """The channel gains (M, P) at ``points`` (P, 2) on the receivers' plane."""
         return self.kernel.gains_xy(points[:, 0], points[:, 1])
@@ -244,3 +260,14 @@ class PreparedRoom:
                 ceiling,
             )
         return found
+
+
+def _column_power_sums(gains: sp.csr_array, inverse_scale: float) -> tuple[FloatArray, FloatArray]:
+    """``sum_i (g_ij / scale)^2`` and ``sum_i (g_ij / scale)^4`` of every column j of a CSR
+    ``gains``, shapes (N,): the numbers ``(G / scale).power(n).sum(axis=0)`` computes (each
+    column's entries added in row order, with the same powers), without its copies of G."""
+    scaled = gains.data * inverse_scale
+    n_cells = gains.shape[1]
+    total = np.bincount(gains.indices, weights=scaled**2, minlength=n_cells)
+    fourth = np.bincount(gains.indices, weights=scaled**4, minlength=n_cells)
+    return np.asarray(total, dtype=np.float64), np.asarray(fourth, dtype=np.float64)
