@@ -7,6 +7,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+import scipy.sparse as sp
 
 from app.vlp._kernels import KERNELS, use_kernels
 from app.vlp.channel import los_gains
@@ -176,6 +177,51 @@ def test_compiled_tile_scores_are_the_numpy_ones(hall: Fingerprint) -> None:
         (2.0, 1.0, 1.0),
     )
     assert got == expected
+
+
+def test_squared_gain_products_are_those_of_the_squared_copy(hall: Fingerprint) -> None:
+    """The power scans' products read from G^T are ``((G / scale)^2)^T v`` and
+    ``((G / scale)^4)^T v`` of the squared copy that they replace, bit for bit (both kernels);
+    the column sums are scipy's."""
+    room = GridlessSolver(hall, "power").room
+    scaled = hall.scaled_gains() / room.scale
+    squared = scaled.power(2)
+    np.testing.assert_array_equal(room.fourth_sums, np.asarray(scaled.power(4).sum(axis=0)))
+    np.testing.assert_array_equal(
+        room.column_energy, np.maximum(np.asarray(squared.sum(axis=0)), 1e-300)
+    )
+    rng = np.random.default_rng(13)
+    for _ in range(3):
+        vector = rng.standard_normal(hall.n_leds) * rng.choice([1e-3, 1.0, 1e3])
+        for kernels in KERNELS:
+            with use_kernels(kernels):
+                np.testing.assert_array_equal(
+                    room.squared_gains_dot(vector), np.asarray(squared.T @ vector)
+                )
+                np.testing.assert_array_equal(
+                    room.squared_gains_dot(vector, fourth=True),
+                    np.asarray(squared.power(2).T @ vector),
+                )
+
+
+def test_large_rooms_keep_no_copy_of_the_gains(hall: Fingerprint) -> None:
+    """Both models' rooms read the fingerprint's G^T and grid centres (one copy for both)
+    and hold no array as large as G of their own."""
+    rooms = [GridlessSolver(hall, model).room for model in ("power", "correlation")]
+    shared = hall.correlation_operator().gains_by_cell
+    assert rooms[0].gains_by_cell is shared and rooms[1].gains_by_cell is shared
+    assert rooms[0].centres is rooms[1].centres
+    for room in rooms:
+        for name, value in vars(room).items():
+            if value is shared:
+                continue
+            arrays = [value.data, value.indices] if sp.issparse(value) else [value]
+            for array in arrays:
+                if isinstance(array, np.ndarray):
+                    assert array.size < hall.gains.nnz, name
+    # Made on first use only: a room without terminal windows scores terminals with it.
+    expected = hall.scaled_gains() / rooms[1].scale
+    assert (rooms[1].gains_sparse != expected).nnz == 0
 
 
 def test_power_solves_in_large_rooms_are_those_of_the_whole_grid_scan(hall: Fingerprint) -> None:
