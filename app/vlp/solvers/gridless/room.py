@@ -45,6 +45,7 @@ from .state import (
 )
 from .whitening import (
     Whitening,
+    _vech_indices,
     compiled_indices,
 )
 from .whitening_memo import WhiteningMemo
@@ -106,8 +107,6 @@ class PreparedRoom:
             self.stages.pop()
         # Whitenings already computed, by state values (.gridless.whitening_memo).
         self.whitenings = WhiteningMemo()
-        # Plain least squares (one object: the compiled kernels keep their view of it).
-        self.identity = Whitening.identity(model, fingerprint.n_leds)
         self.centres = fingerprint.cell_centres()  # shared with the other model's room
         self.led_xy = np.ascontiguousarray(layout.led_positions[:, :2])
         self.dense = fingerprint.is_dense
@@ -144,14 +143,8 @@ class PreparedRoom:
             if model == "power"
             else fingerprint.n_leds * (fingerprint.n_leds + 1) // 2
         )
-        self.upper_lower = (
-            (
-                np.arange(fingerprint.n_leds),
-                np.arange(fingerprint.n_leds),
-            )
-            if model == "power"
-            else np.triu_indices(fingerprint.n_leds)
-        )
+        # The entries' rows and columns, read-only and shared with the whitenings.
+        self.upper_lower = _vech_indices(model, fingerprint.n_leds)[:2]
         # Each target costs 2 coordinates and the noise power one more unknown.
         self.max_count = max(1, min(MAX_TARGETS, fingerprint.n_cells, (n_obs - 1) // 2))
         # The far-place scans read every grid point per answer: dense rooms small enough.
@@ -230,6 +223,13 @@ class PreparedRoom:
             float(np.percentile(self.column_energy, 5.0)),
             float(np.max(self.column_energy)),
         )
+
+    @functools.cached_property
+    def identity(self) -> Whitening:
+        """Plain least squares, made on first use (a correlation model of the million-point
+        hall's 1024 LEDs holds 20 MB in it, and its terminals' solves never read it); one
+        object, whose compiled form the kernels keep."""
+        return Whitening.identity(self.model, self.fingerprint.n_leds)
 
     @functools.cached_property
     def gains_sparse(self) -> sp.csr_array:
