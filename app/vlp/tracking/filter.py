@@ -21,6 +21,7 @@ import numpy as np
 
 from ..typing import BoolArray, FloatArray, IntArray
 from .settings import TrackerSettings
+from .starts import after_runs, whitened_offsets
 
 __all__ = [
     "N_MODELS",
@@ -74,6 +75,7 @@ class TrackBank:
     wild: IntArray
     noise_var: FloatArray
     stated_var: FloatArray
+    offset: FloatArray
 
     @property
     def size(self) -> int:
@@ -90,6 +92,7 @@ class TrackBank:
             wild=self.wild[rows],
             noise_var=self.noise_var[rows],
             stated_var=self.stated_var[rows],
+            offset=self.offset[rows],
         )
 
     def put(self, rows: IntArray | BoolArray, other: TrackBank) -> TrackBank:
@@ -102,6 +105,7 @@ class TrackBank:
             wild=self.wild.copy(),
             noise_var=self.noise_var.copy(),
             stated_var=self.stated_var.copy(),
+            offset=self.offset.copy(),
         )
         out.means[rows] = other.means
         out.covariances[rows] = other.covariances
@@ -110,6 +114,7 @@ class TrackBank:
         out.wild[rows] = other.wild
         out.noise_var[rows] = other.noise_var
         out.stated_var[rows] = other.stated_var
+        out.offset[rows] = other.offset
         return out
 
     @staticmethod
@@ -125,6 +130,7 @@ class TrackBank:
             wild=np.concatenate((first.wild, second.wild)),
             noise_var=np.concatenate((first.noise_var, second.noise_var)),
             stated_var=np.concatenate((first.stated_var, second.stated_var)),
+            offset=np.concatenate((first.offset, second.offset)),
         )
 
     @staticmethod
@@ -138,6 +144,7 @@ class TrackBank:
             wild=np.zeros(0, dtype=np.intp),
             noise_var=np.zeros(0),
             stated_var=np.zeros(0),
+            offset=np.zeros((0, 2)),
         )
 
 
@@ -190,6 +197,7 @@ def start_tracks(
         wild=np.zeros(count, dtype=np.intp),
         noise_var=np.trace(covariance[:, 0, :2, :2], axis1=1, axis2=2) / 2.0,
         stated_var=np.trace(covariance[:, 0, :2, :2], axis1=1, axis2=2) / 2.0,
+        offset=np.zeros((count, 2)),
     )
 
 
@@ -279,6 +287,7 @@ def predict(bank: TrackBank, times_s: FloatArray, settings: TrackerSettings) -> 
         wild=bank.wild,
         noise_var=bank.noise_var,
         stated_var=bank.stated_var,
+        offset=bank.offset,
     )
 
 
@@ -371,6 +380,29 @@ def update(
     -------
     Update
     """
+    bank, wild = _updated(
+        predicted,
+        positions,
+        covariances,
+        settings,
+        elapsed_s,
+        learn=learn,
+        inflate_chi2=inflate_chi2,
+    )
+    return _restarts(bank, wild, positions, covariances, settings)
+
+
+def _updated(
+    predicted: TrackBank,
+    positions: FloatArray,
+    covariances: FloatArray,
+    settings: TrackerSettings,
+    elapsed_s: FloatArray | None,
+    *,
+    learn: bool,
+    inflate_chi2: float | FloatArray | None,
+) -> tuple[TrackBank, BoolArray]:
+    """:func:`update` before the restarts: the updated tracks and which fixes were wild."""
     stated = floored_covariances(covariances, settings)
     prior = _combined_position(predicted)
     innovation = positions - np.einsum(
@@ -416,8 +448,9 @@ def update(
         wild=streak,
         noise_var=noise_var,
         stated_var=stated_level,
+        offset=predicted.offset,
     )
-    return _restarts(bank, wild, positions, covariances, settings)
+    return bank, wild
 
 
 def _restarts(
@@ -457,9 +490,19 @@ def predict_update(
     """
     kernel = _compiled_predict_update()
     if kernel is None:
-        predicted = predict(bank, np.full(bank.size, time_s), settings)
         elapsed = np.maximum(time_s - bank.times_s, 0.0)
-        return update(
+        stated = floored_covariances(covariances, settings)
+        offsets = whitened_offsets(
+            bank.means,
+            bank.covariances,
+            bank.noise_var,
+            positions,
+            (stated[:, 0, 0] + stated[:, 1, 1]) / 2.0,
+            elapsed,
+            settings,
+        )
+        predicted = predict(bank, np.full(bank.size, time_s), settings)
+        updated, wild = _updated(
             predicted,
             positions,
             covariances,
@@ -468,7 +511,9 @@ def predict_update(
             learn=learn,
             inflate_chi2=inflate_chi2,
         )
-    means, covs, probabilities, times, streak, noise_var, stated_var, wild = kernel(
+        updated = after_runs(updated, bank, offsets, learn, settings)
+        return _restarts(updated, wild, positions, covariances, settings)
+    means, covs, probabilities, times, streak, noise_var, stated_var, offset, wild = kernel(
         bank.means,
         bank.covariances,
         bank.model_probabilities,
@@ -476,6 +521,7 @@ def predict_update(
         bank.wild,
         bank.noise_var,
         bank.stated_var,
+        bank.offset,
         np.ascontiguousarray(positions, dtype=np.float64),
         np.ascontiguousarray(covariances, dtype=np.float64),
         float(time_s),
@@ -496,6 +542,8 @@ def predict_update(
             settings.min_measurement_sd_m,
             settings.steady_fix_probability,
             settings.noise_memory_s,
+            settings.start_run_sd,
+            settings.start_run_ratio,
         ),
     )
     updated = TrackBank(
@@ -506,6 +554,7 @@ def predict_update(
         wild=streak,
         noise_var=noise_var,
         stated_var=stated_var,
+        offset=offset,
     )
     return _restarts(updated, wild, positions, covariances, settings)
 
