@@ -100,10 +100,7 @@ def predict_update_kernel(
         previous = math.hypot(offset[k, 0], offset[k, 1])
         along = (offset[k, 0] * off0 + offset[k, 1] * off1) / max(previous, 1e-12)
         run = (
-            learn
-            and model_probabilities[k, 0] >= 0.5
-            and previous >= run_sd
-            and along >= previous
+            learn and model_probabilities[k, 0] >= 0.5 and previous >= run_sd and along >= previous
         )
         switch = -math.expm1(-dt / dwell)
         for j in range(2):

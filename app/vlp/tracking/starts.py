@@ -2,26 +2,27 @@
 
 One fix far from a standing track is as likely a wild fix (a shadowed LED) as the first step
 of a walk, and the standing model's wide-fix hypothesis takes most of it: the track lags the
-walker by the fix's whole offset. A second fix that lies further along the same direction is
-what a wild fix (independent from fix to fix) seldom gives and a walk always does. Each track
-keeps its last fix's offset from the standing model, in sds of the fix-to-fix noise it has
-learned; a fix whose offset reaches ``start_run_sd`` along a previous offset that reached it
-too raises the probability that the terminal set off in this step to ``start_probability``
-(the interacting multiple model's switching probability for that step alone).
+walker by most of the fix's offset. A next fix that lies further out along the same direction
+is what a walker gives (it draws away from where it stood) and a wild fix seldom does (an
+independent one points anywhere; one that repeats, a hand that stays on an LED, lands where
+the last one did). Each track keeps its last fix's offset from the standing model, in sds of
+a standing terminal's fix (the fix-to-fix noise the track has learned, not the fix's stated
+covariance, which a start does not change); where a track that stood gets a fix further along
+an offset of at least ``start_run_sd``, its odds of walking after the update are multiplied
+by ``start_run_ratio``. The odds, not the switching probability: raising the probability of
+a switch would also mix the standing model's state, which the first fix did not move, into
+the walking model's, which it did.
 """
 
 from __future__ import annotations
 
 import dataclasses
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..typing import BoolArray, FloatArray
+from .bank import TrackBank
 from .settings import TrackerSettings
-
-if TYPE_CHECKING:
-    from .filter import TrackBank
 
 __all__ = ["after_runs", "consistent_runs", "whitened_offsets"]
 
