@@ -63,6 +63,7 @@ def filter_json(bank: TrackBank, row: int) -> dict[str, Any]:
         "wild": int(bank.wild[row]),
         "noise_var": float(bank.noise_var[row]),
         "stated_var": float(bank.stated_var[row]),
+        "offset": bank.offset[row].tolist(),
     }
 
 
@@ -81,6 +82,10 @@ def tracks_of(records: list[TrackRecord]) -> Tracks:
         # Stored before the level was learned: the next fix starts it.
         noise_var=np.array([float(r.filter.get("noise_var", math.nan)) for r in records]),
         stated_var=np.array([float(r.filter.get("stated_var", math.nan)) for r in records]),
+        # Stored before starts were told by a run: no offset to continue.
+        offset=np.array(
+            [r.filter.get("offset", [0.0, 0.0]) for r in records], dtype=np.float64
+        ).reshape(-1, 2),
     )
     return Tracks(
         bank=bank,

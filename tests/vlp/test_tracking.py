@@ -416,6 +416,7 @@ def test_association_weighs_each_model_by_its_own_likelihood(rng: np.random.Gene
             wild=np.zeros(n, dtype=np.intp),
             noise_var=np.full(n, np.nan),
             stated_var=np.full(n, np.nan),
+            offset=np.zeros((n, 2)),
         )
         fixes = rng.uniform(0.0, 1.0, (n, 2))
         noise = np.tile(0.01 * np.eye(2), (n, 1, 1))
@@ -520,3 +521,47 @@ def test_a_doubtful_anonymous_fix_moves_its_track_as_one_on_the_anonymous_bound(
     alone = Tracks(bank.take(np.array([0])), confirmed[:1], np.array([3]), np.zeros(1, np.intp))
     step = step_anonymous(alone, fixes[:1], noise[:1], 0.2, settings)
     assert_allclose(step.tracks.bank.means[0, 1], kalman(whole), rtol=1e-9, atol=1e-12)
+
+
+# Runs off: the odds of walking are never raised.
+NO_RUNS = TrackerSettings(start_run_ratio=1.0)
+
+
+def _after_fixes(
+    offsets: list[float], stated_sd: list[float], settings: TrackerSettings
+) -> TrackBank:
+    """A track that stood 2 s at (1, 1) (fixes scattered by 1 cm and saying 2.5 cm), then
+    fixes ``offsets`` metres along x, each saying ``stated_sd``."""
+    gen = np.random.default_rng(5)
+    here = np.array([[1.0, 1.0]])
+    fixes = [here + 0.01 * gen.standard_normal((1, 2)) for _ in range(10)]
+    fixes += [here + np.array([[dx, 0.0]]) for dx in offsets]
+    stated = [0.025] * 10 + stated_sd
+    tracks, rows = Tracks.empty(), np.array([-1])
+    for k, (fix, sd) in enumerate(zip(fixes, stated, strict=True)):
+        step = step_labelled(tracks, rows, fix, np.array([sd**2 * np.eye(2)]), 0.2 * k, settings)
+        tracks, rows = step.tracks, step.fix_rows
+    return tracks.bank
+
+
+def test_a_standing_terminal_that_sets_off_is_followed_from_its_second_far_fix() -> None:
+    # A walker sets off between two fixes: the first lands 8 cm out, the next 36 cm, and the
+    # solver says 10-12 cm for both. Alone, each is as well a wide fix of a terminal that
+    # stands; the second further out along the first is a start.
+    offsets, stated = [0.08, 0.36], [0.10, 0.12]
+    walked = _after_fixes(offsets, stated, TrackerSettings())
+    plain = _after_fixes(offsets, stated, NO_RUNS)
+    lag = 1.0 + offsets[-1] - estimates(walked)[0][0, 0]
+    lag_plain = 1.0 + offsets[-1] - estimates(plain)[0][0, 0]
+    assert walked.model_probabilities[0, 1] > 0.95 > plain.model_probabilities[0, 1]
+    assert lag < 0.6 * lag_plain, (lag, lag_plain)
+
+
+def test_a_wild_fix_that_repeats_does_not_start_a_walk() -> None:
+    # A hand that stays on an LED: two fixes in a row land at the same wrong place. The second
+    # is no further out than the first: the track stands as it would without runs.
+    repeated = _after_fixes([0.3, 0.3], [0.1, 0.1], TrackerSettings())
+    assert repeated.offset[0, 0] > TrackerSettings().start_run_sd
+    plain = _after_fixes([0.3, 0.3], [0.1, 0.1], NO_RUNS)
+    assert_allclose(repeated.means, plain.means)
+    assert_allclose(repeated.model_probabilities, plain.model_probabilities)

@@ -34,24 +34,35 @@ def predict_update_kernel(
     wild: IntArray,
     noise_var: FloatArray,
     stated_var: FloatArray,
+    offset: FloatArray,
     positions: FloatArray,
     fix_covariances: FloatArray,
     time_s: float,
     learn: bool,
     inflate_chi2: FloatArray,
-    settings: tuple[float, float, float, float, float, float, float, float, float],
+    settings: tuple[float, float, float, float, float, float, float, float, float, float, float],
 ) -> tuple[
-    FloatArray, FloatArray, FloatArray, FloatArray, IntArray, FloatArray, FloatArray, BoolArray
+    FloatArray,
+    FloatArray,
+    FloatArray,
+    FloatArray,
+    IntArray,
+    FloatArray,
+    FloatArray,
+    FloatArray,
+    BoolArray,
 ]:
     """Every track (row ``k``) predicted to ``time_s`` and updated with fix ``k`` (a fix beyond
     ``inflate_chi2[k]`` inflated to it).
 
     ``settings``: (walking_accel_sd_mps2, standing_drift_mps, start_speed_sd_mps,
     mean_dwell_s, max_speed_mps, gate_chi2, min_measurement_sd_m, steady_fix_probability,
-    noise_memory_s). Returns the new bank's arrays (means, covariances, model probabilities,
-    times, wild streaks, noise levels, stated levels) and which fixes were wild.
+    noise_memory_s, start_run_sd, start_run_ratio). Returns the new bank's arrays (means,
+    covariances, model probabilities, times, wild streaks, noise levels, stated levels,
+    offsets) and which fixes were wild.
     """
-    accel_sd, drift_sd, start_sd, dwell, max_speed, gate, floor_sd, steady, memory = settings
+    accel_sd, drift_sd, start_sd, dwell, max_speed, gate, floor_sd, steady, memory = settings[:9]
+    run_sd, run_ratio = settings[9], settings[10]
     n = times_s.shape[0]
     out_means = np.empty((n, 2, 4))
     out_covs = np.empty((n, 2, 4, 4))
@@ -60,6 +71,7 @@ def predict_update_kernel(
     out_wild = np.empty(n, dtype=np.intp)
     out_noise = np.empty(n)
     out_stated = np.empty(n)
+    out_offset = np.zeros((n, 2))
     was_wild = np.empty(n, dtype=np.bool_)
     accel = accel_sd * accel_sd
     floor = floor_sd * floor_sd
@@ -78,6 +90,18 @@ def predict_update_kernel(
     for k in range(n):
         # --- predict (IMM interaction, then each model's motion) ---
         dt = max(time_s - times_s[k], 0.0)
+        # --- the fix's offset from the standing model, in sds (starts.whitened_offsets) ---
+        fix_var = (fix_covariances[k, 0, 0] + fix_covariances[k, 1, 1]) / 2.0 + floor
+        level = noise_var[k] if math.isfinite(noise_var[k]) else fix_var
+        spread_var = (covariances[k, 0, 0, 0] + covariances[k, 0, 1, 1]) / 2.0
+        offset_sd = math.sqrt(level + spread_var + drift_sd * drift_sd * dt)
+        off0 = (positions[k, 0] - means[k, 0, 0]) / offset_sd
+        off1 = (positions[k, 1] - means[k, 0, 1]) / offset_sd
+        previous = math.hypot(offset[k, 0], offset[k, 1])
+        along = (offset[k, 0] * off0 + offset[k, 1] * off1) / max(previous, 1e-12)
+        run = (
+            learn and model_probabilities[k, 0] >= 0.5 and previous >= run_sd and along >= previous
+        )
         switch = -math.expm1(-dt / dwell)
         for j in range(2):
             total = 0.0
@@ -158,8 +182,6 @@ def predict_update_kernel(
             noises[1, 2] = scale * wd - p11
         else:
             noises[1, 0], noises[1, 1], noises[1, 2] = r00, r01, r11
-        fix_var = (r00 + r11) / 2.0
-        level = noise_var[k] if math.isfinite(noise_var[k]) else fix_var
         shrink = min(1.0, level / fix_var) if learn else 1.0
         noises[0, 0], noises[0, 1], noises[0, 2] = r00 * shrink, r01 * shrink, r11 * shrink
         # --- each model's update under both hypotheses, collapsed ---
@@ -243,7 +265,26 @@ def predict_update_kernel(
         out_wild[k] = wild[k] + 1 if is_wild else 0
         for m in range(2):
             _cap_speed_row(out_means, k, m, max_speed)
-    return out_means, out_covs, out_probs, out_times, out_wild, out_noise, out_stated, was_wild
+        # --- a consistent run ends a standing track's stand (starts.after_runs) ---
+        if learn:
+            out_offset[k, 0], out_offset[k, 1] = off0, off1
+            if run:
+                walking = out_probs[k, 1]
+                odds = run_ratio * walking
+                total = 1.0 - walking + odds
+                out_probs[k, 0] = max((1.0 - walking) / total, 1e-9)
+                out_probs[k, 1] = max(odds / total, 1e-9)
+    return (
+        out_means,
+        out_covs,
+        out_probs,
+        out_times,
+        out_wild,
+        out_noise,
+        out_stated,
+        out_offset,
+        was_wild,
+    )
 
 
 @compiled

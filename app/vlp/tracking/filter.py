@@ -8,7 +8,8 @@ and returns whole batches of arrays: ``n`` tracks, never one Python object per t
 
 Each fix brings its own covariance (the solver's) and its own time: the step between two fixes
 is the difference of their times, however irregular. A wild fix (innovation beyond the gate)
-is not dropped: its covariance is inflated so that its innovation lies on the gate.
+is not dropped: its covariance is inflated so that its innovation lies on the gate. A standing
+track whose fixes run away from it in one direction has set off (:mod:`.starts`).
 """
 
 from __future__ import annotations
@@ -19,8 +20,10 @@ from typing import Any, cast
 
 import numpy as np
 
-from ..typing import BoolArray, FloatArray, IntArray
+from ..typing import BoolArray, FloatArray
+from .bank import N_MODELS, TrackBank
 from .settings import TrackerSettings
+from .starts import after_runs, whitened_offsets
 
 __all__ = [
     "N_MODELS",
@@ -36,109 +39,6 @@ __all__ = [
     "update",
     "warm_up",
 ]
-
-N_MODELS = 2  # 0: standing, 1: walking
-
-
-@dataclass(frozen=True)
-class TrackBank:
-    """The filter state of ``n`` tracks.
-
-    Attributes
-    ----------
-    means : ndarray of shape (n, 2, 4)
-        Each model's state ``[x, y, vx, vy]`` per track (m, m/s).
-    covariances : ndarray of shape (n, 2, 4, 4)
-        Each model's state covariance.
-    model_probabilities : ndarray of shape (n, 2)
-        Probability of standing and of walking.
-    times_s : ndarray of shape (n,)
-        Time of the state, seconds (any fixed origin, e.g. POSIX time).
-    wild : ndarray of shape (n,), int
-        Wild fixes in a row.
-    noise_var : ndarray of shape (n,), m^2
-        The track's learned variance (per axis) of the part of a fix's error that changes
-        from fix to fix: a fix is trusted down to it whatever its stated covariance says
-        (NaN: not learned yet, the next fix's stated covariance starts it).
-    stated_var : ndarray of shape (n,), m^2
-        The harmonic mean (same memory) of the fixes' stated variances per axis: what the
-        solver says a fix's whole error is, weighted as a filter weighs the fixes. Where it
-        exceeds ``noise_var`` the rest is error successive fixes share, which no filter
-        averages away (:func:`estimates`).
-    """
-
-    means: FloatArray
-    covariances: FloatArray
-    model_probabilities: FloatArray
-    times_s: FloatArray
-    wild: IntArray
-    noise_var: FloatArray
-    stated_var: FloatArray
-
-    @property
-    def size(self) -> int:
-        """The number of tracks ``n``."""
-        return int(self.times_s.shape[0])
-
-    def take(self, rows: IntArray | BoolArray) -> TrackBank:
-        """The tracks at ``rows`` (indices or a mask)."""
-        return TrackBank(
-            means=self.means[rows],
-            covariances=self.covariances[rows],
-            model_probabilities=self.model_probabilities[rows],
-            times_s=self.times_s[rows],
-            wild=self.wild[rows],
-            noise_var=self.noise_var[rows],
-            stated_var=self.stated_var[rows],
-        )
-
-    def put(self, rows: IntArray | BoolArray, other: TrackBank) -> TrackBank:
-        """A copy with the tracks at ``rows`` replaced by ``other``'s, in order."""
-        out = TrackBank(
-            means=self.means.copy(),
-            covariances=self.covariances.copy(),
-            model_probabilities=self.model_probabilities.copy(),
-            times_s=self.times_s.copy(),
-            wild=self.wild.copy(),
-            noise_var=self.noise_var.copy(),
-            stated_var=self.stated_var.copy(),
-        )
-        out.means[rows] = other.means
-        out.covariances[rows] = other.covariances
-        out.model_probabilities[rows] = other.model_probabilities
-        out.times_s[rows] = other.times_s
-        out.wild[rows] = other.wild
-        out.noise_var[rows] = other.noise_var
-        out.stated_var[rows] = other.stated_var
-        return out
-
-    @staticmethod
-    def concatenate(first: TrackBank, second: TrackBank) -> TrackBank:
-        """``first``'s tracks followed by ``second``'s."""
-        return TrackBank(
-            means=np.concatenate((first.means, second.means)),
-            covariances=np.concatenate((first.covariances, second.covariances)),
-            model_probabilities=np.concatenate(
-                (first.model_probabilities, second.model_probabilities)
-            ),
-            times_s=np.concatenate((first.times_s, second.times_s)),
-            wild=np.concatenate((first.wild, second.wild)),
-            noise_var=np.concatenate((first.noise_var, second.noise_var)),
-            stated_var=np.concatenate((first.stated_var, second.stated_var)),
-        )
-
-    @staticmethod
-    def empty() -> TrackBank:
-        """No track."""
-        return TrackBank(
-            means=np.zeros((0, N_MODELS, 4)),
-            covariances=np.zeros((0, N_MODELS, 4, 4)),
-            model_probabilities=np.zeros((0, N_MODELS)),
-            times_s=np.zeros(0),
-            wild=np.zeros(0, dtype=np.intp),
-            noise_var=np.zeros(0),
-            stated_var=np.zeros(0),
-        )
 
 
 def inverse_2x2(matrices: FloatArray) -> tuple[FloatArray, FloatArray]:
@@ -190,6 +90,7 @@ def start_tracks(
         wild=np.zeros(count, dtype=np.intp),
         noise_var=np.trace(covariance[:, 0, :2, :2], axis1=1, axis2=2) / 2.0,
         stated_var=np.trace(covariance[:, 0, :2, :2], axis1=1, axis2=2) / 2.0,
+        offset=np.zeros((count, 2)),
     )
 
 
@@ -279,6 +180,7 @@ def predict(bank: TrackBank, times_s: FloatArray, settings: TrackerSettings) -> 
         wild=bank.wild,
         noise_var=bank.noise_var,
         stated_var=bank.stated_var,
+        offset=bank.offset,
     )
 
 
@@ -371,6 +273,29 @@ def update(
     -------
     Update
     """
+    bank, wild = _updated(
+        predicted,
+        positions,
+        covariances,
+        settings,
+        elapsed_s,
+        learn=learn,
+        inflate_chi2=inflate_chi2,
+    )
+    return _restarts(bank, wild, positions, covariances, settings)
+
+
+def _updated(
+    predicted: TrackBank,
+    positions: FloatArray,
+    covariances: FloatArray,
+    settings: TrackerSettings,
+    elapsed_s: FloatArray | None,
+    *,
+    learn: bool,
+    inflate_chi2: float | FloatArray | None,
+) -> tuple[TrackBank, BoolArray]:
+    """:func:`update` before the restarts: the updated tracks and which fixes were wild."""
     stated = floored_covariances(covariances, settings)
     prior = _combined_position(predicted)
     innovation = positions - np.einsum(
@@ -416,8 +341,9 @@ def update(
         wild=streak,
         noise_var=noise_var,
         stated_var=stated_level,
+        offset=predicted.offset,
     )
-    return _restarts(bank, wild, positions, covariances, settings)
+    return bank, wild
 
 
 def _restarts(
@@ -457,9 +383,19 @@ def predict_update(
     """
     kernel = _compiled_predict_update()
     if kernel is None:
-        predicted = predict(bank, np.full(bank.size, time_s), settings)
         elapsed = np.maximum(time_s - bank.times_s, 0.0)
-        return update(
+        stated = floored_covariances(covariances, settings)
+        offsets = whitened_offsets(
+            bank.means,
+            bank.covariances,
+            bank.noise_var,
+            positions,
+            (stated[:, 0, 0] + stated[:, 1, 1]) / 2.0,
+            elapsed,
+            settings,
+        )
+        predicted = predict(bank, np.full(bank.size, time_s), settings)
+        updated, wild = _updated(
             predicted,
             positions,
             covariances,
@@ -468,7 +404,9 @@ def predict_update(
             learn=learn,
             inflate_chi2=inflate_chi2,
         )
-    means, covs, probabilities, times, streak, noise_var, stated_var, wild = kernel(
+        updated = after_runs(updated, bank, offsets, learn, settings)
+        return _restarts(updated, wild, positions, covariances, settings)
+    means, covs, probabilities, times, streak, noise_var, stated_var, offset, wild = kernel(
         bank.means,
         bank.covariances,
         bank.model_probabilities,
@@ -476,6 +414,7 @@ def predict_update(
         bank.wild,
         bank.noise_var,
         bank.stated_var,
+        bank.offset,
         np.ascontiguousarray(positions, dtype=np.float64),
         np.ascontiguousarray(covariances, dtype=np.float64),
         float(time_s),
@@ -496,6 +435,8 @@ def predict_update(
             settings.min_measurement_sd_m,
             settings.steady_fix_probability,
             settings.noise_memory_s,
+            settings.start_run_sd,
+            settings.start_run_ratio,
         ),
     )
     updated = TrackBank(
@@ -506,6 +447,7 @@ def predict_update(
         wild=streak,
         noise_var=noise_var,
         stated_var=stated_var,
+        offset=offset,
     )
     return _restarts(updated, wild, positions, covariances, settings)
 

@@ -75,6 +75,13 @@ class TrackerSettings:
     noise_memory_s : float
         How long the learned noise level remembers, seconds (the time a terminal takes to
         walk into another part of the room, where the LEDs it sees differ).
+    start_run_sd : float
+        Two fixes in a row this many sds (of the track's learned fix-to-fix noise) away from
+        a standing track, the second along the first, are a consistent run: the terminal has
+        set off (a wild fix seldom repeats in the same direction).
+    start_run_ratio : float
+        How many times likelier a consistent run is from a walking terminal than from a
+        standing one: the odds of walking are multiplied by it after a fix that ends one.
     """
 
     walking_accel_sd_mps2: float = 1.5
@@ -96,6 +103,8 @@ class TrackerSettings:
     standing_prior: float = 0.5
     steady_fix_probability: float = 0.5
     noise_memory_s: float = 2.0
+    start_run_sd: float = 2.0
+    start_run_ratio: float = 100.0
 
     def __post_init__(self) -> None:
         for item in fields(self):
