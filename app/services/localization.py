@@ -426,7 +426,9 @@ def _solve_and_label(
     measurement, terminals, targets = task.measurement, task.terminals, task.targets
     if terminals is not None and targets is None:
         targets = len(terminals.ids)  # the contract: one target per terminal sent
-    own = _terminal_solver(prepared.solver)
+    # Only terminals ask which kind the solver is: the check against a runtime protocol
+    # costs more than the rest of an answer's labelling.
+    own = None if terminals is None else _terminal_solver(prepared.solver)
     per_terminal = _per_terminal(prepared, task)
     with contextlib.nullcontext() if lock_held else prepared.lock:
         started = time.perf_counter()
