@@ -18,7 +18,6 @@ terminal's amplitude count in :mod:`app.services.masking`, shapes, signs and fin
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -459,7 +458,10 @@ def _solve_and_label(
         noise_power=float(solution.noise_power),
         elapsed_ms=round(elapsed * 1e3, 3),
         converged=bool(solution.converged),
-        fit=None if solution.fit is None else Fit(**dataclasses.asdict(solution.fit)),
+        # read off the fit's attributes: dataclasses.asdict deep-copies every field first
+        fit=None
+        if solution.fit is None
+        else Fit.model_validate(solution.fit, from_attributes=True),
     )
 
 
