@@ -21,6 +21,9 @@ one run (``ratios`` in the output collects them):
 (d) the one-worker API process's peak resident memory (``VmHWM``) once it is ready, before
     any request.
 
+Bodies are encoded to JSON once, before any timing: the client's own encoding (tens of
+milliseconds for a batch of 100 matrices) is not what the service adds around a solve.
+
     python -m bench.http [--sequential 300] [--seconds 5] [--rounds 5] [--concurrency 8]
                          [--batch 100] [--batch-rounds 5]
 """
@@ -47,6 +50,7 @@ import numpy as np
 from bench._server import TERMINAL_KEY, LiveServer, live_server, ready_demo_room
 
 _HEADERS = {"X-API-Key": TERMINAL_KEY}
+_JSON = {"Content-Type": "application/json"}
 # Seconds of load that warm each server before its throughput phases (at most a phase).
 _WARM_S = 2.0
 
@@ -64,6 +68,15 @@ def _measurements(url: str, room_id: str, count: int) -> list[dict[str, Any]]:
             body.pop("fingerprint_version", None)
             bodies.append(body)
     return bodies
+
+
+def _encoded(body: Any) -> bytes:
+    """``body`` as the JSON bytes a client would send (encoded once, outside any timing)."""
+    return json.dumps(body, separators=(",", ":")).encode("utf-8")
+
+
+def _post(client: httpx.Client, path: str, content: bytes) -> httpx.Response:
+    return client.post(path, content=content, headers=_JSON)
 
 
 def _peak_rss_mib(pid: int) -> float:
@@ -104,22 +117,23 @@ def _sequential(
     url = server.url
     path = f"/v1/rooms/{room_id}/localize"
     healthz, default, omp, solver = [], [], [], []
+    encoded = [_encoded(body) for body in bodies]
+    encoded_omp = [_encoded({**body, "solver": "omp"}) for body in bodies]
     with httpx.Client(base_url=url, headers=_HEADERS, timeout=60.0) as client:
-        for body in bodies[:20]:  # warm the fingerprint and solver caches
-            client.post(path, json=body).raise_for_status()
-            client.post(path, json={**body, "solver": "omp"}).raise_for_status()
+        for index in range(min(20, len(bodies))):  # warm the fingerprint and solver caches
+            _post(client, path, encoded[index]).raise_for_status()
+            _post(client, path, encoded_omp[index]).raise_for_status()
         for index in range(requests):
-            body = bodies[index % len(bodies)]
             start = time.perf_counter()
             client.get("/healthz").raise_for_status()
             healthz.append(time.perf_counter() - start)
             start = time.perf_counter()
-            answer = client.post(path, json=body)
+            answer = _post(client, path, encoded[index % len(bodies)])
             default.append(time.perf_counter() - start)
             answer.raise_for_status()
             solver.append(float(answer.json()["elapsed_ms"]))
             start = time.perf_counter()
-            client.post(path, json={**body, "solver": "omp"}).raise_for_status()
+            _post(client, path, encoded_omp[index % len(bodies)]).raise_for_status()
             omp.append(time.perf_counter() - start)
         pid = server.process.pid
         cpu_healthz = _server_cpu_ms(
@@ -129,15 +143,13 @@ def _sequential(
             client,
             pid,
             requests,
-            lambda c, i: c.post(
-                path, json={**bodies[i % len(bodies)], "solver": "omp"}
-            ).raise_for_status(),
+            lambda c, i: _post(c, path, encoded_omp[i % len(bodies)]).raise_for_status(),
         )
         cpu_default = _server_cpu_ms(
             client,
             pid,
             requests,
-            lambda c, i: c.post(path, json=bodies[i % len(bodies)]).raise_for_status(),
+            lambda c, i: _post(c, path, encoded[i % len(bodies)]).raise_for_status(),
         )
     healthz_ms = statistics.median(healthz) * 1e3
     localize_ms = statistics.median(default) * 1e3
@@ -168,6 +180,7 @@ def _sequential(
 async def _throughput(
     url: str, path: str, bodies: list[dict[str, Any]], seconds: float, concurrency: int
 ) -> tuple[float, int]:
+    encoded = [_encoded(body) for body in bodies]
     done = 0
     errors = 0
     stop_at = time.monotonic() + seconds
@@ -176,7 +189,7 @@ async def _throughput(
         nonlocal done, errors
         index = offset
         while time.monotonic() < stop_at:
-            response = await client.post(path, json=bodies[index % len(bodies)])
+            response = await client.post(path, content=encoded[index % len(encoded)], headers=_JSON)
             index += concurrency
             if response.status_code == 200:
                 done += 1
@@ -233,6 +246,8 @@ def _path(room_id: str) -> str:
 def _batch(url: str, room_id: str, bodies: list[dict[str, Any]], rounds: int) -> dict[str, Any]:
     """(c): one batch of the bodies against the same bodies as single requests."""
     singles, batches, batch_over_solves = [], [], []
+    batch_body = _encoded({"items": bodies})
+    single_bodies = [_encoded(body) for body in bodies]
     with httpx.Client(base_url=url, headers=_HEADERS, timeout=300.0) as client:
         batch_answers: list[dict[str, Any]] = []
         single_answers: list[dict[str, Any]] = []
@@ -240,9 +255,7 @@ def _batch(url: str, room_id: str, bodies: list[dict[str, Any]], rounds: int) ->
             for kind in ("single", "batch") if round_index % 2 == 0 else ("batch", "single"):
                 start = time.perf_counter()
                 if kind == "batch":
-                    response = client.post(
-                        f"/v1/rooms/{room_id}/localize/batch", json={"items": bodies}
-                    )
+                    response = _post(client, f"/v1/rooms/{room_id}/localize/batch", batch_body)
                     response.raise_for_status()
                     wall = time.perf_counter() - start
                     batches.append(wall)
@@ -251,8 +264,8 @@ def _batch(url: str, room_id: str, bodies: list[dict[str, Any]], rounds: int) ->
                     batch_over_solves.append(wall / solves_s)
                 else:
                     single_answers = []
-                    for body in bodies:
-                        answer = client.post(_path(room_id), json=body)
+                    for body in single_bodies:
+                        answer = _post(client, _path(room_id), body)
                         answer.raise_for_status()
                         single_answers.append(answer.json())
                     singles.append(time.perf_counter() - start)

@@ -82,6 +82,43 @@ def test_answer_equals_the_solver_called_directly(
     assert result["converged"] is bool(direct.converged)
 
 
+@pytest.mark.parametrize("solver", ["gridless", "omp"])
+def test_answer_is_json_with_exactly_the_localization_members(
+    ready_app: tuple[TestClient, str], paper_fingerprint: Fingerprint, solver: str
+) -> None:
+    """The answer carries every member of a `Localization` and of each `Estimate` (nulls
+    included, as the document says) and no tracking members when `track` is not asked."""
+    client, room_id = ready_app
+    amplitudes = on_grid_amplitudes(paper_fingerprint)
+    body = {"correlation": (amplitudes.T @ amplitudes).tolist(), "targets": 2, "solver": solver}
+    response = client.post(f"/v1/rooms/{room_id}/localize", json=body, headers=TERMINAL)
+    assert response.status_code == 200, response.text
+    assert response.headers["content-type"] == "application/json"
+    answer = response.json()
+    assert set(answer) == {
+        "room_id",
+        "fingerprint_version",
+        "model",
+        "solver",
+        "targets",
+        "estimates",
+        "residual_norm",
+        "noise_power",
+        "elapsed_ms",
+        "converged",
+        "fit",
+    }
+    estimate_members = {"x", "y", "grid_index", "weight", "terminal_id"}
+    estimate_members |= {"accuracy_m", "covariance", "gain", "z"}
+    assert [set(e) for e in answer["estimates"]] == [estimate_members] * 2
+    if solver == "omp":  # no fit, no uncertainty: nulls, not left out
+        assert answer["fit"] is None
+        assert all(e["accuracy_m"] is None and e["covariance"] is None for e in answer["estimates"])
+    else:
+        assert set(answer["fit"]) == {"quality", "chi2_per_dof", "scale", "detail"}
+        assert all(len(e["covariance"]) == 2 for e in answer["estimates"])
+
+
 def test_the_contract_offers_exactly_the_registered_solvers() -> None:
     assert sorted(get_args(SolverName)) == sorted(solver_names())
 
