@@ -101,16 +101,18 @@ def test_a_scatter_on_few_degrees_of_freedom_widens_the_radius(paper_room: Layou
     assert radii[1] == pytest.approx(radii[0] * math.sqrt(widening), rel=1e-3)
 
 
-@pytest.mark.parametrize("measured", [False, True], ids=["uncalibrated", "not-level"])
+@pytest.mark.parametrize("measured", [False, True], ids=["uncalibrated", "scatter-exceeded"])
 def test_without_a_calibration_the_radius_rests_on_the_requests_own_residuals(
     paper_room: Layout, monkeypatch: pytest.MonkeyPatch, measured: bool
 ) -> None:
-    # No measured scatter, or one whose layout does not say the receivers are level (hand-held
-    # terminals are not like the survey receiver): the covariances use the variances fitted to
-    # the request's own residuals (pooled over its terminals), on their few degrees of freedom.
+    # No measured scatter, or one that the request's residuals exceed in a layout that does not
+    # say the receivers are level (terminals unlike the survey receiver): the covariances use
+    # the variances fitted to the request's own residuals (pooled over its terminals), on
+    # their few degrees of freedom.
     assert paper_room.amplitude_error is None and not paper_room.grid.receivers_level
     if measured:
-        scatter = AmplitudeError(noise_sd=1e-7, relative_sd=0.03, dof=1e9)
+        # A tenth of the relative error the amplitudes below carry.
+        scatter = AmplitudeError(noise_sd=1e-7, relative_sd=0.003, dof=1e9)
         paper_room = replace(paper_room, amplitude_error=scatter)
     pooled: list[Misfit] = []
     used: list[Misfit] = []
@@ -134,6 +136,32 @@ def test_without_a_calibration_the_radius_rests_on_the_requests_own_residuals(
     solver.solve_terminals(amplitudes)
     assert len(used) == 2 and all(misfit is pooled[-1] for misfit in used)
     assert 0 < pooled[-1].dofs[0] < 2 * paper_room.n_leds
+
+
+def test_terminals_the_scatter_explains_are_weighted_by_it_without_a_level_layout(
+    paper_room: Layout,
+) -> None:
+    # Level terminals whose amplitudes scatter as the survey measured: a layout that says
+    # nothing about the receivers' tilt gives them the answer of one that says they are level
+    # (the same weights and radii: their fits keep no tilt), where the request's own few
+    # residuals would have estimated the variances.
+    scatter = AmplitudeError(noise_sd=2e-7, relative_sd=0.03, dof=300.0)
+    silent = replace(paper_room, amplitude_error=scatter)
+    level = replace(silent, grid=replace(silent.grid, receivers_level=True))
+    clean = true_amplitudes(silent, np.array([[1.3, 2.6], [2.9, 0.8], [0.7, 0.9]]))
+    rng = np.random.default_rng(5)
+    amplitudes = clean * (1.0 + scatter.relative_sd * rng.standard_normal(clean.shape))
+    amplitudes = amplitudes + scatter.noise_sd * rng.standard_normal(clean.shape)
+    answers = [
+        GridlessSolver(build_fingerprint(layout), "correlation").solve_terminals(amplitudes)
+        for layout in (silent, level, paper_room)
+    ]
+    assert answers[0].covariances is not None and answers[1].covariances is not None
+    # The same optimum, each fit reached from its own first pass (to LM's tolerance).
+    np.testing.assert_allclose(answers[0].positions, answers[1].positions, rtol=1e-6)
+    np.testing.assert_allclose(answers[0].covariances, answers[1].covariances, rtol=1e-4)
+    # Without the calibration's scatter the same request is answered otherwise.
+    assert not np.allclose(answers[2].positions, answers[0].positions, rtol=0, atol=1e-6)
 
 
 def test_a_calibration_measures_the_surveys_noise_and_relative_error(paper_room: Layout) -> None:

@@ -14,7 +14,7 @@ import numpy as np
 
 from ...layout import AmplitudeError
 from ...scale import check_amplitude_scale
-from ...typing import FloatArray
+from ...typing import FloatArray, IntArray
 from ...uncertainty import (
     FITS_TO_NOISE,
     Misfit,
@@ -47,6 +47,9 @@ _LED_WEIGHT_SIGNIFICANCE = 3.0
 # off in a badly lit room), which the weights would make worse
 # (docs/decisions/led-errors-in-terminal-weights.md).
 _MAX_LED_ERROR_SD = 0.25
+# Standard deviations of the chi-square by which a request's residuals may exceed what the
+# survey's measured scatter predicts and still be taken for the survey receiver's kind.
+_SCATTER_SIGNIFICANCE = 4.5
 
 
 def solve_terminals(
@@ -189,12 +192,18 @@ def solve_terminals(
     reweighted = room.options.terminal_led_weights and _led_errors_seen(designs, led_error)
     # The room's own scatter, measured by its survey calibration on many degrees of freedom,
     # weights every terminal and is its covariance's variance: one request's few residuals
-    # would estimate it on next to nothing. Only for terminals like the survey receiver
-    # (level, the layout says): a hand-held one's tilt and gain are not in the survey's
-    # scatter, and under-covered with it (docs/decisions/measured-radii.md).
-    measured = room.fingerprint.layout.amplitude_error if room.receivers_level else None
+    # would estimate it on next to nothing. Only for terminals like the survey receiver:
+    # level, the layout says, or residuals that the scatter explains; a hand-held one's tilt
+    # and gain are not in the survey's scatter, and under-covered with it
+    # (docs/decisions/measured-radii.md).
+    measured = room.fingerprint.layout.amplitude_error
+    like_survey: list[TerminalFit] | None = None
     if measured is not None:
-        fits = refitted(fits, lambda fit: measured_variances(measured, room.scale, fit))
+        like_survey = refitted(fits, lambda fit: measured_variances(measured, room.scale, fit))
+        if not (room.receivers_level or _scatter_explains(like_survey, dof)):
+            like_survey = None
+    if measured is not None and like_survey is not None:
+        fits = like_survey
         designs, _ = misfit_of(fits, led_errors=False)
         misfit = measured_misfit(measured, designs, [fit.residual for fit in fits])
         reweighted = False
@@ -253,6 +262,16 @@ def solve_terminals(
         else None,
         fit=fit_quality,
     )
+
+
+def _scatter_explains(fits: list[TerminalFit], dof: IntArray) -> bool:
+    """Whether the survey's measured scatter explains the residuals of ``fits`` (weighted
+    by it): their whitened sum of squares within ``_SCATTER_SIGNIFICANCE`` standard
+    deviations of its chi-square mean on ``dof`` (K,) degrees of freedom. A terminal whose
+    tilt, gain or height is unlike the survey receiver's leaves more."""
+    chi2 = sum(float(fit.residual @ fit.residual) for fit in fits)
+    total = float(dof.sum())
+    return chi2 <= total + _SCATTER_SIGNIFICANCE * math.sqrt(2.0 * total)
 
 
 def measured_variances(measured: AmplitudeError, scale: float, fit: TerminalFit) -> FloatArray:
