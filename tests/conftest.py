@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import fcntl
 import os
 from collections import Counter
 
@@ -33,6 +34,17 @@ def paper_room() -> Layout:
 def paper_fingerprint(paper_room: Layout) -> Fingerprint:
     """Fingerprint of the paper's room (built once per test run; treat as read-only)."""
     return build_fingerprint(paper_room)
+
+
+def pytest_collection_finish(session: pytest.Session) -> None:
+    """Under ``./test``: wait, once collected, until the script releases its lock on
+    ``VLP_TEST_START_LOCK`` (lint and type checks passed, the solver's kernels compiled into
+    their disk cache), so collecting overlaps the kernels' compile but no test runs before."""
+    path = os.environ.get("VLP_TEST_START_LOCK")
+    if not path or not session.items or not os.path.exists(path):
+        return
+    with open(path, "rb") as lock:
+        fcntl.flock(lock, fcntl.LOCK_SH)
 
 
 @pytest.hookimpl(trylast=True)

@@ -55,3 +55,34 @@ def test_the_modules_the_workers_do_not_collect_are_serial() -> None:
     assert ignored, "the check below would check nothing"
     for module in ignored:
         assert _marks_module(TESTS.parent / module, "serial"), f"{module} is not marked serial"
+
+
+def _uses_mark(path: Path, mark: str) -> bool:
+    """Whether the module uses ``<something>.mark.<mark>`` in any spelling (an alias of
+    ``pytest``, ``from pytest import mark``)."""
+    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+        if isinstance(node, ast.Attribute) and node.attr == mark:
+            owner = node.value
+            if (isinstance(owner, ast.Attribute) and owner.attr == "mark") or (
+                isinstance(owner, ast.Name) and owner.id == "mark"
+            ):
+                return True
+    return False
+
+
+def test_serial_marks_are_spelt_as_the_serial_pass_finds_them() -> None:
+    """``./test`` (without arguments) hands its serial pass only the modules whose text holds
+    ``pytest.mark.serial``: a module marking tests serial any other way would run in no
+    pass."""
+    modules = sorted(TESTS.rglob("test_*.py"))
+    serial = [path for path in modules if _uses_mark(path, "serial")]
+    assert serial, "the check below would check nothing"
+    for path in serial:
+        assert "pytest.mark.serial" in path.read_text(encoding="utf-8"), path
+
+
+def test_the_serial_spelling_check_sees_other_spellings(tmp_path: Path) -> None:
+    module = tmp_path / "test_x.py"
+    module.write_text("from pytest import mark\n\n\n@mark.serial\ndef test_x() -> None: ...\n")
+    assert _uses_mark(module, "serial")
+    assert "pytest.mark.serial" not in module.read_text(encoding="utf-8")

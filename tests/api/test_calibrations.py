@@ -372,6 +372,8 @@ def test_rows_not_detected_enter_the_fit_as_censored(worker_app: TestClient) -> 
     assert pulled[0] < 0.9 * plain[0]
 
 
+# Two calibrations, their builds and a localization run: about ten seconds of a core.
+@pytest.mark.slow
 def test_a_survey_measures_batwing_beams_and_the_fingerprint_uses_them(
     worker_app: TestClient,
 ) -> None:
