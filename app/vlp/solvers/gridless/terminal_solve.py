@@ -14,7 +14,7 @@ import numpy as np
 
 from ...layout import AmplitudeError
 from ...scale import check_amplitude_scale
-from ...typing import FloatArray, IntArray
+from ...typing import FloatArray
 from ...uncertainty import (
     FITS_TO_NOISE,
     Misfit,
@@ -49,7 +49,7 @@ _LED_WEIGHT_SIGNIFICANCE = 3.0
 _MAX_LED_ERROR_SD = 0.25
 # Standard deviations of the chi-square by which a request's residuals may exceed what the
 # survey's measured scatter predicts and still be taken for the survey receiver's kind.
-_SCATTER_SIGNIFICANCE = 4.5
+_SCATTER_SIGNIFICANCE = 3.0
 
 
 def solve_terminals(
@@ -200,7 +200,7 @@ def solve_terminals(
     like_survey: list[TerminalFit] | None = None
     if measured is not None:
         like_survey = refitted(fits, lambda fit: measured_variances(measured, room.scale, fit))
-        if not (room.receivers_level or _scatter_explains(like_survey, dof)):
+        if not (room.receivers_level or _scatter_explains(like_survey, n_leds)):
             like_survey = None
     if measured is not None and like_survey is not None:
         fits = like_survey
@@ -264,13 +264,14 @@ def solve_terminals(
     )
 
 
-def _scatter_explains(fits: list[TerminalFit], dof: IntArray) -> bool:
+def _scatter_explains(fits: list[TerminalFit], n_leds: int) -> bool:
     """Whether the survey's measured scatter explains the residuals of ``fits`` (weighted
-    by it): their whitened sum of squares within ``_SCATTER_SIGNIFICANCE`` standard
-    deviations of its chi-square mean on ``dof`` (K,) degrees of freedom. A terminal whose
-    tilt, gain or height is unlike the survey receiver's leaves more."""
+    by it, each of ``n_leds`` amplitudes): their whitened sum of squares within
+    ``_SCATTER_SIGNIFICANCE`` standard deviations of its chi-square mean on their residual
+    degrees of freedom. A terminal whose tilt, gain or height is unlike the survey
+    receiver's leaves more."""
     chi2 = sum(float(fit.residual @ fit.residual) for fit in fits)
-    total = float(dof.sum())
+    total = float(sum(max(n_leds - fit.n_params, 1) for fit in fits))
     return chi2 <= total + _SCATTER_SIGNIFICANCE * math.sqrt(2.0 * total)
 
 
