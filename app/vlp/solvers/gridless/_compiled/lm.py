@@ -75,7 +75,7 @@ def _solve(model: Any, matrix: FloatArray, rhs: FloatArray) -> tuple[FloatArray,
 
 
 # Typing functions: numba types in, the implementation out (its parameters, annotations
-# included, must be the typing function's). Inlined into the loop, with the aggregated fit's
+# included, must be the typing function's). Inlined into the loop, with each model's
 # evaluate and normal equations (compiled_inline): as separate calls they cost the power
 # model's K = 8 fits about 1 us of 19 an iteration (measured; the arithmetic is the same).
 @overload(_evaluate, inline="always")
