@@ -38,6 +38,7 @@ __all__ = [
     "KERNELS",
     "KernelMode",
     "compiled",
+    "compiled_inline",
     "compiled_only",
     "compiled_reassociating",
     "dispatch",
@@ -147,6 +148,14 @@ def compiled(function: Callable[..., Any]) -> Callable[..., Any]:
     """``numba.njit(cache=True, nogil=True)``, without the disk cache when no folder for it
     is writable (numba refuses to decorate then)."""
     return _jit(function, {})
+
+
+def compiled_inline(function: Callable[..., Any]) -> Callable[..., Any]:
+    """:func:`compiled`, inlined into its compiled callers by numba (in their typed code, not
+    as a call): for the small functions of a model that a loop calls every iteration, whose
+    arguments are large tuples of arrays (measured: a call per iteration costs more than the
+    work it saves to write it once). The same arithmetic, so the same numbers."""
+    return _jit(function, {"inline": "always"})
 
 
 def compiled_reassociating(function: Callable[..., Any]) -> Callable[..., Any]:

@@ -1,9 +1,11 @@
 """Compile (or load from the disk cache) every kernel before the first request.
 
 The top of the kernels' imports: it imports every kernel's caller, and nothing in
-:mod:`app.vlp` imports it but :mod:`app.vlp.solvers` (which exports :func:`warm_up`). The
-calls go through the same code as a solve (the :mod:`.gridless.model` entry points), so they
-compile exactly the argument types a solve uses.
+:mod:`app.vlp` imports it but :mod:`app.vlp.solvers` (which exports :func:`warm_up`). It runs
+every row of the kernel table (:mod:`._kernel_table`: each kernel on the examples its parity
+test compares with its reference), then :func:`exercise`, the kernels not in the table yet
+(called with compiled tuples of their own, not through a reference's arguments). The calls go
+through the same code as a solve, so they compile exactly the argument types a solve uses.
 """
 
 from __future__ import annotations
@@ -11,13 +13,12 @@ from __future__ import annotations
 import threading
 
 import numpy as np
-import scipy.sparse as sp
 
 from .._kernels import kernel_mode
 from ..presets import paper_layout
 from ..uncertainty import confidence_radii
+from ._kernel_table import KERNEL_TABLE
 from .gridless._compiled.channel import channel_constants, channel_rows
-from .gridless._compiled.scores import correlation_profiles_kernel, correlation_scores_kernel
 from .gridless._compiled.search import growth_kernel, refine_kernel
 from .gridless._compiled.uncertainty import uncertainty_kernel
 from .gridless.channel import ChannelKernel
@@ -26,15 +27,14 @@ from .gridless.joint_model import (
     RoomTolerances,
 )
 from .gridless.lm import STEP_TOL_M
-from .gridless.local import _best_of_tiles, _squared_rows_dot
-from .gridless.model import Objective, fit_objective, gram
+from .gridless.model import Objective, fit_objective
 from .gridless.options import LM_DEFAULTS
 from .gridless.state import FitState, Priors
 from .gridless.terminals import _fit_from as terminal_fit
 from .gridless.tolerances import _fit_joint
 from .gridless.whitening import Whitening, compiled_indices
 
-__all__ = ["exercise", "warm_up"]
+__all__ = ["exercise", "warm_table", "warm_up"]
 
 _lock = threading.Lock()
 _warm = False
@@ -52,15 +52,23 @@ def warm_up() -> None:
     with _lock:
         if _warm:
             return
+        warm_table()
         exercise()
         _warm = True
 
 
+def warm_table() -> None:
+    """Every row of the kernel table: its kernel on each of its examples."""
+    for row in KERNEL_TABLE:
+        for args in row.examples():
+            row.kernel(*args)
+
+
 def exercise() -> None:
-    """Evaluate, whiten, fit and take the covariances of a two-target state of the paper's
-    room, both models; grow it by one target and refine it as the correlation search does;
-    evaluate the joint fit under the room's tolerances there; score a large room's
-    power-scan tile (four grid points in one 2 x 2 tile)."""
+    """The kernels not in the kernel table: evaluate, whiten, fit and take the covariances
+    of a two-target state of the paper's room, both models; grow it by one target and refine
+    it as the correlation search does; evaluate the joint fit under the room's tolerances
+    there; fit a terminal; take an answer's radii."""
     layout = paper_layout()
     kernel = ChannelKernel(layout, 1.0)
     height = layout.grid.receiver_height
@@ -77,23 +85,12 @@ def exercise() -> None:
         values = np.ones(white.weights.shape[0])
         objective = Objective(kernel, white, values, False, priors)
         theta = objective.pack(state)
-        gram(objective, theta, state)
         objective.residual(theta, state)
         fit_objective(objective, state, max_iter=1, initial_damping=1e-3, tol=1e-6)
         # an answer's covariances (gridless.uncertainty.sandwich_covariances)
         problem = objective.compiled_problem()
         assert problem is not None
         uncertainty_kernel(*problem, theta, *objective.compiled_state(state), 1.0, False)
-        if model == "correlation":
-            correlation_scores_kernel(white.compiled(), values, np.ones((kernel.n_leds, 3)))
-            # an answer's far places (gridless.report.profiles)
-            correlation_profiles_kernel(
-                white.compiled(),
-                values,
-                np.ones((kernel.n_leds, 3)),
-                np.ones((kernel.n_leds, 2)),
-                np.ones(2),
-            )
     # the joint fit under the room's tolerances (gridless.stages.with_room_tolerances): its
     # metric evaluates the gains; its score test the residual and Jacobian; then its LM
     joint = JointModel(kernel, state.heights, (0.1, 0.5), RoomTolerances(0.05, 3.0, 0.07))
@@ -140,17 +137,3 @@ def exercise() -> None:
     )
     # an answer's 95 % radii (app.vlp.uncertainty.confidence_radii)
     confidence_radii(np.array([[[0.01, 0.002], [0.002, 0.004]]]))
-    # a large room's power scan scores tiles of grid points (G^T with int32 indices)
-    by_cell = sp.csr_array(np.ones((4, kernel.n_leds)))
-    _best_of_tiles(
-        np.zeros(1, dtype=np.int64),
-        (2, 2, 2),
-        (by_cell.indptr, by_cell.indices, by_cell.data),
-        1.0,
-        np.ones(kernel.n_leds),
-        np.ones(4),
-        (2.0, 1.0, 1.0),
-    )
-    _squared_rows_dot(
-        (by_cell.indptr, by_cell.indices, by_cell.data), 1.0, np.ones(kernel.n_leds), False
-    )

@@ -25,7 +25,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from ...._kernels import compiled, compiled_reassociating
+from ...._kernels import compiled, compiled_inline, compiled_reassociating
 from ....typing import FloatArray, IntArray
 from ..lm import EIG_FLOOR, SIGMA2_FLOOR, LMSettings
 from .channel import ChannelConstants, TableConstants, channel_rows
@@ -328,7 +328,7 @@ class FitModel(NamedTuple):
     priors: Problem
 
 
-@compiled
+@compiled_inline
 def fit_evaluate(model: FitModel, theta: FloatArray) -> tuple[float, tuple[FloatArray, FloatArray]]:
     """The aggregated fit's ``evaluate``: the cost and, as the point, ``J^T J`` and
     ``J^T r`` (one product gives all three)."""
@@ -337,7 +337,7 @@ def fit_evaluate(model: FitModel, theta: FloatArray) -> tuple[float, tuple[Float
     return cost, (normal, gradient)
 
 
-@compiled
+@compiled_inline
 def fit_normal_equations(
     _model: FitModel, _theta: FloatArray, point: tuple[FloatArray, FloatArray]
 ) -> tuple[FloatArray, FloatArray]:

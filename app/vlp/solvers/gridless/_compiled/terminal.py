@@ -22,7 +22,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from ...._kernels import compiled
+from ...._kernels import compiled, compiled_inline
 from ....typing import FloatArray
 from ..lm import LMSettings
 from .channel import ChannelConstants, TableConstants, beam_towards, channel_rows, diffuse_rows
@@ -144,7 +144,7 @@ class TerminalModel(NamedTuple):
     priors: TerminalPriors
 
 
-@compiled
+@compiled_inline
 def terminal_evaluate(
     model: TerminalModel, theta: FloatArray
 ) -> tuple[float, tuple[FloatArray, FloatArray]]:
@@ -198,7 +198,7 @@ def terminal_evaluate(
     return _squared_norm(residual), (residual, jacobian)
 
 
-@compiled
+@compiled_inline
 def terminal_normal_equations(
     _model: TerminalModel, _theta: FloatArray, point: tuple[FloatArray, FloatArray]
 ) -> tuple[FloatArray, FloatArray]:

@@ -25,7 +25,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from ...._kernels import compiled
+from ...._kernels import compiled, compiled_inline
 from ....typing import FloatArray
 from ..lm import LMSettings
 from .channel import ChannelConstants, TableConstants, diffuse_rows
@@ -313,7 +313,7 @@ class JointFitModel(NamedTuple):
     prior_inverse_sd: FloatArray
 
 
-@compiled
+@compiled_inline
 def joint_evaluate(model: JointFitModel, theta: FloatArray) -> tuple[float, Problem]:
     """The joint fit's ``evaluate``: the cost and, as the point, :func:`_joint_model`'s
     pieces and the residual (the Jacobian waits for :func:`joint_normal_equations`: about
@@ -324,7 +324,7 @@ def joint_evaluate(model: JointFitModel, theta: FloatArray) -> tuple[float, Prob
     return np.dot(residual, residual), (pieces, multipliers, rotated, residual)
 
 
-@compiled
+@compiled_inline
 def joint_normal_equations(
     model: JointFitModel, theta: FloatArray, point: Problem
 ) -> tuple[FloatArray, FloatArray]:
