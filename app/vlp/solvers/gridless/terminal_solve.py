@@ -90,7 +90,10 @@ def solve_terminals(
     LEDs' relative errors explain a significant share of the residuals
     (:func:`_led_errors_seen`; option ``terminal_led_weights``), a third pass refits each
     terminal with each amplitude's variance the noise's plus that error's, and the
-    variances are estimated again from its residuals.
+    variances are estimated again from its residuals. In a survey-calibrated room the third
+    pass uses the survey's measured scatter instead (:func:`measured_variances`) when the
+    layout says the receivers are level or the scatter explains the request's residuals
+    (:func:`_scatter_explains`); the covariances then rest on the survey's degrees of freedom.
     """
     # [censored hook] LEDs not detected enter as their interval below the floor.
     amplitudes, censored_var = censored_substitutes(
