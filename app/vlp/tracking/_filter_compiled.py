@@ -85,8 +85,11 @@ def predict_update_kernel(
     noises = np.empty((2, 3))  # per hypothesis: R00, R01, R11
     log_like = np.empty((2, 2))
     log_model = np.empty(2)
-    u0s = np.empty(2)
-    u1s = np.empty(2)
+    # each (model, hypothesis)'s whitened innovation S^-1 nu and innovation covariance S:
+    # the likelihoods and the update both read them
+    u0s = np.empty((2, 2))
+    u1s = np.empty((2, 2))
+    innovation_cov = np.empty((2, 2, 4))  # S00, S01, S11, det S
     for k in range(n):
         # --- predict (IMM interaction, then each model's motion) ---
         dt = max(time_s - times_s[k], 0.0)
@@ -194,6 +197,9 @@ def predict_update_kernel(
                 n0, n1 = z0 - pred[m, 0], z1 - pred[m, 1]
                 u0 = (d_ * n0 - b_ * n1) / det
                 u1 = (a_ * n1 - b_ * n0) / det
+                u0s[m, h], u1s[m, h] = u0, u1
+                innovation_cov[m, h, 0], innovation_cov[m, h, 1] = a_, b_
+                innovation_cov[m, h, 2], innovation_cov[m, h, 3] = d_, det
                 log_like[m, h] = (
                     -0.5 * (n0 * u0 + n1 * u1) - 0.5 * math.log(det) + log_hypothesis[h]
                 )
@@ -211,21 +217,16 @@ def predict_update_kernel(
             within0, within1 = w0 / (w0 + w1), w1 / (w0 + w1)
             inv_a = inv_b = inv_d = mean_u0 = mean_u1 = 0.0
             for h in range(2):
-                a_ = pred_cov[m, 0, 0] + noises[h, 0]
-                b_ = pred_cov[m, 0, 1] + noises[h, 1]
-                d_ = pred_cov[m, 1, 1] + noises[h, 2]
-                det = a_ * d_ - b_ * b_
-                n0, n1 = z0 - pred[m, 0], z1 - pred[m, 1]
-                u0s[h] = (d_ * n0 - b_ * n1) / det
-                u1s[h] = (a_ * n1 - b_ * n0) / det
+                a_, b_ = innovation_cov[m, h, 0], innovation_cov[m, h, 1]
+                d_, det = innovation_cov[m, h, 2], innovation_cov[m, h, 3]
                 within = within0 if h == 0 else within1
                 inv_a += within * d_ / det
                 inv_b += within * b_ / det
                 inv_d += within * a_ / det
-                mean_u0 += within * u0s[h]
-                mean_u1 += within * u1s[h]
+                mean_u0 += within * u0s[m, h]
+                mean_u1 += within * u1s[m, h]
             spread = within0 * within1
-            du0, du1 = u0s[0] - u0s[1], u1s[0] - u1s[1]
+            du0, du1 = u0s[m, 0] - u0s[m, 1], u1s[m, 0] - u1s[m, 1]
             for a in range(4):
                 c0a, c1a = pred_cov[m, a, 0], pred_cov[m, a, 1]
                 out_means[k, m, a] = pred[m, a] + c0a * mean_u0 + c1a * mean_u1
