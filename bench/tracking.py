@@ -7,15 +7,16 @@ Run from the repository root::
     python -m bench.tracking --stream-url postgresql+psycopg://postgres@127.0.0.1:5432/test
 
 Walkers follow random waypoints at 1.4 m/s with pauses of 2-8 s (and, in a second set, two
-people cross in the room's length) at 5 Hz, in the paper room, the paper room as a realistic
-mix (reflections, tilts, heights, LED tolerances; the layout knows the reflectance) and the
-hall, with and without shadowing (5 % of fixes have their strongest LED blocked). Fixes come
-as each terminal's own labelled amplitudes (K = 4) or as one correlation of K = 4 or 8
-anonymous terminals. Reported: the tracked and raw RMSE while walking and standing, the lag
-after a start, the coverage of the tracked 95 % radius, GOSPA (cut-off 1 m) with its parts,
-identity switches per 100 m walked, and the time of one tracking step for 10, 100 and 1,000
-tracks. With ``--stream-url`` (a PostgreSQL URL) two ``vlp serve`` processes share it and
-the delay from a tracked POST on one to its event on the other's stream is measured.
+people cross in the room's length), speeding up and slowing down at 2 m/s^2, at 5 Hz, in the
+paper room, the paper room as a realistic mix (reflections, tilts, heights, LED tolerances;
+the layout knows the reflectance) and the hall, with and without shadowing (5 % of fixes
+have their strongest LED blocked). Fixes come as each terminal's own labelled amplitudes
+(K = 4) or as one correlation of K = 4 or 8 anonymous terminals. Reported: the tracked and
+raw RMSE while walking and standing, the lag after a start, the coverage of the tracked 95 %
+radius, GOSPA (cut-off 1 m) with its parts, identity switches per 100 m walked, and the time
+of one tracking step for 10, 100 and 1,000 tracks. With ``--stream-url`` (a PostgreSQL URL)
+two ``vlp serve`` processes share it and the delay from a tracked POST on one to its event on
+the other's stream is measured.
 """
 
 from __future__ import annotations

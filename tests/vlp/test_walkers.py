@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from numpy.testing import assert_allclose
 
 from app.vlp.layout import Layout
@@ -32,6 +33,21 @@ def test_crossing_walkers_pass_each_other(paper_room: Layout) -> None:
     assert gap.min() < 0.55
     first = paths.positions[:, 0, 0]
     assert first.min() < 1.0 and first.max() > 3.0
+
+
+def test_crossing_walkers_speed_up_and_slow_down_as_people_do(paper_room: Layout) -> None:
+    paths = crossing_paths(paper_room, duration_s=40.0, rate_hz=5.0, accel_mps2=2.0)
+    velocity = np.diff(paths.positions, axis=0) * 5.0  # mean velocity between fixes, m/s
+    speed = np.linalg.norm(velocity, axis=2)
+    assert speed.max() == pytest.approx(1.4)
+    # From standing to walking speed over several fixes, never at once: the mean velocity of
+    # successive intervals differs by at most accel * dt.
+    change = np.linalg.norm(np.diff(velocity, axis=0), axis=2) * 5.0
+    assert change.max() <= 2.0 + 1e-9
+    starts = np.nonzero(paths.walking[1:, 0] & ~paths.walking[:-1, 0])[0] + 1
+    assert starts.size >= 2
+    # The interval after a walk's first fix ends at most 0.4 s into it: at most 0.8 m/s.
+    assert np.all(speed[starts, 0] <= 2.0 * 0.4 + 1e-9)
 
 
 def test_shadowing_blocks_the_strongest_led_of_some_fixes(paper_room: Layout) -> None:

@@ -158,13 +158,15 @@ def crossing_paths(
     duration_s: float,
     rate_hz: float,
     speed_mps: float = 1.4,
+    accel_mps2: float = 2.0,
     separation_m: float = 0.5,
     stand_s: float = 3.0,
     margin_m: float = 0.5,
 ) -> WalkerPaths:
     """Two people on parallel lines ``separation_m`` apart along the room's length, walking
     towards each other from opposite ends (they pass mid-room), standing ``stand_s`` at each
-    end before turning back.
+    end before turning back. Each leg speeds up and slows down at ``accel_mps2``, as the
+    waypoint walkers' do (no one goes from standing to 1.4 m/s within one fix).
 
     Returns
     -------
@@ -174,16 +176,17 @@ def crossing_paths(
     times = np.arange(round(duration_s * rate_hz)) / rate_hz
     middle = layout.room.width / 2.0
     ends = (margin_m, layout.room.length - margin_m)
-    leg_s = (ends[1] - ends[0]) / speed_mps
+    length = ends[1] - ends[0]
+    leg_s = _leg_seconds(length, speed_mps, accel_mps2)
     period = 2.0 * (leg_s + stand_s)
     phase = np.mod(times, period)
     # 0..1 along the room: stand, walk out, stand, walk back.
-    out = np.clip((phase - stand_s) / leg_s, 0.0, 1.0)
-    back = np.clip((phase - 2.0 * stand_s - leg_s) / leg_s, 0.0, 1.0)
+    out = _leg_distance(phase - stand_s, length, speed_mps, accel_mps2) / length
+    back = _leg_distance(phase - 2.0 * stand_s - leg_s, length, speed_mps, accel_mps2) / length
     along = out - back
     walking = ((phase > stand_s) & (phase < stand_s + leg_s)) | (phase > 2.0 * stand_s + leg_s)
-    first = ends[0] + along * (ends[1] - ends[0])
-    second = ends[1] - along * (ends[1] - ends[0])
+    first = ends[0] + along * length
+    second = ends[1] - along * length
     positions = np.stack(
         (
             np.column_stack((first, np.full(times.size, middle - separation_m / 2.0))),
