@@ -18,7 +18,7 @@ from collections.abc import Callable, Iterable
 from datetime import datetime
 from typing import Any
 
-from sqlalchemy import Connection, Engine, bindparam, delete, func, insert, select, text, update
+from sqlalchemy import Connection, Engine, bindparam, delete, func, insert, select, update
 from sqlalchemy.dialects.postgresql import insert as pg_insert
 from sqlalchemy.dialects.sqlite import insert as sqlite_insert
 
@@ -202,16 +202,15 @@ class TrackStore:
             )
         if events:
             conn.execute(insert(track_events), events)
-            conn.execute(
+            advance = (
                 update(room_tracking)
                 .where(room_tracking.c.room_id == room_id)
                 .values(sequence=sequence)
             )
             if conn.dialect.name == "postgresql":
-                conn.execute(
-                    text("SELECT pg_notify(:channel, :payload)"),
-                    {"channel": NOTIFY_CHANNEL, "payload": f"{room_id}:{sequence}"},
-                )
+                # Notified by the same statement: one round trip fewer before the commit.
+                advance = advance.returning(func.pg_notify(NOTIFY_CHANNEL, f"{room_id}:{sequence}"))
+            conn.execute(advance).close()
         if changes.points_before is not None:
             conn.execute(
                 delete(track_points).where(
