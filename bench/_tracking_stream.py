@@ -3,13 +3,13 @@
 Both processes share one PostgreSQL (a fresh schema of the given database, dropped after);
 the first seeds and builds the demo room. One terminal posts its amplitudes with
 ``track: true`` to the first process, one post at a time; a thread follows the room's stream
-on the second. Each post changes one track, so event ``k`` answers post ``k``: the delay is
-from sending the POST to receiving its event (the POST's own solve included).
+on the second. A post's event is the one whose track has the id and the filtered position of
+the post's answer (other events, such as a track marked lost after a stall, answer no post):
+the delay is from sending the POST to receiving its event (the POST's own solve included).
 """
 
 from __future__ import annotations
 
-import queue
 import tempfile
 import threading
 import time
@@ -85,14 +85,15 @@ def _measure(database_url: str, posts: int) -> list[float]:
             VLP_DEMO="0",
             VLP_EMBEDDED_WORKERS="0",
         ) as second:
-            received: queue.Queue[float] = queue.Queue()
+            received = _Arrivals()
 
             def follow() -> None:
                 with VLPClient(second.url, api_key=TERMINAL_KEY) as client:
-                    for _ in client.stream_tracks(
+                    for event in client.stream_tracks(
                         room_id, last_event_id=0, read_timeout_s=_SILENCE_S
                     ):
-                        received.put(time.perf_counter())
+                        if event.track is not None:
+                            received.add((event.track_id, event.track.x, event.track.y))
 
             threading.Thread(target=follow, daemon=True).start()
             delays = []
@@ -104,9 +105,33 @@ def _measure(database_url: str, posts: int) -> list[float]:
                         "track": True,
                     }
                     sent = time.perf_counter()
-                    client.localize(room_id, body)
-                    arrived = received.get(timeout=_SILENCE_S)
+                    estimate = client.localize(room_id, body).estimates[0]
+                    if estimate.track_id is None or estimate.tracked is None:
+                        raise RuntimeError("a tracked POST was answered without its track")
+                    arrived = received.wait(
+                        (estimate.track_id, estimate.tracked.x, estimate.tracked.y), _SILENCE_S
+                    )
                     if k:  # the first also waits for the stream to connect
                         delays.append(1e3 * (arrived - sent))
                     time.sleep(_PAUSE_S)
             return delays
+
+
+class _Arrivals:
+    """When each track state (id, x, y) arrived on the stream (``perf_counter``)."""
+
+    def __init__(self) -> None:
+        self._times: dict[tuple[str, float, float], float] = {}
+        self._changed = threading.Condition()
+
+    def add(self, state: tuple[str, float, float]) -> None:
+        with self._changed:
+            self._times.setdefault(state, time.perf_counter())
+            self._changed.notify_all()
+
+    def wait(self, state: tuple[str, float, float], timeout_s: float) -> float:
+        """When ``state`` arrived, waiting for it up to ``timeout_s`` (TimeoutError)."""
+        with self._changed:
+            if not self._changed.wait_for(lambda: state in self._times, timeout_s):
+                raise TimeoutError(f"no event for track state {state} within {timeout_s:g} s")
+            return self._times[state]

@@ -18,7 +18,7 @@ from collections.abc import Callable, Iterable
 from datetime import datetime
 from typing import Any
 
-from sqlalchemy import Connection, Engine, bindparam, delete, func, insert, select, text, update
+from sqlalchemy import Connection, Engine, bindparam, delete, func, insert, select, update
 from sqlalchemy.dialects.postgresql import insert as pg_insert
 from sqlalchemy.dialects.sqlite import insert as sqlite_insert
 
@@ -105,6 +105,13 @@ class TrackStore:
 
     def __init__(self, engine: Engine) -> None:
         self._engine = engine
+        # The stream's reads: one statement each, so on PostgreSQL without a transaction
+        # (BEGIN and ROLLBACK would be two more round trips between a commit and its event).
+        self._stream_reads = (
+            engine.execution_options(isolation_level="AUTOCOMMIT")
+            if engine.dialect.name == "postgresql"
+            else engine
+        )
 
     # -- updates --------------------------------------------------------------------------
     def update_room(self, *, room_id: str, now: datetime, apply: Apply) -> tuple[TrackChanges, int]:
@@ -122,15 +129,8 @@ class TrackStore:
         ------
         RoomNotFound
         """
-        self._ensure_row(room_id)
         with write_transaction(self._engine) as conn:
-            state = conn.execute(
-                select(room_tracking.c.sequence, room_tracking.c.settings)
-                .where(room_tracking.c.room_id == room_id)
-                .with_for_update()
-            ).one_or_none()
-            if state is None:  # the room was deleted after _ensure_row
-                raise RoomNotFound(f"no room with id {room_id!r}", field="room_id")
+            state = self._locked_state(conn, room_id)
             rows = conn.execute(
                 select(tracks)
                 .where(tracks.c.room_id == room_id)
@@ -202,16 +202,15 @@ class TrackStore:
             )
         if events:
             conn.execute(insert(track_events), events)
-            conn.execute(
+            advance = (
                 update(room_tracking)
                 .where(room_tracking.c.room_id == room_id)
                 .values(sequence=sequence)
             )
             if conn.dialect.name == "postgresql":
-                conn.execute(
-                    text("SELECT pg_notify(:channel, :payload)"),
-                    {"channel": NOTIFY_CHANNEL, "payload": f"{room_id}:{sequence}"},
-                )
+                # Notified by the same statement: one round trip fewer before the commit.
+                advance = advance.returning(func.pg_notify(NOTIFY_CHANNEL, f"{room_id}:{sequence}"))
+            conn.execute(advance).close()
         if changes.points_before is not None:
             conn.execute(
                 delete(track_points).where(
@@ -229,22 +228,39 @@ class TrackStore:
             )
         return sequence
 
-    def _ensure_row(self, room_id: str) -> None:
-        """The room's ``room_tracking`` row, made on its first update (RoomNotFound)."""
-        with write_transaction(self._engine) as conn:
-            if conn.execute(select(rooms.c.id).where(rooms.c.id == room_id)).first() is None:
-                raise RoomNotFound(f"no room with id {room_id!r}", field="room_id")
-            maker = pg_insert if conn.dialect.name == "postgresql" else sqlite_insert
-            conn.execute(
-                maker(room_tracking)
-                .values(room_id=room_id, sequence=0, settings=None)
-                .on_conflict_do_nothing(index_elements=["room_id"])
-            )
+    def _locked_state(self, conn: Connection, room_id: str) -> Any:
+        """The room's ``room_tracking`` row (sequence, settings), locked until ``conn``
+        commits; made first when the room has none yet (RoomNotFound).
+
+        Made in the update's own transaction, and only when missing: every statement is a
+        round trip to the database, and an update is on the way from a POST to its event."""
+        locked = (
+            select(room_tracking.c.sequence, room_tracking.c.settings)
+            .where(room_tracking.c.room_id == room_id)
+            .with_for_update()
+        )
+        state = conn.execute(locked).one_or_none()
+        if state is None:
+            self._insert_row(conn, room_id)
+            state = conn.execute(locked).one()
+        return state
+
+    @staticmethod
+    def _insert_row(conn: Connection, room_id: str) -> None:
+        """Make the room's ``room_tracking`` row unless it exists (RoomNotFound)."""
+        if conn.execute(select(rooms.c.id).where(rooms.c.id == room_id)).first() is None:
+            raise RoomNotFound(f"no room with id {room_id!r}", field="room_id")
+        maker = pg_insert if conn.dialect.name == "postgresql" else sqlite_insert
+        conn.execute(
+            maker(room_tracking)
+            .values(room_id=room_id, sequence=0, settings=None)
+            .on_conflict_do_nothing(index_elements=["room_id"])
+        )
 
     def put_settings(self, *, room_id: str, settings: dict[str, Any] | None) -> None:
         """Store a room's tracking settings (None: the defaults). RoomNotFound."""
-        self._ensure_row(room_id)
         with write_transaction(self._engine) as conn:
+            self._insert_row(conn, room_id)
             conn.execute(
                 update(room_tracking)
                 .where(room_tracking.c.room_id == room_id)
@@ -335,7 +351,7 @@ class TrackStore:
 
     def events_since(self, *, room_id: str, after: int, limit: int) -> list[TrackEventRecord]:
         """The room's kept events with a sequence above ``after``, in order."""
-        with translate_errors(), self._engine.connect() as conn:
+        with translate_errors(), self._stream_reads.connect() as conn:
             rows = conn.execute(
                 select(track_events)
                 .where(track_events.c.room_id == room_id, track_events.c.sequence > after)

@@ -56,6 +56,11 @@ __all__ = ["MAX_FUTURE_S", "Tracking"]
 
 # A measurement's time may run ahead of the service's clock by this much (terminals' clocks).
 MAX_FUTURE_S = 60.0
+# A room's points and events older than its history_s are deleted by at most one update in
+# each tenth of history_s, not by every update: the two deletes are round trips inside the
+# update's transaction, on the way from a POST to its event. History is kept for history_s
+# and at most a tenth longer.
+PRUNES_PER_HISTORY = 10
 
 
 @dataclass
@@ -106,6 +111,8 @@ class Tracking:
         self._registry = registry
         self._clock = clock
         self._on_event = on_event
+        # When this process last pruned each room's history (other processes prune too).
+        self._pruned: dict[str, datetime] = {}
 
     # -- updates --------------------------------------------------------------------------
     def track(
@@ -232,7 +239,9 @@ class Tracking:
         for record in records:
             outcome.records.setdefault(record.id, record)
         outcome.estimate_tracks[:] = [ids[row] for row in fix_rows]
-        return self._changes(records, ids, written, removed, fixes, fix_rows, when, settings)
+        return self._changes(
+            room_id, records, ids, written, removed, fixes, fix_rows, when, settings
+        )
 
     def _records(
         self,
@@ -273,6 +282,7 @@ class Tracking:
 
     def _changes(
         self,
+        room_id: str,
         records: list[TrackRecord],
         ids: list[str],
         written: dict[str, TrackRecord],
@@ -306,14 +316,25 @@ class Tracking:
         ]
         events += [("removed", track_id, {"id": track_id}) for track_id in ended]
         history = timedelta(seconds=settings.history_s)
+        now = self._clock.now()
+        prune = self._prune_due(room_id, now, history)
         return TrackChanges(
             upserts=tuple(written.values()),
             removed=tuple(ended),
             points=tuple(points),
             events=tuple(events),
-            points_before=when - history,
-            events_before=self._clock.now() - history,
+            points_before=when - history if prune else None,
+            events_before=now - history if prune else None,
         )
+
+    def _prune_due(self, room_id: str, now: datetime, history: timedelta) -> bool:
+        """Whether this update deletes the room's old history (:data:`PRUNES_PER_HISTORY`);
+        if so it is noted as done."""
+        last = self._pruned.get(room_id)
+        if last is not None and timedelta(0) <= now - last < history / PRUNES_PER_HISTORY:
+            return False
+        self._pruned[room_id] = now
+        return True
 
     def _announce(self, room_id: str, sequence: int) -> None:
         if self._on_event is not None:

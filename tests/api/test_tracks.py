@@ -287,6 +287,39 @@ def test_tracks_are_lost_then_removed_as_time_passes(
     assert kinds == [("track", track_id), ("track", track_id), ("removed", track_id)]
 
 
+def test_history_is_pruned_at_most_every_tenth_of_history_s(
+    app_clock: tuple[TestClient, FakeClock], room: str
+) -> None:
+    """Points older than `history_s` go with the first update a tenth of `history_s` after
+    the last one that pruned: kept for `history_s`, never more than a tenth longer."""
+    client, clock = app_clock
+    settings = {"history_s": 10.0, "lost_after_s": 30.0, "drop_after_s": 60.0}
+    assert client.put(f"/v1/rooms/{room}/tracking", json=settings, headers=ADMIN).status_code == 200
+    start = clock.now()
+    body = {"terminals": _terminals([(2.0, 2.0)], 3), "track": True}  # measured now
+
+    def post_at(offset_s: float) -> str:
+        clock.advance(offset_s - (clock.now() - start).total_seconds())
+        return str(_post(client, room, body)["estimates"][0]["track_id"])
+
+    def kept(track_id: str) -> list[float]:
+        url = f"/v1/rooms/{room}/tracks/{track_id}/points"
+        items = client.get(url, headers=TERMINAL).json()["items"]
+        return [
+            round((datetime.fromisoformat(p["time"]) - start).total_seconds(), 3) for p in items
+        ]
+
+    track_id = post_at(0.0)
+    post_at(0.5)
+    assert kept(track_id) == [0.0, 0.5]
+    post_at(10.3)  # prunes what is older than 0.3
+    assert kept(track_id) == [0.5, 10.3]
+    post_at(10.9)  # 0.6 s after the last pruning: 0.5 is kept, 0.4 s past history_s
+    assert kept(track_id) == [0.5, 10.3, 10.9]
+    post_at(11.4)  # 1.1 s after: prunes what is older than 1.4
+    assert kept(track_id) == [10.3, 10.9, 11.4]
+
+
 def test_an_admin_ends_a_track_and_the_terminal_starts_a_new_one(
     app_clock: tuple[TestClient, FakeClock], room: str
 ) -> None:

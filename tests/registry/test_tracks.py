@@ -4,16 +4,19 @@ bounded history, notifications."""
 from __future__ import annotations
 
 import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
 from datetime import UTC, datetime, timedelta
 from typing import Any
 
 import pytest
+from sqlalchemy import Engine, event
 
 from app.registry import Registry
 from app.registry.errors import RoomNotFound, TrackNotFound
 from app.registry.records import TrackChanges, TrackPointRecord, TrackRecord
 from app.registry.tracks import new_track_id
-from tests.db_fixtures import small_layout
+from tests.db_fixtures import raw_engine, small_layout
 
 T0 = datetime(2026, 1, 1, 12, 0, tzinfo=UTC)
 
@@ -50,6 +53,76 @@ def _add_one(room_id: str, seen: list[int]) -> Any:
         return TrackChanges(upserts=(track,), events=(("track", track.id, {"id": track.id}),))
 
     return apply
+
+
+@contextmanager
+def _sent(engine: Engine) -> Iterator[list[tuple[str, bool]]]:
+    """What the registry sends to the database meanwhile: ``("BEGIN", False)`` per
+    transaction, and each statement's first words with whether its connection was in
+    autocommit (PostgreSQL's driver; False on SQLite)."""
+    sent: list[tuple[str, bool]] = []
+
+    def on_begin(conn: Any) -> None:
+        del conn
+        sent.append(("BEGIN", False))
+
+    def on_execute(conn: Any, cursor: Any, statement: str, *_: Any) -> None:
+        del cursor
+        autocommit = bool(getattr(conn.connection.driver_connection, "autocommit", False))
+        sent.append((" ".join(statement.split()[:3]), autocommit))
+
+    event.listen(engine, "begin", on_begin)
+    event.listen(engine, "before_cursor_execute", on_execute)
+    try:
+        yield sent
+    finally:
+        event.remove(engine, "before_cursor_execute", on_execute)
+        event.remove(engine, "begin", on_begin)
+
+
+def test_an_update_is_one_transaction(registry: Registry) -> None:
+    """Each round trip to the database is on the way from a POST to its event: an update is
+    one transaction, and the room's tracking row is made in it only the first time."""
+    room = registry.create_room(name="r", layout=small_layout())
+    engine = raw_engine(registry)
+    with _sent(engine) as first:
+        registry.tracks.update_room(room_id=room.id, now=T0, apply=_add_one(room.id, []))
+    assert [text for text, _ in first].count("BEGIN") == 1
+    assert any(text.startswith("INSERT INTO room_tracking") for text, _ in first)
+    with _sent(engine) as later:
+        registry.tracks.update_room(room_id=room.id, now=T0, apply=_add_one(room.id, []))
+    assert [text for text, _ in later].count("BEGIN") == 1
+    assert not any("room_tracking" in text and text.startswith("INSERT") for text, _ in later)
+    assert registry.tracks.latest_sequence(room_id=room.id) == 2
+
+
+def test_settings_before_the_first_update_are_kept(registry: Registry) -> None:
+    room = registry.create_room(name="r", layout=small_layout())
+    registry.tracks.put_settings(room_id=room.id, settings={"lost_after_s": 9.0})
+    stored: list[dict[str, Any] | None] = []
+
+    def apply(records: list[TrackRecord], settings: dict[str, Any] | None) -> TrackChanges:
+        del records
+        stored.append(settings)
+        return TrackChanges()
+
+    registry.tracks.update_room(room_id=room.id, now=T0, apply=apply)
+    assert stored == [{"lost_after_s": 9.0}]
+    with pytest.raises(RoomNotFound):
+        registry.tracks.put_settings(room_id="nope", settings=None)
+
+
+def test_the_stream_read_is_one_statement_without_a_transaction(registry: Registry) -> None:
+    """On PostgreSQL the stream's read of new events runs in autocommit: no BEGIN and no
+    ROLLBACK round trips between a commit and its event reaching a reader."""
+    room = registry.create_room(name="r", layout=small_layout())
+    registry.tracks.update_room(room_id=room.id, now=T0, apply=_add_one(room.id, []))
+    with _sent(raw_engine(registry)) as sent:
+        events = registry.tracks.events_since(room_id=room.id, after=0, limit=10)
+    assert [e.sequence for e in events] == [1]
+    statements = [(text, autocommit) for text, autocommit in sent if text != "BEGIN"]
+    assert len(statements) == 1 and statements[0][0].startswith("SELECT")
+    assert statements[0][1] == registry.tracks.notifies  # autocommit on PostgreSQL
 
 
 def test_updates_number_events_and_keep_tracks(registry: Registry) -> None:
