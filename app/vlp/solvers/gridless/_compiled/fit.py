@@ -363,14 +363,14 @@ def _gram_of_rows(
 
 
 @compiled
-def _dense_cost(residual: FloatArray, n_params: int) -> float:
-    """``r^T r`` to the bit as :func:`_gram_of_rows` gives it where its product is dense: the
-    ``[n, n]`` entry of ``_symmetric_product([J | r]^T)`` is summed by the loop that takes four
-    rows at a time when ``n + 1`` is a multiple of four, else by the one-row loop (each
-    reorders its sum in its own way), so the same loop runs here, on rows of zeros and ``r``."""
-    block = np.zeros((4 if (n_params + 1) % 4 == 0 else 1, residual.shape[0]))
-    block[block.shape[0] - 1] = residual
-    return float(_symmetric_product(block)[block.shape[0] - 1, block.shape[0] - 1])
+def _one_row_cost(residual: FloatArray) -> float:
+    """``r^T r`` to the bit as :func:`_gram_of_rows` gives it where its product is dense and
+    ``n + 1`` (n parameters) is not a multiple of four: the ``[n, n]`` entry of
+    ``_symmetric_product([J | r]^T)`` is then summed by its one-row loop (which reorders the
+    sum in its own way), so the same loop runs here."""
+    block = np.empty((1, residual.shape[0]))
+    block[0] = residual
+    return float(_symmetric_product(block)[0, 0])
 
 
 class FitModel(NamedTuple):
@@ -396,15 +396,17 @@ def fit_evaluate(model: FitModel, theta: FloatArray) -> tuple[float, FitPoint]:
     """The aggregated fit's ``evaluate``: the cost, and as the point the rotated gains, from
     which :func:`fit_normal_equations` builds ``J^T J`` and ``J^T r`` if the trial is
     accepted (the power model's fits reject about half their trials). The same cost to the
-    bit as :func:`gram_kernel`'s. A large room's products skip zeros in an order that
-    depends on the Jacobian: there the product is taken with the cost, as before."""
+    bit as :func:`gram_kernel`'s. Where that cost is not summed by the product's one-row loop
+    (a large room's products skip zeros in an order that depends on the Jacobian; with
+    ``n + 1`` a multiple of four the four-row loop sums it), the product is taken with the
+    cost: :func:`_one_row_cost` cannot give its bits."""
     channel, table, white, data, fixed, layout, priors = model
     rows = _rows(channel, table, white, theta, fixed, layout)
-    if data.shape[0] + layout[4] >= _SPARSE_MIN_LENGTH:
+    if data.shape[0] + layout[4] >= _SPARSE_MIN_LENGTH or (theta.shape[0] + 1) % 4 == 0:
         normal, gradient, cost = _gram_of_rows(rows, white, data, theta, fixed, layout, priors)
         return cost, (rows, normal, gradient, True)
     residual = _residual_of_rows(rows, white, data, theta, fixed, layout, priors)
-    return _dense_cost(residual, theta.shape[0]), (rows, np.empty((0, 0)), np.empty(0), False)
+    return _one_row_cost(residual), (rows, np.empty((0, 0)), np.empty(0), False)
 
 
 @compiled_inline
