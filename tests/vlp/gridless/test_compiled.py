@@ -335,7 +335,7 @@ def test_fit_trials_cost_what_their_gram_costs_to_the_bit(model: Model) -> None:
     trials it accepts: that cost must be the gram's to the bit (else the loop would accept
     other trials than the gram's cost does), and the normal equations the gram's, for every
     parameter count (the gram sums r^T r with another loop when it is one less than a
-    multiple of four)."""
+    multiple of four; the cost alone is evaluated for the power model only)."""
     kernel = make_kernel("paper", "heights", seed=5)
     rng = np.random.default_rng(17)
     sizes = set()

@@ -395,14 +395,20 @@ FitPoint = tuple[FloatArray, FloatArray, FloatArray, bool]
 def fit_evaluate(model: FitModel, theta: FloatArray) -> tuple[float, FitPoint]:
     """The aggregated fit's ``evaluate``: the cost, and as the point the rotated gains, from
     which :func:`fit_normal_equations` builds ``J^T J`` and ``J^T r`` if the trial is
-    accepted (the power model's fits reject about half their trials). The same cost to the
-    bit as :func:`gram_kernel`'s. Where that cost is not summed by the product's one-row loop
-    (a large room's products skip zeros in an order that depends on the Jacobian; with
-    ``n + 1`` a multiple of four the four-row loop sums it), the product is taken with the
-    cost: :func:`_one_row_cost` cannot give its bits."""
+    accepted: the power model's fits (one value per LED) reject about half their trials. The
+    same cost to the bit as :func:`gram_kernel`'s. The product is taken with the cost for
+    the correlation model, whose more damped fits accept most trials (the cost alone would
+    then be computed twice), and where that cost is not summed by the product's one-row
+    loop, which :func:`_one_row_cost` runs (a large room's products skip zeros in an order
+    that depends on the Jacobian; with ``n + 1`` a multiple of four the four-row loop sums
+    it)."""
     channel, table, white, data, fixed, layout, priors = model
     rows = _rows(channel, table, white, theta, fixed, layout)
-    if data.shape[0] + layout[4] >= _SPARSE_MIN_LENGTH or (theta.shape[0] + 1) % 4 == 0:
+    if (
+        data.shape[0] != rows.shape[2]
+        or data.shape[0] + layout[4] >= _SPARSE_MIN_LENGTH
+        or (theta.shape[0] + 1) % 4 == 0
+    ):
         normal, gradient, cost = _gram_of_rows(rows, white, data, theta, fixed, layout, priors)
         return cost, (rows, normal, gradient, True)
     residual = _residual_of_rows(rows, white, data, theta, fixed, layout, priors)
