@@ -5,6 +5,7 @@ Run from the repository root, with the other tree unpacked somewhere (any commit
     git archive b325b9d | (mkdir -p /tmp/base && tar -x -C /tmp/base)
     python -m bench.solver_ab /tmp/base                # 10 rounds
     python -m bench.solver_ab /tmp/base --rounds 4
+    python -m bench.solver_ab /tmp/base --forms power:1,power:4,power:8
 
 Two worker processes, one importing ``app`` (and ``bench``) from the other tree and one from
 this checkout, each with the default ``gridless`` solver built and warmed up once per model
@@ -110,6 +111,17 @@ def _turn(worker: subprocess.Popen[str], model: str, k: int) -> list[float]:
     return times
 
 
+def _forms(text: str) -> tuple[tuple[str, int], ...]:
+    """``power:1,power:8`` as ``(("power", 1), ("power", 8))``."""
+    forms = []
+    for item in text.split(","):
+        model, _, k = item.strip().partition(":")
+        if model not in {form for form, _ in FORMS} or not k.isdigit() or int(k) < 1:
+            raise argparse.ArgumentTypeError(f"not a FORM:K pair: {item!r}")
+        forms.append((model, int(k)))
+    return tuple(forms)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Time both trees, interleaved, and print the medians and their ratio."""
     parser = argparse.ArgumentParser(
@@ -119,16 +131,23 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     parser.add_argument("base", type=Path, help="the other source tree (its root folder)")
     parser.add_argument("--rounds", type=int, default=10)
+    parser.add_argument(
+        "--forms",
+        type=_forms,
+        default=FORMS,
+        help="comma-separated FORM:K pairs, e.g. power:1,power:4,power:8 (default: all of FORMS)",
+    )
     args = parser.parse_args(argv)
+    forms: tuple[tuple[str, int], ...] = args.forms
     load = os.getloadavg()
     workers = {"base": _start(args.base.resolve()), "this": _start(REPO_ROOT)}
     times: dict[tuple[str, int], dict[str, list[float]]] = {
-        form: {"base": [], "this": []} for form in FORMS
+        form: {"base": [], "this": []} for form in forms
     }
     try:
         for round_index in range(args.rounds):
             order = ("base", "this") if round_index % 2 == 0 else ("this", "base")
-            for model, k in FORMS:
+            for model, k in forms:
                 for name in order:
                     times[(model, k)][name] += _turn(workers[name], model, k)
     finally:

@@ -19,6 +19,7 @@ UNIT_MODULES = {
     "bench/test_tracking_switches.py",
     "bench/test_measured_smoke.py",
     "bench/test_measured_floor.py",
+    "bench/test_solver_ab_forms.py",
 }
 
 

@@ -39,7 +39,13 @@ from app.vlp.presets import paper_layout
 from app.vlp.simulation import true_amplitudes
 from app.vlp.solvers import warm_up
 from app.vlp.solvers.gridless._compiled.channel import channel_constants, channel_rows, diffuse_rows
-from app.vlp.solvers.gridless._compiled.fit import _sparse_symmetric_product
+from app.vlp.solvers.gridless._compiled.fit import (
+    FitModel,
+    _sparse_symmetric_product,
+    fit_evaluate,
+    fit_normal_equations,
+    gram_kernel,
+)
 from app.vlp.solvers.gridless._compiled.scores import correlation_scores_kernel
 from app.vlp.solvers.gridless._compiled.uncertainty import (
     fit_misfit_kernel,
@@ -321,6 +327,37 @@ def test_aggregated_fit_matches_reference(model: Model, k: int, priors_name: str
         # every parameter, normwise (the noise of a noiseless fit is round-off alone)
         assert_same(objective.pack(got_state), objective.pack(want_state))
         assert got_cost == pytest.approx(want_cost, rel=1e-8, abs=1e-12 * max(1.0, want_cost))
+
+
+@pytest.mark.parametrize("model", ["correlation", "power"])
+def test_fit_trials_cost_what_their_gram_costs_to_the_bit(model: Model) -> None:
+    """The compiled fit evaluates a trial's cost alone and builds J^T J and J^T r only at the
+    trials it accepts: that cost must be the gram's to the bit (else the loop would accept
+    other trials than the gram's cost does), and the normal equations the gram's, for every
+    parameter count (the gram sums r^T r with another loop when it is one less than a
+    multiple of four; the cost alone is evaluated for the power model only)."""
+    kernel = make_kernel("paper", "heights", seed=5)
+    rng = np.random.default_rng(17)
+    sizes = set()
+    for k in range(1, 9):
+        for priors_name in ("none", "gains_scale", "heights", "free_weights"):
+            priors, free_weights = PRIORS[priors_name]
+            state = random_state(kernel, k, rng, on_plane=not priors.fits_heights)
+            white = Whitening._from_state_reference(model, kernel, state, float(k))
+            values = rng.standard_normal(white.weights.shape[0])
+            objective = Objective(kernel, white, values, free_weights, priors)
+            problem = objective.compiled_problem()
+            assert problem is not None
+            fields = FitModel(*problem, *objective.compiled_state(state))
+            theta = objective.pack(state)
+            sizes.add(theta.shape[0])
+            cost, point = fit_evaluate(fields, theta)
+            normal, gradient = fit_normal_equations(fields, theta, point)
+            want_normal, want_gradient, want_cost = gram_kernel(*fields[:4], theta, *fields[4:])
+            assert cost == want_cost
+            np.testing.assert_array_equal(normal, want_normal)
+            np.testing.assert_array_equal(gradient, want_gradient)
+    assert {size % 4 for size in sizes} == {0, 1, 2, 3}
 
 
 def _unwhiten(white: Whitening, whitened: FloatArray) -> FloatArray:

@@ -10,8 +10,9 @@ A fit hands the loop two functions of its model (docs/explanation/solver.md,
 - ``normal_equations(theta, point) -> (J^T J, J^T r)``: asked once per iteration, at the
   accepted point (a model may delay its Jacobian to here: a rejected trial never needs it).
 
-The aggregated fit (``gridless.model.fit_objective``) evaluates ``J^T J`` with every trial
-(one product gives it with the cost); the terminal fit (``gridless.terminals``) keeps its
+The aggregated fit (``gridless.model.fit_objective``) keeps each trial's rotated gains and
+builds ``J^T J`` from them at accepted points (its NumPy reference takes ``J^T J`` with every
+trial, one product giving it with the cost); the terminal fit (``gridless.terminals``) keeps its
 residual and Jacobian, which it reports; the joint room-tolerance fit
 (``gridless.tolerances``) keeps its residual and computes its Jacobian only at accepted
 points. The compiled kernels read the constants below as compile-time constants.

@@ -395,8 +395,11 @@ def fit_objective(
     when no target moves by ``step_tol_m`` or more, or when a step lowers, or is predicted
     to lower, the cost by less than ``tol`` of it (:class:`.gridless.lm.LMSettings`).
 
-    Every trial computes ``J^T J`` with its cost: most steps are accepted, and a second
-    call for the Jacobian would cost more than the wasted one on a rejection.
+    The compiled fit evaluates a trial's cost alone and builds ``J^T J`` only at the
+    trials it accepts, from the gains it kept (the power model's fits reject about half
+    their trials); the NumPy reference computes ``J^T J`` with every trial's cost (one
+    product gives both, and a second call for the Jacobian costs more there). The same
+    numbers either way.
 
     Returns the refined state, its cost and the number of iterations used.
     """

@@ -70,22 +70,26 @@ class Search(NamedTuple):
 
 
 def insert_target(
-    room: PreparedRoom, run: Run, state: FitState, white: Whitening, avoid: FloatArray | None = None
+    room: PreparedRoom,
+    run: Run,
+    state: FitState,
+    white: Whitening,
+    avoid: FloatArray | None = None,
+    scores: FloatArray | None = None,
 ) -> FitState:
     """Add a unit-weight target at the grid point that most lowers the cost (not within
-    ``_avoid_radius`` of the points ``avoid``, shape (n, 2), when given)."""
-    if not room.dense:
-        # Large rooms score with the plain residual: whitened atom norms would need the
-        # rotated gains of every grid point.
-        white = room.identity
-    residual = residual_of(room, run, white, state)
-    if room.power_scan is not None and (avoid is None or avoid.shape[0] == 0):
-        found = room.power_scan.best(
-            residual, math.exp(state.log_scale), float(white.weights[0]) ** 2
-        )
-        if found is not None:
-            return state.with_target(room.centres[found[0]], room.priors.height_mean)
-    scores = insertion_scores(room, white, residual, math.exp(state.log_scale))
+    ``_avoid_radius`` of the points ``avoid``, shape (n, 2), when given). ``scores``: the
+    state's :func:`scores_of` in ``white``'s metric, when the caller has them."""
+    if scores is None:
+        metric = scoring_metric(room, white)
+        residual = residual_of(room, run, metric, state)
+        if room.power_scan is not None and (avoid is None or avoid.shape[0] == 0):
+            found = room.power_scan.best(
+                residual, math.exp(state.log_scale), float(metric.weights[0]) ** 2
+            )
+            if found is not None:
+                return state.with_target(room.centres[found[0]], room.priors.height_mean)
+        scores = insertion_scores(room, metric, residual, math.exp(state.log_scale))
     if avoid is not None and avoid.shape[0] > 0:
         allowed = scores.copy()
         for point in avoid:
@@ -95,6 +99,19 @@ def insert_target(
             scores = allowed
     best = int(np.argmax(scores))
     return state.with_target(room.centres[best], room.priors.height_mean)
+
+
+def scoring_metric(room: PreparedRoom, white: Whitening) -> Whitening:
+    """The metric insertions score in: ``white``, or the plain one in large rooms, where
+    whitened atom norms would need the rotated gains of every grid point."""
+    return white if room.dense else room.identity
+
+
+def scores_of(room: PreparedRoom, run: Run, state: FitState, white: Whitening) -> FloatArray:
+    """:func:`insertion_scores` of every grid point for one more target in ``state``."""
+    metric = scoring_metric(room, white)
+    residual = residual_of(room, run, metric, state)
+    return insertion_scores(room, metric, residual, math.exp(state.log_scale))
 
 
 def grow(
@@ -328,12 +345,16 @@ def relocate(
         keep = np.arange(n_targets) != k
         others = state.subset(keep)
         own = state.positions[k]
-        candidate = insert_target(room, run, others, white)
+        # The far try scores the same residual: computed once for both.
+        scores = None if room.power_scan is not None else scores_of(room, run, others, white)
+        candidate = insert_target(room, run, others, white, scores=scores)
         tries = [candidate]
         if np.linalg.norm(candidate.positions[-1] - own) <= 1.5 * step:
             tries = []
             if far:
-                tries.append(insert_target(room, run, others, white, avoid=own[np.newaxis]))
+                tries.append(
+                    insert_target(room, run, others, white, avoid=own[np.newaxis], scores=scores)
+                )
             if room.relocate_to_missing or far:
                 if missing is None:
                     missing = insert_target(room, run, state, white).positions[-1]

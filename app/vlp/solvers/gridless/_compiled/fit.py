@@ -125,6 +125,22 @@ def residual_kernel(
 ) -> FloatArray:
     """:meth:`Objective.residual`: the whitened data residual, then the prior residuals."""
     rows = _rows(channel, table, white, theta, fixed, layout)
+    residual: FloatArray = _residual_of_rows(rows, white, data, theta, fixed, layout, priors)
+    return residual
+
+
+@compiled
+def _residual_of_rows(
+    rows: FloatArray,
+    white: Problem,
+    data: FloatArray,
+    theta: FloatArray,
+    fixed: Problem,
+    layout: Problem,
+    priors: Problem,
+) -> FloatArray:
+    """:func:`residual_kernel` from the rotated gains :func:`_rows` gave (the same numbers as
+    the last row of :func:`_augmented_of_rows`)."""
     _, _, weights, upper, lower, weighted_diag = white
     k = fixed[0].shape[0]
     scaled, multipliers = _multipliers(theta, fixed, layout)
@@ -156,6 +172,21 @@ def _augmented(
 ) -> FloatArray:
     """:meth:`Objective.augmented`: ``[J | r]^T``, shape (len(theta) + 1, L + n_prior)."""
     rows = _rows(channel, table, white, theta, fixed, layout)
+    augmented: FloatArray = _augmented_of_rows(rows, white, data, theta, fixed, layout, priors)
+    return augmented
+
+
+@compiled
+def _augmented_of_rows(
+    rows: FloatArray,
+    white: Problem,
+    data: FloatArray,
+    theta: FloatArray,
+    fixed: Problem,
+    layout: Problem,
+    priors: Problem,
+) -> FloatArray:
+    """:func:`_augmented` from the rotated gains :func:`_rows` gave."""
     _, _, weights, upper, lower, weighted_diag = white
     n_axes, weights_at, gains_at, scale_at, n_prior = layout
     log_gain_sd, log_scale_sd, height_sd, _ = priors
@@ -307,12 +338,39 @@ def gram_kernel(
     priors: Problem,
 ) -> tuple[FloatArray, FloatArray, float]:
     """:func:`gram`: ``J^T J``, ``J^T r`` and ``r^T r`` at ``theta``."""
-    augmented = _augmented(channel, table, white, data, theta, fixed, layout, priors)
+    rows = _rows(channel, table, white, theta, fixed, layout)
+    normal, gradient, cost = _gram_of_rows(rows, white, data, theta, fixed, layout, priors)
+    return normal, gradient, float(cost)
+
+
+@compiled
+def _gram_of_rows(
+    rows: FloatArray,
+    white: Problem,
+    data: FloatArray,
+    theta: FloatArray,
+    fixed: Problem,
+    layout: Problem,
+    priors: Problem,
+) -> tuple[FloatArray, FloatArray, float]:
+    """:func:`gram_kernel` from the rotated gains :func:`_rows` gave."""
+    augmented = _augmented_of_rows(rows, white, data, theta, fixed, layout, priors)
     product, sparse = _sparse_symmetric_product(augmented)
     if not sparse:
         product = _symmetric_product(augmented)
     n = theta.shape[0]
     return product[:n, :n].copy(), product[:n, n].copy(), float(product[n, n])
+
+
+@compiled
+def _one_row_cost(residual: FloatArray) -> float:
+    """``r^T r`` to the bit as :func:`_gram_of_rows` gives it where its product is dense and
+    ``n + 1`` (n parameters) is not a multiple of four: the ``[n, n]`` entry of
+    ``_symmetric_product([J | r]^T)`` is then summed by its one-row loop (which reorders the
+    sum in its own way), so the same loop runs here."""
+    block = np.empty((1, residual.shape[0]))
+    block[0] = residual
+    return float(_symmetric_product(block)[0, 0])
 
 
 class FitModel(NamedTuple):
@@ -328,21 +386,47 @@ class FitModel(NamedTuple):
     priors: Problem
 
 
+# A fit point: the rotated gains (4, K, M), and J^T J and J^T r when they were computed
+# with the cost (ready), else empty.
+FitPoint = tuple[FloatArray, FloatArray, FloatArray, bool]
+
+
 @compiled_inline
-def fit_evaluate(model: FitModel, theta: FloatArray) -> tuple[float, tuple[FloatArray, FloatArray]]:
-    """The aggregated fit's ``evaluate``: the cost and, as the point, ``J^T J`` and
-    ``J^T r`` (one product gives all three)."""
+def fit_evaluate(model: FitModel, theta: FloatArray) -> tuple[float, FitPoint]:
+    """The aggregated fit's ``evaluate``: the cost, and as the point the rotated gains, from
+    which :func:`fit_normal_equations` builds ``J^T J`` and ``J^T r`` if the trial is
+    accepted: the power model's fits (one value per LED) reject about half their trials. The
+    same cost to the bit as :func:`gram_kernel`'s. The product is taken with the cost for
+    the correlation model, whose more damped fits accept most trials (the cost alone would
+    then be computed twice), and where that cost is not summed by the product's one-row
+    loop, which :func:`_one_row_cost` runs (a large room's products skip zeros in an order
+    that depends on the Jacobian; with ``n + 1`` a multiple of four the four-row loop sums
+    it)."""
     channel, table, white, data, fixed, layout, priors = model
-    normal, gradient, cost = gram_kernel(channel, table, white, data, theta, fixed, layout, priors)
-    return cost, (normal, gradient)
+    rows = _rows(channel, table, white, theta, fixed, layout)
+    if (
+        data.shape[0] != rows.shape[2]
+        or data.shape[0] + layout[4] >= _SPARSE_MIN_LENGTH
+        or (theta.shape[0] + 1) % 4 == 0
+    ):
+        normal, gradient, cost = _gram_of_rows(rows, white, data, theta, fixed, layout, priors)
+        return cost, (rows, normal, gradient, True)
+    residual = _residual_of_rows(rows, white, data, theta, fixed, layout, priors)
+    return _one_row_cost(residual), (rows, np.empty((0, 0)), np.empty(0), False)
 
 
 @compiled_inline
 def fit_normal_equations(
-    _model: FitModel, _theta: FloatArray, point: tuple[FloatArray, FloatArray]
+    model: FitModel, theta: FloatArray, point: FitPoint
 ) -> tuple[FloatArray, FloatArray]:
-    """The aggregated fit's ``normal_equations``: those :func:`fit_evaluate` kept."""
-    return point
+    """The aggregated fit's ``normal_equations``: ``J^T J`` and ``J^T r`` at the accepted
+    point, from its rotated gains."""
+    rows, normal, gradient, ready = point
+    if ready:
+        return normal, gradient
+    _, _, white, data, fixed, layout, priors = model
+    normal, gradient, _ = _gram_of_rows(rows, white, data, theta, fixed, layout, priors)
+    return normal, gradient
 
 
 register_model(FitModel, fit_evaluate, fit_normal_equations)
