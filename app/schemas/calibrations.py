@@ -230,13 +230,19 @@ class ReflectanceSd(ResponseModel):
 
 
 class AmplitudeErrorReport(ResponseModel):
-    """How the survey's detected amplitudes scatter around the calibrated model: variance
-    `noise_sd^2 + (relative_sd * model)^2`; terminals that send their own amplitudes in this
-    room are weighted by it and their `accuracy_m` rests on it."""
+    """How the survey's detected amplitudes scatter around the calibrated model: an error of
+    scale `sqrt(noise_sd^2 + (relative_sd * model)^2)`, Gaussian (that scale its sd) or, when
+    `tail_dof` is set, Student-t with that many degrees of freedom (a survey whose few errors
+    lie far beyond the rest's scale); terminals that send their own amplitudes in this room
+    are weighted by it and their `accuracy_m` rests on it."""
 
-    noise_sd: float = Field(description="the amplitude noise's sd (the terminals' units)")
-    relative_sd: float = Field(description="sd of the model's error relative to the signal")
+    noise_sd: float = Field(description="the amplitude noise's scale (the terminals' units)")
+    relative_sd: float = Field(description="scale of the model's error relative to the signal")
     dof: float = Field(description="degrees of freedom the two rest on")
+    tail_dof: float | None = Field(
+        default=None,
+        description="the Student-t's degrees of freedom of the errors (null: Gaussian)",
+    )
 
 
 class Calibration(ResponseModel):

@@ -46,7 +46,6 @@ from dataclasses import dataclass, fields, replace
 from typing import Any
 
 import numpy as np
-from scipy import optimize
 
 from ._calibration_beams import MIN_ROWS_FOR_BEAM, measured_beam, with_beam
 from ._calibration_fit import (
@@ -63,6 +62,7 @@ from ._calibration_fit import (
     led_rows,
     rms_per_led,
 )
+from ._calibration_scatter import survey_scatter
 from .channel import lambertian_order, led_constants
 from .errors import MeasurementError
 from .layout import AmplitudeError, Beam, Layout, Led, Reflectance
@@ -97,9 +97,6 @@ DEFAULT_LED_POSITION_BOUND_M = 0.3
 # degrees of their drawing; a face turned further is no longer a small tilt of the same beam.
 DEFAULT_LED_TILT_BOUND_DEG = 15.0
 MAX_LED_TILT_BOUND_DEG = 45.0
-# Rounds of reweighting the moment fit of the survey's scatter (:func:`_amplitude_error`);
-# the weights settle within a few, as in app.vlp.uncertainty.fit_misfit.
-_MOMENT_REWEIGHTS = 6
 # Where a fitted reflectance starts when the layout gives none (the lighting-design default
 # for walls, docs/explanation/real-rooms.md#the-simulators-true-channel).
 _REFLECTANCE_START = 0.5
@@ -154,9 +151,9 @@ class CalibrationResult:
     tilt_azimuths_deg : ndarray of shape (M,), degrees in [0, 360)
         Direction its face turns to, counter-clockwise from +x (0 for an untilted LED).
     amplitude_error : AmplitudeError or None
-        How the survey's detected amplitudes scatter around the calibrated model (its noise
-        and its relative error, :func:`_amplitude_error`); None when the survey leaves no
-        degree of freedom for it.
+        How the survey's detected amplitudes scatter around the calibrated model (its noise,
+        its relative error and its tails, :func:`~._calibration_scatter.survey_scatter`); None
+        when the survey leaves no degree of freedom for it.
     """
 
     pilot_amplitudes: FloatArray
@@ -382,7 +379,7 @@ def calibrate(
         led_normals=normals,
         tilts_deg=np.rad2deg(np.arccos(np.clip(-normals[:, 2], -1.0, 1.0))),
         tilt_azimuths_deg=_azimuths_deg(normals),
-        amplitude_error=_amplitude_error(survey, modelled, n_params),
+        amplitude_error=survey_scatter(survey, modelled, n_params),
         beams=tuple(beams),
     )
 
@@ -507,31 +504,6 @@ def _measured_minus_model(survey: Survey, modelled: FloatArray) -> FloatArray:
         np.where(detected, survey.amplitudes, 0.0) - modelled,
         -np.maximum(modelled - survey.floor, 0.0),
     )
-
-
-def _amplitude_error(survey: Survey, modelled: FloatArray, n_params: int) -> AmplitudeError | None:
-    """How the survey's detected amplitudes scatter around the calibrated model at their
-    known points: ``E[(a - f)^2] = s^2 + (b f)^2`` fitted to the squared residuals
-    (non-negative least squares, reweighted by each square's expected scatter, ``2 E^2``),
-    over the rows the model sees (``f > 0``). The fit of the LEDs' ``n_params`` parameters
-    absorbed part of those squares: ``s^2, b^2`` are scaled by ``n / (n - n_params)``, the
-    ``n - n_params`` degrees of freedom they rest on. None when none is left."""
-    used = survey.detected & (modelled > 0.0)
-    n_used = int(np.count_nonzero(used))
-    dof = n_used - n_params
-    if dof < 1:
-        return None
-    model = modelled[used]
-    squares = (survey.amplitudes[used] - model) ** 2
-    design = np.column_stack((np.ones(n_used), model**2))
-    weights = np.ones(n_used)
-    solution = np.zeros(2)
-    for _ in range(_MOMENT_REWEIGHTS):
-        solution, _ = optimize.nnls(design * weights[:, None], squares * weights)
-        expected = design @ solution
-        weights = 1.0 / np.maximum(expected, 1e-3 * max(float(np.mean(expected)), 1e-300))
-    noise_var, relative_var = solution * (n_used / dof)
-    return AmplitudeError(math.sqrt(noise_var), math.sqrt(relative_var), float(dof))
 
 
 def _azimuths_deg(normals: FloatArray) -> FloatArray:

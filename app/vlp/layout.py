@@ -112,15 +112,19 @@ class Room:
 @dataclass(frozen=True)
 class AmplitudeError:
     """How far measured amplitudes scatter around this room's model, measured by a survey
-    calibration at known points: each amplitude ``a`` of model value ``f`` has the variance
-    ``noise_sd^2 + (relative_sd f)^2`` (the receiver's noise, and what the model misses in
+    calibration at known points: each amplitude ``a`` of model value ``f`` errs with the scale
+    ``sqrt(noise_sd^2 + (relative_sd f)^2)`` (the receiver's noise, and what the model misses in
     proportion to the signal: beams that are not Lambertian, reflections), both estimated
-    from ``dof`` degrees of freedom. Amplitudes in the layout's units (the terminals').
+    from ``dof`` degrees of freedom. The error is Gaussian of that sd when ``tail_dof`` is
+    None, else Student-t with ``tail_dof`` degrees of freedom and that scale (a survey whose
+    few errors lie far beyond the rest's scale). Amplitudes in the layout's units (the
+    terminals').
     """
 
     noise_sd: float
     relative_sd: float
     dof: float
+    tail_dof: float | None = None
 
     def __post_init__(self) -> None:
         for name in ("noise_sd", "relative_sd"):
@@ -131,9 +135,14 @@ class AmplitudeError:
                     field=f"amplitude_error.{name}",
                 )
         _check_positive(self.dof, "amplitude_error.dof")
+        if self.tail_dof is not None:
+            _check_positive(self.tail_dof, "amplitude_error.tail_dof")
 
     def to_mapping(self) -> dict[str, float]:
-        return {"noise_sd": self.noise_sd, "relative_sd": self.relative_sd, "dof": self.dof}
+        mapping = {"noise_sd": self.noise_sd, "relative_sd": self.relative_sd, "dof": self.dof}
+        if self.tail_dof is not None:
+            mapping["tail_dof"] = self.tail_dof
+        return mapping
 
 
 @dataclass(frozen=True)
@@ -536,11 +545,13 @@ def _amplitude_error_from_mapping(value: object) -> AmplitudeError | None:
             f"amplitude_error must be an object with noise_sd, relative_sd and dof, got {value!r}",
             field="amplitude_error",
         )
+    tail_dof = value.get("tail_dof")
     return AmplitudeError(
         **{
             name: _float_field(value.get(name), f"amplitude_error.{name}")
             for name in ("noise_sd", "relative_sd", "dof")
-        }
+        },
+        tail_dof=None if tail_dof is None else _float_field(tail_dof, "amplitude_error.tail_dof"),
     )
 
 

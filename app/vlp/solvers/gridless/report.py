@@ -99,14 +99,26 @@ def terminal_far_optima(
     positions: FloatArray,
     covariances: FloatArray,
     sigma2: float,
+    led_weights: FloatArray | None = None,
 ) -> FloatArray:
     """Each terminal's farthest other optimum of its own amplitudes beyond its radius
     (:func:`app.vlp.ambiguity.far_optima`: a grid point that explains them as well, e.g.
     a receiver in a dark corner, or on either side of a row of LEDs), shape (K, 2), NaN
     where none. Dense rooms whose gains are small enough to scan per answer (else all
-    NaN)."""
+    NaN). ``led_weights`` (M,): each amplitude's whitening weight, shared by the terminals
+    (None: one weight, ``sigma2`` the noise variance)."""
     if not room.scans_profiles:
         return np.full_like(positions, np.nan)
+    if led_weights is not None:
+        return far_optima(
+            values * led_weights,
+            room.gains * led_weights[:, np.newaxis],
+            room.centres,
+            positions,
+            covariances,
+            sigma2,
+            room.fingerprint.layout.grid.step,
+        )
     return far_optima(
         values,
         room.gains,

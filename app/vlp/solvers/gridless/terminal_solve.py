@@ -50,6 +50,8 @@ _MAX_LED_ERROR_SD = 0.25
 # Standard deviations of the chi-square by which a request's residuals may exceed what the
 # survey's measured scatter predicts and still be taken for the survey receiver's kind.
 _SCATTER_SIGNIFICANCE = 3.0
+# Reweightings of a terminal fitted with a Student-t scatter: its weights settle within a few.
+_TAIL_REWEIGHTS = 3
 
 
 def solve_terminals(
@@ -201,15 +203,34 @@ def solve_terminals(
     # (docs/decisions/measured-radii.md).
     measured = room.fingerprint.layout.amplitude_error
     like_survey: list[TerminalFit] | None = None
+    # A Student-t scatter's fit is the t's likelihood: each amplitude weighted down as far
+    # as its residual lies in the tails (iteratively reweighted least squares); its
+    # covariance is then the t's, (nu + 3) / (nu + 1) the weighted fit's.
+    tail_factor = 1.0
     if measured is not None:
         like_survey = refitted(fits, lambda fit: measured_variances(measured, room.scale, fit))
-        if not (room.receivers_level or _scatter_explains(like_survey, n_leds)):
+        if measured.tail_dof is not None:
+            for _ in range(_TAIL_REWEIGHTS):
+                like_survey = refitted(
+                    like_survey, lambda fit: tail_weighted_variances(measured, room.scale, fit)
+                )
+        if not (room.receivers_level or _scatter_explains(like_survey, n_leds, measured.tail_dof)):
             like_survey = None
     if measured is not None and like_survey is not None:
         fits = like_survey
         designs, _ = misfit_of(fits, led_errors=False)
         misfit = measured_misfit(measured, designs, [fit.residual for fit in fits])
+        if measured.tail_dof is not None:
+            # The request's own model errors from t-reweighted residuals enter at their
+            # estimates: F's widening for their few degrees of freedom assumes Gaussian
+            # squares, and on a measured survey it widened the answers that erred least
+            # (docs/decisions/measured-radii.md#heavy-tails).
+            misfit = replace(
+                misfit, dofs=np.r_[misfit.dofs[0], np.full(misfit.dofs.size - 1, np.inf)]
+            )
         reweighted = False
+        if measured.tail_dof is not None:
+            tail_factor = (measured.tail_dof + 3.0) / (measured.tail_dof + 1.0)
     elif reweighted:
         fits = refitted(
             fits,
@@ -222,7 +243,8 @@ def solve_terminals(
         designs, misfit = misfit_of(fits, led_errors=False)
     covariances = np.array(
         [
-            predictive_covariances(design, misfit, np.array([[0, 1]]))[0]
+            tail_factor
+            * predictive_covariances(design, misfit, np.array([[0, 1]]))[0]
             # A terminal whose own residual the pooled variances do not explain: its radius
             # says so (a terminal at a wrong optimum, or more impaired than the rest).
             * own_excess_widening(design, fit.residual, misfit)
@@ -248,7 +270,24 @@ def solve_terminals(
         # hide what they show.
         detail = seen if fit_quality.detail == FITS_TO_NOISE else f"{fit_quality.detail}; {seen}"
         fit_quality = replace(fit_quality, detail=detail)
-    far = terminal_far_optima(room, values, positions, covariances, sigma2)
+    if measured is not None and like_survey is not None:
+        # Each terminal's profile with the weights of its own fit, whose noise is 1: the
+        # region the survey's scatter allows around the optimum it found.
+        far = np.vstack(
+            [
+                terminal_far_optima(
+                    room,
+                    values[k : k + 1],
+                    positions[k : k + 1],
+                    covariances[k : k + 1],
+                    1.0,
+                    led_weights=np.broadcast_to(fit.data_weight, (n_leds,)),
+                )
+                for k, fit in enumerate(fits)
+            ]
+        )
+    else:
+        far = terminal_far_optima(room, values, positions, covariances, sigma2)
     covariances, fit_quality = reported(room, positions, covariances, fit_quality, far)
     return Solution(
         positions=positions,
@@ -267,15 +306,27 @@ def solve_terminals(
     )
 
 
-def _scatter_explains(fits: list[TerminalFit], n_leds: int) -> bool:
+def _scatter_explains(fits: list[TerminalFit], n_leds: int, tail_dof: float | None) -> bool:
     """Whether the survey's measured scatter explains the residuals of ``fits`` (weighted
     by it, each of ``n_leds`` amplitudes): their whitened sum of squares within
-    ``_SCATTER_SIGNIFICANCE`` standard deviations of its chi-square mean on their residual
-    degrees of freedom. A terminal whose tilt, gain or height is unlike the survey
-    receiver's leaves more."""
+    ``_SCATTER_SIGNIFICANCE`` standard deviations of its mean on their residual degrees of
+    freedom. Each square has mean 1 and variance 2 (chi-square), or, weighted as a Student-t
+    of ``tail_dof`` degrees of freedom weighs it (``(nu + 1) u^2 / (nu + u^2)``, a scaled
+    Beta(1/2, nu/2)), mean 1 and variance ``2 nu / (nu + 3)``. A terminal whose tilt, gain or
+    height is unlike the survey receiver's leaves more."""
     chi2 = sum(float(fit.residual @ fit.residual) for fit in fits)
     total = float(sum(max(n_leds - fit.n_params, 1) for fit in fits))
-    return chi2 <= total + _SCATTER_SIGNIFICANCE * math.sqrt(2.0 * total)
+    return chi2 <= total + _SCATTER_SIGNIFICANCE * math.sqrt(
+        weighted_square_variance(tail_dof) * total
+    )
+
+
+def weighted_square_variance(tail_dof: float | None) -> float:
+    """The variance of one whitened residual's square, ``u^2`` for a Gaussian ``u`` (2), or
+    ``(nu + 1) u^2 / (nu + u^2)`` for a Student-t ``u`` of ``nu = tail_dof`` degrees of freedom
+    weighted as its fit weighs it: ``(nu + 1)`` times a Beta(1/2, nu/2), variance
+    ``2 nu / (nu + 3)`` (its mean is 1 either way)."""
+    return 2.0 if tail_dof is None else 2.0 * tail_dof / (tail_dof + 3.0)
 
 
 def measured_variances(measured: AmplitudeError, scale: float, fit: TerminalFit) -> FloatArray:
@@ -287,6 +338,19 @@ def measured_variances(measured: AmplitudeError, scale: float, fit: TerminalFit)
         (measured.noise_sd / scale) ** 2 + (measured.relative_sd * modelled) ** 2,
         dtype=np.float64,
     )
+
+
+def tail_weighted_variances(measured: AmplitudeError, scale: float, fit: TerminalFit) -> FloatArray:
+    """Each of a terminal's amplitudes' variance (M,) for the next reweighting of a Student-t
+    scatter (``measured.tail_dof``): its squared scale (:func:`measured_variances`) over the
+    t's weight ``(nu + 1) / (nu + u^2)``, ``u`` its residual at ``fit`` over that scale."""
+    squared_scales = measured_variances(measured, scale, fit)
+    nu = measured.tail_dof
+    if nu is None:
+        return squared_scales
+    residuals = fit.residual / fit.data_weight  # unwhitened
+    u2 = residuals**2 / squared_scales
+    return np.asarray(squared_scales * (nu + u2) / (nu + 1.0), dtype=np.float64)
 
 
 def measured_misfit(
