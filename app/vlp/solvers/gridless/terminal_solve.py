@@ -224,7 +224,7 @@ def solve_terminals(
             # The request's own model errors from t-reweighted residuals enter at their
             # estimates: F's widening for their few degrees of freedom assumes Gaussian
             # squares, and on a measured survey it widened the answers that erred least
-            # (docs/decisions/measured-radii.md#heavy-tails).
+            # (docs/decisions/measured-radii.md, "Heavy tails").
             misfit = replace(
                 misfit, dofs=np.r_[misfit.dofs[0], np.full(misfit.dofs.size - 1, np.inf)]
             )
