@@ -344,7 +344,7 @@ def test_fit_trials_cost_what_their_gram_costs_to_the_bit(model: Model) -> None:
             priors, free_weights = PRIORS[priors_name]
             state = random_state(kernel, k, rng, on_plane=not priors.fits_heights)
             white = Whitening._from_state_reference(model, kernel, state, float(k))
-            values = rng.standard_normal(white.weights.shape[0])
+            values = np.asarray(rng.standard_normal(white.weights.shape[0]), dtype=np.float64)
             objective = Objective(kernel, white, values, free_weights, priors)
             problem = objective.compiled_problem()
             assert problem is not None
