@@ -20,7 +20,7 @@ import numpy as np
 import psycopg
 from sqlalchemy import make_url
 
-from app.client import VLPClient
+from app.client import TransportError, VLPClient
 from app.vlp.fingerprints import build_fingerprint
 from app.vlp.presets import paper_layout
 from app.vlp.simulation import noise_std_for_snr, noisy_amplitudes
@@ -89,11 +89,16 @@ def _measure(database_url: str, posts: int) -> list[float]:
 
             def follow() -> None:
                 with VLPClient(second.url, api_key=TERMINAL_KEY) as client:
-                    for event in client.stream_tracks(
-                        room_id, last_event_id=0, read_timeout_s=_SILENCE_S
-                    ):
-                        if event.track is not None:
-                            received.add((event.track_id, event.track.x, event.track.y))
+                    try:
+                        for event in client.stream_tracks(
+                            room_id, last_event_id=0, read_timeout_s=_SILENCE_S
+                        ):
+                            if event.track is not None:
+                                received.add((event.track_id, event.track.x, event.track.y))
+                    except TransportError:
+                        # The server stops when the measurement is done: the stream ends
+                        # mid-read; a delay it did not deliver is waited for above.
+                        return
 
             threading.Thread(target=follow, daemon=True).start()
             delays = []
