@@ -30,7 +30,8 @@ from app.jobs.calibrate import apply_calibration
 from app.registry import Registry
 from app.registry.records import ClaimedJob, StoredBuild
 from app.vlp.fingerprints import build_fingerprint
-from app.vlp.layout import Grid, Layout, Led, Room, layout_from_mapping
+from app.vlp.layout import Grid, Layout, Led, Room
+from app.vlp.layout_mapping import layout_from_mapping
 from bench.hall_build import million_point_hall
 
 __all__ = [

@@ -72,7 +72,7 @@ def _room_id(client: VLPClient, wanted: str | None) -> str | None:
 
 
 def _walkers(client: VLPClient, out: Output, args: argparse.Namespace) -> int:
-    from app.vlp.layout import layout_from_mapping
+    from app.vlp.layout_mapping import layout_from_mapping
 
     room_id = _room_id(client, args.room)
     if room_id is None:

@@ -32,7 +32,7 @@ from app.registry.errors import RegistryError
 from app.registry.queue import JobQueue, StoredBuild
 from app.registry.records import MatrixInfo
 from app.vlp.fingerprints import PSI_DENSE_LIMIT, Fingerprint, build_fingerprint
-from app.vlp.layout import layout_from_mapping
+from app.vlp.layout_mapping import layout_from_mapping
 
 from .calibrate import apply_calibration
 

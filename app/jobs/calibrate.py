@@ -21,7 +21,8 @@ from app.vlp.calibration import (
     masked_layout,
 )
 from app.vlp.channel import lambertian_order
-from app.vlp.layout import Layout, layout_from_mapping
+from app.vlp.layout import Layout
+from app.vlp.layout_mapping import layout_from_mapping
 from app.vlp.survey import survey_from_rows
 
 __all__ = ["apply_calibration"]

@@ -23,7 +23,7 @@ from sqlalchemy import Engine, delete, func, insert, select, text, update
 from app.clock import Clock, SystemClock
 from app.schemas.statuses import JOB_STATUSES
 from app.vlp.fingerprints import Fingerprint
-from app.vlp.layout import layout_from_mapping
+from app.vlp.layout_mapping import layout_from_mapping
 
 from . import keys as _keys
 from ._rows import (

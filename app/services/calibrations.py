@@ -11,7 +11,8 @@ from typing import Any
 from app.errors import InvalidFields
 from app.registry import JobRecord, Registry
 from app.schemas import CalibrationCreate
-from app.vlp.layout import Layout, layout_from_mapping
+from app.vlp.layout import Layout
+from app.vlp.layout_mapping import layout_from_mapping
 
 __all__ = ["MAX_SURVEY_ERRORS", "request_calibration"]
 

@@ -17,7 +17,8 @@ from app.errors import FingerprintNotReady
 from app.pictures import HeatmapKind
 from app.registry import Registry
 from app.schemas import LocalizationPlot
-from app.vlp.layout import Layout, layout_from_mapping
+from app.vlp.layout import Layout
+from app.vlp.layout_mapping import layout_from_mapping
 
 from .fingerprint_cache import FingerprintCache
 from .picture_cache import CachedPicture, PictureCache

@@ -13,7 +13,7 @@ from app.errors import InvalidFields, PreconditionFailed
 from app.registry import Registry, RoomRecord
 from app.schemas import RoomLayout
 from app.settings import Settings
-from app.vlp.layout import layout_from_mapping
+from app.vlp.layout_mapping import layout_from_mapping
 
 from .fingerprint_cache import FingerprintCache
 

@@ -21,7 +21,7 @@ from app.schemas import (
     TrackPointsPage,
     TracksPage,
 )
-from app.vlp.layout import layout_from_mapping
+from app.vlp.layout_mapping import layout_from_mapping
 
 from ._track_state import public_settings, track_public, tracker_settings
 

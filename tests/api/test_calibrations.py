@@ -12,7 +12,8 @@ from app.pictures.localization import match_estimates
 from app.schemas.calibrations import calibration_example
 from app.schemas.rooms import paper_room_example
 from app.vlp.calibration import simulate_survey
-from app.vlp.layout import Layout, Reflectance, layout_from_mapping
+from app.vlp.layout import Layout, Reflectance
+from app.vlp.layout_mapping import layout_from_mapping
 from app.vlp.presets import paper_layout
 from app.vlp.simulation import noisy_amplitudes, true_amplitudes
 

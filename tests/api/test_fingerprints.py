@@ -14,7 +14,7 @@ from numpy.testing import assert_allclose
 
 from app.main import create_app
 from app.vlp.fingerprints import Fingerprint, build_fingerprint
-from app.vlp.layout import layout_from_mapping
+from app.vlp.layout_mapping import layout_from_mapping
 from tests.waiting import wait_for
 
 from .conftest import (

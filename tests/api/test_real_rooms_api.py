@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from app.vlp.fingerprints import build_fingerprint
-from app.vlp.layout import layout_from_mapping
+from app.vlp.layout_mapping import layout_from_mapping
 from tests.bench_rooms import small_room_layout
 
 from .conftest import ADMIN, TERMINAL, TestClient, assert_problem, wait_for_room

@@ -10,7 +10,7 @@ import pytest
 
 import app.services.rooms
 from app.schemas.rooms import paper_room_example
-from app.vlp.layout import layout_from_mapping
+from app.vlp.layout_mapping import layout_from_mapping
 
 from .conftest import ADMIN, TERMINAL, TestClient, assert_problem, make_settings, small_room
 

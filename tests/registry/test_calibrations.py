@@ -14,7 +14,7 @@ from app.registry import Registry
 from app.registry._schema import calibrations
 from app.registry.errors import PreconditionFailed, RecordNotFound
 from app.vlp.calibration import simulate_survey
-from app.vlp.layout import layout_from_mapping
+from app.vlp.layout_mapping import layout_from_mapping
 from tests.db_fixtures import build_now, claim_next, raw_engine, small_layout
 
 

@@ -17,7 +17,7 @@ from app.registry.errors import (
 )
 from app.services.matrices import rebuilding_if_corrupt
 from app.vlp.fingerprints import Fingerprint, build_fingerprint
-from app.vlp.layout import layout_from_mapping
+from app.vlp.layout_mapping import layout_from_mapping
 from app.vlp.presets import paper_layout
 from tests.db_fixtures import (
     build_now,

@@ -24,7 +24,8 @@ from app.vlp.channel import (
     los_gains,
 )
 from app.vlp.errors import GeometryError
-from app.vlp.layout import Layout, layout_from_mapping
+from app.vlp.layout import Layout
+from app.vlp.layout_mapping import layout_from_mapping
 from app.vlp.presets import paper_layout
 from app.vlp.reflections import diffuse_gains, surface_flux_fractions
 from app.vlp.solvers.gridless.channel import ChannelKernel

@@ -16,8 +16,8 @@ from app.vlp.layout import (
     Receiver,
     Reflectance,
     Room,
-    layout_from_mapping,
 )
+from app.vlp.layout_mapping import layout_from_mapping
 
 
 def _mapping() -> dict[str, Any]:

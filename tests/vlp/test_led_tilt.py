@@ -35,7 +35,8 @@ from app.vlp.channel import (
 )
 from app.vlp.errors import GeometryError, MeasurementError
 from app.vlp.fingerprints import build_fingerprint
-from app.vlp.layout import Layout, Reflectance, layout_from_mapping
+from app.vlp.layout import Layout, Reflectance
+from app.vlp.layout_mapping import layout_from_mapping
 from app.vlp.presets import paper_layout
 from app.vlp.reflections import diffuse_gains
 from app.vlp.solvers.gridless.channel import ChannelKernel

@@ -14,7 +14,8 @@ from app.vlp import uncertainty
 from app.vlp._calibration_scatter import survey_scatter
 from app.vlp.errors import GeometryError
 from app.vlp.fingerprints import build_fingerprint
-from app.vlp.layout import AmplitudeError, Layout, layout_from_mapping
+from app.vlp.layout import AmplitudeError, Layout
+from app.vlp.layout_mapping import layout_from_mapping
 from app.vlp.simulation import true_amplitudes
 from app.vlp.solvers.gridless import GridlessSolver, terminal_solve
 from app.vlp.solvers.gridless.terminal_solve import weighted_square_variance
