@@ -104,11 +104,16 @@ def _t_nll(variances: FloatArray, nu: float, residuals: FloatArray, model: Float
     )
 
 
+def _log_scales(residuals: FloatArray, moments: tuple[float, float]) -> FloatArray:
+    """``log(s^2), log(b^2)`` of the moments, kept off zero (a search starts from them)."""
+    floor = 1e-12 * max(float(np.mean(residuals**2)), 1e-300)
+    return np.asarray(np.log(np.maximum(np.array(moments), [floor, 1e-12])), dtype=np.float64)
+
+
 def _gaussian_nll(residuals: FloatArray, model: FloatArray, start: tuple[float, float]) -> float:
     """The Gaussian's lowest negative log-likelihood (its scales by maximum likelihood,
     started from the moments ``start``): what the t must beat."""
-    floor = 1e-12 * max(float(np.mean(residuals**2)), 1e-300)
-    begin = np.log(np.maximum(np.array(start), [floor, 1e-12]))
+    begin = _log_scales(residuals, start)
     result = optimize.minimize(
         lambda p: _t_nll(np.exp(p), math.inf, residuals, model),
         begin,
@@ -123,10 +128,7 @@ def _student_t(
 ) -> tuple[float, float, float, float] | None:
     """The t's ``(s^2, b^2, nll, nu)`` of highest likelihood, started from the Gaussian's
     scales; None when the search fails."""
-    floor = 1e-12 * max(float(np.mean(residuals**2)), 1e-300)
-    start = np.array(
-        [math.log(max(gaussian[0], floor)), math.log(max(gaussian[1], 1e-12)), math.log(4.0)]
-    )
+    start = np.r_[_log_scales(residuals, gaussian), math.log(4.0)]
 
     def objective(p: FloatArray) -> float:
         nu = float(np.clip(math.exp(p[2]), *_TAIL_DOF_BOUNDS))

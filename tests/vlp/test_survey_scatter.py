@@ -29,6 +29,13 @@ def _survey(amplitudes: np.ndarray) -> Survey:
     return Survey(points, np.zeros(count, dtype=np.int64), amplitudes)
 
 
+def _level_room(room: Layout, tail_dof: float | None) -> Layout:
+    """``room`` surveyed with level receivers: a 1 % relative scatter on many degrees of
+    freedom, Gaussian (None) or Student-t."""
+    scatter = AmplitudeError(noise_sd=0.0, relative_sd=0.01, dof=500.0, tail_dof=tail_dof)
+    return replace(room, grid=replace(room.grid, receivers_level=True), amplitude_error=scatter)
+
+
 def test_heavy_tailed_errors_are_measured_as_the_student_t_scipy_fits() -> None:
     # One model value everywhere: the scale sqrt(s^2 + (b f)^2) is one number, and the fit is
     # then the maximum-likelihood t of scipy's own fitter (location held at 0).
@@ -79,12 +86,7 @@ def test_a_heavy_tailed_scatter_weighs_an_outlying_amplitude_down(paper_room: La
     height = np.array([paper_room.grid.receiver_height])
     errors = {}
     for tail_dof in (None, 2.5):
-        scatter = AmplitudeError(noise_sd=0.0, relative_sd=0.01, dof=500.0, tail_dof=tail_dof)
-        layout = replace(
-            paper_room,
-            grid=replace(paper_room.grid, receivers_level=True),
-            amplitude_error=scatter,
-        )
+        layout = _level_room(paper_room, tail_dof)
         solver = GridlessSolver(build_fingerprint(layout), "correlation")
         found = solver.solve_terminals(amplitudes, heights=height).positions
         errors[tail_dof] = float(np.linalg.norm(found - truth))
@@ -120,12 +122,7 @@ def test_with_a_t_scatter_the_requests_own_model_errors_are_not_widened_for_thei
     amplitudes = clean * (1.0 + 0.01 * np.random.default_rng(6).standard_normal(clean.shape))
     dofs = {}
     for tail_dof in (None, 3.0):
-        scatter = AmplitudeError(noise_sd=0.0, relative_sd=0.01, dof=500.0, tail_dof=tail_dof)
-        layout = replace(
-            paper_room,
-            grid=replace(paper_room.grid, receivers_level=True),
-            amplitude_error=scatter,
-        )
+        layout = _level_room(paper_room, tail_dof)
         used.clear()
         GridlessSolver(build_fingerprint(layout), "correlation").solve_terminals(amplitudes)
         dofs[tail_dof] = used[-1].dofs

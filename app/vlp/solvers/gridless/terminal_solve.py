@@ -220,6 +220,7 @@ def solve_terminals(
         fits = like_survey
         designs, _ = misfit_of(fits, led_errors=False)
         misfit = measured_misfit(measured, designs, [fit.residual for fit in fits])
+        reweighted = False
         if measured.tail_dof is not None:
             # The request's own model errors from t-reweighted residuals enter at their
             # estimates: F's widening for their few degrees of freedom assumes Gaussian
@@ -228,8 +229,6 @@ def solve_terminals(
             misfit = replace(
                 misfit, dofs=np.r_[misfit.dofs[0], np.full(misfit.dofs.size - 1, np.inf)]
             )
-        reweighted = False
-        if measured.tail_dof is not None:
             tail_factor = (measured.tail_dof + 3.0) / (measured.tail_dof + 1.0)
     elif reweighted:
         fits = refitted(
