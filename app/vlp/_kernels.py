@@ -5,14 +5,15 @@ This module is the bottom of the science package's kernels: it imports nothing f
 :mod:`app.vlp`, so every kernel module and every caller can import it without a circle.
 :func:`app.vlp.solvers.warm_up`, at the top, compiles every kernel before the first request.
 
-The compiled kernels (the ``*_compiled.py`` modules of :mod:`app.vlp.solvers` and
+The compiled kernels (the ``_compiled`` modules of :mod:`app.vlp.solvers.gridless` and
 :mod:`app.vlp._radii_compiled`) compute the same numbers as the NumPy code they stand in for
-(``tests/vlp/gridless/test_compiled.py`` compares them); they exist because a 16-LED problem
+(``tests/vlp/gridless/test_kernel_table.py`` compares them); they exist because a 16-LED problem
 is bound by the per-call overhead of NumPy, not by its arithmetic. The environment variable
 ``VLP_KERNELS`` picks the default (``compiled``, or ``reference``); :func:`use_kernels`
 switches within a process (the benchmarks time both side by side). Callers choose between a
-kernel and its reference only through :func:`dispatch` (the function to call) and
-:func:`compiled_only` (a kernel's constants or problem, None with the references).
+kernel and its reference only through :func:`dispatch` (the function to call; the solvers'
+kernels and references are listed in ``app/vlp/solvers/_kernel_table.py``) and
+:func:`compiled_only` (a kernel's constants, None with the references).
 
 Compiled functions are cached on disk, in a folder named after a digest of every source file
 of :mod:`app.vlp` (:func:`kernel_cache_dir`) inside ``NUMBA_CACHE_DIR``, else next to the

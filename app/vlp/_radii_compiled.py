@@ -1,10 +1,10 @@
 """Compiled 95 % radii: the Newton iteration of :func:`app.vlp.uncertainty.confidence_radii`.
 
-Its NumPy code is the reference and documents the method (the radial probability of a 2-D
-Gaussian error by Gauss-Legendre quadrature, Newton's method kept inside a bracket). Every
-answer asks for one radius per estimate (the service, for the answer; the solver's bound on
-the covariances only for estimates that may exceed it); in NumPy each Newton step is some
-twenty array calls over (K, nodes).
+Its NumPy reference, :func:`app.vlp.uncertainty.radial_roots_reference`, documents the
+method (the radial probability of a 2-D Gaussian error by Gauss-Legendre quadrature, Newton's
+method kept inside a bracket). Every answer asks for one radius per estimate (the service,
+for the answer; the solver's bound on the covariances only for estimates that may exceed it);
+in NumPy each Newton step is some twenty array calls over (K, nodes).
 Here each estimate iterates alone to the tolerance; an estimate the reference keeps
 iterating until the others converge moves by round-off only. ``2 Phi(x) - 1`` is
 ``erf(x / sqrt 2)``. Private: callers validate.

@@ -15,7 +15,6 @@ degrees of freedom behind those variances (:func:`predictive_covariances`).
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Literal, cast
 
@@ -39,7 +38,7 @@ __all__ = [
     "confidence_radius",
     "f2_widening",
     "fit_misfit",
-    "misfit_design",
+    "misfit_design_reference",
     "own_excess_widening",
     "predictive_covariances",
 ]
@@ -213,26 +212,56 @@ def confidence_radii(covariances: FloatArray, level: float = 0.95) -> FloatArray
     two_d = math.sqrt(-2.0 * math.log1p(-level))  # u when rho = 1 (Rayleigh)
     one_d = float(special.ndtri(0.5 + 0.5 * level))  # u when rho -> 0
     # P(0) = 0 < level and P(two_d) >= level (rho <= 1): a bracket for every estimate.
-    compiled = _compiled_radial_roots()
-    if compiled is not None:
-        reach = compiled(
-            np.ascontiguousarray(root_ratio[:, 0]),
-            float(level),
+    reach = _radial_roots(root_ratio[:, 0], float(level), one_d, two_d)
+    radii[solve] = np.sqrt(major) * reach
+    return radii
+
+
+def _radial_roots(root_ratio: FloatArray, level: float, one_d: float, two_d: float) -> FloatArray:
+    """:func:`radial_roots_kernel` or :func:`radial_roots_reference`, by the kernels in use.
+    The kernel engine is imported here, not at the top: numba loads with the first radius,
+    not with this module."""
+    from ._kernels import dispatch
+
+    return dispatch(radial_roots_kernel, radial_roots_reference)(root_ratio, level, one_d, two_d)
+
+
+def radial_roots_kernel(
+    root_ratio: FloatArray, level: float, one_d: float, two_d: float
+) -> FloatArray:
+    """:func:`radial_roots_reference` compiled (:mod:`app.vlp._radii_compiled`; each
+    estimate iterates alone to the tolerance)."""
+    from . import _radii_compiled
+
+    return cast(
+        "FloatArray",
+        _radii_compiled.radial_roots_kernel(
+            np.ascontiguousarray(root_ratio),
+            level,
             one_d,
             two_d,
             (_WEIGHTS, _SINES, _COSINES),
             _RADIUS_TOLERANCE,
             _MAX_RADIUS_STEPS,
-        )
-        radii[solve] = np.sqrt(major) * reach
-        return radii
-    low = np.zeros(major.size)
-    high = np.full(major.size, two_d * 1.01)
-    reach = one_d + (two_d - one_d) * root_ratio[:, 0]  # within a few % of the root
+        ),
+    )
+
+
+def radial_roots_reference(
+    root_ratio: FloatArray, level: float, one_d: float, two_d: float
+) -> FloatArray:
+    """``u`` per estimate with ``P(|e| <= u sqrt(l1)) = level`` for ``sqrt(l2 / l1)`` =
+    ``root_ratio`` (n,): Newton's method kept inside the bracket ``[0, two_d]``, from
+    between the one- and two-dimensional roots (``one_d``, ``two_d``), on the radial
+    probability by Gauss-Legendre quadrature."""
+    ratio = root_ratio[:, np.newaxis]
+    low = np.zeros(root_ratio.size)
+    high = np.full(root_ratio.size, two_d * 1.01)
+    reach = one_d + (two_d - one_d) * root_ratio  # within a few % of the root
     for _ in range(_MAX_RADIUS_STEPS):
         u = reach[:, np.newaxis]
         along = u * _SINES
-        across = u * _COSINES / root_ratio
+        across = u * _COSINES / ratio
         density = np.exp(-0.5 * along**2) / _ROOT_TWO_PI
         inner = 2.0 * special.ndtr(across) - 1.0
         excess = np.sum(_WEIGHTS * density * inner * u * _COSINES, axis=1) - level
@@ -242,7 +271,7 @@ def confidence_radii(covariances: FloatArray, level: float = 0.95) -> FloatArray
             * density
             * (
                 (1.0 - along**2) * inner
-                + u * (2.0 / _ROOT_TWO_PI) * np.exp(-0.5 * across**2) * _COSINES / root_ratio
+                + u * (2.0 / _ROOT_TWO_PI) * np.exp(-0.5 * across**2) * _COSINES / ratio
             ),
             axis=1,
         )
@@ -254,24 +283,7 @@ def confidence_radii(covariances: FloatArray, level: float = 0.95) -> FloatArray
             step = reach - excess / slope
         inside = (slope > 0.0) & (step > low) & (step < high)
         reach = np.where(inside, step, 0.5 * (low + high))
-    radii[solve] = np.sqrt(major) * reach
-    return radii
-
-
-def _compiled_radial_roots() -> Callable[..., FloatArray] | None:
-    """The compiled Newton iteration of :func:`confidence_radii` while the compiled kernels
-    are in use, else None (the NumPy code above is its reference). Imported here, not at the
-    top: numba loads with the first radius, not with this module."""
-    from ._kernels import compiled_only
-
-    return compiled_only(_load_radial_roots)
-
-
-def _load_radial_roots() -> Callable[..., FloatArray]:
-    """The compiled Newton iteration of :func:`confidence_radii` (loads numba)."""
-    from ._radii_compiled import radial_roots_kernel
-
-    return cast("Callable[..., FloatArray]", radial_roots_kernel)
+    return np.asarray(reach)
 
 
 def bounded_covariances(
@@ -389,7 +401,7 @@ class MisfitDesign:
         return np.asarray(self.inverse @ middle @ self.inverse)
 
 
-def misfit_design(
+def misfit_design_reference(
     jacobian: FloatArray, normal: FloatArray, error_columns: list[FloatArray]
 ) -> MisfitDesign:
     """The :class:`MisfitDesign` of one fit.

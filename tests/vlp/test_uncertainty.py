@@ -19,7 +19,7 @@ from app.vlp.uncertainty import (
     confidence_radius,
     f2_widening,
     fit_misfit,
-    misfit_design,
+    misfit_design_reference,
     own_excess_widening,
     predictive_covariances,
 )
@@ -146,7 +146,7 @@ def _linear_problem(seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 def test_misfit_design_leverages_equal_the_explicit_projections() -> None:
     jacobian, normal, errors = _linear_problem(1)
-    design = misfit_design(jacobian, normal, [errors])
+    design = misfit_design_reference(jacobian, normal, [errors])
     residual_map = np.eye(60) - jacobian @ np.linalg.inv(normal) @ jacobian.T  # Q
     assert np.allclose(design.noise_leverage, np.diag(residual_map @ residual_map.T))
     seen = residual_map @ errors
@@ -157,7 +157,7 @@ def test_misfit_design_leverages_equal_the_explicit_projections() -> None:
 def test_sandwich_covariance_matches_monte_carlo_of_the_estimator() -> None:
     # theta_hat - theta = A (J^T (n + F d) + prior pseudo-noise): its covariance is the sandwich.
     jacobian, normal, errors = _linear_problem(2)
-    design = misfit_design(jacobian, normal, [errors])
+    design = misfit_design_reference(jacobian, normal, [errors])
     inverse = np.linalg.inv(normal)
     rng = np.random.default_rng(3)
     draws = 40_000
@@ -180,7 +180,7 @@ def test_fitted_misfit_gives_honest_95_percent_regions(model_error: float) -> No
     # the first two parameters hold the truth about 95 % of the time; noise alone (b = 0)
     # stays about 95 % too, not inflated to near 100 %.
     jacobian, normal, errors = _linear_problem(4)
-    design = misfit_design(jacobian, normal, [errors])
+    design = misfit_design_reference(jacobian, normal, [errors])
     inverse = np.linalg.inv(normal)
     residual_map = np.eye(60) - jacobian @ inverse @ jacobian.T
     rng = np.random.default_rng(5)
@@ -207,7 +207,7 @@ def test_a_fit_whose_own_residual_the_pooled_variances_do_not_explain_is_widened
     # quantile of its Satterthwaite chi-square (computed here with explicit projections and
     # scipy.stats) is widened by its Birge ratio times the F widening of those dof.
     jacobian, normal, errors = _linear_problem(6)
-    design = misfit_design(jacobian, normal, [errors])
+    design = misfit_design_reference(jacobian, normal, [errors])
     misfit = Misfit(1.0, np.array([0.02]), np.array([math.inf, 40.0]))
     residual_map = np.eye(60) - jacobian @ np.linalg.inv(normal) @ jacobian.T  # Q
     seen = residual_map @ errors

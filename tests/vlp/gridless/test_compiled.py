@@ -38,7 +38,11 @@ from app.vlp.measurements import Model, measurement_from_amplitudes
 from app.vlp.presets import paper_layout
 from app.vlp.simulation import true_amplitudes
 from app.vlp.solvers import warm_up
-from app.vlp.solvers.gridless._compiled.channel import channel_constants, channel_rows, diffuse_rows
+from app.vlp.solvers.gridless._compiled.channel import (
+    channel_constants,
+    channel_rows_kernel,
+    diffuse_rows,
+)
 from app.vlp.solvers.gridless._compiled.fit import (
     FitModel,
     _sparse_symmetric_product,
@@ -65,7 +69,7 @@ from app.vlp.solvers.gridless.model import (
     gram_reference,
 )
 from app.vlp.solvers.gridless.report import profiles
-from app.vlp.solvers.gridless.search import compiled_search, grow, grow_compiled, refine
+from app.vlp.solvers.gridless.search import grow, grow_kernel, refine, search_compiles
 from app.vlp.solvers.gridless.solver import GridlessOptions, GridlessSolver
 from app.vlp.solvers.gridless.state import (
     FitState,
@@ -73,9 +77,9 @@ from app.vlp.solvers.gridless.state import (
 )
 from app.vlp.solvers.gridless.tolerances import _fit_joint
 from app.vlp.solvers.gridless.uncertainty import sandwich_covariances, shape_gradients
-from app.vlp.solvers.gridless.whitening import Whitening
+from app.vlp.solvers.gridless.whitening import Whitening, whitening_reference
 from app.vlp.typing import FloatArray
-from app.vlp.uncertainty import MisfitDesign, fit_misfit, misfit_design
+from app.vlp.uncertainty import MisfitDesign, fit_misfit, misfit_design_reference
 
 RTOL = 1e-10
 # The whole uncertainty chain (test_uncertainty_matches_reference): round-off amplified.
@@ -185,14 +189,14 @@ def test_channel_matches_reference(layout_name: str, table: str, n_points: int) 
     xs, ys = points[:, 0].copy(), points[:, 1].copy()
     zs = kernel.receiver_height + rng.uniform(-0.25, 0.25, n_points)
     channel, constants = channel_constants(kernel)  # type: ignore[misc]
-    flat = channel_rows(channel, constants, xs, ys, zs, True)
+    flat = channel_rows_kernel(channel, constants, xs, ys, zs, True)
     reference_flat = kernel.gradients_xy(xs, ys)
     for block in range(3):  # dg/dx, dg/dy, g
         assert_same(
             flat[(1, 2, 0)[block]].T, reference_flat[:, block * n_points : (block + 1) * n_points]
         )
     assert not flat[3].any()
-    free = channel_rows(channel, constants, xs, ys, zs, False)
+    free = channel_rows_kernel(channel, constants, xs, ys, zs, False)
     reference_free = kernel.gradients_xyz(xs, ys, zs)
     for block in range(4):  # dg/dx, dg/dy, dg/dz, g
         assert_same(
@@ -264,7 +268,7 @@ def test_objective_matches_reference(
         state = random_state(kernel, k, rng, on_plane)
         for white in (
             Whitening.identity(model, kernel.n_leds),
-            Whitening._from_state_reference(model, kernel, state, float(k)),
+            whitening_reference(model, kernel, state, float(k)),
         ):
             values = normal(rng, white.weights.shape[0])
             objective = Objective(kernel, white, values, free_weights, priors)
@@ -301,7 +305,7 @@ def test_aggregated_fit_matches_reference(model: Model, k: int, priors_name: str
         priors = dataclasses.replace(priors, height_mean=kernel.receiver_height)
     rng = np.random.default_rng(k)
     truth = random_state(kernel, k, rng, on_plane=True)
-    white = Whitening._from_state_reference(model, kernel, truth, float(k))
+    white = whitening_reference(model, kernel, truth, float(k))
     clean = Objective(kernel, white, np.zeros(white.weights.shape[0]), free_weights, priors)
     with use_kernels("reference"):
         # the whitened model of the truth, then back to measurement units
@@ -343,7 +347,7 @@ def test_fit_trials_cost_what_their_gram_costs_to_the_bit(model: Model) -> None:
         for priors_name in ("none", "gains_scale", "heights", "free_weights"):
             priors, free_weights = PRIORS[priors_name]
             state = random_state(kernel, k, rng, on_plane=not priors.fits_heights)
-            white = Whitening._from_state_reference(model, kernel, state, float(k))
+            white = whitening_reference(model, kernel, state, float(k))
             values = np.asarray(rng.standard_normal(white.weights.shape[0]), dtype=np.float64)
             objective = Objective(kernel, white, values, free_weights, priors)
             problem = objective.compiled_problem()
@@ -429,7 +433,7 @@ def test_joint_tolerance_model_matches_reference(
     for on_plane in (True, False, False):
         state = random_state(kernel, k, rng, on_plane)
         model = JointModel(kernel, state.heights, (0.1, 0.5), RoomTolerances(0.05, 3.0, tilt_sd))
-        assert model._compiled() is not None
+        assert model._constants is not None
         theta = model.pack(state)
         m = kernel.n_leds
         at = 3 * k + 1
@@ -501,7 +505,7 @@ def test_whitening_matches_reference(model: Model, layout_name: str, k: int) -> 
     kernel = make_kernel(layout_name, "flat", seed=k)
     rng = np.random.default_rng(k)
     state = random_state(kernel, k, rng, on_plane=k != 3)
-    want = Whitening._from_state_reference(model, kernel, state, float(k))
+    want = whitening_reference(model, kernel, state, float(k))
     got = Whitening.from_state(model, kernel, state, float(k))
     assert_same(got.weights, want.weights)
     if model == "power":
@@ -517,19 +521,6 @@ def test_whitening_matches_reference(model: Model, layout_name: str, k: int) -> 
     assert_same(metrics[0], metrics[1])
 
 
-@pytest.mark.parametrize("model", ["correlation", "power"])
-def test_whitened_data_matches_reference(model: Model) -> None:
-    kernel = make_kernel("paper", "none")
-    rng = np.random.default_rng(8)
-    state = random_state(kernel, 3, rng, on_plane=True)
-    white = Whitening._from_state_reference(model, kernel, state, 3.0)
-    values = normal(rng, white.weights.shape[0])
-    with use_kernels("reference"):
-        want = white.data(values)
-    fresh = Whitening(model, white.n_leds, white.rotation, white.weights)
-    assert_same(fresh.data(values), want)
-
-
 @pytest.mark.parametrize("layout_name", list(LAYOUTS))
 def test_insertion_scores_match_reference(layout_name: str) -> None:
     layout = LAYOUTS[layout_name]()
@@ -538,7 +529,7 @@ def test_insertion_scores_match_reference(layout_name: str) -> None:
     state = random_state(solver.room.kernel, 2, rng, on_plane=True)
     for white in (
         Whitening.identity("correlation", layout.n_leds),
-        Whitening._from_state_reference("correlation", solver.room.kernel, state, 2.0),
+        whitening_reference("correlation", solver.room.kernel, state, 2.0),
     ):
         residual = normal(rng, white.weights.shape[0])
         with use_kernels("reference"):
@@ -564,7 +555,7 @@ def _grown(
 @pytest.mark.parametrize("layout_name", list(LAYOUTS))
 @pytest.mark.parametrize("ceiling", ["none", "zero"])
 def test_growth_step_is_the_python_step(layout_name: str, ceiling: str) -> None:
-    """The compiled growth step (gridless.search.grow_compiled) gives the state of the
+    """The compiled growth step (gridless.search.grow_kernel) gives the state of the
     Python step (insertion, then a short LM) to the bit with the compiled kernels it calls,
     and that of the NumPy reference kernels to 1e-10: from K = 0 to 3 targets (random
     weights, gains, scale, heights), refined or only inserted, with points to avoid
@@ -595,7 +586,7 @@ def test_growth_step_is_the_python_step(layout_name: str, ceiling: str) -> None:
                 for avoid in (None, centres[rng.choice(len(centres), 2)], centres):
                     run = Run(values=values, priors=solver.room.growth_priors)
                     want_run = Run(values=values, priors=python.room.growth_priors)
-                    assert compiled_search(solver.room, run)
+                    assert search_compiles(solver.room, run)
                     got, got_used = _grown(solver, run, state, inner_iter, avoid)
                     want, want_used = _grown(python, want_run, state, inner_iter, avoid)
                     assert np.array_equal(got.positions, want.positions)
@@ -616,7 +607,7 @@ def test_growth_step_is_the_python_step(layout_name: str, ceiling: str) -> None:
         for avoid in (np.zeros((0, 2)), centres[rng.choice(len(centres), 2)]):
             run = Run(values=values, priors=solver.room.growth_priors)
             want_run = Run(values=values, priors=python.room.growth_priors)
-            got = grow_compiled(solver.room, run, FitState.empty(), 2, avoid, n_targets)
+            got = grow_kernel(solver.room, run, FitState.empty(), 2, avoid, n_targets)
             want = FitState.empty()
             while want.n_targets < n_targets:
                 first = want.n_targets == 0
@@ -630,7 +621,7 @@ def test_growth_step_is_the_python_step(layout_name: str, ceiling: str) -> None:
 
 @pytest.mark.parametrize("layout_name", list(LAYOUTS))
 def test_refinement_is_the_python_refinement(layout_name: str) -> None:
-    """The compiled whitened refinement (gridless.search.refine_compiled) gives the state of
+    """The compiled whitened refinement (gridless.search.refine_kernel) gives the state of
     the Python rounds (a plug-in whitening, then LM, until a round barely moves) to the bit
     with the compiled kernels, and that of the NumPy reference kernels to 1e-10 where the
     rounds use the same iterations: K = 1 to 3 targets, one to three rounds, with the
@@ -659,7 +650,7 @@ def test_refinement_is_the_python_refinement(layout_name: str) -> None:
                 for rounds in (1, 3):
                     run = Run(values=values, priors=solver.room.growth_priors)
                     want_run = Run(values=values, priors=python.room.growth_priors)
-                    assert compiled_search(solver.room, run)
+                    assert search_compiles(solver.room, run)
                     got = refine(solver.room, run, copy.deepcopy(state), 50, rounds)
                     want = refine(python.room, want_run, copy.deepcopy(state), 50, rounds)
                     assert np.array_equal(got.positions, want.positions)
@@ -833,26 +824,6 @@ def test_terminal_fit_matches_reference(
         assert np.hypot(*(got.position - truth)) < 0.2
 
 
-def test_confidence_radii_match_reference() -> None:
-    """The 95 % radii's compiled Newton iteration against the NumPy one: random covariances,
-    from circles to ellipses 10^6 times longer than wide, one to eleven per call."""
-    from app.vlp.uncertainty import _compiled_radial_roots, confidence_radii
-
-    assert _compiled_radial_roots() is not None  # so the compiled iteration runs
-    rng = np.random.default_rng(17)
-    for trial in range(60):
-        k = int(rng.integers(1, 12))
-        factors = rng.standard_normal((k, 2, 2)) * rng.uniform(1e-4, 1.0, (k, 1, 1))
-        covariances = factors @ factors.transpose(0, 2, 1)
-        if trial % 3 == 0:  # axis-aligned, eigenvalue ratios down to 1e-12
-            covariances[:, 0, 1] = covariances[:, 1, 0] = 0.0
-            covariances[:, 1, 1] *= 10.0 ** rng.uniform(-12.0, 0.0, k)
-        with use_kernels("reference"):
-            want = confidence_radii(covariances)
-        got = confidence_radii(covariances)
-        np.testing.assert_allclose(got, want, rtol=RTOL, atol=0.0)
-
-
 def test_power_solves_match_reference() -> None:
     """The power model's whole solve (no eigenbasis involved) lands on the same answer."""
     layout = paper_layout()
@@ -876,13 +847,9 @@ def test_power_solves_match_reference() -> None:
 
 def test_switch_selects_the_reference() -> None:
     assert kernel_mode() == "compiled"
-    kernel = make_kernel("paper", "none")
-    white = Whitening.identity("power", kernel.n_leds)
-    objective = Objective(kernel, white, np.ones(kernel.n_leds), False)
     with use_kernels("reference"):
         assert kernel_mode() == "reference"
-        assert objective.compiled_problem() is None
-    assert copy.copy(objective).compiled_problem() is not None
+    assert kernel_mode() == "compiled"
     with pytest.raises(ValueError, match="kernels"), use_kernels("fast"):  # type: ignore[arg-type]
         pass
 
@@ -915,18 +882,18 @@ def test_dispatch_point_follows_the_switch() -> None:
 _KERNELS_OF_A_SOLVE = """
     from app.vlp.solvers.gridless._compiled import fit
     from app.vlp.solvers.gridless._compiled.scores import correlation_scores_kernel
-    from app.vlp.solvers.gridless._compiled.channel import channel_rows
-    from app.vlp.solvers.gridless._compiled.uncertainty import uncertainty_kernel
+    from app.vlp.solvers.gridless._compiled.channel import channel_rows_kernel
+    from app.vlp.solvers.gridless._compiled.uncertainty import sandwich_covariances_kernel
     from app.vlp.solvers.gridless._compiled import tolerance as joint
     from app.vlp.solvers.gridless._compiled.terminal import terminal_fit_kernel
     from app.vlp._radii_compiled import radial_roots_kernel
-    from app.vlp.solvers.gridless._compiled.search import growth_kernel, refine_kernel
+    from app.vlp.solvers.gridless._compiled.search import grow_kernel, refine_kernel
 
     kernels = [fit.fit_kernel, fit.gram_kernel, fit.residual_kernel, fit.whitening_kernel,
-               fit.whiten_kernel, correlation_scores_kernel, channel_rows,
-               uncertainty_kernel, joint.joint_gains_kernel, joint.joint_residual_kernel,
+               fit.whitened_data_kernel, correlation_scores_kernel, channel_rows_kernel,
+               sandwich_covariances_kernel, joint.joint_gains_kernel, joint.joint_residual_kernel,
                joint.joint_fit_kernel, terminal_fit_kernel, radial_roots_kernel,
-               growth_kernel, refine_kernel]
+               grow_kernel, refine_kernel]
 """
 
 _NO_CACHE_SCRIPT = textwrap.dedent(
@@ -1052,7 +1019,7 @@ def test_the_disk_cache_is_keyed_by_every_science_source(tmp_path: Path) -> None
     science = Path(__file__).resolve().parents[3] / "app" / "vlp"
     folder = Path(importlib.import_module("numba.core.config").CACHE_DIR)
     assert folder == kernel_cache_dir(folder.parent, science)
-    cache_path = Path(channel_rows._cache._cache_path)  # type: ignore[attr-defined]
+    cache_path = Path(channel_rows_kernel._cache._cache_path)  # type: ignore[attr-defined]
     assert folder in cache_path.parents
 
 
@@ -1095,7 +1062,7 @@ def test_large_room_grams_match_the_reference() -> None:
     state = FitState(positions, np.ones(k), 1e-3, np.full(k, 0.85), np.zeros(k))
     for white in (
         Whitening.identity("power", kernel.n_leds),
-        Whitening._from_state_reference("power", kernel, state, float(k)),
+        whitening_reference("power", kernel, state, float(k)),
     ):
         values = normal(rng, kernel.n_leds)
         objective = Objective(kernel, white, values, False, Priors())
@@ -1145,7 +1112,7 @@ def test_uncertainty_matches_reference(
     for white, level in itertools.product(
         (
             Whitening.identity(model, kernel.n_leds),
-            Whitening._from_state_reference(model, kernel, state, float(k)),
+            whitening_reference(model, kernel, state, float(k)),
         ),
         (False, True),
     ):
@@ -1178,7 +1145,7 @@ def test_misfit_design_matches_reference() -> None:
         prior = np.diag(rng.uniform(0.0, 1.0, n_params)) * (n_data != 9)
         normal_matrix = jacobian.T @ jacobian + prior
         columns = [rng.standard_normal((n_data, width)) for width in widths]
-        want = misfit_design(jacobian, normal_matrix, columns)
+        want = misfit_design_reference(jacobian, normal_matrix, columns)
         got = misfit_design_kernel(
             jacobian, normal_matrix, np.hstack(columns), np.array(widths, dtype=np.int64)
         )

@@ -23,7 +23,11 @@ from app.vlp.solvers.gridless.fitting import (
     run_objective,
     whitening_of,
 )
-from app.vlp.solvers.gridless.local import TerminalWindows, _best_of_tiles
+from app.vlp.solvers.gridless.local import (
+    TerminalWindows,
+    best_of_tiles_kernel,
+    best_of_tiles_reference,
+)
 from app.vlp.solvers.gridless.solver import GridlessOptions, GridlessSolver
 from app.vlp.solvers.gridless.state import FitState
 from app.vlp.solvers.gridless.terminals import starting_cells
@@ -146,37 +150,18 @@ def test_compiled_tile_scores_are_the_numpy_ones(hall: Fingerprint) -> None:
     assert scan is not None
     rng = np.random.default_rng(21)
     n_tiles = int(scan.bounds.shape[0])
-    by_cell = scan.gains_by_cell
     for _ in range(20):
         tiles = rng.choice(n_tiles, size=int(rng.integers(1, 40)), replace=False)
         residual = rng.standard_normal(hall.n_leds) * rng.choice([1e-3, 1.0, 1e3])
         weight, norm_scale = float(rng.uniform(0.2, 3.0)), float(rng.uniform(0.5, 2.0))
-        expected = scan._best_of_tiles_reference(tiles, residual, weight, norm_scale)
-        got = _best_of_tiles(
-            tiles.astype(np.int64),
-            (scan.n_x, scan.n_y, scan.tile),
-            (by_cell.indptr, by_cell.indices, by_cell.data),
-            scan.inverse_scale,
-            residual,
-            scan.fourth_sums,
-            (2.0 * weight, weight**2, norm_scale),
-        )
-        assert got == expected
+        expected = best_of_tiles_reference(scan, tiles, residual, weight, norm_scale)
+        assert best_of_tiles_kernel(scan, tiles, residual, weight, norm_scale) == expected
     # All scores equal (a zero residual, equal norms): the lowest grid index wins.
     flat = replace(scan, fourth_sums=np.ones_like(scan.fourth_sums))
     tiles = np.array([5, 2, 9], dtype=np.int64)
-    expected = flat._best_of_tiles_reference(tiles, np.zeros(hall.n_leds), 1.0, 1.0)
+    expected = best_of_tiles_reference(flat, tiles, np.zeros(hall.n_leds), 1.0, 1.0)
     assert expected[0] == int(np.min(flat._cells(tiles)))
-    got = _best_of_tiles(
-        tiles,
-        (flat.n_x, flat.n_y, flat.tile),
-        (by_cell.indptr, by_cell.indices, by_cell.data),
-        flat.inverse_scale,
-        np.zeros(hall.n_leds),
-        flat.fourth_sums,
-        (2.0, 1.0, 1.0),
-    )
-    assert got == expected
+    assert best_of_tiles_kernel(flat, tiles, np.zeros(hall.n_leds), 1.0, 1.0) == expected
 
 
 def test_squared_gain_products_are_those_of_the_squared_copy(hall: Fingerprint) -> None:

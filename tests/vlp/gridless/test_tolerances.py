@@ -30,6 +30,7 @@ from app.vlp.solvers.gridless.tolerances import (
 from app.vlp.solvers.gridless.whitening import (
     Whitening,
     target_gains,
+    whitening_reference,
 )
 from app.vlp.uncertainty import confidence_radii
 
@@ -96,7 +97,7 @@ def test_without_tolerances_the_model_is_the_solver_s(reflecting_solver: Gridles
     # subspace is arbitrary, so compare what is not: the weights and the matrix that the
     # rotation and the diagonal entries' weights (1 / (8 sigma^2 lam)) describe.
     ours = model.whitening(theta, state.noise)
-    reference = Whitening._from_state_reference("correlation", kernel, state, 4.0)
+    reference = whitening_reference("correlation", kernel, state, 4.0)
     np.testing.assert_allclose(ours.weights, reference.weights, rtol=1e-10)
 
     def spectrum_matrix(white: Whitening) -> np.ndarray:

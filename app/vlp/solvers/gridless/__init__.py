@@ -11,6 +11,7 @@
 - :mod:`.report`: far optima, mirror twins, bounded radii, the sentences of ``fit.detail``;
 - :mod:`.terminal_solve`: terminals that send their own amplitudes, one fit each;
 - :mod:`.channel`: the continuous channel model (line of sight, interpolated reflections);
+- :mod:`.channel_rows`: its gains and gradients at points, compiled or in NumPy;
 - :mod:`.state`, :mod:`.whitening`, :mod:`.model`: the fit state and priors, the plug-in
   whitening, and the objective of the aggregated fit;
 - :mod:`.lm`: the Levenberg-Marquardt constants every fit uses, and the projected loop;
@@ -19,7 +20,9 @@
   its fit;
 - :mod:`.terminals`: each terminal's own fit;
 - :mod:`.whitening_memo`: whitenings already computed;
-- :mod:`._compiled`: the numba kernels, each standing in for NumPy code in the modules above.
+- :mod:`._compiled`: the numba kernels, each ``foo_kernel`` standing in for the
+  ``foo_reference`` of a module above (the kernel table, ``app/vlp/solvers/_kernel_table.py``,
+  lists them).
 """
 
 from .options import GridlessOptions

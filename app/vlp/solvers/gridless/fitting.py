@@ -14,7 +14,7 @@ import numpy as np
 
 from ..._kernels import dispatch
 from ...typing import FloatArray
-from ._compiled.scores import correlation_scores_kernel
+from ._compiled import scores as compiled_scores
 from .model import (
     Objective,
     _Slots,
@@ -254,25 +254,27 @@ def grid_correlations(
                 norms = room.squared_gains_dot(white.weights**2, fourth=True)
         return np.asarray(num), np.asarray(norms)
     if room.dense:
-        return dispatch(_dense_scores_kernel, _correlation_scores)(room, white, residual)
-    return _correlation_scores(room, white, residual)
+        return dispatch(correlation_scores_kernel, correlation_scores_reference)(
+            room, white, residual
+        )
+    return correlation_scores_reference(room, white, residual)
 
 
-def _dense_scores_kernel(
+def correlation_scores_kernel(
     room: PreparedRoom, white: Whitening, residual: FloatArray
 ) -> tuple[FloatArray, FloatArray]:
-    """:func:`_correlation_scores` of a dense room in one compiled call."""
-    num, norms = correlation_scores_kernel(
+    """:func:`correlation_scores_reference` of a dense room in one compiled call."""
+    num, norms = compiled_scores.correlation_scores_kernel(
         white.compiled(), np.ascontiguousarray(residual, dtype=np.float64), room.gains
     )
     return num, norms
 
 
-def _correlation_scores(
+def correlation_scores_reference(
     room: PreparedRoom, white: Whitening, residual: FloatArray
 ) -> tuple[FloatArray, FloatArray]:
     """:func:`grid_correlations` of the correlation model in NumPy (in a dense room, the
-    reference of :func:`._compiled.scores.correlation_scores_kernel`)."""
+    reference of :func:`correlation_scores_kernel`; in a large room the only form)."""
     n_leds = room.fingerprint.n_leds
     weighted = white.weights * residual
     half = np.zeros((n_leds, n_leds))

@@ -12,9 +12,10 @@ from typing import Any
 
 import numpy as np
 
-from ..._kernels import compiled_only
+from ..._kernels import dispatch
 from ...typing import FloatArray
-from ._compiled.channel import ChannelConstants, TableConstants, channel_constants
+from ._compiled import tolerance as compiled_tolerance
+from ._compiled.channel import channel_constants
 from ._compiled.tolerance import (
     GAINS,
     ORDER,
@@ -22,8 +23,6 @@ from ._compiled.tolerance import (
     SLOPE_Y,
     TILT_X,
     TILT_Y,
-    joint_gains_kernel,
-    joint_residual_kernel,
 )
 from .channel import ChannelKernel
 from .lm import (
@@ -115,10 +114,6 @@ class JointModel:
         """This model with the targets at ``heights`` (K,), metres."""
         return JointModel(self.kernel, heights, *self._settings)
 
-    def _compiled(self) -> tuple[ChannelConstants, TableConstants] | None:
-        """The channel's compiled constants when the compiled kernels are in use, else None."""
-        return compiled_only(lambda: self._constants)
-
     def size(self) -> int:
         return int(3 * self.n_targets + 2 * self.n_leds + self.n_tilts + 2)
 
@@ -170,90 +165,7 @@ class JointModel:
     def gains(self, theta: FloatArray) -> tuple[FloatArray, FloatArray, dict[str, FloatArray]]:
         """``g`` of every target, shape (M, K), the multipliers ``e^(v + 2 u)`` and the
         pieces the Jacobian needs."""
-        constants = self._compiled()
-        if constants is None:
-            return self._gains_reference(theta)
-        pieces, multipliers = joint_gains_kernel(
-            *constants,
-            np.ascontiguousarray(theta, dtype=np.float64),
-            self._heights,
-            self.n_tilts > 0,
-        )
-        return (
-            pieces[GAINS],
-            multipliers,
-            {
-                "slopes": np.stack((pieces[SLOPE_X], pieces[SLOPE_Y]), axis=2),
-                "amplitude_part": pieces[GAINS],
-                "order_part": pieces[ORDER],
-                "tilt_x": pieces[TILT_X],
-                "tilt_y": pieces[TILT_Y],
-            },
-        )
-
-    def _gains_reference(
-        self, theta: FloatArray
-    ) -> tuple[FloatArray, FloatArray, dict[str, FloatArray]]:
-        """:meth:`gains` in plain NumPy (the compiled kernel's reference)."""
-        positions, log_gains, log_scale, amps, order_changes, tilts, _ = self.split(theta)
-        kernel = self.kernel
-        k = self.n_targets
-        blocks = kernel.gradients_xyz(positions[:, 0], positions[:, 1], self.heights)
-        total = blocks[:, 3 * k : 4 * k]
-        offsets = kernel.led_xyz[:, np.newaxis, :] - np.column_stack((positions, self.heights))
-        drop = np.maximum(offsets[:, :, 2], 1e-9)
-        dist2 = np.einsum("mkc,mkc->mk", offsets, offsets)
-        orders = kernel.orders[:, np.newaxis]
-        in_view = drop * drop >= kernel.cos_fov2 * dist2
-        los = (
-            kernel.free_height_factor[:, np.newaxis]
-            * drop ** (orders + 1.0)
-            * dist2 ** (-(orders + 3.0) / 2.0)
-            * in_view
-        )
-        log_cos = 0.5 * np.log(drop * drop / dist2)
-        beam = (
-            (orders + 1.0 + order_changes[:, np.newaxis])
-            / (orders + 1.0)
-            * np.exp(order_changes[:, np.newaxis] * log_cos)
-        )
-        per_tilt = los / drop
-        tilt_gain = per_tilt * (offsets[:, :, 0] * tilts[0] + offsets[:, :, 1] * tilts[1])
-        amplitude = np.exp(amps)[:, np.newaxis]
-        gains = amplitude * (los * beam + tilt_gain + (total - los))
-        multipliers = np.exp(log_scale + 2.0 * log_gains)
-        # d g / d x: the line of sight's own slope changes with the beam (cos^delta) and the
-        # tilt term; both are small corrections of the nominal slope, kept exactly here.
-        dx_nominal = blocks[:, :k]
-        dy_nominal = blocks[:, k : 2 * k]
-        # d log cos(phi) / dx = (x_led - x) / d^2 (cos phi = D / d, d^2 grows with dx^2).
-        along = offsets[:, :, :2] / dist2[:, :, np.newaxis]
-        beam_slope = order_changes[:, np.newaxis, np.newaxis] * along  # d log beam / d(x, y)
-        # d los / dx = los (m + 3) (x_led - x) / d^2 (the kernel's formula; the nominal slope
-        # below already holds it once, and the diffuse part's).
-        los_slope = los[:, :, np.newaxis] * (orders + 3.0)[:, :, np.newaxis] * along
-        # tilt term t . v_xy * los / D: d/dx = -t_x los / D + (t . v_xy) dlos/dx / D.
-        tilt_dot = offsets[:, :, 0] * tilts[0] + offsets[:, :, 1] * tilts[1]
-        extra = np.empty((self.n_leds, k, 2))
-        for axis in range(2):
-            extra[:, :, axis] = (
-                los_slope[:, :, axis] * (beam - 1.0)
-                + los * beam * beam_slope[:, :, axis]
-                - tilts[axis] / drop * los
-                + tilt_dot / drop * los_slope[:, :, axis]
-            )
-        slopes = amplitude[:, :, np.newaxis] * (np.stack((dx_nominal, dy_nominal), axis=2) + extra)
-        pieces = {
-            "slopes": slopes,
-            "amplitude_part": gains,
-            "order_part": amplitude
-            * los
-            * beam
-            * (1.0 / (orders + 1.0 + order_changes[:, np.newaxis]) + log_cos),
-            "tilt_x": amplitude * per_tilt * offsets[:, :, 0],
-            "tilt_y": amplitude * per_tilt * offsets[:, :, 1],
-        }
-        return gains, multipliers, pieces
+        return dispatch(joint_gains_kernel, joint_gains_reference)(self, theta)
 
     def whitening(self, theta: FloatArray, noise: float) -> Whitening:
         """The plug-in whitening of this model's gains at ``theta`` with the noise
@@ -274,25 +186,13 @@ class JointModel:
     ) -> tuple[FloatArray, FloatArray]:
         """Residual ``[data - c mu; -theta_nuisance / sd]`` and ``J = d(c mu)/d theta``
         (with the priors' rows), shapes (L + n_prior,) and (L + n_prior, P)."""
-        constants = self._compiled()
-        if constants is None:
-            return self._residual_and_jacobian_reference(theta, white, data)
-        residual, jacobian = joint_residual_kernel(
-            *constants,
-            white.compiled(),
-            np.ascontiguousarray(data, dtype=np.float64),
-            np.ascontiguousarray(theta, dtype=np.float64),
-            self._heights,
-            self.n_tilts > 0,
-            self._prior_inverse_sd,
-        )
-        return residual, jacobian
+        return dispatch(joint_residual_kernel, joint_residual_reference)(self, theta, white, data)
 
     def compiled_model(self, white: Whitening, data: FloatArray) -> tuple[Any, ...] | None:
         """The fields of the compiled joint fit (:class:`._compiled.tolerance.JointFitModel`)
-        for ``white`` and ``data`` (whitened), or None when the compiled kernels are not in
-        use."""
-        constants = self._compiled()
+        for ``white`` and ``data`` (whitened), or None when the channel has no compiled
+        form."""
+        constants = self._constants
         if constants is None:
             return None
         return (
@@ -304,46 +204,159 @@ class JointModel:
             self._prior_inverse_sd,
         )
 
-    def _residual_and_jacobian_reference(
-        self, theta: FloatArray, white: Whitening, data: FloatArray
-    ) -> tuple[FloatArray, FloatArray]:
-        """:meth:`residual_and_jacobian` in plain NumPy (the compiled kernel's reference)."""
-        k = self.n_targets
-        gains, multipliers, pieces = self._gains_reference(theta)
-        rotation = white.rotation
-        assert rotation is not None
-        upper, lower, weights = white.upper, white.lower, white.weights
-        rotated = rotation.T @ gains  # (M', K)
-        atoms = rotated[upper] * rotated[lower]  # (L, K)
-        model = atoms @ multipliers + float(theta[-1]) * self.is_diag
-        residual = data - weights * model
 
-        def per_target(directions: FloatArray) -> FloatArray:
-            moved = rotation.T @ directions
-            block = moved[upper] * rotated[lower] + rotated[upper] * moved[lower]
-            return np.asarray(weights[:, np.newaxis] * block * multipliers[np.newaxis, :])
+def joint_gains_kernel(
+    model: JointModel, theta: FloatArray
+) -> tuple[FloatArray, FloatArray, dict[str, FloatArray]]:
+    """:func:`joint_gains_reference` in one compiled call (in NumPy for a channel without a
+    compiled form)."""
+    constants = model._constants
+    if constants is None:
+        return joint_gains_reference(model, theta)
+    pieces, multipliers = compiled_tolerance.joint_gains_kernel(
+        *constants,
+        np.ascontiguousarray(theta, dtype=np.float64),
+        model._heights,
+        model.n_tilts > 0,
+    )
+    return (
+        pieces[GAINS],
+        multipliers,
+        {
+            "slopes": np.stack((pieces[SLOPE_X], pieces[SLOPE_Y]), axis=2),
+            "amplitude_part": pieces[GAINS],
+            "order_part": pieces[ORDER],
+            "tilt_x": pieces[TILT_X],
+            "tilt_y": pieces[TILT_Y],
+        },
+    )
 
-        def per_led(directions: FloatArray) -> FloatArray:
-            # LED i's parameter moves row i of g: moved[a, k] = U[i, a] directions[i, k].
-            # Column i: w (U[i, up] Q[i, lo] + U[i, lo] Q[i, up]), Q = (D c) @ rotated^T.
-            q = (directions * multipliers) @ rotated.T  # (M, M')
-            block = rotation[:, upper] * q[:, lower] + rotation[:, lower] * q[:, upper]
-            return np.asarray((weights[np.newaxis, :] * block).T)
 
-        slopes = pieces["slopes"]
-        columns = [
-            per_target(slopes[:, :, 0]),
-            per_target(slopes[:, :, 1]),
-            2.0 * weights[:, np.newaxis] * atoms * multipliers[np.newaxis, :],
-            (weights * (atoms @ multipliers))[:, np.newaxis],
-            per_led(pieces["amplitude_part"]),
-            per_led(pieces["order_part"]),
-            *((per_target(pieces["tilt_x"]), per_target(pieces["tilt_y"])) if self.n_tilts else ()),
-            (weights * self.is_diag)[:, np.newaxis],
-        ]
-        jacobian = np.concatenate(columns, axis=1)
-        nuisance = theta[2 * k : 2 * k + self.prior_inverse_sd.shape[0]]
-        prior_residual = -nuisance * self.prior_inverse_sd
-        prior_rows = np.zeros((prior_residual.shape[0], theta.shape[0]))
-        prior_rows[:, 2 * k : 2 * k + prior_residual.shape[0]] = np.diag(self.prior_inverse_sd)
-        return np.concatenate((residual, prior_residual)), np.vstack((jacobian, prior_rows))
+def joint_gains_reference(
+    model: JointModel, theta: FloatArray
+) -> tuple[FloatArray, FloatArray, dict[str, FloatArray]]:
+    """:meth:`JointModel.gains` in plain NumPy."""
+    positions, log_gains, log_scale, amps, order_changes, tilts, _ = model.split(theta)
+    kernel = model.kernel
+    k = model.n_targets
+    blocks = kernel.gradients_xyz(positions[:, 0], positions[:, 1], model.heights)
+    total = blocks[:, 3 * k : 4 * k]
+    offsets = kernel.led_xyz[:, np.newaxis, :] - np.column_stack((positions, model.heights))
+    drop = np.maximum(offsets[:, :, 2], 1e-9)
+    dist2 = np.einsum("mkc,mkc->mk", offsets, offsets)
+    orders = kernel.orders[:, np.newaxis]
+    in_view = drop * drop >= kernel.cos_fov2 * dist2
+    los = (
+        kernel.free_height_factor[:, np.newaxis]
+        * drop ** (orders + 1.0)
+        * dist2 ** (-(orders + 3.0) / 2.0)
+        * in_view
+    )
+    log_cos = 0.5 * np.log(drop * drop / dist2)
+    beam = (
+        (orders + 1.0 + order_changes[:, np.newaxis])
+        / (orders + 1.0)
+        * np.exp(order_changes[:, np.newaxis] * log_cos)
+    )
+    per_tilt = los / drop
+    tilt_gain = per_tilt * (offsets[:, :, 0] * tilts[0] + offsets[:, :, 1] * tilts[1])
+    amplitude = np.exp(amps)[:, np.newaxis]
+    gains = amplitude * (los * beam + tilt_gain + (total - los))
+    multipliers = np.exp(log_scale + 2.0 * log_gains)
+    # d g / d x: the line of sight's own slope changes with the beam (cos^delta) and the
+    # tilt term; both are small corrections of the nominal slope, kept exactly here.
+    dx_nominal = blocks[:, :k]
+    dy_nominal = blocks[:, k : 2 * k]
+    # d log cos(phi) / dx = (x_led - x) / d^2 (cos phi = D / d, d^2 grows with dx^2).
+    along = offsets[:, :, :2] / dist2[:, :, np.newaxis]
+    beam_slope = order_changes[:, np.newaxis, np.newaxis] * along  # d log beam / d(x, y)
+    # d los / dx = los (m + 3) (x_led - x) / d^2 (the kernel's formula; the nominal slope
+    # below already holds it once, and the diffuse part's).
+    los_slope = los[:, :, np.newaxis] * (orders + 3.0)[:, :, np.newaxis] * along
+    # tilt term t . v_xy * los / D: d/dx = -t_x los / D + (t . v_xy) dlos/dx / D.
+    tilt_dot = offsets[:, :, 0] * tilts[0] + offsets[:, :, 1] * tilts[1]
+    extra = np.empty((model.n_leds, k, 2))
+    for axis in range(2):
+        extra[:, :, axis] = (
+            los_slope[:, :, axis] * (beam - 1.0)
+            + los * beam * beam_slope[:, :, axis]
+            - tilts[axis] / drop * los
+            + tilt_dot / drop * los_slope[:, :, axis]
+        )
+    slopes = amplitude[:, :, np.newaxis] * (np.stack((dx_nominal, dy_nominal), axis=2) + extra)
+    pieces = {
+        "slopes": slopes,
+        "amplitude_part": gains,
+        "order_part": amplitude
+        * los
+        * beam
+        * (1.0 / (orders + 1.0 + order_changes[:, np.newaxis]) + log_cos),
+        "tilt_x": amplitude * per_tilt * offsets[:, :, 0],
+        "tilt_y": amplitude * per_tilt * offsets[:, :, 1],
+    }
+    return gains, multipliers, pieces
+
+
+def joint_residual_kernel(
+    model: JointModel, theta: FloatArray, white: Whitening, data: FloatArray
+) -> tuple[FloatArray, FloatArray]:
+    """:func:`joint_residual_reference` in one compiled call (in NumPy for a channel without
+    a compiled form)."""
+    constants = model._constants
+    if constants is None:
+        return joint_residual_reference(model, theta, white, data)
+    residual, jacobian = compiled_tolerance.joint_residual_kernel(
+        *constants,
+        white.compiled(),
+        np.ascontiguousarray(data, dtype=np.float64),
+        np.ascontiguousarray(theta, dtype=np.float64),
+        model._heights,
+        model.n_tilts > 0,
+        model._prior_inverse_sd,
+    )
+    return residual, jacobian
+
+
+def joint_residual_reference(
+    model: JointModel, theta: FloatArray, white: Whitening, data: FloatArray
+) -> tuple[FloatArray, FloatArray]:
+    """:meth:`JointModel.residual_and_jacobian` in plain NumPy."""
+    k = model.n_targets
+    gains, multipliers, pieces = joint_gains_reference(model, theta)
+    rotation = white.rotation
+    assert rotation is not None
+    upper, lower, weights = white.upper, white.lower, white.weights
+    rotated = rotation.T @ gains  # (M', K)
+    atoms = rotated[upper] * rotated[lower]  # (L, K)
+    modelled = atoms @ multipliers + float(theta[-1]) * model.is_diag
+    residual = data - weights * modelled
+
+    def per_target(directions: FloatArray) -> FloatArray:
+        moved = rotation.T @ directions
+        block = moved[upper] * rotated[lower] + rotated[upper] * moved[lower]
+        return np.asarray(weights[:, np.newaxis] * block * multipliers[np.newaxis, :])
+
+    def per_led(directions: FloatArray) -> FloatArray:
+        # LED i's parameter moves row i of g: moved[a, k] = U[i, a] directions[i, k].
+        # Column i: w (U[i, up] Q[i, lo] + U[i, lo] Q[i, up]), Q = (D c) @ rotated^T.
+        q = (directions * multipliers) @ rotated.T  # (M, M')
+        block = rotation[:, upper] * q[:, lower] + rotation[:, lower] * q[:, upper]
+        return np.asarray((weights[np.newaxis, :] * block).T)
+
+    slopes = pieces["slopes"]
+    columns = [
+        per_target(slopes[:, :, 0]),
+        per_target(slopes[:, :, 1]),
+        2.0 * weights[:, np.newaxis] * atoms * multipliers[np.newaxis, :],
+        (weights * (atoms @ multipliers))[:, np.newaxis],
+        per_led(pieces["amplitude_part"]),
+        per_led(pieces["order_part"]),
+        *((per_target(pieces["tilt_x"]), per_target(pieces["tilt_y"])) if model.n_tilts else ()),
+        (weights * model.is_diag)[:, np.newaxis],
+    ]
+    jacobian = np.concatenate(columns, axis=1)
+    nuisance = theta[2 * k : 2 * k + model.prior_inverse_sd.shape[0]]
+    prior_residual = -nuisance * model.prior_inverse_sd
+    prior_rows = np.zeros((prior_residual.shape[0], theta.shape[0]))
+    prior_rows[:, 2 * k : 2 * k + prior_residual.shape[0]] = np.diag(model.prior_inverse_sd)
+    return np.concatenate((residual, prior_residual)), np.vstack((jacobian, prior_rows))

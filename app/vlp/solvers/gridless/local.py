@@ -17,11 +17,12 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sp
 
-from ..._kernels import compiled, dispatch
+from ..._kernels import dispatch
 from ...channel import channel_gains
 from ...fingerprints import Fingerprint
 from ...layout import Layout
 from ...typing import FloatArray, IntArray
+from ._compiled import scan as compiled_scan
 from .channel import ChannelKernel
 from .terminals import starting_cells
 
@@ -295,48 +296,12 @@ class PowerScan:
             tiles = order[done : done + batch]
             done += tiles.shape[0]
             batch *= 2
-            cell, score, norm = dispatch(self._best_of_tiles_kernel, self._best_of_tiles_reference)(
-                tiles, residual, weight, norm_scale
+            cell, score, norm = dispatch(best_of_tiles_kernel, best_of_tiles_reference)(
+                self, tiles, residual, weight, norm_scale
             )
             if score > best_score or (score == best_score and cell < best_cell):
                 best_cell, best_score, best_norm = cell, score, norm
         return best_cell, best_score, best_norm
-
-    def _best_of_tiles_kernel(
-        self, tiles: IntArray, residual: FloatArray, weight: float, norm_scale: float
-    ) -> tuple[int, float, float]:
-        """:meth:`_best_of_tiles_reference` in one compiled call (:func:`_best_of_tiles`)."""
-        by_cell = self.gains_by_cell
-        cell, score, norm = _best_of_tiles(
-            np.ascontiguousarray(tiles, dtype=np.int64),
-            (self.n_x, self.n_y, self.tile),
-            (by_cell.indptr, by_cell.indices, by_cell.data),
-            self.inverse_scale,
-            np.ascontiguousarray(residual, dtype=np.float64),
-            self.fourth_sums,
-            (2.0 * weight, weight**2, norm_scale),
-        )
-        return int(cell), float(score), float(norm)
-
-    def _best_of_tiles_reference(
-        self, tiles: IntArray, residual: FloatArray, weight: float, norm_scale: float
-    ) -> tuple[int, float, float]:
-        """``(j, score_j, norm_j)`` of the best grid point of ``tiles`` (ties to the lowest
-        j), in NumPy (the reference of :func:`_best_of_tiles`)."""
-        cells = self._cells(tiles)
-        rows = self.gains_by_cell[cells]
-        # The same operations as H^2 = (G / scale)^2 in the solver, row by row.
-        squared = sp.csr_array(
-            ((rows.data * self.inverse_scale) ** 2, rows.indices, rows.indptr),
-            shape=rows.shape,
-        )
-        num = np.asarray(squared @ residual)
-        norms = norm_scale * self.fourth_sums[cells]
-        scores = 2.0 * weight * num - weight**2 * norms
-        score = float(np.max(scores))
-        tied = scores == score
-        cell = int(np.min(cells[tied]))
-        return cell, score, float(norms[cells == cell][0])
 
     def _cells(self, tiles: IntArray) -> IntArray:
         """Grid indices of the cells of ``tiles`` (tile ``t = tx * n_ty + ty``)."""
@@ -350,42 +315,42 @@ class PowerScan:
         return np.asarray((xs * self.n_y + ys)[inside])
 
 
-@compiled
-def _best_of_tiles(
-    tiles: IntArray,
-    grid: tuple[int, int, int],
-    by_cell: tuple[IntArray, IntArray, FloatArray],
-    inverse_scale: float,
-    residual: FloatArray,
-    fourth_sums: FloatArray,
-    factors: tuple[float, float, float],
+def best_of_tiles_kernel(
+    scan: PowerScan, tiles: IntArray, residual: FloatArray, weight: float, norm_scale: float
 ) -> tuple[int, float, float]:
-    """:meth:`PowerScan._best_of_tiles_reference` without the sparse row copies: the same
-    operations per grid point (its row's entries in stored order, as ``csr_matvec`` sums
-    them), so the same numbers.
+    """:func:`best_of_tiles_reference` in one compiled call."""
+    by_cell = scan.gains_by_cell
+    cell, score, norm = compiled_scan.best_of_tiles_kernel(
+        np.ascontiguousarray(tiles, dtype=np.int64),
+        (scan.n_x, scan.n_y, scan.tile),
+        (by_cell.indptr, by_cell.indices, by_cell.data),
+        scan.inverse_scale,
+        np.ascontiguousarray(residual, dtype=np.float64),
+        scan.fourth_sums,
+        (2.0 * weight, weight**2, norm_scale),
+    )
+    return int(cell), float(score), float(norm)
 
-    ``grid``: ``(n_x, n_y, tile)``; ``by_cell``: ``G^T``'s ``(indptr, indices, data)``;
-    ``factors``: ``(2 w, w^2, norm_scale)``.
-    """
-    n_x, n_y, tile = grid
-    indptr, indices, data = by_cell
-    twice_weight, weight_sq, norm_scale = factors
-    n_ty = -(-n_y // tile)
-    best_cell, best_score, best_norm = -1, -math.inf, 0.0
-    for t in tiles:
-        tx, ty = divmod(t, n_ty)
-        for ix in range(tx * tile, min((tx + 1) * tile, n_x)):
-            for iy in range(ty * tile, min((ty + 1) * tile, n_y)):
-                cell = ix * n_y + iy
-                num = 0.0
-                for at in range(indptr[cell], indptr[cell + 1]):
-                    scaled = data[at] * inverse_scale
-                    num += scaled * scaled * residual[indices[at]]
-                norm = norm_scale * fourth_sums[cell]
-                score = twice_weight * num - weight_sq * norm
-                if score > best_score or (score == best_score and cell < best_cell):
-                    best_cell, best_score, best_norm = cell, score, norm
-    return best_cell, best_score, best_norm
+
+def best_of_tiles_reference(
+    scan: PowerScan, tiles: IntArray, residual: FloatArray, weight: float, norm_scale: float
+) -> tuple[int, float, float]:
+    """``(j, score_j, norm_j)`` of the best grid point of ``tiles`` of ``scan`` (ties to the
+    lowest j), in NumPy."""
+    cells = scan._cells(tiles)
+    rows = scan.gains_by_cell[cells]
+    # The same operations as H^2 = (G / scale)^2 in the solver, row by row.
+    squared = sp.csr_array(
+        ((rows.data * scan.inverse_scale) ** 2, rows.indices, rows.indptr),
+        shape=rows.shape,
+    )
+    num = np.asarray(squared @ residual)
+    norms = norm_scale * scan.fourth_sums[cells]
+    scores = 2.0 * weight * num - weight**2 * norms
+    score = float(np.max(scores))
+    tied = scores == score
+    cell = int(np.min(cells[tied]))
+    return cell, score, float(norms[cells == cell][0])
 
 
 def squared_gains_dot(
@@ -396,18 +361,18 @@ def squared_gains_dot(
     large room, without a squared copy of G of their own (the same numbers as
     ``((G / scale)^2)^T @ v``: each point's LEDs summed in increasing order)."""
     return np.asarray(
-        dispatch(_squared_gains_dot_kernel, _squared_gains_dot_reference)(
+        dispatch(squared_gains_dot_kernel, squared_gains_dot_reference)(
             gains_by_cell, inverse_scale, vector, fourth
         )
     )
 
 
-def _squared_gains_dot_kernel(
+def squared_gains_dot_kernel(
     gains_by_cell: sp.csr_array, inverse_scale: float, vector: FloatArray, fourth: bool
 ) -> FloatArray:
-    """:func:`_squared_gains_dot_reference` in one compiled call (:func:`_squared_rows_dot`)."""
+    """:func:`squared_gains_dot_reference` in one compiled call."""
     return np.asarray(
-        _squared_rows_dot(
+        compiled_scan.squared_gains_dot_kernel(
             (gains_by_cell.indptr, gains_by_cell.indices, gains_by_cell.data),
             inverse_scale,
             np.ascontiguousarray(vector, dtype=np.float64),
@@ -416,7 +381,7 @@ def _squared_gains_dot_kernel(
     )
 
 
-def _squared_gains_dot_reference(
+def squared_gains_dot_reference(
     gains_by_cell: sp.csr_array, inverse_scale: float, vector: FloatArray, fourth: bool
 ) -> FloatArray:
     """:func:`squared_gains_dot` in NumPy (a transient squared copy of ``G^T``)."""
@@ -427,27 +392,3 @@ def _squared_gains_dot_reference(
         (squared, gains_by_cell.indices, gains_by_cell.indptr), shape=gains_by_cell.shape
     )
     return np.asarray(rows @ np.asarray(vector, dtype=np.float64))
-
-
-@compiled
-def _squared_rows_dot(
-    by_cell: tuple[IntArray, IntArray, FloatArray],
-    inverse_scale: float,
-    vector: FloatArray,
-    fourth: bool,
-) -> FloatArray:
-    """:func:`_squared_gains_dot_reference` without the squared copy: each row's entries in
-    stored order, as ``csr_matvec`` sums them (the same numbers)."""
-    indptr, indices, data = by_cell
-    n_cells = indptr.shape[0] - 1
-    out = np.zeros(n_cells)
-    for cell in range(n_cells):
-        total = 0.0
-        for at in range(indptr[cell], indptr[cell + 1]):
-            scaled = data[at] * inverse_scale
-            squared = scaled * scaled
-            if fourth:
-                squared = squared * squared
-            total += squared * vector[indices[at]]
-        out[cell] = total
-    return out

@@ -27,14 +27,10 @@ from typing import Any
 
 import numpy as np
 
-from ..._kernels import compiled_only
+from ..._kernels import dispatch
 from ...typing import FloatArray
+from ._compiled import fit as compiled_fit
 from ._compiled.channel import channel_constants
-from ._compiled.fit import (
-    fit_kernel,
-    gram_kernel,
-    residual_kernel,
-)
 from .channel import ChannelKernel
 from .lm import MAX_REJECTIONS, STEP_TOL_M, LMSettings, levenberg_marquardt
 from .state import MAX_LOG_GAIN, MAX_LOG_SCALE, FitState, Priors
@@ -115,11 +111,8 @@ class Objective:
         self._problem: tuple[Any, ...] | bool | None = False
 
     def compiled_problem(self) -> tuple[Any, ...] | None:
-        """``(channel, table, white, data)`` for the compiled kernels; None when the
-        reference kernels are in use (or the channel has no compiled form)."""
-        return compiled_only(self._compiled_problem)
-
-    def _compiled_problem(self) -> tuple[Any, ...] | None:
+        """``(channel, table, white, data)`` for the compiled kernels (built once); None
+        when the channel has no compiled form."""
         if self._problem is False:
             constants = channel_constants(self.kernel)
             self._problem = (
@@ -267,37 +260,7 @@ class Objective:
         fixed : FitState
             Supplies what ``theta`` does not hold (fixed weights, gains, heights).
         """
-        problem = self.compiled_problem()
-        if problem is not None and fixed.n_targets > 0:
-            return np.asarray(
-                residual_kernel(
-                    *problem,
-                    np.ascontiguousarray(theta, dtype=np.float64),
-                    *self.compiled_state(fixed),
-                )
-            )
-        return self.residual_reference(theta, fixed)
-
-    def residual_reference(self, theta: FloatArray, fixed: FitState) -> FloatArray:
-        """:meth:`residual` in plain NumPy (the compiled kernel's reference)."""
-        white = self.white
-        slots = self.slots(fixed.n_targets)
-        k = slots.n_targets
-        xs, ys = theta[:k], theta[k : 2 * k]
-        if slots.n_axes == 3:
-            gains = self.kernel.gains_xyz(xs, ys, theta[2 * k : 3 * k])
-        elif self._state_facts(fixed)[0]:
-            gains = self.kernel.gains_xy(xs, ys)
-        else:
-            gains = self.kernel.gains_xyz(xs, ys, fixed.heights)
-        gains = white.rotate(gains)
-        atoms = gains[white.upper] * gains[white.lower]
-        multipliers = self._multipliers(theta, slots, fixed)
-        model = atoms.sum(axis=1) if multipliers is None else atoms @ multipliers
-        model *= white.weights
-        residual = self.data - model
-        residual -= theta[-1] * white.weighted_diag
-        return np.concatenate((residual, self.prior_residuals(theta, slots)))
+        return dispatch(residual_kernel, residual_reference)(self, theta, fixed)
 
     def augmented(self, theta: FloatArray, fixed: FitState) -> FloatArray:
         """``[J | r]^T`` of shape (len(theta) + 1, L + n_prior): the Jacobian of the model
@@ -382,6 +345,44 @@ class Objective:
         return float(full @ full), full[: self.data.shape[0]]
 
 
+def residual_kernel(objective: Objective, theta: FloatArray, fixed: FitState) -> FloatArray:
+    """:func:`residual_reference` in one compiled call (in NumPy without targets, or for a
+    channel without a compiled form)."""
+    problem = objective.compiled_problem()
+    if problem is None or fixed.n_targets == 0:
+        return residual_reference(objective, theta, fixed)
+    return np.asarray(
+        compiled_fit.residual_kernel(
+            *problem,
+            np.ascontiguousarray(theta, dtype=np.float64),
+            *objective.compiled_state(fixed),
+        )
+    )
+
+
+def residual_reference(objective: Objective, theta: FloatArray, fixed: FitState) -> FloatArray:
+    """:meth:`Objective.residual` in plain NumPy."""
+    white = objective.white
+    slots = objective.slots(fixed.n_targets)
+    k = slots.n_targets
+    xs, ys = theta[:k], theta[k : 2 * k]
+    kernel = objective.kernel
+    if slots.n_axes == 3:
+        gains = kernel.gains_xyz(xs, ys, theta[2 * k : 3 * k])
+    elif objective._state_facts(fixed)[0]:
+        gains = kernel.gains_xy(xs, ys)
+    else:
+        gains = kernel.gains_xyz(xs, ys, fixed.heights)
+    gains = white.rotate(gains)
+    atoms = gains[white.upper] * gains[white.lower]
+    multipliers = objective._multipliers(theta, slots, fixed)
+    model = atoms.sum(axis=1) if multipliers is None else atoms @ multipliers
+    model *= white.weights
+    residual = objective.data - model
+    residual -= theta[-1] * white.weighted_diag
+    return np.concatenate((residual, objective.prior_residuals(theta, slots)))
+
+
 def fit_objective(
     objective: Objective,
     state: FitState,
@@ -418,21 +419,51 @@ def fit_objective(
         2 * n_targets,
         True,
     )
+    theta, cost, used = dispatch(fit_kernel, fit_reference)(
+        objective, state, theta, lower, upper, settings
+    )
+    return objective.unpack(theta, state), cost, used
+
+
+def fit_kernel(
+    objective: Objective,
+    state: FitState,
+    theta: FloatArray,
+    lower: FloatArray,
+    upper: FloatArray,
+    settings: LMSettings,
+) -> tuple[FloatArray, float, int]:
+    """:func:`fit_reference` as one compiled LM run (in NumPy without targets, or for a
+    channel without a compiled form)."""
     problem = objective.compiled_problem()
-    if problem is not None and n_targets > 0:
-        theta, cost, used = fit_kernel(
-            (*problem, *objective.compiled_state(state)), theta, lower, upper, tuple(settings)
-        )
-    else:
-        theta, cost, used, _ = levenberg_marquardt(
-            lambda params: _gram_point(objective, params, state),
-            lambda _params, point: point,
-            theta,
-            lower,
-            upper,
-            settings,
-        )
-    return objective.unpack(theta, state), float(cost), int(used)
+    if problem is None or state.n_targets == 0:
+        return fit_reference(objective, state, theta, lower, upper, settings)
+    fitted, cost, used = compiled_fit.fit_kernel(
+        (*problem, *objective.compiled_state(state)), theta, lower, upper, tuple(settings)
+    )
+    return fitted, float(cost), int(used)
+
+
+def fit_reference(
+    objective: Objective,
+    state: FitState,
+    theta: FloatArray,
+    lower: FloatArray,
+    upper: FloatArray,
+    settings: LMSettings,
+) -> tuple[FloatArray, float, int]:
+    """Projected LM on ``objective`` from ``theta`` (what it does not hold from ``state``)
+    within ``[lower, upper]``, in NumPy: the fitted theta, its cost and the iterations
+    used."""
+    fitted, cost, used, _ = levenberg_marquardt(
+        lambda params: _gram_point(objective, params, state),
+        lambda _params, point: point,
+        theta,
+        lower,
+        upper,
+        settings,
+    )
+    return fitted, float(cost), int(used)
 
 
 def _gram_point(
@@ -448,21 +479,29 @@ def gram(
     objective: Objective, theta: FloatArray, fixed: FitState
 ) -> tuple[FloatArray, FloatArray, float]:
     """``J^T J``, ``J^T r`` and ``r^T r`` at ``theta`` (one BLAS call instead of three)."""
+    return dispatch(gram_kernel, gram_reference)(objective, theta, fixed)
+
+
+def gram_kernel(
+    objective: Objective, theta: FloatArray, fixed: FitState
+) -> tuple[FloatArray, FloatArray, float]:
+    """:func:`gram_reference` in one compiled call (in NumPy without targets, or for a
+    channel without a compiled form)."""
     problem = objective.compiled_problem()
-    if problem is not None and fixed.n_targets > 0:
-        normal, gradient, cost = gram_kernel(
-            *problem,
-            np.ascontiguousarray(theta, dtype=np.float64),
-            *objective.compiled_state(fixed),
-        )
-        return normal, gradient, float(cost)
-    return gram_reference(objective, theta, fixed)
+    if problem is None or fixed.n_targets == 0:
+        return gram_reference(objective, theta, fixed)
+    normal, gradient, cost = compiled_fit.gram_kernel(
+        *problem,
+        np.ascontiguousarray(theta, dtype=np.float64),
+        *objective.compiled_state(fixed),
+    )
+    return normal, gradient, float(cost)
 
 
 def gram_reference(
     objective: Objective, theta: FloatArray, fixed: FitState
 ) -> tuple[FloatArray, FloatArray, float]:
-    """:func:`gram` in plain NumPy (the compiled kernel's reference)."""
+    """:func:`gram` in plain NumPy."""
     augmented = objective.augmented(theta, fixed)
     product = augmented @ augmented.T
     n_params = theta.shape[0]

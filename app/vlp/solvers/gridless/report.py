@@ -23,7 +23,7 @@ from ...uncertainty import (
     FitQuality,
     bounded_covariances,
 )
-from ._compiled.scores import correlation_profiles_kernel
+from ._compiled import scores as compiled_scores
 from .fitting import (
     Run,
     grid_correlations,
@@ -167,8 +167,8 @@ def profiles(room: PreparedRoom, run: Run, state: FitState) -> tuple[FloatArray,
     itself ``||r_k||^2 - ||r||^2``. In the rotated basis (``rho = U^T g``) every inner
     product of atoms is a quadratic form in ``rho_j o rho_k`` with the squared weights,
     so all K profiles cost one pass over the grid each, without forming any ``r_k``
-    (compiled: :func:`._compiled.scores.correlation_profiles_kernel`, this NumPy code its
-    reference). Kept per run, state values and priors.
+    (:func:`correlation_products_kernel`, or its NumPy reference
+    :func:`correlation_products_reference`). Kept per run, state values and priors.
     """
     key = (state_key(state), run.priors)
     known = run.profiles.get(key)
@@ -196,22 +196,22 @@ def computed_profiles(
         own_norm = squared @ target_sq**2
     else:
         without, norms, own_num, own_norm = dispatch(
-            _correlation_products_kernel, _correlation_products
+            correlation_products_kernel, correlation_products_reference
         )(white, residual, room.gains, targets, multipliers)
     explained = np.maximum(without, 0.0) ** 2 / np.maximum(norms, 1e-300)
     own = 2.0 * multipliers * own_num + multipliers**2 * own_norm
     return explained, np.maximum(explained.max(axis=1), own)
 
 
-def _correlation_products_kernel(
+def correlation_products_kernel(
     white: Whitening,
     residual: FloatArray,
     gains: FloatArray,
     targets: FloatArray,
     multipliers: FloatArray,
 ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
-    """:func:`_correlation_products` in one compiled call."""
-    without, norms, own_num, own_norm = correlation_profiles_kernel(
+    """:func:`correlation_products_reference` in one compiled call."""
+    without, norms, own_num, own_norm = compiled_scores.correlation_products_kernel(
         white.compiled(),
         np.ascontiguousarray(residual, dtype=np.float64),
         gains,
@@ -221,7 +221,7 @@ def _correlation_products_kernel(
     return without, norms, own_num, own_norm
 
 
-def _correlation_products(
+def correlation_products_reference(
     white: Whitening,
     residual: FloatArray,
     gains: FloatArray,
@@ -229,8 +229,7 @@ def _correlation_products(
     multipliers: FloatArray,
 ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
     """The inner products behind the correlation model's profiles, shapes (K, N), (N,), (K,)
-    and (K,), in NumPy (the reference of
-    :func:`._compiled.scores.correlation_profiles_kernel`)."""
+    and (K,), in NumPy."""
     weights = white.weights
     n_leds = gains.shape[0]
     # Symmetric M x M forms of the whitened entries (each off-diagonal entry split

@@ -200,7 +200,7 @@ class PreparedRoom:
             else None
         )
         # The search's growth and refinement steps as one compiled call each
-        # (:func:`.search.grow_compiled`, :func:`.search.refine_compiled`): their constants
+        # (:func:`.search.grow_kernel`, :func:`.search.refine_kernel`): their constants
         # (the channel's, the search priors' tuples, the entries' diagonal indicator), and
         # their bounds per noise ceiling and K.
         self.search_constants: tuple[Any, ...] | None = None

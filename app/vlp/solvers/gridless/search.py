@@ -1,6 +1,6 @@
 """The nominal search of the default solver (docs/explanation/solver.md, "Search",
 "Escapes", "Counting", "Prescale"): ADCG insertions and refinements (one compiled call each
-where :func:`compiled_search` says so), the escapes from local minima (relocation, restarts,
+where :func:`search_compiles` says so), the escapes from local minima (relocation, restarts,
 far relocation of ambiguous estimates), counting by energy and by the rank of ``R``, and the
 guessed common scale.
 """
@@ -12,11 +12,11 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from ..._kernels import compiled_only
+from ..._kernels import dispatch
 from ...ambiguity import reaching_beyond
 from ...measurements import Measurement, noise_atom, summed_terminals
 from ...typing import FloatArray, IntArray
-from ._compiled.search import growth_kernel, refine_kernel
+from ._compiled import search as compiled_search
 from .fitting import (
     Run,
     atom_energy,
@@ -115,13 +115,86 @@ def scores_of(room: PreparedRoom, run: Run, state: FitState, white: Whitening) -
 
 
 def grow(
-    room: PreparedRoom, run: Run, state: FitState, inner_iter: int, avoid: FloatArray | None = None
+    room: PreparedRoom,
+    run: Run,
+    state: FitState,
+    inner_iter: int,
+    avoid: FloatArray | None = None,
+    n_targets: int | None = None,
 ) -> FitState:
     """One ADCG step: insert at the best grid point, then refine everything (briefly,
     in the metric of the state before the insertion), with ``grow_without_noise`` the
-    noise coefficient held at 0."""
-    if compiled_search(room, run):
-        return grow_compiled(room, run, state, inner_iter, avoid)
+    noise coefficient held at 0; with ``n_targets``, the steps up to that many targets (the
+    first one away from ``avoid``)."""
+    return dispatch(grow_kernel, grow_reference)(room, run, state, inner_iter, avoid, n_targets)
+
+
+def search_compiles(room: PreparedRoom, run: Run) -> bool:
+    """Whether :func:`grow_kernel` and :func:`refine_kernel` run as one compiled call each
+    (:mod:`.gridless._compiled.search`): the correlation model in a dense room, searching
+    (positions and noise only), fixed weights."""
+    return room.search_constants is not None and run.priors is room.growth_priors
+
+
+def grow_kernel(
+    room: PreparedRoom,
+    run: Run,
+    state: FitState,
+    inner_iter: int,
+    avoid: FloatArray | None,
+    n_targets: int | None = None,
+) -> FitState:
+    """:func:`grow_reference` in one compiled call where :func:`search_compiles` (the same
+    kernels, in the same order: the same state to the bit). The states' whitenings are
+    computed there, not kept: a growth step's state is never whitened again (the next step
+    adds a target), but for the last state of a count, which the polish whitens once
+    more."""
+    if not search_compiles(room, run):
+        return grow_reference(room, run, state, inner_iter, avoid, n_targets)
+    k = state.n_targets
+    ceiling = 0.0 if room.grow_without_noise else math.inf
+    problem = (
+        *search_problem(room, run),
+        search_state(state),
+        room.gains,
+        room.centres,
+        _NO_POINTS if avoid is None else np.ascontiguousarray(avoid, dtype=np.float64),
+        room.avoid_radius,
+    )
+    # One step, or the steps up to n_targets: the bounds say how many targets to reach.
+    target_count = k + 1 if n_targets is None else n_targets
+    positions, noise, total, used = compiled_search.grow_kernel(
+        *problem, *room.search_objective(ceiling).bounds(target_count), inner_iter
+    )
+    added = positions.shape[0] - k
+    grown = FitState(
+        positions,
+        np.concatenate((state.weights, np.ones(added))),
+        float(noise),
+        np.concatenate((state.heights, np.full(added, room.priors.height_mean))),
+        np.concatenate((state.log_gains, np.zeros(added))),
+        state.log_scale,
+    )
+    if inner_iter > 0:
+        run.iterations += int(total)
+        grown.converged = used < inner_iter
+    return grown
+
+
+def grow_reference(
+    room: PreparedRoom,
+    run: Run,
+    state: FitState,
+    inner_iter: int,
+    avoid: FloatArray | None,
+    n_targets: int | None = None,
+) -> FitState:
+    """:func:`grow` step by step in Python."""
+    if n_targets is not None:
+        while state.n_targets < n_targets:
+            first = state.n_targets == 0
+            state = grow_reference(room, run, state, inner_iter, avoid if first else None)
+        return state
     white = whitening_of(room, state)
     grown = insert_target(room, run, state, white, avoid)
     if inner_iter > 0:
@@ -140,81 +213,21 @@ def grow(
     return grown
 
 
-def compiled_search(room: PreparedRoom, run: Run) -> bool:
-    """Whether :func:`grow` and :func:`refine` run as one compiled call each
-    (:mod:`.gridless._compiled.search`): the correlation model in a dense room, searching
-    (positions and noise only), fixed weights, the compiled kernels in use."""
-    return (
-        room.search_constants is not None
-        and run.priors is room.growth_priors
-        and compiled_only(lambda: room.search_constants) is not None
-    )
-
-
-def grow_compiled(
-    room: PreparedRoom,
-    run: Run,
-    state: FitState,
-    inner_iter: int,
-    avoid: FloatArray | None,
-    n_targets: int | None = None,
-) -> FitState:
-    """:func:`grow` in one compiled call, or with ``n_targets`` the steps up to that
-    many targets (the first one away from ``avoid``), as :func:`fit_known` takes them
-    (the same kernels, in the same order: the same state to the bit). The states'
-    whitenings are computed there, not kept: a growth step's state is never whitened
-    again (the next step adds a target), but for the last state of a count, which the
-    polish whitens once more."""
-    k = state.n_targets
-    ceiling = 0.0 if room.grow_without_noise else math.inf
-    problem = (
-        *search_problem(room, run),
-        search_state(state),
-        room.gains,
-        room.centres,
-        _NO_POINTS if avoid is None else np.ascontiguousarray(avoid, dtype=np.float64),
-        room.avoid_radius,
-    )
-    # One step, or the steps up to n_targets: the bounds say how many targets to reach.
-    target_count = k + 1 if n_targets is None else n_targets
-    positions, noise, total, used = growth_kernel(
-        *problem, *room.search_objective(ceiling).bounds(target_count), inner_iter
-    )
-    added = positions.shape[0] - k
-    grown = FitState(
-        positions,
-        np.concatenate((state.weights, np.ones(added))),
-        float(noise),
-        np.concatenate((state.heights, np.full(added, room.priors.height_mean))),
-        np.concatenate((state.log_gains, np.zeros(added))),
-        state.log_scale,
-    )
-    if inner_iter > 0:
-        run.iterations += int(total)
-        grown.converged = used < inner_iter
-    return grown
-
-
 def refine(room: PreparedRoom, run: Run, state: FitState, max_iter: int, rounds: int) -> FitState:
     """LM rounds, each whitened by the covariance plugged in from the previous one."""
-    if state.n_targets > 0 and compiled_search(room, run):
-        return refine_compiled(room, run, state, max_iter, rounds)
-    for round_index in range(max(rounds, 1)):
-        before = run.iterations
-        state, _ = lm_fit(room, run, whitening_of(room, state), state, max_iter)
-        if round_index > 0 and run.iterations - before <= 2:
-            break  # the re-whitened metric no longer moves the fit
-    return state
+    return dispatch(refine_kernel, refine_reference)(room, run, state, max_iter, rounds)
 
 
-def refine_compiled(
+def refine_kernel(
     room: PreparedRoom, run: Run, state: FitState, max_iter: int, rounds: int
 ) -> FitState:
-    """:func:`refine` in one compiled call (the same kernels, in the same order: the
-    same state to the bit; the rounds' whitenings are not kept, no later step asks for
-    them)."""
+    """:func:`refine_reference` in one compiled call where :func:`search_compiles` and
+    there are targets (the same kernels, in the same order: the same state to the bit;
+    the rounds' whitenings are not kept, no later step asks for them)."""
+    if state.n_targets == 0 or not search_compiles(room, run):
+        return refine_reference(room, run, state, max_iter, rounds)
     lower, upper = room.search_objective(math.inf).bounds(state.n_targets)
-    positions, noise, total, last = refine_kernel(
+    positions, noise, total, last = compiled_search.refine_kernel(
         *search_problem(room, run), search_state(state), lower, upper, rounds, max_iter
     )
     run.iterations += int(total)
@@ -225,9 +238,21 @@ def refine_compiled(
     return refined
 
 
+def refine_reference(
+    room: PreparedRoom, run: Run, state: FitState, max_iter: int, rounds: int
+) -> FitState:
+    """:func:`refine` round by round in Python."""
+    for round_index in range(max(rounds, 1)):
+        before = run.iterations
+        state, _ = lm_fit(room, run, whitening_of(room, state), state, max_iter)
+        if round_index > 0 and run.iterations - before <= 2:
+            break  # the re-whitened metric no longer moves the fit
+    return state
+
+
 def search_problem(room: PreparedRoom, run: Run) -> tuple[Any, ...]:
     """The compiled search steps' ``(channel, table, search)`` for ``run``
-    (:func:`.gridless._compiled.search.growth_kernel`)."""
+    (:func:`.gridless._compiled.search.grow_kernel`)."""
     assert room.search_constants is not None
     channel, table, layout, priors, is_diag = room.search_constants
     search = (
@@ -408,11 +433,8 @@ def polish(room: PreparedRoom, run: Run, state: FitState) -> FitState:
 def fit_known(room: PreparedRoom, run: Run, n_targets: int, avoid: FloatArray) -> FitState:
     """Greedy growth to ``n_targets`` (first insertion away from ``avoid``), polished."""
     state = FitState.empty()
-    if compiled_search(room, run) and n_targets > 0:
-        state = grow_compiled(room, run, state, room.lm.inner_iter, avoid, n_targets)
-    while state.n_targets < n_targets:
-        first = state.n_targets == 0
-        state = grow(room, run, state, room.lm.inner_iter, avoid if first else None)
+    if n_targets > 0:
+        state = grow(room, run, state, room.lm.inner_iter, avoid, n_targets)
     return polish(room, run, state)
 
 

@@ -33,7 +33,7 @@ from .report import (
 from .room import PreparedRoom
 from .terminals import TerminalFit, fit_terminal, starting_cells
 from .uncertainty import (
-    compiled_misfit_design,
+    misfit_design,
     response_covariances,
     shape_gradients,
 )
@@ -178,7 +178,7 @@ def solve_terminals(
         fits: list[TerminalFit], led_errors: bool = True
     ) -> tuple[list[MisfitDesign], Misfit]:
         designs = [
-            compiled_misfit_design(
+            misfit_design(
                 fit.jacobian,
                 fit.normal,
                 terminal_misfit_columns(

@@ -18,15 +18,17 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
+from typing import NamedTuple
 
 import numpy as np
 
-from ..._kernels import compiled_only
+from ..._kernels import dispatch
 from ...typing import FloatArray
 from .._data_support import detected_leds, leaves_dof, supports_nuisance
-from ._compiled.channel import channel_constants, channel_rows
-from ._compiled.terminal import terminal_fit_kernel
+from ._compiled import terminal as compiled_terminal
+from ._compiled.channel import channel_constants
 from .channel import ChannelKernel
+from .channel_rows import channel_rows
 from .lm import (
     PROJECTED_MAX_REJECTIONS,
     TERMINAL_COST_TOL,
@@ -296,12 +298,8 @@ def terminal_model(
     x, y = float(theta[0]), float(theta[1])
     z = float(theta[2]) if free_height else z0
     if normal is None and not free_tilt:
-        constants = compiled_only(channel_constants, kernel)
-        if constants is not None:
-            rows = channel_rows(*constants, np.array([x]), np.array([y]), np.array([z]), False)
-            return np.asarray(rows[0, 0]), np.asarray(rows[1:, 0].T)
-        blocks = kernel.gradients_xyz(np.array([x]), np.array([y]), np.array([z]))
-        return blocks[:, 3], blocks[:, :3]
+        rows = channel_rows(kernel, np.array([x]), np.array([y]), np.array([z]), False)
+        return np.asarray(rows[0, 0]), np.asarray(rows[1:, 0].T)
     at = 3 if free_height else 2
     tilt_derivative = None
     if free_tilt:
@@ -341,11 +339,43 @@ def _fit_from(
     """Projected LM on ``[x, y, (z), (tx, ty), u]`` with the Gaussian priors as
     pseudo-residuals (the tilt is free when ``tilt_sd`` is given and no normal was sent).
 
-    With the compiled kernels the whole fit is one call (:mod:`.gridless._compiled.terminal`); the
-    NumPy evaluation below is its reference."""
+    With the compiled kernels the whole fit is one call (:func:`terminal_fit_kernel`; its
+    NumPy reference :func:`terminal_fit_reference`)."""
+    problem, theta, lower, upper = terminal_fit_arguments(
+        kernel, amplitudes, start, z0, free_height, priors, weight, normal, tilt_sd
+    )
+    theta, residual, jacobian, cost = dispatch(terminal_fit_kernel, terminal_fit_reference)(
+        problem, theta, lower, upper
+    )
+    return _terminal_fit(
+        theta,
+        residual,
+        jacobian,
+        cost,
+        amplitudes.shape[0],
+        problem.data_weight,
+        z0,
+        free_height,
+        problem.free_tilt,
+    )
+
+
+def terminal_fit_arguments(
+    kernel: ChannelKernel,
+    amplitudes: FloatArray,
+    start: FloatArray,
+    z0: float,
+    free_height: bool,
+    priors: Priors,
+    weight: float | FloatArray | None,
+    normal: FloatArray | None,
+    tilt_sd: float | None,
+) -> tuple[TerminalProblem, FloatArray, FloatArray, FloatArray]:
+    """:func:`_fit_from`'s arguments as :func:`terminal_fit_reference` takes them: the
+    problem, the start's theta and the bounds."""
     with_priors = weight is not None
     free_tilt = normal is None and tilt_sd is not None
-    # The log gain starts at the start's least-squares gain (set below, or by the kernel).
+    # The log gain starts at the start's least-squares gain (set by the fit).
     theta = np.array(
         [
             start[0],
@@ -359,55 +389,19 @@ def _fit_from(
         kernel, priors, free_height, free_tilt, with_priors and priors.log_gain_sd is not None
     )
     data_weight = weight if weight is not None else 1.0
-    constants = compiled_only(channel_constants, kernel)
-    if constants is not None:
-        theta, residual, jacobian, cost = terminal_fit_kernel(
-            *constants,
-            np.ascontiguousarray(amplitudes, dtype=np.float64),
-            # fresh writable arrays: one compiled signature for all (warm_up compiles it)
-            np.array(data_weight, dtype=np.float64)
-            if isinstance(data_weight, np.ndarray)
-            else np.full(amplitudes.shape[0], float(data_weight)),
-            theta,
-            lower,
-            upper,
-            (bool(free_height), normal is not None, bool(free_tilt), float(z0)),
-            _NO_NORMAL if normal is None else np.array(normal, dtype=np.float64),
-            (
-                bool(with_priors),
-                -1.0 if priors.log_gain_sd is None else float(priors.log_gain_sd),
-                float(priors.height_mean),
-                float(priors.height_sd),
-                -1.0 if tilt_sd is None else float(tilt_sd),
-            ),
-            tuple(_LM),
-        )
-    else:
-        theta, residual, jacobian, cost = _reference_lm(
-            kernel,
-            amplitudes,
-            start,
-            theta,
-            (lower, upper),
-            z0=z0,
-            free_height=free_height,
-            free_tilt=free_tilt,
-            normal=normal,
-            priors=priors if with_priors else None,
-            data_weight=data_weight,
-            tilt_sd=tilt_sd,
-        )
-    return _terminal_fit(
-        theta,
-        residual,
-        jacobian,
-        cost,
-        amplitudes.shape[0],
-        data_weight,
+    problem = TerminalProblem(
+        kernel,
+        amplitudes,
         z0,
         free_height,
         free_tilt,
+        normal,
+        priors,
+        with_priors,
+        data_weight,
+        tilt_sd,
     )
+    return problem, theta, lower, upper
 
 
 # The kernel's normal argument when the terminal sent none (it reads it only when one was).
@@ -451,24 +445,79 @@ def _bounds(
     return lower, upper
 
 
-def _reference_lm(
-    kernel: ChannelKernel,
-    amplitudes: FloatArray,
-    start: FloatArray,
-    theta: FloatArray,
-    bounds: tuple[FloatArray, FloatArray],
-    *,
-    z0: float,
-    free_height: bool,
-    free_tilt: bool,
-    normal: FloatArray | None,
-    priors: Priors | None,
-    data_weight: float | FloatArray,
-    tilt_sd: float | None,
+class TerminalProblem(NamedTuple):
+    """What one terminal's fit is given, but its start and bounds: its amplitudes, the
+    receivers' height ``z0``, which of height and tilt are free, the photodiode normal it
+    sent (None: none), the priors (pseudo-residuals only ``with_priors``), the data's
+    weight (a scalar or per value) and the tilt's standard deviation."""
+
+    kernel: ChannelKernel
+    amplitudes: FloatArray
+    z0: float
+    free_height: bool
+    free_tilt: bool
+    normal: FloatArray | None
+    priors: Priors
+    with_priors: bool
+    data_weight: float | FloatArray
+    tilt_sd: float | None
+
+
+def terminal_fit_kernel(
+    problem: TerminalProblem, theta: FloatArray, lower: FloatArray, upper: FloatArray
 ) -> tuple[FloatArray, FloatArray, FloatArray, float]:
-    """The NumPy fit (:func:`terminal_fit_kernel`'s reference): theta, whitened residual,
-    Jacobian and cost at LM's last accepted point; ``priors`` None fits without them."""
-    lower, upper = bounds
+    """:func:`terminal_fit_reference` in one compiled call (in NumPy for a channel without a
+    compiled form)."""
+    constants = channel_constants(problem.kernel)
+    if constants is None:
+        return terminal_fit_reference(problem, theta, lower, upper)
+    amplitudes, data_weight, normal, priors = (
+        problem.amplitudes,
+        problem.data_weight,
+        problem.normal,
+        problem.priors,
+    )
+    fitted, residual, jacobian, cost = compiled_terminal.terminal_fit_kernel(
+        *constants,
+        np.ascontiguousarray(amplitudes, dtype=np.float64),
+        # fresh writable arrays: one compiled signature for all (warm_up compiles it)
+        np.array(data_weight, dtype=np.float64)
+        if isinstance(data_weight, np.ndarray)
+        else np.full(amplitudes.shape[0], float(data_weight)),
+        theta,
+        lower,
+        upper,
+        (
+            bool(problem.free_height),
+            normal is not None,
+            bool(problem.free_tilt),
+            float(problem.z0),
+        ),
+        _NO_NORMAL if normal is None else np.array(normal, dtype=np.float64),
+        (
+            bool(problem.with_priors),
+            -1.0 if priors.log_gain_sd is None else float(priors.log_gain_sd),
+            float(priors.height_mean),
+            float(priors.height_sd),
+            -1.0 if problem.tilt_sd is None else float(problem.tilt_sd),
+        ),
+        tuple(_LM),
+    )
+    return fitted, residual, jacobian, cost
+
+
+def terminal_fit_reference(
+    problem: TerminalProblem, theta: FloatArray, lower: FloatArray, upper: FloatArray
+) -> tuple[FloatArray, FloatArray, FloatArray, float]:
+    """Projected LM from ``theta`` (its log gain replaced by the least-squares gain of the
+    start's gains) within ``[lower, upper]``, in NumPy: theta, whitened residual, Jacobian and
+    cost at LM's last accepted point."""
+    kernel, amplitudes, z0 = problem.kernel, problem.amplitudes, problem.z0
+    free_height, free_tilt, normal = problem.free_height, problem.free_tilt, problem.normal
+    priors = problem.priors if problem.with_priors else None
+    data_weight, tilt_sd = problem.data_weight, problem.tilt_sd
+    theta = theta.copy()
+    start = theta[:2]
     axes = (3 if free_height else 2) + (2 if free_tilt else 0)
     gradient_columns = [0, 1, *([2] if free_height else []), *([3, 4] if free_tilt else [])]
     gains0, _ = terminal_model(kernel, np.array([start[0], start[1], z0]), free_height, z0, normal)

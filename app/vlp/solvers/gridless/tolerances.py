@@ -31,13 +31,15 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from ..._kernels import dispatch
 from ...metrics import matched_errors
 from ...typing import FloatArray
-from ._compiled.tolerance import joint_fit_kernel
+from ._compiled import tolerance as compiled_tolerance
 from .channel import ChannelKernel
 from .joint_model import (
     JointModel,
     RoomTolerances,
+    joint_residual_reference,
 )
 from .lm import (
     PROJECTED_MAX_REJECTIONS,
@@ -54,7 +56,7 @@ __all__ = ["GridMoves", "RoomTolerances", "ToleranceFit", "fit_room_tolerances"]
 
 # LM for the joint fit (it runs only on measurements that show a misfit): stopped at a
 # relative decrease of 1e-4 (the aggregated correlation LM's tolerance, LM_DEFAULTS).
-_LM = LMSettings(
+JOINT_LM = LMSettings(
     max_iter=30,
     damping=TOLERANCE_INITIAL_DAMPING,
     max_rejections=PROJECTED_MAX_REJECTIONS,
@@ -312,30 +314,60 @@ def _fit_joint(
     theta: FloatArray,
     white: Whitening,
     data: FloatArray,
-    max_iter: int = _LM.max_iter,
+    max_iter: int = JOINT_LM.max_iter,
 ) -> tuple[FloatArray, float]:
     """The joint fit from ``theta``: its fitted theta and cost."""
-    settings = _LM._replace(max_iter=max_iter)
+    settings = JOINT_LM._replace(max_iter=max_iter)
     lower, upper = model.bounds()
+    return dispatch(joint_fit_kernel, joint_fit_reference)(
+        model, theta, white, data, lower, upper, settings
+    )
+
+
+def joint_fit_kernel(
+    model: JointModel,
+    theta: FloatArray,
+    white: Whitening,
+    data: FloatArray,
+    lower: FloatArray,
+    upper: FloatArray,
+    settings: LMSettings,
+) -> tuple[FloatArray, float]:
+    """:func:`joint_fit_reference` as one compiled LM run (in NumPy for a channel without a
+    compiled form)."""
     compiled_model = model.compiled_model(white, data)
-    if compiled_model is not None:
-        theta, cost = joint_fit_kernel(
-            compiled_model,
-            np.array(theta, dtype=np.float64, order="C", copy=True),
-            lower,
-            upper,
-            tuple(settings),
-        )
-        return theta, float(cost)
+    if compiled_model is None:
+        return joint_fit_reference(model, theta, white, data, lower, upper, settings)
+    fitted, cost = compiled_tolerance.joint_fit_kernel(
+        compiled_model,
+        np.array(theta, dtype=np.float64, order="C", copy=True),
+        lower,
+        upper,
+        tuple(settings),
+    )
+    return fitted, float(cost)
+
+
+def joint_fit_reference(
+    model: JointModel,
+    theta: FloatArray,
+    white: Whitening,
+    data: FloatArray,
+    lower: FloatArray,
+    upper: FloatArray,
+    settings: LMSettings,
+) -> tuple[FloatArray, float]:
+    """Projected LM on the joint model from ``theta`` within ``[lower, upper]`` in the
+    metric ``white`` (``data`` whitened), in NumPy: the fitted theta and its cost."""
 
     def evaluate(params: FloatArray) -> tuple[float, tuple[FloatArray, FloatArray]]:
-        residual, jacobian = model.residual_and_jacobian(params, white, data)
+        residual, jacobian = joint_residual_reference(model, params, white, data)
         return least_squares_point(residual, jacobian)
 
-    theta, cost, _, _ = levenberg_marquardt(
+    fitted, cost, _, _ = levenberg_marquardt(
         evaluate, least_squares_normal_equations, theta, lower, upper, settings
     )
-    return theta, cost
+    return fitted, cost
 
 
 def fit_room_tolerances(

@@ -10,18 +10,18 @@ import math
 
 import numpy as np
 
-from ..._kernels import compiled_only, dispatch
+from ..._kernels import dispatch
 from ...typing import FloatArray, IntArray
 from ...uncertainty import (
     FitQuality,
     MisfitDesign,
     assess_fit,
     fit_misfit,
-    misfit_design,
+    misfit_design_reference,
     predictive_covariances,
 )
-from ._compiled.channel import channel_constants, channel_rows
-from ._compiled.uncertainty import misfit_design_kernel, uncertainty_kernel
+from ._compiled import uncertainty as compiled_uncertainty
+from .channel_rows import channel_rows
 from .fitting import (
     Run,
     run_objective,
@@ -53,21 +53,21 @@ def response_covariances(
     return np.asarray(sd**2 * positions @ positions.transpose(0, 2, 1))
 
 
-def compiled_misfit_design(
+def misfit_design(
     jacobian: FloatArray, normal: FloatArray, columns: list[FloatArray]
 ) -> MisfitDesign:
-    """:func:`app.vlp.uncertainty.misfit_design` (its reference) with the kernels in use."""
-    return dispatch(_misfit_design_kernel, misfit_design)(jacobian, normal, columns)
+    """:func:`app.vlp.uncertainty.misfit_design_reference` with the kernels in use."""
+    return dispatch(misfit_design_kernel, misfit_design_reference)(jacobian, normal, columns)
 
 
-def _misfit_design_kernel(
+def misfit_design_kernel(
     jacobian: FloatArray, normal: FloatArray, columns: list[FloatArray]
 ) -> MisfitDesign:
-    """:func:`app.vlp.uncertainty.misfit_design` in one compiled call."""
+    """:func:`app.vlp.uncertainty.misfit_design_reference` in one compiled call."""
     sizes = np.array([block.shape[1] for block in columns], dtype=np.int64)
     side_by_side = np.ascontiguousarray(np.hstack(columns), dtype=np.float64)
     return MisfitDesign(
-        *misfit_design_kernel(
+        *compiled_uncertainty.misfit_design_kernel(
             np.ascontiguousarray(jacobian, dtype=np.float64),
             np.ascontiguousarray(normal, dtype=np.float64),
             side_by_side,
@@ -99,25 +99,46 @@ def fit_uncertainty(room: PreparedRoom, run: Run, state: FitState) -> tuple[Floa
 def sandwich_covariances(
     room: PreparedRoom, objective: Objective, state: FitState
 ) -> tuple[FloatArray, FitQuality]:
-    """:func:`fit_uncertainty` in the metric of ``objective``: compiled
-    (:mod:`.gridless._compiled.uncertainty`) or, with the reference kernels, in NumPy."""
+    """:func:`fit_uncertainty` in the metric of ``objective``."""
+    return dispatch(sandwich_covariances_kernel, sandwich_covariances_reference)(
+        room, objective, state
+    )
+
+
+def sandwich_covariances_kernel(
+    room: PreparedRoom, objective: Objective, state: FitState
+) -> tuple[FloatArray, FitQuality]:
+    """:func:`sandwich_covariances_reference` in one compiled call (that function for a
+    channel without a compiled form, without targets, or in a room too large to hold the
+    model-error design)."""
+    theta = objective.pack(state)
+    k = state.n_targets
+    n_params, n_data = theta.shape[0], objective.data.shape[0]
+    problem = objective.compiled_problem()
+    small = n_data * k * room.fingerprint.n_leds <= MAX_MISFIT_ENTRIES
+    if problem is None or k == 0 or not small:
+        return sandwich_covariances_reference(room, objective, state)
+    covariances, cost = compiled_uncertainty.sandwich_covariances_kernel(
+        *problem,
+        theta,
+        *objective.compiled_state(state),
+        room.max_noise,
+        room.receivers_level,
+    )
+    scale = math.exp(0.5 * state.log_scale)
+    return covariances, assess_fit(float(cost), n_data - n_params, scale)
+
+
+def sandwich_covariances_reference(
+    room: PreparedRoom, objective: Objective, state: FitState
+) -> tuple[FloatArray, FitQuality]:
+    """:func:`sandwich_covariances` in NumPy (:func:`gram` by the kernels in use, where the
+    model-error design is too large to hold)."""
     theta = objective.pack(state)
     k = state.n_targets
     index = np.column_stack((np.arange(k), np.arange(k) + k))
     n_params, n_data = theta.shape[0], objective.data.shape[0]
     scale = math.exp(0.5 * state.log_scale)
-    problem = objective.compiled_problem()
-    small = n_data * k * room.fingerprint.n_leds <= MAX_MISFIT_ENTRIES
-    if problem is not None and k > 0 and small:
-        # The same sandwich in one compiled call (.gridless._compiled.uncertainty).
-        covariances, cost = uncertainty_kernel(
-            *problem,
-            theta,
-            *objective.compiled_state(state),
-            room.max_noise,
-            room.receivers_level,
-        )
-        return covariances, assess_fit(float(cost), n_data - n_params, scale)
     columns = misfit_columns(room, objective, theta, state)
     if columns is None:
         normal, _, cost = gram(objective, theta, state)
@@ -129,7 +150,7 @@ def sandwich_covariances(
     rows = augmented[:n_params]
     residual = augmented[n_params, :n_data]
     fit = assess_fit(float(residual @ residual), n_data - n_params, scale)
-    design = misfit_design(rows[:, :n_data].T, rows @ rows.T, columns)
+    design = misfit_design_reference(rows[:, :n_data].T, rows @ rows.T, columns)
     misfit = fit_misfit([design], [residual], max_noise=room.max_noise)
     return predictive_covariances(design, misfit, index), fit
 
@@ -209,12 +230,7 @@ def shape_gradients(room: PreparedRoom, positions: FloatArray, heights: FloatArr
     xs = np.ascontiguousarray(positions[:, 0], dtype=np.float64)
     ys = np.ascontiguousarray(positions[:, 1], dtype=np.float64)
     zs = np.ascontiguousarray(heights, dtype=np.float64)
-    constants = compiled_only(channel_constants, kernel)
-    along_z: FloatArray
-    if constants is not None:
-        along_z = channel_rows(*constants, xs, ys, zs, False)[3]  # (K, M)
-    else:
-        along_z = kernel.gradients_xyz(xs, ys, zs)[:, 2 * k : 3 * k].T
+    along_z = channel_rows(kernel, xs, ys, zs, False)[3]  # (K, M)
     offsets = kernel.led_xyz[:, np.newaxis, :] - np.column_stack((positions, heights))
     drop = np.maximum(offsets[:, :, 2], 1e-9)  # (M, K)
     dist2 = np.einsum("mkc,mkc->mk", offsets, offsets)

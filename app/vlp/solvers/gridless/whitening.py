@@ -10,14 +10,11 @@ from typing import Any
 
 import numpy as np
 
-from ..._kernels import compiled_only, dispatch, kernel_mode
+from ..._kernels import dispatch, kernel_mode
 from ...measurements import Model
 from ...typing import FloatArray, IntArray
+from ._compiled import fit as compiled_fit
 from ._compiled.channel import channel_constants
-from ._compiled.fit import (
-    whiten_kernel,
-    whitening_kernel,
-)
 from .channel import ChannelKernel
 from .lm import (
     EIG_FLOOR,
@@ -146,45 +143,7 @@ class Whitening:
         cls, model: Model, kernel: ChannelKernel, state: FitState, n_terminals: float
     ) -> Whitening:
         """Plug-in whitening from the current fit (sigma^2 = s / K)."""
-        constants = compiled_only(channel_constants, kernel)
-        if constants is not None and state.n_targets > 0:
-            upper, lower, is_diag = compiled_indices(model, kernel.n_leds)
-            rotation, weights = whitening_kernel(
-                *constants,
-                np.ascontiguousarray(state.positions, dtype=np.float64),
-                fixed_tuple(kernel, state),
-                float(state.noise),
-                float(n_terminals),
-                model == "correlation",
-                upper,
-                lower,
-                is_diag,
-            )
-            return cls(model, kernel.n_leds, rotation if model == "correlation" else None, weights)
-        return cls._from_state_reference(model, kernel, state, n_terminals)
-
-    @classmethod
-    def _from_state_reference(
-        cls, model: Model, kernel: ChannelKernel, state: FitState, n_terminals: float
-    ) -> Whitening:
-        """:meth:`from_state` in plain NumPy (the compiled kernel's reference)."""
-        gains = target_gains(kernel, state)
-        weights = state.effective_weights()
-        # Floor sigma^2 at a fraction of the mean received power per LED and terminal: a
-        # near-zero noise estimate would make the metric singular off the fitted signal.
-        power = float(np.sum(gains**2 * weights)) / (kernel.n_leds * max(n_terminals, 1.0))
-        sigma2 = max(state.noise / max(n_terminals, 1.0), _SIGMA2_REL_FLOOR * power, SIGMA2_FLOOR)
-        half_noise = 0.5 * max(n_terminals, 1.0) * sigma2
-        if model == "power":
-            var = 4.0 * sigma2 * ((gains**2) @ weights + half_noise)
-            return cls(model, kernel.n_leds, None, 1.0 / np.sqrt(var))
-        signal = (gains * weights) @ gains.T
-        signal.flat[:: kernel.n_leds + 1] += half_noise
-        lam, rot = np.linalg.eigh(signal)
-        lam = np.maximum(lam, EIG_FLOOR * max(float(lam[-1]), SIGMA2_FLOOR))
-        upper, lower, is_diag = _vech_indices(model, kernel.n_leds)
-        weights = 1.0 / np.sqrt(entry_variances(sigma2, lam, upper, lower, is_diag))
-        return cls(model, kernel.n_leds, rot, weights)
+        return dispatch(whitening_kernel, whitening_reference)(model, kernel, state, n_terminals)
 
     def data(self, values: FloatArray) -> FloatArray:
         """Whitened measurement. The last one is kept (a solve whitens its measurement in
@@ -199,29 +158,79 @@ class Whitening:
         return whitened
 
     def _data_of(self, values: FloatArray) -> FloatArray:
-        return dispatch(self._data_kernel, self._data_reference)(values)
-
-    def _data_kernel(self, values: FloatArray) -> FloatArray:
-        """:meth:`_data_reference` in one compiled call."""
-        return np.asarray(
-            whiten_kernel(self.compiled(), np.ascontiguousarray(values, dtype=np.float64))
-        )
-
-    def _data_reference(self, values: FloatArray) -> FloatArray:
-        """The whitened measurement in plain NumPy (the compiled kernel's reference)."""
-        if self.rotation is None or self.rotation_t is None:
-            return np.asarray(self.weights * values)
-        full = np.zeros((self.n_leds, self.n_leds))
-        full[self.upper, self.lower] = values
-        full[self.lower, self.upper] = values
-        rotated = self.rotation_t @ full @ self.rotation
-        return np.asarray(self.weights * rotated[self.upper, self.lower])
+        return dispatch(whitened_data_kernel, whitened_data_reference)(self, values)
 
     def rotate(self, vectors: FloatArray) -> FloatArray:
         """``U^T V`` for V of shape (M, n)."""
         if self.rotation_t is None:
             return vectors
         return np.asarray(self.rotation_t @ vectors)
+
+
+def whitening_kernel(
+    model: Model, kernel: ChannelKernel, state: FitState, n_terminals: float
+) -> Whitening:
+    """:func:`whitening_reference` in one compiled call (in NumPy without targets, or for a
+    channel without a compiled form)."""
+    constants = channel_constants(kernel)
+    if constants is None or state.n_targets == 0:
+        return whitening_reference(model, kernel, state, n_terminals)
+    upper, lower, is_diag = compiled_indices(model, kernel.n_leds)
+    rotation, weights = compiled_fit.whitening_kernel(
+        *constants,
+        np.ascontiguousarray(state.positions, dtype=np.float64),
+        fixed_tuple(kernel, state),
+        float(state.noise),
+        float(n_terminals),
+        model == "correlation",
+        upper,
+        lower,
+        is_diag,
+    )
+    return Whitening(model, kernel.n_leds, rotation if model == "correlation" else None, weights)
+
+
+def whitening_reference(
+    model: Model, kernel: ChannelKernel, state: FitState, n_terminals: float
+) -> Whitening:
+    """:meth:`Whitening.from_state` in plain NumPy."""
+    gains = target_gains(kernel, state)
+    weights = state.effective_weights()
+    # Floor sigma^2 at a fraction of the mean received power per LED and terminal: a
+    # near-zero noise estimate would make the metric singular off the fitted signal.
+    power = float(np.sum(gains**2 * weights)) / (kernel.n_leds * max(n_terminals, 1.0))
+    sigma2 = max(state.noise / max(n_terminals, 1.0), _SIGMA2_REL_FLOOR * power, SIGMA2_FLOOR)
+    half_noise = 0.5 * max(n_terminals, 1.0) * sigma2
+    if model == "power":
+        var = 4.0 * sigma2 * ((gains**2) @ weights + half_noise)
+        return Whitening(model, kernel.n_leds, None, 1.0 / np.sqrt(var))
+    signal = (gains * weights) @ gains.T
+    signal.flat[:: kernel.n_leds + 1] += half_noise
+    lam, rot = np.linalg.eigh(signal)
+    lam = np.maximum(lam, EIG_FLOOR * max(float(lam[-1]), SIGMA2_FLOOR))
+    upper, lower, is_diag = _vech_indices(model, kernel.n_leds)
+    weights = 1.0 / np.sqrt(entry_variances(sigma2, lam, upper, lower, is_diag))
+    return Whitening(model, kernel.n_leds, rot, weights)
+
+
+def whitened_data_kernel(white: Whitening, values: FloatArray) -> FloatArray:
+    """:func:`whitened_data_reference` in one compiled call."""
+    return np.asarray(
+        compiled_fit.whitened_data_kernel(
+            white.compiled(), np.ascontiguousarray(values, dtype=np.float64)
+        )
+    )
+
+
+def whitened_data_reference(white: Whitening, values: FloatArray) -> FloatArray:
+    """The measurement ``values`` whitened by ``white``, in plain NumPy."""
+    if white.rotation is None or white.rotation_t is None:
+        return np.asarray(white.weights * values)
+    full = np.zeros((white.n_leds, white.n_leds))
+    full[white.upper, white.lower] = values
+    full[white.lower, white.upper] = values
+    rotated = white.rotation_t @ full @ white.rotation
+    return np.asarray(white.weights * rotated[white.upper, white.lower])
 
 
 def target_gains(kernel: ChannelKernel, state: FitState) -> FloatArray:

@@ -24,7 +24,7 @@ __all__ = [
     "beam_at",
     "beam_towards",
     "channel_constants",
-    "channel_rows",
+    "channel_rows_kernel",
 ]
 
 # (led_x, led_y, led_z, dz2, factor, free_height_factor, orders, half_exponent, max_d2,
@@ -77,7 +77,7 @@ def _table_constants(table: DiffuseTable | None, n_leds: int) -> TableConstants 
 
 
 def channel_constants(kernel: ChannelKernel) -> tuple[ChannelConstants, TableConstants] | None:
-    """The kernel's constants for :func:`channel_rows` (built once, kept on the kernel);
+    """The kernel's constants for :func:`channel_rows_kernel` (built once, kept on the kernel);
     None when its diffuse table has no compiled interpolation."""
     cached: tuple[ChannelConstants, TableConstants] | None = getattr(kernel, "_compiled", None)
     if cached is not None:
@@ -217,7 +217,7 @@ def diffuse_rows(
 
 
 @compiled
-def channel_rows(
+def channel_rows_kernel(
     channel: ChannelConstants,
     table: TableConstants,
     xs: FloatArray,

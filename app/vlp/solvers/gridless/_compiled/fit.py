@@ -28,7 +28,7 @@ import numpy as np
 from ...._kernels import compiled, compiled_inline, compiled_reassociating
 from ....typing import FloatArray, IntArray
 from ..lm import EIG_FLOOR, SIGMA2_FLOOR, LMSettings
-from .channel import ChannelConstants, TableConstants, channel_rows
+from .channel import ChannelConstants, TableConstants, channel_rows_kernel
 from .lm import lm_kernel, register_model
 
 __all__ = [
@@ -36,7 +36,7 @@ __all__ = [
     "fit_kernel",
     "gram_kernel",
     "residual_kernel",
-    "whiten_kernel",
+    "whitened_data_kernel",
     "whitening_kernel",
 ]
 
@@ -79,11 +79,11 @@ def _rows(
     ys = theta[k : 2 * k].copy()
     rows: FloatArray
     if n_axes == 3:
-        rows = channel_rows(channel, table, xs, ys, theta[2 * k : 3 * k].copy(), False)
+        rows = channel_rows_kernel(channel, table, xs, ys, theta[2 * k : 3 * k].copy(), False)
     elif on_plane:
-        rows = channel_rows(channel, table, xs, ys, heights, True)
+        rows = channel_rows_kernel(channel, table, xs, ys, heights, True)
     else:
-        rows = channel_rows(channel, table, xs, ys, heights, False)
+        rows = channel_rows_kernel(channel, table, xs, ys, heights, False)
     has_rotation, rotation = white[0], white[1]
     if has_rotation:
         n_leds = rotation.shape[0]
@@ -462,7 +462,9 @@ def whitening_kernel(
     theta = np.empty(2 * k)
     theta[:k] = positions_xy[:, 0]
     theta[k:] = positions_xy[:, 1]
-    rows = channel_rows(channel, table, theta[:k].copy(), theta[k:].copy(), heights, on_plane)
+    rows = channel_rows_kernel(
+        channel, table, theta[:k].copy(), theta[k:].copy(), heights, on_plane
+    )
     gains = rows[0]  # (K, M)
     _, multipliers = _multipliers(theta, fixed, (2, -1, -1, -1, 0))
     n_leds = gains.shape[1]
@@ -503,8 +505,9 @@ def whitening_kernel(
 
 
 @compiled
-def whiten_kernel(white: Problem, values: FloatArray) -> FloatArray:
-    """:meth:`Whitening.data`: ``c * vech(U^T V U)`` of the measurement ``vech(V)``."""
+def whitened_data_kernel(white: Problem, values: FloatArray) -> FloatArray:
+    """:func:`.gridless.whitening.whitened_data_reference`: ``c * vech(U^T V U)`` of the
+    measurement ``vech(V)``."""
     has_rotation, rotation, weights, upper, lower, _ = white
     length = values.shape[0]
     out = np.empty(length)

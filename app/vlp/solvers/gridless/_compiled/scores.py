@@ -61,7 +61,7 @@ def _quadratic_forms(
 
 
 @compiled
-def correlation_profiles_kernel(
+def correlation_products_kernel(
     white: Problem,
     residual: FloatArray,
     gains: FloatArray,

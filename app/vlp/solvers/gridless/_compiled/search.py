@@ -2,9 +2,9 @@
 
 Stand-ins for :func:`.gridless.search.grow` and :func:`.gridless.search.refine` in dense
 rooms with the correlation model during the search (positions and noise only;
-:func:`.gridless.search.compiled_search` says when):
+:func:`.gridless.search.search_compiles` says when):
 
-- :func:`growth_kernel`: growth steps (:func:`_growth_step`: the plug-in whitening of the
+- :func:`grow_kernel`: growth steps (:func:`_growth_step`: the plug-in whitening of the
   current state, its whitened residual, the insertion scores of every grid point, the best
   one, away from the points to avoid, and the short Levenberg-Marquardt refinement with
   the new target), one or as many as K targets take;
@@ -31,13 +31,13 @@ from .fit import (
     FitModel,
     Problem,
     residual_kernel,
-    whiten_kernel,
+    whitened_data_kernel,
     whitening_kernel,
 )
 from .lm import lm_kernel
 from .scores import correlation_scores_kernel
 
-__all__ = ["growth_kernel", "refine_kernel"]
+__all__ = ["grow_kernel", "refine_kernel"]
 
 
 @compiled
@@ -158,7 +158,7 @@ def _growth_step(
         fixed = (heights, weights, log_gains, log_scale, on_plane, unit)
         if plug_in:
             white = _plug_in(channel, table, white, positions, fixed, noise, is_diag)
-    data = whiten_kernel(white, values)
+    data = whitened_data_kernel(white, values)
     if k == 0:
         residual = data
     else:
@@ -240,7 +240,7 @@ def _bounds_for(lower: FloatArray, upper: FloatArray, k: int) -> tuple[FloatArra
 
 
 @compiled
-def growth_kernel(
+def grow_kernel(
     channel: ChannelConstants,
     table: TableConstants,
     search: Problem,
@@ -328,7 +328,7 @@ def refine_kernel(
         metric = white
         if plug_in:
             metric = _plug_in(channel, table, white, current, fixed, theta[2 * k], is_diag)
-        data = whiten_kernel(metric, values)
+        data = whitened_data_kernel(metric, values)
         _clip(theta, lower, upper)
         settings = LMSettings(max_iter, initial_damping, MAX_REJECTIONS, tol, step_tol, 2 * k, True)
         theta, _, used, _ = lm_kernel(

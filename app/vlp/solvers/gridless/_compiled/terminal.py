@@ -2,7 +2,7 @@
 
 Stand-ins for :func:`.gridless.terminals.terminal_model` (all its branches: looking straight up,
 a photodiode normal the terminal sent, a fitted tilt) and for the evaluation of
-:func:`.gridless.terminals._fit_from` (their NumPy code is the reference and documents
+:func:`.gridless.terminals.terminal_fit_reference` (their NumPy code is the reference and documents
 the model) as a :class:`TerminalModel` that :func:`.gridless._compiled.lm.lm_kernel` fits; a
 whole fit from one start is one call here. Private: callers validate.
 
@@ -25,7 +25,13 @@ import numpy as np
 from ...._kernels import compiled, compiled_inline
 from ....typing import FloatArray
 from ..lm import LMSettings
-from .channel import ChannelConstants, TableConstants, beam_towards, channel_rows, diffuse_rows
+from .channel import (
+    ChannelConstants,
+    TableConstants,
+    beam_towards,
+    channel_rows_kernel,
+    diffuse_rows,
+)
 from .lm import lm_kernel, register_model
 
 __all__ = ["TerminalModel", "terminal_fit_kernel", "terminal_model_kernel"]
@@ -55,7 +61,7 @@ def terminal_model_kernel(
     gradient = np.zeros((n_leds, 5))
     xs, ys, zs = np.array([x]), np.array([y]), np.array([z])
     if not has_normal and not free_tilt:
-        rows = channel_rows(channel, table, xs, ys, zs, False)
+        rows = channel_rows_kernel(channel, table, xs, ys, zs, False)
         gains = rows[0, 0].copy()
         for m in range(n_leds):
             for axis in range(3):

@@ -3,7 +3,7 @@
 Stands in for the NumPy path of :func:`.gridless.uncertainty.fit_uncertainty` (its reference, with
 :func:`.gridless.uncertainty.misfit_columns`, :func:`.gridless.uncertainty.perturbation_columns`,
 :func:`.gridless.uncertainty.shape_gradients` and, in :mod:`app.vlp.uncertainty`,
-:func:`misfit_design`, :func:`fit_misfit` and :func:`predictive_covariances`, whose
+:func:`misfit_design_reference`, :func:`fit_misfit` and :func:`predictive_covariances`, whose
 docstrings give the method). Every answer pays for it, and in NumPy it is some forty small
 calls. Arguments are the tuples of :mod:`.gridless._compiled.fit`. Private: callers validate.
 
@@ -15,7 +15,7 @@ The pieces are separate kernels so that each can be compared with its reference:
 - :func:`fit_misfit_kernel`: :func:`app.vlp.uncertainty.fit_misfit` for one fit with a
   fitted noise variance (at most ``max_noise``), with a Lawson-Hanson NNLS.
 - :func:`predictive_covariances_kernel`: the widened (K, 2, 2) position covariances.
-- :func:`uncertainty_kernel`: all of them from the fit's ``[J | r]``.
+- :func:`sandwich_covariances_kernel`: all of them from the fit's ``[J | r]``.
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ import numpy as np
 
 from ...._kernels import compiled
 from ....typing import FloatArray, IntArray
-from .channel import ChannelConstants, TableConstants, beam_towards, channel_rows
+from .channel import ChannelConstants, TableConstants, beam_towards, channel_rows_kernel
 from .fit import Problem, _augmented, _multipliers, _symmetric_product
 
 __all__ = [
@@ -35,7 +35,7 @@ __all__ = [
     "misfit_design_kernel",
     "nnls_kernel",
     "predictive_covariances_kernel",
-    "uncertainty_kernel",
+    "sandwich_covariances_kernel",
 ]
 
 # As app.vlp.uncertainty (imported there would be circular through the solvers package).
@@ -101,7 +101,7 @@ def misfit_columns_kernel(
     n_leds = led_x.shape[0]
     xs = theta[:k].copy()
     ys = theta[k : 2 * k].copy()
-    gains = channel_rows(channel, table, xs, ys, heights, on_plane)[0]  # (K, M)
+    gains = channel_rows_kernel(channel, table, xs, ys, heights, on_plane)[0]  # (K, M)
     heights_free = layout[0] == 3
     kinds = 2 if heights_free else 3
     sizes = np.empty(kinds, dtype=np.int64)
@@ -134,7 +134,7 @@ def misfit_columns_kernel(
     _perturb(white, rotated, moved, multipliers, out, 0)
     # Tilt and height: line-of-sight tilt derivatives h / v_z (v_x, v_y), and dg/dz.
     shape = np.zeros((n_leds, k, 3))
-    free = channel_rows(channel, table, xs, ys, heights, False)
+    free = channel_rows_kernel(channel, table, xs, ys, heights, False)
     for i in range(k):
         for m in range(n_leds):
             off_x = led_x[m] - xs[i]
@@ -195,7 +195,7 @@ def _pinv_symmetric(matrix: FloatArray) -> FloatArray:
 def misfit_design_kernel(
     jacobian: FloatArray, normal: FloatArray, columns: FloatArray, sizes: IntArray
 ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
-    """:func:`app.vlp.uncertainty.misfit_design` with the error columns of every kind side
+    """:func:`app.vlp.uncertainty.misfit_design_reference` with the error columns of every kind side
     by side (``sizes`` of them each): ``(inverse, data_normal, prior_normal, error_normals,
     noise_leverage, error_leverages, error_spread)``."""
     n_data, n_params = jacobian.shape
@@ -481,7 +481,7 @@ def predictive_covariances_kernel(
 
 
 @compiled
-def uncertainty_kernel(
+def sandwich_covariances_kernel(
     channel: ChannelConstants,
     table: TableConstants,
     white: Problem,
