@@ -7,7 +7,9 @@ reference's largest magnitude (0: bit for bit).
 
 from __future__ import annotations
 
+import ast
 import dataclasses
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -16,6 +18,8 @@ import pytest
 from app.vlp._kernels import kernel_mode, use_kernels
 from app.vlp.solvers import _warm_up
 from app.vlp.solvers._kernel_table import KERNEL_TABLE, KernelRow
+
+SCIENCE = Path(__file__).resolve().parents[3] / "app" / "vlp"
 
 
 def _parts(value: Any) -> list[Any]:
@@ -49,6 +53,51 @@ def test_the_table_names_each_kernel_once() -> None:
     assert len(set(names)) == len(names)
     assert len({row.kernel for row in KERNEL_TABLE}) == len(KERNEL_TABLE)
     assert all(row.kernel is not row.reference for row in KERNEL_TABLE)
+
+
+def _calls(path: Path, function: str) -> list[ast.Call]:
+    """The calls of ``function`` (by its bare name) in the module at ``path``."""
+    tree = ast.parse(path.read_text(encoding="utf-8"), filename=str(path))
+    return [
+        node
+        for node in ast.walk(tree)
+        if isinstance(node, ast.Call)
+        and isinstance(node.func, ast.Name)
+        and node.func.id == function
+    ]
+
+
+def test_every_dispatch_is_a_row_of_the_table() -> None:
+    """Each (kernel, reference) pair that a module of the science package dispatches
+    between, read from its source, is a row: compared by the parity test, warmed by
+    warm_up."""
+    dispatched = set()
+    for path in SCIENCE.rglob("*.py"):
+        for call in _calls(path, "dispatch"):
+            assert all(isinstance(arg, ast.Name) for arg in call.args), path
+            dispatched.add(tuple(arg.id for arg in call.args if isinstance(arg, ast.Name)))
+    rows = {(row.kernel.__name__, row.reference.__name__) for row in KERNEL_TABLE}
+    assert dispatched == rows
+
+
+def test_a_kernel_and_its_reference_share_their_row_name() -> None:
+    """``foo_kernel`` and ``foo_reference`` for the row ``foo``, module-level functions of
+    one name each, and a compiled function ``foo_kernel`` in a compiled module."""
+    compiled_modules = [*(SCIENCE / "solvers" / "gridless" / "_compiled").glob("*.py")]
+    compiled_modules.append(SCIENCE / "_radii_compiled.py")
+    compiled = {
+        node.name
+        for path in compiled_modules
+        for node in ast.parse(path.read_text(encoding="utf-8")).body
+        if isinstance(node, ast.FunctionDef)
+        and any(isinstance(d, ast.Name) and d.id == "compiled" for d in node.decorator_list)
+    }
+    for row in KERNEL_TABLE:
+        assert row.kernel.__name__ == f"{row.name}_kernel"
+        assert row.reference.__name__ == f"{row.name}_reference"
+        assert row.kernel.__qualname__ == row.kernel.__name__  # module-level, not a method
+        assert row.reference.__qualname__ == row.reference.__name__
+        assert row.kernel.__name__ in compiled
 
 
 @pytest.mark.parametrize("row", KERNEL_TABLE, ids=[row.name for row in KERNEL_TABLE])
