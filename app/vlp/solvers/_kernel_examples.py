@@ -13,6 +13,7 @@ import dataclasses
 import functools
 import itertools
 import math
+from collections.abc import Callable
 from types import SimpleNamespace
 from typing import Any
 
@@ -20,7 +21,9 @@ import numpy as np
 import scipy.sparse as sp
 from scipy import special
 
+from .._reflection_table import ReflectionTable
 from ..fingerprints import Fingerprint, build_fingerprint
+from ..layout import Beam, Grid, Layout, Led, Receiver, Room
 from ..measurements import Model
 from ..presets import paper_layout
 from .gridless.channel import ChannelKernel
@@ -53,9 +56,13 @@ from .gridless.whitening import (
 )
 
 __all__ = [
+    "LAYOUTS",
+    "TABLES",
     "Arguments",
+    "beamed_layout",
     "best_of_tiles_examples",
     "channel_rows_examples",
+    "channel_rows_parts",
     "correlation_products_examples",
     "correlation_scores_examples",
     "fit_examples",
@@ -64,15 +71,19 @@ __all__ = [
     "joint_fit_examples",
     "joint_gains_examples",
     "joint_gains_parts",
+    "make_kernel",
     "misfit_design_examples",
     "objective_examples",
+    "one_led_layout",
     "radial_roots_examples",
     "refine_examples",
     "sandwich_examples",
     "sandwich_parts",
     "search_parts",
     "squared_gains_dot_examples",
+    "synthetic_table",
     "terminal_fit_examples",
+    "tilted_layout",
     "whitened_data_examples",
     "whitening_examples",
     "whitening_metric",
@@ -84,6 +95,79 @@ _MODELS: tuple[Model, ...] = ("correlation", "power")
 
 def _kernel() -> ChannelKernel:
     return ChannelKernel(paper_layout(), 1.0)
+
+
+def one_led_layout() -> Layout:
+    """M = 1: one LED above a small room."""
+    return Layout(
+        room=Room(length=3.0, width=2.0, height=2.8),
+        grid=Grid(step=0.25, receiver_height=0.8),
+        leds=(Led(x=1.4, y=0.9, z=2.8, half_power_angle_deg=50.0, pilot_amplitude=1.3),),
+        receiver=Receiver(area=1e-4, fov_deg=75.0, filter_gain=1.0, refractive_index=1.5),
+    )
+
+
+def tilted_layout() -> Layout:
+    """The paper room with every other LED tilted (10 to 20 degrees, various azimuths)."""
+    base = paper_layout()
+    leds = []
+    for i, led in enumerate(base.leds):
+        if i % 2:
+            tilt, azimuth = math.radians(10.0 + 2.5 * (i % 5)), 0.9 * i
+            normal = (
+                math.sin(tilt) * math.cos(azimuth),
+                math.sin(tilt) * math.sin(azimuth),
+                -math.cos(tilt),
+            )
+            led = dataclasses.replace(led, normal=normal)
+        leds.append(led)
+    return dataclasses.replace(base, leds=tuple(leds))
+
+
+def beamed_layout() -> Layout:
+    """The tilted room with batwing beams (photometric tables) on all but one LED."""
+    base = tilted_layout()
+    batwing = Beam(
+        (0.0, 15.0, 30.0, 45.0, 60.0, 75.0, 90.0), (1.0, 1.05, 1.12, 1.1, 0.7, 0.3, 0.05)
+    )
+    leds = tuple(
+        dataclasses.replace(led, beam=batwing if i else None) for i, led in enumerate(base.leds)
+    )
+    return dataclasses.replace(base, leds=leds)
+
+
+LAYOUTS: dict[str, Callable[[], Layout]] = {
+    "paper": paper_layout,
+    "one_led": one_led_layout,
+    "tilted": tilted_layout,
+    "beamed": beamed_layout,
+}
+TABLES = ("none", "flat", "heights")
+
+
+def synthetic_table(
+    layout: Layout, heights: bool, seed: int, magnitude: float = 1.0
+) -> ReflectionTable:
+    """A reflection table with random node values (the interpolation does not care what
+    they mean) up to ``magnitude``, on 2 or 3 axes."""
+    rng = np.random.default_rng(seed)
+    x_nodes = np.unique(np.r_[np.linspace(0.0, layout.room.length, 7), 0.05])
+    y_nodes = np.linspace(0.0, layout.room.width, 5)
+    z = layout.grid.receiver_height
+    z_nodes = np.linspace(z - 0.3, z + 0.3, 4) if heights else np.array([z])
+    terms = 8 if heights else 4
+    coefficients = rng.uniform(-1.0, 1.0, (x_nodes.size * y_nodes.size * z_nodes.size, terms, 1))
+    coefficients = coefficients * rng.uniform(0.5, 2.0, (1, 1, layout.n_leds)) * magnitude
+    return ReflectionTable(x_nodes, y_nodes, z_nodes, coefficients, z)
+
+
+def make_kernel(layout_name: str, table: str, seed: int = 0) -> ChannelKernel:
+    """The channel of a layout of :data:`LAYOUTS`, without a reflection table (``"none"``)
+    or with a synthetic one on the receivers' plane (``"flat"``) or around it
+    (``"heights"``)."""
+    layout = LAYOUTS[layout_name]()
+    diffuse = None if table == "none" else synthetic_table(layout, table == "heights", seed)
+    return ChannelKernel(layout, 0.7, diffuse)
 
 
 def _state(
@@ -153,14 +237,16 @@ def _dense_room(gains: np.ndarray) -> Any:
 
 
 def correlation_scores_examples() -> list[Arguments]:
-    kernel = _kernel()
+    """Every layout's dense room of 30 points, in the plain and a plug-in metric."""
     rng = np.random.default_rng(11)
-    room = _dense_room(_gains(kernel, rng, 30))
-    return [
-        (room, white, rng.standard_normal(white.weights.shape[0]))
-        for white in _whitenings(kernel, rng)
-        if white.model == "correlation"
-    ]
+    examples: list[Arguments] = []
+    for name in LAYOUTS:
+        kernel = make_kernel(name, "none")
+        room = _dense_room(_gains(kernel, rng, 30))
+        for white in _whitenings(kernel, rng):
+            if white.model == "correlation":
+                examples.append((room, white, rng.standard_normal(white.weights.shape[0])))
+    return examples
 
 
 def correlation_products_examples() -> list[Arguments]:
@@ -185,23 +271,25 @@ def correlation_products_examples() -> list[Arguments]:
 
 
 def objective_examples() -> list[Arguments]:
-    """``(objective, theta, state)``: both models, K = 1 and 3, every parameter layout, on
-    the plane and off it, in the plain and the plug-in metric, theta near the state's."""
-    kernel = _kernel()
+    """``(objective, theta, state)``: every layout, without a reflection table and with one
+    around the plane; both models, K = 1 and 3, every parameter layout, on the plane and off
+    it, in the plain and the plug-in metric, theta near the state's."""
     rng = np.random.default_rng(13)
     examples = []
-    for model, k, (priors, free_weights), on_plane in itertools.product(
-        _MODELS, (1, 3), _priors(kernel), (True, False)
-    ):
-        state = _state(kernel, rng, k, on_plane)
-        for white in (
-            Whitening.identity(model, kernel.n_leds),
-            whitening_reference(model, kernel, state, float(k)),
-        ):
-            values = rng.standard_normal((white.weights.shape[0],))
-            objective = Objective(kernel, white, values, free_weights, priors)
-            theta = objective.pack(state)
-            examples.append((objective, theta + rng.normal(0.0, 0.01, theta.shape), state))
+    kernels = [
+        make_kernel(name, table, seed=3) for name in LAYOUTS for table in ("none", "heights")
+    ]
+    for kernel, model, k, on_plane in itertools.product(kernels, _MODELS, (1, 3), (True, False)):
+        for priors, free_weights in _priors(kernel):
+            state = _state(kernel, rng, k, on_plane)
+            for white in (
+                Whitening.identity(model, kernel.n_leds),
+                whitening_reference(model, kernel, state, float(k)),
+            ):
+                values = rng.standard_normal((white.weights.shape[0],))
+                objective = Objective(kernel, white, values, free_weights, priors)
+                theta = objective.pack(state)
+                examples.append((objective, theta + rng.normal(0.0, 0.01, theta.shape), state))
     return examples
 
 
@@ -248,12 +336,16 @@ def _unwhitened(white: Whitening, whitened: np.ndarray) -> np.ndarray:
 
 
 def channel_rows_examples() -> list[Arguments]:
-    """One point and seven, some beyond the walls, on the plane and at heights around it."""
-    kernel = _kernel()
+    """Every layout, with no reflection table and with both kinds: one point and seven, some
+    beyond the walls (the table clamps, the line of sight does not), on the plane and at
+    heights around it."""
     rng = np.random.default_rng(16)
-    length, width = kernel.bounds
     examples = []
-    for n_points, on_plane in itertools.product((1, 7), (True, False)):
+    for layout_name, table, n_points, on_plane in itertools.product(
+        LAYOUTS, TABLES, (1, 7), (True, False)
+    ):
+        kernel = make_kernel(layout_name, table)
+        length, width = kernel.bounds
         xs = rng.uniform(-0.2, length + 0.2, n_points)
         ys = rng.uniform(-0.2, width + 0.2, n_points)
         zs = kernel.receiver_height + rng.uniform(-0.25, 0.25, n_points)
@@ -262,14 +354,20 @@ def channel_rows_examples() -> list[Arguments]:
 
 
 def whitening_examples() -> list[Arguments]:
-    """``(model, kernel, state, n_terminals)``: both models, K = 1, 3 and 20, on the plane
-    and off it."""
-    kernel = _kernel()
+    """``(model, kernel, state, n_terminals)``: every layout (with a reflection table on the
+    plane), both models, K = 1, 3 and 20, on the plane and off it."""
     rng = np.random.default_rng(15)
-    return [
-        (model, kernel, _state(kernel, rng, k, on_plane), float(k))
-        for model, k, on_plane in itertools.product(_MODELS, (1, 3, 20), (True, False))
-    ]
+    examples: list[Arguments] = []
+    for name in LAYOUTS:
+        kernel = make_kernel(name, "flat", seed=4)
+        for model, k, on_plane in itertools.product(_MODELS, (1, 3, 20), (True, False)):
+            examples.append((model, kernel, _state(kernel, rng, k, on_plane), float(k)))
+    return examples
+
+
+def channel_rows_parts(rows: np.ndarray) -> tuple[Any, ...]:
+    """The gains and each derivative, each against its own magnitude."""
+    return tuple(rows)
 
 
 def whitening_metric(white: Whitening) -> tuple[Any, ...]:

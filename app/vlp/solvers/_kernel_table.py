@@ -26,6 +26,7 @@ from ._kernel_examples import (
     Arguments,
     best_of_tiles_examples,
     channel_rows_examples,
+    channel_rows_parts,
     correlation_products_examples,
     correlation_scores_examples,
     fit_examples,
@@ -124,7 +125,13 @@ KERNEL_TABLE: tuple[KernelRow, ...] = (
     ),
     KernelRow("residual", residual_reference, residual_kernel, objective_examples),
     KernelRow("gram", gram_reference, gram_kernel, objective_examples),
-    KernelRow("channel_rows", channel_rows_reference, channel_rows_kernel, channel_rows_examples),
+    KernelRow(
+        "channel_rows",
+        channel_rows_reference,
+        channel_rows_kernel,
+        channel_rows_examples,
+        compared=channel_rows_parts,
+    ),
     KernelRow("fit", fit_reference, fit_kernel, fit_examples, rtol=1e-8),
     KernelRow(
         "whitening",

@@ -13,7 +13,6 @@ import copy
 import dataclasses
 import importlib
 import itertools
-import math
 import os
 import subprocess
 import sys
@@ -31,13 +30,18 @@ from app.vlp._kernels import (
     kernel_mode,
     use_kernels,
 )
-from app.vlp._reflection_table import ReflectionTable
 from app.vlp.fingerprints import build_fingerprint
-from app.vlp.layout import Beam, Grid, Layout, Led, Receiver, Reflectance, Room
+from app.vlp.layout import Grid, Layout, Led, Receiver, Reflectance, Room
 from app.vlp.measurements import Model, measurement_from_amplitudes
 from app.vlp.presets import paper_layout
 from app.vlp.simulation import true_amplitudes
 from app.vlp.solvers import warm_up
+from app.vlp.solvers._kernel_examples import (
+    LAYOUTS,
+    TABLES,
+    make_kernel,
+    synthetic_table,
+)
 from app.vlp.solvers.gridless._compiled.channel import (
     channel_constants,
     channel_rows_kernel,
@@ -50,14 +54,13 @@ from app.vlp.solvers.gridless._compiled.fit import (
     fit_normal_equations,
     gram_kernel,
 )
-from app.vlp.solvers.gridless._compiled.scores import correlation_scores_kernel
 from app.vlp.solvers.gridless._compiled.uncertainty import (
     fit_misfit_kernel,
     misfit_design_kernel,
     nnls_kernel,
 )
 from app.vlp.solvers.gridless.channel import ChannelKernel
-from app.vlp.solvers.gridless.fitting import Run, grid_correlations
+from app.vlp.solvers.gridless.fitting import Run
 from app.vlp.solvers.gridless.joint_model import (
     JointModel,
     RoomTolerances,
@@ -101,108 +104,12 @@ def normal(rng: np.random.Generator, size: int) -> FloatArray:
     return np.asarray(rng.standard_normal(size), dtype=np.float64)
 
 
-def one_led_layout() -> Layout:
-    """M = 1: one LED above a small room."""
-    return Layout(
-        room=Room(length=3.0, width=2.0, height=2.8),
-        grid=Grid(step=0.25, receiver_height=0.8),
-        leds=(Led(x=1.4, y=0.9, z=2.8, half_power_angle_deg=50.0, pilot_amplitude=1.3),),
-        receiver=Receiver(area=1e-4, fov_deg=75.0, filter_gain=1.0, refractive_index=1.5),
-    )
-
-
-def synthetic_table(
-    layout: Layout, heights: bool, seed: int, magnitude: float = 1.0
-) -> ReflectionTable:
-    """A reflection table with random node values (the interpolation does not care what
-    they mean) up to ``magnitude``, on 2 or 3 axes."""
-    rng = np.random.default_rng(seed)
-    x_nodes = np.unique(np.r_[np.linspace(0.0, layout.room.length, 7), 0.05])
-    y_nodes = np.linspace(0.0, layout.room.width, 5)
-    z = layout.grid.receiver_height
-    z_nodes = np.linspace(z - 0.3, z + 0.3, 4) if heights else np.array([z])
-    terms = 8 if heights else 4
-    coefficients = rng.uniform(-1.0, 1.0, (x_nodes.size * y_nodes.size * z_nodes.size, terms, 1))
-    coefficients = coefficients * rng.uniform(0.5, 2.0, (1, 1, layout.n_leds)) * magnitude
-    return ReflectionTable(x_nodes, y_nodes, z_nodes, coefficients, z)
-
-
-def tilted_layout() -> Layout:
-    """The paper room with every other LED tilted (10 to 20 degrees, various azimuths)."""
-    base = paper_layout()
-    leds = []
-    for i, led in enumerate(base.leds):
-        if i % 2:
-            tilt, azimuth = math.radians(10.0 + 2.5 * (i % 5)), 0.9 * i
-            normal = (
-                math.sin(tilt) * math.cos(azimuth),
-                math.sin(tilt) * math.sin(azimuth),
-                -math.cos(tilt),
-            )
-            led = dataclasses.replace(led, normal=normal)
-        leds.append(led)
-    return dataclasses.replace(base, leds=tuple(leds))
-
-
-def beamed_layout() -> Layout:
-    """The tilted room with batwing beams (photometric tables) on all but one LED."""
-    base = tilted_layout()
-    batwing = Beam(
-        (0.0, 15.0, 30.0, 45.0, 60.0, 75.0, 90.0), (1.0, 1.05, 1.12, 1.1, 0.7, 0.3, 0.05)
-    )
-    leds = tuple(
-        dataclasses.replace(led, beam=batwing if i else None) for i, led in enumerate(base.leds)
-    )
-    return dataclasses.replace(base, leds=leds)
-
-
-LAYOUTS = {
-    "paper": paper_layout,
-    "one_led": one_led_layout,
-    "tilted": tilted_layout,
-    "beamed": beamed_layout,
-}
-TABLES = ("none", "flat", "heights")
-
-
-def make_kernel(layout_name: str, table: str, seed: int = 0) -> ChannelKernel:
-    layout = LAYOUTS[layout_name]()
-    diffuse = None if table == "none" else synthetic_table(layout, table == "heights", seed)
-    return ChannelKernel(layout, 0.7, diffuse)
-
-
 def random_points(kernel: ChannelKernel, n_points: int, rng: np.random.Generator) -> FloatArray:
     length, width = kernel.bounds
     # Some points beyond the walls: the table clamps, the line of sight does not.
     return np.column_stack(
         (rng.uniform(-0.2, length + 0.2, n_points), rng.uniform(-0.2, width + 0.2, n_points))
     )
-
-
-@pytest.mark.parametrize("layout_name", list(LAYOUTS))
-@pytest.mark.parametrize("table", TABLES)
-@pytest.mark.parametrize("n_points", [1, 7])
-def test_channel_matches_reference(layout_name: str, table: str, n_points: int) -> None:
-    kernel = make_kernel(layout_name, table)
-    rng = np.random.default_rng(n_points)
-    points = random_points(kernel, n_points, rng)
-    xs, ys = points[:, 0].copy(), points[:, 1].copy()
-    zs = kernel.receiver_height + rng.uniform(-0.25, 0.25, n_points)
-    channel, constants = channel_constants(kernel)  # type: ignore[misc]
-    flat = channel_rows_kernel(channel, constants, xs, ys, zs, True)
-    reference_flat = kernel.gradients_xy(xs, ys)
-    for block in range(3):  # dg/dx, dg/dy, g
-        assert_same(
-            flat[(1, 2, 0)[block]].T, reference_flat[:, block * n_points : (block + 1) * n_points]
-        )
-    assert not flat[3].any()
-    free = channel_rows_kernel(channel, constants, xs, ys, zs, False)
-    reference_free = kernel.gradients_xyz(xs, ys, zs)
-    for block in range(4):  # dg/dx, dg/dy, dg/dz, g
-        assert_same(
-            free[(1, 2, 3, 0)[block]].T,
-            reference_free[:, block * n_points : (block + 1) * n_points],
-        )
 
 
 @pytest.mark.parametrize("heights", [False, True])
@@ -248,40 +155,6 @@ PRIORS = {
     "heights": (Priors(0.1, 0.5, 0.05, 0.85, (0.6, 1.1)), False),
     "free_weights": (Priors(), True),
 }
-
-
-@pytest.mark.parametrize("model", ["correlation", "power"])
-@pytest.mark.parametrize("k", [1, 3])
-@pytest.mark.parametrize("layout_name", list(LAYOUTS))
-@pytest.mark.parametrize("priors_name", list(PRIORS))
-@pytest.mark.parametrize("table", ["none", "heights"])
-def test_objective_matches_reference(
-    model: Model, k: int, layout_name: str, priors_name: str, table: str
-) -> None:
-    """Residual, ``J^T J``, ``J^T r`` and the cost, whitened or not, on and off the plane."""
-    kernel = make_kernel(layout_name, table, seed=k)
-    priors, free_weights = PRIORS[priors_name]
-    if priors.fits_heights:
-        priors = dataclasses.replace(priors, height_mean=kernel.receiver_height)
-    rng = np.random.default_rng(10 * k + len(priors_name))
-    for on_plane in (True, False):
-        state = random_state(kernel, k, rng, on_plane)
-        for white in (
-            Whitening.identity(model, kernel.n_leds),
-            whitening_reference(model, kernel, state, float(k)),
-        ):
-            values = normal(rng, white.weights.shape[0])
-            objective = Objective(kernel, white, values, free_weights, priors)
-            theta = objective.pack(state) + rng.normal(0.0, 0.01, objective.pack(state).shape)
-            with use_kernels("reference"):
-                want_residual = objective.residual(theta, state)
-                want = gram_reference(objective, theta, state)
-            fresh = Objective(kernel, white, values, free_weights, priors)
-            assert fresh.compiled_problem() is not None
-            assert_same(fresh.residual(theta, state), want_residual)
-            got = gram(fresh, theta, state)
-            for got_part, want_part in zip(got, want, strict=True):
-                assert_same(got_part, want_part)
 
 
 # Every (model, K, priors) but power with gains and scale free at K > 1: 16 values for 14
@@ -494,49 +367,6 @@ def test_joint_fit_matches_reference(
         assert_same(got[: 2 * k], want[: 2 * k])
         assert_same(got, want)  # every parameter, normwise
         assert got_cost == pytest.approx(want_cost, rel=1e-10)
-
-
-@pytest.mark.parametrize("model", ["correlation", "power"])
-@pytest.mark.parametrize("layout_name", list(LAYOUTS))
-@pytest.mark.parametrize("k", [1, 3, 20])
-def test_whitening_matches_reference(model: Model, layout_name: str, k: int) -> None:
-    """Same weights and the same metric ``U diag(lam) U^T``: eigenvectors themselves are not
-    unique (signs; any basis of the noise-only eigenspace), so they are not compared."""
-    kernel = make_kernel(layout_name, "flat", seed=k)
-    rng = np.random.default_rng(k)
-    state = random_state(kernel, k, rng, on_plane=k != 3)
-    want = whitening_reference(model, kernel, state, float(k))
-    got = Whitening.from_state(model, kernel, state, float(k))
-    assert_same(got.weights, want.weights)
-    if model == "power":
-        assert got.rotation is None and want.rotation is None
-        return
-    assert got.rotation is not None and want.rotation is not None
-    diagonal = want.upper == want.lower  # weight^-2 there is 4 sigma^2 lam
-    metrics = [
-        (white.rotation * white.weights[diagonal] ** -2.0) @ white.rotation.T
-        for white in (got, want)
-        if white.rotation is not None
-    ]
-    assert_same(metrics[0], metrics[1])
-
-
-@pytest.mark.parametrize("layout_name", list(LAYOUTS))
-def test_insertion_scores_match_reference(layout_name: str) -> None:
-    layout = LAYOUTS[layout_name]()
-    solver = GridlessSolver(build_fingerprint(layout), "correlation")
-    rng = np.random.default_rng(11)
-    state = random_state(solver.room.kernel, 2, rng, on_plane=True)
-    for white in (
-        Whitening.identity("correlation", layout.n_leds),
-        whitening_reference("correlation", solver.room.kernel, state, 2.0),
-    ):
-        residual = normal(rng, white.weights.shape[0])
-        with use_kernels("reference"):
-            want = grid_correlations(solver.room, white, residual)
-        got = correlation_scores_kernel(white.compiled(), residual, solver.room.gains)
-        for got_part, want_part in zip(got, want, strict=True):
-            assert_same(got_part, want_part)
 
 
 def _grown(
