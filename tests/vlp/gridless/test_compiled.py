@@ -36,7 +36,7 @@ from app.vlp.measurements import Model, measurement_from_amplitudes
 from app.vlp.presets import paper_layout
 from app.vlp.simulation import true_amplitudes
 from app.vlp.solvers import warm_up
-from app.vlp.solvers._kernel_examples import (
+from app.vlp.solvers._kernel_rooms import (
     LAYOUTS,
     TABLES,
     make_kernel,
