@@ -42,10 +42,11 @@ from .uncertainty import (
 # explain, in standard deviations of the noise's chi-square, for the terminals to be
 # refitted with the LEDs' errors in their weights.
 _LED_WEIGHT_SIGNIFICANCE = 3.0
-# ... and the largest relative sd of an LED's error taken for one: data sheets bin flux
-# within +-10-15 %; a larger estimate is a fit that does not hold (a terminal placed far
-# off in a badly lit room), which the weights would make worse
-# (docs/decisions/led-errors-in-terminal-weights.md).
+# ... and, pooled over several terminals, the largest relative sd of an LED's error taken for
+# one: data sheets bin flux within +-10-15 %; a larger pooled estimate is one terminal's fit
+# that does not hold (placed far off in a badly lit room), and the weights would move the
+# others off. A lone terminal's estimate weights only itself: on beams far from their
+# nominal shape it is large and real (docs/decisions/led-errors-in-terminal-weights.md).
 _MAX_LED_ERROR_SD = 0.25
 # Standard deviations of the chi-square by which a request's residuals may exceed what the
 # survey's measured scatter predicts and still be taken for the survey receiver's kind.
@@ -402,11 +403,12 @@ def terminal_misfit_columns(
 
 def _led_errors_seen(designs: list[MisfitDesign], led_error: float) -> bool:
     """Whether the LEDs' relative errors, variance ``led_error`` (the first model error of
-    each design), explain more of the residuals' sum of squares than the noise's chi-square
-    scatters (``_LED_WEIGHT_SIGNIFICANCE`` standard deviations): where the room's LEDs are
-    as modelled, a moment estimate of ``led_error`` above 0 is the noise's chance; and
-    whether it is an LED's error at all (relative sd at most ``_MAX_LED_ERROR_SD``)."""
-    if not 0.0 < led_error <= _MAX_LED_ERROR_SD**2:
+    each design, one per terminal), explain more of the residuals' sum of squares than the
+    noise's chi-square scatters (``_LED_WEIGHT_SIGNIFICANCE`` standard deviations): where the
+    room's LEDs are as modelled, a moment estimate of ``led_error`` above 0 is the noise's
+    chance; and, pooled over several terminals, whether it is an LED's error at all (relative
+    sd at most ``_MAX_LED_ERROR_SD``)."""
+    if not led_error > 0.0 or (len(designs) > 1 and led_error > _MAX_LED_ERROR_SD**2):
         return False
     seen = led_error * sum(float(design.error_leverages[:, 0].sum()) for design in designs)
     noise_dof = sum(float(design.noise_leverage.sum()) for design in designs)
