@@ -53,6 +53,12 @@ _MAX_LED_ERROR_SD = 0.25
 _SCATTER_SIGNIFICANCE = 3.0
 # Reweightings of a terminal fitted with a Student-t scatter: its weights settle within a few.
 _TAIL_REWEIGHTS = 3
+# Grid cells a weighted pass starts from besides the previous pass's optimum (the best of
+# that pass's own cost, :func:`profile_starts`), and how far apart they are, metres: the
+# first pass's equal weights and free gain can have led its few starts all into one wrong
+# basin, which with few LEDs detected is far from the truth.
+_PROFILE_STARTS = 3
+_PROFILE_START_SPACING_M = 0.5
 
 
 def solve_terminals(
@@ -154,26 +160,37 @@ def solve_terminals(
     sigma2 = sum(fit.rss for fit in first) / float(dof.sum())
 
     def refitted(
-        starts: list[TerminalFit], variances: Callable[[TerminalFit], float | FloatArray]
+        starts: list[TerminalFit],
+        variances: Callable[[TerminalFit], float | FloatArray],
+        search: bool,
     ) -> list[TerminalFit]:
-        """Every terminal fitted on all the LEDs from ``starts``, its amplitudes weighted by
-        ``variances`` of its start (plus, where censored, their interval's own)."""
-        return [
-            fit_terminal(
-                room.kernel,
-                values[k],
-                start.position[None, :],
-                priors=room.priors,
-                sigma2=with_censored_variance(variances(start), censored_var[k]),  # [censored hook]
-                height=own_heights[k],
-                normal=own_normals[k],
-                tilt_sd=tilt_sd,
-                tilt_spread_known=tilt_spread_known,
+        """Every terminal fitted on all the LEDs from ``starts`` (and, with ``search``, from
+        the best grid cells of its new cost), its amplitudes weighted by ``variances`` of its
+        start (plus, where censored, their interval's own)."""
+        fits = []
+        for k, start in enumerate(starts):
+            weights = with_censored_variance(variances(start), censored_var[k])  # [censored hook]
+            points = start.position[None, :]
+            if search:
+                points = np.vstack(
+                    (points, profile_starts(room, values[k], weights, start.position))
+                )
+            fits.append(
+                fit_terminal(
+                    room.kernel,
+                    values[k],
+                    points,
+                    priors=room.priors,
+                    sigma2=weights,
+                    height=own_heights[k],
+                    normal=own_normals[k],
+                    tilt_sd=tilt_sd,
+                    tilt_spread_known=tilt_spread_known,
+                )
             )
-            for k, start in enumerate(starts)
-        ]
+        return fits
 
-    fits = refitted(first, lambda _: sigma2)
+    fits = refitted(first, lambda _: sigma2, search=True)
 
     def misfit_of(
         fits: list[TerminalFit], led_errors: bool = True
@@ -209,11 +226,15 @@ def solve_terminals(
     # covariance is then the t's, (nu + 3) / (nu + 1) the weighted fit's.
     tail_factor = 1.0
     if measured is not None:
-        like_survey = refitted(fits, lambda fit: measured_variances(measured, room.scale, fit))
+        like_survey = refitted(
+            fits, lambda fit: measured_variances(measured, room.scale, fit), search=True
+        )
         if measured.tail_dof is not None:
             for _ in range(_TAIL_REWEIGHTS):
                 like_survey = refitted(
-                    like_survey, lambda fit: tail_weighted_variances(measured, room.scale, fit)
+                    like_survey,
+                    lambda fit: tail_weighted_variances(measured, room.scale, fit),
+                    search=False,
                 )
         if not (room.receivers_level or _scatter_explains(like_survey, n_leds, measured.tail_dof)):
             like_survey = None
@@ -232,11 +253,14 @@ def solve_terminals(
             )
             tail_factor = (measured.tail_dof + 3.0) / (measured.tail_dof + 1.0)
     elif reweighted:
+        # From the optimum only: weights estimated there are not the cost elsewhere (a
+        # search under them went to worse places on beams far from their nominal shape).
         fits = refitted(
             fits,
             lambda fit: (
                 misfit.noise * sigma2 + led_error * (fit.jacobian[:, -1] / fit.data_weight) ** 2
             ),
+            search=False,
         )
         # The LEDs' errors are in the weights now: a model error along them as well
         # would count them twice (radii too wide).
@@ -304,6 +328,40 @@ def solve_terminals(
         else None,
         fit=fit_quality,
     )
+
+
+def profile_starts(
+    room: PreparedRoom, values: FloatArray, variances: float | FloatArray, previous: FloatArray
+) -> FloatArray:
+    """Up to ``_PROFILE_STARTS`` grid cells (S, 2) where a terminal's weighted cost is lowest,
+    each ``_PROFILE_START_SPACING_M`` from the others and from ``previous`` (2,).
+
+    The cost of cell n is ``sum_i w_i (a_i - g_n G_in)^2`` with ``w = 1 / variances`` and
+    the gain ``g_n`` profiled out (its prior added where the room's priors give one): the
+    weighted pass's own cost on the plane, which the first pass's starts (equal weights, any
+    gain) do not rank by. Dense rooms only (large rooms start each terminal in its own
+    window); empty otherwise.
+    """
+    if not room.dense:
+        return np.empty((0, 2))
+    weights = np.broadcast_to(1.0 / np.asarray(variances, dtype=np.float64), values.shape)
+    across = (weights * values) @ room.gains  # (N,)
+    energy = weights @ room.gains_sq  # (N,)
+    lit = energy > 0.0
+    gain = np.where(lit, np.clip(across / np.where(lit, energy, 1.0), 1e-3, 1e3), 1.0)
+    cost = float(weights @ values**2) - 2.0 * gain * across + gain**2 * energy
+    if room.priors.log_gain_sd is not None:
+        cost = cost + (np.log(gain) / room.priors.log_gain_sd) ** 2
+    chosen: list[FloatArray] = [np.asarray(previous, dtype=np.float64)]
+    top = min(50 * _PROFILE_STARTS, cost.size)
+    candidates = np.argpartition(cost, top - 1)[:top]
+    for index in candidates[np.argsort(cost[candidates])]:
+        point = room.centres[index]
+        if all(np.hypot(*(point - other)) >= _PROFILE_START_SPACING_M for other in chosen):
+            chosen.append(point)
+            if len(chosen) > _PROFILE_STARTS:
+                break
+    return np.array(chosen[1:]).reshape(-1, 2)
 
 
 def _scatter_explains(fits: list[TerminalFit], n_leds: int, tail_dof: float | None) -> bool:
