@@ -87,11 +87,12 @@ def solve_terminals(
     -----
     See :mod:`.gridless.terminals`. Two passes: without priors, to estimate the amplitude
     noise variance pooled over the terminals (its residual sum of squares over its
-    degrees of freedom), then with the gain and height priors weighted by it (each
-    terminal's gain held at 1 and its photodiode level unless freeing them lowers the
-    cost significantly, or its tilt fitted with the layout's ``receiver_tilt_sd`` as
-    the prior when it declares one: :func:`.terminals.fit_terminal`). The covariance of
-    each position is the sandwich of its whitened fit with the noise and
+    degrees of freedom), then with the gain and height priors weighted by it, started from
+    the first pass's optimum and from the grid cells where this cost is lowest
+    (:func:`profile_starts`) (each terminal's gain held at 1 and its photodiode level
+    unless freeing them lowers the cost significantly, or its tilt fitted with the layout's
+    ``receiver_tilt_sd`` as the prior when it declares one: :func:`.terminals.fit_terminal`).
+    The covariance of each position is the sandwich of its whitened fit with the noise and
     the model errors the fit does not fit (:func:`terminal_misfit_columns`), their
     variances estimated from all terminals' residuals together (the first pass's noise
     level holds part of the misfit, so the noise variance is re-estimated with them)
