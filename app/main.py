@@ -124,14 +124,13 @@ def _count_jobs(app: FastAPI) -> dict[str, int] | None:
 
 def _warm_up_solvers() -> None:
     """Load every solver kernel and the tracking filter's now, before serving
-    (``VLP_WARM_KERNELS_AT_START``); by default a process loads them when it first prepares a
-    solver (:class:`app.services.fingerprint_cache.FingerprintCache`) or tracks, and one that
-    never solves never imports the solvers or numba."""
+    (``VLP_WARM_KERNELS_AT_START``; :func:`app.vlp.solvers.warm_up` loads every row of the
+    kernel table, the filter's among them); by default a process loads them when it first
+    prepares a solver (:class:`app.services.fingerprint_cache.FingerprintCache`) or tracks,
+    and one that never solves never imports the solvers or numba."""
     from app.vlp.solvers import warm_up
-    from app.vlp.tracking.filter import warm_up as warm_up_tracking
 
     warm_up()
-    warm_up_tracking()
 
 
 def _epoch_sweeper(

@@ -11,9 +11,8 @@ The compiled kernels (the ``_compiled`` modules of :mod:`app.vlp.solvers.gridles
 is bound by the per-call overhead of NumPy, not by its arithmetic. The environment variable
 ``VLP_KERNELS`` picks the default (``compiled``, or ``reference``); :func:`use_kernels`
 switches within a process (the benchmarks time both side by side). Callers choose between a
-kernel and its reference only through :func:`dispatch` (the function to call; the solvers'
-kernels and references are listed in ``app/vlp/solvers/_kernel_table.py``) and
-:func:`compiled_only` (a kernel's constants, None with the references).
+kernel and its reference only through :func:`dispatch` (the function to call; every kernel
+and its reference are listed in ``app/vlp/solvers/_kernel_table.py``).
 
 Compiled functions are cached on disk, in a folder named after a digest of every source file
 of :mod:`app.vlp` (:func:`kernel_cache_dir`) inside ``NUMBA_CACHE_DIR``, else next to the
@@ -40,7 +39,6 @@ __all__ = [
     "KernelMode",
     "compiled",
     "compiled_inline",
-    "compiled_only",
     "compiled_reassociating",
     "dispatch",
     "kernel_cache_dir",
@@ -118,17 +116,9 @@ def dispatch(kernel: Callable[_P, _R], reference: Callable[_P, _R]) -> Callable[
     """The function to call: ``kernel`` (a function of the reference's arguments that runs the
     compiled code) while the compiled kernels are in use, else its NumPy ``reference``.
 
-    With :func:`compiled_only`, the one place where the science package chooses between a
-    compiled kernel and its reference (the kernel engine's mode is read nowhere else, but as
-    part of a cache key)."""
+    The one place where the science package chooses between a compiled kernel and its
+    reference (the kernel engine's mode is read nowhere else, but as part of a cache key)."""
     return kernel if _mode == "compiled" else reference
-
-
-def compiled_only(factory: Callable[_P, _R], *args: _P.args, **kwargs: _P.kwargs) -> _R | None:
-    """``factory(*args, **kwargs)`` -- the compiled form of something (a kernel's constants,
-    a problem's tuples) -- while the compiled kernels are in use, else None: the caller then
-    runs the NumPy reference (see :func:`dispatch`)."""
-    return factory(*args, **kwargs) if _mode == "compiled" else None
 
 
 @contextmanager

@@ -6,11 +6,13 @@ One rule names them: a kernel ``foo`` is the module-level pair ``foo_reference``
 does not apply), next to each other in the module that uses them, whose callers reach them
 only through ``dispatch(foo_kernel, foo_reference)`` (:func:`app.vlp._kernels.dispatch`).
 ``misfit_design_reference`` lives in :mod:`app.vlp.uncertainty`, which must not import the
-solver: its kernel is :mod:`.gridless.uncertainty`'s. One table drives both
-:func:`app.vlp.solvers.warm_up` (every row's kernel on its examples, so a request never waits
-for the compiler) and the parametrized parity test (``tests/vlp/gridless/test_kernel_table.py``:
-the kernel gives its reference's numbers on every example): a new kernel is one row here, its
-examples in :mod:`._kernel_examples`.
+solver: its kernel is :mod:`.gridless.uncertainty`'s. The tracking filter's step
+(:mod:`app.vlp.tracking.filter`) is a row too. One table drives both
+:func:`app.vlp.solvers.warm_up` (every row's kernel on its examples, so neither a request nor
+a tracker's step waits for the compiler) and the parametrized parity test
+(``tests/vlp/gridless/test_kernel_table.py``: the kernel gives its reference's numbers on
+every example): a new kernel is one row here, its examples in :mod:`._kernel_examples` (the
+filter's in :mod:`._kernel_tracks`).
 
 Like :mod:`._warm_up`, this module is at the top of the kernels' imports: it imports the
 kernels' callers, and nothing in :mod:`app.vlp` imports it but :mod:`._warm_up`.
@@ -21,6 +23,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any, NamedTuple
 
+from ..tracking.filter import predict_update_kernel, predict_update_reference
 from ..uncertainty import misfit_design_reference, radial_roots_kernel, radial_roots_reference
 from ._kernel_examples import (
     Arguments,
@@ -48,6 +51,7 @@ from ._kernel_examples import (
     whitening_examples,
     whitening_metric,
 )
+from ._kernel_tracks import predict_update_examples, predict_update_parts
 from .gridless.channel_rows import channel_rows_kernel, channel_rows_reference
 from .gridless.fitting import correlation_scores_kernel, correlation_scores_reference
 from .gridless.joint_model import (
@@ -177,4 +181,11 @@ KERNEL_TABLE: tuple[KernelRow, ...] = (
     KernelRow("refine", refine_reference, refine_kernel, refine_examples, compared=search_parts),
     KernelRow("terminal_fit", terminal_fit_reference, terminal_fit_kernel, terminal_fit_examples),
     KernelRow("radial_roots", radial_roots_reference, radial_roots_kernel, radial_roots_examples),
+    KernelRow(
+        "predict_update",
+        predict_update_reference,
+        predict_update_kernel,
+        predict_update_examples,
+        compared=predict_update_parts,
+    ),
 )

@@ -21,7 +21,8 @@ _warm = False
 
 
 def warm_up() -> None:
-    """Compile (or load from the disk cache) every kernel the default solver uses.
+    """Compile (or load from the disk cache) every kernel the default solver and the
+    tracking filter use.
 
     Idempotent and thread-safe; a no-op with the reference kernels. Called by the service at
     start-up, so that no terminal's request waits for the compiler.

@@ -1,13 +1,14 @@
 """Compiled filter step: :func:`app.vlp.tracking.filter.predict` then
 :func:`~app.vlp.tracking.filter.update`, one track at a time.
 
-The NumPy functions are the reference and document the method (the standing / walking IMM,
-a fix's two noise hypotheses, the learned noise level). A room's step updates every track
-(100 of them, or 10): NumPy's cost there is the overhead of some hundred and fifty array
-calls on arrays of a few hundred numbers, not the arithmetic. Here each track runs alone in
-scalars and 4 x 4 blocks. A track's restart after too many wild fixes is left to the caller
-(it is rare, and :func:`~app.vlp.tracking.filter.start_tracks` is the one place that starts
-a track). Private: callers validate.
+Its NumPy reference, :func:`~app.vlp.tracking.filter.predict_update_reference`, documents the
+method (the standing / walking IMM, a fix's two noise hypotheses, the learned noise level);
+:func:`~app.vlp.tracking.filter.predict_update_kernel` packs its arguments for this one. A
+room's step updates every track (100 of them, or 10): NumPy's cost there is the overhead of
+some hundred and fifty array calls on arrays of a few hundred numbers, not the arithmetic.
+Here each track runs alone in scalars and 4 x 4 blocks. A track's restart after too many wild
+fixes is left to the caller (it is rare, and :func:`~app.vlp.tracking.filter.start_tracks` is
+the one place that starts a track). Private: callers validate.
 """
 
 from __future__ import annotations

@@ -14,9 +14,7 @@ track whose fixes run away from it in one direction has set off (:mod:`.starts`)
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, cast
 
 import numpy as np
 
@@ -35,9 +33,10 @@ __all__ = [
     "inverse_2x2",
     "predict",
     "predict_update",
+    "predict_update_kernel",
+    "predict_update_reference",
     "start_tracks",
     "update",
-    "warm_up",
 ]
 
 
@@ -378,35 +377,69 @@ def predict_update(
     ``k`` with fix ``k``, :func:`update` with ``inflate_chi2``, the time since the track's
     state as ``elapsed_s``).
 
-    The compiled kernel (:mod:`._filter_compiled`) while the compiled kernels are in use, else
-    the two NumPy functions, which are its reference.
+    :func:`predict_update_kernel` while the compiled kernels are in use, else
+    :func:`predict_update_reference`; then the restarts. The kernel engine is imported here,
+    not at the top: numba loads with the first step, not with this module.
     """
-    kernel = _compiled_predict_update()
-    if kernel is None:
-        elapsed = np.maximum(time_s - bank.times_s, 0.0)
-        stated = floored_covariances(covariances, settings)
-        offsets = whitened_offsets(
-            bank.means,
-            bank.covariances,
-            bank.noise_var,
-            positions,
-            (stated[:, 0, 0] + stated[:, 1, 1]) / 2.0,
-            elapsed,
-            settings,
-        )
-        predicted = predict(bank, np.full(bank.size, time_s), settings)
-        updated, wild = _updated(
-            predicted,
-            positions,
-            covariances,
-            settings,
-            elapsed,
-            learn=learn,
-            inflate_chi2=inflate_chi2,
-        )
-        updated = after_runs(updated, bank, offsets, learn, settings)
-        return _restarts(updated, wild, positions, covariances, settings)
-    means, covs, probabilities, times, streak, noise_var, stated_var, offset, wild = kernel(
+    from .._kernels import dispatch
+
+    updated, wild = dispatch(predict_update_kernel, predict_update_reference)(
+        bank, positions, covariances, time_s, settings, learn, inflate_chi2
+    )
+    return _restarts(updated, wild, positions, covariances, settings)
+
+
+def predict_update_reference(
+    bank: TrackBank,
+    positions: FloatArray,
+    covariances: FloatArray,
+    time_s: float,
+    settings: TrackerSettings,
+    learn: bool,
+    inflate_chi2: float | FloatArray | None,
+) -> tuple[TrackBank, BoolArray]:
+    """:func:`predict_update` before the restarts, with the NumPy functions (:func:`predict`,
+    then :func:`update`'s step and :func:`.starts.after_runs`): the updated tracks and which
+    fixes were wild."""
+    elapsed = np.maximum(time_s - bank.times_s, 0.0)
+    stated = floored_covariances(covariances, settings)
+    offsets = whitened_offsets(
+        bank.means,
+        bank.covariances,
+        bank.noise_var,
+        positions,
+        (stated[:, 0, 0] + stated[:, 1, 1]) / 2.0,
+        elapsed,
+        settings,
+    )
+    predicted = predict(bank, np.full(bank.size, time_s), settings)
+    updated, wild = _updated(
+        predicted,
+        positions,
+        covariances,
+        settings,
+        elapsed,
+        learn=learn,
+        inflate_chi2=inflate_chi2,
+    )
+    return after_runs(updated, bank, offsets, learn, settings), wild
+
+
+def predict_update_kernel(
+    bank: TrackBank,
+    positions: FloatArray,
+    covariances: FloatArray,
+    time_s: float,
+    settings: TrackerSettings,
+    learn: bool,
+    inflate_chi2: float | FloatArray | None,
+) -> tuple[TrackBank, BoolArray]:
+    """:func:`predict_update_reference` compiled (:mod:`._filter_compiled`; each track steps
+    alone, in scalars and 4 x 4 blocks)."""
+    # by its module, not the package: the package imports this module
+    from ._filter_compiled import predict_update_kernel as compiled_step
+
+    means, covs, probabilities, times, streak, noise_var, stated_var, offset, wild = compiled_step(
         bank.means,
         bank.covariances,
         bank.model_probabilities,
@@ -421,7 +454,8 @@ def predict_update(
         learn,
         np.ascontiguousarray(
             np.broadcast_to(
-                settings.gate_chi2 if inflate_chi2 is None else inflate_chi2, bank.times_s.shape
+                settings.gate_chi2 if inflate_chi2 is None else inflate_chi2,
+                bank.times_s.shape,
             ),
             dtype=np.float64,
         ),
@@ -449,35 +483,7 @@ def predict_update(
         stated_var=stated_var,
         offset=offset,
     )
-    return _restarts(updated, wild, positions, covariances, settings)
-
-
-def warm_up() -> None:
-    """Compile (or load from the disk cache) the filter's kernel: one step of two tracks, with
-    and without learning, so that no request waits for the compiler. A no-op with the
-    reference kernels."""
-    settings = TrackerSettings()
-    if _compiled_predict_update() is None:
-        return
-    positions = np.array([[1.0, 1.0], [2.0, 2.0]])
-    covariances = np.tile(1e-4 * np.eye(2), (2, 1, 1))
-    bank = start_tracks(positions, covariances, np.zeros(2), settings)
-    for learn in (True, False):
-        predict_update(bank, positions, covariances, 0.2, settings, learn=learn)
-
-
-def _compiled_predict_update() -> Callable[..., tuple[Any, ...]] | None:
-    """The compiled :func:`predict_update` while the compiled kernels are in use, else None.
-    Imported here, not at the top: numba loads with the first step, not with this module."""
-    from .._kernels import compiled_only
-
-    return compiled_only(_load_predict_update)
-
-
-def _load_predict_update() -> Callable[..., tuple[Any, ...]]:
-    from ._filter_compiled import predict_update_kernel
-
-    return cast("Callable[..., tuple[Any, ...]]", predict_update_kernel)
+    return updated, wild
 
 
 # E[ln X] for X exponential with mean 1: -Euler's gamma. Half the squared norm of a 2-D

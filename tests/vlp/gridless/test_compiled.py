@@ -24,7 +24,6 @@ import pytest
 from scipy import optimize
 
 from app.vlp._kernels import (
-    compiled_only,
     dispatch,
     kernel_cache_dir,
     kernel_mode,
@@ -685,14 +684,8 @@ def test_switch_selects_the_reference() -> None:
 
 
 def test_dispatch_point_follows_the_switch() -> None:
-    """:func:`dispatch` and :func:`compiled_only`, the one place that chooses between a
-    compiled kernel and its reference, follow :func:`use_kernels` at every call (not when a
-    caller was built), and :func:`compiled_only` does not build the compiled form otherwise."""
-    built: list[int] = []
-
-    def compiled_form(value: int) -> int:
-        built.append(value)
-        return value + 1
+    """:func:`dispatch`, the one place that chooses between a compiled kernel and its
+    reference, follows :func:`use_kernels` at every call (not when a caller was built)."""
 
     def kernel(value: int) -> str:
         return f"kernel {value}"
@@ -701,14 +694,13 @@ def test_dispatch_point_follows_the_switch() -> None:
         return f"reference {value}"
 
     assert dispatch(kernel, reference)(1) == "kernel 1"
-    assert compiled_only(compiled_form, 1) == 2
     with use_kernels("reference"):
         assert dispatch(kernel, reference)(2) == "reference 2"
-        assert compiled_only(compiled_form, 2) is None
-    assert built == [1]
+    assert dispatch(kernel, reference)(3) == "kernel 3"
 
 
-# The solver's kernels, by the modules that hold them (both scripts below import them fresh).
+# The solver's kernels and the tracking filter's, by the modules that hold them (both scripts
+# below import them fresh).
 _KERNELS_OF_A_SOLVE = """
     from app.vlp.solvers.gridless._compiled import fit
     from app.vlp.solvers.gridless._compiled.scores import correlation_scores_kernel
@@ -718,12 +710,13 @@ _KERNELS_OF_A_SOLVE = """
     from app.vlp.solvers.gridless._compiled.terminal import terminal_fit_kernel
     from app.vlp._radii_compiled import radial_roots_kernel
     from app.vlp.solvers.gridless._compiled.search import grow_kernel, refine_kernel
+    from app.vlp.tracking._filter_compiled import predict_update_kernel
 
     kernels = [fit.fit_kernel, fit.gram_kernel, fit.residual_kernel, fit.whitening_kernel,
                fit.whitened_data_kernel, correlation_scores_kernel, channel_rows_kernel,
                sandwich_covariances_kernel, joint.joint_gains_kernel, joint.joint_residual_kernel,
                joint.joint_fit_kernel, terminal_fit_kernel, radial_roots_kernel,
-               grow_kernel, refine_kernel]
+               grow_kernel, refine_kernel, predict_update_kernel]
 """
 
 _NO_CACHE_SCRIPT = textwrap.dedent(
@@ -764,6 +757,7 @@ _WARM_UP_SCRIPT = textwrap.dedent(
     from app.vlp.simulation import noisy_amplitudes, true_amplitudes
     from app.vlp.solvers import warm_up
     from app.vlp.solvers.gridless import GridlessSolver
+    from app.vlp.tracking import Tracks, TrackerSettings, step_anonymous, step_labelled
     """
     + _KERNELS_OF_A_SOLVE
     + """
@@ -783,9 +777,18 @@ _WARM_UP_SCRIPT = textwrap.dedent(
     amplitudes = noisy_amplitudes(layout, truth, 1e-9, rng=1)
     found = GridlessSolver(fingerprint, "correlation").solve_terminals(amplitudes)
     assert np.allclose(found.positions, truth, atol=1e-3), found.positions
+    # a labelled and an anonymous tracker, each started by one solve and moved by the next
+    fix_covariances = np.tile(1e-4 * np.eye(2), (2, 1, 1))
+    settings = TrackerSettings()
+    labelled, anonymous = Tracks.empty(), Tracks.empty()
+    for time_s, rows in ((0.0, np.array([-1, -1])), (0.2, np.array([0, 1]))):
+        fixes = truth + 0.1 * time_s
+        labelled = step_labelled(labelled, rows, fixes, fix_covariances, time_s, settings).tracks
+        anonymous = step_anonymous(anonymous, fixes, fix_covariances, time_s, settings).tracks
+    assert np.all(labelled.updates == 2) and np.all(anonymous.updates == 2)
     after = [len(k.signatures) for k in kernels]
-    # warm_up compiled (or loaded) every signature a solve uses: nothing was compiled during
-    # the solves
+    # warm_up compiled (or loaded) every signature a solve and a tracker's step use: nothing
+    # was compiled during the solves and the steps
     assert after == before, (before, after)
     print("ok")
     """
@@ -822,8 +825,9 @@ def test_works_without_a_writable_cache(tmp_path: Path) -> None:
 @pytest.mark.slow
 def test_warm_up_compiles_every_signature_a_solve_uses() -> None:
     """In a fresh interpreter (its kernels from the disk cache that ./test's warm-up fills),
-    warm_up gives every kernel the signatures that the solves of both models and a
-    terminals' solve then use: none is compiled at a request."""
+    warm_up gives every kernel the signatures that the solves of both models, a terminals'
+    solve and the steps of both trackers then use: none is compiled at a request or a
+    step."""
     _run_script(_WARM_UP_SCRIPT, dict(os.environ, VLP_KERNELS="compiled"))
 
 

@@ -84,7 +84,10 @@ def test_a_kernel_and_its_reference_share_their_row_name() -> None:
     """``foo_kernel`` and ``foo_reference`` for the row ``foo``, module-level functions of
     one name each, and a compiled function ``foo_kernel`` in a compiled module."""
     compiled_modules = [*(SCIENCE / "solvers" / "gridless" / "_compiled").glob("*.py")]
-    compiled_modules.append(SCIENCE / "_radii_compiled.py")
+    compiled_modules += [
+        SCIENCE / "_radii_compiled.py",
+        SCIENCE / "tracking" / "_filter_compiled.py",
+    ]
     compiled = {
         node.name
         for path in compiled_modules
