@@ -36,7 +36,7 @@ def test_the_starts_are_the_cells_of_lowest_weighted_profile_cost(
 ) -> None:
     # The cost recomputed cell by cell with the simulator's channel (not the room's gains)
     # and each cell's gain by least squares: the starts are its best cells, far enough
-    # apart and from the previous optimum.
+    # apart and from the previous optimum, and better than any cell around that optimum.
     room = five_led_room
     layout = room.fingerprint.layout
     rng = np.random.default_rng(3)
@@ -44,7 +44,7 @@ def test_the_starts_are_the_cells_of_lowest_weighted_profile_cost(
     values = true_amplitudes(layout, truth)[0] / room.scale * rng.uniform(0.8, 1.2, 5)
     variances = rng.uniform(0.5, 2.0, 5) * 1e-3 * float(values @ values)
     previous = np.array([1.0, 6.0])
-    starts = profile_starts(room, values, variances, previous)
+    starts = profile_starts(room, values[None, :], [variances], previous[None, :])[0]
 
     gains = true_amplitudes(layout, room.centres) / room.scale  # (N, M)
     root_weights = 1.0 / np.sqrt(variances)
@@ -55,8 +55,14 @@ def test_the_starts_are_the_cells_of_lowest_weighted_profile_cost(
         cost[n] = float(np.sum((root_weights * (values - gain * column)) ** 2))
         assert room.priors.log_gain_sd is not None
         cost[n] += (np.log(gain) / room.priors.log_gain_sd) ** 2
+    # Only cells that fit better than any within the spacing of the previous optimum.
+    around = np.hypot(*(room.centres - previous).T) < _PROFILE_START_SPACING_M
+    better = cost < cost[around].min()
+    assert better.any()
     expected: list[np.ndarray] = []
     for n in np.argsort(cost, kind="stable"):
+        if not better[n]:
+            break
         point = room.centres[n]
         if all(
             np.hypot(*(point - other)) >= _PROFILE_START_SPACING_M
@@ -95,7 +101,8 @@ def test_a_pass_started_in_the_wrong_basin_finds_the_truth(five_led_room: Prepar
             ).position
 
         alone = fitted(wrong[None, :])
-        searched = fitted(np.vstack((wrong, profile_starts(room, values, sigma2, wrong))))
+        extra = profile_starts(room, values[None, :], [sigma2], wrong[None, :])[0]
+        searched = fitted(np.vstack((wrong, extra)))
         np.testing.assert_allclose(searched, truth, atol=1e-3)
         stuck += int(np.linalg.norm(alone - truth) > 0.2)
     assert stuck >= 1  # not a formality: from the wrong start alone some stay there

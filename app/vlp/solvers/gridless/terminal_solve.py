@@ -168,28 +168,30 @@ def solve_terminals(
         """Every terminal fitted on all the LEDs from ``starts`` (and, with ``search``, from
         the best grid cells of its new cost), its amplitudes weighted by ``variances`` of its
         start (plus, where censored, their interval's own)."""
-        fits = []
-        for k, start in enumerate(starts):
-            weights = with_censored_variance(variances(start), censored_var[k])  # [censored hook]
-            points = start.position[None, :]
-            if search:
-                points = np.vstack(
-                    (points, profile_starts(room, values[k], weights, start.position))
-                )
-            fits.append(
-                fit_terminal(
-                    room.kernel,
-                    values[k],
-                    points,
-                    priors=room.priors,
-                    sigma2=weights,
-                    height=own_heights[k],
-                    normal=own_normals[k],
-                    tilt_sd=tilt_sd,
-                    tilt_spread_known=tilt_spread_known,
-                )
+        weights = [
+            with_censored_variance(variances(start), censored_var[k])  # [censored hook]
+            for k, start in enumerate(starts)
+        ]
+        previous = np.array([start.position for start in starts]).reshape(-1, 2)
+        extra = (
+            profile_starts(room, values, weights, previous)
+            if search
+            else [np.empty((0, 2))] * len(starts)
+        )
+        return [
+            fit_terminal(
+                room.kernel,
+                values[k],
+                np.vstack((previous[k : k + 1], extra[k])),
+                priors=room.priors,
+                sigma2=weights[k],
+                height=own_heights[k],
+                normal=own_normals[k],
+                tilt_sd=tilt_sd,
+                tilt_spread_known=tilt_spread_known,
             )
-        return fits
+            for k in range(len(starts))
+        ]
 
     fits = refitted(first, lambda _: sigma2, search=True)
 
@@ -332,37 +334,57 @@ def solve_terminals(
 
 
 def profile_starts(
-    room: PreparedRoom, values: FloatArray, variances: float | FloatArray, previous: FloatArray
-) -> FloatArray:
-    """Up to ``_PROFILE_STARTS`` grid cells (S, 2) where a terminal's weighted cost is lowest,
-    each ``_PROFILE_START_SPACING_M`` from the others and from ``previous`` (2,).
+    room: PreparedRoom,
+    values: FloatArray,
+    variances: list[float | FloatArray],
+    previous: FloatArray,
+) -> list[FloatArray]:
+    """Each terminal's grid cells where its weighted cost is lowest and lower than anywhere
+    within ``_PROFILE_START_SPACING_M`` of its previous optimum: up to ``_PROFILE_STARTS``
+    cells (S, 2) per terminal, that far from each other and from it.
 
-    The cost of cell n is ``sum_i w_i (a_i - g_n G_in)^2`` with ``w = 1 / variances`` and
-    the gain ``g_n`` profiled out (its prior added where the room's priors give one): the
-    weighted pass's own cost on the plane, which the first pass's starts (equal weights, any
-    gain) do not rank by. Dense rooms only (large rooms start each terminal in its own
-    window); empty otherwise.
+    ``values`` (K, M) are the terminals' amplitudes, ``variances`` their K weights' variances
+    (scalar or (M,)), ``previous`` (K, 2) their optima. The cost of cell n is
+    ``sum_i w_i (a_i - g_n G_in)^2`` with ``w = 1 / variances`` and the gain ``g_n`` profiled
+    out (its prior added where the room's priors give one): the weighted pass's own cost on
+    the plane, which the first pass's starts (equal weights, any gain) do not rank by. Only
+    a place the grid already shows to fit better than around the optimum is a start. Dense
+    rooms only (large rooms start each terminal in its own window); none otherwise.
     """
     if not room.dense:
-        return np.empty((0, 2))
-    weights = np.broadcast_to(1.0 / np.asarray(variances, dtype=np.float64), values.shape)
-    across = (weights * values) @ room.gains  # (N,)
-    energy = weights @ room.gains_sq  # (N,)
+        return [np.empty((0, 2))] * len(values)
+    weights = np.array(
+        [
+            np.broadcast_to(1.0 / np.asarray(v, dtype=np.float64), values.shape[1:])
+            for v in variances
+        ]
+    )
+    across = (weights * values) @ room.gains  # (K, N)
+    energy = weights @ room.gains_sq  # (K, N)
     lit = energy > 0.0
     gain = np.where(lit, np.clip(across / np.where(lit, energy, 1.0), 1e-3, 1e3), 1.0)
-    cost = float(weights @ values**2) - 2.0 * gain * across + gain**2 * energy
+    costs = np.sum(weights * values**2, axis=1)[:, None] - 2.0 * gain * across + gain**2 * energy
     if room.priors.log_gain_sd is not None:
-        cost = cost + (np.log(gain) / room.priors.log_gain_sd) ** 2
-    chosen: list[FloatArray] = [np.asarray(previous, dtype=np.float64)]
-    top = min(50 * _PROFILE_STARTS, cost.size)
-    candidates = np.argpartition(cost, top - 1)[:top]
-    for index in candidates[np.argsort(cost[candidates])]:
-        point = room.centres[index]
-        if all(np.hypot(*(point - other)) >= _PROFILE_START_SPACING_M for other in chosen):
-            chosen.append(point)
-            if len(chosen) > _PROFILE_STARTS:
+        costs += (np.log(gain) / room.priors.log_gain_sd) ** 2
+    xs, ys = room.centres[:, 0], room.centres[:, 1]
+
+    def near(point: FloatArray) -> np.ndarray:
+        return np.hypot(xs - point[0], ys - point[1]) < _PROFILE_START_SPACING_M
+
+    starts = []
+    for cost, point in zip(costs, previous, strict=True):
+        around = near(point)
+        if around.any():
+            cost = np.where(cost < cost[around].min(), cost, np.inf)
+        chosen: list[FloatArray] = []
+        for _ in range(_PROFILE_STARTS):
+            index = int(np.argmin(cost))
+            if not np.isfinite(cost[index]):
                 break
-    return np.array(chosen[1:]).reshape(-1, 2)
+            chosen.append(room.centres[index])
+            cost[near(room.centres[index])] = np.inf
+        starts.append(np.array(chosen).reshape(-1, 2))
+    return starts
 
 
 def _scatter_explains(fits: list[TerminalFit], n_leds: int, tail_dof: float | None) -> bool:
