@@ -369,7 +369,7 @@ def profile_starts(
     xs, ys = room.centres[:, 0], room.centres[:, 1]
 
     def near(point: FloatArray) -> np.ndarray:
-        return np.hypot(xs - point[0], ys - point[1]) < _PROFILE_START_SPACING_M
+        return np.asarray(np.hypot(xs - point[0], ys - point[1]) < _PROFILE_START_SPACING_M)
 
     starts = []
     for cost, point in zip(costs, previous, strict=True):
