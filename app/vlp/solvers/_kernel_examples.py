@@ -88,10 +88,15 @@ def _kernel() -> ChannelKernel:
     return ChannelKernel(paper_layout(), 1.0)
 
 
-def _state(
-    kernel: ChannelKernel, rng: np.random.Generator, k: int, on_plane: bool = True
+def random_state(
+    kernel: ChannelKernel,
+    rng: np.random.Generator,
+    k: int,
+    on_plane: bool = True,
+    log_scale: bool = False,
 ) -> FitState:
-    """A random state of ``k`` targets on the receiver plane (or up to 0.2 m off it)."""
+    """A random state of ``k`` targets on the receiver plane (or up to 0.2 m off it), its
+    common log scale 0 (or random, drawn last)."""
     length, width = kernel.bounds
     positions = np.column_stack(
         (rng.uniform(0.2, length - 0.2, k), rng.uniform(0.2, width - 0.2, k))
@@ -105,6 +110,7 @@ def _state(
         float(rng.uniform(1e-4, 1e-2)),
         heights,
         rng.uniform(-0.2, 0.2, k),
+        float(rng.uniform(-0.3, 0.3)) if log_scale else 0.0,
     )
 
 
@@ -123,7 +129,7 @@ def _priors(kernel: ChannelKernel) -> list[tuple[Priors, bool]]:
 def _whitenings(kernel: ChannelKernel, rng: np.random.Generator) -> list[Whitening]:
     """Both models' metrics at a random two-target state, and the correlation model's
     plain metric (the search's)."""
-    state = _state(kernel, rng, 2)
+    state = random_state(kernel, rng, 2)
     return [
         whitening_reference("correlation", kernel, state, 2.0),
         whitening_reference("power", kernel, state, 2.0),
@@ -199,7 +205,7 @@ def objective_examples() -> list[Arguments]:
     ]
     for kernel, model, k, on_plane in itertools.product(kernels, _MODELS, (1, 3), (True, False)):
         for priors, free_weights in _priors(kernel):
-            state = _state(kernel, rng, k, on_plane)
+            state = random_state(kernel, rng, k, on_plane)
             for white in (
                 Whitening.identity(model, kernel.n_leds),
                 whitening_reference(model, kernel, state, float(k)),
@@ -222,13 +228,13 @@ def fit_examples() -> list[Arguments]:
     for model, k, (priors, free_weights) in itertools.product(_MODELS, (1, 3), _priors(kernel)):
         if model == "power" and k > 1 and (free_weights or priors.fits_gains):
             continue
-        truth = _state(kernel, rng, k)
+        truth = random_state(kernel, rng, k)
         white = whitening_reference(model, kernel, truth, float(k))
         clean = Objective(kernel, white, np.zeros(white.weights.shape[0]), free_weights, priors)
         # the whitened model of the truth is minus the residual of zero data; the data in
         # measurement units are that over the weights, rotated back
         modelled = -residual_reference(clean, clean.pack(truth), truth)[: white.weights.shape[0]]
-        values = _unwhitened(white, modelled) * (1.0 + 0.01 * rng.standard_normal(modelled.shape))
+        values = unwhitened(white, modelled) * (1.0 + 0.01 * rng.standard_normal(modelled.shape))
         objective = Objective(kernel, white, values, free_weights, priors)
         start = dataclasses.replace(
             truth, positions=truth.positions + rng.uniform(-0.1, 0.1, (k, 2))
@@ -240,7 +246,7 @@ def fit_examples() -> list[Arguments]:
     return examples
 
 
-def _unwhitened(white: Whitening, whitened: np.ndarray) -> np.ndarray:
+def unwhitened(white: Whitening, whitened: np.ndarray) -> np.ndarray:
     """The measurement whose whitening is ``whitened``."""
     plain = whitened / white.weights
     if white.rotation is None:
@@ -279,7 +285,7 @@ def whitening_examples() -> list[Arguments]:
     for name in LAYOUTS:
         kernel = make_kernel(name, "flat", seed=4)
         for model, k, on_plane in itertools.product(_MODELS, (1, 3, 20), (True, False)):
-            examples.append((model, kernel, _state(kernel, rng, k, on_plane), float(k)))
+            examples.append((model, kernel, random_state(kernel, rng, k, on_plane), float(k)))
     return examples
 
 
@@ -393,7 +399,7 @@ def _joint_model(
     kernel: ChannelKernel, rng: np.random.Generator, k: int, tilt_sd: float, on_plane: bool
 ) -> tuple[JointModel, FitState, np.ndarray]:
     """A joint model of ``k`` random targets, its state and a theta of random tolerances."""
-    state = _state(kernel, rng, k, on_plane)
+    state = random_state(kernel, rng, k, on_plane)
     model = JointModel(kernel, state.heights, (0.1, 0.5), RoomTolerances(0.05, 3.0, tilt_sd))
     theta = model.pack(state)
     m, at = kernel.n_leds, 3 * k + 1
@@ -477,7 +483,7 @@ def sandwich_examples() -> list[Arguments]:
         ):
             if model == "power" and k > 1 and (free_weights or priors.fits_gains):
                 continue
-            state = _state(kernel, rng, k, on_plane)
+            state = random_state(kernel, rng, k, on_plane)
             if free_weights:
                 state = dataclasses.replace(state, log_gains=np.zeros(k), log_scale=0.0)
             for white, each_room in itertools.product(
@@ -502,7 +508,7 @@ def sandwich_parts(answer: Any) -> tuple[Any, ...]:
 
 def _search_run(room: PreparedRoom, rng: np.random.Generator) -> Run:
     """A search's run in ``room``: the plain model of two random targets plus noise."""
-    truth = _state(room.kernel, rng, 2)
+    truth = random_state(room.kernel, rng, 2)
     identity = room.identity
     clean = Objective(room.kernel, identity, np.zeros(identity.weights.shape[0]), False)
     modelled = -residual_reference(clean, clean.pack(truth), truth)
@@ -519,7 +525,7 @@ def grow_examples() -> list[Arguments]:
     centres = room.centres
     examples: list[Arguments] = []
     for k, inner_iter, avoiding in itertools.product((0, 1, 3), (0, 2), (False, True)):
-        state = _state(room.kernel, rng, k) if k else FitState.empty()
+        state = random_state(room.kernel, rng, k) if k else FitState.empty()
         avoid = centres[rng.choice(len(centres), 2)] if avoiding else None
         examples.append((room, _search_run(room, rng), state, inner_iter, avoid, None))
     for n_targets in (1, 3):
@@ -538,7 +544,7 @@ def refine_examples() -> list[Arguments]:
         options = dataclasses.replace(GridlessOptions(), whiten=whiten)
         room = GridlessSolver(_paper_fingerprint(), "correlation", options).room
         for k, rounds in itertools.product((1, 2, 3), (1, 3)):
-            state = _state(room.kernel, rng, k)
+            state = random_state(room.kernel, rng, k)
             examples.append((room, _search_run(room, rng), state, 50, rounds))
     return examples
 

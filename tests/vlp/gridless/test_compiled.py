@@ -35,6 +35,7 @@ from app.vlp.measurements import Model, measurement_from_amplitudes
 from app.vlp.presets import paper_layout
 from app.vlp.simulation import true_amplitudes
 from app.vlp.solvers import warm_up
+from app.vlp.solvers._kernel_examples import random_state, unwhitened
 from app.vlp.solvers._kernel_rooms import (
     LAYOUTS,
     TABLES,
@@ -128,26 +129,6 @@ def test_diffuse_interpolation_matches_reference(heights: bool) -> None:
             assert_same(got[index].T, want[index])
 
 
-def random_state(
-    kernel: ChannelKernel, k: int, rng: np.random.Generator, on_plane: bool
-) -> FitState:
-    length, width = kernel.bounds
-    positions = np.column_stack(
-        (rng.uniform(0.2, length - 0.2, k), rng.uniform(0.2, width - 0.2, k))
-    )
-    heights = np.full(k, kernel.receiver_height)
-    if not on_plane:
-        heights = heights + rng.uniform(-0.2, 0.2, k)
-    return FitState(
-        positions,
-        rng.uniform(0.5, 1.5, k),
-        float(rng.uniform(1e-4, 1e-2)),
-        heights,
-        rng.uniform(-0.2, 0.2, k),
-        float(rng.uniform(-0.3, 0.3)),
-    )
-
-
 PRIORS = {
     "none": (Priors(), False),
     "gains_scale": (Priors(0.1, 0.5), False),
@@ -176,13 +157,13 @@ def test_aggregated_fit_matches_reference(model: Model, k: int, priors_name: str
     if priors.fits_heights:
         priors = dataclasses.replace(priors, height_mean=kernel.receiver_height)
     rng = np.random.default_rng(k)
-    truth = random_state(kernel, k, rng, on_plane=True)
+    truth = random_state(kernel, rng, k, on_plane=True, log_scale=True)
     white = whitening_reference(model, kernel, truth, float(k))
     clean = Objective(kernel, white, np.zeros(white.weights.shape[0]), free_weights, priors)
     with use_kernels("reference"):
         # the whitened model of the truth, then back to measurement units
         modelled = -clean.residual(clean.pack(truth), truth)[: white.weights.shape[0]]
-    values = _unwhiten(white, modelled)
+    values = unwhitened(white, modelled)
     start = dataclasses.replace(truth, positions=truth.positions + rng.uniform(-0.15, 0.15, (k, 2)))
     for damping, tol, iterations in ((1e-3, 1e-7, 40), (1e-1, 1e-4, 3)):
         with use_kernels("reference"):
@@ -218,7 +199,7 @@ def test_fit_trials_cost_what_their_gram_costs_to_the_bit(model: Model) -> None:
     for k in range(1, 9):
         for priors_name in ("none", "gains_scale", "heights", "free_weights"):
             priors, free_weights = PRIORS[priors_name]
-            state = random_state(kernel, k, rng, on_plane=not priors.fits_heights)
+            state = random_state(kernel, rng, k, on_plane=not priors.fits_heights, log_scale=True)
             white = whitening_reference(model, kernel, state, float(k))
             values = np.asarray(rng.standard_normal(white.weights.shape[0]), dtype=np.float64)
             objective = Objective(kernel, white, values, free_weights, priors)
@@ -234,19 +215,6 @@ def test_fit_trials_cost_what_their_gram_costs_to_the_bit(model: Model) -> None:
             np.testing.assert_array_equal(normal, want_normal)
             np.testing.assert_array_equal(gradient, want_gradient)
     assert {size % 4 for size in sizes} == {0, 1, 2, 3}
-
-
-def _unwhiten(white: Whitening, whitened: FloatArray) -> FloatArray:
-    """The measurement whose whitening is ``whitened``."""
-    plain = whitened / white.weights
-    if white.rotation is None:
-        return plain
-    n = white.n_leds
-    full = np.zeros((n, n))
-    full[white.upper, white.lower] = plain
-    full[white.lower, white.upper] = plain
-    back = white.rotation @ full @ white.rotation.T
-    return np.asarray(back[white.upper, white.lower])
 
 
 @pytest.fixture(scope="module")
@@ -303,7 +271,7 @@ def test_joint_tolerance_model_matches_reference(
     assert (kernel.diffuse is not None) == reflecting
     rng = np.random.default_rng(100 * k + 10 * reflecting + (tilt_sd > 0))
     for on_plane in (True, False, False):
-        state = random_state(kernel, k, rng, on_plane)
+        state = random_state(kernel, rng, k, on_plane, log_scale=True)
         model = JointModel(kernel, state.heights, (0.1, 0.5), RoomTolerances(0.05, 3.0, tilt_sd))
         assert model._constants is not None
         theta = model.pack(state)
@@ -342,7 +310,7 @@ def test_joint_fit_matches_reference(
     expect, from a start a few decimetres off, run to its stop and for two iterations."""
     kernel = joint_kernels[reflecting]
     rng = np.random.default_rng(200 * k + 10 * reflecting + (tilt_sd > 0))
-    state = random_state(kernel, k, rng, on_plane=True)
+    state = random_state(kernel, rng, k, on_plane=True, log_scale=True)
     model = JointModel(kernel, state.heights, (0.1, 0.5), RoomTolerances(0.05, 3.0, tilt_sd))
     truth = model.pack(state)
     m, at = kernel.n_leds, 3 * k + 1
@@ -401,7 +369,11 @@ def test_growth_step_is_the_python_step(layout_name: str, ceiling: str) -> None:
     checked = 0
     for k in range(4):
         for on_plane in (True, False):
-            state = random_state(solver.room.kernel, k, rng, on_plane) if k else FitState.empty()
+            state = (
+                random_state(solver.room.kernel, rng, k, on_plane, log_scale=True)
+                if k
+                else FitState.empty()
+            )
             truth = random_points(solver.room.kernel, 3, rng).clip(0.1, 2.0)
             values = np.asarray(
                 measurement_from_amplitudes(
@@ -466,7 +438,7 @@ def test_refinement_is_the_python_refinement(layout_name: str) -> None:
         python.room.search_constants = None  # its steps run in Python
         for k in (1, 2, 3):
             for on_plane in (True, False):
-                state = random_state(solver.room.kernel, k, rng, on_plane)
+                state = random_state(solver.room.kernel, rng, k, on_plane, log_scale=True)
                 truth = state.positions + rng.normal(0.0, 0.1, state.positions.shape)
                 values = np.asarray(
                     measurement_from_amplitudes(
@@ -940,7 +912,7 @@ def test_uncertainty_matches_reference(
     if priors.fits_heights:
         priors = dataclasses.replace(priors, height_mean=kernel.receiver_height)
     rng = np.random.default_rng(100 + 10 * k + len(priors_name))
-    state = random_state(kernel, k, rng, on_plane)
+    state = random_state(kernel, rng, k, on_plane, log_scale=True)
     if free_weights:
         state = dataclasses.replace(state, log_gains=np.zeros(k), log_scale=0.0)
     for white, level in itertools.product(
@@ -1065,7 +1037,7 @@ def test_aggregated_profiles_match_reference(layout_name: str) -> None:
     layout = LAYOUTS[layout_name]()
     solver = GridlessSolver(build_fingerprint(layout), "correlation")
     rng = np.random.default_rng(12)
-    state = random_state(solver.room.kernel, 3, rng, on_plane=False)
+    state = random_state(solver.room.kernel, rng, 3, on_plane=False, log_scale=True)
     values = normal(rng, layout.n_leds * (layout.n_leds + 1) // 2)
     run = Run(values=values, priors=solver.room.priors)
     # Each mode whitens on its own: the eigenbasis of the unlit directions' repeated
