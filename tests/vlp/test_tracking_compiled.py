@@ -11,8 +11,8 @@ import numpy as np
 
 from app.vlp._kernels import use_kernels
 from app.vlp.solvers._kernel_tracks import predict_update_examples
-from app.vlp.tracking.filter import floored_covariances, predict_update_reference
-from app.vlp.tracking.starts import consistent_runs, whitened_offsets
+from app.vlp.tracking.filter import fix_offsets, predict_update_reference
+from app.vlp.tracking.starts import consistent_runs
 
 
 def test_the_filter_rows_examples_reach_every_branch() -> None:
@@ -39,16 +39,7 @@ def test_the_filter_rows_examples_reach_every_branch() -> None:
         if inflate_chi2 is not None and not np.array_equal(updated.means, at_gate.means):
             # some fix lay between its own bound and the gate: inflated, not wild
             reached.add("inflated below the gate")
-        stated = floored_covariances(covariances, settings)
-        offsets = whitened_offsets(
-            bank.means,
-            bank.covariances,
-            bank.noise_var,
-            positions,
-            (stated[:, 0, 0] + stated[:, 1, 1]) / 2.0,
-            np.maximum(time_s - bank.times_s, 0.0),
-            settings,
-        )
+        offsets = fix_offsets(bank, positions, covariances, time_s, settings)
         standing = bank.model_probabilities[:, 0] >= 0.5
         runs = consistent_runs(bank.offset, offsets, settings) & standing & ~restarted
         if learn and np.any(runs):

@@ -29,6 +29,7 @@ __all__ = [
     "Update",
     "combined",
     "estimates",
+    "fix_offsets",
     "floored_covariances",
     "inverse_2x2",
     "predict",
@@ -402,16 +403,7 @@ def predict_update_reference(
     then :func:`update`'s step and :func:`.starts.after_runs`): the updated tracks and which
     fixes were wild."""
     elapsed = np.maximum(time_s - bank.times_s, 0.0)
-    stated = floored_covariances(covariances, settings)
-    offsets = whitened_offsets(
-        bank.means,
-        bank.covariances,
-        bank.noise_var,
-        positions,
-        (stated[:, 0, 0] + stated[:, 1, 1]) / 2.0,
-        elapsed,
-        settings,
-    )
+    offsets = fix_offsets(bank, positions, covariances, time_s, settings)
     predicted = predict(bank, np.full(bank.size, time_s), settings)
     updated, wild = _updated(
         predicted,
@@ -423,6 +415,27 @@ def predict_update_reference(
         inflate_chi2=inflate_chi2,
     )
     return after_runs(updated, bank, offsets, learn, settings), wild
+
+
+def fix_offsets(
+    bank: TrackBank,
+    positions: FloatArray,
+    covariances: FloatArray,
+    time_s: float,
+    settings: TrackerSettings,
+) -> FloatArray:
+    """Each fix's offset from its track's last state, whitened as :func:`.starts.after_runs`
+    reads it (:func:`whitened_offsets` with the fixes' floored mean variances)."""
+    stated = floored_covariances(covariances, settings)
+    return whitened_offsets(
+        bank.means,
+        bank.covariances,
+        bank.noise_var,
+        positions,
+        (stated[:, 0, 0] + stated[:, 1, 1]) / 2.0,
+        np.maximum(time_s - bank.times_s, 0.0),
+        settings,
+    )
 
 
 def predict_update_kernel(
