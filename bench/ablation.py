@@ -80,6 +80,7 @@ VARIANTS: tuple[Variant, ...] = (
     Variant("no common scale", {"log_scale_sd": None}),
     Variant("no terminal tilt fit", {"tilt_sd": None}),
     Variant("no LED-error weights (terminals)", {"terminal_led_weights": False}),
+    Variant("no weighted-pass starts (terminals)", {"weighted_pass_starts": False}),
     Variant("no room tolerances", {"led_log_amplitude_sd": None}),
     Variant("no tilts after tolerances", {"tolerance_tilt_sd": 0.0}),
     Variant("no far places", {"relocate_ambiguous": False}),

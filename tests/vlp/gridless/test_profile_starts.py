@@ -106,3 +106,31 @@ def test_a_pass_started_in_the_wrong_basin_finds_the_truth(five_led_room: Prepar
         np.testing.assert_allclose(searched, truth, atol=1e-3)
         stuck += int(np.linalg.norm(alone - truth) > 0.2)
     assert stuck >= 1  # not a formality: from the wrong start alone some stay there
+
+
+def test_the_option_switches_the_starts_off(
+    five_led_room: PreparedRoom, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # With ``weighted_pass_starts`` off the weighted passes start from the previous optimum
+    # only: the grid's cost is never searched; on, it is.
+    from app.vlp.solvers.gridless import terminal_solve
+
+    calls: list[int] = []
+
+    def counted(*args: object, **kwargs: object) -> list[np.ndarray]:
+        calls.append(1)
+        return profile_starts(*args, **kwargs)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(terminal_solve, "profile_starts", counted)
+    layout = five_led_room.fingerprint.layout
+    amplitudes = true_amplitudes(layout, np.array([[2.0, 3.0]]))
+    for switched_on in (False, True):
+        room = PreparedRoom(
+            five_led_room.fingerprint,
+            "correlation",
+            GridlessOptions(weighted_pass_starts=switched_on),
+        )
+        calls.clear()
+        solution = terminal_solve.solve_terminals(room, amplitudes)
+        np.testing.assert_allclose(solution.positions[0], [2.0, 3.0], atol=1e-2)
+        assert bool(calls) is switched_on

@@ -95,6 +95,11 @@ class GridlessOptions:
     # (generalised least squares: the brightest LEDs carry the largest errors). False: one
     # weight for all (docs/decisions/led-errors-in-terminal-weights.md).
     terminal_led_weights: bool = True
+    # In the ``terminals`` form, the first noise-weighted pass and the first survey-scatter
+    # pass also start from the grid cells where their own weighted cost is lowest, not only
+    # from the previous pass's optimum (docs/decisions/weighted-pass-starts.md). False: from
+    # the previous optimum only.
+    weighted_pass_starts: bool = True
     # The room's tolerances, fitted with the aggregated correlation as a last stage
     # (.gridless.tolerances; None: never): each LED's pilot amplitude (log sd) and half-power
     # angle (degrees), as LED data sheets give them, and optionally each target's photodiode

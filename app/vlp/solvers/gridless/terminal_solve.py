@@ -193,7 +193,7 @@ def solve_terminals(
             for k in range(len(starts))
         ]
 
-    fits = refitted(first, lambda _: sigma2, search=True)
+    fits = refitted(first, lambda _: sigma2, search=room.options.weighted_pass_starts)
 
     def misfit_of(
         fits: list[TerminalFit], led_errors: bool = True
@@ -230,7 +230,9 @@ def solve_terminals(
     tail_factor = 1.0
     if measured is not None:
         like_survey = refitted(
-            fits, lambda fit: measured_variances(measured, room.scale, fit), search=True
+            fits,
+            lambda fit: measured_variances(measured, room.scale, fit),
+            search=room.options.weighted_pass_starts,
         )
         if measured.tail_dof is not None:
             for _ in range(_TAIL_REWEIGHTS):
