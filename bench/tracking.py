@@ -5,6 +5,7 @@ Run from the repository root::
     python -m bench.tracking                       # every room and mode, 120 s, docs/
     python -m bench.tracking --quick               # paper room, 20 s, bench/out/quick/
     python -m bench.tracking --stream-url postgresql+psycopg://postgres@127.0.0.1:5432/test
+    python -m bench.tracking --rooms paper --duration 60 --seed 7 --out /tmp/tracking
 
 Walkers follow random waypoints at 1.4 m/s with pauses of 2-8 s (and, in a second set, two
 people cross in the room's length), speeding up and slowing down at 2 m/s^2, at 5 Hz, in the
@@ -291,6 +292,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--stream-url", default=None, help="PostgreSQL URL for the stream delay")
     parser.add_argument("--stream-posts", type=int, default=200)
     parser.add_argument(
+        "--seed",
+        type=int,
+        default=SEED,
+        help=f"seed of the walkers' paths and of their measurements' noise ({SEED})",
+    )
+    parser.add_argument(
         "--walking-only",
         action="store_true",
         help="the walking (constant-velocity) model alone, no standing model: what the "
@@ -307,7 +314,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         outcomes = []
         for scenario in _scenarios(rooms):
             outcomes.append(
-                run_scenario(scenario, duration_s=duration, seed=SEED, settings=settings)
+                run_scenario(scenario, duration_s=duration, seed=args.seed, settings=settings)
             )
             print(f"{scenario}: done after {time.perf_counter() - started:.0f} s", flush=True)
         steps = step_times_ms([int(n) for n in args.sizes.split(",")], args.repeats)
@@ -327,7 +334,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             "",
             f"    {command.strip()}",
             "",
-            f"{duration:g} s of walking per cell at 5 Hz, seed {SEED}; run time "
+            f"{duration:g} s of walking per cell at 5 Hz, seed {args.seed}; run time "
             f"{time.perf_counter() - started:.0f} s. CSV: `docs/data/tracking.csv`, "
             "`docs/data/tracking_step_time.csv`. What the columns mean: "
             "[tracking moving terminals](../how-to/track-moving-terminals.md).",
