@@ -29,11 +29,14 @@ __all__ = [
 
 
 def one_led_layout() -> Layout:
-    """M = 1: one LED above a small room."""
+    """M = 1: one LED above a small room, off the grid's symmetries. With one LED a cell's
+    score depends on its distance alone; an LED as far from the cells' centres in x as in y
+    puts pairs of cells at exactly one distance, and the compiled and the Python growth
+    steps then pick either by round-off."""
     return Layout(
         room=Room(length=3.0, width=2.0, height=2.8),
         grid=Grid(step=0.25, receiver_height=0.8),
-        leds=(Led(x=1.4, y=0.9, z=2.8, half_power_angle_deg=50.0, pilot_amplitude=1.3),),
+        leds=(Led(x=1.4, y=0.95, z=2.8, half_power_angle_deg=50.0, pilot_amplitude=1.3),),
         receiver=Receiver(area=1e-4, fov_deg=75.0, filter_gain=1.0, refractive_index=1.5),
     )
 
