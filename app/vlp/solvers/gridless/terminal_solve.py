@@ -355,36 +355,46 @@ def profile_starts(
     """
     if not room.dense:
         return [np.empty((0, 2))] * len(values)
-    weights = np.array(
-        [
-            np.broadcast_to(1.0 / np.asarray(v, dtype=np.float64), values.shape[1:])
-            for v in variances
-        ]
-    )
-    across = (weights * values) @ room.gains  # (K, N)
-    energy = weights @ room.gains_sq  # (K, N)
+    if all(np.ndim(v) == 0 for v in variances):
+        # One weight per terminal (the noise's pass): the products are the terminals' plain
+        # correlations and the room's column sums, scaled.
+        weight = 1.0 / np.array(variances, dtype=np.float64)[:, np.newaxis]
+        across = weight * (values @ room.gains)  # (K, N)
+        energy = weight * room.gains_sq_sums  # (K, N)
+        data = weight[:, 0] * np.einsum("km,km->k", values, values)
+    else:
+        weights = np.array(
+            [
+                np.broadcast_to(1.0 / np.asarray(v, dtype=np.float64), values.shape[1:])
+                for v in variances
+            ]
+        )
+        across = (weights * values) @ room.gains
+        energy = weights @ room.gains_sq
+        data = np.sum(weights * values**2, axis=1)
     lit = energy > 0.0
     gain = np.where(lit, np.clip(across / np.where(lit, energy, 1.0), 1e-3, 1e3), 1.0)
-    costs = np.sum(weights * values**2, axis=1)[:, None] - 2.0 * gain * across + gain**2 * energy
+    costs = data[:, None] - 2.0 * gain * across + gain**2 * energy
     if room.priors.log_gain_sd is not None:
         costs += (np.log(gain) / room.priors.log_gain_sd) ** 2
     xs, ys = room.centres[:, 0], room.centres[:, 1]
-
-    def near(point: FloatArray) -> np.ndarray:
-        return np.asarray(np.hypot(xs - point[0], ys - point[1]) < _PROFILE_START_SPACING_M)
-
     starts = []
     for cost, point in zip(costs, previous, strict=True):
-        around = near(point)
-        if around.any():
-            cost = np.where(cost < cost[around].min(), cost, np.inf)
+        around = np.hypot(xs - point[0], ys - point[1]) < _PROFILE_START_SPACING_M
+        # The cells still eligible, in grid order: most often none beats the optimum's
+        # surroundings, and the search ends here.
+        candidates = (
+            np.flatnonzero(cost < cost[around].min()) if around.any() else np.arange(cost.size)
+        )
         chosen: list[FloatArray] = []
-        for _ in range(_PROFILE_STARTS):
-            index = int(np.argmin(cost))
+        while candidates.size and len(chosen) < _PROFILE_STARTS:
+            index = candidates[np.argmin(cost[candidates])]
             if not np.isfinite(cost[index]):
                 break
-            chosen.append(room.centres[index])
-            cost[near(room.centres[index])] = np.inf
+            centre = room.centres[index]
+            chosen.append(centre)
+            spread = np.hypot(xs[candidates] - centre[0], ys[candidates] - centre[1])
+            candidates = candidates[spread >= _PROFILE_START_SPACING_M]
         starts.append(np.array(chosen).reshape(-1, 2))
     return starts
 

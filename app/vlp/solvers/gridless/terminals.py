@@ -145,13 +145,20 @@ def los_with_normal(
 
 def starting_cells(scores: FloatArray, centres: FloatArray, min_distance_m: float) -> list[int]:
     """Up to ``_STARTS`` best grid cells by ``scores``, each ``min_distance_m`` from the others."""
+    candidates = np.argsort(scores)[::-1][: 50 * _STARTS]
+    xs, ys = centres[candidates, 0], centres[candidates, 1]
+    # Each chosen cell closes the candidates within reach of it at once (one vector
+    # operation, not one distance per candidate and chosen cell).
+    open_ = np.ones(candidates.size, dtype=bool)
     chosen: list[int] = []
-    for index in np.argsort(scores)[::-1][: 50 * _STARTS]:
-        point = centres[index]
-        if all(np.hypot(*(point - centres[c])) >= min_distance_m for c in chosen):
-            chosen.append(int(index))
-        if len(chosen) == _STARTS:
+    while len(chosen) < _STARTS:
+        free = np.flatnonzero(open_)
+        if free.size == 0:
             break
+        at = int(free[0])
+        chosen.append(int(candidates[at]))
+        open_[at] = False
+        open_ &= np.hypot(xs - xs[at], ys - ys[at]) >= min_distance_m
     return chosen
 
 
