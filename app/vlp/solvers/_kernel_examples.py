@@ -68,6 +68,7 @@ __all__ = [
     "joint_gains_parts",
     "misfit_design_examples",
     "objective_examples",
+    "profile_cells_examples",
     "radial_roots_examples",
     "refine_examples",
     "sandwich_examples",
@@ -573,4 +574,25 @@ def radial_roots_examples() -> list[Arguments]:
         ratios = np.sqrt(10.0 ** rng.uniform(-12.0, 0.0, n))
         ratios[0] = 1.0
         examples.append((ratios, level, one_d, two_d))
+    return examples
+
+
+def profile_cells_examples() -> list[Arguments]:
+    """The paper room's grid; 1 and 4 terminals' amplitudes of cells (0.8-1.2x per LED), one
+    weight each or one per LED, their optima at their truths, at random cells, or off the
+    floor (nothing around them); the gain's prior or none."""
+    room = GridlessSolver(_paper_fingerprint(), "correlation").room
+    gains, centres, (n_leds, n_cells) = room.gains, room.centres, room.gains.shape
+    rng = np.random.default_rng(24)
+    examples: list[Arguments] = []
+    for k, per_led, where, log_gain_sd in itertools.product(
+        (1, 4), (False, True), ("truth", "random", "off"), (0.1, None)
+    ):
+        truths = rng.choice(n_cells, k)
+        values = gains[:, truths].T * rng.uniform(0.8, 1.2, (k, n_leds))
+        spread = rng.uniform(0.5, 2.0, (k, n_leds if per_led else 1))
+        weights = np.broadcast_to(spread / (1e-3 * values.max()), (k, n_leds)).copy()
+        cells = truths if where == "truth" else rng.choice(n_cells, k)
+        previous = centres[cells] if where != "off" else np.full((k, 2), -5.0)
+        examples.append((values, weights, gains, gains**2, centres, previous, log_gain_sd))
     return examples

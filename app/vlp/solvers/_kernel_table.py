@@ -40,6 +40,7 @@ from ._kernel_examples import (
     joint_gains_parts,
     misfit_design_examples,
     objective_examples,
+    profile_cells_examples,
     radial_roots_examples,
     refine_examples,
     sandwich_examples,
@@ -76,6 +77,7 @@ from .gridless.model import (
 )
 from .gridless.report import correlation_products_kernel, correlation_products_reference
 from .gridless.search import grow_kernel, grow_reference, refine_kernel, refine_reference
+from .gridless.terminal_solve import profile_cells_kernel, profile_cells_reference
 from .gridless.terminals import (
     terminal_fit_kernel,
     terminal_fit_reference,
@@ -180,6 +182,13 @@ KERNEL_TABLE: tuple[KernelRow, ...] = (
     KernelRow("grow", grow_reference, grow_kernel, grow_examples, compared=search_parts),
     KernelRow("refine", refine_reference, refine_kernel, refine_examples, compared=search_parts),
     KernelRow("terminal_fit", terminal_fit_reference, terminal_fit_kernel, terminal_fit_examples),
+    KernelRow(
+        "profile_cells",
+        profile_cells_reference,
+        profile_cells_kernel,
+        profile_cells_examples,
+        rtol=0.0,  # cells: the same ones
+    ),
     KernelRow("radial_roots", radial_roots_reference, radial_roots_kernel, radial_roots_examples),
     KernelRow(
         "predict_update",

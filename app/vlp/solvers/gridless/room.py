@@ -162,9 +162,7 @@ class PreparedRoom:
             )
             self.gains_sq = self.gains**2
             self.gains_fourth = self.gains_sq**2
-            # Each grid point's sum of squared gains, 0 where no LED reaches it.
-            self.gains_sq_sums = self.gains_sq.sum(axis=0)
-            self.column_energy = np.maximum(self.gains_sq_sums, 1e-300)
+            self.column_energy = np.maximum(self.gains_sq.sum(axis=0), 1e-300)
         else:
             # Large rooms keep no scaled copy of G (nor of its square): their scans read
             # G^T, which the fingerprint holds once for both models (the correlation

@@ -12,9 +12,10 @@ from dataclasses import replace
 
 import numpy as np
 
+from ..._kernels import dispatch
 from ...layout import AmplitudeError
 from ...scale import check_amplitude_scale
-from ...typing import FloatArray
+from ...typing import FloatArray, IntArray
 from ...uncertainty import (
     FITS_TO_NOISE,
     Misfit,
@@ -26,6 +27,7 @@ from ...uncertainty import (
 )
 from .._censored import censored_substitutes, with_censored_variance
 from ..base import Solution
+from ._compiled import starts as compiled_starts
 from .report import (
     reported,
     terminal_far_optima,
@@ -355,48 +357,89 @@ def profile_starts(
     """
     if not room.dense:
         return [np.empty((0, 2))] * len(values)
-    if all(np.ndim(v) == 0 for v in variances):
-        # One weight per terminal (the noise's pass): the products are the terminals' plain
-        # correlations and the room's column sums, scaled.
-        weight = 1.0 / np.array(variances, dtype=np.float64)[:, np.newaxis]
-        across = weight * (values @ room.gains)  # (K, N)
-        energy = weight * room.gains_sq_sums  # (K, N)
-        data = weight[:, 0] * np.einsum("km,km->k", values, values)
-    else:
-        weights = np.array(
-            [
-                np.broadcast_to(1.0 / np.asarray(v, dtype=np.float64), values.shape[1:])
-                for v in variances
-            ]
+    weights = np.empty(values.shape)
+    for k, variance in enumerate(variances):
+        weights[k] = 1.0 / np.asarray(variance, dtype=np.float64)
+    cells = dispatch(profile_cells_kernel, profile_cells_reference)(
+        values,
+        weights,
+        room.gains,
+        room.gains_sq,
+        room.centres,
+        np.asarray(previous, dtype=np.float64).reshape(-1, 2),
+        room.priors.log_gain_sd,
+    )
+    return [room.centres[row[row >= 0]] for row in cells]
+
+
+def profile_cells_kernel(
+    values: FloatArray,
+    weights: FloatArray,
+    gains: FloatArray,
+    gains_sq: FloatArray,
+    centres: FloatArray,
+    previous: FloatArray,
+    log_gain_sd: float | None,
+) -> IntArray:
+    """:func:`profile_cells_reference` in one compiled call."""
+    return np.asarray(
+        compiled_starts.profile_cells_kernel(
+            np.ascontiguousarray(values, dtype=np.float64),
+            np.ascontiguousarray(weights, dtype=np.float64),
+            np.ascontiguousarray(gains, dtype=np.float64),
+            np.ascontiguousarray(gains_sq, dtype=np.float64),
+            np.ascontiguousarray(centres, dtype=np.float64),
+            np.ascontiguousarray(previous, dtype=np.float64),
+            -1.0 if log_gain_sd is None else float(log_gain_sd),
+            _PROFILE_START_SPACING_M,
+            _PROFILE_STARTS,
         )
-        across = (weights * values) @ room.gains
-        energy = weights @ room.gains_sq
-        data = np.sum(weights * values**2, axis=1)
+    )
+
+
+def profile_cells_reference(
+    values: FloatArray,
+    weights: FloatArray,
+    gains: FloatArray,
+    gains_sq: FloatArray,
+    centres: FloatArray,
+    previous: FloatArray,
+    log_gain_sd: float | None,
+) -> IntArray:
+    """The cells of :func:`profile_starts`, in NumPy: shape (K, ``_PROFILE_STARTS``), each
+    terminal's in the order chosen, -1 after its last.
+
+    ``values`` and ``weights`` (K, M) are the terminals' amplitudes and their weights,
+    ``gains`` and ``gains_sq`` (M, N) the room's gains and their squares, ``centres`` (N, 2)
+    the cells', ``previous`` (K, 2) the terminals' optima, ``log_gain_sd`` the gain's prior
+    (None: none).
+    """
+    across = (weights * values) @ gains  # (K, N)
+    energy = weights @ gains_sq  # (K, N)
     lit = energy > 0.0
     gain = np.where(lit, np.clip(across / np.where(lit, energy, 1.0), 1e-3, 1e3), 1.0)
-    costs = data[:, None] - 2.0 * gain * across + gain**2 * energy
-    if room.priors.log_gain_sd is not None:
-        costs += (np.log(gain) / room.priors.log_gain_sd) ** 2
-    xs, ys = room.centres[:, 0], room.centres[:, 1]
-    starts = []
-    for cost, point in zip(costs, previous, strict=True):
+    costs = np.sum(weights * values**2, axis=1)[:, None] - 2.0 * gain * across + gain**2 * energy
+    if log_gain_sd is not None:
+        costs += (np.log(gain) / log_gain_sd) ** 2
+    xs, ys = centres[:, 0], centres[:, 1]
+    cells = np.full((len(values), _PROFILE_STARTS), -1, dtype=np.int64)
+    for k, (cost, point) in enumerate(zip(costs, previous, strict=True)):
         around = np.hypot(xs - point[0], ys - point[1]) < _PROFILE_START_SPACING_M
         # The cells still eligible, in grid order: most often none beats the optimum's
         # surroundings, and the search ends here.
         candidates = (
             np.flatnonzero(cost < cost[around].min()) if around.any() else np.arange(cost.size)
         )
-        chosen: list[FloatArray] = []
-        while candidates.size and len(chosen) < _PROFILE_STARTS:
+        chosen = 0
+        while candidates.size and chosen < _PROFILE_STARTS:
             index = candidates[np.argmin(cost[candidates])]
             if not np.isfinite(cost[index]):
                 break
-            centre = room.centres[index]
-            chosen.append(centre)
-            spread = np.hypot(xs[candidates] - centre[0], ys[candidates] - centre[1])
+            cells[k, chosen] = index
+            chosen += 1
+            spread = np.hypot(xs[candidates] - xs[index], ys[candidates] - ys[index])
             candidates = candidates[spread >= _PROFILE_START_SPACING_M]
-        starts.append(np.array(chosen).reshape(-1, 2))
-    return starts
+    return cells
 
 
 def _scatter_explains(fits: list[TerminalFit], n_leds: int, tail_dof: float | None) -> bool:
