@@ -181,12 +181,15 @@ def localize_in_memory(
     if found is None:
         return None
     version, prepared = found
+    # Decided from the body's counts, before its measurement is made: a request that goes
+    # to the pool is read there, once (50 terminals of a 1024-LED hall: ~10 ms each time).
+    n_terminals = len(body.terminals) if body.terminals else None
+    work = _work(prepared, model, n_terminals, body.targets)
+    if work.units > max_waitless_work or work.targets > WAITLESS_TARGETS:
+        return None
     task = _measurement_task(prepared, room_id, version, body, form, model)
     if max_work is not None:
         check_work(prepared, task, max_work)
-    work = task_work(prepared, task)
-    if work.units > max_waitless_work or work.targets > WAITLESS_TARGETS:
-        return None
     if not prepared.lock.acquire(blocking=False):
         return None
     try:
@@ -355,24 +358,40 @@ def _terminal_solver(solver: Solver) -> TerminalSolver | None:
 
 def _per_terminal(prepared: PreparedVersion, task: _Task) -> bool:
     """Whether each terminal is fitted from its own amplitudes (labels known, not guessed)."""
-    terminals = task.terminals
+    n_terminals = None if task.terminals is None else len(task.terminals.ids)
+    return _fits_each_terminal(prepared, n_terminals, task.targets)
+
+
+def _fits_each_terminal(
+    prepared: PreparedVersion, n_terminals: int | None, targets: int | None
+) -> bool:
+    """:func:`_per_terminal` from the counts: ``n_terminals`` sent (None: no terminals) and
+    the ``targets`` asked for."""
     return (
-        terminals is not None
+        n_terminals is not None
         and _terminal_solver(prepared.solver) is not None
-        and task.targets in (None, len(terminals.ids))
+        and targets in (None, n_terminals)
     )
 
 
 def task_work(prepared: PreparedVersion, task: _Task) -> LocalizeWork:
     """The work a solve of ``task`` asks for (:func:`app.vlp.workload.localize_work`)."""
+    n_terminals = None if task.terminals is None else len(task.terminals.ids)
+    return _work(prepared, task.measurement.model, n_terminals, task.targets)
+
+
+def _work(
+    prepared: PreparedVersion, model: Model, n_terminals: int | None, targets: int | None
+) -> LocalizeWork:
+    """:func:`task_work` from the counts (as :func:`_fits_each_terminal`) and the model."""
     fingerprint = prepared.fingerprint
-    per_terminal = _per_terminal(prepared, task)
-    n_terminals = 0 if task.terminals is None else len(task.terminals.ids)
-    targets = task.targets if task.targets is not None or task.terminals is None else n_terminals
+    per_terminal = _fits_each_terminal(prepared, n_terminals, targets)
+    if targets is None and n_terminals is not None:
+        targets = n_terminals
     return localize_work(
         n_cells=fingerprint.n_cells,
         n_leds=fingerprint.n_leds,
-        model=task.measurement.model,
+        model=model,
         targets=targets,
         terminals=n_terminals if per_terminal else None,
     )

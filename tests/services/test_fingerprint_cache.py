@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -14,6 +15,7 @@ from app.main import create_app
 from app.registry import Registry
 from app.registry.errors import FingerprintNotReady, RoomNotFound
 from app.schemas import Measurement
+from app.services import localization
 from app.services.fingerprint_cache import FingerprintCache, held_bytes
 from app.services.localization import (
     WAITLESS_TARGETS,
@@ -228,3 +230,31 @@ def test_a_waitless_localize_answers_as_the_thread_pool_one_or_leaves_it(
     # a request over the service's limit is refused as on the pool's path
     with pytest.raises(ProblemSizeError):
         localize_in_memory(cache, metrics, room_id=room_id, body=body, max_work=1)
+
+
+def test_a_localize_left_to_the_pool_is_read_there_only(
+    two_ready_rooms: tuple[TestClient, Registry, list[str]], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # Whether a request may be solved on the loop is decided from its counts: the
+    # measurement of one that goes to the pool is made once, there.
+    client, registry, (room_id, _) = two_ready_rooms
+    metrics = Metrics()
+    cache = FingerprintCache(registry=registry, size=2, version_check_seconds=60.0, metrics=metrics)
+    body = _measurement(client, room_id)
+    localize_measurement(cache, metrics, room_id=room_id, body=body)  # prepares the solver
+    made: list[str] = []
+    measurement_task = localization._measurement_task
+
+    def counted(*args: Any) -> Any:
+        made.append(args[1])
+        return measurement_task(*args)
+
+    monkeypatch.setattr(localization, "_measurement_task", counted)
+    crowd = body.model_copy(update={"targets": WAITLESS_TARGETS + 1})
+    assert localize_in_memory(cache, metrics, room_id=room_id, body=crowd) is None
+    assert (
+        localize_in_memory(cache, metrics, room_id=room_id, body=body, max_waitless_work=1) is None
+    )
+    assert made == []
+    assert localize_in_memory(cache, metrics, room_id=room_id, body=body) is not None
+    assert made == [room_id]
