@@ -287,10 +287,10 @@ def solve_terminals(
             if not (fit.free_tilt or own_normals[k] is not None):
                 covariances[k] += terminal_tilt_covariance(room, fit, declared_tilt_sd)
     log_gains = np.array([fit.log_gain for fit in fits])
+    # (a lone terminal's median is its own value: see check_amplitude_scale)
+    typical_log_gain = log_gains[0] if n_terminals == 1 else np.median(log_gains)
     positions = np.array([fit.position for fit in fits])
-    fit_quality = assess_fit(
-        float(chi2.sum()), int(dof.sum()), math.exp(float(np.median(log_gains)))
-    )
+    fit_quality = assess_fit(float(chi2.sum()), int(dof.sum()), math.exp(float(typical_log_gain)))
     if reweighted and fit_quality.quality != "scale_mismatch":
         seen = (
             f"the residuals grow with the amplitudes as if the LEDs were about "
