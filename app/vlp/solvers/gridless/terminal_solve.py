@@ -35,6 +35,7 @@ from .report import (
 from .room import PreparedRoom
 from .terminals import TerminalFit, fit_terminal, starting_cells
 from .uncertainty import (
+    estimable_misfit,
     misfit_design,
     response_covariances,
     shape_gradients,
@@ -272,6 +273,11 @@ def solve_terminals(
         # The LEDs' errors are in the weights now: a model error along them as well
         # would count them twice (radii too wide).
         designs, misfit = misfit_of(fits, led_errors=False)
+    # What one request's residuals cannot estimate stays out of its covariance (a terminal
+    # of a room with few LEDs: docs/decisions/few-residuals-few-model-errors.md).
+    misfit = estimable_misfit(
+        misfit, designs, [fit.residual for fit in fits], noise_estimated=like_survey is None
+    )
     covariances = np.array(
         [
             tail_factor

@@ -14,6 +14,7 @@ from ..._kernels import dispatch
 from ...typing import FloatArray, IntArray
 from ...uncertainty import (
     FitQuality,
+    Misfit,
     MisfitDesign,
     assess_fit,
     fit_misfit,
@@ -278,6 +279,54 @@ def perturbation_columns(
         block = moved[upper] * rotated[lower] + rotated[upper] * moved[lower]
     block *= multipliers[np.newaxis, :, np.newaxis] * white.weights[:, np.newaxis, np.newaxis]
     return np.asarray(block.reshape(-1, k * n_dirs))
+
+
+def estimable_misfit(
+    misfit: Misfit,
+    designs: list[MisfitDesign],
+    residuals: list[FloatArray],
+    noise_estimated: bool,
+) -> Misfit:
+    """``misfit`` with only the variances its residuals can estimate.
+
+    The moment fit (:func:`~app.vlp.uncertainty.fit_misfit`) estimates ``v`` variances (the
+    noise's when ``noise_estimated``, and each model error's that reaches the residuals)
+    from residuals holding ``nu = sum_i (Q Q^T)_ii`` degrees of freedom. With fewer than two
+    left over (``nu < v + 2``: one terminal of a room with five LEDs has 5 amplitudes, 2 or
+    3 fitted parameters, and the variances of its tilt and height to estimate) each model
+    error's estimate is chance (an F(2, nu) has no finite mean for ``nu <= 2``), and the
+    covariance carries it along all that the fit absorbed, widened for its one degree of
+    freedom: radii tens of times the error. Such model errors are not estimated (0); the
+    noise, when estimated, then takes the whole residual, ``a = sum r^2 / nu`` on ``nu``
+    degrees of freedom. The layout's declared spreads (tilt, height) reach the covariance
+    through the fit's priors, not through these.
+
+    Parameters
+    ----------
+    misfit : Misfit
+    designs : list of MisfitDesign
+        The fits' designs, as given to the moment fit.
+    residuals : list of ndarrays of shape (L_j,)
+        Their whitened data residuals.
+    noise_estimated : bool
+        Whether ``misfit.noise`` was fitted to these residuals (else known, e.g. a survey's).
+
+    Returns
+    -------
+    Misfit
+        ``misfit`` itself when its residuals can estimate its variances, or when it holds
+        no model error.
+    """
+    dof = float(sum(np.sum(design.noise_leverage) for design in designs))
+    seen = np.sum([design.error_leverages.sum(axis=0) for design in designs], axis=0)
+    estimated = int(np.count_nonzero(seen)) + int(noise_estimated)
+    if not np.any(misfit.model_errors) or dof >= estimated + 2.0:
+        return misfit
+    noise, dofs = misfit.noise, misfit.dofs.copy()
+    if noise_estimated:
+        squares = float(sum(np.sum(np.square(r)) for r in residuals))
+        noise, dofs[0] = squares / max(dof, 1e-300), dof
+    return Misfit(noise, np.zeros_like(misfit.model_errors), dofs)
 
 
 def answer_uncertainty(
