@@ -28,6 +28,7 @@ from .channel import ChannelKernel
 from .lm import (
     EIG_FLOOR,
     SIGMA2_FLOOR,
+    SIGMA2_REL_FLOOR,
 )
 from .state import (
     MAX_LOG_GAIN,
@@ -35,7 +36,6 @@ from .state import (
     FitState,
 )
 from .whitening import (
-    _SIGMA2_REL_FLOOR,
     Whitening,
     _vech_indices,
     entry_variances,
@@ -173,7 +173,7 @@ class JointModel:
         gains, multipliers, _ = self.gains(theta)
         k, m = self.n_targets, self.n_leds
         power = float(np.sum(gains**2 * multipliers)) / (m * k)
-        sigma2 = max(noise / k, _SIGMA2_REL_FLOOR * power, SIGMA2_FLOOR)
+        sigma2 = max(noise / k, SIGMA2_REL_FLOOR * power, SIGMA2_FLOOR)
         signal = (gains * multipliers) @ gains.T
         signal.flat[:: m + 1] += 0.5 * k * sigma2
         lam, rotation = np.linalg.eigh(signal)

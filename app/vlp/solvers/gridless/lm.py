@@ -70,6 +70,9 @@ DIAGONAL_FLOOR = 1e-30
 # and the smallest noise variance (normalised units) assumed when whitening.
 EIG_FLOOR = 1e-9
 SIGMA2_FLOOR = 1e-12
+# Smallest noise variance assumed relative to the mean received power (1e-4: an SNR of
+# 40 dB), in the whitening (compiled and reference alike) and in a terminal's weights.
+SIGMA2_REL_FLOOR = 1e-4
 # The aggregated LM stops when no target moves by more than this (metres).
 STEP_TOL_M = 1e-5
 # A terminal's own fit: its starting damping, and it stops at this relative decrease of the

@@ -31,6 +31,7 @@ from .channel import ChannelKernel
 from .channel_rows import channel_rows
 from .lm import (
     PROJECTED_MAX_REJECTIONS,
+    SIGMA2_REL_FLOOR,
     TERMINAL_COST_TOL,
     TERMINAL_INITIAL_DAMPING,
     TERMINAL_STEP_TOL_M,
@@ -59,8 +60,6 @@ _LM = LMSettings(
     n_positions=2,
     before_trial=False,
 )
-# Smallest noise variance assumed, relative to a terminal's mean squared amplitude (40 dB).
-_SIGMA2_REL_FLOOR = 1e-4
 # A fitted tilt (tangent of its components) stays within +-45 degrees.
 _MAX_TILT = 1.0
 # Cost decrease a fitted tilt must bring to be kept: 2 + 3 sqrt(2 * 2).
@@ -206,7 +205,7 @@ def fit_terminal(
     """
     best: TerminalFit | None = None
     held_gain_sd: float | None = None  # the gain's prior sd when it is held at 1
-    floor = _SIGMA2_REL_FLOOR * float(amplitudes @ amplitudes) / amplitudes.shape[0]
+    floor = SIGMA2_REL_FLOOR * float(amplitudes @ amplitudes) / amplitudes.shape[0]
     weight: float | FloatArray = 1.0
     if isinstance(sigma2, np.ndarray):
         weight = 1.0 / np.sqrt(np.maximum(sigma2, max(floor, 1e-300)))

@@ -19,13 +19,9 @@ from .channel import ChannelKernel
 from .lm import (
     EIG_FLOOR,
     SIGMA2_FLOOR,
+    SIGMA2_REL_FLOOR,
 )
 from .state import FitState
-
-# Smallest noise variance assumed when whitening relative to the mean received power (1e-4:
-# an SNR of 40 dB; the absolute floor is SIGMA2_FLOOR).
-_SIGMA2_REL_FLOOR = 1e-4
-
 
 # Whitened measurements of at most this many values are kept by their Whitening.
 _KEPT_DATA_MAX = 4096
@@ -199,7 +195,7 @@ def whitening_reference(
     # Floor sigma^2 at a fraction of the mean received power per LED and terminal: a
     # near-zero noise estimate would make the metric singular off the fitted signal.
     power = float(np.sum(gains**2 * weights)) / (kernel.n_leds * max(n_terminals, 1.0))
-    sigma2 = max(state.noise / max(n_terminals, 1.0), _SIGMA2_REL_FLOOR * power, SIGMA2_FLOOR)
+    sigma2 = max(state.noise / max(n_terminals, 1.0), SIGMA2_REL_FLOOR * power, SIGMA2_FLOOR)
     half_noise = 0.5 * max(n_terminals, 1.0) * sigma2
     if model == "power":
         var = 4.0 * sigma2 * ((gains**2) @ weights + half_noise)

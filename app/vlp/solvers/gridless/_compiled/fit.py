@@ -27,7 +27,7 @@ import numpy as np
 
 from ...._kernels import compiled, compiled_inline, compiled_reassociating
 from ....typing import FloatArray, IntArray
-from ..lm import EIG_FLOOR, SIGMA2_FLOOR, LMSettings
+from ..lm import EIG_FLOOR, SIGMA2_FLOOR, SIGMA2_REL_FLOOR, LMSettings
 from .channel import ChannelConstants, TableConstants, channel_rows_kernel
 from .lm import lm_kernel, register_model
 
@@ -41,8 +41,6 @@ __all__ = [
 ]
 
 Problem = tuple[Any, ...]
-
-_SIGMA2_REL_FLOOR = 1e-4
 
 
 @compiled
@@ -474,7 +472,7 @@ def whitening_kernel(
         for m in range(n_leds):
             total += gains[i, m] * gains[i, m] * multipliers[i]
     power = total / (n_leds * count)
-    sigma2 = max(noise / count, _SIGMA2_REL_FLOOR * power, SIGMA2_FLOOR)
+    sigma2 = max(noise / count, SIGMA2_REL_FLOOR * power, SIGMA2_FLOOR)
     half_noise = 0.5 * count * sigma2
     if not correlation:
         weights = np.empty(n_leds)
