@@ -14,7 +14,7 @@ from app.vlp.layout import AmplitudeError, Grid, Layout, Led, Room
 from app.vlp.simulation import true_amplitudes
 from app.vlp.solvers.gridless import GridlessOptions, GridlessSolver
 from app.vlp.solvers.gridless.uncertainty import estimable_misfit
-from app.vlp.uncertainty import fit_misfit, misfit_design_reference
+from app.vlp.uncertainty import Misfit, fit_misfit, misfit_design_reference
 
 
 def _design_and_residual(n_values: int, seed: int) -> tuple[object, np.ndarray]:
@@ -44,6 +44,16 @@ def test_five_residuals_of_three_parameters_estimate_no_model_error(
         assert estimable.dofs[0] == pytest.approx(2.0)
     else:
         assert estimable.noise == misfit.noise
+
+
+def test_residuals_without_a_degree_of_freedom_for_the_noise_are_left_as_they_are() -> None:
+    # 3 values, 3 parameters (a room of two or three LEDs): nothing to estimate a noise
+    # from. Whatever the moment fit said is returned as it is (the covariance then rests on
+    # nothing and is bounded as such), not divided by zero degrees of freedom.
+    design, residual = _design_and_residual(3, seed=3)
+    assert float(np.sum(design.noise_leverage)) < 1.0  # type: ignore[attr-defined]
+    fitted = Misfit(0.7, np.array([0.2, 0.3]), np.array([0.0, 0.5, 0.5]))
+    assert estimable_misfit(fitted, [design], [residual], True) is fitted  # type: ignore[list-item]
 
 
 def test_residuals_with_degrees_of_freedom_to_spare_keep_their_estimates() -> None:

@@ -314,13 +314,16 @@ def estimable_misfit(
     Returns
     -------
     Misfit
-        ``misfit`` itself when its residuals can estimate its variances, or when it holds
-        no model error.
+        ``misfit`` itself when its residuals can estimate its variances, when it holds no
+        model error, or when they hold less than one degree of freedom for an estimated
+        noise.
     """
     dof = float(sum(np.sum(design.noise_leverage) for design in designs))
     seen = np.sum([design.error_leverages.sum(axis=0) for design in designs], axis=0)
     estimated = int(np.count_nonzero(seen)) + int(noise_estimated)
-    if not np.any(misfit.model_errors) or dof >= estimated + 2.0:
+    # (Residuals without a degree of freedom for the noise itself estimate nothing: their
+    # answer rests on nothing either way, and is bounded as such.)
+    if not np.any(misfit.model_errors) or dof >= estimated + 2.0 or (noise_estimated and dof < 1.0):
         return misfit
     noise, dofs = misfit.noise, misfit.dofs.copy()
     if noise_estimated:
