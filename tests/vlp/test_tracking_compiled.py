@@ -11,8 +11,8 @@ import numpy as np
 
 from app.vlp._kernels import use_kernels
 from app.vlp.solvers._kernel_tracks import predict_update_examples
-from app.vlp.tracking.filter import fix_offsets, predict_update_reference
 from app.vlp.tracking.starts import consistent_runs
+from app.vlp.tracking.step import fix_offsets, predict_update_reference
 
 
 def test_the_filter_rows_examples_reach_every_branch() -> None:

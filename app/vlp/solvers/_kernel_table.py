@@ -7,7 +7,7 @@ does not apply), next to each other in the module that uses them, whose callers 
 only through ``dispatch(foo_kernel, foo_reference)`` (:func:`app.vlp._kernels.dispatch`).
 ``misfit_design_reference`` lives in :mod:`app.vlp.uncertainty`, which must not import the
 solver: its kernel is :mod:`.gridless.uncertainty`'s. The tracking filter's step
-(:mod:`app.vlp.tracking.filter`) is a row too. One table drives both
+(:mod:`app.vlp.tracking.step`) is a row too. One table drives both
 :func:`app.vlp.solvers.warm_up` (every row's kernel on its examples, so neither a request nor
 a tracker's step waits for the compiler) and the parametrized parity test
 (``tests/vlp/gridless/test_kernel_table.py``: the kernel gives its reference's numbers on
@@ -23,7 +23,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any, NamedTuple
 
-from ..tracking.filter import predict_update_kernel, predict_update_reference
+from ..tracking.step import predict_update_kernel, predict_update_reference
 from ..uncertainty import misfit_design_reference, radial_roots_kernel, radial_roots_reference
 from ._kernel_examples import (
     Arguments,

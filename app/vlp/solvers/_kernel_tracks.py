@@ -1,5 +1,5 @@
 """Example arguments of the kernel table's tracking-filter row (:mod:`._kernel_table`): one
-step of a room's tracks, :func:`app.vlp.tracking.filter.predict_update_kernel`'s arguments.
+step of a room's tracks, :func:`app.vlp.tracking.step.predict_update_kernel`'s arguments.
 
 Two tracks just started (a tracker's first step after a start), and a bank of random tracks
 that reaches every branch of the step: levels not learned yet (NaN), tracks newer than the

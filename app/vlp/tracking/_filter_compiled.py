@@ -1,9 +1,9 @@
 """Compiled filter step: :func:`app.vlp.tracking.filter.predict` then
 :func:`~app.vlp.tracking.filter.update`, one track at a time.
 
-Its NumPy reference, :func:`~app.vlp.tracking.filter.predict_update_reference`, documents the
+Its NumPy reference, :func:`~app.vlp.tracking.step.predict_update_reference`, documents the
 method (the standing / walking IMM, a fix's two noise hypotheses, the learned noise level);
-:func:`~app.vlp.tracking.filter.predict_update_kernel` packs its arguments for this one. A
+:func:`~app.vlp.tracking.step.predict_update_kernel` packs its arguments for this one. A
 room's step updates every track (100 of them, or 10): NumPy's cost there is the overhead of
 some hundred and fifty array calls on arrays of a few hundred numbers, not the arithmetic.
 Here each track runs alone in scalars and 4 x 4 blocks. A track's restart after too many wild

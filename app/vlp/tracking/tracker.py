@@ -25,10 +25,10 @@ from .filter import (
     combined,
     floored_covariances,
     predict,
-    predict_update,
     start_tracks,
 )
 from .settings import TrackerSettings
+from .step import predict_update
 
 __all__ = [
     "CONFIRMED",
