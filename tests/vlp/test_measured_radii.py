@@ -17,9 +17,10 @@ from app.vlp.fingerprints import build_fingerprint
 from app.vlp.layout import AmplitudeError, Layout
 from app.vlp.layout_mapping import layout_from_mapping
 from app.vlp.simulation import true_amplitudes
-from app.vlp.solvers.gridless import GridlessOptions, GridlessSolver, terminal_solve
+from app.vlp.solvers.gridless import GridlessSolver, terminal_solve
 from app.vlp.survey import survey_from_rows
 from app.vlp.uncertainty import Misfit, confidence_radius
+from tests.terminal_information import position_covariance
 
 
 def _mass_inside(covariance: np.ndarray, radius: float) -> float:
@@ -57,22 +58,8 @@ def test_a_scatter_on_many_degrees_of_freedom_gives_the_chi_square_radius(
     height = np.array([layout.grid.receiver_height])
     solution = solver.solve_terminals(amplitudes, heights=height)
     assert solution.covariances is not None
-    position = solution.positions[0]
     gain = float(solution.gains[0]) if solution.gains is not None else 1.0
-
-    # The information of (x, y, log gain) by central differences of the simulator's channel.
-    def model(theta: np.ndarray) -> np.ndarray:
-        return np.asarray(math.exp(theta[2]) * true_amplitudes(layout, theta[None, :2])[0])
-
-    theta = np.r_[position, math.log(gain)]
-    step = 1e-6
-    jacobian = np.column_stack(
-        [(model(theta + step * e) - model(theta - step * e)) / (2 * step) for e in np.eye(3)]
-    )
-    gain_sd = GridlessOptions().log_gain_sd
-    assert gain_sd is not None
-    information = jacobian.T @ jacobian / noise_sd**2 + np.diag([0.0, 0.0, 1.0 / gain_sd**2])
-    expected = np.linalg.inv(information)[:2, :2]
+    expected = position_covariance(layout, solution.positions[0], gain, noise_sd)
     np.testing.assert_allclose(solution.covariances[0], expected, rtol=2e-3)
     radius = confidence_radius(solution.covariances[0])
     assert _mass_inside(expected, radius) == pytest.approx(0.95, abs=2e-3)
