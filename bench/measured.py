@@ -217,11 +217,12 @@ def calibrate(
     undetected: str,
     tilt_bound_deg: float | None = None,
     fit_beams: bool | None = None,
+    fit_gain_map: bool | None = None,
 ) -> dict[str, Any]:
     """Send the survey points' readings; wait for the calibrated fingerprint; the report.
 
-    ``tilt_bound_deg``, ``fit_beams``: the request's ``led_tilt_bound_deg`` and
-    ``fit_beams`` (None: the API's default)."""
+    ``tilt_bound_deg``, ``fit_beams``, ``fit_gain_map``: the request's
+    ``led_tilt_bound_deg``, ``fit_beams`` and ``fit_gain_map`` (None: the API's default)."""
     # Without "null" a survey cannot say "not detected": those rows are left out.
     rows = [
         {"x": float(x), "y": float(y), "led": led, "amplitude": amp}
@@ -234,6 +235,8 @@ def calibrate(
         body["led_tilt_bound_deg"] = tilt_bound_deg
     if fit_beams is not None:
         body["fit_beams"] = fit_beams
+    if fit_gain_map is not None:
+        body["fit_gain_map"] = fit_gain_map
     response = client.post(f"/v1/rooms/{room_id}/calibrations", json=body, headers=HEADERS)
     response.raise_for_status()
     job = _job(client, response.json()["id"])
@@ -453,6 +456,18 @@ def run(
                     undetected,
                     seed,
                 )
+                # ... and without the survey's gain map.
+                unmapped_id = create_room(client, body)
+                calibrate(client, unmapped_id, survey, split.survey, undetected, fit_gain_map=False)
+                rows += service_rows(
+                    client,
+                    unmapped_id,
+                    survey,
+                    split.test,
+                    "calibrated, fit_gain_map false",
+                    undetected,
+                    seed,
+                )
     rows += baseline_rows(survey, split.survey, split.test, receiver_z, scale, report)
     info = {
         "survey_points": len(split.survey),
@@ -534,6 +549,19 @@ def _beam_note(report: dict[str, Any]) -> str:
     )
 
 
+def _gain_map_note(report: dict[str, Any]) -> str:
+    """What the survey's gain map is, or that it showed none."""
+    gain_map = report.get("gain_map")
+    if not gain_map:
+        return "The survey showed no gain map (`fit_gain_map`) better than chance."
+    return (
+        f"The survey showed a gain map (`fit_gain_map`) for {len(gain_map['leds'])} of "
+        f"{len(report.get('leds', []))} LEDs: length scale {gain_map['length_scale_m']:g} m, "
+        f"log likelihood ratio over independent residuals {gain_map['evidence']:.1f} (kept "
+        "from 3)."
+    )
+
+
 def write_page(
     rows: Sequence[Row], info: dict[str, Any], command: str, out: Path, csv_path: Path
 ) -> None:
@@ -566,8 +594,9 @@ disjoint groups of test points. Errors for K > 1 are after optimal matching. Cov
 the truth lies inside the answer's 95 % radius `accuracy_m`. "calibrated" rows use the API's
 default calibration (each LED's normal fitted within 15 degrees, the survey's undetected
 readings sent as `null`, each LED's beam measured where the survey tells it from a Lambertian
-one); "led_tilt_bound_deg 0" rows the same survey with every LED's normal kept straight down,
-"fit_beams false" rows with every beam kept Lambertian.
+one, and the map of what the survey shows of each LED's gain beyond its model); "led_tilt_bound_deg
+0" rows the same survey with every LED's normal kept straight down, "fit_beams false" rows with
+every beam kept Lambertian, "fit_gain_map false" rows without the gain map.
 
 {_table(rows)}
 
@@ -599,6 +628,8 @@ its two parameters): {sum(t > 0 for t in tilts)} of {len(tilts)} LEDs here, whic
 calibrated ones.{_tilt_note(tilts, hpa)}
 
 {_beam_note(info["report"])}
+
+{_gain_map_note(info["report"])}
 
 Machine:
 

@@ -40,10 +40,10 @@ def apply_calibration(nominal: Layout, payload: dict[str, Any]) -> dict[str, Any
         request has ``survey`` (rows ``[x, y, led, amplitude]``, may be empty),
         ``masked_leds``, ``mask_dead_leds``, ``dimmed_below``, ``dead_below`` and, in
         requests stored since they exist, ``led_position_bound_m``, ``led_tilt_bound_deg``,
-        ``fit_reflectance``, ``fit_beams`` and ``apply_receiver_gain`` (absent: no position
-        fit, no normal fit, no reflectance fit, no beam fit, gain folded in, as the requests
-        stored before them were fitted). A survey amplitude None (JSON null) is a row whose
-        LED was not detected.
+        ``fit_reflectance``, ``fit_beams``, ``fit_gain_map`` and ``apply_receiver_gain``
+        (absent: no position fit, no normal fit, no reflectance fit, no beam fit, no gain map,
+        gain folded in, as the requests stored before them were fitted). A survey amplitude
+        None (JSON null) is a row whose LED was not detected.
 
     Returns
     -------
@@ -69,6 +69,7 @@ def apply_calibration(nominal: Layout, payload: dict[str, Any]) -> dict[str, Any
             led_tilt_bound_deg=float(request.get("led_tilt_bound_deg", 0.0)),
             fit_reflectance=bool(request.get("fit_reflectance", False)),
             fit_beams=bool(request.get("fit_beams", False)),
+            fit_gain_map=bool(request.get("fit_gain_map", False)),
         )
         calibrated = calibrated_layout(
             nominal, result, apply_receiver_gain=bool(request.get("apply_receiver_gain", True))
@@ -83,6 +84,7 @@ def apply_calibration(nominal: Layout, payload: dict[str, Any]) -> dict[str, Any
     if survey_rows:
         error = calibrated.amplitude_error
         report["amplitude_error"] = None if error is None else error.to_mapping()
+        report["gain_map"] = _gain_map_report(result)
     masked = set(int(i) for i in request.get("masked_leds") or ())
     if request.get("mask_dead_leds", True):
         masked |= {led["index"] for led in report["leds"] if led["flag"] == "dead"}
@@ -94,6 +96,18 @@ def apply_calibration(nominal: Layout, payload: dict[str, Any]) -> dict[str, Any
         "calibrated_layout": calibrated.to_mapping(),
         "layout": masked_layout(calibrated, order).to_mapping(),
         "masked_leds": order,
+    }
+
+
+def _gain_map_report(result: CalibrationResult) -> dict[str, Any] | None:
+    gain_map = result.gain_map
+    if gain_map is None:
+        return None
+    weights = np.asarray(gain_map.weights)
+    return {
+        "length_scale_m": gain_map.length_scale_m,
+        "leds": [int(i) for i in np.flatnonzero(np.any(weights != 0.0, axis=0))],
+        "evidence": float(result.gain_map_evidence),
     }
 
 

@@ -154,6 +154,14 @@ class CalibrationCreate(RequestModel):
         "a fit better than chance); the calibrated layout then carries it as the LED's "
         "`beam` table. LEDs whose layout gives a beam keep it",
     )
+    fit_gain_map: bool = Field(
+        default=True,
+        strict=True,
+        description="last, map what the survey shows of each LED's gain beyond its fitted "
+        "model, smoothly over the floor (kept only when the survey's points show such a map "
+        "better than chance; LEDs with 6 detected points); the calibrated model then follows "
+        "the survey near its points and the fitted model away from them",
+    )
     apply_receiver_gain: bool = Field(
         default=True,
         strict=True,
@@ -229,6 +237,19 @@ class ReflectanceSd(ResponseModel):
     ceiling: float | None
 
 
+class GainMapReport(ResponseModel):
+    """What the survey shows of the LEDs' gains beyond their fitted model."""
+
+    length_scale_m: float = Field(
+        description="how far from a survey point its correction reaches, m"
+    )
+    leds: list[int] = Field(description="room indices of the LEDs the map corrects")
+    evidence: float = Field(
+        description="log likelihood ratio of the survey with the map over without it (nats; "
+        "a map is kept from 3)"
+    )
+
+
 class AmplitudeErrorReport(ResponseModel):
     """How the survey's detected amplitudes scatter around the calibrated model: an error of
     scale `sqrt(noise_sd^2 + (relative_sd * model)^2)`, Gaussian (that scale its sd) or, when
@@ -275,6 +296,12 @@ class Calibration(ResponseModel):
     )
     fit_reflectance: bool = Field(default=False, description="reflectances were requested")
     fit_beams: bool = Field(default=False, description="beams were requested")
+    fit_gain_map: bool = Field(default=False, description="a gain map was requested")
+    gain_map: GainMapReport | None = Field(
+        default=None,
+        description="the gain map the calibrated model carries (null: none was requested, "
+        "or the survey did not show one)",
+    )
     apply_receiver_gain: bool = Field(
         default=True, description="the receiver gain was folded into the fingerprint"
     )

@@ -83,5 +83,6 @@ def _checked_request(body: CalibrationCreate, layout: Layout) -> dict[str, Any]:
         "led_tilt_bound_deg": body.led_tilt_bound_deg,
         "fit_reflectance": body.fit_reflectance,
         "fit_beams": body.fit_beams,
+        "fit_gain_map": body.fit_gain_map,
         "apply_receiver_gain": body.apply_receiver_gain,
     }

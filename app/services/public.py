@@ -24,7 +24,12 @@ from app.schemas import (
     MatrixMeta,
     Room,
 )
-from app.schemas.calibrations import AmplitudeErrorReport, CalibratedReflectance, ReflectanceSd
+from app.schemas.calibrations import (
+    AmplitudeErrorReport,
+    CalibratedReflectance,
+    GainMapReport,
+    ReflectanceSd,
+)
 
 __all__ = [
     "calibration_public",
@@ -36,7 +41,9 @@ __all__ = [
     "room_public",
 ]
 
-_Model = TypeVar("_Model", AmplitudeErrorReport, CalibratedReflectance, ReflectanceSd)
+_Model = TypeVar(
+    "_Model", AmplitudeErrorReport, CalibratedReflectance, GainMapReport, ReflectanceSd
+)
 
 
 def room_public(record: RoomRecord) -> Room:
@@ -129,6 +136,8 @@ def calibration_public(record: CalibrationRecord) -> Calibration:
         led_tilt_bound_deg=float(record.request.get("led_tilt_bound_deg", 0.0)),
         fit_reflectance=bool(record.request.get("fit_reflectance", False)),
         fit_beams=bool(record.request.get("fit_beams", False)),
+        fit_gain_map=bool(record.request.get("fit_gain_map", False)),
+        gain_map=_optional(GainMapReport, report.get("gain_map")),
         apply_receiver_gain=bool(record.request.get("apply_receiver_gain", True)),
         reflectance=_optional(CalibratedReflectance, report.get("reflectance")),
         reflectance_sd=_optional(ReflectanceSd, report.get("reflectance_sd")),

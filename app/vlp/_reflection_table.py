@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ._diffuse import diffuse_gains
+from .channel import los_gains
 from .errors import GeometryError, ProblemSizeError
 from .layout import Layout
 from .typing import FloatArray, IntArray
@@ -90,12 +91,13 @@ class ReflectionTable:
 
     @classmethod
     def build(cls, layout: Layout, *, progress: ProgressCallback | None = None) -> ReflectionTable:
-        """Tabulate :func:`diffuse_gains` (upward receivers) for ``layout``.
+        """Tabulate :func:`diffuse_gains` (upward receivers) for ``layout``, and with its
+        ``gain_map`` what that map adds (:meth:`with_gain_map`).
 
         Parameters
         ----------
         layout : Layout
-            Its ``room.reflectance`` is used (all gains 0 when None).
+            Its ``room.reflectance`` is used (all diffuse gains 0 when None).
         progress : callable, default=None
             Called with the fraction done (0..1) as nodes are evaluated.
 
@@ -113,19 +115,44 @@ class ReflectionTable:
         inset_y = np.clip(y_nodes, _WALL_INSET_M, layout.room.width - _WALL_INSET_M)
         grid_x, grid_y, grid_z = np.meshgrid(inset_x, inset_y, z_nodes, indexing="ij")
         points = np.column_stack((grid_x.ravel(), grid_y.ravel(), grid_z.ravel()))
-        values = np.empty((layout.n_leds, points.shape[0]))
-        for start in range(0, points.shape[0], _BUILD_CHUNK):
-            chunk = slice(start, start + _BUILD_CHUNK)
-            values[:, chunk] = diffuse_gains(layout, points[chunk])
-            if progress is not None:
-                progress(min(1.0, (start + _BUILD_CHUNK) / points.shape[0]))
+        values = np.zeros((layout.n_leds, points.shape[0]))
+        if layout.room.reflectance is not None:
+            for start in range(0, points.shape[0], _BUILD_CHUNK):
+                chunk = slice(start, start + _BUILD_CHUNK)
+                values[:, chunk] = diffuse_gains(layout, points[chunk])
+                if progress is not None:
+                    progress(min(1.0, (start + _BUILD_CHUNK) / points.shape[0]))
         shaped = values.T.reshape(x_nodes.size, y_nodes.size, z_nodes.size, layout.n_leds)
-        return cls(
+        table = cls(
             x_nodes,
             y_nodes,
             z_nodes,
             _hermite_coefficients(shaped, x_nodes, y_nodes, z_nodes),
             layout.grid.receiver_height,
+        )
+        return table if layout.gain_map is None else table.with_gain_map(layout)
+
+    def with_gain_map(self, layout: Layout) -> ReflectionTable:
+        """This table of diffuse gains ``d`` with what ``layout.gain_map`` adds to the model:
+        ``(l + d) exp(g) - l`` at every node, ``l`` the line-of-sight gain, so that the
+        line-of-sight gain plus the table is the whole mapped gain."""
+        if layout.gain_map is None:
+            return self
+        x_nodes, y_nodes, z_nodes = self.x_nodes, self.y_nodes, self.z_nodes
+        inset_x = np.clip(x_nodes, _WALL_INSET_M, layout.room.length - _WALL_INSET_M)
+        inset_y = np.clip(y_nodes, _WALL_INSET_M, layout.room.width - _WALL_INSET_M)
+        grid_x, grid_y, grid_z = np.meshgrid(inset_x, inset_y, z_nodes, indexing="ij")
+        points = np.column_stack((grid_x.ravel(), grid_y.ravel(), grid_z.ravel()))
+        diffuse = self.coefficients[:, 0, :].T  # the node values, (M, nodes)
+        los = los_gains(layout, points)
+        values = (los + diffuse) * np.exp(layout.gain_map.log_factors(points[:, :2])) - los
+        shaped = values.T.reshape(x_nodes.size, y_nodes.size, z_nodes.size, layout.n_leds)
+        return ReflectionTable(
+            x_nodes,
+            y_nodes,
+            z_nodes,
+            _hermite_coefficients(shaped, x_nodes, y_nodes, z_nodes),
+            self.receiver_height,
         )
 
     @staticmethod

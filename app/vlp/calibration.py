@@ -63,8 +63,10 @@ from ._calibration_fit import (
     rms_per_led,
 )
 from ._calibration_scatter import survey_scatter
+from ._reflection_table import ReflectionTable
 from .channel import lambertian_order, led_constants
-from .errors import MeasurementError
+from .errors import MeasurementError, ProblemSizeError
+from .gain_map import GainMap, GainMapFit, fit_gain_map
 from .layout import AmplitudeError, Beam, Layout, Led, Reflectance
 from .survey import Survey, check_survey, simulate_survey, survey_from_rows
 from .typing import BoolArray, FloatArray, IntArray
@@ -153,7 +155,15 @@ class CalibrationResult:
     amplitude_error : AmplitudeError or None
         How the survey's detected amplitudes scatter around the calibrated model (its noise,
         its relative error and its tails, :func:`~._calibration_scatter.survey_scatter`); None
-        when the survey leaves no degree of freedom for it.
+        when the survey leaves no degree of freedom for it. With a gain map, each row's
+        scatter is taken around the map fitted without that row (what a point off the survey
+        sees).
+    gain_map : GainMap or None
+        What the survey shows of each LED's gain beyond its model, over the floor
+        (:mod:`~app.vlp.gain_map`); None when not asked, when the survey does not show one, or
+        in a room too large for its table.
+    gain_map_evidence : float
+        The map's log marginal likelihood over the model alone (nats; NaN when not asked).
     """
 
     pilot_amplitudes: FloatArray
@@ -179,6 +189,8 @@ class CalibrationResult:
     tilt_azimuths_deg: FloatArray
     amplitude_error: AmplitudeError | None = None
     beams: tuple[Beam | None, ...] = ()
+    gain_map: GainMap | None = None
+    gain_map_evidence: float = math.nan
 
     def to_mapping(self) -> dict[str, Any]:
         """The result as JSON-ready plain values (NaN residuals become None)."""
@@ -208,6 +220,7 @@ def calibrate(
     fit_reflectance: bool = False,
     led_tilt_bound_deg: float = DEFAULT_LED_TILT_BOUND_DEG,
     fit_beams: bool = False,
+    fit_gain_map: bool = False,
 ) -> CalibrationResult:
     """Fit per-LED pilot amplitudes, Lambertian orders, ``x, y`` and normals (and the receiver
     gain, and optionally the surfaces' reflectances) to a survey.
@@ -237,6 +250,9 @@ def calibrate(
         (:func:`~app.vlp._calibration_beams.measured_beam`; needs
         :data:`MIN_ROWS_FOR_BEAM` detected rows in view), then fit the LED again with it.
         LEDs whose layout gives a beam keep it.
+    fit_gain_map : bool, default=False
+        Last, fit the map of what the survey shows of each LED's gain beyond the fitted model
+        (:func:`~app.vlp.gain_map.fit_gain_map`; kept only where the survey shows one).
 
     Returns
     -------
@@ -353,6 +369,10 @@ def calibrate(
     normals = np.array([r.normal_at(f.tilt)[0] for r, f in zip(rows, fits, strict=True)])
     normals = np.where(dead[:, None], layout.led_normals, normals)
     beams = [layout.leds[i].beam if dead[i] else b for i, b in enumerate(beams)]
+    mapped = _gain_map(layout, survey, modelled, dead) if fit_gain_map else None
+    scattered = modelled
+    if mapped is not None and mapped.gain_map is not None:
+        scattered = modelled * np.exp(mapped.held_out)
     return CalibrationResult(
         pilot_amplitudes=np.where(dead, nominal, relative * nominal),
         lambertian_orders=orders,
@@ -379,9 +399,27 @@ def calibrate(
         led_normals=normals,
         tilts_deg=np.rad2deg(np.arccos(np.clip(-normals[:, 2], -1.0, 1.0))),
         tilt_azimuths_deg=_azimuths_deg(normals),
-        amplitude_error=survey_scatter(survey, modelled, n_params),
+        amplitude_error=survey_scatter(survey, scattered, n_params),
         beams=tuple(beams),
+        gain_map=None if mapped is None else mapped.gain_map,
+        gain_map_evidence=math.nan if mapped is None else mapped.evidence,
     )
+
+
+def _gain_map(
+    layout: Layout, survey: Survey, modelled: FloatArray, dead: BoolArray
+) -> GainMapFit | None:
+    """The map of the detected rows' log residuals (dead LEDs left out); None in a room too
+    large for the table that carries it off the grid."""
+    try:
+        ReflectionTable.check_size(layout)
+    except ProblemSizeError:
+        return None
+    amplitudes = survey.amplitudes
+    used = survey.detected & (modelled > 0.0) & (amplitudes > 0.0) & ~dead[survey.led_indices]
+    log_residuals = np.full(survey.n_rows, np.nan)
+    log_residuals[used] = np.log(amplitudes[used] / modelled[used])
+    return fit_gain_map(survey.points, survey.led_indices, log_residuals, layout.n_leds)
 
 
 def calibrated_layout(
@@ -431,7 +469,14 @@ def calibrated_layout(
     if error is not None and not apply_receiver_gain:
         # The survey's noise in the units of a model without the survey receiver's gain.
         error = replace(error, noise_sd=error.noise_sd / result.receiver_gain)
-    return replace(layout, room=room, leds=leds, receiver=receiver, amplitude_error=error)
+    return replace(
+        layout,
+        room=room,
+        leds=leds,
+        receiver=receiver,
+        amplitude_error=error,
+        gain_map=result.gain_map,
+    )
 
 
 def masked_layout(layout: Layout, dead_led_indices: tuple[int, ...] | list[int]) -> Layout:
@@ -453,13 +498,14 @@ def masked_layout(layout: Layout, dead_led_indices: tuple[int, ...] | list[int])
     kept: tuple[Led, ...] = tuple(led for i, led in enumerate(layout.leds) if i not in drop)
     if not kept:
         raise MeasurementError("cannot drop every LED of the layout", field="dead_leds")
-    return replace(layout, leds=kept)
+    gain_map = None if layout.gain_map is None else layout.gain_map.without_leds(drop)
+    return replace(layout, leds=kept, gain_map=gain_map)
 
 
 # -- private kernels (inputs already validated) -------------------------------------------------
 def _plain(value: object) -> object:
     """Arrays and tuples as lists, non-finite floats as None."""
-    if isinstance(value, Reflectance | AmplitudeError | Beam):
+    if isinstance(value, Reflectance | AmplitudeError | Beam | GainMap):
         return value.to_mapping()
     if isinstance(value, np.ndarray | tuple):
         return [_plain(v) for v in value]

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TypeVar, cast
 
 import numpy as np
@@ -174,10 +174,12 @@ class Fingerprint:
         return self._cached("psi_dense", build)
 
     def reflection_table(self) -> ReflectionTable | None:
-        """The diffuse gains off the grid (:class:`ReflectionTable`), or None without
-        ``room.reflectance``. Built on first use unless :func:`build_fingerprint` made it or
-        :meth:`attach_reflection_table` supplied a stored one."""
-        if self.layout.room.reflectance is None:
+        """What the model adds to the line-of-sight gains off the grid: the diffuse gains
+        and the calibrated ``gain_map``'s part (:class:`ReflectionTable`), or None without
+        ``room.reflectance`` or ``gain_map``. Built on first use unless
+        :func:`build_fingerprint` made it or :meth:`attach_reflection_table` supplied a
+        stored one."""
+        if self.layout.room.reflectance is None and self.layout.gain_map is None:
             return None
         return self._cached("reflection_table", lambda: ReflectionTable.build(self.layout))
 
@@ -282,7 +284,7 @@ def build_fingerprint(
     matrix = sp.csr_array((data, indices, indptr), shape=(layout.n_leds, layout.n_cells))
     matrix.has_sorted_indices = True
     if not reflecting:
-        return Fingerprint(layout=layout, gains=matrix)
+        return Fingerprint(layout=layout, gains=_with_gain_map(layout, matrix))
     table_progress = None
     if progress is not None:
         outer_progress = progress
@@ -290,10 +292,26 @@ def build_fingerprint(
         def table_progress(fraction: float) -> None:
             outer_progress(_LOS_SHARE + (1.0 - _LOS_SHARE) * fraction)
 
-    table = ReflectionTable.build(layout, progress=table_progress)
-    fingerprint = Fingerprint(layout=layout, gains=_with_reflections(layout, matrix, table))
-    fingerprint.attach_reflection_table(table)
+    table = ReflectionTable.build(replace(layout, gain_map=None), progress=table_progress)
+    gains = _with_gain_map(layout, _with_reflections(layout, matrix, table))
+    fingerprint = Fingerprint(layout=layout, gains=gains)
+    fingerprint.attach_reflection_table(table.with_gain_map(layout))
     return fingerprint
+
+
+def _with_gain_map(layout: Layout, gains: sp.csr_array) -> sp.csr_array:
+    """``gains`` with every LED's row times its ``gain_map`` factor at the grid centres."""
+    if layout.gain_map is None:
+        return gains
+    out = gains.copy()
+    for i in range(layout.n_leds):
+        start, stop = int(out.indptr[i]), int(out.indptr[i + 1])
+        for first in range(start, stop, _TABLE_CHUNK):
+            last = min(first + _TABLE_CHUNK, stop)
+            centres = layout.cell_centres(np.asarray(out.indices[first:last], dtype=np.intp))
+            factors = layout.gain_map.log_factors(centres, led=i)[0]
+            out.data[first:last] *= np.exp(factors)
+    return out
 
 
 def _with_reflections(layout: Layout, los: sp.csr_array, table: ReflectionTable) -> sp.csr_array:

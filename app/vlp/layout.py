@@ -26,6 +26,7 @@ from .constants import (
     MAX_RECEIVER_TILT_SD_DEG,
 )
 from .errors import GeometryError
+from .gain_map import GainMap
 from .typing import FloatArray, IntArray
 
 __all__ = [
@@ -274,6 +275,9 @@ class Layout:
     # Set by a survey calibration (:func:`app.vlp.calibration.calibrated_layout`), not by
     # the room's admin: the radii of terminals that send their own amplitudes rest on it.
     amplitude_error: AmplitudeError | None = None
+    # Set by a survey calibration too: what the survey shows of each LED's gain beyond its
+    # model, as log factors over the floor (:mod:`app.vlp.gain_map`).
+    gain_map: GainMap | None = None
 
     def __post_init__(self) -> None:
         room, grid = self.room, self.grid
@@ -289,6 +293,12 @@ class Layout:
             raise GeometryError("a layout needs at least one LED", field="leds")
         for index, led in enumerate(self.leds):
             self._check_led(index, led)
+        if self.gain_map is not None and self.gain_map.n_leds != len(self.leds):
+            raise GeometryError(
+                f"gain_map has weights for {self.gain_map.n_leds} LEDs, the layout "
+                f"{len(self.leds)}",
+                field="gain_map.weights",
+            )
 
     def _check_led(self, index: int, led: Led) -> None:
         where = f"leds[{index}]"
@@ -428,8 +438,8 @@ class Layout:
 
         ``room.reflectance``, ``grid.receiver_height_sd``, ``grid.receiver_tilt_sd`` and
         ``grid.receivers_level`` appear only when set (not None, not 0, not False), so a layout
-        without them maps exactly as before they existed; so does ``amplitude_error``, which
-        only a calibrated layout carries.
+        without them maps exactly as before they existed; so do ``amplitude_error`` and
+        ``gain_map``, which only a calibrated layout carries.
         """
         room: dict[str, Any] = {
             "length": self.room.length,
@@ -462,6 +472,8 @@ class Layout:
         }
         if self.amplitude_error is not None:
             mapping["amplitude_error"] = self.amplitude_error.to_mapping()
+        if self.gain_map is not None:
+            mapping["gain_map"] = self.gain_map.to_mapping()
         return mapping
 
 

@@ -13,6 +13,7 @@ from .constants import (
     DEFAULT_PILOT_AMPLITUDE,
 )
 from .errors import GeometryError
+from .gain_map import GainMap
 from .layout import AmplitudeError, Grid, Layout, Led, Receiver, Reflectance, Room
 
 __all__ = ["layout_from_mapping"]
@@ -69,7 +70,27 @@ def layout_from_mapping(data: Mapping[str, Any]) -> Layout:
         receiver=receiver,
         name=str(data.get("name", "")),
         amplitude_error=_amplitude_error_from_mapping(data.get("amplitude_error")),
+        gain_map=_gain_map_from_mapping(data.get("gain_map")),
     )
+
+
+def _gain_map_from_mapping(value: object) -> GainMap | None:
+    if value is None:
+        return None
+    if not isinstance(value, Mapping):
+        raise GeometryError(
+            f"gain_map must be an object with points, weights and length_scale_m, got {value!r}",
+            field="gain_map",
+        )
+    try:
+        points = tuple((float(x), float(y)) for x, y in value["points"])
+        weights = tuple(tuple(float(w) for w in row) for row in value["weights"])
+        scale = float(value["length_scale_m"])
+    except (KeyError, TypeError, ValueError) as exc:
+        raise GeometryError(
+            f"gain_map is incomplete or not numeric: {exc}", field="gain_map"
+        ) from exc
+    return GainMap(points, weights, scale)
 
 
 def _amplitude_error_from_mapping(value: object) -> AmplitudeError | None:

@@ -253,6 +253,7 @@ def test_calibration_fits_led_positions_and_walls(worker_app: TestClient) -> Non
         ({"surveys": []}, None),
         ({"led_position_bound_m": 1.5}, ["body.led_position_bound_m"]),
         ({"fit_reflectance": "yes"}, ["body.fit_reflectance"]),
+        ({"fit_gain_map": "no"}, ["body.fit_gain_map"]),
         ({"survey": [{"x": 1.0, "y": 1.0, "led": 0, "amplitude": None}]}, ["body.survey"]),
         ({"led_tilt_bound_deg": 46}, ["body.led_tilt_bound_deg"]),
         ({"led_tilt_bound_deg": -1}, ["body.led_tilt_bound_deg"]),
@@ -267,6 +268,7 @@ def test_calibration_fits_led_positions_and_walls(worker_app: TestClient) -> Non
         "typo",
         "position-bound",
         "reflectance-flag",
+        "gain-map-flag",
         "nothing-detected",
         "tilt-bound-high",
         "tilt-bound-negative",
@@ -373,6 +375,36 @@ def test_rows_not_detected_enter_the_fit_as_censored(worker_app: TestClient) -> 
     assert pulled[0] < 0.9 * plain[0]
 
 
+def test_a_survey_maps_what_no_led_parameter_explains(worker_app: TestClient) -> None:
+    """Each LED's amplitudes off by a smooth factor over the floor (a diffuser, a shade): the
+    default calibration maps it; asked not to, it does not; the room's fingerprint follows."""
+    client = worker_app
+    true = paper_layout()
+    body = _survey_body(
+        true, 1e-3 * float(np.median(true_amplitudes(true, np.array([[2.0, 2.0]]))))
+    )
+    for row in body["survey"]:
+        row["amplitude"] *= float(
+            np.exp(0.15 * np.sin(1.3 * row["x"] + row["led"]) * np.cos(0.9 * row["y"]))
+        )
+    reports: dict[bool | None, dict[str, Any]] = {}
+    for asked in (None, False):
+        room_id = _paper_room(client)
+        request = body if asked is None else {**body, "fit_gain_map": asked}
+        response = client.post(f"/v1/rooms/{room_id}/calibrations", json=request, headers=ADMIN)
+        assert response.status_code == 202, response.text
+        result = wait_for_job(client, response.json()["id"])["result"]
+        url = f"/v1/rooms/{room_id}/calibrations/{result['calibration_id']}"
+        reports[asked] = client.get(url, headers=ADMIN).json()
+    mapped, plain = reports[None], reports[False]
+    assert mapped["fit_gain_map"] and not plain["fit_gain_map"]
+    assert plain["gain_map"] is None
+    assert mapped["gain_map"]["leds"] == list(range(true.n_leds))
+    assert mapped["gain_map"]["evidence"] >= 3.0 and mapped["gain_map"]["length_scale_m"] > 0
+    # What the map leaves of the survey's scatter, held out row by row, is far less.
+    assert mapped["amplitude_error"]["relative_sd"] < 0.5 * plain["amplitude_error"]["relative_sd"]
+
+
 # Two calibrations, their builds and a localization run: about ten seconds of a core.
 @pytest.mark.slow
 def test_a_survey_measures_batwing_beams_and_the_fingerprint_uses_them(
@@ -390,7 +422,8 @@ def test_a_survey_measures_batwing_beams_and_the_fingerprint_uses_them(
         )
         true = replace(nominal, leds=tuple(replace(led, beam=batwing) for led in nominal.leds))
         noise_std = 0.005 * float(np.median(true_amplitudes(true, np.array([[2.0, 2.0]]))))
-        body = {**_survey_body(true, noise_std), "fit_beams": fit_beams}
+        # Without the gain map, which would also follow the survey where the beam is wrong.
+        body = {**_survey_body(true, noise_std), "fit_beams": fit_beams, "fit_gain_map": False}
         response = client.post(f"/v1/rooms/{room_id}/calibrations", json=body, headers=ADMIN)
         assert response.status_code == 202, response.text
         result = wait_for_job(client, response.json()["id"])["result"]
