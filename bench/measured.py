@@ -594,9 +594,10 @@ disjoint groups of test points. Errors for K > 1 are after optimal matching. Cov
 the truth lies inside the answer's 95 % radius `accuracy_m`. "calibrated" rows use the API's
 default calibration (each LED's normal fitted within 15 degrees, the survey's undetected
 readings sent as `null`, each LED's beam measured where the survey tells it from a Lambertian
-one, and the map of what the survey shows of each LED's gain beyond its model); "led_tilt_bound_deg
-0" rows the same survey with every LED's normal kept straight down, "fit_beams false" rows with
-every beam kept Lambertian, "fit_gain_map false" rows without the gain map.
+one, and the map of what the survey shows of each LED's gain beyond its model);
+"led_tilt_bound_deg 0" rows the same survey with every LED's normal kept straight down,
+"fit_beams false" rows with every beam kept Lambertian, "fit_gain_map false" rows without the
+gain map.
 
 {_table(rows)}
 

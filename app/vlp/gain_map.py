@@ -30,6 +30,7 @@ from .typing import FloatArray
 
 __all__ = [
     "LENGTH_SCALES_M",
+    "MAX_ROWS_PER_LED",
     "MIN_EVIDENCE",
     "MIN_ROWS_PER_LED",
     "NOISE_RATIOS",
@@ -43,6 +44,11 @@ LENGTH_SCALES_M = (0.3, 0.5, 0.8, 1.2, 2.0)
 NOISE_RATIOS = (0.03, 0.1, 0.3, 1.0, 3.0)
 # An LED with fewer usable rows gets no map (its weights are 0).
 MIN_ROWS_PER_LED = 6
+# An LED's map rests on at most this many of its rows (evenly spread over the survey's order):
+# the fit is cubic in them, and a denser survey adds little to a smooth map.
+MAX_ROWS_PER_LED = 200
+# Points evaluated at once (bounds the kernel's memory).
+_CHUNK = 4096
 # Log-likelihood ratio a map must reach over the model alone: chi-square(2) at 95 %, halved.
 MIN_EVIDENCE = 3.0
 
@@ -121,11 +127,15 @@ class GainMap:
         where = np.asarray(points, dtype=np.float64).reshape(-1, 2)
         nodes = np.asarray(self.points, dtype=np.float64)
         weights = np.asarray(self.weights, dtype=np.float64)
-        if led is not None:
-            weights = weights[:, led : led + 1]
-        squared = ((where[:, None, :] - nodes[None, :, :]) ** 2).sum(axis=-1)
-        kernel = np.exp(-0.5 * squared / self.length_scale_m**2)
-        return np.asarray((kernel @ weights).T)
+        leds = range(self.n_leds) if led is None else (led,)
+        out = np.zeros((len(leds), where.shape[0]))
+        for row, j in enumerate(leds):
+            used = np.flatnonzero(weights[:, j])
+            for first in range(0, where.shape[0], _CHUNK):
+                chunk = where[first : first + _CHUNK]
+                kernel = _kernel(chunk, nodes[used], self.length_scale_m)
+                out[row, first : first + _CHUNK] = kernel @ weights[used, j]
+        return out
 
     def without_leds(self, dropped: set[int]) -> GainMap:
         """The map of the LEDs not in ``dropped`` (their order kept)."""
@@ -215,7 +225,7 @@ def fit_gain_map(
     y_all = np.asarray(log_residuals, dtype=np.float64)
     usable = np.isfinite(y_all)
     groups = [
-        np.flatnonzero(usable & (leds == j))
+        _spread(np.flatnonzero(usable & (leds == j)))
         for j in range(n_leds)
         if np.count_nonzero(usable & (leds == j)) >= MIN_ROWS_PER_LED
     ]
@@ -237,25 +247,34 @@ def fit_gain_map(
     evidence = total - null
     if evidence < MIN_EVIDENCE:
         return GainMapFit(None, held_out, evidence, ratio)
-    # The map's own points: every row's point, once.
-    nodes, node_of_row = np.unique(points, axis=0, return_inverse=True)
+    # The map's own points: every fitted row's point, once.
+    fitted = np.concatenate(groups)
+    nodes, node_of_row = np.unique(points[fitted], axis=0, return_inverse=True)
+    node_of = dict(zip(fitted.tolist(), node_of_row.ravel().tolist(), strict=True))
     weights = np.zeros((nodes.shape[0], n_leds))
     for g in groups:
         loo_mean, alpha = _held_out(_kernel(points[g], points[g], scale), y_all[g], ratio)
         held_out[g] = loo_mean
-        np.add.at(weights[:, int(leds[g[0]])], node_of_row.ravel()[g], alpha)
+        np.add.at(weights[:, int(leds[g[0]])], [node_of[i] for i in g.tolist()], alpha)
     gain_map = GainMap(
         tuple((float(x), float(y)) for x, y in nodes),
         tuple(tuple(float(v) for v in row) for row in weights),
         float(scale),
     )
-    fitted = np.zeros(y_all.size, dtype=bool)
-    for g in groups:
-        fitted[g] = True
-    rest = np.flatnonzero(~fitted)
-    if rest.size:
-        held_out[rest] = gain_map.log_factors(points[rest])[leds[rest], np.arange(rest.size)]
+    rest = np.ones(y_all.size, dtype=bool)
+    rest[fitted] = False
+    for j in range(n_leds):
+        of_led = np.flatnonzero(rest & (leds == j))
+        if of_led.size:
+            held_out[of_led] = gain_map.log_factors(points[of_led], led=j)[0]
     return GainMapFit(gain_map, held_out, evidence, ratio)
+
+
+def _spread(rows: np.ndarray) -> np.ndarray:
+    """At most :data:`MAX_ROWS_PER_LED` of ``rows``, evenly spaced in their order."""
+    if rows.size <= MAX_ROWS_PER_LED:
+        return rows
+    return rows[np.linspace(0, rows.size - 1, MAX_ROWS_PER_LED).round().astype(np.intp)]
 
 
 def _kernel(a: FloatArray, b: FloatArray, scale: float) -> FloatArray:

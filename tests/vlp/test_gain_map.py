@@ -175,3 +175,14 @@ def _direct_map(nodes: np.ndarray, weights: np.ndarray, scale: float, at: np.nda
 
 def _tuples(array: np.ndarray) -> tuple[tuple[float, ...], ...]:
     return tuple(tuple(float(v) for v in row) for row in array)
+
+
+def test_a_dense_survey_maps_each_led_on_a_bounded_share_of_its_rows() -> None:
+    points, leds, residuals = _rows(0.125, 2, 0.01, seed=8)  # 1,024 points per LED
+    fit = fit_gain_map(points, leds, residuals, 2)
+    assert fit.gain_map is not None
+    weights = np.asarray(fit.gain_map.weights)
+    assert np.all(np.count_nonzero(weights, axis=0) <= gm.MAX_ROWS_PER_LED)
+    # The rows left out are predicted by the map, as well as the fitted rows are held out.
+    truth = np.array([_field(p[None], j)[0] for p, j in zip(points, leds, strict=True)])
+    assert np.sqrt(np.mean((fit.held_out - truth) ** 2)) < 0.02
