@@ -17,6 +17,7 @@ from app.vlp.fingerprints import build_fingerprint
 from app.vlp.gain_map import GainMap, fit_gain_map
 from app.vlp.layout_mapping import layout_from_mapping
 from app.vlp.presets import paper_layout
+from app.vlp.solvers.gridless import GridlessSolver
 from app.vlp.survey import Survey, simulate_survey
 
 
@@ -186,3 +187,23 @@ def test_a_dense_survey_maps_each_led_on_a_bounded_share_of_its_rows() -> None:
     # The rows left out are predicted by the map, as well as the fitted rows are held out.
     truth = np.array([_field(p[None], j)[0] for p, j in zip(points, leds, strict=True)])
     assert np.sqrt(np.mean((fit.held_out - truth) ** 2)) < 0.02
+
+
+def test_terminals_are_found_on_the_mapped_model() -> None:
+    """Amplitudes of a room whose LEDs are off their model by a mapped factor: the solver on
+    the mapped layout finds the terminals where the same layout without its map misses."""
+    layout = replace(paper_layout(), grid=replace(paper_layout().grid, receivers_level=True))
+    rng = np.random.default_rng(9)
+    nodes = rng.uniform(0.5, 3.5, size=(12, 2))
+    weights = 0.25 * rng.standard_normal((12, layout.n_leds))
+    pairs = tuple((float(x), float(y)) for x, y in nodes)
+    mapped = replace(layout, gain_map=GainMap(pairs, _tuples(weights), 0.8))
+    truth = rng.uniform(0.4, 3.6, size=(6, 2))
+    gains = channel_gains(layout, truth) * np.exp(_direct_map(nodes, weights, 0.8, truth))
+    amplitudes = (gains * layout.pilot_amplitudes[:, None]).T
+    errors = {}
+    for name, lay in (("mapped", mapped), ("unmapped", layout)):
+        solver = GridlessSolver(build_fingerprint(lay), "correlation")
+        found = solver.solve_terminals(amplitudes).positions
+        errors[name] = float(np.max(np.linalg.norm(found - truth, axis=1)))
+    assert errors["mapped"] < 0.01 < errors["unmapped"], errors

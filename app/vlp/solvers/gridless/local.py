@@ -212,10 +212,11 @@ class PowerScan:
         cls, fingerprint: Fingerprint, scale: float, fourth_sums: FloatArray
     ) -> PowerScan | None:
         """The scan of a room whose H is line of sight only (None otherwise, or when tiles
-        would not be much smaller than the room)."""
+        would not be much smaller than the room). A survey's gain map scales H beyond the
+        line-of-sight bounds the tiles are scored by: no scan then either."""
         layout = fingerprint.layout
         fov = layout.receiver.fov_deg
-        if fov >= 90.0 or layout.room.reflectance is not None:
+        if fov >= 90.0 or layout.room.reflectance is not None or layout.gain_map is not None:
             return None
         step, n_x, n_y = layout.grid.step, layout.n_x, layout.n_y
         drop = float(layout.led_positions[:, 2].max()) - layout.grid.receiver_height
