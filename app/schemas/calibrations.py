@@ -246,7 +246,7 @@ class GainMapReport(ResponseModel):
     leds: list[int] = Field(description="room indices of the LEDs the map corrects")
     evidence: float = Field(
         description="log likelihood ratio of the survey with the map over without it (nats; "
-        "a map is kept from 3)"
+        "a map is kept from 2)"
     )
 
 

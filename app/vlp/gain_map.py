@@ -13,9 +13,9 @@ and the room's model gain of LED ``j`` at ``p`` is multiplied by ``exp(g_j(p))``
 survey the map returns to 1 (the calibrated model). ``l`` and ``lambda`` are chosen among
 candidates by the marginal likelihood of all LEDs' rows together (each LED's ``s_j^2`` at its
 maximum; Rasmussen and Williams 2006, section 5.4.1). No map is kept unless that likelihood
-beats the model alone (the rows independent, of their mean square) by :data:`MIN_EVIDENCE`
-(the 95 % point of a likelihood-ratio test of the two parameters): a survey that cannot show
-a map leaves the model as it is.
+beats the model alone (the rows independent, of their mean square) by :data:`MIN_EVIDENCE`,
+the map's two parameters (Akaike's criterion: the map is expected to predict unsurveyed
+points better): a survey that cannot show a map leaves the model as it is.
 """
 
 from __future__ import annotations
@@ -49,8 +49,8 @@ MIN_ROWS_PER_LED = 6
 MAX_ROWS_PER_LED = 200
 # Points evaluated at once (bounds the kernel's memory).
 _CHUNK = 4096
-# Log-likelihood ratio a map must reach over the model alone: chi-square(2) at 95 %, halved.
-MIN_EVIDENCE = 3.0
+# Log-likelihood ratio a map must reach over the model alone: its two parameters (Akaike).
+MIN_EVIDENCE = 2.0
 
 
 @dataclass(frozen=True)

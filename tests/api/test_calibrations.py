@@ -400,7 +400,7 @@ def test_a_survey_maps_what_no_led_parameter_explains(worker_app: TestClient) ->
     assert mapped["fit_gain_map"] and not plain["fit_gain_map"]
     assert plain["gain_map"] is None
     assert mapped["gain_map"]["leds"] == list(range(true.n_leds))
-    assert mapped["gain_map"]["evidence"] >= 3.0 and mapped["gain_map"]["length_scale_m"] > 0
+    assert mapped["gain_map"]["evidence"] >= 2.0 and mapped["gain_map"]["length_scale_m"] > 0
     # What the map leaves of the survey's scatter, held out row by row, is far less.
     assert mapped["amplitude_error"]["relative_sd"] < 0.5 * plain["amplitude_error"]["relative_sd"]
 
