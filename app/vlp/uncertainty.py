@@ -14,6 +14,7 @@ degrees of freedom behind those variances (:func:`predictive_covariances`).
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 from typing import Literal, cast
@@ -195,26 +196,34 @@ def confidence_radii(covariances: FloatArray, level: float = 0.95) -> FloatArray
         raise ValueError(f"covariances must have shape (K, 2, 2), got {cov.shape}")
     if not 0.0 < level < 1.0:
         raise ValueError(f"level must be in (0, 1), got {level}")
-    radii = np.zeros(cov.shape[0])
     if cov.shape[0] == 0:
-        return radii
-    finite = np.all(np.isfinite(cov), axis=(1, 2))
-    radii[~finite] = math.inf
-    eigen = np.zeros((cov.shape[0], 2))
-    eigen[finite] = np.linalg.eigvalsh(0.5 * (cov[finite] + cov[finite].transpose(0, 2, 1)))
+        return np.zeros(0)
+    finite = np.isfinite(cov).all(axis=(1, 2))
+    if finite.all():  # the common case (every answer): no copies of the finite ones
+        eigen = np.linalg.eigvalsh(0.5 * (cov + cov.transpose(0, 2, 1)))
+        radii = np.zeros(cov.shape[0])
+    else:
+        eigen = np.zeros((cov.shape[0], 2))
+        eigen[finite] = np.linalg.eigvalsh(0.5 * (cov[finite] + cov[finite].transpose(0, 2, 1)))
+        radii = np.where(finite, 0.0, math.inf)
     major = eigen[:, 1]
     solve = finite & (major > 0.0)
-    if not np.any(solve):
+    if not solve.any():
         return radii
-    major = major[solve]
-    ratio = np.maximum(eigen[solve, 0] / major, 1e-300)[:, np.newaxis]
-    root_ratio = np.sqrt(ratio)
-    two_d = math.sqrt(-2.0 * math.log1p(-level))  # u when rho = 1 (Rayleigh)
-    one_d = float(special.ndtri(0.5 + 0.5 * level))  # u when rho -> 0
+    minor, major = eigen[solve, 0], major[solve]
+    root_ratio = np.sqrt(np.maximum(minor / major, 1e-300))
     # P(0) = 0 < level and P(two_d) >= level (rho <= 1): a bracket for every estimate.
-    reach = _radial_roots(root_ratio[:, 0], float(level), one_d, two_d)
+    one_d, two_d = _radial_bracket(float(level))
+    reach = _radial_roots(root_ratio, float(level), one_d, two_d)
     radii[solve] = np.sqrt(major) * reach
     return radii
+
+
+@functools.lru_cache(maxsize=8)
+def _radial_bracket(level: float) -> tuple[float, float]:
+    """``u`` of the 95 % (``level``) radius when ``rho -> 0`` and when ``rho = 1`` (Rayleigh):
+    the bounds of every estimate's root (:func:`radial_roots_reference`)."""
+    return float(special.ndtri(0.5 + 0.5 * level)), math.sqrt(-2.0 * math.log1p(-level))
 
 
 def _radial_roots(root_ratio: FloatArray, level: float, one_d: float, two_d: float) -> FloatArray:

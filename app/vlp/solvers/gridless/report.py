@@ -59,13 +59,16 @@ def reported(
     the fit's detail saying so, and no 95 % radius beyond the floor's diagonal
     (:func:`app.vlp.uncertainty.bounded_covariances`)."""
     floor = room.fingerprint.layout.room
+    diagonal = math.hypot(floor.length, floor.width)
+    has_far = np.isfinite(far[:, 0])
+    if not room.twins_possible and not has_far.any():
+        return bounded_covariances(covariances, diagonal), fit  # nothing to widen
     twins = (
         mirror_twins(positions, room.led_xy, room.gains_at, (floor.length, floor.width))
         if room.twins_possible
         else np.full_like(positions, np.nan)
     )
     has_twin = np.isfinite(twins[:, 0])
-    has_far = np.isfinite(far[:, 0])
     if has_far.any():
         # One widening per estimate, to the farther point: the far optimum when the
         # twin is nearer or none.
@@ -90,7 +93,7 @@ def reported(
         )
     if detail != fit.detail:
         fit = replace(fit, detail=detail)
-    return bounded_covariances(covariances, math.hypot(floor.length, floor.width)), fit
+    return bounded_covariances(covariances, diagonal), fit
 
 
 def terminal_far_optima(

@@ -167,14 +167,13 @@ def grow_kernel(
         *problem, *room.search_objective(ceiling).bounds(target_count), inner_iter
     )
     added = positions.shape[0] - k
-    grown = FitState(
-        positions,
-        np.concatenate((state.weights, np.ones(added))),
-        float(noise),
-        np.concatenate((state.heights, np.full(added, room.priors.height_mean))),
-        np.concatenate((state.log_gains, np.zeros(added))),
-        state.log_scale,
-    )
+    weights, heights = np.ones(added), np.full(added, room.priors.height_mean)
+    log_gains = np.zeros(added)
+    if k > 0:
+        weights = np.concatenate((state.weights, weights))
+        heights = np.concatenate((state.heights, heights))
+        log_gains = np.concatenate((state.log_gains, log_gains))
+    grown = FitState(positions, weights, float(noise), heights, log_gains, state.log_scale)
     if inner_iter > 0:
         run.iterations += int(total)
         grown.converged = used < inner_iter
@@ -445,10 +444,9 @@ def guessed_prescale(room: PreparedRoom, values: FloatArray, n_targets: int | No
     exactly as in a room measured as modelled (docs/explanation/solver.md, "Prescale")."""
     if n_targets is None:
         return 1.0
-    upper, lower = room.upper_lower
-    per_target = float(np.sum(values[upper == lower])) / n_targets
+    per_target = float(values[room.diagonal].sum()) / n_targets
     low, high = room.energy_band
-    if not np.isfinite(per_target) or low / 1.5 <= per_target <= 1.5 * high:
+    if not math.isfinite(per_target) or low / 1.5 <= per_target <= 1.5 * high:
         return 1.0
     ratio = max(per_target, 1e-300) / room.mean_column_energy
     return float(np.clip(ratio, math.exp(-MAX_LOG_SCALE), math.exp(MAX_LOG_SCALE)))
@@ -469,9 +467,11 @@ def nominal_search(
     if n_targets is None:
         return Search(run, polish(room, run, count_and_fit(room, run)), others, prescale)
     state = fit_known(room, run, n_targets, np.zeros((0, 2)))
+    if n_targets < 2 or room.restarts == 0:
+        return Search(run, state, others, prescale)  # no restarts: no cost to compare
     cost = plain_cost(room, run, state)
     firsts = [state.positions[0]]
-    for _ in range(room.restarts if n_targets > 1 else 0):
+    for _ in range(room.restarts):
         if not needs_escape(room, run, state):
             break
         other = fit_known(room, run, n_targets, np.array(firsts))

@@ -232,6 +232,6 @@ def whitened_data_reference(white: Whitening, values: FloatArray) -> FloatArray:
 def target_gains(kernel: ChannelKernel, state: FitState) -> FloatArray:
     """``g`` of every target of a state (at its height), shape (M, K)."""
     xs, ys = state.positions[:, 0], state.positions[:, 1]
-    if np.all(state.heights == kernel.receiver_height):
+    if (state.heights == kernel.receiver_height).all():
         return kernel.gains_xy(xs, ys)
     return kernel.gains_xyz(xs, ys, state.heights)
