@@ -60,6 +60,7 @@ __all__ = [
     "channel_rows_parts",
     "correlation_products_examples",
     "correlation_scores_examples",
+    "covariance_radii_examples",
     "fit_examples",
     "grow_examples",
     "joint_examples",
@@ -69,7 +70,6 @@ __all__ = [
     "misfit_design_examples",
     "objective_examples",
     "profile_cells_examples",
-    "radial_roots_examples",
     "refine_examples",
     "sandwich_examples",
     "sandwich_parts",
@@ -563,9 +563,10 @@ def search_parts(answer: FitState) -> tuple[Any, ...]:
     )
 
 
-def radial_roots_examples() -> list[Arguments]:
-    """Ratios of an error ellipse's axes from a circle's 1 to 10^-6, one to eleven per
-    call, at the 95 % level and the 68 % one."""
+def covariance_radii_examples() -> list[Arguments]:
+    """Error ellipses of axes' ratios from a circle's 1 to 10^-6, turned at random, one to
+    eleven per call, at the 95 % level and the 68 % one; with a diagonal one, a zero one and
+    a singular one (the non-finite ones: tests/vlp/test_uncertainty.py)."""
     rng = np.random.default_rng(17)
     examples = []
     for level, n in ((0.95, 1), (0.95, 4), (0.95, 11), (0.68, 5)):
@@ -573,7 +574,23 @@ def radial_roots_examples() -> list[Arguments]:
         two_d = math.sqrt(-2.0 * math.log1p(-level))  # and at 1 (Rayleigh)
         ratios = np.sqrt(10.0 ** rng.uniform(-12.0, 0.0, n))
         ratios[0] = 1.0
-        examples.append((ratios, level, one_d, two_d))
+        angles = rng.uniform(0.0, math.pi, n)
+        majors = 10.0 ** rng.uniform(-6.0, 0.0, n)  # m^2
+        turns = np.stack(
+            (
+                np.column_stack((np.cos(angles), -np.sin(angles))),
+                np.column_stack((np.sin(angles), np.cos(angles))),
+            ),
+            axis=1,
+        )
+        axes = np.zeros((n, 2, 2))
+        axes[:, 0, 0], axes[:, 1, 1] = majors, majors * ratios**2
+        covariances = turns @ axes @ turns.transpose(0, 2, 1)
+        if n > 4:
+            covariances[1] = np.diag([3e-4, 1e-4])
+            covariances[2] = 0.0
+            covariances[3] = [[1e-4, 1e-4], [1e-4, 1e-4]]
+        examples.append((covariances, level, one_d, two_d))
     return examples
 
 

@@ -24,7 +24,11 @@ from collections.abc import Callable
 from typing import Any, NamedTuple
 
 from ..tracking.step import predict_update_kernel, predict_update_reference
-from ..uncertainty import misfit_design_reference, radial_roots_kernel, radial_roots_reference
+from ..uncertainty import (
+    covariance_radii_kernel,
+    covariance_radii_reference,
+    misfit_design_reference,
+)
 from ._kernel_examples import (
     Arguments,
     best_of_tiles_examples,
@@ -32,6 +36,7 @@ from ._kernel_examples import (
     channel_rows_parts,
     correlation_products_examples,
     correlation_scores_examples,
+    covariance_radii_examples,
     fit_examples,
     grow_examples,
     joint_examples,
@@ -41,7 +46,6 @@ from ._kernel_examples import (
     misfit_design_examples,
     objective_examples,
     profile_cells_examples,
-    radial_roots_examples,
     refine_examples,
     sandwich_examples,
     sandwich_parts,
@@ -189,7 +193,12 @@ KERNEL_TABLE: tuple[KernelRow, ...] = (
         profile_cells_examples,
         rtol=0.0,  # cells: the same ones
     ),
-    KernelRow("radial_roots", radial_roots_reference, radial_roots_kernel, radial_roots_examples),
+    KernelRow(
+        "covariance_radii",
+        covariance_radii_reference,
+        covariance_radii_kernel,
+        covariance_radii_examples,
+    ),
     KernelRow(
         "predict_update",
         predict_update_reference,
