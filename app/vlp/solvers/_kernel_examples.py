@@ -61,6 +61,7 @@ __all__ = [
     "correlation_products_examples",
     "correlation_scores_examples",
     "covariance_radii_examples",
+    "escape_test_examples",
     "fit_examples",
     "grow_examples",
     "joint_examples",
@@ -547,6 +548,33 @@ def refine_examples() -> list[Arguments]:
         for k, rounds in itertools.product((1, 2, 3), (1, 3)):
             state = random_state(room.kernel, rng, k)
             examples.append((room, _search_run(room, rng), state, 50, rounds))
+    return examples
+
+
+def escape_test_examples() -> list[Arguments]:
+    """``(room, run, state)`` of the paper room's correlation search: K = 1 to 3 targets at
+    random, and at the run's own two targets (a fit that leaves only its noise, so that the
+    grid is scored; under the count's threshold and under one that any point passes),
+    whitened and in the plain metric."""
+    rng = np.random.default_rng(25)
+    examples: list[Arguments] = []
+    for whiten, threshold in ((True, None), (True, -1.0), (False, None)):
+        options = dataclasses.replace(GridlessOptions(), whiten=whiten)
+        if threshold is not None:
+            options = dataclasses.replace(options, count_threshold=threshold)
+        room = GridlessSolver(_paper_fingerprint(), "correlation", options).room
+        for k in (1, 2, 3):
+            examples.append((room, _search_run(room, rng), random_state(room.kernel, rng, k)))
+        for noise in (1e-6, 1e-3):
+            truth = dataclasses.replace(
+                random_state(room.kernel, rng, 2), weights=np.ones(2), log_gains=np.zeros(2)
+            )
+            truth.noise = 0.05
+            identity = room.identity
+            clean = Objective(room.kernel, identity, np.zeros(identity.weights.shape[0]), False)
+            modelled = -residual_reference(clean, clean.pack(truth), truth)
+            values = modelled + noise * rng.standard_normal(modelled.shape[0])
+            examples.append((room, Run(values=values, priors=room.growth_priors), truth))
     return examples
 
 

@@ -37,6 +37,7 @@ from ._kernel_examples import (
     correlation_products_examples,
     correlation_scores_examples,
     covariance_radii_examples,
+    escape_test_examples,
     fit_examples,
     grow_examples,
     joint_examples,
@@ -80,7 +81,14 @@ from .gridless.model import (
     residual_reference,
 )
 from .gridless.report import correlation_products_kernel, correlation_products_reference
-from .gridless.search import grow_kernel, grow_reference, refine_kernel, refine_reference
+from .gridless.search import (
+    escape_test_kernel,
+    escape_test_reference,
+    grow_kernel,
+    grow_reference,
+    refine_kernel,
+    refine_reference,
+)
 from .gridless.terminal_solve import profile_cells_kernel, profile_cells_reference
 from .gridless.terminals import (
     terminal_fit_kernel,
@@ -185,6 +193,7 @@ KERNEL_TABLE: tuple[KernelRow, ...] = (
     ),
     KernelRow("grow", grow_reference, grow_kernel, grow_examples, compared=search_parts),
     KernelRow("refine", refine_reference, refine_kernel, refine_examples, compared=search_parts),
+    KernelRow("escape_test", escape_test_reference, escape_test_kernel, escape_test_examples),
     KernelRow("terminal_fit", terminal_fit_reference, terminal_fit_kernel, terminal_fit_examples),
     KernelRow(
         "profile_cells",

@@ -38,6 +38,7 @@ from .state import (
     FitState,
 )
 from .whitening import Whitening
+from .whitening_memo import state_key
 
 # A count read off the rank of R replaces a smaller count by energy only when its fit's
 # variance ratio against that one is above this (gridless.search.explains_more).
@@ -288,6 +289,37 @@ def needs_escape(room: PreparedRoom, run: Run, state: FitState) -> bool:
     """
     if room.relocate_far and state.n_targets >= 2:
         return True
+    return dispatch(escape_test_kernel, escape_test_reference)(room, run, state)
+
+
+def escape_test_kernel(room: PreparedRoom, run: Run, state: FitState) -> bool:
+    """:func:`escape_test_reference` with the state's plug-in whitening, its whitened
+    residual and the grid's inner products in one compiled call, where
+    :func:`search_compiles` and they are not known yet (the same kernels in the same
+    order: the same numbers). The whitening, its data and the residual are kept where
+    the reference keeps them (:func:`.fitting.whitened_residual`), for the stages after."""
+    key = (state_key(state), run.priors)
+    if (
+        state.n_targets == 0
+        or not room.options.whiten
+        or not search_compiles(room, run)
+        or key in run.whitened
+    ):
+        return escape_test_reference(room, run, state)
+    rotation, weights, data, residual, num, norms = compiled_search.escape_test_kernel(
+        *search_problem(room, run), search_state(state), room.gains
+    )
+    n_leds = room.fingerprint.n_leds
+    white = room.whitenings.get(state, lambda _: Whitening(room.model, n_leds, rotation, weights))
+    white.keep(run.values, data)
+    run.whitened[key] = (white, residual)
+    if not noise_test(room, run, state)[2]:
+        return True
+    return misses_a_target(room, state, num, norms)
+
+
+def escape_test_reference(room: PreparedRoom, run: Run, state: FitState) -> bool:
+    """:func:`needs_escape`'s two signs, each piece by the kernels in use."""
     white, residual, within = noise_test(room, run, state)
     # With no degree of freedom left (power model, 2K + 1 >= M) no cost tells a local
     # minimum from the truth: always escaping doubles the time there but is worth about
@@ -303,7 +335,16 @@ def needs_escape(room: PreparedRoom, run: Run, state: FitState) -> bool:
         if found is not None:
             _, gain_best, norm_best = found
             return bool(gain_best > room.options.count_threshold * weight**2 * norm_best)
-    num, norms_sq = grid_correlations(room, white, residual)
+    return misses_a_target(room, state, *grid_correlations(room, white, residual))
+
+
+def misses_a_target(
+    room: PreparedRoom, state: FitState, num: FloatArray, norms_sq: FloatArray
+) -> bool:
+    """Whether one more unit-weight target would lower the cost by at least
+    ``count_threshold`` of its own energy at the best grid point, from the grid's
+    ``<c psi_j, r>`` and ``||c psi_j||^2`` (:func:`.fitting.grid_correlations`)."""
+    weight = math.exp(state.log_scale)
     gain = 2.0 * weight * num - weight**2 * norms_sq
     best = int(np.argmax(gain))
     return bool(gain[best] > room.options.count_threshold * weight**2 * norms_sq[best])
