@@ -58,7 +58,7 @@ __all__ = [
     "best_of_tiles_examples",
     "channel_rows_examples",
     "channel_rows_parts",
-    "correlation_products_examples",
+    "correlation_profiles_examples",
     "correlation_scores_examples",
     "covariance_radii_examples",
     "escape_test_examples",
@@ -175,7 +175,7 @@ def correlation_scores_examples() -> list[Arguments]:
     return examples
 
 
-def correlation_products_examples() -> list[Arguments]:
+def correlation_profiles_examples() -> list[Arguments]:
     kernel = _kernel()
     rng = np.random.default_rng(12)
     gains = _gains(kernel, rng, 30)

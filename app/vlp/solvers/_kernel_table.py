@@ -34,7 +34,7 @@ from ._kernel_examples import (
     best_of_tiles_examples,
     channel_rows_examples,
     channel_rows_parts,
-    correlation_products_examples,
+    correlation_profiles_examples,
     correlation_scores_examples,
     covariance_radii_examples,
     escape_test_examples,
@@ -80,7 +80,7 @@ from .gridless.model import (
     residual_kernel,
     residual_reference,
 )
-from .gridless.report import correlation_products_kernel, correlation_products_reference
+from .gridless.report import correlation_profiles_kernel, correlation_profiles_reference
 from .gridless.search import (
     escape_test_kernel,
     escape_test_reference,
@@ -136,10 +136,10 @@ KERNEL_TABLE: tuple[KernelRow, ...] = (
         correlation_scores_examples,
     ),
     KernelRow(
-        "correlation_products",
-        correlation_products_reference,
-        correlation_products_kernel,
-        correlation_products_examples,
+        "correlation_profiles",
+        correlation_profiles_reference,
+        correlation_profiles_kernel,
+        correlation_profiles_examples,
     ),
     KernelRow("residual", residual_reference, residual_kernel, objective_examples),
     KernelRow("gram", gram_reference, gram_kernel, objective_examples),
