@@ -23,6 +23,7 @@ from .fitting import (
     fits_to_noise,
     grid_correlations,
     insertion_scores,
+    leaves_noise,
     lm_fit,
     noise_test,
     plain_cost,
@@ -313,7 +314,7 @@ def escape_test_kernel(room: PreparedRoom, run: Run, state: FitState) -> bool:
     white = room.whitenings.get(state, lambda _: Whitening(room.model, n_leds, rotation, weights))
     white.keep(run.values, data)
     run.whitened[key] = (white, residual)
-    if not noise_test(room, run, state)[2]:
+    if not leaves_noise(room, state, residual):
         return True
     return misses_a_target(room, state, num, norms)
 

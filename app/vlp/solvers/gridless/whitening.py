@@ -105,7 +105,6 @@ class Whitening:
         self.model = model
         self.n_leds = n_leds
         self.rotation = rotation
-        self.rotation_t = None if rotation is None else np.ascontiguousarray(rotation.T)
         self.weights = weights
         self.upper, self.lower, self.is_diag = _vech_indices(model, n_leds)
         self.weighted_diag = weights * self.is_diag
@@ -113,6 +112,12 @@ class Whitening:
         self._data: tuple[FloatArray, str, FloatArray] | None = None
         # Unit weights and no rotation (:meth:`identity`): the data are the values.
         self._plain = False
+
+    @functools.cached_property
+    def rotation_t(self) -> FloatArray | None:
+        """``U^T``, contiguous, for the NumPy rotations (made when first asked for: the
+        compiled kernels read ``U``); None without a rotation."""
+        return None if self.rotation is None else np.ascontiguousarray(self.rotation.T)
 
     def compiled(self) -> tuple[Any, ...]:
         """This whitening as the compiled kernels take it (built once)."""
