@@ -253,6 +253,8 @@ def farthest_in_region(
     # The region is a few grid points per estimate: distances to those only, and the
     # circles only of the estimates whose region reaches beyond their neighbourhood.
     rows, cols, distance = _region(explained, best, grid_points, positions)
+    if distance.size == 0 or distance.max() <= 1.5 * spacing:
+        return far  # the common case: every region stays in its neighbourhood
     reach = np.full(explained.shape[0], -np.inf)
     np.maximum.at(reach, rows, distance)
     for k in np.flatnonzero(reach > 1.5 * spacing):

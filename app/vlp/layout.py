@@ -393,9 +393,10 @@ class Layout:
         """
         pts = np.atleast_2d(np.asarray(points, dtype=np.float64))
         step = self.grid.step
-        ix = np.clip(np.floor(pts[:, 0] / step), 0, self.n_x - 1).astype(np.intp)
-        iy = np.clip(np.floor(pts[:, 1] / step), 0, self.n_y - 1).astype(np.intp)
-        return np.asarray(ix * self.n_y + iy, dtype=np.intp)
+        n_y = self.n_y
+        ix = np.floor(pts[:, 0] / step).clip(0, self.n_x - 1).astype(np.intp)
+        iy = np.floor(pts[:, 1] / step).clip(0, n_y - 1).astype(np.intp)
+        return np.asarray(ix * n_y + iy, dtype=np.intp)
 
     # -- LED arrays -----------------------------------------------------------------------
     @property

@@ -28,7 +28,7 @@ MAX_SCALE_FACTOR = 100.0
 def brightest_energy(fingerprint: Fingerprint) -> float:
     """``max_j sum_i (h_ij x_i)^2``: the most received power any grid point gets (power units)."""
 
-    return float(np.max(fingerprint.received_power()[0]))
+    return float(fingerprint.received_power()[0].max())
 
 
 @functools.lru_cache(maxsize=64)
@@ -62,7 +62,7 @@ def check_measurement_scale(
     if measurement.model == "power":
         total = float(np.sum(values))
     else:
-        total = float(np.sum(values[_diagonal(measurement.n_leds)]))
+        total = float(values[_diagonal(measurement.n_leds)].sum())
     factor = total / max(n_targets or 1, 1) / max(brightest_energy(fingerprint), 1e-300)
     if factor >= MAX_SCALE_FACTOR:
         raise MeasurementError(

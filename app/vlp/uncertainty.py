@@ -14,6 +14,7 @@ degrees of freedom behind those variances (:func:`predictive_covariances`).
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 from typing import Literal, cast
@@ -195,48 +196,38 @@ def confidence_radii(covariances: FloatArray, level: float = 0.95) -> FloatArray
         raise ValueError(f"covariances must have shape (K, 2, 2), got {cov.shape}")
     if not 0.0 < level < 1.0:
         raise ValueError(f"level must be in (0, 1), got {level}")
-    radii = np.zeros(cov.shape[0])
     if cov.shape[0] == 0:
-        return radii
-    finite = np.all(np.isfinite(cov), axis=(1, 2))
-    radii[~finite] = math.inf
-    eigen = np.zeros((cov.shape[0], 2))
-    eigen[finite] = np.linalg.eigvalsh(0.5 * (cov[finite] + cov[finite].transpose(0, 2, 1)))
-    major = eigen[:, 1]
-    solve = finite & (major > 0.0)
-    if not np.any(solve):
-        return radii
-    major = major[solve]
-    ratio = np.maximum(eigen[solve, 0] / major, 1e-300)[:, np.newaxis]
-    root_ratio = np.sqrt(ratio)
-    two_d = math.sqrt(-2.0 * math.log1p(-level))  # u when rho = 1 (Rayleigh)
-    one_d = float(special.ndtri(0.5 + 0.5 * level))  # u when rho -> 0
-    # P(0) = 0 < level and P(two_d) >= level (rho <= 1): a bracket for every estimate.
-    reach = _radial_roots(root_ratio[:, 0], float(level), one_d, two_d)
-    radii[solve] = np.sqrt(major) * reach
-    return radii
-
-
-def _radial_roots(root_ratio: FloatArray, level: float, one_d: float, two_d: float) -> FloatArray:
-    """:func:`radial_roots_kernel` or :func:`radial_roots_reference`, by the kernels in use.
-    The kernel engine is imported here, not at the top: numba loads with the first radius,
-    not with this module."""
+        return np.zeros(0)
+    # The kernel engine is imported here, not at the top: numba loads with the first
+    # radius, not with this module.
     from ._kernels import dispatch
 
-    return dispatch(radial_roots_kernel, radial_roots_reference)(root_ratio, level, one_d, two_d)
+    # P(0) = 0 < level and P(two_d) >= level (rho <= 1): a bracket for every estimate.
+    one_d, two_d = _radial_bracket(float(level))
+    return dispatch(covariance_radii_kernel, covariance_radii_reference)(
+        cov, float(level), one_d, two_d
+    )
 
 
-def radial_roots_kernel(
-    root_ratio: FloatArray, level: float, one_d: float, two_d: float
+@functools.lru_cache(maxsize=8)
+def _radial_bracket(level: float) -> tuple[float, float]:
+    """``u`` of the ``level`` radius when ``rho -> 0`` and when ``rho = 1`` (Rayleigh): the
+    bounds of every estimate's root (:func:`covariance_radii_reference`)."""
+    return float(special.ndtri(0.5 + 0.5 * level)), math.sqrt(-2.0 * math.log1p(-level))
+
+
+def covariance_radii_kernel(
+    covariances: FloatArray, level: float, one_d: float, two_d: float
 ) -> FloatArray:
-    """:func:`radial_roots_reference` compiled (:mod:`app.vlp._radii_compiled`; each
-    estimate iterates alone to the tolerance)."""
+    """:func:`covariance_radii_reference` compiled (:mod:`app.vlp._radii_compiled`: one
+    call per answer; each estimate's eigenvalues in closed form, as LAPACK's for a 2 x 2
+    matrix, and its own Newton iteration to the tolerance)."""
     from . import _radii_compiled
 
     return cast(
         "FloatArray",
-        _radii_compiled.radial_roots_kernel(
-            np.ascontiguousarray(root_ratio),
+        _radii_compiled.covariance_radii_kernel(
+            np.ascontiguousarray(covariances, dtype=np.float64),
             level,
             one_d,
             two_d,
@@ -247,13 +238,25 @@ def radial_roots_kernel(
     )
 
 
-def radial_roots_reference(
-    root_ratio: FloatArray, level: float, one_d: float, two_d: float
+def covariance_radii_reference(
+    covariances: FloatArray, level: float, one_d: float, two_d: float
 ) -> FloatArray:
-    """``u`` per estimate with ``P(|e| <= u sqrt(l1)) = level`` for ``sqrt(l2 / l1)`` =
-    ``root_ratio`` (n,): Newton's method kept inside the bracket ``[0, two_d]``, from
-    between the one- and two-dimensional roots (``one_d``, ``two_d``), on the radial
-    probability by Gauss-Legendre quadrature."""
+    """:func:`confidence_radii` of validated covariances (K, 2, 2), K >= 1, in NumPy: each
+    symmetrised covariance's eigenvalues ``l2 <= l1``, then ``u`` per estimate with
+    ``P(|e| <= u sqrt(l1)) = level`` for ``rho = l2 / l1`` by Newton's method kept inside
+    the bracket ``[0, two_d]``, from between the one- and two-dimensional roots
+    (``one_d``, ``two_d``), on the radial probability by Gauss-Legendre quadrature."""
+    finite = np.all(np.isfinite(covariances), axis=(1, 2))
+    radii = np.where(finite, 0.0, math.inf)
+    eigen = np.zeros((covariances.shape[0], 2))
+    kept = covariances[finite]
+    eigen[finite] = np.linalg.eigvalsh(0.5 * (kept + kept.transpose(0, 2, 1)))
+    major = eigen[:, 1]
+    solve = finite & (major > 0.0)
+    if not np.any(solve):
+        return radii
+    major = major[solve]
+    root_ratio = np.sqrt(np.maximum(eigen[solve, 0] / major, 1e-300))
     ratio = root_ratio[:, np.newaxis]
     low = np.zeros(root_ratio.size)
     high = np.full(root_ratio.size, two_d * 1.01)
@@ -283,7 +286,8 @@ def radial_roots_reference(
             step = reach - excess / slope
         inside = (slope > 0.0) & (step > low) & (step < high)
         reach = np.where(inside, step, 0.5 * (low + high))
-    return np.asarray(reach)
+    radii[solve] = np.sqrt(major) * reach
+    return radii
 
 
 def bounded_covariances(
@@ -326,6 +330,8 @@ def bounded_covariances(
     # The circle of radius r holds 1 - exp(-r^2 / (2 s)) of N(0, s I), and a covariance
     # below s I has a smaller radius: only those with a trace above s can be too wide.
     circle = max_radius**2 / (-2.0 * math.log1p(-level))
+    if all(_inside_circle(covariance, circle) for covariance in bounded.tolist()):
+        return bounded  # the common case, once per answer: nothing to bound
     with np.errstate(invalid="ignore", over="ignore"):
         first, second = bounded[:, 0, 0], bounded[:, 1, 1]
         cross = 0.5 * (bounded[:, 0, 1] + bounded[:, 1, 0])
@@ -346,6 +352,26 @@ def bounded_covariances(
         bounded[check] *= factors[:, np.newaxis, np.newaxis]
     bounded[~valid] = circle * np.eye(2)
     return bounded
+
+
+def _inside_circle(covariance: list[list[float]], circle: float) -> bool:
+    """Whether one covariance (2 x 2, as lists) is one that :func:`bounded_covariances`
+    leaves as it is: finite, not singular nor indefinite, with a trace of at most
+    ``circle``. In Python floats, the same operations as the vectorised test: an answer's
+    few estimates cost less so."""
+    (first, xy), (yx, second) = covariance
+    cross = 0.5 * (xy + yx)
+    trace = first + second
+    return (
+        math.isfinite(first)
+        and math.isfinite(xy)
+        and math.isfinite(yx)
+        and math.isfinite(second)
+        and first >= 0.0
+        and second >= 0.0
+        and first * second - cross * cross > _MIN_EIGENVALUE_RATIO * (trace * trace)
+        and trace <= circle
+    )
 
 
 @dataclass(frozen=True)

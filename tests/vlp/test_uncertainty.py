@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from scipy import integrate, special, stats
 
+from app.vlp._kernels import KERNELS, KernelMode, use_kernels
 from app.vlp.uncertainty import (
     NOISE_ONLY_P,
     POOR_FIT_CHI2,
@@ -100,6 +101,47 @@ def test_radii_of_many_estimates_equal_each_alone() -> None:
     assert confidence_radii(np.zeros((0, 2, 2))).shape == (0,)
     with pytest.raises(ValueError, match="shape"):
         confidence_radii(np.eye(2))
+
+
+@pytest.mark.parametrize("kernels", KERNELS)
+def test_radii_of_covariances_that_say_nothing(kernels: KernelMode) -> None:
+    covariances = np.array(
+        [
+            np.full((2, 2), np.nan),
+            [[np.inf, 0.0], [0.0, 1e-4]],
+            [[1e-4, np.inf], [np.inf, 1e-4]],
+            np.zeros((2, 2)),
+            np.diag([0.01, 0.0]),
+            -1e-4 * np.eye(2),
+        ]
+    )
+    with use_kernels(kernels):
+        radii = confidence_radii(covariances)
+    assert np.isinf(radii[:3]).all()
+    assert radii[3] == 0.0 and radii[5] == 0.0
+    assert radii[4] == pytest.approx(1.959964 * 0.1, rel=1e-6)
+
+
+def test_the_compiled_eigenvalues_are_lapacks() -> None:
+    """The radii kernel's eigenvalues of a symmetric 2 x 2 matrix in closed form are those
+    of numpy's eigvalsh (LAPACK), bit for bit: diagonal and nearly diagonal ones too."""
+    from app.vlp._radii_compiled import _eigenvalues
+
+    rng = np.random.default_rng(5)
+    factors = rng.normal(size=(300, 2, 2))
+    matrices = list(factors @ factors.transpose(0, 2, 1) * 10.0 ** rng.uniform(-10, 2, (300, 1, 1)))
+    off = np.array([[0.0, 1.0], [1.0, 0.0]])
+    matrices += [
+        np.diag([3e-4, 1e-4]),
+        np.zeros((2, 2)),
+        np.full((2, 2), 1e-4),
+        1e-4 * np.eye(2) + 1e-22 * off,
+        np.diag([2.0, 1.0]) + 1e-17 * off,
+        np.diag([2e-3, 1e-9]) + 3e-7 * off,
+    ]
+    for matrix in matrices:
+        minor, major = np.linalg.eigvalsh(matrix)
+        assert _eigenvalues(matrix[0, 0], matrix[1, 0], matrix[1, 1]) == (major, minor)
 
 
 def test_fit_quality_classes() -> None:

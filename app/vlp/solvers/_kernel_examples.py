@@ -58,8 +58,10 @@ __all__ = [
     "best_of_tiles_examples",
     "channel_rows_examples",
     "channel_rows_parts",
-    "correlation_products_examples",
+    "correlation_profiles_examples",
     "correlation_scores_examples",
+    "covariance_radii_examples",
+    "escape_test_examples",
     "fit_examples",
     "grow_examples",
     "joint_examples",
@@ -69,7 +71,6 @@ __all__ = [
     "misfit_design_examples",
     "objective_examples",
     "profile_cells_examples",
-    "radial_roots_examples",
     "refine_examples",
     "sandwich_examples",
     "sandwich_parts",
@@ -174,7 +175,7 @@ def correlation_scores_examples() -> list[Arguments]:
     return examples
 
 
-def correlation_products_examples() -> list[Arguments]:
+def correlation_profiles_examples() -> list[Arguments]:
     kernel = _kernel()
     rng = np.random.default_rng(12)
     gains = _gains(kernel, rng, 30)
@@ -550,6 +551,33 @@ def refine_examples() -> list[Arguments]:
     return examples
 
 
+def escape_test_examples() -> list[Arguments]:
+    """``(room, run, state)`` of the paper room's correlation search: K = 1 to 3 targets at
+    random, and at the run's own two targets (a fit that leaves only its noise, so that the
+    grid is scored; under the count's threshold and under one that any point passes),
+    whitened and in the plain metric."""
+    rng = np.random.default_rng(25)
+    examples: list[Arguments] = []
+    for whiten, threshold in ((True, None), (True, -1.0), (False, None)):
+        options = dataclasses.replace(GridlessOptions(), whiten=whiten)
+        if threshold is not None:
+            options = dataclasses.replace(options, count_threshold=threshold)
+        room = GridlessSolver(_paper_fingerprint(), "correlation", options).room
+        for k in (1, 2, 3):
+            examples.append((room, _search_run(room, rng), random_state(room.kernel, rng, k)))
+        for noise in (1e-6, 1e-3):
+            truth = dataclasses.replace(
+                random_state(room.kernel, rng, 2), weights=np.ones(2), log_gains=np.zeros(2)
+            )
+            truth.noise = 0.05
+            identity = room.identity
+            clean = Objective(room.kernel, identity, np.zeros(identity.weights.shape[0]), False)
+            modelled = -residual_reference(clean, clean.pack(truth), truth)
+            values = modelled + noise * rng.standard_normal(modelled.shape[0])
+            examples.append((room, Run(values=values, priors=room.growth_priors), truth))
+    return examples
+
+
 def search_parts(answer: FitState) -> tuple[Any, ...]:
     """A search step's state: every value, and whether its last fit converged."""
     return (
@@ -563,9 +591,10 @@ def search_parts(answer: FitState) -> tuple[Any, ...]:
     )
 
 
-def radial_roots_examples() -> list[Arguments]:
-    """Ratios of an error ellipse's axes from a circle's 1 to 10^-6, one to eleven per
-    call, at the 95 % level and the 68 % one."""
+def covariance_radii_examples() -> list[Arguments]:
+    """Error ellipses of axes' ratios from a circle's 1 to 10^-6, turned at random, one to
+    eleven per call, at the 95 % level and the 68 % one; with a diagonal one, a zero one and
+    a singular one (the non-finite ones: tests/vlp/test_uncertainty.py)."""
     rng = np.random.default_rng(17)
     examples = []
     for level, n in ((0.95, 1), (0.95, 4), (0.95, 11), (0.68, 5)):
@@ -573,7 +602,23 @@ def radial_roots_examples() -> list[Arguments]:
         two_d = math.sqrt(-2.0 * math.log1p(-level))  # and at 1 (Rayleigh)
         ratios = np.sqrt(10.0 ** rng.uniform(-12.0, 0.0, n))
         ratios[0] = 1.0
-        examples.append((ratios, level, one_d, two_d))
+        angles = rng.uniform(0.0, math.pi, n)
+        majors = 10.0 ** rng.uniform(-6.0, 0.0, n)  # m^2
+        turns = np.stack(
+            (
+                np.column_stack((np.cos(angles), -np.sin(angles))),
+                np.column_stack((np.sin(angles), np.cos(angles))),
+            ),
+            axis=1,
+        )
+        axes = np.zeros((n, 2, 2))
+        axes[:, 0, 0], axes[:, 1, 1] = majors, majors * ratios**2
+        covariances = turns @ axes @ turns.transpose(0, 2, 1)
+        if n > 4:
+            covariances[1] = np.diag([3e-4, 1e-4])
+            covariances[2] = 0.0
+            covariances[3] = [[1e-4, 1e-4], [1e-4, 1e-4]]
+        examples.append((covariances, level, one_d, two_d))
     return examples
 
 

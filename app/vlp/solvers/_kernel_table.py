@@ -24,14 +24,20 @@ from collections.abc import Callable
 from typing import Any, NamedTuple
 
 from ..tracking.step import predict_update_kernel, predict_update_reference
-from ..uncertainty import misfit_design_reference, radial_roots_kernel, radial_roots_reference
+from ..uncertainty import (
+    covariance_radii_kernel,
+    covariance_radii_reference,
+    misfit_design_reference,
+)
 from ._kernel_examples import (
     Arguments,
     best_of_tiles_examples,
     channel_rows_examples,
     channel_rows_parts,
-    correlation_products_examples,
+    correlation_profiles_examples,
     correlation_scores_examples,
+    covariance_radii_examples,
+    escape_test_examples,
     fit_examples,
     grow_examples,
     joint_examples,
@@ -41,7 +47,6 @@ from ._kernel_examples import (
     misfit_design_examples,
     objective_examples,
     profile_cells_examples,
-    radial_roots_examples,
     refine_examples,
     sandwich_examples,
     sandwich_parts,
@@ -75,8 +80,15 @@ from .gridless.model import (
     residual_kernel,
     residual_reference,
 )
-from .gridless.report import correlation_products_kernel, correlation_products_reference
-from .gridless.search import grow_kernel, grow_reference, refine_kernel, refine_reference
+from .gridless.report import correlation_profiles_kernel, correlation_profiles_reference
+from .gridless.search import (
+    escape_test_kernel,
+    escape_test_reference,
+    grow_kernel,
+    grow_reference,
+    refine_kernel,
+    refine_reference,
+)
 from .gridless.terminal_solve import profile_cells_kernel, profile_cells_reference
 from .gridless.terminals import (
     terminal_fit_kernel,
@@ -124,10 +136,10 @@ KERNEL_TABLE: tuple[KernelRow, ...] = (
         correlation_scores_examples,
     ),
     KernelRow(
-        "correlation_products",
-        correlation_products_reference,
-        correlation_products_kernel,
-        correlation_products_examples,
+        "correlation_profiles",
+        correlation_profiles_reference,
+        correlation_profiles_kernel,
+        correlation_profiles_examples,
     ),
     KernelRow("residual", residual_reference, residual_kernel, objective_examples),
     KernelRow("gram", gram_reference, gram_kernel, objective_examples),
@@ -181,6 +193,7 @@ KERNEL_TABLE: tuple[KernelRow, ...] = (
     ),
     KernelRow("grow", grow_reference, grow_kernel, grow_examples, compared=search_parts),
     KernelRow("refine", refine_reference, refine_kernel, refine_examples, compared=search_parts),
+    KernelRow("escape_test", escape_test_reference, escape_test_kernel, escape_test_examples),
     KernelRow("terminal_fit", terminal_fit_reference, terminal_fit_kernel, terminal_fit_examples),
     KernelRow(
         "profile_cells",
@@ -189,7 +202,12 @@ KERNEL_TABLE: tuple[KernelRow, ...] = (
         profile_cells_examples,
         rtol=0.0,  # cells: the same ones
     ),
-    KernelRow("radial_roots", radial_roots_reference, radial_roots_kernel, radial_roots_examples),
+    KernelRow(
+        "covariance_radii",
+        covariance_radii_reference,
+        covariance_radii_kernel,
+        covariance_radii_examples,
+    ),
     KernelRow(
         "predict_update",
         predict_update_reference,

@@ -154,9 +154,11 @@ class Solver(ABC):
                 )
         check_measurement_scale(self.fingerprint, measurement, n_targets)
         solution = self._solve(measurement, n_targets)
-        numbers = (solution.positions, solution.weights, solution.noise_power)
-        if not all(np.all(np.isfinite(values)) for values in numbers) or not math.isfinite(
-            solution.residual_norm
+        if not (
+            np.isfinite(solution.positions).all()
+            and np.isfinite(solution.weights).all()
+            and math.isfinite(solution.noise_power)
+            and math.isfinite(solution.residual_norm)
         ):
             # An answer of NaN or infinity is no answer; the measurement's scale is far
             # outside what this room's fingerprint can produce.

@@ -680,14 +680,14 @@ _KERNELS_OF_A_SOLVE = """
     from app.vlp.solvers.gridless._compiled.uncertainty import sandwich_covariances_kernel
     from app.vlp.solvers.gridless._compiled import tolerance as joint
     from app.vlp.solvers.gridless._compiled.terminal import terminal_fit_kernel
-    from app.vlp._radii_compiled import radial_roots_kernel
+    from app.vlp._radii_compiled import covariance_radii_kernel
     from app.vlp.solvers.gridless._compiled.search import grow_kernel, refine_kernel
     from app.vlp.tracking._filter_compiled import predict_update_kernel
 
     kernels = [fit.fit_kernel, fit.gram_kernel, fit.residual_kernel, fit.whitening_kernel,
                fit.whitened_data_kernel, correlation_scores_kernel, channel_rows_kernel,
                sandwich_covariances_kernel, joint.joint_gains_kernel, joint.joint_residual_kernel,
-               joint.joint_fit_kernel, terminal_fit_kernel, radial_roots_kernel,
+               joint.joint_fit_kernel, terminal_fit_kernel, covariance_radii_kernel,
                grow_kernel, refine_kernel, predict_update_kernel]
 """
 
@@ -713,7 +713,7 @@ _NO_CACHE_SCRIPT = textwrap.dedent(
     got = confidence_radii(covariances)
     with use_kernels("reference"):
         want = confidence_radii(covariances)
-    assert len(radial_roots_kernel.signatures) == 1
+    assert len(covariance_radii_kernel.signatures) == 1
     np.testing.assert_allclose(got, want, rtol=1e-10, atol=0.0)
     print("ok")
     """

@@ -12,7 +12,10 @@ from app.vlp.layout import Layout
 from app.vlp.measurements import Measurement, measurement_from_amplitudes
 from app.vlp.metrics import matched_errors
 from app.vlp.simulation import noise_std_for_snr, noisy_amplitudes, random_positions
+from app.vlp.solvers._kernel_examples import escape_test_examples
 from app.vlp.solvers.gridless import GridlessOptions, GridlessSolver
+from app.vlp.solvers.gridless.fitting import whitened_residual, whitening_of
+from app.vlp.solvers.gridless.search import escape_test_kernel, escape_test_reference
 
 from .test_solver import (
     GRID_FLOOR_M,
@@ -149,3 +152,26 @@ def test_noise_only_still_answers_one_estimate(
     sol = paper_solver.solve(meas)
     assert sol.n_targets == 1
     assert np.all(np.isfinite(sol.positions))
+
+
+def test_the_compiled_escape_test_keeps_what_its_pieces_compute() -> None:
+    """The escape test in one compiled call leaves the state's whitening, whitened data and
+    residual where the later stages look for them, bit for bit what the reference's
+    compiled pieces compute one by one (a whitening's eigenvectors, and so its residual's
+    entries, are the compiled eigen-solver's), and answers as the reference does."""
+    for (room, run, state), (room_ref, run_ref, state_ref) in zip(
+        escape_test_examples(), escape_test_examples(), strict=True
+    ):
+        answer = escape_test_kernel(room, run, state)
+        assert escape_test_reference(room_ref, run_ref, state_ref) == answer
+        white_ref, residual_ref = whitened_residual(room_ref, run_ref, state_ref)
+        white, residual = whitened_residual(room, run, state)
+        assert white is whitening_of(room, state)
+        for got, want in (
+            (residual, residual_ref),
+            (white.weights, white_ref.weights),
+            (white.data(run.values), white_ref.data(run_ref.values)),
+        ):
+            np.testing.assert_array_equal(got, want)
+        assert (white.rotation is None) == (white_ref.rotation is None)
+        np.testing.assert_array_equal(white.compiled()[1], white_ref.compiled()[1])

@@ -7,7 +7,7 @@ import threading
 
 import numpy as np
 
-from app.vlp._kernels import use_kernels
+from app.vlp._kernels import KERNELS, use_kernels
 from app.vlp.fingerprints import build_fingerprint
 from app.vlp.measurements import measurement_from_amplitudes
 from app.vlp.presets import paper_layout
@@ -77,13 +77,26 @@ def test_large_whitenings_are_not_kept() -> None:
     """A large room's whitening (an M x M rotation, M(M+1)/2 weights) is computed afresh
     rather than held by every thread."""
     memo = WhiteningMemo()
-    big = [Whitening.identity("power", MAX_KEPT_VALUES + 1) for _ in range(2)]
+    size = MAX_KEPT_VALUES + 1
+    big = [Whitening("power", size, None, np.full(size, 2.0)) for _ in range(2)]
     calls = iter(big)
     state = _state()
     assert memo.get(state, lambda _: next(calls)) is big[0]
     assert memo.get(state, lambda _: next(calls)) is big[1]
-    values = np.ones(MAX_KEPT_VALUES + 1)
+    values = np.ones(size)
     assert big[0].data(values) is not big[0].data(values)
+    np.testing.assert_array_equal(big[0].data(values), 2.0 * values)
+
+
+def test_plain_least_squares_whitens_nothing() -> None:
+    """The plain metric's data are the values themselves, as either kernel computes them
+    (each times 1), without a copy."""
+    values = np.random.default_rng(3).normal(size=136)
+    plain = Whitening.identity("correlation", 16)
+    assert plain.data(values) is values
+    for kernels in KERNELS:
+        with use_kernels(kernels):
+            np.testing.assert_array_equal(plain._data_of(values), values)
 
 
 def test_whitened_data_is_kept_for_the_same_array() -> None:

@@ -197,9 +197,14 @@ def noise_test(room: PreparedRoom, run: Run, state: FitState) -> tuple[Whitening
     ``misfit_ratio`` times its degrees of freedom (False with none left): a complete fit
     leaves only noise, about one unit per degree of freedom."""
     white, residual = whitened_residual(room, run, state)
+    return white, residual, leaves_noise(room, state, residual)
+
+
+def leaves_noise(room: PreparedRoom, state: FitState, residual: FloatArray) -> bool:
+    """Whether the state's whitened ``residual`` is within ``misfit_ratio`` times its
+    degrees of freedom (:func:`noise_test`)."""
     dof = residual.shape[0] - 2 * state.n_targets - 1
-    within = dof > 0 and float(residual @ residual) <= room.options.misfit_ratio * dof
-    return white, residual, bool(within)
+    return bool(dof > 0 and float(residual @ residual) <= room.options.misfit_ratio * dof)
 
 
 def whitened_residual(

@@ -166,17 +166,20 @@ class Objective:
     def pack(self, state: FitState) -> FloatArray:
         """``theta`` of a state."""
         slots = self.slots(state.n_targets)
-        parts = [state.positions[:, 0], state.positions[:, 1]]
+        k = slots.n_targets
+        theta = np.empty(slots.size)
+        theta[:k] = state.positions[:, 0]
+        theta[k : 2 * k] = state.positions[:, 1]
         if slots.n_axes == 3:
-            parts.append(state.heights)
+            theta[2 * k : 3 * k] = state.heights
         if slots.weights is not None:
-            parts.append(state.weights)
+            theta[slots.weights] = state.weights
         if slots.gains is not None:
-            parts.append(state.log_gains)
+            theta[slots.gains] = state.log_gains
         if slots.scale is not None:
-            parts.append(np.array([state.log_scale]))
-        parts.append(np.array([state.noise]))
-        return np.concatenate(parts)
+            theta[slots.scale] = state.log_scale
+        theta[-1] = state.noise
+        return theta
 
     def bounds(self, n_targets: int) -> tuple[FloatArray, FloatArray]:
         """Lower and upper bounds of ``theta`` (positions in the room, heights within the

@@ -59,13 +59,16 @@ def reported(
     the fit's detail saying so, and no 95 % radius beyond the floor's diagonal
     (:func:`app.vlp.uncertainty.bounded_covariances`)."""
     floor = room.fingerprint.layout.room
+    diagonal = math.hypot(floor.length, floor.width)
+    has_far = np.isfinite(far[:, 0])
+    if not room.twins_possible and not has_far.any():
+        return bounded_covariances(covariances, diagonal), fit  # nothing to widen
     twins = (
         mirror_twins(positions, room.led_xy, room.gains_at, (floor.length, floor.width))
         if room.twins_possible
         else np.full_like(positions, np.nan)
     )
     has_twin = np.isfinite(twins[:, 0])
-    has_far = np.isfinite(far[:, 0])
     if has_far.any():
         # One widening per estimate, to the farther point: the far optimum when the
         # twin is nearer or none.
@@ -90,7 +93,7 @@ def reported(
         )
     if detail != fit.detail:
         fit = replace(fit, detail=detail)
-    return bounded_covariances(covariances, math.hypot(floor.length, floor.width)), fit
+    return bounded_covariances(covariances, diagonal), fit
 
 
 def terminal_far_optima(
@@ -167,8 +170,8 @@ def profiles(room: PreparedRoom, run: Run, state: FitState) -> tuple[FloatArray,
     itself ``||r_k||^2 - ||r||^2``. In the rotated basis (``rho = U^T g``) every inner
     product of atoms is a quadratic form in ``rho_j o rho_k`` with the squared weights,
     so all K profiles cost one pass over the grid each, without forming any ``r_k``
-    (:func:`correlation_products_kernel`, or its NumPy reference
-    :func:`correlation_products_reference`). Kept per run, state values and priors.
+    (:func:`correlation_profiles_kernel`, or its NumPy reference
+    :func:`correlation_profiles_reference`). Kept per run, state values and priors.
     """
     key = (state_key(state), run.priors)
     known = run.profiles.get(key)
@@ -194,42 +197,55 @@ def computed_profiles(
         without = num[np.newaxis, :] + multipliers[:, np.newaxis] * cross
         own_num = (weights * residual) @ target_sq
         own_norm = squared @ target_sq**2
-    else:
-        without, norms, own_num, own_norm = dispatch(
-            correlation_products_kernel, correlation_products_reference
-        )(white, residual, room.gains, targets, multipliers)
+        return explained_profiles(without, norms, own_num, own_norm, multipliers)
+    return dispatch(correlation_profiles_kernel, correlation_profiles_reference)(
+        white, residual, room.gains, targets, multipliers
+    )
+
+
+def explained_profiles(
+    without: FloatArray,
+    norms: FloatArray,
+    own_num: FloatArray,
+    own_norm: FloatArray,
+    multipliers: FloatArray,
+) -> tuple[FloatArray, FloatArray]:
+    """:func:`profiles` from the inner products ``<a_j, r_k>`` (K, N), ``||a_j||^2`` (N,),
+    ``<a_k, r>`` and ``||a_k||^2`` (K,): what each estimate explains at every grid point,
+    and at its best."""
     explained = np.maximum(without, 0.0) ** 2 / np.maximum(norms, 1e-300)
     own = 2.0 * multipliers * own_num + multipliers**2 * own_norm
     return explained, np.maximum(explained.max(axis=1), own)
 
 
-def correlation_products_kernel(
+def correlation_profiles_kernel(
     white: Whitening,
     residual: FloatArray,
     gains: FloatArray,
     targets: FloatArray,
     multipliers: FloatArray,
-) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
-    """:func:`correlation_products_reference` in one compiled call."""
-    without, norms, own_num, own_norm = compiled_scores.correlation_products_kernel(
+) -> tuple[FloatArray, FloatArray]:
+    """:func:`correlation_profiles_reference` in one compiled call."""
+    explained, best = compiled_scores.correlation_profiles_kernel(
         white.compiled(),
         np.ascontiguousarray(residual, dtype=np.float64),
         gains,
         np.ascontiguousarray(targets, dtype=np.float64),
         np.ascontiguousarray(multipliers, dtype=np.float64),
     )
-    return without, norms, own_num, own_norm
+    return explained, best
 
 
-def correlation_products_reference(
+def correlation_profiles_reference(
     white: Whitening,
     residual: FloatArray,
     gains: FloatArray,
     targets: FloatArray,
     multipliers: FloatArray,
-) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
-    """The inner products behind the correlation model's profiles, shapes (K, N), (N,), (K,)
-    and (K,), in NumPy."""
+) -> tuple[FloatArray, FloatArray]:
+    """:func:`profiles` of the correlation model in NumPy: the inner products of the
+    estimates' and the grid's whitened atoms (:func:`explained_profiles`'s), from the
+    rotated gains."""
     weights = white.weights
     n_leds = gains.shape[0]
     # Symmetric M x M forms of the whitened entries (each off-diagonal entry split
@@ -252,7 +268,7 @@ def correlation_products_reference(
     own_num = np.sum((quadratic @ rotated) * rotated, axis=0)
     rotated_sq = rotated * rotated
     own_norm = np.sum((squared @ rotated_sq) * rotated_sq, axis=0)
-    return without, norms, own_num, own_norm
+    return explained_profiles(without, norms, own_num, own_norm, multipliers)
 
 
 def aggregated_fit_detail(

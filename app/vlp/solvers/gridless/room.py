@@ -143,8 +143,9 @@ class PreparedRoom:
             if model == "power"
             else fingerprint.n_leds * (fingerprint.n_leds + 1) // 2
         )
-        # The entries' rows and columns, read-only and shared with the whitenings.
-        self.upper_lower = _vech_indices(model, fingerprint.n_leds)[:2]
+        # Where the diagonal entries (each LED's received power) sit among the values.
+        upper, lower, _ = _vech_indices(model, fingerprint.n_leds)
+        self.diagonal = np.flatnonzero(upper == lower)
         # Each target costs 2 coordinates and the noise power one more unknown.
         self.max_count = max(1, min(MAX_TARGETS, fingerprint.n_cells, (n_obs - 1) // 2))
         # The far-place scans read every grid point per answer: dense rooms small enough.

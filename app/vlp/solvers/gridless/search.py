@@ -23,6 +23,7 @@ from .fitting import (
     fits_to_noise,
     grid_correlations,
     insertion_scores,
+    leaves_noise,
     lm_fit,
     noise_test,
     plain_cost,
@@ -38,6 +39,7 @@ from .state import (
     FitState,
 )
 from .whitening import Whitening
+from .whitening_memo import state_key
 
 # A count read off the rank of R replaces a smaller count by energy only when its fit's
 # variance ratio against that one is above this (gridless.search.explains_more).
@@ -167,14 +169,13 @@ def grow_kernel(
         *problem, *room.search_objective(ceiling).bounds(target_count), inner_iter
     )
     added = positions.shape[0] - k
-    grown = FitState(
-        positions,
-        np.concatenate((state.weights, np.ones(added))),
-        float(noise),
-        np.concatenate((state.heights, np.full(added, room.priors.height_mean))),
-        np.concatenate((state.log_gains, np.zeros(added))),
-        state.log_scale,
-    )
+    weights, heights = np.ones(added), np.full(added, room.priors.height_mean)
+    log_gains = np.zeros(added)
+    if k > 0:
+        weights = np.concatenate((state.weights, weights))
+        heights = np.concatenate((state.heights, heights))
+        log_gains = np.concatenate((state.log_gains, log_gains))
+    grown = FitState(positions, weights, float(noise), heights, log_gains, state.log_scale)
     if inner_iter > 0:
         run.iterations += int(total)
         grown.converged = used < inner_iter
@@ -289,6 +290,37 @@ def needs_escape(room: PreparedRoom, run: Run, state: FitState) -> bool:
     """
     if room.relocate_far and state.n_targets >= 2:
         return True
+    return dispatch(escape_test_kernel, escape_test_reference)(room, run, state)
+
+
+def escape_test_kernel(room: PreparedRoom, run: Run, state: FitState) -> bool:
+    """:func:`escape_test_reference` with the state's plug-in whitening, its whitened
+    residual and the grid's inner products in one compiled call, where
+    :func:`search_compiles` and they are not known yet (the same kernels in the same
+    order: the same numbers). The whitening, its data and the residual are kept where
+    the reference keeps them (:func:`.fitting.whitened_residual`), for the stages after."""
+    key = (state_key(state), run.priors)
+    if (
+        state.n_targets == 0
+        or not room.options.whiten
+        or not search_compiles(room, run)
+        or key in run.whitened
+    ):
+        return escape_test_reference(room, run, state)
+    rotation, weights, data, residual, num, norms = compiled_search.escape_test_kernel(
+        *search_problem(room, run), search_state(state), room.gains
+    )
+    n_leds = room.fingerprint.n_leds
+    white = room.whitenings.get(state, lambda _: Whitening(room.model, n_leds, rotation, weights))
+    white.keep(run.values, data)
+    run.whitened[key] = (white, residual)
+    if not leaves_noise(room, state, residual):
+        return True
+    return misses_a_target(room, state, num, norms)
+
+
+def escape_test_reference(room: PreparedRoom, run: Run, state: FitState) -> bool:
+    """:func:`needs_escape`'s two signs, each piece by the kernels in use."""
     white, residual, within = noise_test(room, run, state)
     # With no degree of freedom left (power model, 2K + 1 >= M) no cost tells a local
     # minimum from the truth: always escaping doubles the time there but is worth about
@@ -304,7 +336,16 @@ def needs_escape(room: PreparedRoom, run: Run, state: FitState) -> bool:
         if found is not None:
             _, gain_best, norm_best = found
             return bool(gain_best > room.options.count_threshold * weight**2 * norm_best)
-    num, norms_sq = grid_correlations(room, white, residual)
+    return misses_a_target(room, state, *grid_correlations(room, white, residual))
+
+
+def misses_a_target(
+    room: PreparedRoom, state: FitState, num: FloatArray, norms_sq: FloatArray
+) -> bool:
+    """Whether one more unit-weight target would lower the cost by at least
+    ``count_threshold`` of its own energy at the best grid point, from the grid's
+    ``<c psi_j, r>`` and ``||c psi_j||^2`` (:func:`.fitting.grid_correlations`)."""
+    weight = math.exp(state.log_scale)
     gain = 2.0 * weight * num - weight**2 * norms_sq
     best = int(np.argmax(gain))
     return bool(gain[best] > room.options.count_threshold * weight**2 * norms_sq[best])
@@ -445,10 +486,9 @@ def guessed_prescale(room: PreparedRoom, values: FloatArray, n_targets: int | No
     exactly as in a room measured as modelled (docs/explanation/solver.md, "Prescale")."""
     if n_targets is None:
         return 1.0
-    upper, lower = room.upper_lower
-    per_target = float(np.sum(values[upper == lower])) / n_targets
+    per_target = float(values[room.diagonal].sum()) / n_targets
     low, high = room.energy_band
-    if not np.isfinite(per_target) or low / 1.5 <= per_target <= 1.5 * high:
+    if not math.isfinite(per_target) or low / 1.5 <= per_target <= 1.5 * high:
         return 1.0
     ratio = max(per_target, 1e-300) / room.mean_column_energy
     return float(np.clip(ratio, math.exp(-MAX_LOG_SCALE), math.exp(MAX_LOG_SCALE)))
@@ -469,9 +509,11 @@ def nominal_search(
     if n_targets is None:
         return Search(run, polish(room, run, count_and_fit(room, run)), others, prescale)
     state = fit_known(room, run, n_targets, np.zeros((0, 2)))
+    if n_targets < 2 or room.restarts == 0:
+        return Search(run, state, others, prescale)  # no restarts: no cost to compare
     cost = plain_cost(room, run, state)
     firsts = [state.positions[0]]
-    for _ in range(room.restarts if n_targets > 1 else 0):
+    for _ in range(room.restarts):
         if not needs_escape(room, run, state):
             break
         other = fit_known(room, run, n_targets, np.array(firsts))

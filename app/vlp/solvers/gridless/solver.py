@@ -173,7 +173,7 @@ class GridlessSolver(Solver):
             grid_indices=self.fingerprint.layout.nearest_cell(positions),
             weights=state.weights.copy(),
             noise_power=state.noise * prescale * room.scale**2,
-            residual_norm=float(np.linalg.norm(residual)) * prescale * room.scale**2,
+            residual_norm=math.sqrt(float(residual @ residual)) * prescale * room.scale**2,
             n_iter=run.iterations,
             converged=state.converged,
             covariances=covariances,

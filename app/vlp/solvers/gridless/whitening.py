@@ -105,12 +105,19 @@ class Whitening:
         self.model = model
         self.n_leds = n_leds
         self.rotation = rotation
-        self.rotation_t = None if rotation is None else np.ascontiguousarray(rotation.T)
         self.weights = weights
         self.upper, self.lower, self.is_diag = _vech_indices(model, n_leds)
         self.weighted_diag = weights * self.is_diag
         self._compiled: tuple[Any, ...] | None = None
         self._data: tuple[FloatArray, str, FloatArray] | None = None
+        # Unit weights and no rotation (:meth:`identity`): the data are the values.
+        self._plain = False
+
+    @functools.cached_property
+    def rotation_t(self) -> FloatArray | None:
+        """``U^T``, contiguous, for the NumPy rotations (made when first asked for: the
+        compiled kernels read ``U``); None without a rotation."""
+        return None if self.rotation is None else np.ascontiguousarray(self.rotation.T)
 
     def compiled(self) -> tuple[Any, ...]:
         """This whitening as the compiled kernels take it (built once)."""
@@ -132,7 +139,9 @@ class Whitening:
     def identity(cls, model: Model, n_leds: int) -> Whitening:
         """Plain least squares."""
         length = n_leds * (n_leds + 1) // 2 if model == "correlation" else n_leds
-        return cls(model, n_leds, None, np.ones(length))
+        white = cls(model, n_leds, None, np.ones(length))
+        white._plain = True
+        return white
 
     @classmethod
     def from_state(
@@ -144,7 +153,10 @@ class Whitening:
     def data(self, values: FloatArray) -> FloatArray:
         """Whitened measurement. The last one is kept (a solve whitens its measurement in
         one metric many times): callers must not write into it (nor into ``values``). Not
-        flagged read-only: the compiled kernels take writable arrays."""
+        flagged read-only: the compiled kernels take writable arrays. In plain least squares,
+        the values themselves (what either kernel gives: each times 1)."""
+        if self._plain:
+            return np.asarray(values, dtype=np.float64)
         last = self._data
         if last is not None and last[0] is values and last[1] == kernel_mode():
             return last[2]
@@ -152,6 +164,12 @@ class Whitening:
         if whitened.shape[0] <= _KEPT_DATA_MAX:  # a large room's whitening keeps none
             self._data = (values, kernel_mode(), whitened)
         return whitened
+
+    def keep(self, values: FloatArray, whitened: FloatArray) -> None:
+        """Keep ``whitened``, computed elsewhere by the kernels in use (a compiled step that
+        whitened ``values`` on its way), as :meth:`data` of ``values``."""
+        if not self._plain and whitened.shape[0] <= _KEPT_DATA_MAX:
+            self._data = (values, kernel_mode(), whitened)
 
     def _data_of(self, values: FloatArray) -> FloatArray:
         return dispatch(whitened_data_kernel, whitened_data_reference)(self, values)
@@ -232,6 +250,6 @@ def whitened_data_reference(white: Whitening, values: FloatArray) -> FloatArray:
 def target_gains(kernel: ChannelKernel, state: FitState) -> FloatArray:
     """``g`` of every target of a state (at its height), shape (M, K)."""
     xs, ys = state.positions[:, 0], state.positions[:, 1]
-    if np.all(state.heights == kernel.receiver_height):
+    if (state.heights == kernel.receiver_height).all():
         return kernel.gains_xy(xs, ys)
     return kernel.gains_xyz(xs, ys, state.heights)

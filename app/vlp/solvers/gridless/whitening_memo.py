@@ -11,10 +11,9 @@ bounded in count and kept only for rooms of a few dozen LEDs. Private.
 
 from __future__ import annotations
 
+import struct
 import threading
 from collections.abc import Callable
-
-import numpy as np
 
 from ..._kernels import kernel_mode
 from .state import FitState
@@ -27,20 +26,24 @@ _CAPACITY = 64
 # Only whitenings of at most this many values are kept (a 16-LED correlation has 136; a
 # 1024-LED one would hold an 8 MB rotation and 4 MB of weights each: computed, not kept).
 MAX_KEPT_VALUES = 4096
+# The key's two scalars (noise, scale), as float64 bytes.
+_SCALARS = struct.Struct("dd")
 
 
 def state_key(state: FitState) -> bytes:
     """The state's values (positions, heights, weights, gains, scale, noise) as one key:
-    what a whitening, and anything else computed from the state alone, depends on."""
-    return np.concatenate(
+    what a whitening, and anything else computed from the state alone, depends on (the
+    float64 arrays' bytes in order, then the noise and the scale; a solve asks for it a
+    few times per state, so it joins bytes rather than arrays)."""
+    return b"".join(
         (
-            state.positions.ravel(),
-            state.heights,
-            state.weights,
-            state.log_gains,
-            (state.noise, state.log_scale),
+            state.positions.tobytes(),
+            state.heights.tobytes(),
+            state.weights.tobytes(),
+            state.log_gains.tobytes(),
+            _SCALARS.pack(state.noise, state.log_scale),
         )
-    ).tobytes()
+    )
 
 
 class WhiteningMemo:

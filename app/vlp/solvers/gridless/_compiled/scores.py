@@ -61,18 +61,19 @@ def _quadratic_forms(
 
 
 @compiled
-def correlation_products_kernel(
+def correlation_profiles_kernel(
     white: Problem,
     residual: FloatArray,
     gains: FloatArray,
     targets: FloatArray,
     multipliers: FloatArray,
-) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
-    """The inner products behind ``gridless.report.profiles`` (dense correlation model), its
-    NumPy code being the reference: with ``a_j`` the whitened unit atom of grid point j
-    (gains (M, N)) and ``a_k`` that of estimate k (its gains ``targets[:, k]``, (M, K), and
-    effective weight ``multipliers[k]``), returns ``<a_j, r + w_k a_k>`` (K, N),
-    ``||a_j||^2`` (N,), ``<a_k, r>`` and ``||a_k||^2`` (K,).
+) -> tuple[FloatArray, FloatArray]:
+    """``gridless.report.profiles`` (dense correlation model), its NumPy code being the
+    reference: with ``a_j`` the whitened unit atom of grid point j (gains (M, N)) and
+    ``a_k`` that of estimate k (its gains ``targets[:, k]``, (M, K), and effective weight
+    ``multipliers[k]``), the inner products ``<a_j, r + w_k a_k>`` (K, N), ``||a_j||^2``
+    (N,), ``<a_k, r>`` and ``||a_k||^2`` (K,), and from them what each estimate explains at
+    every grid point (K, N) and at its best (K,), as ``gridless.report.explained_profiles``.
 
     In the rotated basis (``rho = U^T g``) ``<a_j, r> = rho_j^T Q rho_j`` with ``Q`` the
     symmetric form of the weighted residual, and ``<a_j, a_k> = (rho_j o rho_k)^T S
@@ -116,4 +117,24 @@ def correlation_products_kernel(
         for a in range(n_leds):
             for j in range(n_points):
                 without[k, j] += multipliers[k] * grid[a, j] * cross[a, j]
-    return without, norms, own_num, own_norm
+    # np.maximum's and the largest's NaN and bounds, element by element.
+    explained = np.empty((n_targets, n_points))
+    best = np.empty(n_targets)
+    for k in range(n_targets):
+        for j in range(n_points):
+            value = without[k, j]
+            value = 0.0 if value < 0.0 else value
+            norm = norms[j]
+            norm = 1e-300 if norm < 1e-300 else norm
+            explained[k, j] = value * value / norm
+        top = explained[k, 0]
+        for j in range(1, n_points):
+            value = explained[k, j]
+            if value > top or value != value:
+                top = value
+                if value != value:
+                    break
+        weight = multipliers[k]
+        own = 2.0 * weight * own_num[k] + weight * weight * own_norm[k]
+        best[k] = top if (top >= own or top != top) else own
+    return explained, best

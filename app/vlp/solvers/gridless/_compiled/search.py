@@ -37,7 +37,7 @@ from .fit import (
 from .lm import lm_kernel
 from .scores import correlation_scores_kernel
 
-__all__ = ["grow_kernel", "refine_kernel"]
+__all__ = ["escape_test_kernel", "grow_kernel", "refine_kernel"]
 
 
 @compiled
@@ -343,3 +343,28 @@ def refine_kernel(
         if round_index > 0 and used <= 2:
             break  # the re-whitened metric no longer moves the fit
     return current, theta[2 * k], total, used
+
+
+@compiled
+def escape_test_kernel(
+    channel: ChannelConstants,
+    table: TableConstants,
+    search: Problem,
+    state: Problem,
+    gains: FloatArray,
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
+    """What the escape test (:func:`.gridless.search.escape_test_reference`) reads of the
+    search's ``state`` (K >= 1), in its plug-in whitening: that whitening's rotation and
+    weights, the whitened data, the whitened data residual, and every grid point's
+    ``<c psi_j, r>`` and ``||c psi_j||^2`` (:func:`.scores.correlation_scores_kernel`)."""
+    white, _, is_diag, values, receiver_height, layout, priors = search[:7]
+    positions, noise, heights, weights, log_gains, log_scale = state
+    on_plane, unit = _facts(heights, weights, log_gains, log_scale, receiver_height)
+    fixed = (heights, weights, log_gains, log_scale, on_plane, unit)
+    metric = _plug_in(channel, table, white, positions, fixed, noise, is_diag)
+    data = whitened_data_kernel(metric, values)
+    theta = _theta(positions, noise)
+    full = residual_kernel(channel, table, metric, data, theta, fixed, layout, priors)
+    residual = full[: data.shape[0]].copy()
+    num, norms = correlation_scores_kernel(metric, residual, gains)
+    return metric[1], metric[2], data, residual, num, norms
