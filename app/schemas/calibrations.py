@@ -158,9 +158,10 @@ class CalibrationCreate(RequestModel):
         default=True,
         strict=True,
         description="last, map what the survey shows of each LED's gain beyond its fitted "
-        "model, smoothly over the floor (kept only when the survey's points show such a map "
-        "better than chance; LEDs with 6 detected points); the calibrated model then follows "
-        "the survey near its points and the fitted model away from them",
+        "model, smoothly over the floor (kept only when the survey's likelihood with the map "
+        "beats it without by more than the map's two parameters; LEDs with 6 detected "
+        "points); the calibrated model then follows the survey near its points and the "
+        "fitted model away from them",
     )
     apply_receiver_gain: bool = Field(
         default=True,

@@ -163,7 +163,8 @@ class CalibrationResult:
         (:mod:`~app.vlp.gain_map`); None when not asked, when the survey does not show one, or
         in a room too large for its table.
     gain_map_evidence : float
-        The map's log marginal likelihood over the model alone (nats; NaN when not asked).
+        The map's log marginal likelihood over the model alone (nats; NaN when not asked or
+        the room is too large for a map).
     """
 
     pilot_amplitudes: FloatArray

@@ -1,13 +1,16 @@
 """What a survey tells of each LED's gain beyond its model: a smooth map of log factors.
 
 A calibrated LED model (amplitude, beam, tilt, position) still misses what varies over the
-floor in ways no LED parameter describes: a luminaire's diffuser, the light off a nearby
-wall, an obstacle's shade. A survey sees it as log residuals ``y = log(a / f)`` that are
-correlated over the floor. Each LED ``j`` gets a Gaussian-process interpolant of its rows'
-residuals (squared-exponential covariance of length scale ``l``, signal variance ``s_j^2``,
-and a noise variance ``lambda s_j^2`` for what does not repeat between neighbours)::
+floor in ways its parameters do not follow: a beam that a sparse survey pins only roughly, a
+luminaire's diffuser, the light off a nearby wall, a shade. A survey sees it as log residuals
+``y = log(a / f)`` that are correlated over the floor. Each LED ``j`` gets a Gaussian-process
+interpolant of its rows' residuals (squared-exponential covariance of length scale ``l``,
+signal variance ``s_j^2``, and a noise variance ``lambda s_j^2`` for what does not repeat
+between neighbours); its posterior mean is::
 
-    g_j(p) = sum_k w_kj exp(-|p - x_k|^2 / (2 l^2)),   w_.j = s_j^2 (s_j^2 (R + lambda I))^-1 y_j
+    g_j(p) = sum_k w_kj exp(-|p - x_k|^2 / (2 l^2)),   w_.j = (R + lambda I)^-1 y_j
+
+with ``R_kl = exp(-|x_k - x_l|^2 / (2 l^2))`` over the LED's rows (``s_j^2`` cancels)
 
 and the room's model gain of LED ``j`` at ``p`` is multiplied by ``exp(g_j(p))``. Away from the
 survey the map returns to 1 (the calibrated model). ``l`` and ``lambda`` are chosen among
@@ -49,6 +52,7 @@ MIN_ROWS_PER_LED = 6
 MAX_ROWS_PER_LED = 200
 # Points evaluated at once (bounds the kernel's memory).
 _CHUNK = 4096
+_TINY_VARIANCE = 1e-24
 # Log-likelihood ratio a map must reach over the model alone: its two parameters (Akaike).
 MIN_EVIDENCE = 2.0
 
@@ -225,9 +229,14 @@ def fit_gain_map(
     y_all = np.asarray(log_residuals, dtype=np.float64)
     usable = np.isfinite(y_all)
     groups = [
-        _spread(np.flatnonzero(usable & (leds == j)))
-        for j in range(n_leds)
-        if np.count_nonzero(usable & (leds == j)) >= MIN_ROWS_PER_LED
+        g
+        for g in (
+            _spread(np.flatnonzero(usable & (leds == j)))
+            for j in range(n_leds)
+            if np.count_nonzero(usable & (leds == j)) >= MIN_ROWS_PER_LED
+        )
+        # Residuals that are all but zero (a model exact to round-off) have nothing to map.
+        if float(np.mean(y_all[g] ** 2)) > _TINY_VARIANCE
     ]
     held_out = np.zeros(y_all.size)
     if not groups:

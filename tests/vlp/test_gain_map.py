@@ -207,3 +207,9 @@ def test_terminals_are_found_on_the_mapped_model() -> None:
         found = solver.solve_terminals(amplitudes).positions
         errors[name] = float(np.max(np.linalg.norm(found - truth, axis=1)))
     assert errors["mapped"] < 0.01 < errors["unmapped"], errors
+
+
+def test_residuals_of_an_exact_model_map_nothing() -> None:
+    points, leds, _ = _rows(0.5, 2, 0.0, seed=0)
+    fit = fit_gain_map(points, leds, np.zeros(leds.size), 2)
+    assert fit.gain_map is None and np.all(fit.held_out == 0.0)
