@@ -403,6 +403,14 @@ def _service(data_dir: Path) -> Iterator[TestClient]:
         yield client
 
 
+# Rows of the default calibration with one step left out: name, ``calibrate``'s settings.
+_CALIBRATION_VARIANTS: tuple[tuple[str, dict[str, Any]], ...] = (
+    ("calibrated, led_tilt_bound_deg 0", {"tilt_bound_deg": 0.0}),
+    ("calibrated, fit_beams false", {"fit_beams": False}),
+    ("calibrated, fit_gain_map false", {"fit_gain_map": False}),
+)
+
+
 def run(
     survey: MasseySurvey,
     *,
@@ -432,42 +440,13 @@ def run(
                 client, calibrated_id, survey, split.test, "calibrated" + tag, undetected, seed
             )
             if not level:
-                # The same calibration with every LED's normal kept straight down.
-                untilted_id = create_room(client, body)
-                calibrate(client, untilted_id, survey, split.survey, undetected, 0.0)
-                rows += service_rows(
-                    client,
-                    untilted_id,
-                    survey,
-                    split.test,
-                    "calibrated, led_tilt_bound_deg 0",
-                    undetected,
-                    seed,
-                )
-                # ... and with every LED's beam kept Lambertian.
-                lambertian_id = create_room(client, body)
-                calibrate(client, lambertian_id, survey, split.survey, undetected, fit_beams=False)
-                rows += service_rows(
-                    client,
-                    lambertian_id,
-                    survey,
-                    split.test,
-                    "calibrated, fit_beams false",
-                    undetected,
-                    seed,
-                )
-                # ... and without the survey's gain map.
-                unmapped_id = create_room(client, body)
-                calibrate(client, unmapped_id, survey, split.survey, undetected, fit_gain_map=False)
-                rows += service_rows(
-                    client,
-                    unmapped_id,
-                    survey,
-                    split.test,
-                    "calibrated, fit_gain_map false",
-                    undetected,
-                    seed,
-                )
+                # The same survey with one of the default calibration's steps left out.
+                for name, settings in _CALIBRATION_VARIANTS:
+                    variant_id = create_room(client, body)
+                    calibrate(client, variant_id, survey, split.survey, undetected, **settings)
+                    rows += service_rows(
+                        client, variant_id, survey, split.test, name, undetected, seed
+                    )
     rows += baseline_rows(survey, split.survey, split.test, receiver_z, scale, report)
     info = {
         "survey_points": len(split.survey),
