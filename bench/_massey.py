@@ -34,7 +34,9 @@ from app.vlp.typing import FloatArray, IntArray
 
 __all__ = [
     "DATA_FILE",
+    "FIVE_LEDS",
     "LUMINAIRE_FILE",
+    "MIN_DETECTED",
     "NOT_DETECTED",
     "MasseySurvey",
     "Split",
@@ -50,6 +52,11 @@ DATA_FILE = "Public_VLP_Dataset.csv"
 LUMINAIRE_FILE = "luminaire_locations.csv"
 # The dataset's detector floor: a reading of exactly this value means "not detected".
 NOT_DETECTED = 15.0
+# Five of the lobby's eleven luminaires (1-based), as a five-LED room: of all choices of five,
+# one under which the most survey points detect at least three (85 %); the others see too few
+# LEDs for any fit. Test points that detect fewer than MIN_DETECTED of them are left out.
+FIVE_LEDS = (4, 5, 7, 10, 11)
+MIN_DETECTED = 3
 
 
 @dataclass(frozen=True)

@@ -40,6 +40,8 @@ from app.vlp.solvers.gridless import GridlessOptions, GridlessSolver
 from . import real_rooms
 from ._common import REPO_ROOT, machine_markdown, machine_record, write_csv
 from ._massey import (
+    FIVE_LEDS,
+    MIN_DETECTED,
     MasseySurvey,
     estimate_receiver_height,
     facility_split,
@@ -58,12 +60,6 @@ from .measured import (
 )
 
 __all__ = ["VARIANTS", "Variant", "main"]
-
-# Five of the Massey lobby's eleven luminaires (1-based, as --leds): of all choices of five, one
-# under which the most survey points detect at least three (85 %); the others see too few LEDs
-# for any fit. Test points that detect fewer than MIN_DETECTED of them are left out.
-FIVE_LEDS = (4, 5, 7, 10, 11)
-MIN_DETECTED = 3
 
 
 @dataclass(frozen=True)

@@ -25,7 +25,9 @@ Each row reports the mean, median and 95th percentile of the error (cm; for K > 
 optimal matching), the coverage (how often the truth lies inside ``accuracy_m``) and the
 median ``accuracy_m``, the count, and the time per call (ms, wall time of the in-process
 request divided by its items). Rows with ``receivers_level`` send the same data with a
-layout that says the photodiodes are level (the robot's is).
+layout that says the photodiodes are level (the robot's is). "N luminaires" rows run the
+protocol in a smaller room, a subset of the luminaires alone (``--subset``; by default the
+five of :data:`~bench._massey.FIVE_LEDS`).
 """
 
 from __future__ import annotations
@@ -52,7 +54,10 @@ from app.vlp.typing import FloatArray
 
 from ._common import REPO_ROOT, machine_markdown, machine_record, write_csv
 from ._massey import (
+    FIVE_LEDS,
+    MIN_DETECTED,
     MasseySurvey,
+    Split,
     estimate_receiver_height,
     facility_split,
     load_survey,
@@ -419,8 +424,10 @@ def run(
     undetected: str,
     levels: Sequence[bool],
     data_dir: Path,
+    subset: Sequence[int] = (),
 ) -> tuple[list[Row], dict[str, Any]]:
-    """The whole protocol; the rows and what the report says about the run."""
+    """The whole protocol; the rows and what the report says about the run. ``subset``:
+    1-based luminaires of the smaller room's rows (none when empty)."""
     split = facility_split(survey.points, seed=seed, max_test=max_test)
     receiver_z, nll = estimate_receiver_height(survey, split.survey, HEIGHT_CANDIDATES_M)
     scale = nominal_scale(survey, split.survey, receiver_z)
@@ -447,7 +454,11 @@ def run(
                     rows += service_rows(
                         client, variant_id, survey, split.test, name, undetected, seed
                     )
+        subset_rows, subset_report = (
+            _subset_rows(client, survey, split, subset, undetected, seed) if subset else ([], {})
+        )
     rows += baseline_rows(survey, split.survey, split.test, receiver_z, scale, report)
+    rows += subset_rows
     info = {
         "survey_points": len(split.survey),
         "test_points": len(split.test),
@@ -455,10 +466,56 @@ def run(
         "height_nll": dict(zip(HEIGHT_CANDIDATES_M.tolist(), nll.tolist(), strict=True)),
         "scale": scale,
         "report": report,
+        "subset": list(subset),
+        "subset_report": subset_report,
         "undetected_share": float(1 - survey.detected.mean()),
         "room": room_extent(survey),
     }
     return rows, info
+
+
+def _subset_rows(
+    client: TestClient,
+    survey: MasseySurvey,
+    split: Split,
+    subset: Sequence[int],
+    undetected: str,
+    seed: int,
+) -> tuple[list[Row], dict[str, Any]]:
+    """The protocol in a smaller room: the luminaires ``subset`` (1-based) alone, their own
+    receiver height and scale, the test points that detect at least :data:`MIN_DETECTED`."""
+    few = survey.with_leds([name - 1 for name in subset])
+    receiver_z, _ = estimate_receiver_height(few, split.survey, HEIGHT_CANDIDATES_M)
+    body = layout_body(few, receiver_z, nominal_scale(few, split.survey, receiver_z), level=False)
+    seen = np.isfinite(few.readings[split.test]).sum(axis=1)
+    test = split.test[seen >= MIN_DETECTED]
+    rows: list[Row] = []
+    report: dict[str, Any] = {}
+    tag = f"{len(subset)} luminaires"
+    for name, settings in (
+        (f"{tag}, nominal", None),
+        (f"{tag}, calibrated", {}),
+        (f"{tag}, calibrated, fit_gain_map false", {"fit_gain_map": False}),
+    ):
+        room_id = create_room(client, body)
+        if settings is not None:
+            done = calibrate(client, room_id, few, split.survey, undetected, **settings)
+            report = report or done
+        rows += service_rows(client, room_id, few, test, name, undetected, seed)
+    return rows, report
+
+
+def _subset_section(info: dict[str, Any]) -> str:
+    subset = info["subset"]
+    if not subset:
+        return ""
+    return f"""## A smaller room
+
+"{len(subset)} luminaires" rows: the same protocol in a room of {len(subset)} LEDs, the survey's
+and the test points' readings of luminaires {", ".join(str(n) for n in subset)} alone (their own
+receiver height and scale), on the test points that detect at least {MIN_DETECTED} of them.
+{_gain_map_note(info["subset_report"])}
+"""
 
 
 def _table(rows: Sequence[Row]) -> str:
@@ -611,6 +668,8 @@ calibrated ones.{_tilt_note(tilts, hpa)}
 
 {_gain_map_note(info["report"])}
 
+{_subset_section(info)}
+
 Machine:
 
 {machine_markdown(machine_record())}
@@ -635,6 +694,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         default=None,
         help="keep only these luminaires (1-based, comma-separated): a room with fewer LEDs",
     )
+    parser.add_argument(
+        "--subset",
+        default=",".join(str(n) for n in FIVE_LEDS),
+        help="luminaires of the smaller room's rows (1-based, comma-separated; empty: none)",
+    )
     parser.add_argument("--out", type=Path, default=None, help="default: docs/ (full run)")
     args = parser.parse_args(argv)
     survey = load_survey(args.data, args.commit)
@@ -649,6 +713,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             undetected=args.undetected,
             levels=levels,
             data_dir=Path(tmp),
+            subset=[int(name) for name in args.subset.split(",") if name.strip()],
         )
     given = sys.argv[1:] if argv is None else argv
     command = shown_command("python -m bench.measured", given, args.data)

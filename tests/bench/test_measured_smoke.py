@@ -104,7 +104,8 @@ def test_the_protocol_runs_through_the_api_and_writes_its_page(
     dataset: Path, tmp_path: Path
 ) -> None:
     out = tmp_path / "out"
-    argv = [str(dataset), "--max-test", "8", "--level", "no", "--out", str(out)]
+    argv = [str(dataset), "--max-test", "8", "--level", "no", "--subset", "1,2,3"]
+    argv += ["--out", str(out)]
     assert measured.main(argv) == 0
     rows = list(csv.DictReader((out / "measured.csv").read_text(encoding="utf-8").splitlines()))
     layouts = {(r["method"], r["layout"], r["K"]) for r in rows}
@@ -116,8 +117,17 @@ def test_the_protocol_runs_through_the_api_and_writes_its_page(
     calibrated = next(r for r in rows if r["layout"] == "calibrated" and r["K"] == "1")
     # 5 % noise in a 3 m room of 4 LEDs: a calibrated fix is within decimetres.
     assert float(calibrated["median_cm"]) < 30 and not math.isnan(float(calibrated["coverage"]))
+    # The smaller room: luminaires 1-3 alone, on the test points that detect all three.
+    smaller = {r["layout"]: int(r["count"]) for r in rows if r["layout"].startswith("3 lum")}
+    assert set(smaller) == {
+        "3 luminaires, nominal",
+        "3 luminaires, calibrated",
+        "3 luminaires, calibrated, fit_gain_map false",
+    }
+    assert min(smaller.values()) > 0 and max(smaller.values()) <= 8
     page = (out / "measured.md").read_text(encoding="utf-8")
     assert page.startswith("# Measured survey") and "python -m bench.measured DATA" in page
+    assert "## A smaller room" in page
 
 
 def test_the_shown_command_hides_the_readers_path_to_the_data() -> None:
