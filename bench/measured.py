@@ -50,6 +50,7 @@ from scipy.optimize import linear_sum_assignment
 from app.main import create_app
 from app.settings import Settings
 from app.vlp.channel import concentrator_gain, lambertian_order
+from app.vlp.gain_map import MIN_EVIDENCE
 from app.vlp.typing import FloatArray
 
 from ._common import REPO_ROOT, machine_markdown, machine_record, write_csv
@@ -589,12 +590,15 @@ def _gain_map_note(report: dict[str, Any]) -> str:
     """What the survey's gain map is, or that it showed none."""
     gain_map = report.get("gain_map")
     if not gain_map:
-        return "The survey showed no gain map (`fit_gain_map`) better than chance."
+        return (
+            "The survey showed no gain map (`fit_gain_map`) worth more than its two "
+            f"parameters (a log likelihood ratio of {MIN_EVIDENCE:g})."
+        )
     return (
         f"The survey showed a gain map (`fit_gain_map`) for {len(gain_map['leds'])} of "
         f"{len(report.get('leds', []))} LEDs: length scale {gain_map['length_scale_m']:g} m, "
         f"log likelihood ratio over independent residuals {gain_map['evidence']:.1f} (kept "
-        "from 3)."
+        f"above {MIN_EVIDENCE:g}, the map's two parameters)."
     )
 
 
