@@ -103,10 +103,9 @@ def _gain_map_report(result: CalibrationResult) -> dict[str, Any] | None:
     gain_map = result.gain_map
     if gain_map is None:
         return None
-    weights = np.asarray(gain_map.weights)
     return {
         "length_scale_m": gain_map.length_scale_m,
-        "leds": [int(i) for i in np.flatnonzero(np.any(weights != 0.0, axis=0))],
+        "leds": list(gain_map.mapped_leds),
         "evidence": float(result.gain_map_evidence),
     }
 

@@ -111,10 +111,7 @@ class ReflectionTable:
             When the table would hold more than :data:`MAX_TABLE_ENTRIES` coefficients.
         """
         x_nodes, y_nodes, z_nodes = cls.check_size(layout)
-        inset_x = np.clip(x_nodes, _WALL_INSET_M, layout.room.length - _WALL_INSET_M)
-        inset_y = np.clip(y_nodes, _WALL_INSET_M, layout.room.width - _WALL_INSET_M)
-        grid_x, grid_y, grid_z = np.meshgrid(inset_x, inset_y, z_nodes, indexing="ij")
-        points = np.column_stack((grid_x.ravel(), grid_y.ravel(), grid_z.ravel()))
+        points = _node_points(layout, x_nodes, y_nodes, z_nodes)
         values = np.zeros((layout.n_leds, points.shape[0]))
         if layout.room.reflectance is not None:
             for start in range(0, points.shape[0], _BUILD_CHUNK):
@@ -139,10 +136,7 @@ class ReflectionTable:
         if layout.gain_map is None:
             return self
         x_nodes, y_nodes, z_nodes = self.x_nodes, self.y_nodes, self.z_nodes
-        inset_x = np.clip(x_nodes, _WALL_INSET_M, layout.room.length - _WALL_INSET_M)
-        inset_y = np.clip(y_nodes, _WALL_INSET_M, layout.room.width - _WALL_INSET_M)
-        grid_x, grid_y, grid_z = np.meshgrid(inset_x, inset_y, z_nodes, indexing="ij")
-        points = np.column_stack((grid_x.ravel(), grid_y.ravel(), grid_z.ravel()))
+        points = _node_points(layout, x_nodes, y_nodes, z_nodes)
         diffuse = self.coefficients[:, 0, :].T  # the node values, (M, nodes)
         los = los_gains(layout, points)
         values = (los + diffuse) * np.exp(layout.gain_map.log_factors(points[:, :2])) - los
@@ -317,6 +311,16 @@ def _slopes(values: FloatArray, nodes: FloatArray, axis: int) -> FloatArray:
     if nodes.size == 2:
         return np.asarray(np.gradient(values, nodes, axis=axis, edge_order=1))
     return np.asarray(np.gradient(values, nodes, axis=axis, edge_order=2))
+
+
+def _node_points(
+    layout: Layout, x_nodes: FloatArray, y_nodes: FloatArray, z_nodes: FloatArray
+) -> FloatArray:
+    """(nodes, 3) receiver points of the table's nodes, x major; wall lines just inside."""
+    inset_x = np.clip(x_nodes, _WALL_INSET_M, layout.room.length - _WALL_INSET_M)
+    inset_y = np.clip(y_nodes, _WALL_INSET_M, layout.room.width - _WALL_INSET_M)
+    grid_x, grid_y, grid_z = np.meshgrid(inset_x, inset_y, z_nodes, indexing="ij")
+    return np.column_stack((grid_x.ravel(), grid_y.ravel(), grid_z.ravel()))
 
 
 def _hermite_coefficients(

@@ -114,6 +114,12 @@ class GainMap:
         """M: the LEDs the weights are for."""
         return len(self.weights[0])
 
+    @property
+    def mapped_leds(self) -> tuple[int, ...]:
+        """The LEDs whose map is not 1 everywhere (some weight not 0)."""
+        weights = np.asarray(self.weights)
+        return tuple(int(j) for j in np.flatnonzero(np.any(weights != 0.0, axis=0)))
+
     def log_factors(self, points: FloatArray, led: int | None = None) -> FloatArray:
         """``g_j(p)`` at ``points``, of every LED or of one.
 
