@@ -18,7 +18,7 @@ from app.vlp.layout import AmplitudeError, Layout
 from app.vlp.layout_mapping import layout_from_mapping
 from app.vlp.simulation import true_amplitudes
 from app.vlp.solvers.gridless import GridlessSolver, terminal_solve
-from app.vlp.solvers.gridless.terminal_solve import weighted_square_variance
+from app.vlp.solvers.gridless.terminal_weights import weighted_square_variance
 from app.vlp.survey import Survey
 from app.vlp.uncertainty import Misfit
 

@@ -7,6 +7,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from scipy import stats
 
 from app.vlp.channel import channel_gains, led_constants
 from app.vlp.errors import MeasurementError
@@ -17,7 +18,12 @@ from app.vlp.simulation import noise_std_for_snr, random_positions, true_amplitu
 from app.vlp.solvers.gridless import GridlessOptions, GridlessSolver
 from app.vlp.solvers.gridless.channel import ChannelKernel
 from app.vlp.solvers.gridless.options import nuisance_priors
-from app.vlp.solvers.gridless.terminals import _HELD_LOG_GAIN_SD, fit_terminal, los_with_normal
+from app.vlp.solvers.gridless.terminal_weights import rewhitened, terminal_nll
+from app.vlp.solvers.gridless.terminals import (
+    _HELD_LOG_GAIN_SD,
+    fit_terminal,
+    los_with_normal,
+)
 from tests.vlp.test_gridless_nuisances import _matched
 
 
@@ -213,3 +219,84 @@ def test_a_held_gain_keeps_the_gain_uncertainty_in_the_covariance(paper_room: La
     holding = fit.normal.copy()
     holding[-1, -1] += 1.0 / _HELD_LOG_GAIN_SD**2 - 1.0 / priors.log_gain_sd**2
     assert np.trace(held_cov) > 1.5 * np.trace(np.linalg.inv(holding)[:2, :2])
+
+
+def test_a_held_gain_fit_never_ends_above_its_start(paper_room: Layout) -> None:
+    # Three LEDs and terminals 2-3 times brighter than modelled: the start's least-squares
+    # gain lies far out in a held gain's prior, and a fit started there once walked to the
+    # room's corners. Held at 1, LM must end no worse than the start itself (gain 1).
+    layout = replace(paper_room, leds=tuple(paper_room.leds[i] for i in (0, 5, 10)))
+    kernel = ChannelKernel(layout, scale=1.0)
+    priors = replace(nuisance_priors(layout, GridlessOptions()), log_gain_sd=_HELD_LOG_GAIN_SD)
+    for x, y, gain in [(0.6, 0.6, 3.0), (1.0, 1.0, 2.0), (1.0, 1.8, 3.0), (2.2, 1.4, 0.5)]:
+        start = np.array([[x, y]])
+        amplitudes = gain * true_amplitudes(layout, start)[0]
+        sigma2 = (0.01 * float(np.sqrt(np.mean(amplitudes**2)))) ** 2
+        fit = fit_terminal(
+            kernel, amplitudes, start, priors=priors, sigma2=sigma2, height=None, normal=None
+        )
+        modelled = layout.pilot_amplitudes * channel_gains(layout, start)[:, 0]
+        at_start = float(np.sum((amplitudes - modelled) ** 2))
+        assert abs(fit.log_gain) < 1e-4
+        assert fit.rss <= at_start * (1.0 + 1e-9)
+
+
+def test_rewhitening_a_fit_is_its_model_under_the_new_weights(paper_room: Layout) -> None:
+    kernel = ChannelKernel(paper_room, scale=1.0)
+    priors = nuisance_priors(paper_room, GridlessOptions())
+    point = np.array([[1.1, 2.3]])
+    amplitudes = 1.2 * true_amplitudes(paper_room, point)[0]
+    amplitudes = amplitudes * (1 + 0.02 * np.random.default_rng(5).standard_normal(16))
+    sigma2 = (0.01 * float(np.sqrt(np.mean(amplitudes**2)))) ** 2
+    fit = fit_terminal(
+        kernel, amplitudes, point, priors=priors, sigma2=sigma2, height=None, normal=None
+    )
+    weight = np.linspace(0.5, 2.0, 16) / math.sqrt(sigma2)
+    moved = rewhitened(fit, weight)
+    modelled = math.exp(fit.log_gain) * _direct_los(
+        paper_room, np.array([*fit.position, 0.85]), np.array([0.0, 0.0, 1.0])
+    )
+    np.testing.assert_allclose(moved.residual, weight * (amplitudes - modelled), rtol=1e-9)
+    np.testing.assert_allclose(moved.jacobian[:, -1], weight * modelled, rtol=1e-9)
+    # the priors' part of the cost and of the normal matrix is the fit's own
+    assert moved.cost - moved.residual @ moved.residual == pytest.approx(
+        fit.cost - fit.residual @ fit.residual, rel=1e-9, abs=1e-12
+    )
+    back = rewhitened(moved, fit.data_weight)
+    np.testing.assert_allclose(back.normal, fit.normal, rtol=1e-9)
+    np.testing.assert_allclose(back.residual, fit.residual, rtol=1e-9)
+
+
+@pytest.mark.parametrize("tail_dof", [None, 2.5])
+def test_a_terminal_nll_differs_from_scipy_densities_by_a_constant(
+    paper_room: Layout, tail_dof: float | None
+) -> None:
+    kernel = ChannelKernel(paper_room, scale=1.0)
+    priors = nuisance_priors(paper_room, GridlessOptions())
+    rng = np.random.default_rng(8)
+    nll, reference = [], []
+    for point in ([1.1, 2.3], [3.2, 0.6]):
+        clean = 1.3 * true_amplitudes(paper_room, np.array([point]))[0]
+        amplitudes = clean * (1 + 0.05 * rng.standard_normal(16))
+        sigma2 = (0.02 * float(np.sqrt(np.mean(amplitudes**2)))) ** 2
+        fit = fit_terminal(
+            kernel,
+            amplitudes,
+            np.array([point]),
+            priors=priors,
+            sigma2=sigma2,
+            height=None,
+            normal=None,
+        )
+        variances = sigma2 * np.linspace(0.5, 3.0, 16)
+        residual = fit.residual / fit.data_weight
+        scales = np.sqrt(variances)
+        if tail_dof is None:
+            log_density = stats.norm.logpdf(residual, scale=scales)
+        else:
+            log_density = stats.t.logpdf(residual, tail_dof, scale=scales)
+        prior = 0.5 * (fit.cost - fit.residual @ fit.residual)
+        nll.append(terminal_nll(fit, variances, tail_dof))
+        reference.append(-float(np.sum(log_density)) + prior)
+    # the same constant for both: differences agree
+    assert nll[0] - nll[1] == pytest.approx(reference[0] - reference[1], rel=1e-9)

@@ -20,6 +20,7 @@ points. The compiled kernels read the constants below as compile-time constants.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from typing import NamedTuple, TypeVar
 
@@ -195,3 +196,13 @@ def _small_step(step: FloatArray, settings: LMSettings) -> bool:
     n = settings.n_positions
     largest = float(np.abs(step[:n]).max()) if n else 0.0
     return largest < settings.step_tol
+
+
+def whitening_weight(amplitudes: FloatArray, sigma2: float | FloatArray) -> float | FloatArray:
+    """The whitening weight ``1 / sqrt(sigma2)`` of a terminal's amplitudes (M,) of noise
+    variance ``sigma2`` (scalar or (M,)), the variance floored at ``SIGMA2_REL_FLOOR`` of their
+    mean square."""
+    floor = max(SIGMA2_REL_FLOOR * float(amplitudes @ amplitudes) / amplitudes.shape[0], 1e-300)
+    if isinstance(sigma2, np.ndarray):
+        return np.asarray(1.0 / np.sqrt(np.maximum(sigma2, floor)), dtype=np.float64)
+    return 1.0 / math.sqrt(max(float(sigma2), floor))

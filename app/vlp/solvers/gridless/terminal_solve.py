@@ -11,9 +11,9 @@ from collections.abc import Callable
 from dataclasses import replace
 
 import numpy as np
+from scipy import special
 
 from ..._kernels import dispatch
-from ...layout import AmplitudeError
 from ...scale import check_amplitude_scale
 from ...typing import FloatArray, IntArray
 from ...uncertainty import (
@@ -28,11 +28,20 @@ from ...uncertainty import (
 from .._censored import censored_substitutes, with_censored_variance
 from ..base import Solution
 from ._compiled import starts as compiled_starts
+from .lm import whitening_weight
 from .report import (
     reported,
     terminal_far_optima,
 )
 from .room import PreparedRoom
+from .terminal_weights import (
+    measured_misfit,
+    measured_variances,
+    rewhitened,
+    scatter_explains,
+    tail_weighted_variances,
+    terminal_nll,
+)
 from .terminals import TerminalFit, fit_terminal, starting_cells
 from .uncertainty import (
     estimable_misfit,
@@ -51,9 +60,12 @@ _LED_WEIGHT_SIGNIFICANCE = 3.0
 # others off. A lone terminal's estimate weights only itself: on beams far from their
 # nominal shape it is large and real (docs/decisions/led-errors-in-terminal-weights.md).
 _MAX_LED_ERROR_SD = 0.25
-# Standard deviations of the chi-square by which a request's residuals may exceed what the
-# survey's measured scatter predicts and still be taken for the survey receiver's kind.
-_SCATTER_SIGNIFICANCE = 3.0
+# A refit whose weights were taken at its start is a walk-off, and the start is kept, when it
+# leaves the amplitudes less likely than the start did by more than half this quantile of a
+# chi-square on all of them (on a measured survey, such fits went metres off; within the
+# quantile, a refit's small losses are kept: holding them back cost the eleven-luminaire
+# lobby accuracy).
+_WALK_OFF_PROBABILITY = 0.999
 # Reweightings of a terminal fitted with a Student-t scatter: its weights settle within a few.
 _TAIL_REWEIGHTS = 3
 # Grid cells a weighted pass starts from besides the previous pass's optimum (the best of
@@ -160,6 +172,7 @@ def solve_terminals(
             tilt_spread_known=tilt_spread_known,
         )
         first.append(replace(fit, rss=fit.rss + unseen_energy))
+    walk_off = 0.5 * float(special.chdtri(n_leds, 1.0 - _WALK_OFF_PROBABILITY))
     dof = np.array([max(n_leds - fit.n_params, 1) for fit in first])
     sigma2 = sum(fit.rss for fit in first) / float(dof.sum())
 
@@ -167,10 +180,19 @@ def solve_terminals(
         starts: list[TerminalFit],
         variances: Callable[[TerminalFit], float | FloatArray],
         search: bool,
+        likelihood: Callable[[TerminalFit], FloatArray] | None = None,
+        tail_dof: float | None = None,
     ) -> list[TerminalFit]:
         """Every terminal fitted on all the LEDs from ``starts`` (and, with ``search``, from
         the best grid cells of its new cost), its amplitudes weighted by ``variances`` of its
-        start (plus, where censored, their interval's own)."""
+        start (plus, where censored, their interval's own).
+
+        With ``likelihood`` (the amplitudes' variances at a fit, as ``variances``), a
+        terminal keeps its start, whitened as the new fit would be, where the new fit is less
+        likely than its start by more than chance would make it
+        (:func:`terminal_nll` with ``tail_dof``; :data:`_WALK_OFF_PROBABILITY`): weights
+        taken at the start are not the variances elsewhere, and under them a fit can walk
+        from its start to a place whose own variances explain the amplitudes far worse."""
         weights = [
             with_censored_variance(variances(start), censored_var[k])  # [censored hook]
             for k, start in enumerate(starts)
@@ -181,7 +203,7 @@ def solve_terminals(
             if search
             else [np.empty((0, 2))] * len(starts)
         )
-        return [
+        fitted = [
             fit_terminal(
                 room.kernel,
                 values[k],
@@ -194,6 +216,19 @@ def solve_terminals(
                 tilt_spread_known=tilt_spread_known,
             )
             for k in range(len(starts))
+        ]
+        if likelihood is None:
+            return fitted
+
+        def nll(k: int, fit: TerminalFit) -> float:
+            own = with_censored_variance(likelihood(fit), censored_var[k])
+            return terminal_nll(fit, np.broadcast_to(own, (n_leds,)), tail_dof)
+
+        return [
+            new
+            if nll(k, new) <= nll(k, start) + walk_off
+            else rewhitened(start, whitening_weight(values[k], weights[k]))
+            for k, (start, new) in enumerate(zip(starts, fitted, strict=True))
         ]
 
     fits = refitted(first, lambda _: sigma2, search=room.options.weighted_pass_starts)
@@ -232,10 +267,16 @@ def solve_terminals(
     # covariance is then the t's, (nu + 3) / (nu + 1) the weighted fit's.
     tail_factor = 1.0
     if measured is not None:
+
+        def scatter(fit: TerminalFit) -> FloatArray:
+            return measured_variances(measured, room.scale, fit)
+
         like_survey = refitted(
             fits,
-            lambda fit: measured_variances(measured, room.scale, fit),
+            scatter,
             search=room.options.weighted_pass_starts,
+            likelihood=scatter,
+            tail_dof=measured.tail_dof,
         )
         if measured.tail_dof is not None:
             for _ in range(_TAIL_REWEIGHTS):
@@ -243,8 +284,10 @@ def solve_terminals(
                     like_survey,
                     lambda fit: tail_weighted_variances(measured, room.scale, fit),
                     search=False,
+                    likelihood=scatter,
+                    tail_dof=measured.tail_dof,
                 )
-        if not (room.receivers_level or _scatter_explains(like_survey, n_leds, measured.tail_dof)):
+        if not (room.receivers_level or scatter_explains(like_survey, n_leds, measured.tail_dof)):
             like_survey = None
     if measured is not None and like_survey is not None:
         fits = like_survey
@@ -263,13 +306,12 @@ def solve_terminals(
     elif reweighted:
         # From the optimum only: weights estimated there are not the cost elsewhere (a
         # search under them went to worse places on beams far from their nominal shape).
-        fits = refitted(
-            fits,
-            lambda fit: (
-                misfit.noise * sigma2 + led_error * (fit.jacobian[:, -1] / fit.data_weight) ** 2
-            ),
-            search=False,
-        )
+
+        def with_led_errors(fit: TerminalFit) -> FloatArray:
+            modelled = fit.jacobian[:, -1] / fit.data_weight
+            return np.asarray(misfit.noise * sigma2 + led_error * modelled**2, dtype=np.float64)
+
+        fits = refitted(fits, with_led_errors, search=False, likelihood=with_led_errors)
         # The LEDs' errors are in the weights now: a model error along them as well
         # would count them twice (radii too wide).
         designs, misfit = misfit_of(fits, led_errors=False)
@@ -446,63 +488,6 @@ def profile_cells_reference(
             spread = np.hypot(xs[candidates] - xs[index], ys[candidates] - ys[index])
             candidates = candidates[spread >= _PROFILE_START_SPACING_M]
     return cells
-
-
-def _scatter_explains(fits: list[TerminalFit], n_leds: int, tail_dof: float | None) -> bool:
-    """Whether the survey's measured scatter explains the residuals of ``fits`` (weighted
-    by it, each of ``n_leds`` amplitudes): their whitened sum of squares within
-    ``_SCATTER_SIGNIFICANCE`` standard deviations of its mean on their residual degrees of
-    freedom. Each square has mean 1 and variance 2 (chi-square), or, weighted as a Student-t
-    of ``tail_dof`` degrees of freedom weighs it (``(nu + 1) u^2 / (nu + u^2)``, a scaled
-    Beta(1/2, nu/2)), mean 1 and variance ``2 nu / (nu + 3)``. A terminal whose tilt, gain or
-    height is unlike the survey receiver's leaves more."""
-    chi2 = sum(float(fit.residual @ fit.residual) for fit in fits)
-    total = float(sum(max(n_leds - fit.n_params, 1) for fit in fits))
-    return chi2 <= total + _SCATTER_SIGNIFICANCE * math.sqrt(
-        weighted_square_variance(tail_dof) * total
-    )
-
-
-def weighted_square_variance(tail_dof: float | None) -> float:
-    """The variance of one whitened residual's square, ``u^2`` for a Gaussian ``u`` (2), or
-    ``(nu + 1) u^2 / (nu + u^2)`` for a Student-t ``u`` of ``nu = tail_dof`` degrees of freedom
-    weighted as its fit weighs it: ``(nu + 1)`` times a Beta(1/2, nu/2), variance
-    ``2 nu / (nu + 3)`` (its mean is 1 either way)."""
-    return 2.0 if tail_dof is None else 2.0 * tail_dof / (tail_dof + 3.0)
-
-
-def measured_variances(measured: AmplitudeError, scale: float, fit: TerminalFit) -> FloatArray:
-    """Each of a terminal's amplitudes' variance (M,), in the solver's units (amplitudes
-    over ``scale``), from the room's measured scatter at the fit's modelled amplitudes:
-    ``noise_sd^2 + (relative_sd f_i)^2``."""
-    modelled = fit.jacobian[:, -1] / fit.data_weight  # the log gain's column, unwhitened
-    return np.asarray(
-        (measured.noise_sd / scale) ** 2 + (measured.relative_sd * modelled) ** 2,
-        dtype=np.float64,
-    )
-
-
-def tail_weighted_variances(measured: AmplitudeError, scale: float, fit: TerminalFit) -> FloatArray:
-    """Each of a terminal's amplitudes' variance (M,) for the next reweighting of a Student-t
-    scatter (``measured.tail_dof``): its squared scale (:func:`measured_variances`) over the
-    t's weight ``(nu + 1) / (nu + u^2)``, ``u`` its residual at ``fit`` over that scale."""
-    squared_scales = measured_variances(measured, scale, fit)
-    nu = measured.tail_dof
-    if nu is None:
-        return squared_scales
-    residuals = fit.residual / fit.data_weight  # unwhitened
-    u2 = residuals**2 / squared_scales
-    return np.asarray(squared_scales * (nu + u2) / (nu + 1.0), dtype=np.float64)
-
-
-def measured_misfit(
-    measured: AmplitudeError, designs: list[MisfitDesign], residuals: list[FloatArray]
-) -> Misfit:
-    """The variances of fits weighted by the room's measured scatter: their whitened noise
-    is 1, resting on the survey's degrees of freedom; the terminals' own tilts and heights
-    (not the survey receiver's) are still fitted to the request's residuals."""
-    misfit = fit_misfit(designs, residuals, noise=1.0)
-    return replace(misfit, dofs=np.r_[measured.dof, misfit.dofs[1:]])
 
 
 def terminal_tilt_covariance(room: PreparedRoom, fit: TerminalFit, tilt_sd: float) -> FloatArray:

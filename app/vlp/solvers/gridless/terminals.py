@@ -31,7 +31,6 @@ from .channel import ChannelKernel
 from .channel_rows import channel_rows
 from .lm import (
     PROJECTED_MAX_REJECTIONS,
-    SIGMA2_REL_FLOOR,
     TERMINAL_COST_TOL,
     TERMINAL_INITIAL_DAMPING,
     TERMINAL_STEP_TOL_M,
@@ -39,6 +38,7 @@ from .lm import (
     least_squares_normal_equations,
     least_squares_point,
     levenberg_marquardt,
+    whitening_weight,
 )
 from .state import (
     MAX_LOG_GAIN,
@@ -205,12 +205,7 @@ def fit_terminal(
     """
     best: TerminalFit | None = None
     held_gain_sd: float | None = None  # the gain's prior sd when it is held at 1
-    floor = SIGMA2_REL_FLOOR * float(amplitudes @ amplitudes) / amplitudes.shape[0]
-    weight: float | FloatArray = 1.0
-    if isinstance(sigma2, np.ndarray):
-        weight = 1.0 / np.sqrt(np.maximum(sigma2, max(floor, 1e-300)))
-    elif sigma2 is not None:
-        weight = 1.0 / math.sqrt(max(sigma2, floor, 1e-300))
+    weight = whitening_weight(amplitudes, sigma2) if sigma2 is not None else 1.0
     free_height = height is None and priors.fits_heights
     z0 = priors.height_mean if height is None else float(height)
     for start in starts:
@@ -516,8 +511,9 @@ def terminal_fit_reference(
     problem: TerminalProblem, theta: FloatArray, lower: FloatArray, upper: FloatArray
 ) -> tuple[FloatArray, FloatArray, FloatArray, float]:
     """Projected LM from ``theta`` (its log gain replaced by the least-squares gain of the
-    start's gains) within ``[lower, upper]``, in NumPy: theta, whitened residual, Jacobian and
-    cost at LM's last accepted point."""
+    start's gains, within :data:`~._compiled.terminal.START_LOG_GAIN_PRIOR_SDS` prior sds of
+    a gain prior's mean) within ``[lower, upper]``, in NumPy: theta, whitened residual,
+    Jacobian and cost at LM's last accepted point."""
     kernel, amplitudes, z0 = problem.kernel, problem.amplitudes, problem.z0
     free_height, free_tilt, normal = problem.free_height, problem.free_tilt, problem.normal
     priors = problem.priors if problem.with_priors else None
@@ -529,6 +525,9 @@ def terminal_fit_reference(
     gains0, _ = terminal_model(kernel, np.array([start[0], start[1], z0]), free_height, z0, normal)
     norm = float(gains0 @ gains0)
     theta[-1] = math.log(max(float(gains0 @ amplitudes) / norm, 1e-6)) if norm > 0 else 0.0
+    if priors is not None and priors.log_gain_sd is not None:
+        reach = compiled_terminal.START_LOG_GAIN_PRIOR_SDS * priors.log_gain_sd
+        theta[-1] = min(max(float(theta[-1]), -reach), reach)
     # Per-value weights multiply the Jacobian's rows.
     row_weight = data_weight[:, None] if isinstance(data_weight, np.ndarray) else data_weight
     tilt_at = 3 if free_height else 2

@@ -39,6 +39,13 @@ __all__ = ["TerminalModel", "terminal_fit_kernel", "terminal_model_kernel"]
 Shape = tuple[Any, ...]
 TerminalPriors = tuple[Any, ...]
 
+# A fit with a gain prior starts its log gain no further from the prior's mean than this many
+# prior sds: a start's least-squares gain far out in the prior's tail makes the prior's
+# pseudo-residual dwarf the data's, and LM's first steps then move the position wherever
+# they reduce it (a gain held at 1 by a tiny sd, started at the least-squares gain, walked
+# a terminal from its optimum into a far corner of the room).
+START_LOG_GAIN_PRIOR_SDS = 3.0
+
 
 @compiled
 def terminal_model_kernel(
@@ -241,7 +248,8 @@ def terminal_fit_kernel(
     """One start's fit (the reference's start, then :func:`.gridless._compiled.lm.lm_kernel`
     on a :class:`TerminalModel`): theta, whitened residual, Jacobian and cost at the last
     accepted point. ``theta0``'s last entry (the log gain) is replaced by the least-squares
-    gain of the start's gains, as the reference starts. ``settings``: the fields of its
+    gain of the start's gains, within :data:`START_LOG_GAIN_PRIOR_SDS` of a gain prior, as the
+    reference starts. ``settings``: the fields of its
     :class:`.gridless.lm.LMSettings` (a plain tuple crosses from Python faster)."""
     free_height, has_normal, _, z0 = shape
     theta = theta0.copy()
@@ -258,6 +266,10 @@ def terminal_fit_kernel(
         theta[theta.shape[0] - 1] = math.log(max(projection / norm, 1e-6))
     else:
         theta[theta.shape[0] - 1] = 0.0
+    with_priors, log_gain_sd = priors[0], priors[1]
+    if with_priors and log_gain_sd > 0.0:
+        reach = START_LOG_GAIN_PRIOR_SDS * log_gain_sd
+        theta[theta.shape[0] - 1] = min(max(theta[theta.shape[0] - 1], -reach), reach)
     theta, cost, _, point = lm_kernel(
         TerminalModel(channel, table, amplitudes, weights, shape, normal, priors),
         theta,
