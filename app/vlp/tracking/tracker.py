@@ -14,7 +14,8 @@ business: rows here are positions in the batch.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import math
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
@@ -35,6 +36,7 @@ __all__ = [
     "LOST",
     "STATUS_NAMES",
     "TENTATIVE",
+    "Rivals",
     "Step",
     "Tracks",
     "age_tracks",
@@ -47,6 +49,58 @@ TENTATIVE, CONFIRMED, LOST = 0, 1, 2
 STATUS_NAMES = ("tentative", "confirmed", "lost")
 # Cost of leaving a pair unassigned in the assignment matrix (beyond every gated cost).
 _INFEASIBLE = 1e12
+
+
+@dataclass(frozen=True)
+class Rivals:
+    """The other way an ambiguous solve could have gone, for pairs of anonymous tracks.
+
+    Where two confirmed tracks' fixes of one solve could have been assigned the other way
+    round at nearly the same cost, both ways are followed for a few solves and the one the
+    later fixes favour is kept (:func:`step_anonymous`).
+
+    Attributes
+    ----------
+    pair : ndarray of shape (n,), int
+        A number the two tracks of a pair share, 0 for a track in none.
+    bank : TrackBank
+        Each track's filter state had the pair's fixes gone the other way since the ambiguous
+        solve (meaningless where ``pair`` is 0).
+    score : ndarray of shape (n,)
+        The other way's total assignment cost since then minus the kept way's (twice the log
+        of the likelihood ratio of the kept way over the other); the same on both tracks.
+    solves : ndarray of shape (n,), int
+        Solves since the ambiguous one.
+    """
+
+    pair: IntArray
+    bank: TrackBank
+    score: FloatArray
+    solves: IntArray
+
+    @staticmethod
+    def none(bank: TrackBank) -> Rivals:
+        """No pair, for the tracks of ``bank``."""
+        count = bank.size
+        return Rivals(
+            pair=np.zeros(count, dtype=np.intp),
+            bank=bank,
+            score=np.zeros(count),
+            solves=np.zeros(count, dtype=np.intp),
+        )
+
+    def take(self, rows: IntArray | BoolArray) -> Rivals:
+        """The tracks at ``rows`` (indices or a mask); a pair that loses one track ends."""
+        taken = Rivals(self.pair[rows], self.bank.take(rows), self.score[rows], self.solves[rows])
+        return taken.paired()
+
+    def paired(self) -> Rivals:
+        """The same, with every number not shared by exactly two tracks reset to 0."""
+        values, counts = np.unique(self.pair, return_counts=True)
+        single = values[(counts != 2) & (values != 0)]
+        if single.size == 0:
+            return self
+        return replace(self, pair=np.where(np.isin(self.pair, single), 0, self.pair))
 
 
 @dataclass(frozen=True)
@@ -63,12 +117,15 @@ class Tracks:
         Fixes that moved the track.
     misses : ndarray of shape (n,), int
         Anonymous solves in a row that did not claim the track.
+    rivals : Rivals or None, default=None
+        Pairs of anonymous tracks followed both ways after an ambiguous solve (None: no pair).
     """
 
     bank: TrackBank
     status: IntArray
     updates: IntArray
     misses: IntArray
+    rivals: Rivals | None = None
 
     @property
     def size(self) -> int:
@@ -80,6 +137,41 @@ class Tracks:
         """No track."""
         zeros = np.zeros(0, dtype=np.intp)
         return Tracks(bank=TrackBank.empty(), status=zeros, updates=zeros, misses=zeros)
+
+    def take(self, rows: IntArray | BoolArray) -> Tracks:
+        """The tracks at ``rows`` (indices or a mask), in that order."""
+        return Tracks(
+            bank=self.bank.take(rows),
+            status=self.status[rows],
+            updates=self.updates[rows],
+            misses=self.misses[rows],
+            rivals=None if self.rivals is None else self.rivals.take(rows),
+        )
+
+    def put(self, rows: IntArray, other: Tracks) -> Tracks:
+        """A copy with the tracks at ``rows`` replaced by ``other``'s, in order."""
+        status, updates, misses = self.status.copy(), self.updates.copy(), self.misses.copy()
+        status[rows], updates[rows], misses[rows] = other.status, other.updates, other.misses
+        rivals = None
+        if self.rivals is not None or other.rivals is not None:
+            mine, theirs = _rivals_of(self), _rivals_of(other)
+            rivals = Rivals(
+                pair=_put(mine.pair, rows, theirs.pair),
+                bank=mine.bank.put(rows, theirs.bank),
+                score=_put(mine.score, rows, theirs.score),
+                solves=_put(mine.solves, rows, theirs.solves),
+            ).paired()
+        return Tracks(self.bank.put(rows, other.bank), status, updates, misses, rivals)
+
+
+def _rivals_of(tracks: Tracks) -> Rivals:
+    return Rivals.none(tracks.bank) if tracks.rivals is None else tracks.rivals
+
+
+def _put(values: np.ndarray, rows: IntArray, new: np.ndarray) -> np.ndarray:
+    out = values.copy()
+    out[rows] = new
+    return out
 
 
 @dataclass(frozen=True)
@@ -236,7 +328,8 @@ def _apply(
     misses = tracks.misses.copy()
     misses[live] = 0
     bank = result.bank if whole else tracks.bank.put(live, result.bank)
-    return Tracks(bank=bank, status=status, updates=updates, misses=misses), moved, wild
+    after = Tracks(bank=bank, status=status, updates=updates, misses=misses, rivals=tracks.rivals)
+    return after, moved, wild
 
 
 def _started(
@@ -255,11 +348,23 @@ def _started(
 
 
 def _joined(first: Tracks, second: Tracks) -> Tracks:
+    """``first``'s tracks followed by ``second``'s (whose pairs, if any, are their own)."""
+    rivals = None
+    if first.rivals is not None or second.rivals is not None:
+        head, tail = _rivals_of(first), _rivals_of(second)
+        shift = int(np.max(head.pair, initial=0))
+        rivals = Rivals(
+            pair=np.concatenate((head.pair, np.where(tail.pair > 0, tail.pair + shift, 0))),
+            bank=TrackBank.concatenate(head.bank, tail.bank),
+            score=np.concatenate((head.score, tail.score)),
+            solves=np.concatenate((head.solves, tail.solves)),
+        )
     return Tracks(
         bank=TrackBank.concatenate(first.bank, second.bank),
         status=np.concatenate((first.status, second.status)),
         updates=np.concatenate((first.updates, second.updates)),
         misses=np.concatenate((first.misses, second.misses)),
+        rivals=rivals,
     )
 
 
@@ -350,6 +455,7 @@ def step_anonymous(
     elapsed = np.maximum(time_s - tracks.bank.times_s, 0.0)
     rows = np.full(positions.shape[0], -1, dtype=np.intp)
     inflate = np.full(positions.shape[0], settings.gate_chi2)
+    cost = None
     if tracks.size and positions.shape[0]:
         cost = _costs(predicted, positions, covariances, settings, elapsed)
         track_rows, fix_cols = _assigned(cost)
@@ -391,12 +497,124 @@ def step_anonymous(
         status=status.astype(np.intp),
         updates=step.tracks.updates,
         misses=misses.astype(np.intp),
+        rivals=step.tracks.rivals,
     )
+    fix_rows = step.fix_rows
+    if cost is not None:
+        after, fix_rows = _both_ways(
+            tracks, after, fix_rows, cost, positions, covariances, time_s, settings
+        )
     was_tentative = np.concatenate(
         (tracks.status == TENTATIVE, np.ones(after.size - tracks.size, dtype=bool))
     )
     after, moved_to = _in_lost_places(after, was_tentative, time_s, settings)
-    return Step(tracks=after, fix_rows=moved_to[step.fix_rows], moved=step.moved, wild=step.wild)
+    return Step(tracks=after, fix_rows=moved_to[fix_rows], moved=step.moved, wild=step.wild)
+
+
+def _both_ways(
+    before: Tracks,
+    after: Tracks,
+    fix_rows: IntArray,
+    cost: FloatArray,
+    positions: FloatArray,
+    covariances: FloatArray,
+    time_s: float,
+    settings: TrackerSettings,
+) -> tuple[Tracks, IntArray]:
+    """Pairs of anonymous tracks followed both ways after an ambiguous solve.
+
+    Two walkers who pass close are where positions alone cannot tell them apart: the solve
+    at which their fixes could go either way at nearly the same cost is often decided wrong,
+    and the next solves then follow the swap. Where two confirmed tracks' fixes of a solve
+    could have been assigned the other way round within ``anonymous_doubt_ratio`` of the
+    kept way's likelihood, the other way is followed too (each track's state had the pair's
+    fixes been swapped, updated on every later solve with the two fixes the pair claims,
+    paired whichever way fits it better) and its total cost compared with the kept way's.
+    Once the other way is likelier by ``rival_decision_ratio`` the pair takes its states
+    (each track id then continues the walker the later fixes say it was following); once
+    the kept way is, or after ``rival_memory_solves`` solves, or when either track misses a
+    solve, the other way is forgotten.
+
+    ``cost`` is the solve's assignment cost ``(n, m)`` of the ``n`` tracks of ``before``;
+    ``fix_rows`` the row each fix went to in ``after`` (``before``'s rows first). Returns the
+    tracks and the fix rows (changed where a pair took the other way).
+    """
+    count = before.size
+    rivals = _rivals_of(after)
+    pair, score = rivals.pair.copy(), rivals.score.copy()
+    solves = rivals.solves.copy()
+    bank, rival_bank = after.bank, rivals.bank
+    fix_rows = fix_rows.copy()
+    fix_of = np.full(after.size, -1, dtype=np.intp)
+    fix_of[fix_rows] = np.arange(fix_rows.shape[0])
+    inflate = np.full(2, settings.anonymous_inflate_chi2)
+    decision = 2.0 * math.log(settings.rival_decision_ratio)
+    for key in np.unique(pair[:count][pair[:count] > 0]):
+        two = np.nonzero(pair[:count] == key)[0]
+        pair[two] = 0
+        if two.size != 2 or np.any(fix_of[two] < 0):
+            continue
+        fixes = fix_of[two]
+        kept = float(cost[two[0], fixes[0]] + cost[two[1], fixes[1]])
+        other = rival_bank.take(two)
+        elapsed = np.maximum(time_s - other.times_s, 0.0)
+        both = _costs(
+            predict(other, np.full(2, time_s), settings),
+            positions[fixes],
+            covariances[fixes],
+            settings,
+            elapsed,
+        )
+        straight, crossed = both[0, 0] + both[1, 1], both[0, 1] + both[1, 0]
+        order = fixes if straight <= crossed else fixes[::-1]
+        total = float(score[two[0]]) + min(straight, crossed) - kept
+        if not total < _INFEASIBLE / 2:
+            continue
+        moved = predict_update(
+            other,
+            positions[order],
+            covariances[order],
+            time_s,
+            settings,
+            learn=False,
+            inflate_chi2=inflate,
+        ).bank
+        if total < -decision:
+            bank = bank.put(two, moved)
+            fix_rows[order] = two
+        elif total <= decision and solves[two[0]] + 1 < settings.rival_memory_solves:
+            pair[two], score[two], solves[two] = key, total, solves[two] + 1
+            rival_bank = rival_bank.put(two, moved)
+    # New pairs: confirmed tracks that each claimed a fix of this solve, most ambiguous first.
+    claimed = np.nonzero(
+        (fix_of[:count] >= 0) & (before.status == CONFIRMED) & (pair[:count] == 0)
+    )[0]
+    if claimed.size >= 2:
+        first, second = np.triu_indices(claimed.size, 1)
+        i, j = claimed[first], claimed[second]
+        fi, fj = fix_of[i], fix_of[j]
+        margin = cost[i, fj] + cost[j, fi] - cost[i, fi] - cost[j, fj]
+        for k in np.argsort(margin, kind="stable"):
+            two = np.array([i[k], j[k]])
+            if not margin[k] < settings.anonymous_doubt_margin or np.any(pair[two] > 0):
+                continue
+            swapped = np.array([fj[k], fi[k]])
+            rival_bank = rival_bank.put(
+                two,
+                predict_update(
+                    before.bank.take(two),
+                    positions[swapped],
+                    covariances[swapped],
+                    time_s,
+                    settings,
+                    learn=False,
+                    inflate_chi2=inflate,
+                ).bank,
+            )
+            pair[two] = int(np.max(pair, initial=0)) + 1
+            score[two], solves[two] = margin[k], 0
+    rivals = Rivals(pair=pair, bank=rival_bank, score=score, solves=solves)
+    return replace(after, bank=bank, rivals=rivals if np.any(pair > 0) else None), fix_rows
 
 
 def _in_lost_places(
@@ -441,7 +659,13 @@ def _in_lost_places(
     status[new], misses[new] = TENTATIVE, settings.tentative_max_misses
     moved_to[new] = old
     bank = tracks.bank.put(old, tracks.bank.take(new))
-    return Tracks(bank=bank, status=status, updates=updates, misses=misses), moved_to
+    rivals = tracks.rivals
+    if rivals is not None:  # a row that takes another's state ends its pair
+        pair = rivals.pair.copy()
+        pair[old] = pair[new] = 0
+        rivals = replace(rivals, pair=pair).paired()
+    after = Tracks(bank=bank, status=status, updates=updates, misses=misses, rivals=rivals)
+    return after, moved_to
 
 
 def age_tracks(
