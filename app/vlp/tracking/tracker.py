@@ -41,6 +41,7 @@ __all__ = [
     "Tracks",
     "age_tracks",
     "associate",
+    "joined",
     "step_anonymous",
     "step_labelled",
 ]
@@ -347,7 +348,7 @@ def _started(
     )
 
 
-def _joined(first: Tracks, second: Tracks) -> Tracks:
+def joined(first: Tracks, second: Tracks) -> Tracks:
     """``first``'s tracks followed by ``second``'s (whose pairs, if any, are their own)."""
     rivals = None
     if first.rivals is not None or second.rivals is not None:
@@ -419,7 +420,7 @@ def step_labelled(
         return Step(tracks=updated, fix_rows=fix_rows, moved=moved, wild=wild)
     new = _started(positions[~old], covariances[~old], time_s, settings)
     fix_rows[~old] = tracks.size + np.arange(new.size)
-    return Step(tracks=_joined(updated, new), fix_rows=fix_rows, moved=moved, wild=wild)
+    return Step(tracks=joined(updated, new), fix_rows=fix_rows, moved=moved, wild=wild)
 
 
 def step_anonymous(
