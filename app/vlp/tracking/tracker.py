@@ -14,20 +14,15 @@ business: rows here are positions in the batch.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from ..typing import BoolArray, FloatArray, IntArray
-from .filter import (
-    TrackBank,
-    combined,
-    floored_covariances,
-    predict,
-    start_tracks,
-)
+from .association import INFEASIBLE, assigned, associate, costs
+from .filter import TrackBank, combined, predict, start_tracks
+from .rivals import Rivals, follow_both_ways
 from .settings import TrackerSettings
 from .step import predict_update
 
@@ -48,60 +43,6 @@ __all__ = [
 
 TENTATIVE, CONFIRMED, LOST = 0, 1, 2
 STATUS_NAMES = ("tentative", "confirmed", "lost")
-# Cost of leaving a pair unassigned in the assignment matrix (beyond every gated cost).
-_INFEASIBLE = 1e12
-
-
-@dataclass(frozen=True)
-class Rivals:
-    """The other way an ambiguous solve could have gone, for pairs of anonymous tracks.
-
-    Where two confirmed tracks' fixes of one solve could have been assigned the other way
-    round at nearly the same cost, both ways are followed for a few solves and the one the
-    later fixes favour is kept (:func:`step_anonymous`).
-
-    Attributes
-    ----------
-    pair : ndarray of shape (n,), int
-        A number the two tracks of a pair share, 0 for a track in none.
-    bank : TrackBank
-        Each track's filter state had the pair's fixes gone the other way since the ambiguous
-        solve (meaningless where ``pair`` is 0).
-    score : ndarray of shape (n,)
-        The other way's total assignment cost since then minus the kept way's (twice the log
-        of the likelihood ratio of the kept way over the other); the same on both tracks.
-    solves : ndarray of shape (n,), int
-        Solves since the ambiguous one.
-    """
-
-    pair: IntArray
-    bank: TrackBank
-    score: FloatArray
-    solves: IntArray
-
-    @staticmethod
-    def none(bank: TrackBank) -> Rivals:
-        """No pair, for the tracks of ``bank``."""
-        count = bank.size
-        return Rivals(
-            pair=np.zeros(count, dtype=np.intp),
-            bank=bank,
-            score=np.zeros(count),
-            solves=np.zeros(count, dtype=np.intp),
-        )
-
-    def take(self, rows: IntArray | BoolArray) -> Rivals:
-        """The tracks at ``rows`` (indices or a mask); a pair that loses one track ends."""
-        taken = Rivals(self.pair[rows], self.bank.take(rows), self.score[rows], self.solves[rows])
-        return taken.paired()
-
-    def paired(self) -> Rivals:
-        """The same, with every number not shared by exactly two tracks reset to 0."""
-        values, counts = np.unique(self.pair, return_counts=True)
-        single = values[(counts != 2) & (values != 0)]
-        if single.size == 0:
-            return self
-        return replace(self, pair=np.where(np.isin(self.pair, single), 0, self.pair))
 
 
 @dataclass(frozen=True)
@@ -155,24 +96,12 @@ class Tracks:
         status[rows], updates[rows], misses[rows] = other.status, other.updates, other.misses
         rivals = None
         if self.rivals is not None or other.rivals is not None:
-            mine, theirs = _rivals_of(self), _rivals_of(other)
-            rivals = Rivals(
-                pair=_put(mine.pair, rows, theirs.pair),
-                bank=mine.bank.put(rows, theirs.bank),
-                score=_put(mine.score, rows, theirs.score),
-                solves=_put(mine.solves, rows, theirs.solves),
-            ).paired()
+            rivals = _rivals_of(self).put(rows, _rivals_of(other))
         return Tracks(self.bank.put(rows, other.bank), status, updates, misses, rivals)
 
 
 def _rivals_of(tracks: Tracks) -> Rivals:
     return Rivals.none(tracks.bank) if tracks.rivals is None else tracks.rivals
-
-
-def _put(values: np.ndarray, rows: IntArray, new: np.ndarray) -> np.ndarray:
-    out = values.copy()
-    out[rows] = new
-    return out
 
 
 @dataclass(frozen=True)
@@ -195,103 +124,6 @@ class Step:
     fix_rows: IntArray
     moved: BoolArray
     wild: BoolArray
-
-
-def associate(
-    predicted: TrackBank,
-    positions: FloatArray,
-    covariances: FloatArray,
-    settings: TrackerSettings,
-    elapsed_s: FloatArray | None = None,
-) -> tuple[IntArray, IntArray]:
-    """Gated assignment of fixes to tracks of least total cost.
-
-    Parameters
-    ----------
-    predicted : TrackBank
-        ``n`` tracks predicted to the fixes' time.
-    positions : ndarray of shape (m, 2), metres
-    covariances : ndarray of shape (m, 2, 2), m^2
-    settings : TrackerSettings
-    elapsed_s : ndarray of shape (n,), seconds, default=None
-        Time since each track's last update: a fix beyond the gate is still allowed where the
-        terminal could have reached it at ``max_speed_mps`` (a start the prediction did not
-        foresee); None: the gate alone.
-
-    Returns
-    -------
-    track_rows, fix_rows : ndarray of shape (a,), int
-        Pairs ``(track_rows[i], fix_rows[i])``; every pair is allowed.
-
-    Notes
-    -----
-    The cost of a pair is ``-2 ln sum_k mu_k N(z; x_k, S_k)`` up to a constant: the negative
-    log-likelihood of the fix under the track's mixture, each model ``k`` (probability
-    ``mu_k``) with its own prediction ``x_k`` and ``S_k = P_k + R``, i.e. ``d2_k + ln det S_k``
-    weighed across the models. One Gaussian in place of the mixture would be as wide as the
-    two models apart: a standing track that may set off would claim a fix beside it as
-    readily as a walking track that predicts the fix exactly. A pair is allowed where its
-    squared Mahalanobis distance is within ``gate_chi2`` under some model or under the
-    mixture taken as one Gaussian, or within reach (its larger cost makes the assignment
-    prefer pairs within the gate).
-    """
-    if predicted.size == 0 or positions.shape[0] == 0:
-        return np.zeros(0, dtype=np.intp), np.zeros(0, dtype=np.intp)
-    cost = _costs(predicted, positions, covariances, settings, elapsed_s)
-    return _assigned(cost)
-
-
-def _assigned(cost: FloatArray) -> tuple[IntArray, IntArray]:
-    """The allowed pairs of the assignment of least total ``cost``."""
-    rows, cols = linear_sum_assignment(cost)
-    keep = cost[rows, cols] < _INFEASIBLE
-    return rows[keep].astype(np.intp), cols[keep].astype(np.intp)
-
-
-def _costs(
-    predicted: TrackBank,
-    positions: FloatArray,
-    covariances: FloatArray,
-    settings: TrackerSettings,
-    elapsed_s: FloatArray | None,
-) -> FloatArray:
-    """The cost ``(n, m)`` of each pair in :func:`associate` (:data:`_INFEASIBLE`: not
-    allowed)."""
-    fix = floored_covariances(covariances, settings)
-    # Each model's squared Mahalanobis distance and log-determinant, (n, models, m).
-    distance2, log_det = _distances(
-        predicted.means[:, :, :2], predicted.covariances[:, :, :2, :2], positions, fix
-    )
-    # The gate: on some model, or on the mixture as one Gaussian (wider than either where
-    # the models disagree, as when a track may have set off).
-    mean, covariance = combined(predicted)
-    whole2, _ = _distances(mean[:, None, :2], covariance[:, None, :2, :2], positions, fix)
-    allowed = np.minimum(np.min(distance2, axis=1), whole2[:, 0]) <= settings.gate_chi2
-    if elapsed_s is not None:
-        # Reach: how far the terminal can have gone, plus the 95 % spread of the fix.
-        gap = np.hypot(
-            positions[None, :, 0] - mean[:, None, 0], positions[None, :, 1] - mean[:, None, 1]
-        )
-        fix_spread = np.sqrt(np.trace(covariances, axis1=1, axis2=2))
-        allowed |= gap <= settings.max_speed_mps * elapsed_s[:, None] + 2.448 * fix_spread[None, :]
-    weight = np.log(np.maximum(predicted.model_probabilities, 1e-300))[:, :, None]
-    log_likelihood = weight - 0.5 * (distance2 + log_det)
-    return np.where(allowed, -2.0 * np.logaddexp.reduce(log_likelihood, axis=1), _INFEASIBLE)
-
-
-def _distances(
-    means: FloatArray, covariances: FloatArray, positions: FloatArray, fixes: FloatArray
-) -> tuple[FloatArray, FloatArray]:
-    """Squared Mahalanobis distances and log-determinants ``(n, k, m)`` of ``m`` fixes
-    (positions ``(m, 2)``, covariances ``(m, 2, 2)``) from ``n x k`` predictions (means
-    ``(n, k, 2)``, covariances ``(n, k, 2, 2)``): ``S = P + R``, closed form for 2 x 2."""
-    a = covariances[:, :, 0, 0, None] + fixes[None, None, :, 0, 0]
-    b = covariances[:, :, 0, 1, None] + fixes[None, None, :, 0, 1]
-    d = covariances[:, :, 1, 1, None] + fixes[None, None, :, 1, 1]
-    nu0 = positions[None, None, :, 0] - means[:, :, 0, None]
-    nu1 = positions[None, None, :, 1] - means[:, :, 1, None]
-    det = a * d - b * b
-    return (d * nu0 * nu0 - 2.0 * b * nu0 * nu1 + a * nu1 * nu1) / det, np.log(det)
 
 
 def _apply(
@@ -352,14 +184,7 @@ def joined(first: Tracks, second: Tracks) -> Tracks:
     """``first``'s tracks followed by ``second``'s (whose pairs, if any, are their own)."""
     rivals = None
     if first.rivals is not None or second.rivals is not None:
-        head, tail = _rivals_of(first), _rivals_of(second)
-        shift = int(np.max(head.pair, initial=0))
-        rivals = Rivals(
-            pair=np.concatenate((head.pair, np.where(tail.pair > 0, tail.pair + shift, 0))),
-            bank=TrackBank.concatenate(head.bank, tail.bank),
-            score=np.concatenate((head.score, tail.score)),
-            solves=np.concatenate((head.solves, tail.solves)),
-        )
+        rivals = Rivals.concatenate(_rivals_of(first), _rivals_of(second))
     return Tracks(
         bank=TrackBank.concatenate(first.bank, second.bank),
         status=np.concatenate((first.status, second.status)),
@@ -458,8 +283,8 @@ def step_anonymous(
     inflate = np.full(positions.shape[0], settings.gate_chi2)
     cost = None
     if tracks.size and positions.shape[0]:
-        cost = _costs(predicted, positions, covariances, settings, elapsed)
-        track_rows, fix_cols = _assigned(cost)
+        cost = costs(predicted, positions, covariances, settings, elapsed)
+        track_rows, fix_cols = assigned(cost)
         rows[fix_cols] = track_rows
         # A fix another track explains almost as well is doubtful: if it is wrong (one
         # shadowed terminal throws a whole aggregated solve off, often by more than its
@@ -502,120 +327,24 @@ def step_anonymous(
     )
     fix_rows = step.fix_rows
     if cost is not None:
-        after, fix_rows = _both_ways(
-            tracks, after, fix_rows, cost, positions, covariances, time_s, settings
+        bank, rivals, fix_rows = follow_both_ways(
+            _rivals_of(after),
+            after.bank,
+            fix_rows,
+            tracks.bank,
+            tracks.status == CONFIRMED,
+            cost,
+            positions,
+            covariances,
+            time_s,
+            settings,
         )
+        after = replace(after, bank=bank, rivals=rivals)
     was_tentative = np.concatenate(
         (tracks.status == TENTATIVE, np.ones(after.size - tracks.size, dtype=bool))
     )
     after, moved_to = _in_lost_places(after, was_tentative, time_s, settings)
     return Step(tracks=after, fix_rows=moved_to[fix_rows], moved=step.moved, wild=step.wild)
-
-
-def _both_ways(
-    before: Tracks,
-    after: Tracks,
-    fix_rows: IntArray,
-    cost: FloatArray,
-    positions: FloatArray,
-    covariances: FloatArray,
-    time_s: float,
-    settings: TrackerSettings,
-) -> tuple[Tracks, IntArray]:
-    """Pairs of anonymous tracks followed both ways after an ambiguous solve.
-
-    Two walkers who pass close are where positions alone cannot tell them apart: the solve
-    at which their fixes could go either way at nearly the same cost is often decided wrong,
-    and the next solves then follow the swap. Where two confirmed tracks' fixes of a solve
-    could have been assigned the other way round within ``anonymous_doubt_ratio`` of the
-    kept way's likelihood, the other way is followed too (each track's state had the pair's
-    fixes been swapped, updated on every later solve with the two fixes the pair claims,
-    paired whichever way fits it better) and its total cost compared with the kept way's.
-    Once the other way is likelier by ``rival_decision_ratio`` the pair takes its states
-    (each track id then continues the walker the later fixes say it was following); once
-    the kept way is, or after ``rival_memory_solves`` solves, or when either track misses a
-    solve, the other way is forgotten.
-
-    ``cost`` is the solve's assignment cost ``(n, m)`` of the ``n`` tracks of ``before``;
-    ``fix_rows`` the row each fix went to in ``after`` (``before``'s rows first). Returns the
-    tracks and the fix rows (changed where a pair took the other way).
-    """
-    count = before.size
-    rivals = _rivals_of(after)
-    pair, score = rivals.pair.copy(), rivals.score.copy()
-    solves = rivals.solves.copy()
-    bank, rival_bank = after.bank, rivals.bank
-    fix_rows = fix_rows.copy()
-    fix_of = np.full(after.size, -1, dtype=np.intp)
-    fix_of[fix_rows] = np.arange(fix_rows.shape[0])
-    inflate = np.full(2, settings.anonymous_inflate_chi2)
-    decision = 2.0 * math.log(settings.rival_decision_ratio)
-    for key in np.unique(pair[:count][pair[:count] > 0]):
-        two = np.nonzero(pair[:count] == key)[0]
-        pair[two] = 0
-        if two.size != 2 or np.any(fix_of[two] < 0):
-            continue
-        fixes = fix_of[two]
-        kept = float(cost[two[0], fixes[0]] + cost[two[1], fixes[1]])
-        other = rival_bank.take(two)
-        elapsed = np.maximum(time_s - other.times_s, 0.0)
-        both = _costs(
-            predict(other, np.full(2, time_s), settings),
-            positions[fixes],
-            covariances[fixes],
-            settings,
-            elapsed,
-        )
-        straight, crossed = both[0, 0] + both[1, 1], both[0, 1] + both[1, 0]
-        order = fixes if straight <= crossed else fixes[::-1]
-        total = float(score[two[0]]) + min(straight, crossed) - kept
-        if not total < _INFEASIBLE / 2:
-            continue
-        moved = predict_update(
-            other,
-            positions[order],
-            covariances[order],
-            time_s,
-            settings,
-            learn=False,
-            inflate_chi2=inflate,
-        ).bank
-        if total < -decision:
-            bank = bank.put(two, moved)
-            fix_rows[order] = two
-        elif total <= decision and solves[two[0]] + 1 < settings.rival_memory_solves:
-            pair[two], score[two], solves[two] = key, total, solves[two] + 1
-            rival_bank = rival_bank.put(two, moved)
-    # New pairs: confirmed tracks that each claimed a fix of this solve, most ambiguous first.
-    claimed = np.nonzero(
-        (fix_of[:count] >= 0) & (before.status == CONFIRMED) & (pair[:count] == 0)
-    )[0]
-    if claimed.size >= 2:
-        first, second = np.triu_indices(claimed.size, 1)
-        i, j = claimed[first], claimed[second]
-        fi, fj = fix_of[i], fix_of[j]
-        margin = cost[i, fj] + cost[j, fi] - cost[i, fi] - cost[j, fj]
-        for k in np.argsort(margin, kind="stable"):
-            two = np.array([i[k], j[k]])
-            if not margin[k] < settings.anonymous_doubt_margin or np.any(pair[two] > 0):
-                continue
-            swapped = np.array([fj[k], fi[k]])
-            rival_bank = rival_bank.put(
-                two,
-                predict_update(
-                    before.bank.take(two),
-                    positions[swapped],
-                    covariances[swapped],
-                    time_s,
-                    settings,
-                    learn=False,
-                    inflate_chi2=inflate,
-                ).bank,
-            )
-            pair[two] = int(np.max(pair, initial=0)) + 1
-            score[two], solves[two] = margin[k], 0
-    rivals = Rivals(pair=pair, bank=rival_bank, score=score, solves=solves)
-    return replace(after, bank=bank, rivals=rivals if np.any(pair > 0) else None), fix_rows
 
 
 def _in_lost_places(
@@ -652,7 +381,7 @@ def _in_lost_places(
     allowed &= tracks.misses[None, coasting] >= tracks.updates[fresh, None]
     if not np.any(allowed):
         return tracks, moved_to
-    rows, cols = linear_sum_assignment(np.where(allowed, gap, _INFEASIBLE))
+    rows, cols = linear_sum_assignment(np.where(allowed, gap, INFEASIBLE))
     keep = allowed[rows, cols]
     new, old = fresh[rows[keep]], coasting[cols[keep]]
     status, updates, misses = tracks.status.copy(), tracks.updates.copy(), tracks.misses.copy()
