@@ -9,6 +9,7 @@ come from the service's own solver (``make_solver("gridless", ...)``, labelled f
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 from functools import cache
@@ -65,8 +66,6 @@ class Room:
 
 
 def _with_reflectance(layout: Layout) -> Layout:
-    import dataclasses
-
     room = dataclasses.replace(layout.room, reflectance=MIX.reflectance)
     return dataclasses.replace(layout, room=room)
 
@@ -181,7 +180,7 @@ def run_scenario(
         ids = np.concatenate((ids, next_id + np.arange(new)))
         next_id += new
         status, removed = age_tracks(tracks, float(time_s), settings)
-        tracks = Tracks(tracks.bank, status, tracks.updates, tracks.misses)
+        tracks = dataclasses.replace(tracks, status=status)
         mean, covariance = estimates(tracks.bank)
         radius = confidence_radii(covariance[:, :2, :2])
         if scenario.mode == "terminals":
@@ -196,7 +195,7 @@ def run_scenario(
             _score_anonymous(outcome, truth, raw, mean[shown, :2], ids[shown], last_owner)
         keep = ~removed
         if not np.all(keep):
-            tracks = _take(tracks, keep)
+            tracks = tracks.take(keep)
             ids = ids[keep]
     if scenario.mode == "terminals":
         outcome.lags_s = _lags(paths, tracked_path)
@@ -209,12 +208,6 @@ def run_scenario(
     steps = np.linalg.norm(np.diff(paths.positions, axis=0), axis=2)
     outcome.walked_m = float(np.sum(steps))
     return outcome
-
-
-def _take(tracks: Tracks, keep: np.ndarray) -> Tracks:
-    return Tracks(
-        tracks.bank.take(keep), tracks.status[keep], tracks.updates[keep], tracks.misses[keep]
-    )
 
 
 def _covariances(solution: Solution) -> FloatArray:

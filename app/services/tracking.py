@@ -31,11 +31,11 @@ from app.schemas import (
 )
 from app.vlp.tracking import (
     STATUS_NAMES,
-    TrackBank,
     TrackerSettings,
     Tracks,
     age_tracks,
     estimates,
+    joined,
     step_anonymous,
     step_labelled,
 )
@@ -44,6 +44,7 @@ from app.vlp.uncertainty import confidence_radii
 
 from ._track_state import (
     filter_json,
+    rival_json,
     seconds,
     to_time,
     track_public,
@@ -222,7 +223,7 @@ class Tracking:
             terminals += [None] * (tracks.size - before)
         ids = [r.id for r in records] + [new_track_id() for _ in range(tracks.size - len(records))]
         status, removed = age_tracks(tracks, time_s, settings)
-        tracks = Tracks(tracks.bank, status, tracks.updates, tracks.misses)
+        tracks = dataclasses.replace(tracks, status=status)
         changed = np.zeros(tracks.size, dtype=bool)
         changed[fix_rows] = True
         changed[len(records) :] = True
@@ -264,7 +265,7 @@ class Tracking:
                 room_id=room_id,
                 terminal_id=terminals[row],
                 status=STATUS_NAMES[int(tracks.status[row])],
-                filter=filter_json(tracks.bank, int(row)),
+                filter=filter_json(tracks.bank, int(row)) | rival_json(tracks, int(row), ids),
                 x=float(mean[row, 0]),
                 y=float(mean[row, 1]),
                 vx=float(mean[row, 2]),
@@ -375,7 +376,7 @@ class Tracking:
         changed = np.array(
             [STATUS_NAMES[status[i]] != r.status for i, r in enumerate(records)], dtype=bool
         )
-        tracks = Tracks(tracks.bank, status, tracks.updates, tracks.misses)
+        tracks = dataclasses.replace(tracks, status=status)
         ids = [r.id for r in records]
         terminals = [r.terminal_id for r in records]
         written = self._records(room_id, records, ids, terminals, tracks, changed & ~removed)
@@ -421,25 +422,15 @@ def _due(records: list[TrackRecord], settings: TrackerSettings, now: datetime) -
 
 
 def _take(tracks: Tracks, rows: IntArray) -> Tracks:
-    return Tracks(
-        tracks.bank.take(rows), tracks.status[rows], tracks.updates[rows], tracks.misses[rows]
-    )
+    return tracks.take(rows)
 
 
 def _merge(tracks: Tracks, rows: IntArray, part: Tracks) -> Tracks:
     """``tracks`` with its ``rows`` replaced by ``part``'s first rows and ``part``'s other
     rows appended."""
-    head = _take(part, np.arange(rows.size, dtype=np.intp))
-    tail = _take(part, np.arange(rows.size, part.size, dtype=np.intp))
-    status, updates, misses = tracks.status.copy(), tracks.updates.copy(), tracks.misses.copy()
-    status[rows], updates[rows], misses[rows] = head.status, head.updates, head.misses
-    bank = TrackBank.concatenate(tracks.bank.put(rows, head.bank), tail.bank)
-    return Tracks(
-        bank,
-        np.concatenate((status, tail.status)),
-        np.concatenate((updates, tail.updates)),
-        np.concatenate((misses, tail.misses)),
-    )
+    head = part.take(np.arange(rows.size, dtype=np.intp))
+    tail = part.take(np.arange(rows.size, part.size, dtype=np.intp))
+    return joined(tracks.put(rows, head), tail)
 
 
 def _raw(fixes: _Fixes, k: int) -> dict[str, float]:

@@ -319,6 +319,8 @@ def test_settings_refuse_inconsistent_values() -> None:
         TrackerSettings(lost_after_s=10.0, drop_after_s=5.0)
     with pytest.raises(VLPError, match="max_speed_mps"):
         TrackerSettings(max_speed_mps=0.0)
+    with pytest.raises(VLPError, match="rival_decision_ratio"):
+        TrackerSettings(rival_decision_ratio=1.0)
 
 
 def test_gospa_against_its_closed_form() -> None:
@@ -362,6 +364,70 @@ def test_walkers_who_cross_keep_their_tracks(rng: np.random.Generator) -> None:
     assert np.all(np.array(owners) == owners[0])
     mean, _ = combined(tracks.bank)
     assert_allclose(mean[owners[0], :2], truth[-1], atol=0.08)
+
+
+def _head_on_swaps(settings: TrackerSettings, crossings: int, seed: int) -> int:
+    """Of ``crossings`` passes of two walkers head-on on one line (fixes 3 cm off, in a
+    random order), how many end with the walkers' tracks traded."""
+    rng = np.random.default_rng(seed)
+    times, truth = _crossing(0.0)
+    noise = np.tile(0.03**2 * np.eye(2), (2, 1, 1))
+    swapped = 0
+    for _ in range(crossings):
+        tracks, owners = Tracks.empty(), []
+        for k, time_s in enumerate(times):
+            order = rng.permutation(2)
+            fixes = truth[k, order] + 0.03 * rng.standard_normal((2, 2))
+            step = step_anonymous(tracks, fixes, noise, float(time_s), settings)
+            tracks = step.tracks
+            rows = np.empty(2, dtype=np.intp)
+            rows[order] = step.fix_rows
+            owners.append(rows)
+        assert tracks.size == 2
+        swapped += int(np.any(owners[-1] != owners[5]))  # from confirmation to the end
+    return swapped
+
+
+def test_walkers_who_meet_head_on_keep_their_tracks_when_both_ways_are_followed() -> None:
+    # Where they meet, positions cannot tell the walkers apart and the assignment often
+    # takes the swap; the next fixes, which go on along each walker's line, tell the swap.
+    # Never taking the other way (a decision ratio no evidence reaches) is the tracker
+    # without it.
+    kept_only = TrackerSettings(rival_decision_ratio=1e300)
+    assert _head_on_swaps(kept_only, 30, seed=1) >= 3
+    assert _head_on_swaps(TrackerSettings(), 30, seed=1) == 0
+
+
+def test_the_other_way_is_followed_from_an_ambiguous_solve_and_forgotten_later() -> None:
+    settings = TrackerSettings()
+    times, truth = _crossing(0.0)
+    noise = np.tile(0.03**2 * np.eye(2), (2, 1, 1))
+    tracks = Tracks.empty()
+    paired_at = []
+    for k, time_s in enumerate(times):
+        before = tracks
+        tracks = step_anonymous(tracks, truth[k], noise, float(time_s), settings).tracks
+        if tracks.rivals is not None and np.all(tracks.rivals.pair == 1):
+            paired_at.append(k)
+            if before.rivals is None:  # the pair's first solve: each track's other state
+                # is its own update with the other walker's fix
+                other = update(
+                    predict(before.bank, np.full(2, time_s), settings),
+                    truth[k, ::-1],
+                    noise,
+                    settings,
+                    np.full(2, 0.2),
+                    learn=False,
+                    inflate_chi2=settings.anonymous_inflate_chi2,
+                ).bank
+                assert_allclose(tracks.rivals.bank.means, other.means, atol=1e-12)
+    # Paired only where the walkers are within a metre (each walks 0.28 m per solve; they
+    # meet between solves 19 and 20), for no more than rival_memory_solves solves; the
+    # fixes after the meeting settle it (exact fixes: the kept way was right).
+    assert paired_at
+    assert all(abs(k - 19.5) * 2 * 0.28 < 1.0 for k in paired_at)
+    assert len(paired_at) <= settings.rival_memory_solves
+    assert tracks.rivals is None
 
 
 def test_a_track_confirmed_where_one_was_lost_takes_its_place() -> None:

@@ -46,6 +46,13 @@ class TrackerSettings:
         the likelihood under the track it was assigned to (elsewhere a wrong estimate can pull
         its track away, but not onto another walker's, and the fix is inflated only beyond
         the gate, as a labelled one).
+    rival_decision_ratio : float
+        After a solve whose fixes two confirmed anonymous tracks could have taken either way
+        round (within ``anonymous_doubt_ratio``), both ways are followed; the pair takes the
+        other way once the later fixes make it this many times likelier than the kept one,
+        and forgets it once the kept one is.
+    rival_memory_solves : int
+        How many solves both ways are followed at most (the kept one stays).
     reset_after_wild : int
         This many wild fixes in a row restart the track at the newest fix (a track cannot
         lock out a terminal that really moved).
@@ -92,6 +99,8 @@ class TrackerSettings:
     gate_probability: float = 0.999
     anonymous_inflate_probability: float = 0.55
     anonymous_doubt_ratio: float = 150.0
+    rival_decision_ratio: float = 3.0
+    rival_memory_solves: int = 5
     reset_after_wild: int = 3
     min_measurement_sd_m: float = 0.005
     confirm_after_updates: int = 3
@@ -133,6 +142,11 @@ class TrackerSettings:
                 "anonymous_inflate_probability must be below 1, got "
                 f"{self.anonymous_inflate_probability!r}",
                 field="anonymous_inflate_probability",
+            )
+        if not self.rival_decision_ratio > 1.0:
+            raise VLPError(
+                f"rival_decision_ratio must be above 1, got {self.rival_decision_ratio!r}",
+                field="rival_decision_ratio",
             )
         if self.drop_after_s < self.lost_after_s:
             raise VLPError(

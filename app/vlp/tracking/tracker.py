@@ -14,19 +14,15 @@ business: rows here are positions in the batch.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from ..typing import BoolArray, FloatArray, IntArray
-from .filter import (
-    TrackBank,
-    combined,
-    floored_covariances,
-    predict,
-    start_tracks,
-)
+from .association import INFEASIBLE, assigned, associate, costs
+from .filter import TrackBank, combined, predict, start_tracks
+from .rivals import Rivals, follow_both_ways
 from .settings import TrackerSettings
 from .step import predict_update
 
@@ -35,18 +31,18 @@ __all__ = [
     "LOST",
     "STATUS_NAMES",
     "TENTATIVE",
+    "Rivals",
     "Step",
     "Tracks",
     "age_tracks",
     "associate",
+    "joined",
     "step_anonymous",
     "step_labelled",
 ]
 
 TENTATIVE, CONFIRMED, LOST = 0, 1, 2
 STATUS_NAMES = ("tentative", "confirmed", "lost")
-# Cost of leaving a pair unassigned in the assignment matrix (beyond every gated cost).
-_INFEASIBLE = 1e12
 
 
 @dataclass(frozen=True)
@@ -63,12 +59,15 @@ class Tracks:
         Fixes that moved the track.
     misses : ndarray of shape (n,), int
         Anonymous solves in a row that did not claim the track.
+    rivals : Rivals or None, default=None
+        Pairs of anonymous tracks followed both ways after an ambiguous solve (None: no pair).
     """
 
     bank: TrackBank
     status: IntArray
     updates: IntArray
     misses: IntArray
+    rivals: Rivals | None = None
 
     @property
     def size(self) -> int:
@@ -80,6 +79,29 @@ class Tracks:
         """No track."""
         zeros = np.zeros(0, dtype=np.intp)
         return Tracks(bank=TrackBank.empty(), status=zeros, updates=zeros, misses=zeros)
+
+    def take(self, rows: IntArray | BoolArray) -> Tracks:
+        """The tracks at ``rows`` (indices or a mask), in that order."""
+        return Tracks(
+            bank=self.bank.take(rows),
+            status=self.status[rows],
+            updates=self.updates[rows],
+            misses=self.misses[rows],
+            rivals=None if self.rivals is None else self.rivals.take(rows),
+        )
+
+    def put(self, rows: IntArray, other: Tracks) -> Tracks:
+        """A copy with the tracks at ``rows`` replaced by ``other``'s, in order."""
+        status, updates, misses = self.status.copy(), self.updates.copy(), self.misses.copy()
+        status[rows], updates[rows], misses[rows] = other.status, other.updates, other.misses
+        rivals = None
+        if self.rivals is not None or other.rivals is not None:
+            rivals = _rivals_of(self).put(rows, _rivals_of(other))
+        return Tracks(self.bank.put(rows, other.bank), status, updates, misses, rivals)
+
+
+def _rivals_of(tracks: Tracks) -> Rivals:
+    return Rivals.none(tracks.bank) if tracks.rivals is None else tracks.rivals
 
 
 @dataclass(frozen=True)
@@ -102,103 +124,6 @@ class Step:
     fix_rows: IntArray
     moved: BoolArray
     wild: BoolArray
-
-
-def associate(
-    predicted: TrackBank,
-    positions: FloatArray,
-    covariances: FloatArray,
-    settings: TrackerSettings,
-    elapsed_s: FloatArray | None = None,
-) -> tuple[IntArray, IntArray]:
-    """Gated assignment of fixes to tracks of least total cost.
-
-    Parameters
-    ----------
-    predicted : TrackBank
-        ``n`` tracks predicted to the fixes' time.
-    positions : ndarray of shape (m, 2), metres
-    covariances : ndarray of shape (m, 2, 2), m^2
-    settings : TrackerSettings
-    elapsed_s : ndarray of shape (n,), seconds, default=None
-        Time since each track's last update: a fix beyond the gate is still allowed where the
-        terminal could have reached it at ``max_speed_mps`` (a start the prediction did not
-        foresee); None: the gate alone.
-
-    Returns
-    -------
-    track_rows, fix_rows : ndarray of shape (a,), int
-        Pairs ``(track_rows[i], fix_rows[i])``; every pair is allowed.
-
-    Notes
-    -----
-    The cost of a pair is ``-2 ln sum_k mu_k N(z; x_k, S_k)`` up to a constant: the negative
-    log-likelihood of the fix under the track's mixture, each model ``k`` (probability
-    ``mu_k``) with its own prediction ``x_k`` and ``S_k = P_k + R``, i.e. ``d2_k + ln det S_k``
-    weighed across the models. One Gaussian in place of the mixture would be as wide as the
-    two models apart: a standing track that may set off would claim a fix beside it as
-    readily as a walking track that predicts the fix exactly. A pair is allowed where its
-    squared Mahalanobis distance is within ``gate_chi2`` under some model or under the
-    mixture taken as one Gaussian, or within reach (its larger cost makes the assignment
-    prefer pairs within the gate).
-    """
-    if predicted.size == 0 or positions.shape[0] == 0:
-        return np.zeros(0, dtype=np.intp), np.zeros(0, dtype=np.intp)
-    cost = _costs(predicted, positions, covariances, settings, elapsed_s)
-    return _assigned(cost)
-
-
-def _assigned(cost: FloatArray) -> tuple[IntArray, IntArray]:
-    """The allowed pairs of the assignment of least total ``cost``."""
-    rows, cols = linear_sum_assignment(cost)
-    keep = cost[rows, cols] < _INFEASIBLE
-    return rows[keep].astype(np.intp), cols[keep].astype(np.intp)
-
-
-def _costs(
-    predicted: TrackBank,
-    positions: FloatArray,
-    covariances: FloatArray,
-    settings: TrackerSettings,
-    elapsed_s: FloatArray | None,
-) -> FloatArray:
-    """The cost ``(n, m)`` of each pair in :func:`associate` (:data:`_INFEASIBLE`: not
-    allowed)."""
-    fix = floored_covariances(covariances, settings)
-    # Each model's squared Mahalanobis distance and log-determinant, (n, models, m).
-    distance2, log_det = _distances(
-        predicted.means[:, :, :2], predicted.covariances[:, :, :2, :2], positions, fix
-    )
-    # The gate: on some model, or on the mixture as one Gaussian (wider than either where
-    # the models disagree, as when a track may have set off).
-    mean, covariance = combined(predicted)
-    whole2, _ = _distances(mean[:, None, :2], covariance[:, None, :2, :2], positions, fix)
-    allowed = np.minimum(np.min(distance2, axis=1), whole2[:, 0]) <= settings.gate_chi2
-    if elapsed_s is not None:
-        # Reach: how far the terminal can have gone, plus the 95 % spread of the fix.
-        gap = np.hypot(
-            positions[None, :, 0] - mean[:, None, 0], positions[None, :, 1] - mean[:, None, 1]
-        )
-        fix_spread = np.sqrt(np.trace(covariances, axis1=1, axis2=2))
-        allowed |= gap <= settings.max_speed_mps * elapsed_s[:, None] + 2.448 * fix_spread[None, :]
-    weight = np.log(np.maximum(predicted.model_probabilities, 1e-300))[:, :, None]
-    log_likelihood = weight - 0.5 * (distance2 + log_det)
-    return np.where(allowed, -2.0 * np.logaddexp.reduce(log_likelihood, axis=1), _INFEASIBLE)
-
-
-def _distances(
-    means: FloatArray, covariances: FloatArray, positions: FloatArray, fixes: FloatArray
-) -> tuple[FloatArray, FloatArray]:
-    """Squared Mahalanobis distances and log-determinants ``(n, k, m)`` of ``m`` fixes
-    (positions ``(m, 2)``, covariances ``(m, 2, 2)``) from ``n x k`` predictions (means
-    ``(n, k, 2)``, covariances ``(n, k, 2, 2)``): ``S = P + R``, closed form for 2 x 2."""
-    a = covariances[:, :, 0, 0, None] + fixes[None, None, :, 0, 0]
-    b = covariances[:, :, 0, 1, None] + fixes[None, None, :, 0, 1]
-    d = covariances[:, :, 1, 1, None] + fixes[None, None, :, 1, 1]
-    nu0 = positions[None, None, :, 0] - means[:, :, 0, None]
-    nu1 = positions[None, None, :, 1] - means[:, :, 1, None]
-    det = a * d - b * b
-    return (d * nu0 * nu0 - 2.0 * b * nu0 * nu1 + a * nu1 * nu1) / det, np.log(det)
 
 
 def _apply(
@@ -236,7 +161,8 @@ def _apply(
     misses = tracks.misses.copy()
     misses[live] = 0
     bank = result.bank if whole else tracks.bank.put(live, result.bank)
-    return Tracks(bank=bank, status=status, updates=updates, misses=misses), moved, wild
+    after = Tracks(bank=bank, status=status, updates=updates, misses=misses, rivals=tracks.rivals)
+    return after, moved, wild
 
 
 def _started(
@@ -254,12 +180,17 @@ def _started(
     )
 
 
-def _joined(first: Tracks, second: Tracks) -> Tracks:
+def joined(first: Tracks, second: Tracks) -> Tracks:
+    """``first``'s tracks followed by ``second``'s (whose pairs, if any, are their own)."""
+    rivals = None
+    if first.rivals is not None or second.rivals is not None:
+        rivals = Rivals.concatenate(_rivals_of(first), _rivals_of(second))
     return Tracks(
         bank=TrackBank.concatenate(first.bank, second.bank),
         status=np.concatenate((first.status, second.status)),
         updates=np.concatenate((first.updates, second.updates)),
         misses=np.concatenate((first.misses, second.misses)),
+        rivals=rivals,
     )
 
 
@@ -314,7 +245,7 @@ def step_labelled(
         return Step(tracks=updated, fix_rows=fix_rows, moved=moved, wild=wild)
     new = _started(positions[~old], covariances[~old], time_s, settings)
     fix_rows[~old] = tracks.size + np.arange(new.size)
-    return Step(tracks=_joined(updated, new), fix_rows=fix_rows, moved=moved, wild=wild)
+    return Step(tracks=joined(updated, new), fix_rows=fix_rows, moved=moved, wild=wild)
 
 
 def step_anonymous(
@@ -350,9 +281,10 @@ def step_anonymous(
     elapsed = np.maximum(time_s - tracks.bank.times_s, 0.0)
     rows = np.full(positions.shape[0], -1, dtype=np.intp)
     inflate = np.full(positions.shape[0], settings.gate_chi2)
+    cost = None
     if tracks.size and positions.shape[0]:
-        cost = _costs(predicted, positions, covariances, settings, elapsed)
-        track_rows, fix_cols = _assigned(cost)
+        cost = costs(predicted, positions, covariances, settings, elapsed)
+        track_rows, fix_cols = assigned(cost)
         rows[fix_cols] = track_rows
         # A fix another track explains almost as well is doubtful: if it is wrong (one
         # shadowed terminal throws a whole aggregated solve off, often by more than its
@@ -391,12 +323,28 @@ def step_anonymous(
         status=status.astype(np.intp),
         updates=step.tracks.updates,
         misses=misses.astype(np.intp),
+        rivals=step.tracks.rivals,
     )
+    fix_rows = step.fix_rows
+    if cost is not None:
+        bank, rivals, fix_rows = follow_both_ways(
+            _rivals_of(after),
+            after.bank,
+            fix_rows,
+            tracks.bank,
+            tracks.status == CONFIRMED,
+            cost,
+            positions,
+            covariances,
+            time_s,
+            settings,
+        )
+        after = replace(after, bank=bank, rivals=rivals)
     was_tentative = np.concatenate(
         (tracks.status == TENTATIVE, np.ones(after.size - tracks.size, dtype=bool))
     )
     after, moved_to = _in_lost_places(after, was_tentative, time_s, settings)
-    return Step(tracks=after, fix_rows=moved_to[step.fix_rows], moved=step.moved, wild=step.wild)
+    return Step(tracks=after, fix_rows=moved_to[fix_rows], moved=step.moved, wild=step.wild)
 
 
 def _in_lost_places(
@@ -433,7 +381,7 @@ def _in_lost_places(
     allowed &= tracks.misses[None, coasting] >= tracks.updates[fresh, None]
     if not np.any(allowed):
         return tracks, moved_to
-    rows, cols = linear_sum_assignment(np.where(allowed, gap, _INFEASIBLE))
+    rows, cols = linear_sum_assignment(np.where(allowed, gap, INFEASIBLE))
     keep = allowed[rows, cols]
     new, old = fresh[rows[keep]], coasting[cols[keep]]
     status, updates, misses = tracks.status.copy(), tracks.updates.copy(), tracks.misses.copy()
@@ -441,7 +389,13 @@ def _in_lost_places(
     status[new], misses[new] = TENTATIVE, settings.tentative_max_misses
     moved_to[new] = old
     bank = tracks.bank.put(old, tracks.bank.take(new))
-    return Tracks(bank=bank, status=status, updates=updates, misses=misses), moved_to
+    rivals = tracks.rivals
+    if rivals is not None:  # a row that takes another's state ends its pair
+        pair = rivals.pair.copy()
+        pair[old] = pair[new] = 0
+        rivals = replace(rivals, pair=pair).paired()
+    after = Tracks(bank=bank, status=status, updates=updates, misses=misses, rivals=rivals)
+    return after, moved_to
 
 
 def age_tracks(
