@@ -117,6 +117,8 @@ def test_the_protocol_runs_through_the_api_and_writes_its_page(
     calibrated = next(r for r in rows if r["layout"] == "calibrated" and r["K"] == "1")
     # 5 % noise in a 3 m room of 4 LEDs: a calibrated fix is within decimetres.
     assert float(calibrated["median_cm"]) < 30 and not math.isnan(float(calibrated["coverage"]))
+    # a root mean square is never below the mean (Cauchy-Schwarz); both rounded to 0.01
+    assert float(calibrated["mean_cm"]) <= float(calibrated["rms_cm"]) + 0.01
     # The smaller room: luminaires 1-3 alone, on the test points that detect all three.
     smaller = {r["layout"]: int(r["count"]) for r in rows if r["layout"].startswith("3 lum")}
     assert set(smaller) == {

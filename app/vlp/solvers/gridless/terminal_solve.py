@@ -222,7 +222,9 @@ def solve_terminals(
 
         def nll(k: int, fit: TerminalFit) -> float:
             own = with_censored_variance(likelihood(fit), censored_var[k])
-            return terminal_nll(fit, np.broadcast_to(own, (n_leds,)), tail_dof)
+            # floored as the fits' own weights are (a variance of 0 has no likelihood)
+            weight = whitening_weight(values[k], np.broadcast_to(own, (n_leds,)).copy())
+            return terminal_nll(fit, np.broadcast_to(1.0 / weight**2, (n_leds,)), tail_dof)
 
         return [
             new
