@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from ...._kernels import compiled
+from ...._kernels import compiled, compiled_inline
 from ...._reflection_table import _UNIT_BASIS, ReflectionTable
 from ....typing import FloatArray
 from ..channel import ChannelKernel, DiffuseTable
@@ -25,6 +25,7 @@ __all__ = [
     "beam_towards",
     "channel_constants",
     "channel_rows_kernel",
+    "inlined_channel_rows",
     "whole_power",
 ]
 
@@ -254,6 +255,22 @@ def channel_rows_kernel(
     :meth:`ChannelKernel.gradients_xy`); else at heights ``zs``
     (:meth:`ChannelKernel.gradients_xyz`).
     """
+    rows: FloatArray = inlined_channel_rows(channel, table, xs, ys, zs, on_plane)
+    return rows
+
+
+@compiled_inline
+def inlined_channel_rows(
+    channel: ChannelConstants,
+    table: TableConstants,
+    xs: FloatArray,
+    ys: FloatArray,
+    zs: FloatArray,
+    on_plane: bool,
+) -> FloatArray:
+    """:func:`channel_rows_kernel`, inlined into its compiled caller: the aggregated fit's
+    evaluations, a few an LM iteration, would pass the channel's and the table's tuples of
+    arrays to a call."""
     (
         led_x,
         led_y,
