@@ -13,6 +13,7 @@ import copy
 import dataclasses
 import importlib
 import itertools
+import math
 import os
 import subprocess
 import sys
@@ -46,6 +47,7 @@ from app.vlp.solvers.gridless._compiled.channel import (
     channel_constants,
     channel_rows_kernel,
     diffuse_rows,
+    whole_power,
 )
 from app.vlp.solvers.gridless._compiled.fit import (
     FitModel,
@@ -110,6 +112,20 @@ def random_points(kernel: ChannelKernel, n_points: int, rng: np.random.Generator
     return np.column_stack(
         (rng.uniform(-0.2, length + 0.2, n_points), rng.uniform(-0.2, width + 0.2, n_points))
     )
+
+
+@pytest.mark.parametrize("exponent", [-4.0, -3.0, -2.0, -1.0, 0.0, 1.0, 2.0, 3.0, 4.0])
+def test_whole_powers_are_math_pow_within_round_off(exponent: float) -> None:
+    bases = np.random.default_rng(11).uniform(1e-3, 40.0, 2000)
+    got = np.array([whole_power(float(b), exponent) for b in bases])
+    np.testing.assert_allclose(got, bases**exponent, rtol=1e-15, atol=0.0)
+
+
+@pytest.mark.parametrize("exponent", [-2.5, -1.5, 0.5, 5.0, -6.0, 2.25])
+def test_other_powers_are_math_pow(exponent: float) -> None:
+    bases = np.random.default_rng(12).uniform(1e-3, 40.0, 500)
+    got = np.array([whole_power(float(b), exponent) for b in bases])
+    assert np.array_equal(got, [math.pow(float(b), exponent) for b in bases])
 
 
 @pytest.mark.parametrize("heights", [False, True])

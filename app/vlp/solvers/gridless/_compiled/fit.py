@@ -28,7 +28,7 @@ import numpy as np
 from ...._kernels import compiled, compiled_inline, compiled_reassociating
 from ....typing import FloatArray, IntArray
 from ..lm import EIG_FLOOR, SIGMA2_FLOOR, SIGMA2_REL_FLOOR, LMSettings
-from .channel import ChannelConstants, TableConstants, channel_rows_kernel
+from .channel import ChannelConstants, TableConstants, channel_rows_kernel, inlined_channel_rows
 from .lm import lm_kernel, register_model
 
 __all__ = [
@@ -43,7 +43,10 @@ __all__ = [
 Problem = tuple[Any, ...]
 
 
-@compiled
+# The evaluation's helpers below (and the channel's rows) are inlined into their callers
+# (compiled_inline): the LM loop calls them a few times an iteration with the model's large
+# tuples of arrays, and as calls they cost about a sixth of the power model's fits.
+@compiled_inline
 def _multipliers(theta: FloatArray, fixed: Problem, layout: Problem) -> tuple[bool, FloatArray]:
     heights, weights, log_gains, log_scale, _, unit = fixed
     _, weights_at, gains_at, scale_at, _ = layout
@@ -60,7 +63,7 @@ def _multipliers(theta: FloatArray, fixed: Problem, layout: Problem) -> tuple[bo
     return True, out
 
 
-@compiled
+@compiled_inline
 def _rows(
     channel: ChannelConstants,
     table: TableConstants,
@@ -75,13 +78,9 @@ def _rows(
     k = heights.shape[0]
     xs = theta[:k].copy()
     ys = theta[k : 2 * k].copy()
-    rows: FloatArray
-    if n_axes == 3:
-        rows = channel_rows_kernel(channel, table, xs, ys, theta[2 * k : 3 * k].copy(), False)
-    elif on_plane:
-        rows = channel_rows_kernel(channel, table, xs, ys, heights, True)
-    else:
-        rows = channel_rows_kernel(channel, table, xs, ys, heights, False)
+    # Fitted heights (three axes) are off the receivers' plane; one call site to inline.
+    zs = theta[2 * k : 3 * k].copy() if n_axes == 3 else heights
+    rows: FloatArray = inlined_channel_rows(channel, table, xs, ys, zs, on_plane and n_axes != 3)
     has_rotation, rotation = white[0], white[1]
     if has_rotation:
         n_leds = rotation.shape[0]
@@ -127,7 +126,7 @@ def residual_kernel(
     return residual
 
 
-@compiled
+@compiled_inline
 def _residual_of_rows(
     rows: FloatArray,
     white: Problem,
@@ -174,7 +173,7 @@ def _augmented(
     return augmented
 
 
-@compiled
+@compiled_inline
 def _augmented_of_rows(
     rows: FloatArray,
     white: Problem,
@@ -341,7 +340,7 @@ def gram_kernel(
     return normal, gradient, float(cost)
 
 
-@compiled
+@compiled_inline
 def _gram_of_rows(
     rows: FloatArray,
     white: Problem,
@@ -360,7 +359,7 @@ def _gram_of_rows(
     return product[:n, :n].copy(), product[:n, n].copy(), float(product[n, n])
 
 
-@compiled
+@compiled_inline
 def _one_row_cost(residual: FloatArray) -> float:
     """``r^T r`` to the bit as :func:`_gram_of_rows` gives it where its product is dense and
     ``n + 1`` (n parameters) is not a multiple of four: the ``[n, n]`` entry of
