@@ -152,6 +152,38 @@ def test_terminals_the_scatter_explains_are_weighted_by_it_without_a_level_layou
     assert not np.allclose(answers[2].positions, answers[0].positions, rtol=0, atol=1e-6)
 
 
+def test_terminals_the_scatter_does_not_explain_are_placed_by_it_with_their_own_radii(
+    paper_room: Layout, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # Amplitudes scattered five times as widely as the survey measured: the scatter does not
+    # explain them, yet their positions are its fits' (those of a request it explained); the
+    # radii are those of the same request in the room without the survey's scatter.
+    scatter = AmplitudeError(noise_sd=2e-7, relative_sd=0.01, dof=300.0)
+    silent = replace(paper_room, amplitude_error=scatter)
+    clean = true_amplitudes(silent, np.array([[1.3, 2.6], [2.9, 0.8], [0.7, 0.9]]))
+    rng = np.random.default_rng(6)
+    amplitudes = clean * (1.0 + 5 * scatter.relative_sd * rng.standard_normal(clean.shape))
+    solver = GridlessSolver(build_fingerprint(silent), "correlation")
+    verdicts: list[bool] = []
+    explains = terminal_solve.scatter_explains
+
+    def recorded(*args, **kwargs):  # type: ignore[no-untyped-def]
+        verdicts.append(explains(*args, **kwargs))
+        return verdicts[-1]
+
+    monkeypatch.setattr(terminal_solve, "scatter_explains", recorded)
+    answer = solver.solve_terminals(amplitudes)
+    assert verdicts == [False]
+    uncalibrated = GridlessSolver(build_fingerprint(paper_room), "correlation")
+    own = uncalibrated.solve_terminals(amplitudes)
+    monkeypatch.setattr(terminal_solve, "scatter_explains", lambda *_, **__: True)
+    surveyed = solver.solve_terminals(amplitudes)
+    np.testing.assert_array_equal(answer.positions, surveyed.positions)
+    assert not np.allclose(answer.positions, own.positions, rtol=0, atol=1e-6)
+    assert answer.covariances is not None and own.covariances is not None
+    np.testing.assert_allclose(answer.covariances, own.covariances, rtol=1e-9)
+
+
 def test_a_calibration_measures_the_surveys_noise_and_relative_error(paper_room: Layout) -> None:
     # A dense survey of a room exactly as laid out, every amplitude off by 5 % (relative)
     # and by a noise of 3 % of the mean amplitude: the calibration finds both.

@@ -264,6 +264,7 @@ def solve_terminals(
     # (docs/decisions/measured-radii.md).
     measured = room.fingerprint.layout.amplitude_error
     like_survey: list[TerminalFit] | None = None
+    survey_positions: FloatArray | None = None
     # A Student-t scatter's fit is the t's likelihood: each amplitude weighted down as far
     # as its residual lies in the tails (iteratively reweighted least squares); its
     # covariance is then the t's, (nu + 3) / (nu + 1) the weighted fit's.
@@ -290,6 +291,9 @@ def solve_terminals(
                     tail_dof=measured.tail_dof,
                 )
         if not (room.receivers_level or scatter_explains(like_survey, n_leds, measured.tail_dof)):
+            # The fits keep the scatter's weights (its positions are the likelier), the
+            # radii the request's own variances, as an uncalibrated room's.
+            survey_positions = np.array([fit.position for fit in like_survey])
             like_survey = None
     if measured is not None and like_survey is not None:
         fits = like_survey
@@ -340,6 +344,8 @@ def solve_terminals(
     # (a lone terminal's median is its own value: see check_amplitude_scale)
     typical_log_gain = log_gains[0] if n_terminals == 1 else np.median(log_gains)
     positions = np.array([fit.position for fit in fits])
+    if survey_positions is not None:
+        positions = survey_positions
     fit_quality = assess_fit(float(chi2.sum()), int(dof.sum()), math.exp(float(typical_log_gain)))
     if reweighted and fit_quality.quality != "scale_mismatch":
         seen = (
