@@ -17,7 +17,7 @@ from app.vlp.fingerprints import build_fingerprint
 from app.vlp.layout import AmplitudeError, Layout
 from app.vlp.layout_mapping import layout_from_mapping
 from app.vlp.simulation import true_amplitudes
-from app.vlp.solvers.gridless import GridlessSolver, terminal_solve
+from app.vlp.solvers.gridless import GridlessSolver, terminal_solve, terminal_weights
 from app.vlp.survey import survey_from_rows
 from app.vlp.uncertainty import Misfit, confidence_radius
 from tests.terminal_information import position_covariance
@@ -165,7 +165,7 @@ def test_terminals_the_scatter_does_not_explain_are_placed_by_it_with_their_own_
     amplitudes = clean * (1.0 + 5 * scatter.relative_sd * rng.standard_normal(clean.shape))
     solver = GridlessSolver(build_fingerprint(silent), "correlation")
     verdicts: list[bool] = []
-    explains = terminal_solve.scatter_explains
+    explains = terminal_weights.scatter_explains
 
     def recorded(*args, **kwargs):  # type: ignore[no-untyped-def]
         verdicts.append(explains(*args, **kwargs))
