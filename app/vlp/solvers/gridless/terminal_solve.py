@@ -116,9 +116,11 @@ def solve_terminals(
     (:func:`_led_errors_seen`; option ``terminal_led_weights``), a third pass refits each
     terminal with each amplitude's variance the noise's plus that error's, and the
     variances are estimated again from its residuals. In a survey-calibrated room the third
-    pass uses the survey's measured scatter instead (:func:`measured_variances`) when the
-    layout says the receivers are level or the scatter explains the request's residuals
-    (:func:`_scatter_explains`); the covariances then rest on the survey's degrees of freedom.
+    pass weights each amplitude by the survey's measured scatter instead
+    (:func:`measured_variances`); when the layout says the receivers are level or the scatter
+    explains the request's residuals (:func:`scatter_explains`) the covariances rest on the
+    survey's degrees of freedom, else the terminals keep that pass's positions and the
+    covariances of the passes above.
     """
     # [censored hook] LEDs not detected enter as their interval below the floor.
     amplitudes, censored_var = censored_substitutes(
@@ -257,11 +259,11 @@ def solve_terminals(
     led_error = float(misfit.model_errors[0]) if misfit.model_errors.size else 0.0
     reweighted = room.options.terminal_led_weights and _led_errors_seen(designs, led_error)
     # The room's own scatter, measured by its survey calibration on many degrees of freedom,
-    # weights every terminal and is its covariance's variance: one request's few residuals
-    # would estimate it on next to nothing. Only for terminals like the survey receiver:
-    # level, the layout says, or residuals that the scatter explains; a hand-held one's tilt
-    # and gain are not in the survey's scatter, and under-covered with it
-    # (docs/decisions/measured-radii.md).
+    # weights every terminal and, for terminals like the survey receiver (level, the layout
+    # says, or residuals that the scatter explains), is its covariance's variance: one
+    # request's few residuals would estimate it on next to nothing. A hand-held one's tilt
+    # and gain are not in the survey's scatter, and under-covered with it: its radii come from
+    # its own variances (docs/decisions/measured-radii.md).
     measured = room.fingerprint.layout.amplitude_error
     like_survey: list[TerminalFit] | None = None
     survey_positions: FloatArray | None = None
