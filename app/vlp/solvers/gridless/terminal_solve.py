@@ -174,7 +174,6 @@ def solve_terminals(
             tilt_spread_known=tilt_spread_known,
         )
         first.append(replace(fit, rss=fit.rss + unseen_energy))
-    walk_off = 0.5 * float(special.chdtri(n_leds, 1.0 - _WALK_OFF_PROBABILITY))
     dof = np.array([max(n_leds - fit.n_params, 1) for fit in first])
     sigma2 = sum(fit.rss for fit in first) / float(dof.sum())
 
@@ -221,6 +220,7 @@ def solve_terminals(
         ]
         if likelihood is None:
             return fitted
+        walk_off = 0.5 * float(special.chdtri(n_leds, 1.0 - _WALK_OFF_PROBABILITY))
 
         def nll(k: int, fit: TerminalFit) -> float:
             own = with_censored_variance(likelihood(fit), censored_var[k])
