@@ -98,21 +98,25 @@ def _gaussian(innovation: np.ndarray, spread: np.ndarray) -> float:
 
 
 def test_a_fix_is_steady_noise_or_as_wide_as_it_says_weighed_by_likelihood() -> None:
-    """The two-hypothesis update against a Gaussian-sum update written out plainly."""
+    """The two-hypothesis update against a Gaussian-sum update written out plainly; the
+    steady hypothesis's prior odds are the setting's, divided by how many times the track's
+    usual stated sd the fix says its sd is."""
     settings = dataclasses.replace(CV_ONLY, steady_fix_probability=0.3)
     level = 0.01**2  # the track's learned noise level, per axis
+    usual = 0.005  # what the track's fixes usually say, per axis, m^2
     stated = np.array([[[0.04, 0.01], [0.01, 0.02]]])  # what the fix says, m^2
     start = start_tracks(np.array([[1.0, 2.0]]), 1e-3 * np.eye(2)[None], np.zeros(1), settings)
-    bank = _walking_only(dataclasses.replace(start, noise_var=np.array([level])))
-    predicted = _walking_only(predict(bank, np.array([0.3]), settings))
+    bank = dataclasses.replace(start, noise_var=np.array([level]), stated_var=np.array([usual]))
+    predicted = _walking_only(predict(_walking_only(bank), np.array([0.3]), settings))
     for fix in (np.array([[1.03, 2.02]]), np.array([[1.4, 1.7]])):  # near, then far
         result = update(predicted, fix, stated, settings)
         x, p = predicted.means[0, 1], predicted.covariances[0, 1]
         h = np.hstack((np.eye(2), np.zeros((2, 2))))
         floored = stated[0] + settings.min_measurement_sd_m**2 * np.eye(2)
         steady = floored * min(1.0, level / (np.trace(floored) / 2.0))
+        odds = 0.3 / 0.7 / np.sqrt((np.trace(floored) / 2.0) / usual)
         parts = []
-        for noise, prior in ((steady, 0.3), (floored, 0.7)):
+        for noise, prior in ((steady, odds / (1.0 + odds)), (floored, 1.0 / (1.0 + odds))):
             s = h @ p @ h.T + noise
             gain = p @ h.T @ np.linalg.inv(s)
             nu = fix[0] - h @ x
@@ -553,14 +557,13 @@ def test_wrong_estimates_of_a_shadowed_solve_do_not_swap_identities() -> None:
 
 
 def test_a_doubtful_anonymous_fix_moves_its_track_as_one_on_the_anonymous_bound() -> None:
-    # Closed form (walking model alone, no switching, every fix as wide as it says): a fix
-    # another track explains better than its own (it was assigned to the first track only
-    # because the second has a fix of its own) and beyond the anonymous bound moves the first
-    # track as a Kalman update with its innovation covariance scaled to put it on the bound.
-    # Alone, with no other track to doubt it for, the same fix is a plain Kalman update.
-    settings = TrackerSettings(
-        mean_dwell_s=1e12, steady_fix_probability=1e-300, anonymous_inflate_probability=0.5
-    )
+    # Closed form (walking model alone, no switching): a fix another track explains better
+    # than its own (it was assigned to the first track only because the second has a fix of
+    # its own) and beyond the anonymous bound moves the first track as a Kalman update whose
+    # innovation covariance is, with even odds, as the fix states it or scaled to put the fix
+    # on the bound (the two collapsed by their likelihoods). Alone, with no other track to
+    # doubt it for, the same fix is a plain Kalman update.
+    settings = TrackerSettings(mean_dwell_s=1e12, anonymous_inflate_probability=0.5)
     noise = np.tile(0.01 * np.eye(2), (2, 1, 1))
     starts = np.array([[0.0, 0.0], [1.0, 0.6]])
     fixes = np.array([[0.5, 0.2], [1.0, 0.6]])
@@ -581,8 +584,11 @@ def test_a_doubtful_anonymous_fix_moves_its_track_as_one_on_the_anonymous_bound(
     step = step_anonymous(both, fixes, noise, 0.2, settings)
     assert step.fix_rows.tolist() == [0, 1]
     assert not np.any(step.wild)  # within the gate: not counted towards a restart
-    inflated = kalman(d2 / settings.anonymous_inflate_chi2 * whole)
-    assert_allclose(step.tracks.bank.means[0, 1], inflated, rtol=1e-9, atol=1e-12)
+    spreads = (whole, d2 / settings.anonymous_inflate_chi2 * whole)
+    weights = np.array([_gaussian(nu, spread) for spread in spreads])
+    weights /= weights.sum()
+    collapsed = sum(w * kalman(spread) for w, spread in zip(weights, spreads, strict=True))
+    assert_allclose(step.tracks.bank.means[0, 1], collapsed, rtol=1e-9, atol=1e-12)
 
     alone = Tracks(bank.take(np.array([0])), confirmed[:1], np.array([3]), np.zeros(1, np.intp))
     step = step_anonymous(alone, fixes[:1], noise[:1], 0.2, settings)
@@ -612,9 +618,10 @@ def _after_fixes(
 
 def test_a_standing_terminal_that_sets_off_is_followed_from_its_second_far_fix() -> None:
     # A walker sets off between two fixes: the first lands 8 cm out, the next 36 cm, and the
-    # solver says 10-12 cm for both. Alone, each is as well a wide fix of a terminal that
-    # stands; the second further out along the first is a start.
-    offsets, stated = [0.08, 0.36], [0.10, 0.12]
+    # solver says 20-24 cm for both (8-10 times what the fixes that stood said). Alone, each is
+    # as well a wide fix of a terminal that stands; the second further out along the first is
+    # a start.
+    offsets, stated = [0.08, 0.36], [0.20, 0.24]
     walked = _after_fixes(offsets, stated, TrackerSettings())
     plain = _after_fixes(offsets, stated, NO_RUNS)
     lag = 1.0 + offsets[-1] - estimates(walked)[0][0, 0]
@@ -631,3 +638,18 @@ def test_a_wild_fix_that_repeats_does_not_start_a_walk() -> None:
     plain = _after_fixes([0.3, 0.3], [0.1, 0.1], NO_RUNS)
     assert_allclose(repeated.means, plain.means)
     assert_allclose(repeated.model_probabilities, plain.model_probabilities)
+
+
+def test_a_far_fix_that_says_what_the_others_said_is_taken_for_a_first_step() -> None:
+    # A track stood 2 s (fixes scattered by 1 cm, each saying 2.5 cm); the next fix lands 8 cm
+    # out, some 4 sds of the noise the track has seen. Saying 2.5 cm as the others did, it is
+    # likelier a first step than a wide fix of a terminal that still stands: the track goes
+    # more than half-way to it at once, before any run. The same fix saying 10 cm (as a
+    # shadowed LED makes a fix say) may well be a wide one, and moves the track less.
+    far, usual, wide = 0.08, 0.025, 0.10
+    steady = _after_fixes([far], [usual], TrackerSettings())
+    moved = estimates(steady)[0][0, 0] - 1.0
+    assert far > 3.0 * np.sqrt(steady.noise_var[0])
+    assert moved > 0.5 * far
+    doubtful = _after_fixes([far], [wide], TrackerSettings())
+    assert estimates(doubtful)[0][0, 0] - 1.0 < 0.5 * moved

@@ -76,7 +76,7 @@ def predict_update_kernel(
     was_wild = np.empty(n, dtype=np.bool_)
     accel = accel_sd * accel_sd
     floor = floor_sd * floor_sd
-    log_hypothesis = (math.log(steady), math.log(1.0 - steady))
+    steady_odds = steady / (1.0 - steady)
     mixed = np.empty((2, 4))
     mixed_cov = np.empty((2, 4, 4))
     pred = np.empty((2, 4))
@@ -188,6 +188,11 @@ def predict_update_kernel(
             noises[1, 0], noises[1, 1], noises[1, 2] = r00, r01, r11
         shrink = min(1.0, level / fix_var) if learn else 1.0
         noises[0, 0], noises[0, 1], noises[0, 2] = r00 * shrink, r01 * shrink, r11 * shrink
+        # the steady hypothesis's prior (filter.steady_probabilities; even odds for a fix
+        # that may be another terminal's)
+        before = stated_var[k] if math.isfinite(stated_var[k]) else fix_var
+        odds = steady_odds * math.sqrt(before / fix_var) if learn else 1.0
+        log_hypothesis = (math.log(odds / (1.0 + odds)), math.log(1.0 / (1.0 + odds)))
         # --- each model's update under both hypotheses, collapsed ---
         for m in range(2):
             for h in range(2):
@@ -243,7 +248,6 @@ def predict_update_kernel(
             out_probs[k, m] = new_probs[m]
         # --- the learned levels ---
         rate = -math.expm1(-dt / memory)
-        before = stated_var[k] if math.isfinite(stated_var[k]) else fix_var
         stated_level = 1.0 / (1.0 / before + rate * (1.0 / fix_var - 1.0 / before))
         out_stated[k] = stated_level
         if learn:

@@ -32,6 +32,7 @@ __all__ = [
     "inverse_2x2",
     "predict",
     "start_tracks",
+    "steady_probabilities",
     "update",
     "updated_tracks",
     "with_restarts",
@@ -233,10 +234,12 @@ def update(
 ) -> Update:
     """Update each predicted track with its fix (row ``k`` with fix ``k``).
 
-    A fix's error is, with probability ``settings.steady_fix_probability``, the terminal's
-    usual noise (its stated covariance shrunk to the track's learned ``noise_var``), else as
-    wide as its stated covariance says (a shadowed LED, a far optimum); each model's update
-    weighs both by their likelihoods (a two-component Gaussian mixture, collapsed). The solver
+    A fix's error is either the terminal's usual noise (its stated covariance shrunk to the
+    track's learned ``noise_var``) or as wide as its stated covariance says (a shadowed LED, a
+    far optimum), the first with the prior probability :func:`steady_probabilities` gives (the
+    wider a fix says it is than the track's fixes usually say, the likelier it is wide); each
+    model's update weighs both by their likelihoods (a two-component Gaussian mixture,
+    collapsed). Where ``learn`` is False both hypotheses weigh alike a priori. The solver
     widens a fix's covariance for what one fix cannot tell (its own few residual degrees of
     freedom): a track sees many fixes of one terminal and learns the level the fixes really
     scatter with, from the innovations.
@@ -313,11 +316,14 @@ def updated_tracks(
     level = np.where(np.isfinite(predicted.noise_var), predicted.noise_var, stated_var)
     shrink = np.minimum(1.0, level / stated_var) if learn else np.ones_like(stated_var)
     noises = np.stack((stated * shrink[:, None, None], wide), axis=1)  # (n, 2, 2, 2)
-    means, covs, probabilities = _model_updates(
-        predicted, positions, noises, settings.steady_fix_probability
-    )
-    rate = _memory_rate(elapsed_s, level.shape[0], settings)
     before = np.where(np.isfinite(predicted.stated_var), predicted.stated_var, stated_var)
+    steady = (
+        steady_probabilities(stated_var, before, settings)
+        if learn
+        else np.full(stated_var.shape, 0.5)
+    )
+    means, covs, probabilities = _model_updates(predicted, positions, noises, steady)
+    rate = _memory_rate(elapsed_s, level.shape[0], settings)
     stated_level = 1.0 / (1.0 / before + rate * (1.0 / stated_var - 1.0 / before))
     if learn:
         position = np.einsum("nm,nma->na", probabilities, means[:, :, :2])
@@ -341,6 +347,36 @@ def updated_tracks(
         offset=predicted.offset,
     )
     return bank, wild
+
+
+def steady_probabilities(
+    stated_var: FloatArray, usual_var: FloatArray, settings: TrackerSettings
+) -> FloatArray:
+    """Each fix's prior probability of being the track's usual noise (the steady hypothesis
+    of :func:`update`) rather than as wide as it says.
+
+    The odds ``steady_fix_probability / (1 - steady_fix_probability)`` of a fix that states
+    the track's usual spread, times ``sqrt(usual_var / stated_var)``: a fix that says its sd
+    is k times what the track's fixes usually say has 1/k of those odds. A shadowed LED widens
+    the solver's covariance many times over and the fix is as far off as it says; a clean fix's
+    stated spread wanders by a few times either way and says little of its error.
+
+    Parameters
+    ----------
+    stated_var : ndarray of shape (n,), m^2
+        Each fix's stated (floored) variance per axis.
+    usual_var : ndarray of shape (n,), m^2
+        The track's usual stated variance per axis (``TrackBank.stated_var`` before the fix).
+    settings : TrackerSettings
+
+    Returns
+    -------
+    ndarray of shape (n,)
+        Probabilities in (0, 1).
+    """
+    steady = settings.steady_fix_probability
+    odds = steady / (1.0 - steady) * np.sqrt(usual_var / stated_var)
+    return np.asarray(odds / (1.0 + odds))
 
 
 def with_restarts(
@@ -414,10 +450,11 @@ def estimates(bank: TrackBank) -> tuple[FloatArray, FloatArray]:
 
 
 def _model_updates(
-    predicted: TrackBank, positions: FloatArray, noises: FloatArray, steady: float
+    predicted: TrackBank, positions: FloatArray, noises: FloatArray, steady: FloatArray
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Each model's Kalman update under both noise hypotheses ``noises`` ``(n, 2, 2, 2)``
-    (steady, wide), collapsed by their likelihoods, and the models' new probabilities.
+    (steady, wide; ``steady`` ``(n,)``: the first one's prior probability), collapsed by their
+    likelihoods, and the models' new probabilities.
 
     Written out for 2 x 2 innovation covariances. Both hypotheses share ``P H^T`` (columns
     ``c0, c1``), so the collapse is taken on the 2 x 2 pieces first: the mixture's mean is
@@ -436,7 +473,7 @@ def _model_updates(
     u0 = (d * nu0 - b * nu1) / det
     u1 = (a * nu1 - b * nu0) / det
     log_likelihood = -0.5 * (nu0 * u0 + nu1 * u1) - 0.5 * np.log(det)
-    log_likelihood += np.log([steady, 1.0 - steady])
+    log_likelihood += np.stack((np.log(steady), np.log1p(-steady)), axis=-1)[:, None, :]
     # Within each model: the hypotheses' weights; across: the models' (log-sum-exp).
     top = log_likelihood.max(axis=2, keepdims=True)
     weight = np.exp(log_likelihood - top)  # (n, m, h)

@@ -77,8 +77,10 @@ class TrackerSettings:
     standing_prior : float
         Probability that a new track stands (the rest: walks).
     steady_fix_probability : float
-        Probability that a fix's error is the terminal's usual noise (the track's learned
-        level) rather than as wide as the fix's stated covariance.
+        Probability that a labelled fix which states the track's usual spread has the
+        terminal's usual noise (the track's learned level) as its error rather than one as
+        wide as its stated covariance (a fix that states k times the usual sd has 1/k of
+        these odds: :func:`.filter.steady_probabilities`).
     noise_memory_s : float
         How long the learned noise level remembers, seconds (the time a terminal takes to
         walk into another part of the room, where the LEDs it sees differ).
@@ -110,7 +112,7 @@ class TrackerSettings:
     drop_after_s: float = 60.0
     history_s: float = 300.0
     standing_prior: float = 0.5
-    steady_fix_probability: float = 0.5
+    steady_fix_probability: float = 0.95
     noise_memory_s: float = 2.0
     start_run_sd: float = 2.0
     start_run_ratio: float = 100.0
