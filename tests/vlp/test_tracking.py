@@ -437,24 +437,27 @@ def test_the_other_way_is_followed_from_an_ambiguous_solve_and_forgotten_later()
 def test_a_track_confirmed_where_one_was_lost_takes_its_place() -> None:
     settings = TrackerSettings(confirm_after_updates=3)
     noise = 1e-4 * np.eye(2)[None]
-    here, there = np.array([[1.0, 1.0]]), np.array([[1.5, 1.0]])
+    here = np.array([[1.0, 1.0]])
     tracks, time_s = Tracks.empty(), 0.0
     for _ in range(5):  # a standing terminal, confirmed
         time_s += 0.2
         tracks = step_anonymous(tracks, here, noise, time_s, settings).tracks
-    for _ in range(6):  # fixes half a metre off pull its track there
-        time_s += 0.2
+    for k in range(10):  # fixes that walk away at 1 m/s pull its track half a metre off
+        time_s += 0.05
+        there = here + np.array([[0.05 * (k + 1), 0.0]])
         tracks = step_anonymous(tracks, there, noise, time_s, settings).tracks
     mean, _ = combined(tracks.bank)
     assert tracks.size == 1 and tracks.status[0] == CONFIRMED
     assert_allclose(mean[0, :2], there[0], atol=0.02)
-    # The terminal's own fixes again, 0.1 s apart: beyond reach of the pulled track
-    # (3 m/s x 0.1 s), they start a tentative track, which on confirmation continues the
-    # coasting one in its row (0.3 s without a fix: within reach). A second terminal that
-    # appears 5 m away at the same time could not have come from it and stays new.
+    # The terminal's own fixes again, 0.06 s apart: beyond reach of the pulled track, which
+    # is predicted to walk on (0.55 m and more away, reach 3 m/s x 0.06 s per solve), they
+    # start a tentative track, which on confirmation continues the coasting one in its row
+    # (0.18 s after its last fix: 0.54 m, plus the spread of both, from where it was). A
+    # second terminal that appears 5 m away at the same time could not have come from it
+    # and stays new.
     both = np.vstack((here, [[1.0, 6.0]]))
     for k in range(settings.confirm_after_updates):
-        time_s += 0.1
+        time_s += 0.06
         step = step_anonymous(tracks, both, np.tile(noise, (2, 1, 1)), time_s, settings)
         tracks = step.tracks
         status, removed = age_tracks(tracks, time_s, settings)
@@ -653,3 +656,56 @@ def test_a_far_fix_that_says_what_the_others_said_is_taken_for_a_first_step() ->
     assert moved > 0.5 * far
     doubtful = _after_fixes([far], [wide], TrackerSettings())
     assert estimates(doubtful)[0][0, 0] - 1.0 < 0.5 * moved
+
+
+def _set_off_beside_a_lost_track(seed: int) -> list[int]:
+    """The rows that claim a terminal's fixes as it sets off towards where a track was lost.
+
+    Two terminals stand 1.8 m apart (fixes: truth plus Gaussian noise of sd 2 cm, stated sd
+    3 cm); the second leaves the solves, and its track, missed, is lost and spreads. After
+    2.4 s the first walks towards it at 1.4 m/s; its first fix of the walk is shadowed: 0.8 m
+    further along, stating sd 0.2 m (beyond its standing track's gate, within its reach).
+    """
+    rng = np.random.default_rng(seed)
+    settings = TrackerSettings()
+    noise = (0.03**2) * np.eye(2)
+    walker, other = np.array([1.0, 1.0]), np.array([2.5, 2.0])
+    heading = (other - walker) / np.linalg.norm(other - walker)
+    tracks, time_s = Tracks.empty(), 0.0
+
+    def solve(positions: np.ndarray, covariances: np.ndarray) -> np.ndarray:
+        nonlocal tracks
+        step = step_anonymous(tracks, positions, covariances, time_s, settings)
+        status, removed = age_tracks(step.tracks, time_s, settings)
+        tracks = dataclasses.replace(step.tracks, status=status)
+        rows = step.fix_rows
+        if np.any(removed):
+            kept = np.cumsum(~removed) - 1
+            tracks, rows = tracks.take(~removed), kept[rows]
+        return rows
+
+    for _ in range(10):  # both stand: two confirmed tracks
+        time_s += 0.2
+        truth = np.vstack((walker, other))
+        solve(truth + rng.normal(0.0, 0.02, truth.shape), np.tile(noise, (2, 1, 1)))
+    for _ in range(12):  # the second is no longer seen: its track is lost
+        time_s += 0.2
+        rows = solve(walker + rng.normal(0.0, 0.02, (1, 2)), noise[None])
+    claimed = [int(rows[0])]
+    time_s += 0.2
+    shadowed = walker + (0.28 + 0.8) * heading
+    claimed.append(int(solve(shadowed[None], (0.2**2) * np.eye(2)[None])[0]))
+    for k in range(2, 8):  # the walk, clean fixes
+        time_s += 0.2
+        here = walker + 0.28 * k * heading
+        claimed.append(int(solve(here + rng.normal(0.0, 0.02, (1, 2)), noise[None])[0]))
+    return claimed
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_a_lost_track_does_not_claim_a_fix_a_confirmed_one_reaches(seed: int) -> None:
+    # The lost track, spread wide, explains the shadowed fix better than the standing track
+    # it is 1 m from; if it took the fix, the walker's next fixes would follow it and the
+    # walker would show under the lost track's id. A confirmed track claims first.
+    claimed = _set_off_beside_a_lost_track(seed)
+    assert claimed == [claimed[0]] * len(claimed)

@@ -67,7 +67,8 @@ class TrackerSettings:
         An anonymous confirmed track missed by this many solves in a row is lost (a solve
         gives as many estimates as it was told targets: a track none of them claims twice
         running is most often one a wild estimate has left behind, and counting it would show
-        a terminal twice; a lost track is claimed again like any other).
+        a terminal twice; a lost track is claimed again, by a fix the confirmed and the
+        tentative tracks leave).
     lost_after_s : float
         A track not updated for this long is ``lost``, seconds.
     drop_after_s : float

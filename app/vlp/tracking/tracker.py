@@ -5,7 +5,8 @@ its terminal's track; anonymous fixes (aggregated measurements say where targets
 who) are associated with the anonymous tracks by gated assignment of least total cost
 (the negative log-likelihood of the fix under the track's two models, each with its
 Mahalanobis distance and the log-determinant of its innovation covariance,
-:func:`scipy.optimize.linear_sum_assignment`). A fix no track claims starts a tentative
+:func:`scipy.optimize.linear_sum_assignment`), confirmed tracks first, then tentative ones,
+then lost ones. A fix no track claims starts a tentative
 track; tentative tracks are confirmed after ``confirm_after_updates`` updates and dropped
 after ``tentative_max_misses`` missed solves; a track not updated for ``lost_after_s`` is
 lost, and removed after ``drop_after_s``. Which ids the tracks carry is the caller's
@@ -43,6 +44,12 @@ __all__ = [
 
 TENTATIVE, CONFIRMED, LOST = 0, 1, 2
 STATUS_NAMES = ("tentative", "confirmed", "lost")
+
+# Added to an anonymous track's assignment costs per step down from confirmed (tentative:
+# one, lost: two). An allowed pair costs far less (a few metres squared over the floor on a
+# fix's variance, ~1e6 at most), so the assignment first gives as many fixes as it can to
+# confirmed tracks; far below INFEASIBLE, which it still tells apart.
+TIER_COST = 1e9
 
 
 @dataclass(frozen=True)
@@ -256,8 +263,11 @@ def step_anonymous(
     settings: TrackerSettings,
 ) -> Step:
     """Anonymous fixes of one solve: associated with ``tracks`` (all anonymous), the rest
-    start tentative tracks; tracks no fix claimed count a miss. A fix that another track
-    explains within ``anonymous_doubt_ratio`` of its own is inflated beyond
+    start tentative tracks; tracks no fix claimed count a miss. Confirmed tracks claim
+    first, tentative ones the fixes left, lost ones the rest: a lost track, whose spread has
+    grown while it was missed, would otherwise explain a wrong fix better than the confirmed
+    track it belongs to, and take that terminal's next fixes and its identity. A fix that
+    another track explains within ``anonymous_doubt_ratio`` of its own is inflated beyond
     ``anonymous_inflate_probability`` of its track's spread, not only beyond the gate.
 
     Parameters
@@ -284,7 +294,8 @@ def step_anonymous(
     cost = None
     if tracks.size and positions.shape[0]:
         cost = costs(predicted, positions, covariances, settings, elapsed)
-        track_rows, fix_cols = assigned(cost)
+        # Doubt (below) is still weighed on the likelihoods alone.
+        track_rows, fix_cols = assigned(cost + _claim_order(tracks.status)[:, None])
         rows[fix_cols] = track_rows
         # A fix another track explains almost as well is doubtful: if it is wrong (one
         # shadowed terminal throws a whole aggregated solve off, often by more than its
@@ -345,6 +356,13 @@ def step_anonymous(
     )
     after, moved_to = _in_lost_places(after, was_tentative, time_s, settings)
     return Step(tracks=after, fix_rows=moved_to[fix_rows], moved=step.moved, wild=step.wild)
+
+
+def _claim_order(status: IntArray) -> FloatArray:
+    """What each track adds to its assignment costs ``(n,)``: confirmed tracks claim a
+    solve's fixes first, tentative ones the fixes left, lost ones the rest."""
+    tiers = np.select([status == TENTATIVE, status == LOST], [1.0, 2.0], 0.0)
+    return np.asarray(TIER_COST * tiers, dtype=np.float64)
 
 
 def _in_lost_places(
