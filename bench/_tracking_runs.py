@@ -21,6 +21,7 @@ from app.vlp.fingerprints import Fingerprint, build_fingerprint
 from app.vlp.layout import Layout
 from app.vlp.measurements import measurement_from_amplitudes
 from app.vlp.presets import paper_layout
+from app.vlp.radii import confidence_radii
 from app.vlp.simulation import (
     Impairments,
     WalkerPaths,
@@ -41,7 +42,6 @@ from app.vlp.tracking import (
     step_labelled,
 )
 from app.vlp.typing import FloatArray, IntArray
-from app.vlp.uncertainty import confidence_radii
 
 from .rooms import hall_layout
 

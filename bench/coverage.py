@@ -36,9 +36,9 @@ from threadpoolctl import threadpool_limits
 from app.vlp.fingerprints import Fingerprint, build_fingerprint
 from app.vlp.layout import Reflectance
 from app.vlp.measurements import Model, measurement_from_amplitudes
+from app.vlp.radii import confidence_radius
 from app.vlp.simulation import Impairments
 from app.vlp.solvers.gridless import GridlessSolver
-from app.vlp.uncertainty import confidence_radius
 
 from ._common import REPO_ROOT, machine_markdown, machine_record, replace_section
 from ._real_rooms_extra import draw_terminals

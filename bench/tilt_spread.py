@@ -31,11 +31,11 @@ from threadpoolctl import threadpool_limits
 from app.vlp.calibration import calibrate, calibrated_layout
 from app.vlp.fingerprints import build_fingerprint
 from app.vlp.layout import Layout
+from app.vlp.radii import confidence_radii
 from app.vlp.simulation import TRUE_ELEMENT_SIZE_M
 from app.vlp.solvers.gridless import GridlessSolver
 from app.vlp.survey import simulate_survey
 from app.vlp.typing import FloatArray
-from app.vlp.uncertainty import confidence_radii
 
 from ._common import REPO_ROOT, machine_markdown, machine_record, replace_section
 from ._real_rooms_extra import _survey_points, draw_terminals

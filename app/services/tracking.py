@@ -29,6 +29,7 @@ from app.schemas import (
     Estimate,
     Localization,
 )
+from app.vlp.radii import confidence_radii
 from app.vlp.tracking import (
     STATUS_NAMES,
     TrackerSettings,
@@ -40,7 +41,6 @@ from app.vlp.tracking import (
     step_labelled,
 )
 from app.vlp.typing import FloatArray, IntArray
-from app.vlp.uncertainty import confidence_radii
 
 from ._track_state import (
     filter_json,

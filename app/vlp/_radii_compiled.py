@@ -1,6 +1,6 @@
-"""Compiled 95 % radii: :func:`app.vlp.uncertainty.confidence_radii` in one call.
+"""Compiled 95 % radii: :func:`app.vlp.radii.confidence_radii` in one call.
 
-Its NumPy reference, :func:`app.vlp.uncertainty.covariance_radii_reference`, documents the
+Its NumPy reference, :func:`app.vlp.radii.covariance_radii_reference`, documents the
 method (each covariance's eigenvalues, then the radial probability of a 2-D Gaussian error by
 Gauss-Legendre quadrature, Newton's method kept inside a bracket). Every answer asks for one
 radius per estimate (the service, for the answer; the solver's bound on the covariances only

@@ -19,10 +19,10 @@ from app.vlp.ambiguity import (
 from app.vlp.channel import channel_gains
 from app.vlp.fingerprints import Fingerprint, build_fingerprint
 from app.vlp.layout import Grid, Layout, Led, Room
+from app.vlp.radii import confidence_radii
 from app.vlp.simulation import Impairments, random_positions, simulate_terminals
 from app.vlp.solvers.gridless import GridlessSolver
 from app.vlp.typing import FloatArray
-from app.vlp.uncertainty import confidence_radii
 
 
 def corridor(row_y: float = 1.0) -> Layout:

@@ -10,6 +10,7 @@ from app.vlp.errors import MeasurementError
 from app.vlp.fingerprints import Fingerprint
 from app.vlp.layout import Layout
 from app.vlp.measurements import measurement_from_amplitudes
+from app.vlp.radii import confidence_radii, confidence_radius
 from app.vlp.simulation import (
     Impairments,
     noise_std_for_snr,
@@ -18,7 +19,6 @@ from app.vlp.simulation import (
     true_amplitudes,
 )
 from app.vlp.solvers.gridless import GridlessOptions, GridlessSolver
-from app.vlp.uncertainty import confidence_radii, confidence_radius
 
 
 def _matched(truth: np.ndarray, estimate: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

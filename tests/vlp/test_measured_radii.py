@@ -16,10 +16,11 @@ from app.vlp.errors import GeometryError
 from app.vlp.fingerprints import build_fingerprint
 from app.vlp.layout import AmplitudeError, Layout
 from app.vlp.layout_mapping import layout_from_mapping
+from app.vlp.radii import confidence_radius
 from app.vlp.simulation import true_amplitudes
 from app.vlp.solvers.gridless import GridlessSolver, terminal_solve, terminal_weights
 from app.vlp.survey import survey_from_rows
-from app.vlp.uncertainty import Misfit, confidence_radius
+from app.vlp.uncertainty import Misfit
 from tests.terminal_information import position_covariance
 
 

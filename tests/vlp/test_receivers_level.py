@@ -17,10 +17,10 @@ from scipy.optimize import linear_sum_assignment
 from app.vlp.fingerprints import Fingerprint, build_fingerprint
 from app.vlp.layout import Layout
 from app.vlp.measurements import measurement_from_amplitudes
+from app.vlp.radii import confidence_radii
 from app.vlp.simulation import noise_std_for_snr, random_positions, true_amplitudes
 from app.vlp.solvers.gridless import GridlessOptions, GridlessSolver
 from app.vlp.typing import FloatArray
-from app.vlp.uncertainty import confidence_radii
 
 
 @pytest.fixture(scope="module")

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from app.vlp.fingerprints import build_fingerprint
+from app.vlp.radii import confidence_radius
 from app.vlp.solvers.gridless import GridlessSolver
-from app.vlp.uncertainty import confidence_radius
 from bench.random_rooms import replay_request
 
 

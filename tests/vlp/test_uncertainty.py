@@ -9,15 +9,13 @@ import pytest
 from scipy import integrate, special, stats
 
 from app.vlp._kernels import KERNELS, KernelMode, use_kernels
+from app.vlp.radii import bounded_covariances, confidence_radii, confidence_radius
 from app.vlp.uncertainty import (
     NOISE_ONLY_P,
     POOR_FIT_CHI2,
     SCALE_MISMATCH_FACTOR,
     Misfit,
     assess_fit,
-    bounded_covariances,
-    confidence_radii,
-    confidence_radius,
     f2_widening,
     fit_misfit,
     misfit_design_reference,

@@ -23,12 +23,9 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any, NamedTuple
 
+from ..radii import covariance_radii_kernel, covariance_radii_reference
 from ..tracking.step import predict_update_kernel, predict_update_reference
-from ..uncertainty import (
-    covariance_radii_kernel,
-    covariance_radii_reference,
-    misfit_design_reference,
-)
+from ..uncertainty import misfit_design_reference
 from ._kernel_examples import (
     Arguments,
     best_of_tiles_examples,

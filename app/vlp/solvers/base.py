@@ -24,9 +24,10 @@ from ..constants import MAX_TARGETS
 from ..errors import MeasurementError, SolverError, UnknownSolverError
 from ..fingerprints import Fingerprint
 from ..measurements import Measurement, Model
+from ..radii import confidence_radii
 from ..scale import check_measurement_scale
 from ..typing import FloatArray, IntArray
-from ..uncertainty import FitQuality, confidence_radii
+from ..uncertainty import FitQuality
 
 __all__ = [
     "MAX_TARGETS",
@@ -70,7 +71,7 @@ class Solution:
     fit : FitQuality or None
         Goodness of the fit and the measurement's fitted scale.
     radii : ndarray of shape (K,) or None, metres
-        Each estimate's 95 % radius (:func:`app.vlp.uncertainty.confidence_radii` of
+        Each estimate's 95 % radius (:func:`app.vlp.radii.confidence_radii` of
         ``covariances``); set by :meth:`Solver.solve` (:func:`with_radii`) whenever the
         covariances are.
     """

@@ -719,7 +719,7 @@ _NO_CACHE_SCRIPT = textwrap.dedent(
     + _KERNELS_OF_A_SOLVE
     + """
     from app.vlp._kernels import use_kernels
-    from app.vlp.uncertainty import confidence_radii
+    from app.vlp.radii import confidence_radii
 
     # the fallback: every kernel is compiled without a disk cache
     assert all(type(k._cache).__name__ == "NullCache" for k in kernels)

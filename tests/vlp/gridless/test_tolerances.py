@@ -13,6 +13,7 @@ from app.vlp.fingerprints import Fingerprint, build_fingerprint
 from app.vlp.layout import Layout, Reflectance
 from app.vlp.measurements import measurement_from_amplitudes
 from app.vlp.metrics import mean_position_error
+from app.vlp.radii import confidence_radii
 from app.vlp.simulation import Impairments, random_positions, simulate_terminals
 from app.vlp.solvers.gridless.fitting import Run
 from app.vlp.solvers.gridless.joint_model import (
@@ -32,7 +33,6 @@ from app.vlp.solvers.gridless.whitening import (
     target_gains,
     whitening_reference,
 )
-from app.vlp.uncertainty import confidence_radii
 
 _TOLERANCES = RoomTolerances(led_log_amplitude_sd=0.05, led_half_power_sd_deg=3.0, tilt_sd=0.07)
 

@@ -18,11 +18,9 @@ from ...ambiguity import (
     farthest_in_region,
     mirror_twins,
 )
+from ...radii import bounded_covariances
 from ...typing import FloatArray
-from ...uncertainty import (
-    FitQuality,
-    bounded_covariances,
-)
+from ...uncertainty import FitQuality
 from ._compiled import scores as compiled_scores
 from .fitting import (
     Run,
@@ -57,7 +55,7 @@ def reported(
     give the same gains on both sides) or its ``far`` optimum (shape (K, 2), NaN where
     none; :func:`terminal_far_optima`, :func:`aggregated_far_optima`), the farther of the two,
     the fit's detail saying so, and no 95 % radius beyond the floor's diagonal
-    (:func:`app.vlp.uncertainty.bounded_covariances`)."""
+    (:func:`app.vlp.radii.bounded_covariances`)."""
     floor = room.fingerprint.layout.room
     diagonal = math.hypot(floor.length, floor.width)
     has_far = np.isfinite(far[:, 0])
