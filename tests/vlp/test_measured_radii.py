@@ -185,6 +185,48 @@ def test_terminals_the_scatter_does_not_explain_are_placed_by_it_with_their_own_
     np.testing.assert_allclose(answer.covariances, own.covariances, rtol=1e-9)
 
 
+def test_terminals_too_few_residuals_to_estimate_their_own_variances_keep_the_scatter(
+    paper_room: Layout, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # A room of five LEDs (four corners and one inside): each terminal leaves 2 residual
+    # degrees of freedom, too few for its own variances. Amplitudes scattered ten times as
+    # widely as the survey measured are answered as a level layout answers them (the
+    # scatter's weights and radii), not with radii from their own two residuals.
+    scatter = AmplitudeError(noise_sd=2e-7, relative_sd=0.01, dof=300.0)
+    five = replace(
+        paper_room,
+        leds=tuple(paper_room.leds[i] for i in (0, 3, 5, 12, 15)),
+        amplitude_error=scatter,
+    )
+    level = replace(five, grid=replace(five.grid, receivers_level=True))
+    clean = true_amplitudes(five, np.array([[1.3, 2.6], [2.9, 0.8], [0.7, 0.9]]))
+    rng = np.random.default_rng(6)
+    amplitudes = clean * (1.0 + 10 * scatter.relative_sd * rng.standard_normal(clean.shape))
+    solver = GridlessSolver(build_fingerprint(five), "correlation")
+    answer = solver.solve_terminals(amplitudes)
+    declared = GridlessSolver(build_fingerprint(level), "correlation").solve_terminals(amplitudes)
+    assert answer.covariances is not None and declared.covariances is not None
+    np.testing.assert_allclose(answer.positions, declared.positions, rtol=1e-6)
+    np.testing.assert_allclose(answer.covariances, declared.covariances, rtol=1e-4)
+    # The scatter does not explain these residuals: with their own variances taken as
+    # estimable, the radii would be theirs, and wider.
+    verdicts: list[bool] = []
+    explains = terminal_weights.scatter_explains
+
+    def recorded(*args, **kwargs):  # type: ignore[no-untyped-def]
+        verdicts.append(explains(*args, **kwargs))
+        return verdicts[-1]
+
+    monkeypatch.setattr(terminal_solve, "scatter_explains", recorded)
+    monkeypatch.setattr(terminal_solve, "own_variances_estimable", lambda *_: True)
+    own = solver.solve_terminals(amplitudes)
+    assert verdicts == [False]
+    assert own.covariances is not None
+    own_radii = [confidence_radius(c) for c in own.covariances]
+    radii = [confidence_radius(c) for c in answer.covariances]
+    assert all(mine < theirs for mine, theirs in zip(radii, own_radii, strict=True))
+
+
 def test_a_calibration_measures_the_surveys_noise_and_relative_error(paper_room: Layout) -> None:
     # A dense survey of a room exactly as laid out, every amplitude off by 5 % (relative)
     # and by a noise of 3 % of the mean amplitude: the calibration finds both.

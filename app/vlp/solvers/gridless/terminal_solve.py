@@ -37,6 +37,7 @@ from .room import PreparedRoom
 from .terminal_weights import (
     measured_misfit,
     measured_variances,
+    own_variances_estimable,
     rewhitened,
     scatter_explains,
     tail_weighted_variances,
@@ -263,7 +264,8 @@ def solve_terminals(
     # says, or residuals that the scatter explains), is its covariance's variance: one
     # request's few residuals would estimate it on next to nothing. A hand-held one's tilt
     # and gain are not in the survey's scatter, and under-covered with it: its radii come from
-    # its own variances (docs/decisions/measured-radii.md).
+    # its own variances, where its residuals have the degrees of freedom to estimate them
+    # (docs/decisions/measured-radii.md).
     measured = room.fingerprint.layout.amplitude_error
     like_survey: list[TerminalFit] | None = None
     survey_positions: FloatArray | None = None
@@ -292,7 +294,11 @@ def solve_terminals(
                     likelihood=scatter,
                     tail_dof=measured.tail_dof,
                 )
-        if not (room.receivers_level or scatter_explains(like_survey, n_leds, measured.tail_dof)):
+        if (
+            not room.receivers_level
+            and own_variances_estimable(like_survey, n_leds)
+            and not scatter_explains(like_survey, n_leds, measured.tail_dof)
+        ):
             # The fits keep the scatter's weights (its positions are the likelier), the
             # radii the request's own variances, as an uncalibrated room's.
             survey_positions = np.array([fit.position for fit in like_survey])

@@ -16,6 +16,9 @@ from .terminals import TerminalFit
 # Standard deviations of the chi-square by which a request's residuals may exceed what the
 # survey's measured scatter predicts and still be taken for the survey receiver's kind.
 _SCATTER_SIGNIFICANCE = 3.0
+# Residual degrees of freedom a terminal's fit needs before its own residuals can estimate
+# its variances: on fewer, the F(2, nu) of its radius has no finite mean.
+_OWN_VARIANCE_MIN_DOF = 3
 
 
 def rewhitened(fit: TerminalFit, weight: float | FloatArray) -> TerminalFit:
@@ -59,6 +62,16 @@ def scatter_explains(fits: list[TerminalFit], n_leds: int, tail_dof: float | Non
     return chi2 <= total + _SCATTER_SIGNIFICANCE * math.sqrt(
         weighted_square_variance(tail_dof) * total
     )
+
+
+def own_variances_estimable(fits: list[TerminalFit], n_leds: int) -> bool:
+    """Whether the residuals of ``fits`` (each of ``n_leds`` amplitudes) can estimate their
+    own variances in place of the survey's scatter: some fit leaves at least
+    ``_OWN_VARIANCE_MIN_DOF`` residual degrees of freedom. One terminal of a room with five
+    LEDs leaves 2 or fewer: its residuals can neither tell its kind from the survey
+    receiver's nor say how much wider its radius should be (such an estimate widened
+    radii tenfold on a measured five-LED room)."""
+    return any(n_leds - fit.n_params >= _OWN_VARIANCE_MIN_DOF for fit in fits)
 
 
 def weighted_square_variance(tail_dof: float | None) -> float:
