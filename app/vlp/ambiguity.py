@@ -168,6 +168,7 @@ def far_optima(
     noise_variance: float,
     spacing: float,
     column_energy: FloatArray | None = None,
+    gain_sd: float | None = None,
 ) -> FloatArray:
     """For terminals fitted from their own amplitudes: the farthest grid point that explains
     a terminal's amplitudes about as well as its estimate, where it lies beyond the
@@ -178,7 +179,11 @@ def far_optima(
     variance, and its region ``c_j - min c <= 5.99`` (the 95 % quantile of chi-square with
     2 degrees of freedom): the grid's version of a likelihood-ratio confidence region
     (:func:`farthest_in_region`). Points of it within the circle plus 1.5 grid steps are the
-    estimate's own neighbourhood.
+    estimate's own neighbourhood. With ``gain_sd`` the gain ``a`` has the fit's prior
+    ``N(1, gain_sd^2)`` (the log gain's, to first order): ``c_j = min_a ||y - a g_j||^2 +
+    lam (a - 1)^2`` with ``lam = noise_variance / gain_sd^2``, that is ``||y||^2 + lam -
+    (g_j . y + lam)^2 / (||g_j||^2 + lam)``; a place that explains the amplitudes only with
+    a gain the fit would not take is not another optimum.
 
     Parameters
     ----------
@@ -196,6 +201,8 @@ def far_optima(
         The grid step.
     column_energy : ndarray of shape (N,) or None
         ``||g_j||^2`` of every grid point, when already known (else computed).
+    gain_sd : float or None
+        The standard deviation of the fit's prior on each terminal's gain (None: free).
 
     Returns
     -------
@@ -208,7 +215,11 @@ def far_optima(
         column_energy = np.einsum("mn,mn->n", gains, gains)
     norms = np.maximum(column_energy, 1e-300)
     # c_j - min c = (max explained - explained_j) / sigma^2
-    explained = np.maximum(values @ gains, 0.0) ** 2 / norms / noise_variance  # (K, N)
+    if gain_sd is None:
+        explained = np.maximum(values @ gains, 0.0) ** 2 / norms / noise_variance  # (K, N)
+    else:
+        lam = noise_variance / gain_sd**2
+        explained = ((values @ gains + lam) ** 2 / (norms + lam) - lam) / noise_variance
     return farthest_in_region(
         explained, explained.max(axis=1), grid_points, positions, covariances, spacing
     )

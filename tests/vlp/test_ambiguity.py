@@ -6,7 +6,7 @@ from collections.abc import Callable
 
 import numpy as np
 import pytest
-from scipy import stats
+from scipy import optimize, stats
 
 from app.vlp.ambiguity import (
     covering_twins,
@@ -140,6 +140,52 @@ def test_far_optima_finds_the_other_side_of_a_row() -> None:
     # With a covariance whose circle already reaches there (1.47 m), nothing is far.
     wide = np.eye(2)[np.newaxis] * 0.6**2
     assert np.isnan(far_optima(amplitudes, gains, points, truth, wide, noise**2, 0.1)).all()
+
+
+def test_far_optima_weigh_the_gain_by_its_prior() -> None:
+    """With a prior on the gain the profile is the cost minimised over the gain with that
+    prior (here by a scalar search per grid point); the row's mirror image, explained by
+    the same gain, is still far."""
+    layout = corridor()
+    points = layout.cell_centres()
+    gains = channel_gains(layout, points)
+    truth = np.array([[2.2, 0.4]])
+    clean = channel_gains(layout, truth).T
+    noise = 1e-3 * float(clean.max())
+    amplitudes = clean * 1.05 + noise * np.random.default_rng(3).standard_normal(clean.shape)
+    tight = np.eye(2)[np.newaxis] * 1e-4
+    gain_sd = 0.1
+    lam = noise**2 / gain_sd**2
+
+    def cost(a: float, j: int) -> float:
+        return float(np.sum((amplitudes[0] - a * gains[:, j]) ** 2) + lam * (a - 1.0) ** 2)
+
+    profile = np.array(
+        [[optimize.minimize_scalar(cost, args=(j,)).fun for j in range(points.shape[0])]]
+    )
+    explained = -profile / noise**2
+    expected = farthest_in_region(explained, explained.max(axis=1), points, truth, tight, 0.1)
+    far = far_optima(amplitudes, gains, points, truth, tight, noise**2, 0.1, gain_sd=gain_sd)
+    np.testing.assert_array_equal(far, expected)
+    assert np.linalg.norm(far[0] - [2.2, 1.6]) < 0.15
+
+
+def test_a_far_place_that_needs_another_gain_is_not_far_under_its_prior() -> None:
+    """A terminal beyond the end of a corridor's row of LEDs: with its gain free, places
+    across the corridor explain its amplitudes scaled; under a 10 % prior on the gain
+    the region reaches less far."""
+    layout = corridor()
+    points = layout.cell_centres()
+    gains = channel_gains(layout, points)
+    truth = np.array([[0.3, 1.0]])
+    clean = channel_gains(layout, truth).T
+    noise = 1e-2 * float(clean.max())
+    tight = np.eye(2)[np.newaxis] * 1e-4
+    free = far_optima(clean, gains, points, truth, tight, noise**2, 0.1)
+    held = far_optima(clean, gains, points, truth, tight, noise**2, 0.1, gain_sd=0.1)
+    free_reach = float(np.linalg.norm(free[0] - truth[0]))
+    held_reach = float(np.linalg.norm(held[0] - truth[0])) if np.isfinite(held).all() else 0.0
+    assert free_reach > 0.9 and held_reach < 0.7
 
 
 def test_far_optima_leave_a_well_lit_terminal_alone(paper_fingerprint: Fingerprint) -> None:

@@ -107,9 +107,12 @@ def terminal_far_optima(
     a receiver in a dark corner, or on either side of a row of LEDs), shape (K, 2), NaN
     where none. Dense rooms whose gains are small enough to scan per answer (else all
     NaN). ``led_weights`` (M,): each amplitude's whitening weight, shared by the terminals
-    (None: one weight, ``sigma2`` the noise variance)."""
+    (None: one weight, ``sigma2`` the noise variance). Each place's gain has the fit's
+    prior."""
     if not room.scans_profiles:
         return np.full_like(positions, np.nan)
+    # The profile weighs each place's gain as the fit weighs it (its prior).
+    gain_sd = room.priors.log_gain_sd
     if led_weights is not None:
         return far_optima(
             values * led_weights,
@@ -119,6 +122,7 @@ def terminal_far_optima(
             covariances,
             sigma2,
             room.fingerprint.layout.grid.step,
+            gain_sd=gain_sd,
         )
     return far_optima(
         values,
@@ -129,6 +133,7 @@ def terminal_far_optima(
         sigma2,
         room.fingerprint.layout.grid.step,
         room.column_energy,
+        gain_sd=gain_sd,
     )
 
 
