@@ -76,8 +76,9 @@ def _rows(
     heights, _, _, _, on_plane, _ = fixed
     n_axes = layout[0]
     k = heights.shape[0]
-    xs = theta[:k].copy()
-    ys = theta[k : 2 * k].copy()
+    # Views of theta (the channel reads them, a trial's evaluation need not copy them).
+    xs = theta[:k]
+    ys = theta[k : 2 * k]
     # Fitted heights (three axes) are off the receivers' plane; one call site to inline.
     zs = theta[2 * k : 3 * k].copy() if n_axes == 3 else heights
     rows: FloatArray = inlined_channel_rows(channel, table, xs, ys, zs, on_plane and n_axes != 3)
@@ -152,7 +153,8 @@ def _residual_of_rows(
             atom = rows[0, i, a] * rows[0, i, b]
             model += multipliers[i] * atom if scaled else atom
         out[col] = data[col] - model * weights[col] - noise * weighted_diag[col]
-    out[n_data:] = _prior_residuals(theta, layout, priors, k)
+    if n_prior:
+        out[n_data:] = _prior_residuals(theta, layout, priors, k)
     return out
 
 

@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 from numba.extending import overload
 
-from ...._kernels import compiled
+from ...._kernels import compiled, compiled_inline
 from ....typing import FloatArray
 from ..lm import (
     DAMPING_DOWN,
@@ -154,7 +154,7 @@ def lm_kernel(
                         curvature += normal[i, j] * step[j]
                     predicted += step[i] * (2.0 * gradient[i] - curvature)
                 converged = small or predicted < settings.cost_tol * cost
-            trial = np.minimum(np.maximum(theta + step, lower), upper)
+            trial = _clipped_sum(theta, step, lower, upper)
             trial_cost, trial_point = _evaluate(model, trial)
             if trial_cost < cost:
                 converged = converged or small or (cost - trial_cost) < settings.cost_tol * cost
@@ -169,6 +169,24 @@ def lm_kernel(
         if not found:
             converged = True  # no decrease found along any damping: a local minimum
     return theta, cost, used, point
+
+
+@compiled_inline
+def _clipped_sum(
+    theta: FloatArray, step: FloatArray, lower: FloatArray, upper: FloatArray
+) -> FloatArray:
+    """``np.minimum(np.maximum(theta + step, lower), upper)`` in one pass, without its two
+    temporary arrays (a trial's clip, two or three a Levenberg-Marquardt iteration): the
+    same numbers, a NaN kept as those ufuncs keep it."""
+    trial = np.empty(theta.shape[0])
+    for i in range(theta.shape[0]):
+        value = theta[i] + step[i]
+        if value < lower[i]:
+            value = lower[i]
+        if value > upper[i]:
+            value = upper[i]
+        trial[i] = value
+    return trial
 
 
 @compiled
