@@ -354,8 +354,11 @@ def _gram_of_rows(
 ) -> tuple[FloatArray, FloatArray, float]:
     """:func:`gram_kernel` from the rotated gains :func:`_rows` gave."""
     augmented = _augmented_of_rows(rows, white, data, theta, fixed, layout, priors)
-    product, sparse = _sparse_symmetric_product(augmented)
-    if not sparse:
+    if augmented.shape[1] >= _SPARSE_MIN_LENGTH:
+        product, sparse = _sparse_symmetric_product(augmented)
+        if not sparse:
+            product = _symmetric_product(augmented)
+    else:  # too short for the sparse product (which would say so)
         product = _symmetric_product(augmented)
     n = theta.shape[0]
     return product[:n, :n].copy(), product[:n, n].copy(), float(product[n, n])
@@ -367,8 +370,7 @@ def _one_row_cost(residual: FloatArray) -> float:
     ``n + 1`` (n parameters) is not a multiple of four: the ``[n, n]`` entry of
     ``_symmetric_product([J | r]^T)`` is then summed by its one-row loop (which reorders the
     sum in its own way), so the same loop runs here."""
-    block = np.empty((1, residual.shape[0]))
-    block[0] = residual
+    block = residual.reshape((1, residual.shape[0]))  # a view: the same row, not a copy
     return float(_symmetric_product(block)[0, 0])
 
 

@@ -127,15 +127,18 @@ def lm_kernel(
     damping = settings.damping
     used = 0
     converged = False
+    # The damped normal matrix and the diagonal scaling, refilled by every trial and
+    # iteration (not allocated anew).
+    damped = np.empty((n, n))
+    scaling = np.empty(n)
     while used < settings.max_iter and not converged:
         used += 1
         normal, gradient = _normal_equations(model, theta, point)
-        scaling = np.empty(n)
         for i in range(n):
             scaling[i] = max(normal[i, i], DIAGONAL_FLOOR)
         found = False
         for _ in range(settings.max_rejections):
-            damped = normal.copy()
+            damped[:, :] = normal
             for i in range(n):
                 damped[i, i] += damping * scaling[i]
             step, ok = _solve(model, damped, gradient)
@@ -194,7 +197,8 @@ def cholesky_solve(matrix: FloatArray, rhs: FloatArray) -> tuple[FloatArray, boo
     """Solve ``matrix x = rhs`` for a symmetric positive definite matrix (LAPACK's posv
     fails, and so does this, when a pivot is not positive)."""
     n = rhs.shape[0]
-    factor = np.zeros((n, n))
+    # Only the lower triangle is written and read (the substitution reads no other).
+    factor = np.empty((n, n))
     for j in range(n):
         total = matrix[j, j]
         for p in range(j):
