@@ -16,6 +16,7 @@ from scipy import optimize
 from scipy.linalg import lapack
 
 from app.vlp.solvers.gridless._compiled.lm import (
+    _clipped_sum,
     cholesky_solve,
     lapack_cholesky_solve,
     lm_kernel,
@@ -182,3 +183,40 @@ def test_cholesky_solves_as_lapack_posv(solve: Any) -> None:
     for matrix in (square + square.T - 10.0 * np.eye(7), np.zeros((7, 7))):
         assert lapack.dposv(matrix, rhs)[2] != 0
         assert not solve(matrix, rhs)[1]
+
+
+@numba.njit(cache=False)
+def _ufunc_clip(
+    theta: FloatArray, step: FloatArray, lower: FloatArray, upper: FloatArray
+) -> FloatArray:
+    return np.minimum(np.maximum(theta + step, lower), upper)
+
+
+def test_a_trial_is_clipped_as_the_ufuncs_clip_it() -> None:
+    """The compiled loop's trial, ``theta + step`` within the bounds in one pass: to the bit
+    what ``np.minimum(np.maximum(theta + step, lower), upper)`` gives in compiled code (NaN
+    kept, infinite bounds, and a signed zero where compiled ``np.maximum`` keeps it; NumPy's
+    own ufuncs differ from both only in a zero's sign)."""
+    rng = np.random.default_rng(44)
+    special = [[-0.0, -0.0, 0.0, 0.0], [0.0, -0.0, 0.0, np.inf], [-0.0, -0.0, -1.0, -0.0]]
+    special += [[1.0, np.nan, 0.0, 1.0], [3.0, np.inf, 0.0, 2.0], [0.0, -1.0, -np.inf, np.inf]]
+    theta, step, lower, upper = np.concatenate(
+        (
+            np.stack(
+                (
+                    rng.uniform(-2.0, 2.0, 20),
+                    rng.uniform(-2.0, 2.0, 20),
+                    np.full(20, -1.0),
+                    np.full(20, 1.0),
+                )
+            ),
+            np.array(special).T,
+        ),
+        axis=1,
+    )
+    want = _ufunc_clip(theta, step, lower, upper)
+    got = _clipped_sum(theta, step, lower, upper)
+    np.testing.assert_array_equal(got, want)  # NaN where NaN
+    assert np.array_equal(np.signbit(got), np.signbit(want))
+    np.testing.assert_array_equal(got, np.clip(theta + step, lower, upper))
+    assert np.count_nonzero(got == lower) > 0 and np.count_nonzero(got == upper) > 0

@@ -108,6 +108,7 @@ class Objective:
         self.priors = priors or Priors()
         self._slots: dict[int, _Slots] = {}
         self._bounds: dict[int, tuple[FloatArray, FloatArray]] = {}
+        self._layouts: dict[int, tuple[tuple[Any, ...], tuple[float, ...]]] = {}
         self._problem: tuple[Any, ...] | bool | None = False
 
     def compiled_problem(self) -> tuple[Any, ...] | None:
@@ -129,9 +130,7 @@ class Objective:
 
     def compiled_state(self, fixed: FitState) -> tuple[tuple[Any, ...], ...]:
         """``(fixed, layout, priors)`` tuples of the compiled kernels for ``fixed``."""
-        slots = self.slots(fixed.n_targets)
         on_plane, unit = self._state_facts(fixed)
-        priors = self.priors
         return (
             (
                 np.ascontiguousarray(fixed.heights, dtype=np.float64),
@@ -141,20 +140,32 @@ class Objective:
                 on_plane,
                 unit,
             ),
-            (
-                slots.n_axes,
-                -1 if slots.weights is None else int(slots.weights.start),
-                -1 if slots.gains is None else int(slots.gains.start),
-                -1 if slots.scale is None else int(slots.scale),
-                slots.n_prior,
-            ),
-            (
-                math.nan if priors.log_gain_sd is None else float(priors.log_gain_sd),
-                math.nan if priors.log_scale_sd is None else float(priors.log_scale_sd),
-                float(priors.height_sd),
-                float(priors.height_mean),
-            ),
+            *self._compiled_layout(fixed.n_targets),
         )
+
+    def _compiled_layout(self, n_targets: int) -> tuple[tuple[Any, ...], tuple[float, ...]]:
+        """The ``layout`` and ``priors`` tuples of :meth:`compiled_state` for K targets
+        (kept per K: a solve fits many states of one K against one objective)."""
+        found = self._layouts.get(n_targets)
+        if found is None:
+            slots = self.slots(n_targets)
+            priors = self.priors
+            found = self._layouts[n_targets] = (
+                (
+                    slots.n_axes,
+                    -1 if slots.weights is None else int(slots.weights.start),
+                    -1 if slots.gains is None else int(slots.gains.start),
+                    -1 if slots.scale is None else int(slots.scale),
+                    slots.n_prior,
+                ),
+                (
+                    math.nan if priors.log_gain_sd is None else float(priors.log_gain_sd),
+                    math.nan if priors.log_scale_sd is None else float(priors.log_scale_sd),
+                    float(priors.height_sd),
+                    float(priors.height_mean),
+                ),
+            )
+        return found
 
     def slots(self, n_targets: int) -> _Slots:
         """The parameter layout for K targets."""
@@ -215,7 +226,10 @@ class Objective:
         weights = theta[slots.weights].copy() if slots.weights is not None else state.weights
         log_gains = theta[slots.gains].copy() if slots.gains is not None else state.log_gains
         log_scale = float(theta[slots.scale]) if slots.scale is not None else state.log_scale
-        return FitState(positions, weights, float(theta[-1]), heights, log_gains, log_scale)
+        unpacked = FitState(positions, weights, float(theta[-1]), heights, log_gains, log_scale)
+        if slots.size == 2 * k + 1:  # positions and noise only: the rest is the state's
+            unpacked.facts = state.facts
+        return unpacked
 
     def _state_facts(self, fixed: FitState) -> tuple[bool, bool]:
         """Whether ``fixed`` has every target on the receivers' plane, and unit multipliers

@@ -176,6 +176,11 @@ def grow_kernel(
         heights = np.concatenate((state.heights, heights))
         log_gains = np.concatenate((state.log_gains, log_gains))
     grown = FitState(positions, weights, float(noise), heights, log_gains, state.log_scale)
+    on_plane = room.priors.height_mean == room.kernel.receiver_height
+    if k == 0:
+        grown.facts = (on_plane, state.log_scale == 0.0)
+    elif on_plane and state.facts == (True, True):
+        grown.facts = state.facts  # unit-gain targets on the plane added to a plain state
     if inner_iter > 0:
         run.iterations += int(total)
         grown.converged = used < inner_iter
@@ -233,7 +238,13 @@ def refine_kernel(
     )
     run.iterations += int(total)
     refined = FitState(
-        positions, state.weights, float(noise), state.heights, state.log_gains, state.log_scale
+        positions,
+        state.weights,
+        float(noise),
+        state.heights,
+        state.log_gains,
+        state.log_scale,
+        facts=state.facts,
     )
     refined.converged = last < max_iter
     return refined

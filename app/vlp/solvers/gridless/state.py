@@ -63,6 +63,9 @@ MAX_LOG_GAIN = math.log(2.0)
 
 MAX_LOG_SCALE = math.log(1e4)
 
+# A state's facts when every target is on the receivers' plane with a unit multiplier.
+_PLAIN = (True, True)
+
 
 @dataclass
 class FitState:
@@ -118,10 +121,13 @@ class FitState:
             self.heights[keep],
             self.log_gains[keep],
             self.log_scale,
+            # Some of the targets of a state on the plane with unit multipliers are too.
+            facts=_PLAIN if self.facts == _PLAIN else None,
         )
 
     def with_target(self, position: FloatArray, height: float) -> FitState:
         """This state plus one unit-gain target at ``position`` and ``height``."""
+        plain = self.facts == _PLAIN and self.heights.shape[0] > 0 and height == self.heights[0]
         return FitState(
             np.concatenate((self.positions, np.reshape(position, (1, 2)))),
             np.concatenate((self.weights, (1.0,))),
@@ -129,6 +135,8 @@ class FitState:
             np.concatenate((self.heights, (height,))),
             np.concatenate((self.log_gains, (0.0,))),
             self.log_scale,
+            # A unit-gain target at the plane's height keeps a plain state plain.
+            facts=_PLAIN if plain else None,
         )
 
     def reordered(self, order: npt.NDArray[np.integer[Any]]) -> FitState:

@@ -76,8 +76,9 @@ def _rows(
     heights, _, _, _, on_plane, _ = fixed
     n_axes = layout[0]
     k = heights.shape[0]
-    xs = theta[:k].copy()
-    ys = theta[k : 2 * k].copy()
+    # Views of theta (the channel reads them, a trial's evaluation need not copy them).
+    xs = theta[:k]
+    ys = theta[k : 2 * k]
     # Fitted heights (three axes) are off the receivers' plane; one call site to inline.
     zs = theta[2 * k : 3 * k].copy() if n_axes == 3 else heights
     rows: FloatArray = inlined_channel_rows(channel, table, xs, ys, zs, on_plane and n_axes != 3)
@@ -152,7 +153,8 @@ def _residual_of_rows(
             atom = rows[0, i, a] * rows[0, i, b]
             model += multipliers[i] * atom if scaled else atom
         out[col] = data[col] - model * weights[col] - noise * weighted_diag[col]
-    out[n_data:] = _prior_residuals(theta, layout, priors, k)
+    if n_prior:
+        out[n_data:] = _prior_residuals(theta, layout, priors, k)
     return out
 
 
@@ -352,8 +354,11 @@ def _gram_of_rows(
 ) -> tuple[FloatArray, FloatArray, float]:
     """:func:`gram_kernel` from the rotated gains :func:`_rows` gave."""
     augmented = _augmented_of_rows(rows, white, data, theta, fixed, layout, priors)
-    product, sparse = _sparse_symmetric_product(augmented)
-    if not sparse:
+    if augmented.shape[1] >= _SPARSE_MIN_LENGTH:
+        product, sparse = _sparse_symmetric_product(augmented)
+        if not sparse:
+            product = _symmetric_product(augmented)
+    else:  # too short for the sparse product (which would say so)
         product = _symmetric_product(augmented)
     n = theta.shape[0]
     return product[:n, :n].copy(), product[:n, n].copy(), float(product[n, n])
@@ -365,8 +370,7 @@ def _one_row_cost(residual: FloatArray) -> float:
     ``n + 1`` (n parameters) is not a multiple of four: the ``[n, n]`` entry of
     ``_symmetric_product([J | r]^T)`` is then summed by its one-row loop (which reorders the
     sum in its own way), so the same loop runs here."""
-    block = np.empty((1, residual.shape[0]))
-    block[0] = residual
+    block = residual.reshape((1, residual.shape[0]))  # a view: the same row, not a copy
     return float(_symmetric_product(block)[0, 0])
 
 

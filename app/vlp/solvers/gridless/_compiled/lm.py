@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 from numba.extending import overload
 
-from ...._kernels import compiled
+from ...._kernels import compiled, compiled_inline
 from ....typing import FloatArray
 from ..lm import (
     DAMPING_DOWN,
@@ -127,15 +127,18 @@ def lm_kernel(
     damping = settings.damping
     used = 0
     converged = False
+    # The damped normal matrix and the diagonal scaling, refilled by every trial and
+    # iteration (not allocated anew).
+    damped = np.empty((n, n))
+    scaling = np.empty(n)
     while used < settings.max_iter and not converged:
         used += 1
         normal, gradient = _normal_equations(model, theta, point)
-        scaling = np.empty(n)
         for i in range(n):
             scaling[i] = max(normal[i, i], DIAGONAL_FLOOR)
         found = False
         for _ in range(settings.max_rejections):
-            damped = normal.copy()
+            damped[:, :] = normal
             for i in range(n):
                 damped[i, i] += damping * scaling[i]
             step, ok = _solve(model, damped, gradient)
@@ -154,7 +157,7 @@ def lm_kernel(
                         curvature += normal[i, j] * step[j]
                     predicted += step[i] * (2.0 * gradient[i] - curvature)
                 converged = small or predicted < settings.cost_tol * cost
-            trial = np.minimum(np.maximum(theta + step, lower), upper)
+            trial = _clipped_sum(theta, step, lower, upper)
             trial_cost, trial_point = _evaluate(model, trial)
             if trial_cost < cost:
                 converged = converged or small or (cost - trial_cost) < settings.cost_tol * cost
@@ -171,12 +174,31 @@ def lm_kernel(
     return theta, cost, used, point
 
 
+@compiled_inline
+def _clipped_sum(
+    theta: FloatArray, step: FloatArray, lower: FloatArray, upper: FloatArray
+) -> FloatArray:
+    """``np.minimum(np.maximum(theta + step, lower), upper)`` in one pass, without its two
+    temporary arrays (a trial's clip, two or three a Levenberg-Marquardt iteration): the
+    same numbers, a NaN kept as those ufuncs keep it."""
+    trial = np.empty(theta.shape[0])
+    for i in range(theta.shape[0]):
+        value = theta[i] + step[i]
+        if value < lower[i]:
+            value = lower[i]
+        if value > upper[i]:
+            value = upper[i]
+        trial[i] = value
+    return trial
+
+
 @compiled
 def cholesky_solve(matrix: FloatArray, rhs: FloatArray) -> tuple[FloatArray, bool]:
     """Solve ``matrix x = rhs`` for a symmetric positive definite matrix (LAPACK's posv
     fails, and so does this, when a pivot is not positive)."""
     n = rhs.shape[0]
-    factor = np.zeros((n, n))
+    # Only the lower triangle is written and read (the substitution reads no other).
+    factor = np.empty((n, n))
     for j in range(n):
         total = matrix[j, j]
         for p in range(j):
