@@ -101,18 +101,17 @@ def terminal_far_optima(
     covariances: FloatArray,
     sigma2: float,
     led_weights: FloatArray | None = None,
+    gain_sd: float | None = None,
 ) -> FloatArray:
     """Each terminal's farthest other optimum of its own amplitudes beyond its radius
     (:func:`app.vlp.ambiguity.far_optima`: a grid point that explains them as well, e.g.
     a receiver in a dark corner, or on either side of a row of LEDs), shape (K, 2), NaN
     where none. Dense rooms whose gains are small enough to scan per answer (else all
     NaN). ``led_weights`` (M,): each amplitude's whitening weight, shared by the terminals
-    (None: one weight, ``sigma2`` the noise variance). Each place's gain has the fit's
-    prior."""
+    (None: one weight, ``sigma2`` the noise variance). ``gain_sd``: the standard deviation
+    of a prior on each place's gain (None: free)."""
     if not room.scans_profiles:
         return np.full_like(positions, np.nan)
-    # The profile weighs each place's gain as the fit weighs it (its prior).
-    gain_sd = room.priors.log_gain_sd
     if led_weights is not None:
         return far_optima(
             values * led_weights,

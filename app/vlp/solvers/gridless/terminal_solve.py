@@ -367,7 +367,11 @@ def solve_terminals(
         fit_quality = replace(fit_quality, detail=detail)
     if measured is not None and like_survey is not None:
         # Each terminal's profile with the weights of its own fit, whose noise is 1: the
-        # region the survey's scatter allows around the optimum it found.
+        # region the survey's scatter allows around the optimum it found. Its gain has the
+        # fit's prior: the survey measured the receivers' gain, and a place that explains the
+        # amplitudes only with a gain the fit would not take is not another optimum (with the
+        # gain free, such places widened radii in rooms of five LEDs). A layout's nominal
+        # scale can be off by more than that prior: there the gain stays free.
         far = np.vstack(
             [
                 terminal_far_optima(
@@ -377,6 +381,7 @@ def solve_terminals(
                     covariances[k : k + 1],
                     1.0,
                     led_weights=np.broadcast_to(fit.data_weight, (n_leds,)),
+                    gain_sd=room.priors.log_gain_sd,
                 )
                 for k, fit in enumerate(fits)
             ]
