@@ -21,9 +21,10 @@ import contextlib
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from pydantic import TypeAdapter
 
 from app.errors import InvalidFields
 from app.schemas import Estimate, Fit, Localization, Measurement, TerminalAmplitudes
@@ -49,6 +50,9 @@ if TYPE_CHECKING:
 __all__ = [
     "WAITLESS_TARGETS",
     "WAITLESS_WORK",
+    "ReadMeasurement",
+    "RoomLocalizer",
+    "SolvedMeasurement",
     "TerminalSet",
     "censored_terminal_set",
     "check_work",
@@ -71,6 +75,8 @@ _FORMS = ("power", "correlation", "terminals")
 # WAITLESS_TARGETS of them (a crowd of terminals in a small room) go to the pool too.
 WAITLESS_WORK = 1_000_000
 WAITLESS_TARGETS = 8
+# An answer's estimates, validated in one call (K model constructions cost several times more).
+_ESTIMATES = TypeAdapter(list[Estimate])
 
 
 @dataclass(frozen=True)
@@ -146,13 +152,93 @@ def localize_measurement(
         A body that does not fit the room (each names its field).
     RoomNotFound, FingerprintNotReady, FingerprintNotFound, CorruptMatrix
     """
-    form, model = input_form(body)
-    version = body.fingerprint_version or cache.current_version(room_id)
-    prepared = cache.prepare(room_id, version, model, body.solver)
-    task = _measurement_task(prepared, room_id, version, body, form, model)
-    if max_work is not None:
-        check_work(prepared, task, max_work)
-    return _solve_and_label(prepared, metrics, task)
+    return RoomLocalizer(cache, metrics, room_id=room_id, max_work=max_work).localize(body)
+
+
+class RoomLocalizer:
+    """Request bodies of one room localized as :func:`localize_measurement` localizes each
+    (which is one of these, used once), in three steps a batch takes item by item: each
+    body read (:meth:`read`: validated against the room, its measurement made and its work
+    checked), each solved (:meth:`solve`), each answered (:meth:`answer`).
+
+    A batch's items share one: the room's current version is read once, when an item first
+    needs it (so every item sees the same one), and the prepared solver of each (version,
+    model, solver) is looked up in the cache once.
+    """
+
+    def __init__(
+        self,
+        cache: FingerprintCache,
+        metrics: Metrics,
+        *,
+        room_id: str,
+        max_work: int | None = None,
+    ) -> None:
+        self._cache = cache
+        self._metrics = metrics
+        self._room_id = room_id
+        self._max_work = max_work
+        self._current: int | None = None
+        self._prepared: dict[tuple[int, Model, str], PreparedVersion] = {}
+
+    def localize(self, body: Measurement) -> Localization:
+        """The body's localization (:func:`localize_measurement`, which says what it raises)."""
+        return self.answer(self.solve(self.read(body)))
+
+    def read(self, body: Measurement) -> ReadMeasurement:
+        """The body as a measurement of its room version, ready to solve.
+
+        Raises
+        ------
+        InvalidFields, MeasurementError, ProblemSizeError
+            A body that does not fit the room (each names its field).
+        RoomNotFound, FingerprintNotReady, FingerprintNotFound, CorruptMatrix
+        """
+        form, model = input_form(body)
+        version = body.fingerprint_version
+        if version is None:
+            if self._current is None:
+                self._current = self._cache.current_version(self._room_id)
+            version = self._current
+        key = (version, model, body.solver)
+        prepared = self._prepared.get(key)
+        if prepared is None:
+            prepared = self._cache.prepare(self._room_id, version, model, body.solver)
+            self._prepared[key] = prepared
+        task = _measurement_task(prepared, self._room_id, version, body, form, model)
+        if self._max_work is not None:
+            check_work(prepared, task, self._max_work)
+        return ReadMeasurement(prepared, task)
+
+    def solve(self, read: ReadMeasurement) -> SolvedMeasurement:
+        """Its solve (timed; the solver's lock held while it runs).
+
+        Raises
+        ------
+        SolverError
+        """
+        return SolvedMeasurement(read, _solve(read.prepared, self._metrics, read.task))
+
+    def answer(self, solved: SolvedMeasurement) -> Localization:
+        """Its answer, each estimate labelled with its terminal when terminals were sent."""
+        return _label(solved.read.prepared, solved.read.task, solved.solved)
+
+
+@dataclass(frozen=True)
+class ReadMeasurement:
+    """A request body read by :meth:`RoomLocalizer.read`: its room version's prepared
+    solver and what to solve."""
+
+    prepared: PreparedVersion
+    task: _Task
+
+
+@dataclass(frozen=True)
+class SolvedMeasurement:
+    """A read body solved by :meth:`RoomLocalizer.solve`."""
+
+    read: ReadMeasurement
+    solved: _Solved
 
 
 def localize_in_memory(
@@ -441,6 +527,22 @@ def _solve_and_label(
     label each estimate with its terminal (per-terminal fit, else an assignment problem).
     The solve holds ``prepared.lock`` (a solver solves one measurement at a time), unless
     the caller already does (``lock_held``)."""
+    solved = _solve(prepared, metrics, task, lock_held=lock_held)
+    return _label(prepared, task, solved)
+
+
+@dataclass(frozen=True)
+class _Solved:
+    """A task's solution and the solver's time on it (seconds)."""
+
+    solution: Solution
+    elapsed_s: float
+
+
+def _solve(
+    prepared: PreparedVersion, metrics: Metrics, task: _Task, *, lock_held: bool = False
+) -> _Solved:
+    """The solve of :func:`_solve_and_label`, timed (the answer's ``elapsed_ms``)."""
     measurement, terminals, targets = task.measurement, task.terminals, task.targets
     if terminals is not None and targets is None:
         targets = len(terminals.ids)  # the contract: one target per terminal sent
@@ -458,8 +560,15 @@ def _solve_and_label(
             solution = prepared.solver.solve(measurement, targets)
         elapsed = time.perf_counter() - started
     metrics.localize_latency.labels(solver=task.solver, model=measurement.model).observe(elapsed)
+    return _Solved(solution, elapsed)
+
+
+def _label(prepared: PreparedVersion, task: _Task, solved: _Solved) -> Localization:
+    """The answer of :func:`_solve_and_label`: the solution, each estimate labelled with
+    its terminal when the terminals' own amplitudes are known."""
+    solution, terminals = solved.solution, task.terminals
     owners: list[str | None] = [None] * solution.n_targets
-    if per_terminal and terminals is not None:
+    if terminals is not None and _per_terminal(prepared, task):
         owners = list(terminals.ids)
     elif terminals is not None:
         assigned = assign_terminals(
@@ -469,13 +578,13 @@ def _solve_and_label(
     return Localization(
         room_id=task.room_id,
         fingerprint_version=task.version,
-        model=measurement.model,
+        model=task.measurement.model,
         solver=task.solver,
         targets=solution.n_targets,
         estimates=_estimates(solution, owners),
         residual_norm=float(solution.residual_norm),
         noise_power=float(solution.noise_power),
-        elapsed_ms=round(elapsed * 1e3, 3),
+        elapsed_ms=round(solved.elapsed_s * 1e3, 3),
         converged=bool(solution.converged),
         # read off the fit's attributes: dataclasses.asdict deep-copies every field first
         fit=None
@@ -486,22 +595,38 @@ def _solve_and_label(
 
 def _estimates(solution: Solution, owners: list[str | None]) -> list[Estimate]:
     """The answer's estimates, with their uncertainty, gain and height when the solver
-    gives them."""
-    estimates = []
-    radii = solution.radii
-    for k in range(solution.n_targets):
-        covariance = None if solution.covariances is None else solution.covariances[k]
-        estimates.append(
-            Estimate(
-                x=float(solution.positions[k, 0]),
-                y=float(solution.positions[k, 1]),
-                grid_index=int(solution.grid_indices[k]),
-                weight=float(solution.weights[k]),
-                terminal_id=owners[k],
-                accuracy_m=None if radii is None else float(radii[k]),
-                covariance=None if covariance is None else covariance.tolist(),
-                gain=None if solution.gains is None else float(solution.gains[k]),
-                z=None if solution.heights is None else float(solution.heights[k]),
-            )
-        )
-    return estimates
+    gives them: each array read out once (``tolist``: Python floats and ints, the values
+    ``float()``/``int()`` give one by one) and the K estimates validated in one call."""
+    n_targets = solution.n_targets
+    missing: list[None] = [None] * n_targets
+
+    def column(values: FloatArray | None) -> list[Any]:
+        return missing if values is None else list(values.tolist())
+
+    rows = zip(
+        solution.positions.tolist(),
+        solution.grid_indices.tolist(),
+        solution.weights.tolist(),
+        owners,
+        column(solution.radii),
+        column(solution.covariances),
+        column(solution.gains),
+        column(solution.heights),
+        strict=True,
+    )
+    return _ESTIMATES.validate_python(
+        [
+            {
+                "x": position[0],
+                "y": position[1],
+                "grid_index": grid_index,
+                "weight": weight,
+                "terminal_id": owner,
+                "accuracy_m": radius,
+                "covariance": covariance,
+                "gain": gain,
+                "z": height,
+            }
+            for position, grid_index, weight, owner, radius, covariance, gain, height in rows
+        ]
+    )
