@@ -56,13 +56,13 @@ class _Batch:
         """The problem of the item at ``index``, as JSON."""
         return _problem_json(_item_problem(exc, index, self.instance, self.request_id))
 
-    def answer(self, body: Measurement, solved: SolvedMeasurement) -> bytes:
-        """A solved item as the JSON a single localize answers (its tracks updated first
-        when it asks)."""
+    def answer(self, body: Measurement, solved: SolvedMeasurement) -> Localization:
+        """A solved item's answer, as a single localize answers it (its tracks updated
+        first when it asks)."""
         answer = self.localizer.answer(solved)
         if body.track:
             answer = self.tracking.track(room_id=self.room_id, localization=answer, time=body.time)
-        return Localization.__pydantic_serializer__.to_json(answer)
+        return answer
 
 
 def _in_item(location: str, index: int) -> str:
@@ -121,8 +121,10 @@ _ITEM_ERRORS = (
 )
 
 
-# The items as measurements, validated in one call when all of them are good.
+# The items as measurements, validated in one call when all of them are good; the answers
+# encoded in one call when all of them are localizations.
 _MEASUREMENTS = TypeAdapter(list[Measurement])
+_LOCALIZATIONS = TypeAdapter(list[Localization])
 
 
 def _problem_json(problem: dict[str, Any]) -> bytes:
@@ -135,9 +137,10 @@ def _problem_json(problem: dict[str, Any]) -> bytes:
 def _localize_batch(items: list[Any], batch: _Batch) -> Response:
     """The batch's answer, in three passes over its items: each read (validated, its
     measurement made), each solved, back to back, each answered, in order (the tracks too);
-    serialised here: a problem item carries only the members a problem answer has (no
-    nulls), as a single localize's problem does."""
-    answers: list[bytes] = [b""] * len(items)
+    then encoded in one call when every item was answered, else each on its own (a problem
+    item carries only the members a problem answer has, no nulls, as a single localize's
+    problem does)."""
+    answers: list[Localization | bytes] = [b""] * len(items)
     read: list[tuple[int, Measurement, ReadMeasurement]] = []
     for index, body in _measurements(items):
         try:
@@ -157,7 +160,17 @@ def _localize_batch(items: list[Any], batch: _Batch) -> Response:
             answers[index] = batch.answer(body, solution)
         except _ITEM_ERRORS as exc:
             answers[index] = batch.problem(exc, index)
-    return Response(b'{"items":[' + b",".join(answers) + b"]}", media_type="application/json")
+    return Response(b'{"items":' + _encoded(answers) + b"}", media_type="application/json")
+
+
+def _encoded(answers: list[Localization | bytes]) -> bytes:
+    """The answers as a JSON array: one serializer call for the localizations when there is
+    no problem among them (the same bytes as each encoded on its own and joined)."""
+    if len(solved := [a for a in answers if isinstance(a, Localization)]) == len(answers):
+        return _LOCALIZATIONS.dump_json(solved)
+    encode = Localization.__pydantic_serializer__.to_json
+    parts = [a if isinstance(a, bytes) else encode(a) for a in answers]
+    return b"[" + b",".join(parts) + b"]"
 
 
 def _measurements(items: list[Any]) -> enumerate[Measurement | Any]:
