@@ -1,13 +1,14 @@
 """Localization in batches: up to 1000 measurements of one room in one request.
 
-The key is checked once; the items are validated in one pass (each on its own only when one
-of them is bad, to answer its problem in its place) and go, in order and in one trip to the
-thread pool, through the single localize's logic
-(:class:`app.services.localization.RoomLocalizer`, which reads the room's current version
-once and looks each prepared solver up once for the whole batch). A bad item answers the
-problem a single localize would have answered, in its place; the others are solved. Each
-answer is encoded once, straight to JSON bytes by its model's serializer (as a single
-localize's answer is), and the batch's body is those bytes joined.
+The key is checked once; in one trip to the thread pool the items then go through the single
+localize's logic (:class:`app.services.localization.RoomLocalizer`, which reads the room's
+current version once and looks each prepared solver up once for the whole batch) in three
+passes: all read (validated in one call, each on its own only when one of them is bad, and
+made measurements), all solved back to back, all answered in order (the tracks too). A bad
+item answers the problem a single localize would have answered, in its place; the others are
+solved. The answers are encoded in one call by their model's serializer when none is a
+problem, else each on its own, and joined. What a batch holds at once is bounded by its
+body (``VLP_MAX_BODY_BYTES``): each item's measurement, and its solution's few arrays.
 
 What concerns the room rather than an item answers for the whole batch, as for a single
 localize: 404 when the room does not exist, 409 while it has no ready fingerprint (when an

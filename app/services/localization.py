@@ -5,6 +5,9 @@ Entry points:
 - :func:`localize_measurement`: a localize request body (``app.schemas.Measurement``) against
   the room's current or pinned version. ``POST /v1/rooms/{id}/localize`` calls it; so does any
   other router that localizes a request body (one call per measurement).
+- :class:`RoomLocalizer`: the same for many bodies of one room (a batch's items), each read,
+  solved and answered in steps of its own, so that a batch can take each step for all of
+  its items in turn; :func:`localize_measurement` is one of these, used once.
 - :func:`localize_terminals`: terminals' amplitudes already held by the service (an epoch's
   posts, fitted to its fingerprint) against one version.
 
