@@ -1,13 +1,14 @@
 """Localization in batches: up to 1000 measurements of one room in one request.
 
-The key is checked once and the room's current version read once for the whole batch; each
-item then goes through the single localize's logic
-(:func:`app.services.localization.localize_measurement`, called from one place,
-``_Batch.solve``), in order, in one trip to the thread pool; its fingerprint and prepared
-solver come from the in-memory cache. A bad item answers the
-problem a single localize would have answered, in its place; the others are solved. Each
-answer is encoded once, straight to JSON bytes by its model's serializer (as a single
-localize's answer is), and the batch's body is those bytes joined.
+The key is checked once; in one trip to the thread pool the items then go through the single
+localize's logic (:class:`app.services.localization.RoomLocalizer`, which reads the room's
+current version once and looks each prepared solver up once for the whole batch) in three
+passes: all read (validated in one call, each on its own only when one of them is bad, and
+made measurements), all solved back to back, all answered in order (the tracks too). A bad
+item answers the problem a single localize would have answered, in its place; the others are
+solved. The answers are encoded in one call by their model's serializer when none is a
+problem, else each on its own, and joined. What a batch holds at once is bounded by its
+body (``VLP_MAX_BODY_BYTES``): each item's measurement, and its solution's few arrays.
 
 What concerns the room rather than an item answers for the whole batch, as for a single
 localize: 404 when the room does not exist, 409 while it has no ready fingerprint (when an
@@ -21,15 +22,13 @@ from dataclasses import dataclass
 from typing import Any
 
 from fastapi import APIRouter, Request, Response
-from pydantic import ValidationError
+from pydantic import TypeAdapter, ValidationError
 from starlette.concurrency import run_in_threadpool
 
 from app.errors import CorruptMatrix, FingerprintNotFound, InvalidFields, VLPError
 from app.schemas import Localization, LocalizationBatch, Measurement, MeasurementBatch
-from app.services.fingerprint_cache import FingerprintCache
-from app.services.localization import localize_measurement
+from app.services.localization import ReadMeasurement, RoomLocalizer, SolvedMeasurement
 from app.services.tracking import Tracking
-from app.telemetry import Metrics
 
 from .deps import AnyRole, CacheDep, MetricsDep, RoomId, SettingsDep
 from .errors import ApiProblem, ProblemKind, as_problem, problem_body, problem_responses
@@ -43,29 +42,28 @@ router = APIRouter(prefix="/v1/rooms", tags=["localization"], route_class=FastJs
 
 @dataclass
 class _Batch:
-    """What the batch's items share: the room, its current version (read once, when an item
-    first needs it, so every item of the batch sees the same one) and the work bound."""
+    """What the batch's items share: the room's localizer (its current version read once,
+    when an item first needs it, so every item sees the same one; each prepared solver
+    looked up once), the tracks, and what a problem item names (the request's path and
+    id)."""
 
     room_id: str
-    cache: FingerprintCache
-    metrics: Metrics
-    max_work: int
+    localizer: RoomLocalizer
     tracking: Tracking
-    current: int | None = None
+    instance: str
+    request_id: str | None
 
-    def solve(self, body: Measurement) -> bytes:
-        """One item, through the single localize's logic (the one call to it), as the JSON
-        a single localize answers."""
-        if body.fingerprint_version is None:
-            if self.current is None:
-                self.current = self.cache.current_version(self.room_id)
-            body = body.model_copy(update={"fingerprint_version": self.current})
-        answer = localize_measurement(
-            self.cache, self.metrics, room_id=self.room_id, body=body, max_work=self.max_work
-        )
-        if body.track:  # items update the tracks in their order
+    def problem(self, exc: Exception, index: int) -> bytes:
+        """The problem of the item at ``index``, as JSON."""
+        return _problem_json(_item_problem(exc, index, self.instance, self.request_id))
+
+    def answer(self, body: Measurement, solved: SolvedMeasurement) -> Localization:
+        """A solved item's answer, as a single localize answers it (its tracks updated
+        first when it asks)."""
+        answer = self.localizer.answer(solved)
+        if body.track:
             answer = self.tracking.track(room_id=self.room_id, localization=answer, time=body.time)
-        return Localization.__pydantic_serializer__.to_json(answer)
+        return answer
 
 
 def _in_item(location: str, index: int) -> str:
@@ -124,6 +122,12 @@ _ITEM_ERRORS = (
 )
 
 
+# The items as measurements, validated in one call when all of them are good; the answers
+# encoded in one call when all of them are localizations.
+_MEASUREMENTS = TypeAdapter(list[Measurement])
+_LOCALIZATIONS = TypeAdapter(list[Localization])
+
+
 def _problem_json(problem: dict[str, Any]) -> bytes:
     """A problem item as JSON, written as a single localize's problem answer is."""
     return json.dumps(problem, ensure_ascii=False, allow_nan=False, separators=(",", ":")).encode(
@@ -131,18 +135,52 @@ def _problem_json(problem: dict[str, Any]) -> bytes:
     )
 
 
-def _localize_batch(
-    items: list[Any], batch: _Batch, instance: str, request_id: str | None
-) -> Response:
-    """The batch's answer, serialised here: a problem item carries only the members a
-    problem answer has (no nulls), as a single localize's problem does."""
-    answers: list[bytes] = []
-    for index, item in enumerate(items):
+def _localize_batch(items: list[Any], batch: _Batch) -> Response:
+    """The batch's answer, in three passes over its items: each read (validated, its
+    measurement made), each solved, back to back, each answered, in order (the tracks too);
+    then encoded in one call when every item was answered, else each on its own (a problem
+    item carries only the members a problem answer has, no nulls, as a single localize's
+    problem does)."""
+    answers: list[Localization | bytes] = [b""] * len(items)
+    read: list[tuple[int, Measurement, ReadMeasurement]] = []
+    for index, body in _measurements(items):
         try:
-            answers.append(batch.solve(Measurement.model_validate(item)))
+            if not isinstance(body, Measurement):
+                body = Measurement.model_validate(body)
+            read.append((index, body, batch.localizer.read(body)))
         except _ITEM_ERRORS as exc:
-            answers.append(_problem_json(_item_problem(exc, index, instance, request_id)))
-    return Response(b'{"items":[' + b",".join(answers) + b"]}", media_type="application/json")
+            answers[index] = batch.problem(exc, index)
+    solved: list[tuple[int, Measurement, SolvedMeasurement]] = []
+    for index, body, measurement in read:
+        try:
+            solved.append((index, body, batch.localizer.solve(measurement)))
+        except _ITEM_ERRORS as exc:
+            answers[index] = batch.problem(exc, index)
+    for index, body, solution in solved:
+        try:
+            answers[index] = batch.answer(body, solution)
+        except _ITEM_ERRORS as exc:
+            answers[index] = batch.problem(exc, index)
+    return Response(b'{"items":' + _encoded(answers) + b"}", media_type="application/json")
+
+
+def _encoded(answers: list[Localization | bytes]) -> bytes:
+    """The answers as a JSON array: one serializer call for the localizations when there is
+    no problem among them (the same bytes as each encoded on its own and joined)."""
+    if len(solved := [a for a in answers if isinstance(a, Localization)]) == len(answers):
+        return _LOCALIZATIONS.dump_json(solved)
+    encode = Localization.__pydantic_serializer__.to_json
+    parts = [a if isinstance(a, bytes) else encode(a) for a in answers]
+    return b"[" + b",".join(parts) + b"]"
+
+
+def _measurements(items: list[Any]) -> enumerate[Measurement | Any]:
+    """The items as measurements, validated in one call when every one is good; else as
+    sent, each to be validated on its own (to answer its problem in its place)."""
+    try:
+        return enumerate(_MEASUREMENTS.validate_python(items))
+    except ValidationError:
+        return enumerate(items)
 
 
 @router.post(
@@ -169,11 +207,11 @@ async def localize_batch(
     For many terminals at once this saves the per-request cost (HTTP, key check, room
     lookup) of single calls. 409 while the room has no ready fingerprint.
     """
-    batch = _Batch(room_id, cache, metrics, settings.max_localize_work, tracking)
-    return await run_in_threadpool(
-        _localize_batch,
-        body.items,
-        batch,
+    batch = _Batch(
+        room_id,
+        RoomLocalizer(cache, metrics, room_id=room_id, max_work=settings.max_localize_work),
+        tracking,
         request.url.path,
         getattr(request.state, "request_id", None),
     )
+    return await run_in_threadpool(_localize_batch, body.items, batch)

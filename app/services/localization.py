@@ -5,32 +5,31 @@ Entry points:
 - :func:`localize_measurement`: a localize request body (``app.schemas.Measurement``) against
   the room's current or pinned version. ``POST /v1/rooms/{id}/localize`` calls it; so does any
   other router that localizes a request body (one call per measurement).
+- :class:`RoomLocalizer`: the same for many bodies of one room (a batch's items), each read,
+  solved and answered in steps of its own, so that a batch can take each step for all of
+  its items in turn; :func:`localize_measurement` is one of these, used once.
 - :func:`localize_terminals`: terminals' amplitudes already held by the service (an epoch's
   posts, fitted to its fingerprint) against one version.
 
 Both take one cache lookup (:meth:`FingerprintCache.prepare`: fingerprint, masked LEDs and
-prepared solver together) and solve through :func:`_solve_and_label`, so they answer the
-same way. Each input rule is checked once: the form and terminal ids and normals here, each
-terminal's amplitude count in :mod:`app.services.masking`, shapes, signs and finiteness in
-:mod:`app.vlp.measurements`, the target count in the solver.
+prepared solver together) and solve through :mod:`app.services.solving` (the work bound,
+the timed solve, the labelled answer), so they answer the same way. Each input rule is
+checked once: the form and terminal ids and normals here, each terminal's amplitude count
+in :mod:`app.services.masking`, shapes, signs and finiteness in :mod:`app.vlp.measurements`,
+the work in :mod:`app.services.solving`, the target count in the solver.
 """
 
 from __future__ import annotations
 
-import contextlib
-import time
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from app.errors import InvalidFields
-from app.schemas import Estimate, Fit, Localization, Measurement, TerminalAmplitudes
+from app.schemas import Localization, Measurement, TerminalAmplitudes
 from app.telemetry import Metrics
-from app.vlp.assignment import assign_terminals
-from app.vlp.errors import MeasurementError, ProblemSizeError
-from app.vlp.measurements import Measurement as MeasurementVector
+from app.vlp.errors import MeasurementError
 from app.vlp.measurements import (
     Model,
     measurement_from_amplitudes,
@@ -38,17 +37,27 @@ from app.vlp.measurements import (
     measurement_from_power,
 )
 from app.vlp.typing import FloatArray
-from app.vlp.workload import LocalizeWork, localize_work
 
 from .fingerprint_cache import FingerprintCache, PreparedVersion
 from .masking import drop_masked_leds
-
-if TYPE_CHECKING:
-    from app.vlp.solvers import Solution, Solver, TerminalSolver
+from .solving import (
+    Solved,
+    Task,
+    TerminalSet,
+    check_work,
+    label_solution,
+    solve_and_label,
+    solve_task,
+    task_work,
+    work_from_counts,
+)
 
 __all__ = [
     "WAITLESS_TARGETS",
     "WAITLESS_WORK",
+    "ReadMeasurement",
+    "RoomLocalizer",
+    "SolvedMeasurement",
     "TerminalSet",
     "censored_terminal_set",
     "check_work",
@@ -71,27 +80,6 @@ _FORMS = ("power", "correlation", "terminals")
 # WAITLESS_TARGETS of them (a crowd of terminals in a small room) go to the pool too.
 WAITLESS_WORK = 1_000_000
 WAITLESS_TARGETS = 8
-
-
-@dataclass(frozen=True)
-class TerminalSet:
-    """Terminals' own amplitudes: ``amplitudes[k]`` (M numbers) were sent by ``ids[k]``;
-    ``heights[k]`` (NaN: unknown) and ``normals[k]`` (unit vectors) when they sent them."""
-
-    ids: tuple[str, ...]
-    amplitudes: FloatArray
-    heights: FloatArray | None = None
-    normals: FloatArray | None = None
-    # NaN amplitudes: LEDs not detected; floors[k] the terminal's own floor (NaN: not sent).
-    floors: FloatArray | None = None
-
-    @property
-    def filled(self) -> FloatArray:
-        """The amplitudes with each undetected LED at half its terminal's floor (for the
-        aggregated forms, which cannot say "not detected")."""
-        from app.vlp.solvers._censored import censored_substitutes  # see _terminal_solver
-
-        return censored_substitutes(self.amplitudes, self.floors)[0]
 
 
 def input_form(body: Measurement) -> tuple[str, Model]:
@@ -146,13 +134,93 @@ def localize_measurement(
         A body that does not fit the room (each names its field).
     RoomNotFound, FingerprintNotReady, FingerprintNotFound, CorruptMatrix
     """
-    form, model = input_form(body)
-    version = body.fingerprint_version or cache.current_version(room_id)
-    prepared = cache.prepare(room_id, version, model, body.solver)
-    task = _measurement_task(prepared, room_id, version, body, form, model)
-    if max_work is not None:
-        check_work(prepared, task, max_work)
-    return _solve_and_label(prepared, metrics, task)
+    return RoomLocalizer(cache, metrics, room_id=room_id, max_work=max_work).localize(body)
+
+
+class RoomLocalizer:
+    """Request bodies of one room localized as :func:`localize_measurement` localizes each
+    (which is one of these, used once), in three steps a batch takes item by item: each
+    body read (:meth:`read`: validated against the room, its measurement made and its work
+    checked), each solved (:meth:`solve`), each answered (:meth:`answer`).
+
+    A batch's items share one: the room's current version is read once, when an item first
+    needs it (so every item sees the same one), and the prepared solver of each (version,
+    model, solver) is looked up in the cache once.
+    """
+
+    def __init__(
+        self,
+        cache: FingerprintCache,
+        metrics: Metrics,
+        *,
+        room_id: str,
+        max_work: int | None = None,
+    ) -> None:
+        self._cache = cache
+        self._metrics = metrics
+        self._room_id = room_id
+        self._max_work = max_work
+        self._current: int | None = None
+        self._prepared: dict[tuple[int, Model, str], PreparedVersion] = {}
+
+    def localize(self, body: Measurement) -> Localization:
+        """The body's localization (:func:`localize_measurement`, which says what it raises)."""
+        return self.answer(self.solve(self.read(body)))
+
+    def read(self, body: Measurement) -> ReadMeasurement:
+        """The body as a measurement of its room version, ready to solve.
+
+        Raises
+        ------
+        InvalidFields, MeasurementError, ProblemSizeError
+            A body that does not fit the room (each names its field).
+        RoomNotFound, FingerprintNotReady, FingerprintNotFound, CorruptMatrix
+        """
+        form, model = input_form(body)
+        version = body.fingerprint_version
+        if version is None:
+            if self._current is None:
+                self._current = self._cache.current_version(self._room_id)
+            version = self._current
+        key = (version, model, body.solver)
+        prepared = self._prepared.get(key)
+        if prepared is None:
+            prepared = self._cache.prepare(self._room_id, version, model, body.solver)
+            self._prepared[key] = prepared
+        task = _measurement_task(prepared, self._room_id, version, body, form, model)
+        if self._max_work is not None:
+            check_work(prepared, task, self._max_work)
+        return ReadMeasurement(prepared, task)
+
+    def solve(self, read: ReadMeasurement) -> SolvedMeasurement:
+        """Its solve (timed; the solver's lock held while it runs).
+
+        Raises
+        ------
+        SolverError
+        """
+        return SolvedMeasurement(read, solve_task(read.prepared, self._metrics, read.task))
+
+    def answer(self, solved: SolvedMeasurement) -> Localization:
+        """Its answer, each estimate labelled with its terminal when terminals were sent."""
+        return label_solution(solved.read.prepared, solved.read.task, solved.solved)
+
+
+@dataclass(frozen=True)
+class ReadMeasurement:
+    """A request body read by :meth:`RoomLocalizer.read`: its room version's prepared
+    solver and what to solve."""
+
+    prepared: PreparedVersion
+    task: Task
+
+
+@dataclass(frozen=True)
+class SolvedMeasurement:
+    """A read body solved by :meth:`RoomLocalizer.solve`."""
+
+    read: ReadMeasurement
+    solved: Solved
 
 
 def localize_in_memory(
@@ -184,7 +252,7 @@ def localize_in_memory(
     # Decided from the body's counts, before its measurement is made: a request that goes
     # to the pool is read there, once (50 terminals of a 1024-LED hall: ~10 ms each time).
     n_terminals = len(body.terminals) if body.terminals else None
-    work = _work(prepared, model, n_terminals, body.targets)
+    work = work_from_counts(prepared, model, n_terminals, body.targets)
     if work.units > max_waitless_work or work.targets > WAITLESS_TARGETS:
         return None
     task = _measurement_task(prepared, room_id, version, body, form, model)
@@ -193,7 +261,7 @@ def localize_in_memory(
     if not prepared.lock.acquire(blocking=False):
         return None
     try:
-        return _solve_and_label(prepared, metrics, task, lock_held=True)
+        return solve_and_label(prepared, metrics, task, lock_held=True)
     finally:
         prepared.lock.release()
 
@@ -205,7 +273,7 @@ def _measurement_task(
     body: Measurement,
     form: str,
     model: Model,
-) -> _Task:
+) -> Task:
     """The request body as a measurement of the fingerprint's LEDs (masked ones dropped).
 
     Raises
@@ -225,7 +293,7 @@ def _measurement_task(
             measurement = measurement_from_amplitudes(sent, model, n_leds)
         except MeasurementError as exc:  # name the field the caller sent, not the aggregate
             raise MeasurementError(exc.message, field="terminals") from exc
-    return _Task(room_id, version, measurement, body.solver, body.targets, terminals, form)
+    return Task(room_id, version, measurement, body.solver, body.targets, terminals, form)
 
 
 def localize_terminals(
@@ -245,10 +313,10 @@ def localize_terminals(
     ``max_work`` bounds the solve (:func:`check_work`)."""
     prepared = cache.prepare(room_id, version, model, solver)
     measurement = measurement_from_amplitudes(terminals.filled, model, prepared.fingerprint.n_leds)
-    task = _Task(room_id, version, measurement, solver, targets, terminals, "terminals")
+    task = Task(room_id, version, measurement, solver, targets, terminals, "terminals")
     if max_work is not None:
         check_work(prepared, task, max_work)
-    return _solve_and_label(prepared, metrics, task)
+    return solve_and_label(prepared, metrics, task)
 
 
 def _terminal_set(sent: list[TerminalAmplitudes]) -> TerminalSet:
@@ -328,180 +396,3 @@ def censored_terminal_set(
         normals=normals,
         floors=None if all(floor is None for floor in floors) else np.array(floor_values),
     )
-
-
-@dataclass(frozen=True)
-class _Task:
-    """What to solve: a validated measurement on (room, version) with the named solver."""
-
-    room_id: str
-    version: int
-    measurement: MeasurementVector
-    solver: str
-    targets: int | None
-    terminals: TerminalSet | None
-    form: str  # the body's field that carried the measurement
-
-
-def _terminal_solver(solver: Solver) -> TerminalSolver | None:
-    """``solver`` when it also fits each terminal from its own amplitudes, else None.
-
-    The solvers are imported where they are used, not with this module: an API process
-    imports them (and numba) when it first prepares a solver
-    (:class:`app.services.fingerprint_cache.FingerprintCache`), and one that never solves
-    does not hold them. Here they are already imported: a prepared solver exists.
-    """
-    from app.vlp.solvers import TerminalSolver
-
-    return solver if isinstance(solver, TerminalSolver) else None
-
-
-def _per_terminal(prepared: PreparedVersion, task: _Task) -> bool:
-    """Whether each terminal is fitted from its own amplitudes (labels known, not guessed)."""
-    n_terminals = None if task.terminals is None else len(task.terminals.ids)
-    return _fits_each_terminal(prepared, n_terminals, task.targets)
-
-
-def _fits_each_terminal(
-    prepared: PreparedVersion, n_terminals: int | None, targets: int | None
-) -> bool:
-    """:func:`_per_terminal` from the counts: ``n_terminals`` sent (None: no terminals) and
-    the ``targets`` asked for."""
-    return (
-        n_terminals is not None
-        and _terminal_solver(prepared.solver) is not None
-        and targets in (None, n_terminals)
-    )
-
-
-def task_work(prepared: PreparedVersion, task: _Task) -> LocalizeWork:
-    """The work a solve of ``task`` asks for (:func:`app.vlp.workload.localize_work`)."""
-    n_terminals = None if task.terminals is None else len(task.terminals.ids)
-    return _work(prepared, task.measurement.model, n_terminals, task.targets)
-
-
-def _work(
-    prepared: PreparedVersion, model: Model, n_terminals: int | None, targets: int | None
-) -> LocalizeWork:
-    """:func:`task_work` from the counts (as :func:`_fits_each_terminal`) and the model."""
-    fingerprint = prepared.fingerprint
-    per_terminal = _fits_each_terminal(prepared, n_terminals, targets)
-    if targets is None and n_terminals is not None:
-        targets = n_terminals
-    return localize_work(
-        n_cells=fingerprint.n_cells,
-        n_leds=fingerprint.n_leds,
-        model=model,
-        targets=targets,
-        terminals=n_terminals if per_terminal else None,
-    )
-
-
-def check_work(prepared: PreparedVersion, task: _Task, max_work: int) -> None:
-    """Refuse, before any of it is done, a solve that asks for more than ``max_work``
-    (:func:`app.vlp.workload.localize_work`; the service's ``VLP_MAX_LOCALIZE_WORK``).
-
-    Raises
-    ------
-    ProblemSizeError
-        Naming ``terminals`` when each terminal is fitted on its own, else ``targets``, or
-        the measurement's own field when even one target would be too much.
-    """
-    fingerprint = prepared.fingerprint
-    per_terminal = _per_terminal(prepared, task)
-    model = task.measurement.model
-    work = task_work(prepared, task)
-    if work.units <= max_work:
-        return
-    one = localize_work(
-        n_cells=fingerprint.n_cells, n_leds=fingerprint.n_leds, model=model, targets=1
-    )
-    if per_terminal:
-        field, advice = "terminals", "send fewer terminals per request"
-    elif one.units <= max_work:
-        field, advice = "targets", "send a smaller targets"
-    else:
-        field = task.form
-        advice = (
-            "send the power vector or the terminals' own amplitudes instead"
-            if model == "correlation"
-            else "this room is too large for this model and solver"
-        )
-    raise ProblemSizeError(
-        f"this request asks for {work.describe()} units of work, more than this server's "
-        f"limit {max_work} (VLP_MAX_LOCALIZE_WORK); {advice}",
-        field=field,
-    )
-
-
-def _solve_and_label(
-    prepared: PreparedVersion, metrics: Metrics, task: _Task, *, lock_held: bool = False
-) -> Localization:
-    """Solve an aggregated measurement and, when the terminals' own amplitudes are known,
-    label each estimate with its terminal (per-terminal fit, else an assignment problem).
-    The solve holds ``prepared.lock`` (a solver solves one measurement at a time), unless
-    the caller already does (``lock_held``)."""
-    measurement, terminals, targets = task.measurement, task.terminals, task.targets
-    if terminals is not None and targets is None:
-        targets = len(terminals.ids)  # the contract: one target per terminal sent
-    # Only terminals ask which kind the solver is: the check against a runtime protocol
-    # costs more than the rest of an answer's labelling.
-    own = None if terminals is None else _terminal_solver(prepared.solver)
-    per_terminal = _per_terminal(prepared, task)
-    with contextlib.nullcontext() if lock_held else prepared.lock:
-        started = time.perf_counter()
-        if per_terminal and terminals is not None and own is not None:
-            solution = own.solve_terminals(
-                terminals.amplitudes, terminals.heights, terminals.normals, terminals.floors
-            )
-        else:
-            solution = prepared.solver.solve(measurement, targets)
-        elapsed = time.perf_counter() - started
-    metrics.localize_latency.labels(solver=task.solver, model=measurement.model).observe(elapsed)
-    owners: list[str | None] = [None] * solution.n_targets
-    if per_terminal and terminals is not None:
-        owners = list(terminals.ids)
-    elif terminals is not None:
-        assigned = assign_terminals(
-            prepared.fingerprint.layout, solution.positions, terminals.filled
-        )
-        owners = [terminals.ids[int(index)] if index >= 0 else None for index in assigned]
-    return Localization(
-        room_id=task.room_id,
-        fingerprint_version=task.version,
-        model=measurement.model,
-        solver=task.solver,
-        targets=solution.n_targets,
-        estimates=_estimates(solution, owners),
-        residual_norm=float(solution.residual_norm),
-        noise_power=float(solution.noise_power),
-        elapsed_ms=round(elapsed * 1e3, 3),
-        converged=bool(solution.converged),
-        # read off the fit's attributes: dataclasses.asdict deep-copies every field first
-        fit=None
-        if solution.fit is None
-        else Fit.model_validate(solution.fit, from_attributes=True),
-    )
-
-
-def _estimates(solution: Solution, owners: list[str | None]) -> list[Estimate]:
-    """The answer's estimates, with their uncertainty, gain and height when the solver
-    gives them."""
-    estimates = []
-    radii = solution.radii
-    for k in range(solution.n_targets):
-        covariance = None if solution.covariances is None else solution.covariances[k]
-        estimates.append(
-            Estimate(
-                x=float(solution.positions[k, 0]),
-                y=float(solution.positions[k, 1]),
-                grid_index=int(solution.grid_indices[k]),
-                weight=float(solution.weights[k]),
-                terminal_id=owners[k],
-                accuracy_m=None if radii is None else float(radii[k]),
-                covariance=None if covariance is None else covariance.tolist(),
-                gain=None if solution.gains is None else float(solution.gains[k]),
-                z=None if solution.heights is None else float(solution.heights[k]),
-            )
-        )
-    return estimates

@@ -11,6 +11,7 @@ correlation.
 from __future__ import annotations
 
 import functools
+import math
 from dataclasses import dataclass
 from typing import Literal, get_args
 
@@ -114,13 +115,30 @@ def noise_atom(model: Model, n_leds: int) -> FloatArray:
 
 
 def _as_finite(values: object, field: str, limit: float = MAX_MAGNITUDE) -> FloatArray:
+    return _finite_and_largest(values, field, limit)[0]
+
+
+def _finite_and_largest(
+    values: object, field: str, limit: float = MAX_MAGNITUDE
+) -> tuple[FloatArray, float]:
+    """The values as a float array and their largest magnitude (0 when there are none).
+
+    Raises
+    ------
+    MeasurementError
+        Naming ``field``: not numbers, NaN or infinite, above ``limit`` or below
+        :data:`MIN_MAGNITUDE` in magnitude everywhere (and not all zero).
+    """
     try:
         array = np.asarray(values, dtype=np.float64)
     except (TypeError, ValueError) as exc:
         raise MeasurementError(f"{field} must contain only numbers", field=field) from exc
-    if not np.all(np.isfinite(array)):
+    # One reduction for both rules: the largest magnitude is NaN or infinite exactly when
+    # some value is (the array's own methods: numpy's module functions wrap them, at a cost
+    # several times that of the work on a few hundred numbers).
+    largest = float(np.abs(array).max()) if array.size else 0.0
+    if not math.isfinite(largest):
         raise MeasurementError(f"{field} contains NaN or infinite values", field=field)
-    largest = float(np.max(np.abs(array))) if array.size else 0.0
     if largest > limit:
         raise MeasurementError(
             f"{field} values must be at most {limit:.0e} in magnitude, got {largest:.3g}",
@@ -132,7 +150,7 @@ def _as_finite(values: object, field: str, limit: float = MAX_MAGNITUDE) -> Floa
             "no pilot was received",
             field=field,
         )
-    return array
+    return array, largest
 
 
 def power_from_amplitudes(amplitudes: FloatArray) -> FloatArray:
@@ -166,12 +184,16 @@ def measurement_from_power(power: object, n_leds: int) -> Measurement:
 
 def measurement_from_correlation(correlation: object, n_leds: int) -> Measurement:
     """Validate a correlation matrix (M x M, symmetric) or its upper triangle (M(M+1)/2)."""
-    values = _as_finite(correlation, "correlation")
+    values, scale = _finite_and_largest(correlation, "correlation")
     if values.shape == (n_leds, n_leds):
-        scale = float(np.max(np.abs(values)))
-        if np.max(np.abs(values - values.T)) > _SYMMETRY_RTOL * max(scale, 1e-300):
+        # The triangle and its mirror, read as flat positions: |R_il - R_li| is the same
+        # number either way round, so the largest over the triangle is the matrix's.
+        upper, lower = _flat_triangles(n_leds)
+        flat = values.ravel()
+        above, below = flat[upper], flat[lower]
+        if np.abs(above - below).max() > _SYMMETRY_RTOL * max(scale, 1e-300):
             raise MeasurementError("correlation matrix must be symmetric", field="correlation")
-        values = vech(0.5 * (values + values.T))
+        values = 0.5 * (above + below)
     elif values.shape != (vech_length(n_leds),):
         raise MeasurementError(
             f"correlation must be a {n_leds} x {n_leds} matrix or its {vech_length(n_leds)} "
@@ -179,9 +201,9 @@ def measurement_from_correlation(correlation: object, n_leds: int) -> Measuremen
             field="correlation",
         )
     diagonal = values[_diagonal_positions(n_leds)]
-    if np.any(diagonal < 0):
+    if diagonal.size and diagonal.min() < 0:
         raise MeasurementError("correlation diagonal entries must be >= 0", field="correlation")
-    if not np.any(diagonal > 0):
+    if not (diagonal.size and diagonal.max() > 0):
         raise MeasurementError(
             "correlation is all zero on its diagonal: no pilot was received", field="correlation"
         )
@@ -255,7 +277,22 @@ def _upper_triangle(n_leds: int) -> tuple[IntArray, IntArray]:
     return upper, lower
 
 
+@functools.lru_cache(maxsize=8)
+def _flat_triangles(n_leds: int) -> tuple[IntArray, IntArray]:
+    """The flat positions in an M x M matrix of :func:`vech`'s entries (i, l) and of their
+    mirrors (l, i), made once per M."""
+    upper, lower = _upper_triangle(n_leds)
+    above = upper * n_leds + lower
+    below = lower * n_leds + upper
+    above.flags.writeable = False
+    below.flags.writeable = False
+    return above, below
+
+
+@functools.lru_cache(maxsize=8)
 def _diagonal_positions(n_leds: int) -> IntArray:
-    # Position of (i, i) in vech order: row i starts after sum_{r<i} (M - r) entries.
+    """Position of (i, i) in vech order: row i starts after sum_{r<i} (M - r) entries."""
     rows = np.arange(n_leds)
-    return np.asarray(rows * n_leds - rows * (rows - 1) // 2)
+    positions = np.asarray(rows * n_leds - rows * (rows - 1) // 2)
+    positions.flags.writeable = False
+    return positions

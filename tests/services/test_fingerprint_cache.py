@@ -258,3 +258,32 @@ def test_a_localize_left_to_the_pool_is_read_there_only(
     assert made == []
     assert localize_in_memory(cache, metrics, room_id=room_id, body=body) is not None
     assert made == [room_id]
+
+
+def test_a_room_localizer_looks_each_solver_up_once_and_answers_as_a_single_localize(
+    two_ready_rooms: tuple[TestClient, Registry, list[str]], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    client, registry, (room_id, _) = two_ready_rooms
+    metrics = Metrics()
+    cache = FingerprintCache(registry=registry, size=2, version_check_seconds=60.0, metrics=metrics)
+    body = _measurement(client, room_id)
+    omp = body.model_copy(update={"solver": "omp"})
+    references = [
+        localize_measurement(cache, metrics, room_id=room_id, body=b) for b in (body, omp)
+    ]
+    lookups: list[tuple[str, str]] = []
+    prepare = cache.prepare
+
+    def counted(room: str, version: int, model: Any, name: str) -> Any:
+        lookups.append((model, name))
+        return prepare(room, version, model, name)
+
+    monkeypatch.setattr(cache, "prepare", counted)
+    localizer = localization.RoomLocalizer(cache, metrics, room_id=room_id)
+    read = [localizer.read(b) for b in (body, omp, body, omp, body)]
+    answers = [localizer.answer(localizer.solve(r)) for r in read]
+    assert lookups == [("correlation", "gridless"), ("correlation", "omp")]
+    for answer, reference in zip(answers, [*references, *references, references[0]], strict=True):
+        assert answer.model_dump(exclude={"elapsed_ms"}) == reference.model_dump(
+            exclude={"elapsed_ms"}
+        )

@@ -156,3 +156,111 @@ def test_summed_terminals_says_nothing_where_the_spectrum_does_not(
     power = measurement_from_amplitudes(amplitudes, "power", 16)
     for measurement in (full, averaged, rounded, indefinite, power):
         assert summed_terminals(measurement) is None
+
+
+def _plain_correlation(correlation: object, n_leds: int) -> np.ndarray:
+    """The correlation rules in plain NumPy, one whole-array step each: the checks as the
+    contract states them, in its order, and the symmetrised matrix's upper triangle."""
+
+    def refuse(message: str) -> MeasurementError:
+        return MeasurementError(message, field="correlation")
+
+    try:
+        values = np.asarray(correlation, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise refuse("correlation must contain only numbers") from exc
+    if not np.all(np.isfinite(values)):
+        raise refuse("correlation contains NaN or infinite values")
+    largest = float(np.max(np.abs(values))) if values.size else 0.0
+    if largest > 1e100:
+        raise refuse(
+            f"correlation values must be at most {1e100:.0e} in magnitude, got {largest:.3g}"
+        )
+    if 0.0 < largest < 1e-100:
+        raise refuse(
+            f"correlation is below {1e-100:.0e} everywhere (largest {largest:.3g}): "
+            "no pilot was received"
+        )
+    length = n_leds * (n_leds + 1) // 2
+    rows, cols = np.triu_indices(n_leds)
+    if values.shape == (n_leds, n_leds):
+        if np.max(np.abs(values - values.T)) > 1e-6 * max(largest, 1e-300):
+            raise refuse("correlation matrix must be symmetric")
+        values = (0.5 * (values + values.T))[rows, cols]
+    elif values.shape != (length,):
+        raise refuse(
+            f"correlation must be a {n_leds} x {n_leds} matrix or its {length} "
+            f"upper-triangle entries, got shape {values.shape}"
+        )
+    diagonal = values[rows == cols]
+    if np.any(diagonal < 0):
+        raise refuse("correlation diagonal entries must be >= 0")
+    if not np.any(diagonal > 0):
+        raise refuse("correlation is all zero on its diagonal: no pilot was received")
+    return values
+
+
+def _correlation_inputs(rng: np.random.Generator, n_leds: int) -> list[object]:
+    """Valid and invalid correlation inputs of M LEDs, as arrays and as JSON's lists."""
+    amplitudes = rng.uniform(0.0, 2.0, size=(int(rng.integers(1, 6)), n_leds))
+    matrix = amplitudes.T @ amplitudes * 10.0 ** rng.uniform(-30, 30)
+    cases: list[object] = [matrix, vech(matrix)]
+    noisy = matrix * (1 + rng.normal(0.0, 1e-9, matrix.shape))  # asymmetric within tolerance
+    cases.append(noisy)
+    if n_leds > 1:
+        skewed = matrix.copy()
+        skewed[0, 1] *= 1.01  # beyond it
+        cases.append(skewed)
+        for ratio in (0.5e-6, 1.5e-6):  # either side of the tolerance, near it
+            edge = matrix.copy()
+            edge[0, 1] += ratio * np.max(matrix)
+            cases.append(edge)
+    signed = matrix.copy()
+    signed[-1, -1] = -abs(signed[-1, -1]) - 1.0
+    cases += [signed, vech(signed), np.zeros_like(matrix), np.zeros(vech_length(n_leds))]
+    off_diagonal = matrix - np.diag(np.diag(matrix))  # no pilot on the diagonal
+    cases += [off_diagonal, vech(off_diagonal)]
+    for bad in (np.nan, np.inf, -np.inf, 1e101, -1e101):
+        spoiled = matrix.copy()
+        spoiled.flat[rng.integers(matrix.size)] = bad
+        cases.append(spoiled)
+    cases += [matrix * 1e-120, matrix[:, :-1], vech(matrix)[:-1], matrix[None], np.ones(0)]
+    cases += [case.tolist() for case in list(cases) if isinstance(case, np.ndarray)]
+    cases += [
+        matrix.tolist(),
+        vech(matrix).tolist(),
+        [["a"] * n_leds] * n_leds,
+        [[1.0] * n_leds] * (n_leds - 1) + [[1.0]],  # ragged
+        [None] * vech_length(n_leds),
+        np.asfortranarray(matrix),
+        matrix.astype(np.float32),
+        5.0,
+    ]
+    return cases
+
+
+@pytest.mark.parametrize("n_leds", [1, 2, 3, 5, 16])
+def test_correlation_measurement_equals_the_plain_rules(
+    n_leds: int, rng: np.random.Generator
+) -> None:
+    """Same values, bit for bit, or the same error, on random valid and invalid inputs."""
+    outcomes = []
+    for _ in range(20):
+        for case in _correlation_inputs(rng, n_leds):
+            try:
+                expected = _plain_correlation(case, n_leds)
+            except MeasurementError as error:
+                with pytest.raises(MeasurementError) as info:
+                    measurement_from_correlation(case, n_leds)
+                assert (info.value.message, info.value.field) == (error.message, error.field)
+                outcomes.append(" ".join(error.message.split(" ")[:4]))
+                continue
+            measurement = measurement_from_correlation(case, n_leds)
+            assert measurement.model == "correlation"
+            assert measurement.n_leds == n_leds
+            assert measurement.values.dtype == np.float64
+            assert_array_equal(measurement.values, expected, strict=True)
+            outcomes.append("valid")
+    assert "valid" in outcomes
+    # valid inputs and each of the eight rules (one LED: no asymmetry)
+    assert len(set(outcomes)) == (9 if n_leds > 1 else 8)
