@@ -38,6 +38,19 @@ def _mass_inside(covariance: np.ndarray, radius: float) -> float:
     return float(mass)
 
 
+def _recorded_verdicts(monkeypatch: pytest.MonkeyPatch) -> list[bool]:
+    """The verdicts of ``scatter_explains`` in the terminal solve, as they are given."""
+    verdicts: list[bool] = []
+    explains = terminal_weights.scatter_explains
+
+    def recorded(*args, **kwargs):  # type: ignore[no-untyped-def]
+        verdicts.append(explains(*args, **kwargs))
+        return verdicts[-1]
+
+    monkeypatch.setattr(terminal_solve, "scatter_explains", recorded)
+    return verdicts
+
+
 def test_a_scatter_on_many_degrees_of_freedom_gives_the_chi_square_radius(
     paper_room: Layout,
 ) -> None:
@@ -165,14 +178,7 @@ def test_terminals_the_scatter_does_not_explain_are_placed_by_it_with_their_own_
     rng = np.random.default_rng(6)
     amplitudes = clean * (1.0 + 5 * scatter.relative_sd * rng.standard_normal(clean.shape))
     solver = GridlessSolver(build_fingerprint(silent), "correlation")
-    verdicts: list[bool] = []
-    explains = terminal_weights.scatter_explains
-
-    def recorded(*args, **kwargs):  # type: ignore[no-untyped-def]
-        verdicts.append(explains(*args, **kwargs))
-        return verdicts[-1]
-
-    monkeypatch.setattr(terminal_solve, "scatter_explains", recorded)
+    verdicts = _recorded_verdicts(monkeypatch)
     answer = solver.solve_terminals(amplitudes)
     assert verdicts == [False]
     uncalibrated = GridlessSolver(build_fingerprint(paper_room), "correlation")
@@ -210,14 +216,7 @@ def test_terminals_too_few_residuals_to_estimate_their_own_variances_keep_the_sc
     np.testing.assert_allclose(answer.covariances, declared.covariances, rtol=1e-4)
     # The scatter does not explain these residuals: with their own variances taken as
     # estimable, the radii would be theirs, and wider.
-    verdicts: list[bool] = []
-    explains = terminal_weights.scatter_explains
-
-    def recorded(*args, **kwargs):  # type: ignore[no-untyped-def]
-        verdicts.append(explains(*args, **kwargs))
-        return verdicts[-1]
-
-    monkeypatch.setattr(terminal_solve, "scatter_explains", recorded)
+    verdicts = _recorded_verdicts(monkeypatch)
     monkeypatch.setattr(terminal_solve, "own_variances_estimable", lambda *_: True)
     own = solver.solve_terminals(amplitudes)
     assert verdicts == [False]
