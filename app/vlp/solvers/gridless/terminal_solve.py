@@ -265,7 +265,7 @@ def solve_terminals(
     # request's few residuals would estimate it on next to nothing. A hand-held one's tilt
     # and gain are not in the survey's scatter, and under-covered with it: its radii come from
     # its own variances, where its residuals have the degrees of freedom to estimate them
-    # (docs/decisions/measured-radii.md).
+    # (docs/decisions/measured-radii.md, docs/decisions/radii-in-rooms-of-five-leds.md).
     measured = room.fingerprint.layout.amplitude_error
     like_survey: list[TerminalFit] | None = None
     survey_positions: FloatArray | None = None
@@ -371,7 +371,8 @@ def solve_terminals(
         # fit's prior: the survey measured the receivers' gain, and a place that explains the
         # amplitudes only with a gain the fit would not take is not another optimum (with the
         # gain free, such places widened radii in rooms of five LEDs). A layout's nominal
-        # scale can be off by more than that prior: there the gain stays free.
+        # scale can be off by more than that prior: there the gain stays free
+        # (docs/decisions/radii-in-rooms-of-five-leds.md).
         far = np.vstack(
             [
                 terminal_far_optima(
