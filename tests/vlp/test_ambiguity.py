@@ -142,15 +142,20 @@ def test_far_optima_finds_the_other_side_of_a_row() -> None:
     assert np.isnan(far_optima(amplitudes, gains, points, truth, wide, noise**2, 0.1)).all()
 
 
+def _corridor_terminal(x: float, y: float) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """The corridor's grid points (N, 2), their gains (M, N), a terminal at ``(x, y)`` (1, 2)
+    and its noiseless amplitudes (1, M)."""
+    layout = corridor()
+    points = layout.cell_centres()
+    truth = np.array([[x, y]])
+    return points, channel_gains(layout, points), truth, channel_gains(layout, truth).T
+
+
 def test_far_optima_weigh_the_gain_by_its_prior() -> None:
     """With a prior on the gain the profile is the cost minimised over the gain with that
     prior (here by a scalar search per grid point); the row's mirror image, explained by
     the same gain, is still far."""
-    layout = corridor()
-    points = layout.cell_centres()
-    gains = channel_gains(layout, points)
-    truth = np.array([[2.2, 0.4]])
-    clean = channel_gains(layout, truth).T
+    points, gains, truth, clean = _corridor_terminal(2.2, 0.4)
     noise = 1e-3 * float(clean.max())
     amplitudes = clean * 1.05 + noise * np.random.default_rng(3).standard_normal(clean.shape)
     tight = np.eye(2)[np.newaxis] * 1e-4
@@ -174,11 +179,7 @@ def test_a_far_place_that_needs_another_gain_is_not_far_under_its_prior() -> Non
     """A terminal beyond the end of a corridor's row of LEDs: with its gain free, places
     across the corridor explain its amplitudes scaled; under a 10 % prior on the gain
     the region reaches less far."""
-    layout = corridor()
-    points = layout.cell_centres()
-    gains = channel_gains(layout, points)
-    truth = np.array([[0.3, 1.0]])
-    clean = channel_gains(layout, truth).T
+    points, gains, truth, clean = _corridor_terminal(0.3, 1.0)
     noise = 1e-2 * float(clean.max())
     tight = np.eye(2)[np.newaxis] * 1e-4
     free = far_optima(clean, gains, points, truth, tight, noise**2, 0.1)
