@@ -72,8 +72,8 @@ class Solution:
         Goodness of the fit and the measurement's fitted scale.
     radii : ndarray of shape (K,) or None, metres
         Each estimate's 95 % radius (:func:`app.vlp.radii.confidence_radii` of
-        ``covariances``); set by :meth:`Solver.solve` (:func:`with_radii`) whenever the
-        covariances are.
+        ``covariances``); set whenever the covariances are, by the solver's ``_solve`` or
+        else by :meth:`Solver.solve` (:func:`with_radii`).
     """
 
     positions: FloatArray

@@ -45,6 +45,7 @@ from app.vlp.solvers._kernel_rooms import (
 )
 from app.vlp.solvers.gridless._compiled.channel import (
     channel_constants,
+    channel_fields,
     channel_rows_kernel,
     diffuse_rows,
     whole_power,
@@ -126,6 +127,46 @@ def test_other_powers_are_math_pow(exponent: float) -> None:
     bases = np.random.default_rng(12).uniform(1e-3, 40.0, 500)
     got = np.array([whole_power(float(b), exponent) for b in bases])
     assert np.array_equal(got, [math.pow(float(b), exponent) for b in bases])
+
+
+@pytest.mark.parametrize("layout_name", sorted(LAYOUTS))
+def test_channel_fields_are_the_kernels_columns(layout_name: str) -> None:
+    """The compiled channel's few stacked arrays give back each of the channel's columns,
+    as the NumPy kernel holds them (the tilted and beamed LEDs' flags and tables too)."""
+    kernel = make_kernel(layout_name, "flat", seed=2)
+    constants = channel_constants(kernel)
+    assert constants is not None
+    fields = channel_fields(constants[0])
+    beams = kernel.beams
+    tilted = [bool(n[2] != -1.0 or n[0] != 0.0 or n[1] != 0.0) for n in kernel.normals]
+    want = (
+        kernel.led_xy[:, 0],
+        kernel.led_xy[:, 1],
+        kernel.led_z,
+        kernel.dz2,
+        kernel.factor,
+        kernel.free_height_factor,
+        kernel.orders,
+        kernel.half_exponent,
+        kernel.max_d2,
+        kernel.pilot_over_scale,
+        kernel.cos_fov2,
+        kernel.receiver_height,
+        kernel.normals,
+        tilted,
+        beams.beamed,
+        beams.knots,
+        beams.values,
+        beams.slopes,
+        beams.counts,
+    )
+    assert len(fields) == len(want)
+    for got, column in zip(fields, want, strict=True):
+        assert np.array_equal(np.asarray(got), np.asarray(column))
+    if layout_name == "tilted":
+        assert any(tilted)
+    if layout_name == "beamed":
+        assert np.asarray(fields[14]).any()
 
 
 @pytest.mark.parametrize("heights", [False, True])

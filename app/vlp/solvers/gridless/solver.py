@@ -24,6 +24,7 @@ import numpy as np
 
 from ...fingerprints import Fingerprint
 from ...measurements import Measurement, Model
+from ...radii import confidence_radii
 from ...typing import FloatArray
 from ..base import Solution, Solver, register_solver, with_radii
 from .fitting import residual_of
@@ -168,6 +169,7 @@ class GridlessSolver(Solver):
         fit = aggregated_fit_detail(room, fit, tolerances, residual.shape[0], state.n_targets)
         positions = state.positions
         covariances, fit = reported(room, positions, covariances, fit, far)
+        # The radii given here, not added by Solver.solve: no second Solution to build.
         return Solution(
             positions=positions,
             grid_indices=self.fingerprint.layout.nearest_cell(positions),
@@ -177,6 +179,7 @@ class GridlessSolver(Solver):
             n_iter=run.iterations,
             converged=state.converged,
             covariances=covariances,
+            radii=confidence_radii(covariances),
             gains=np.exp(0.5 * state.log_scale + state.log_gains),
             heights=state.heights.copy() if room.priors.fits_heights else None,
             fit=fit,

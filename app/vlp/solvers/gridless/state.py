@@ -127,13 +127,19 @@ class FitState:
 
     def with_target(self, position: FloatArray, height: float) -> FitState:
         """This state plus one unit-gain target at ``position`` and ``height``."""
-        plain = self.facts == _PLAIN and self.heights.shape[0] > 0 and height == self.heights[0]
+        k = self.positions.shape[0]
+        plain = self.facts == _PLAIN and k > 0 and height == self.heights[0]
+        # Filled in place: the search adds targets tens of times a solve, and a
+        # concatenation with a Python tuple costs several times the copy.
+        positions = np.empty((k + 1, 2))
+        positions[:k] = self.positions
+        positions[k] = position
         return FitState(
-            np.concatenate((self.positions, np.reshape(position, (1, 2)))),
-            np.concatenate((self.weights, (1.0,))),
+            positions,
+            _appended(self.weights, 1.0),
             self.noise,
-            np.concatenate((self.heights, (height,))),
-            np.concatenate((self.log_gains, (0.0,))),
+            _appended(self.heights, height),
+            _appended(self.log_gains, 0.0),
             self.log_scale,
             # A unit-gain target at the plane's height keeps a plain state plain.
             facts=_PLAIN if plain else None,
@@ -142,3 +148,12 @@ class FitState:
     def reordered(self, order: npt.NDArray[np.integer[Any]]) -> FitState:
         """The targets in the order ``order``."""
         return self.subset(order)
+
+
+def _appended(values: FloatArray, last: float) -> FloatArray:
+    """``values`` (shape (K,)) with ``last`` after them, a new array of shape (K + 1,)."""
+    n_values = values.shape[0]
+    out = np.empty(n_values + 1)
+    out[:n_values] = values
+    out[n_values] = last
+    return out

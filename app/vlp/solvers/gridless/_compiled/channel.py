@@ -24,17 +24,20 @@ __all__ = [
     "beam_at",
     "beam_towards",
     "channel_constants",
+    "channel_fields",
     "channel_rows_kernel",
     "inlined_channel_rows",
     "whole_power",
 ]
 
-# (led_x, led_y, led_z, dz2, factor, free_height_factor, orders, half_exponent, max_d2,
-#  pilot_over_scale, cos_fov2, receiver_height, normals (M, 3), tilted (M,) bool,
-#  beamed (M,) bool, beam knots, values, slopes (M, W), beam counts (M,) int: BeamArrays)
+# (per LED (10, M): led_x, led_y, led_z, dz2, factor, free_height_factor, orders,
+#  half_exponent, max_d2, pilot_over_scale; cos_fov2, receiver_height, normals (M, 3),
+#  flags (2, M) bool: tilted, beamed; beam tables (3, M, W): knots, values, slopes (BeamArrays);
+#  beam counts (M,) int). Few arrays: a compiled call from Python unboxes each array of its
+#  arguments (about 0.15 us apiece, measured); :func:`channel_fields` gives the columns.
 ChannelConstants = tuple[Any, ...]
-# (n_axes (0: no reflections), nodes, scales, lows, highs, shifts, strides, offsets,
-#  coefficients (rows, M), receiver_height)
+# (n_axes (0: no reflections), nodes, scales, bounds (3, A): lows, highs, shifts, strides,
+#  offsets, coefficients (rows, M), receiver_height)
 TableConstants = tuple[Any, ...]
 
 _UNIT = np.ascontiguousarray(_UNIT_BASIS)
@@ -53,9 +56,7 @@ def _table_constants(table: DiffuseTable | None, n_leds: int) -> TableConstants 
             0,
             empty,
             np.zeros((1, 8)),
-            empty,
-            empty,
-            empty,
+            np.zeros((3, 1)),
             np.zeros(1, dtype=np.int64),
             np.zeros(1, dtype=np.int64),
             np.zeros((1, n_leds)),
@@ -68,9 +69,7 @@ def _table_constants(table: DiffuseTable | None, n_leds: int) -> TableConstants 
         3 if table.has_heights else 2,
         _floats(plan.nodes),
         np.ascontiguousarray(plan.scales, dtype=np.float64),
-        _floats(plan.lows),
-        _floats(plan.highs),
-        _floats(plan.shifts),
+        np.vstack((_floats(plan.lows), _floats(plan.highs), _floats(plan.shifts))),
         np.array(plan.strides, dtype=np.int64).ravel(),
         np.array(plan.offsets, dtype=np.int64).ravel(),
         np.ascontiguousarray(table.coefficients.reshape(-1, table.n_leds), dtype=np.float64),
@@ -87,29 +86,69 @@ def channel_constants(kernel: ChannelKernel) -> tuple[ChannelConstants, TableCon
     table = _table_constants(kernel.diffuse, kernel.n_leds)
     if table is None:
         return None
+    beams = kernel.beams
     channel = (
-        _floats(kernel.led_xy[:, 0]),
-        _floats(kernel.led_xy[:, 1]),
-        _floats(kernel.led_z),
-        _floats(kernel.dz2),
-        _floats(kernel.factor),
-        _floats(kernel.free_height_factor),
-        _floats(kernel.orders),
-        _floats(kernel.half_exponent),
-        _floats(kernel.max_d2),
-        _floats(kernel.pilot_over_scale),
+        np.vstack(
+            [
+                _floats(column)
+                for column in (
+                    kernel.led_xy[:, 0],
+                    kernel.led_xy[:, 1],
+                    kernel.led_z,
+                    kernel.dz2,
+                    kernel.factor,
+                    kernel.free_height_factor,
+                    kernel.orders,
+                    kernel.half_exponent,
+                    kernel.max_d2,
+                    kernel.pilot_over_scale,
+                )
+            ]
+        ),
         float(kernel.cos_fov2),
         float(kernel.receiver_height),
         np.ascontiguousarray(kernel.normals, dtype=np.float64),
-        np.array([bool(n[2] != -1.0 or n[0] != 0.0 or n[1] != 0.0) for n in kernel.normals]),
-        np.ascontiguousarray(kernel.beams.beamed, dtype=np.bool_),
-        np.ascontiguousarray(kernel.beams.knots, dtype=np.float64),
-        np.ascontiguousarray(kernel.beams.values, dtype=np.float64),
-        np.ascontiguousarray(kernel.beams.slopes, dtype=np.float64),
-        np.ascontiguousarray(kernel.beams.counts, dtype=np.int64),
+        np.vstack(
+            (
+                [bool(n[2] != -1.0 or n[0] != 0.0 or n[1] != 0.0) for n in kernel.normals],
+                np.asarray(beams.beamed, dtype=np.bool_),
+            )
+        ),
+        np.ascontiguousarray(np.stack((beams.knots, beams.values, beams.slopes)), dtype=np.float64),
+        np.ascontiguousarray(beams.counts, dtype=np.int64),
     )
     kernel._compiled = (channel, table)  # type: ignore[attr-defined]
     return channel, table
+
+
+@compiled_inline
+def channel_fields(channel: ChannelConstants) -> tuple[Any, ...]:
+    """The channel's columns, each its own array (views of :func:`channel_constants`'s few):
+    ``(led_x, led_y, led_z, dz2, factor, free_height_factor, orders, half_exponent, max_d2,
+    pilot_over_scale, cos_fov2, receiver_height, normals, tilted, beamed, knots, values,
+    slopes, counts)``."""
+    per_led, cos_fov2, receiver_height, normals, flags, beams, counts = channel
+    return (
+        per_led[0],
+        per_led[1],
+        per_led[2],
+        per_led[3],
+        per_led[4],
+        per_led[5],
+        per_led[6],
+        per_led[7],
+        per_led[8],
+        per_led[9],
+        cos_fov2,
+        receiver_height,
+        normals,
+        flags[0],
+        flags[1],
+        beams[0],
+        beams[1],
+        beams[2],
+        counts,
+    )
 
 
 # Whole exponents up to this size are taken by multiplication (:func:`whole_power`).
@@ -167,11 +206,12 @@ def beam_towards(
     """LED ``m``'s beam ``I(c)`` towards a receiver at ``r - s = (ux, uy, uz)`` and its
     derivatives along the receiver's x, y, z: ``I'(c) (n / d - c (r - s) / d^2)`` with
     ``c = n . (r - s) / d`` (:meth:`ChannelKernel.beam_towards`)."""
-    normals = channel[12]
+    fields = channel_fields(channel)
+    normals = fields[12]
     nx, ny, nz = normals[m, 0], normals[m, 1], normals[m, 2]
     dist = math.sqrt(ux * ux + uy * uy + uz * uz)
     c = (nx * ux + ny * uy + nz * uz) / dist
-    beam, slope = beam_at(channel[15][m], channel[16][m], channel[17][m], channel[18][m], c)
+    beam, slope = beam_at(fields[15][m], fields[16][m], fields[17][m], fields[18][m], c)
     slope /= dist
     return (
         beam,
@@ -190,7 +230,8 @@ def diffuse_rows(
     ``zs`` is used only when ``given_z`` (else the table's receiver height); a single-height
     table has d/dz = 0. Zeros without a table.
     """
-    n_axes, nodes, scales, lows, highs, shifts, strides, offsets, coefficients, height = table
+    n_axes, nodes, scales, bounds, strides, offsets, coefficients, height = table
+    lows, highs, shifts = bounds[0], bounds[1], bounds[2]
     n_points = xs.shape[0]
     n_leds = coefficients.shape[1]
     out = np.zeros((4, n_points, n_leds))
@@ -291,7 +332,7 @@ def inlined_channel_rows(
         _,
         _,
         _,
-    ) = channel
+    ) = channel_fields(channel)
     n_points = xs.shape[0]
     n_leds = led_x.shape[0]
     out = np.zeros((4, n_points, n_leds))

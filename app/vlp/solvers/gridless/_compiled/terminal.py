@@ -29,6 +29,7 @@ from .channel import (
     ChannelConstants,
     TableConstants,
     beam_towards,
+    channel_fields,
     channel_rows_kernel,
     diffuse_rows,
 )
@@ -58,10 +59,11 @@ def terminal_model_kernel(
     """:func:`terminal_model`: gains (M,) and their gradient (M, 5) along x, y, z, tx, ty
     (the tilt's columns zero unless the tilt is free)."""
     free_height, has_normal, free_tilt, z0 = shape
-    led_x, led_y, led_z = channel[0], channel[1], channel[2]
-    free_height_factor, orders, pilot, cos_fov2 = channel[5], channel[6], channel[9], channel[10]
-    normals, tilted = channel[12], channel[13]
-    beamed = channel[14]
+    fields = channel_fields(channel)
+    led_x, led_y, led_z = fields[0], fields[1], fields[2]
+    free_height_factor, orders, pilot, cos_fov2 = fields[5], fields[6], fields[9], fields[10]
+    normals, tilted = fields[12], fields[13]
+    beamed = fields[14]
     n_leds = led_x.shape[0]
     x, y = theta[0], theta[1]
     z = theta[2] if free_height else z0

@@ -28,7 +28,7 @@ import numpy as np
 from ...._kernels import compiled, compiled_inline
 from ....typing import FloatArray
 from ..lm import LMSettings
-from .channel import ChannelConstants, TableConstants, diffuse_rows
+from .channel import ChannelConstants, TableConstants, channel_fields, diffuse_rows
 from .lm import lapack_cholesky_solve, lm_kernel, register_model
 
 __all__ = [
@@ -63,9 +63,10 @@ def joint_gains_kernel(
 ) -> tuple[FloatArray, FloatArray]:
     """:meth:`JointModel.gains`: the pieces (6, M, K) (rows named by the module's
     constants) and the multipliers ``e^(v + 2 u)`` (K,)."""
-    led_x, led_y, led_z = channel[0], channel[1], channel[2]
-    free_height_factor, orders, half_exponent = channel[5], channel[6], channel[7]
-    pilot, cos_fov2 = channel[9], channel[10]
+    fields = channel_fields(channel)
+    led_x, led_y, led_z = fields[0], fields[1], fields[2]
+    free_height_factor, orders, half_exponent = fields[5], fields[6], fields[7]
+    pilot, cos_fov2 = fields[9], fields[10]
     k = heights.shape[0]
     n_leds = led_x.shape[0]
     xs = theta[:k].copy()

@@ -26,7 +26,13 @@ import numpy as np
 
 from ...._kernels import compiled
 from ....typing import FloatArray, IntArray
-from .channel import ChannelConstants, TableConstants, beam_towards, channel_rows_kernel
+from .channel import (
+    ChannelConstants,
+    TableConstants,
+    beam_towards,
+    channel_fields,
+    channel_rows_kernel,
+)
 from .fit import Problem, _augmented, _multipliers, _symmetric_product
 
 __all__ = [
@@ -82,19 +88,11 @@ def misfit_columns_kernel(
     (K M columns), its photodiode's tilt (2 K; zeros when ``level``, the layout's
     photodiodes facing straight up), and its height (K) unless heights are fitted; and the
     number of columns of each kind."""
-    (led_x, led_y, led_z, _, _, free_height_factor, orders, half_exponent, _, _, cos_fov2) = (
-        channel[0],
-        channel[1],
-        channel[2],
-        channel[3],
-        channel[4],
-        channel[5],
-        channel[6],
-        channel[7],
-        channel[8],
-        channel[9],
-        channel[10],
-    )
+    fields = channel_fields(channel)
+    led_x, led_y, led_z = fields[0], fields[1], fields[2]
+    free_height_factor, orders, half_exponent = fields[5], fields[6], fields[7]
+    cos_fov2 = fields[10]
+    beamed = fields[14]
     heights, _, _, _, on_plane, _ = fixed
     has_rotation, rotation = white[0], white[1]
     k = heights.shape[0]
@@ -148,7 +146,7 @@ def misfit_columns_kernel(
                     * math.pow(drop, orders[m] + 1.0)
                     * math.pow(dist2, -half_exponent[m])
                 )
-                if channel[14][m]:
+                if beamed[m]:
                     los *= beam_towards(channel, m, -off_x, -off_y, -drop)[0]
                 shape[m, i, 1] = los / drop * off_x
                 shape[m, i, 2] = los / drop * off_y
