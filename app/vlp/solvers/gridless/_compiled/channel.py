@@ -36,8 +36,8 @@ __all__ = [
 #  beam counts (M,) int). Few arrays: a compiled call from Python unboxes each array of its
 #  arguments (about 0.15 us apiece, measured); :func:`channel_fields` gives the columns.
 ChannelConstants = tuple[Any, ...]
-# (n_axes (0: no reflections), nodes, scales, bounds (3, A): lows, highs, shifts, strides,
-#  offsets, coefficients (rows, M), receiver_height)
+# (n_axes A (0: no reflections), floats: lows (A), highs (A), shifts (A), then the nodes;
+#  scales, ints: strides (A), then the offsets; coefficients (rows, M), receiver_height)
 TableConstants = tuple[Any, ...]
 
 _UNIT = np.ascontiguousarray(_UNIT_BASIS)
@@ -56,8 +56,6 @@ def _table_constants(table: DiffuseTable | None, n_leds: int) -> TableConstants 
             0,
             empty,
             np.zeros((1, 8)),
-            np.zeros((3, 1)),
-            np.zeros(1, dtype=np.int64),
             np.zeros(1, dtype=np.int64),
             np.zeros((1, n_leds)),
             0.0,
@@ -67,11 +65,16 @@ def _table_constants(table: DiffuseTable | None, n_leds: int) -> TableConstants 
     plan = table._plan
     return (
         3 if table.has_heights else 2,
-        _floats(plan.nodes),
+        np.concatenate(
+            (_floats(plan.lows), _floats(plan.highs), _floats(plan.shifts), _floats(plan.nodes))
+        ),
         np.ascontiguousarray(plan.scales, dtype=np.float64),
-        np.vstack((_floats(plan.lows), _floats(plan.highs), _floats(plan.shifts))),
-        np.array(plan.strides, dtype=np.int64).ravel(),
-        np.array(plan.offsets, dtype=np.int64).ravel(),
+        np.concatenate(
+            (
+                np.array(plan.strides, dtype=np.int64).ravel(),
+                np.array(plan.offsets, dtype=np.int64).ravel(),
+            )
+        ),
         np.ascontiguousarray(table.coefficients.reshape(-1, table.n_leds), dtype=np.float64),
         float(table.receiver_height),
     )
@@ -230,8 +233,10 @@ def diffuse_rows(
     ``zs`` is used only when ``given_z`` (else the table's receiver height); a single-height
     table has d/dz = 0. Zeros without a table.
     """
-    n_axes, nodes, scales, bounds, strides, offsets, coefficients, height = table
-    lows, highs, shifts = bounds[0], bounds[1], bounds[2]
+    n_axes, floats, scales, ints, coefficients, height = table
+    lows, highs = floats[:n_axes], floats[n_axes : 2 * n_axes]
+    shifts, nodes = floats[2 * n_axes : 3 * n_axes], floats[3 * n_axes :]
+    strides, offsets = ints[:n_axes], ints[n_axes:]
     n_points = xs.shape[0]
     n_leds = coefficients.shape[1]
     out = np.zeros((4, n_points, n_leds))
