@@ -17,9 +17,7 @@ class TrackerSettings:
     Attributes
     ----------
     walking_accel_sd_mps2 : float
-        Sd of the white-noise acceleration of the walking (constant-velocity) model, m/s^2:
-        how a walker's velocity wanders between fixes. Starts and stops are the mixture's
-        switches between standing and walking, not this noise.
+        Sd of the white-noise acceleration of the walking (constant-velocity) model, m/s^2.
     standing_drift_mps : float
         Sd of the random walk of a standing terminal's position per square-root second
         (a hand that sways), m/s^0.5.
@@ -96,7 +94,7 @@ class TrackerSettings:
         standing one: the odds of walking are multiplied by it after a fix that ends one.
     """
 
-    walking_accel_sd_mps2: float = 1.0
+    walking_accel_sd_mps2: float = 1.5
     standing_drift_mps: float = 0.01
     start_speed_sd_mps: float = 0.5
     mean_dwell_s: float = 2.0
