@@ -232,18 +232,8 @@ class Objective:
         return unpacked
 
     def _state_facts(self, fixed: FitState) -> tuple[bool, bool]:
-        """Whether ``fixed`` has every target on the receivers' plane, and unit multipliers
-        (remembered on the state: LM evaluates many thetas against one)."""
-        facts = fixed.facts
-        if facts is None:
-            on_plane = bool((fixed.heights == self.kernel.receiver_height).all())
-            unit = (
-                fixed.log_scale == 0.0
-                and not fixed.log_gains.any()
-                and bool((fixed.weights == 1.0).all())
-            )
-            facts = fixed.facts = (on_plane, unit)
-        return facts
+        """Whether ``fixed`` has every target on the receivers' plane, and unit multipliers."""
+        return fixed.facts_on(self.kernel.receiver_height)
 
     def _multipliers(self, theta: FloatArray, slots: _Slots, fixed: FitState) -> FloatArray | None:
         """Each atom's multiplier ``w_k exp(v + 2 u_k)`` at ``theta``; None when all are 1."""

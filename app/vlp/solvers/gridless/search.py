@@ -36,6 +36,7 @@ from .report import profiles
 from .room import PreparedRoom
 from .state import (
     MAX_LOG_SCALE,
+    PLAIN_FACTS,
     FitState,
 )
 from .whitening import Whitening
@@ -179,7 +180,7 @@ def grow_kernel(
     on_plane = room.priors.height_mean == room.kernel.receiver_height
     if k == 0:
         grown.facts = (on_plane, state.log_scale == 0.0)
-    elif on_plane and state.facts == (True, True):
+    elif on_plane and state.facts == PLAIN_FACTS:
         grown.facts = state.facts  # unit-gain targets on the plane added to a plain state
     if inner_iter > 0:
         run.iterations += int(total)

@@ -64,7 +64,7 @@ MAX_LOG_GAIN = math.log(2.0)
 MAX_LOG_SCALE = math.log(1e4)
 
 # A state's facts when every target is on the receivers' plane with a unit multiplier.
-_PLAIN = (True, True)
+PLAIN_FACTS = (True, True)
 
 
 @dataclass
@@ -122,13 +122,13 @@ class FitState:
             self.log_gains[keep],
             self.log_scale,
             # Some of the targets of a state on the plane with unit multipliers are too.
-            facts=_PLAIN if self.facts == _PLAIN else None,
+            facts=PLAIN_FACTS if self.facts == PLAIN_FACTS else None,
         )
 
     def with_target(self, position: FloatArray, height: float) -> FitState:
         """This state plus one unit-gain target at ``position`` and ``height``."""
         k = self.positions.shape[0]
-        plain = self.facts == _PLAIN and k > 0 and height == self.heights[0]
+        plain = self.facts == PLAIN_FACTS and k > 0 and height == self.heights[0]
         # Filled in place: the search adds targets tens of times a solve, and a
         # concatenation with a Python tuple costs several times the copy.
         positions = np.empty((k + 1, 2))
@@ -142,8 +142,22 @@ class FitState:
             _appended(self.log_gains, 0.0),
             self.log_scale,
             # A unit-gain target at the plane's height keeps a plain state plain.
-            facts=_PLAIN if plain else None,
+            facts=PLAIN_FACTS if plain else None,
         )
+
+    def facts_on(self, receiver_height: float) -> tuple[bool, bool]:
+        """Whether every target is on the receivers' plane at ``receiver_height``, and whether
+        every multiplier is 1 (remembered: a fit evaluates many thetas against one state)."""
+        facts = self.facts
+        if facts is None:
+            on_plane = bool((self.heights == receiver_height).all())
+            unit = (
+                self.log_scale == 0.0
+                and not self.log_gains.any()
+                and bool((self.weights == 1.0).all())
+            )
+            facts = self.facts = (on_plane, bool(unit))
+        return facts
 
     def reordered(self, order: npt.NDArray[np.integer[Any]]) -> FitState:
         """The targets in the order ``order``."""

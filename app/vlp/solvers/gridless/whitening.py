@@ -41,14 +41,7 @@ def compiled_indices(model: Model, n_leds: int) -> tuple[IntArray, IntArray, Flo
 def fixed_tuple(kernel: ChannelKernel, state: FitState) -> tuple[Any, ...]:
     """The compiled kernels' ``fixed`` tuple of a state (no parameters in theta)."""
     heights = np.ascontiguousarray(state.heights, dtype=np.float64)
-    facts = state.facts  # as Objective._state_facts: the same kernel's plane
-    if facts is None:
-        unit = (
-            state.log_scale == 0.0
-            and not state.log_gains.any()
-            and bool((state.weights == 1.0).all())
-        )
-        facts = state.facts = (bool((heights == kernel.receiver_height).all()), bool(unit))
+    facts = state.facts_on(kernel.receiver_height)
     return (
         heights,
         np.ascontiguousarray(state.weights, dtype=np.float64),
